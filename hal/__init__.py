@@ -1,0 +1,1 @@
+"""The hardware boundary: the `Hal` protocol and its backends (simulator, Revolution Pi)."""

@@ -1,0 +1,58 @@
+"""The `Hal` protocol: one process-image read and one write per cycle, and a safe state."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+
+@dataclass(frozen=True, slots=True)
+class Inputs:
+    """The input half of the process image, keyed by channel name."""
+
+    di: Mapping[str, bool]
+    ai: Mapping[str, int]
+
+
+@dataclass(slots=True)
+class Outputs:
+    """The output half of the process image (relay outputs), keyed by channel name."""
+
+    ro: dict[str, bool] = field(default_factory=dict)
+
+    def safe_copy(self) -> Outputs:
+        """The same channels, all off: the safe state of every output."""
+        return Outputs(ro=dict.fromkeys(self.ro, False))
+
+    def any_on(self) -> bool:
+        return any(self.ro.values())
+
+
+class HalError(Exception):
+    """The IO backend failed (device gone, image unreadable); the loop goes safe on it."""
+
+
+@runtime_checkable
+class Hal(Protocol):
+    """A process image: inputs are scanned once per cycle, outputs written once per cycle."""
+
+    def scan_inputs(self) -> Inputs:
+        """Read the whole input image once."""
+        ...
+
+    def scan_outputs(self, outputs: Outputs) -> None:
+        """Write the whole output image once."""
+        ...
+
+    def force_all_outputs_safe(self) -> None:
+        """Drop every output to its safe state now; must work even after the loop failed."""
+        ...
+
+    def read_estop(self) -> bool:
+        """True when the E-stop is active (read directly, for watchdogs and supervisors)."""
+        ...
+
+    def close(self) -> None:
+        """Leave outputs safe and release the device."""
+        ...

@@ -1,0 +1,132 @@
+"""The simulator HAL (the default backend): the ride's physics behind a process image."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from hal.base import Inputs, Outputs
+from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
+from hal.physics import PhysicsParams, SwitchFault, World
+
+
+class SimHal:
+    """A `Hal` whose world advances on the loop's clock, so tests step it without sleeping.
+
+    Fault injection is a plain API (`press_estop`, `stick_home`, `freeze_tilt_ai`, ...).
+    """
+
+    def __init__(
+        self,
+        clock: Callable[[], float],
+        iomap: IoMap | None = None,
+        params: PhysicsParams | None = None,
+    ) -> None:
+        self._clock = clock
+        self.iomap = iomap or IoMap()
+        self.world = World(params=params or PhysicsParams())
+        self._last = clock()
+        self._relays = self.iomap.channels(RELAY_OUTPUTS)
+        self._written = Outputs(ro=dict.fromkeys(self._relays, False))
+        self.scans = 0
+        self.writes = 0
+        self.closed = False
+        self._apply(self._written)
+
+    # -- Hal protocol -------------------------------------------------------------------
+    def scan_inputs(self) -> Inputs:
+        now = self._clock()
+        self.world.step(now - self._last)
+        self._last = now
+        self.scans += 1
+        sensed = self.world.sense()
+        m = self.iomap
+        estop_level = (not sensed.estop_pressed) if m.estop_active_low else sensed.estop_pressed
+        return Inputs(
+            di={
+                m.rotate_home: sensed.rotate_home,
+                m.tilt_home: sensed.tilt_home,
+                m.estop: estop_level,
+            },
+            ai={m.tilt_position: sensed.tilt_raw},
+        )
+
+    def scan_outputs(self, outputs: Outputs) -> None:
+        self._advance()
+        self.writes += 1
+        self._written = Outputs(ro={ch: bool(outputs.ro.get(ch, False)) for ch in self._relays})
+        self._apply(self._written)
+
+    def force_all_outputs_safe(self) -> None:
+        self._advance()
+        self._written = Outputs(ro=dict.fromkeys(self._relays, False))
+        self._apply(self._written)
+
+    def read_estop(self) -> bool:
+        return self.world.faults.estop_pressed
+
+    def close(self) -> None:
+        self.force_all_outputs_safe()
+        self.closed = True
+
+    # -- observation --------------------------------------------------------------------
+    @property
+    def outputs(self) -> Outputs:
+        """What was last written to the relays."""
+        return Outputs(ro=dict(self._written.ro))
+
+    def relay(self, signal: Signal) -> bool:
+        return self._written.ro[self.iomap.channel(signal)]
+
+    # -- fault injection ----------------------------------------------------------------
+    def press_estop(self) -> None:
+        self.world.faults.estop_pressed = True
+
+    def release_estop(self) -> None:
+        self.world.faults.estop_pressed = False
+
+    def stick_home(self, axis: str, fault: SwitchFault | None) -> None:
+        """Stick the `rotate` or `tilt` home switch open or closed (None clears it)."""
+        if axis == "rotate":
+            self.world.faults.rotate_home = fault
+        elif axis == "tilt":
+            self.world.faults.tilt_home = fault
+        else:
+            raise ValueError(f"unknown axis {axis!r}; expected 'rotate' or 'tilt'")
+
+    def freeze_tilt_ai(self, frozen: bool = True) -> None:
+        self.world.faults.tilt_ai_frozen = frozen
+
+    def set_tilt_noise(self, counts: float) -> None:
+        if counts < 0:
+            raise ValueError("noise amplitude must be >= 0 counts")
+        self.world.faults.tilt_ai_noise_counts = counts
+
+    def stall(self, axis: str, stalled: bool = True) -> None:
+        """A drive that gets power but does not move (a seized gearbox, a blown fuse)."""
+        if axis == "rotate":
+            self.world.faults.rotate_stalled = stalled
+        elif axis == "tilt":
+            self.world.faults.tilt_stalled = stalled
+        else:
+            raise ValueError(f"unknown axis {axis!r}; expected 'rotate' or 'tilt'")
+
+    def clear_faults(self) -> None:
+        f = self.world.faults
+        f.rotate_home = f.tilt_home = None
+        f.tilt_ai_frozen = False
+        f.tilt_ai_noise_counts = 0.0
+        f.rotate_stalled = f.tilt_stalled = False
+
+    # -- internals ----------------------------------------------------------------------
+    def _advance(self) -> None:
+        """Integrate up to now under the old outputs before they change."""
+        now = self._clock()
+        self.world.step(now - self._last)
+        self._last = now
+
+    def _apply(self, outputs: Outputs) -> None:
+        m, d = self.iomap, self.world.drive
+        d.rotate_on = outputs.ro[m.rotate_relay]
+        d.rotate_ccw = outputs.ro[m.rotate_dir]
+        d.tilt_on = outputs.ro[m.tilt_relay]
+        d.tilt_up = outputs.ro[m.tilt_dir]

@@ -1,0 +1,135 @@
+"""Encode and decode wire models: msgpack by default, JSON for the zenoh CLI and for humans."""
+
+from __future__ import annotations
+
+import json
+from enum import StrEnum
+from typing import Any, TypeVar
+
+import msgpack
+from pydantic import BaseModel, ValidationError
+
+from schema.errors import Error, ErrorCode
+
+MAX_PAYLOAD_BYTES = 64 * 1024
+"""Larger requests are refused before any parsing."""
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class Format(StrEnum):
+    """A payload format, named by the Zenoh encoding that announces it."""
+
+    MSGPACK = "application/msgpack"
+    JSON = "application/json"
+
+
+class DecodeError(Exception):
+    """A payload that cannot become the expected model; carries the wire `Error`."""
+
+    def __init__(self, error: Error, raw: Any = None) -> None:
+        super().__init__(error.message)
+        self.error = error
+        self.raw = raw
+
+
+def sniff_format(data: bytes, encoding: str | None) -> Format:
+    """Pick the format of a request: its declared encoding, else JSON text if it looks like it.
+
+    The zenoh CLI and z_get send JSON with the default `zenoh/bytes` encoding; a msgpack map never
+    starts with `{` or whitespace, so sniffing cannot confuse the two.
+    """
+    if encoding:
+        base = encoding.split(";", 1)[0]
+        if base in (Format.JSON, "text/json", "text/plain"):
+            return Format.JSON
+        if base in (Format.MSGPACK, "application/x-msgpack"):
+            return Format.MSGPACK
+    head = data.lstrip()[:1]
+    if head in (b"{", b"["):
+        return Format.JSON
+    return Format.MSGPACK
+
+
+def encode(model: BaseModel, fmt: Format = Format.MSGPACK) -> bytes:
+    """Serialise a model in the given format."""
+    if fmt is Format.JSON:
+        return model.model_dump_json().encode()
+    return pack(model.model_dump(mode="json"))
+
+
+def pack(obj: Any) -> bytes:
+    """msgpack bytes of plain data."""
+    data: bytes = msgpack.packb(obj, use_bin_type=True)
+    return data
+
+
+def decode_raw(data: bytes, fmt: Format) -> Any:
+    """Bytes to plain data, or `DecodeError` saying why."""
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise DecodeError(
+            Error(
+                code=ErrorCode.PAYLOAD_TOO_LARGE,
+                message=f"payload is {len(data)} bytes, the limit is {MAX_PAYLOAD_BYTES}",
+            )
+        )
+    try:
+        if fmt is Format.JSON:
+            return json.loads(data)
+        return msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except (ValueError, RecursionError, msgpack.UnpackException) as exc:
+        # json.JSONDecodeError, UnicodeDecodeError and msgpack's ExtraData are ValueErrors.
+        raise DecodeError(
+            Error(
+                code=ErrorCode.BAD_PAYLOAD,
+                message=f"payload is not valid {fmt.name.lower()}: {_short(exc)}",
+            )
+        ) from exc
+
+
+def validate(model: type[M], raw: Any) -> M:
+    """Plain data to a model, or `DecodeError` naming the first bad field as a JSON pointer."""
+    if not isinstance(raw, dict):
+        raise DecodeError(
+            Error(
+                code=ErrorCode.BAD_PAYLOAD,
+                message=f"payload must be a map/object, got {type(raw).__name__}",
+            ),
+            raw,
+        )
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        path = json_pointer(first["loc"])
+        count = exc.error_count()
+        more = f" (and {count - 1} more)" if count > 1 else ""
+        raise DecodeError(
+            Error(
+                code=ErrorCode.BAD_PAYLOAD,
+                message=f"{path or '/'}: {first['msg']}{more}",
+                path=path,
+            ),
+            raw,
+        ) from exc
+
+
+def decode(model: type[M], data: bytes, fmt: Format) -> M:
+    """Bytes straight to a model."""
+    return validate(model, decode_raw(data, fmt))
+
+
+def json_pointer(loc: tuple[int | str, ...] | list[int | str]) -> str:
+    """A pydantic error location as an RFC 6901 JSON pointer; union tags are skipped."""
+    parts: list[str] = []
+    for item in loc:
+        text = str(item)
+        if text in ("tilt", "rotate") and parts and parts[-1].isdigit():
+            continue  # the discriminator tag pydantic inserts for a step, not a real field
+        parts.append(text.replace("~", "~0").replace("/", "~1"))
+    return "".join("/" + p for p in parts)
+
+
+def _short(exc: BaseException) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return text[:200]

@@ -1,0 +1,183 @@
+"""Commands, their request payloads (with sessions) and the `Reply` envelope."""
+
+from __future__ import annotations
+
+import math
+from enum import StrEnum
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, StringConstraints, field_validator
+
+from schema import SCHEMA_VERSION
+from schema.base import OpenWireModel, WireModel
+from schema.errors import Error
+from schema.status import MachineState
+
+
+class Command(StrEnum):
+    """Every command the machine takes; `key` is its suffix under `machine/<id>/cmd/`."""
+
+    CALIBRATE_TILT = "CalibrateTilt"
+    CALIBRATE_ROTATE = "CalibrateRotate"
+    HOME = "Home"
+    START = "Start"
+    PAUSE = "Pause"
+    RESUME = "Resume"
+    STOP = "Stop"
+    CHECK_CALIBRATION = "CheckCalibration"
+    CHECK_HOME = "CheckHome"
+
+    @property
+    def key(self) -> str:
+        return _KEYS[self]
+
+    @classmethod
+    def from_key(cls, key: str) -> Command | None:
+        return _BY_KEY.get(key)
+
+
+_KEYS: dict[Command, str] = {
+    Command.CALIBRATE_TILT: "calibrate/tilt",
+    Command.CALIBRATE_ROTATE: "calibrate/rotate",
+    Command.HOME: "home",
+    Command.START: "start",
+    Command.PAUSE: "pause",
+    Command.RESUME: "resume",
+    Command.STOP: "stop",
+    Command.CHECK_CALIBRATION: "check/calibration",
+    Command.CHECK_HOME: "check/home",
+}
+_BY_KEY = {v: k for k, v in _KEYS.items()}
+
+
+class Direction(StrEnum):
+    """Rotation sense seen from above the ride."""
+
+    CW = "cw"
+    CCW = "ccw"
+
+
+TransactionId = Annotated[
+    str, StringConstraints(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9._:@/+\-]+$")
+]
+
+
+class TiltStep(WireModel):
+    """Tilt the seat to an absolute angle."""
+
+    kind: Literal["tilt"] = "tilt"
+    degrees: float
+
+    @field_validator("degrees")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("degrees must be a finite number")
+        return v
+
+
+class RotateStep(WireModel):
+    """Rotate whole revolutions, each ending on the home switch."""
+
+    kind: Literal["rotate"] = "rotate"
+    direction: Direction = Field(default=Direction.CW, strict=False)
+    revolutions: int = Field(default=1, ge=1, le=1000)
+
+
+Step = Annotated[TiltStep | RotateStep, Field(discriminator="kind")]
+
+
+class Session(WireModel):
+    """A ride program: a named list of steps, run in order."""
+
+    name: str = Field(default="default", min_length=1, max_length=64)
+    steps: list[Step] = Field(min_length=1, max_length=100)
+
+
+DEFAULT_SESSION = Session(
+    name="default",
+    steps=[TiltStep(degrees=45.0), RotateStep(direction=Direction.CW, revolutions=3)],
+)
+
+
+class CommandRequest(WireModel):
+    """The envelope of every command: an id that makes a retry safe, and the sender's time."""
+
+    transaction_id: TransactionId
+    timecode: float | None = None
+
+
+class StartRequest(CommandRequest):
+    """`Start`, optionally with a session (the default session otherwise)."""
+
+    session: Session | None = None
+
+
+REQUEST_MODELS: dict[Command, type[CommandRequest]] = {c: CommandRequest for c in Command}
+REQUEST_MODELS[Command.START] = StartRequest
+
+
+class ReplyCode(StrEnum):
+    """What a successful command did; failures carry `RESP_ERROR` and an `Error`."""
+
+    RESP_START_ACCEPTED = "RESP_START_ACCEPTED"
+    RESP_HOME_ACCEPTED = "RESP_HOME_ACCEPTED"
+    RESP_CALIBRATION_ACCEPTED = "RESP_CALIBRATION_ACCEPTED"
+    RESP_PAUSED = "RESP_PAUSED"
+    RESP_RESUMED = "RESP_RESUMED"
+    RESP_DONE = "RESP_DONE"
+    RESP_CHECK = "RESP_CHECK"
+    RESP_ERROR = "RESP_ERROR"
+
+
+class CheckResult(OpenWireModel):
+    """Outcome of CheckCalibration / CheckHome, per axis."""
+
+    ok: bool
+    tilt: bool
+    rotate: bool
+
+
+class Reply(OpenWireModel):
+    """The one reply every command gets: success or a clear error, and the state afterwards."""
+
+    schema_version: int = SCHEMA_VERSION
+    transaction_id: str | None
+    command: str | None
+    timecode: float
+    success: bool
+    code: ReplyCode
+    state: MachineState | None = None
+    result: CheckResult | None = None
+    error: Error | None = None
+    error_message: str = ""
+
+    @classmethod
+    def failure(
+        cls,
+        error: Error,
+        *,
+        transaction_id: str | None,
+        command: str | None,
+        timecode: float,
+        state: MachineState | None = None,
+    ) -> Reply:
+        return cls(
+            transaction_id=transaction_id,
+            command=command,
+            timecode=timecode,
+            success=False,
+            code=ReplyCode.RESP_ERROR,
+            state=state,
+            error=error,
+            error_message=error.message,
+        )
+
+
+def transaction_id_of(raw: Any) -> str | None:
+    """Best-effort id from an undecodable request, so even its error reply can be matched."""
+    if isinstance(raw, dict):
+        tid = raw.get("transaction_id")
+        if isinstance(tid, str) and 0 < len(tid) <= 64:
+            return tid
+    return None

@@ -1,0 +1,31 @@
+"""Scan-loop diagnostics published on `machine/<id>/diag/cycle`."""
+
+from __future__ import annotations
+
+from schema.base import OpenWireModel
+
+
+class TimingStats(OpenWireModel):
+    """Seconds; percentiles over the recent window, min/max/mean since the last reset."""
+
+    last: float = 0.0
+    mean: float = 0.0
+    min: float = 0.0
+    max: float = 0.0
+    p50: float = 0.0
+    p99: float = 0.0
+
+
+class CycleDiag(OpenWireModel):
+    """A PLC task monitor: period, execution time, wake-up jitter, overruns, missed cycles."""
+
+    period_s: float
+    cycles: int
+    execution: TimingStats
+    jitter: TimingStats
+    overruns: int
+    missed_cycles: int
+    commands: int
+    window: int
+    since: float
+    time: float

@@ -1,0 +1,38 @@
+"""The one error model on the wire and its codes."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from schema.base import OpenWireModel
+
+
+class ErrorCode(StrEnum):
+    """Why a request was refused; stable strings that scripts may match on."""
+
+    BAD_PAYLOAD = "BAD_PAYLOAD"
+    PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
+    UNSUPPORTED_ENCODING = "UNSUPPORTED_ENCODING"
+    UNKNOWN_COMMAND = "UNKNOWN_COMMAND"
+    BAD_KEY = "BAD_KEY"
+    WRONG_STATE = "WRONG_STATE"
+    ESTOP_ACTIVE = "ESTOP_ACTIVE"
+    NOT_CALIBRATED = "NOT_CALIBRATED"
+    NOT_HOME = "NOT_HOME"
+    INVALID_SESSION = "INVALID_SESSION"
+    DUPLICATE_TRANSACTION = "DUPLICATE_TRANSACTION"
+    BUSY = "BUSY"
+    UNKNOWN_PARAM = "UNKNOWN_PARAM"
+    PARAM_OUT_OF_RANGE = "PARAM_OUT_OF_RANGE"
+    PARAM_LOCKED = "PARAM_LOCKED"
+    STORAGE_FAILED = "STORAGE_FAILED"
+    NOT_AVAILABLE = "NOT_AVAILABLE"
+    INTERNAL = "INTERNAL"
+
+
+class Error(OpenWireModel):
+    """What was wrong and where: `path` is a JSON pointer into the request ("" = whole request)."""
+
+    code: ErrorCode
+    message: str
+    path: str = ""

@@ -1,0 +1,36 @@
+"""Online parameters under `machine/<id>/params/<name>`."""
+
+from __future__ import annotations
+
+from schema.base import OpenWireModel, WireModel
+from schema.commands import TransactionId
+
+
+class ParamValue(OpenWireModel):
+    """A parameter's live value, its project default, and whether a write persisted it."""
+
+    name: str
+    value: float | int | bool | str
+    default: float | int | bool | str
+    persisted: bool
+    changed_at: float | None = None
+    unit: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
+    locked_while_moving: bool = False
+    description: str = ""
+
+
+class ParamSet(WireModel):
+    """Write a parameter (`persist` makes it survive a restart) or reset it to its default."""
+
+    transaction_id: TransactionId
+    value: float | int | bool | str | None = None
+    persist: bool = False
+    reset: bool = False
+
+
+class ParamList(OpenWireModel):
+    """Every parameter at once."""
+
+    params: list[ParamValue]

@@ -1,0 +1,104 @@
+"""Machine states and the `Status` record published on `machine/<id>/status`."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from pydantic import Field
+
+from schema import SCHEMA_VERSION
+from schema.base import OpenWireModel
+
+
+class MachineState(StrEnum):
+    """Every state of the machine; the string is what the wire carries."""
+
+    IDLE = "IDLE"
+    HOMING = "HOMING"
+    CALIBRATING = "CALIBRATING"
+    RUNNING = "RUNNING"
+    PAUSED = "PAUSED"
+    DONE = "DONE"
+    FAULT_ESTOP = "FAULT_ESTOP"
+    FAULT_HW = "FAULT_HW"
+    WARNING_NEEDS_CALIBRATION = "WARNING_NEEDS_CALIBRATION"
+    WARNING_NOT_HOME = "WARNING_NOT_HOME"
+
+
+MOTION_STATES = frozenset({MachineState.HOMING, MachineState.CALIBRATING, MachineState.RUNNING})
+"""States in which a controller may energise a relay."""
+
+FAULT_STATES = frozenset({MachineState.FAULT_ESTOP, MachineState.FAULT_HW})
+
+
+class FaultCode(StrEnum):
+    """Why the machine is in a fault state."""
+
+    ESTOP = "ESTOP"
+    ROTATE_HOME_TIMEOUT = "ROTATE_HOME_TIMEOUT"
+    TILT_HOME_TIMEOUT = "TILT_HOME_TIMEOUT"
+    TILT_NOT_FOLLOWING = "TILT_NOT_FOLLOWING"
+    TILT_TIMEOUT = "TILT_TIMEOUT"
+    TILT_SIGNAL_NOISY = "TILT_SIGNAL_NOISY"
+    TILT_HOME_STUCK = "TILT_HOME_STUCK"
+    CALIBRATION_IMPLAUSIBLE = "CALIBRATION_IMPLAUSIBLE"
+    INVALID_SESSION = "INVALID_SESSION"
+    WATCHDOG = "WATCHDOG"
+    DAEMON_DIED = "DAEMON_DIED"
+    LOOP_EXCEPTION = "LOOP_EXCEPTION"
+
+
+class Fault(OpenWireModel):
+    """The active fault: a code for scripts and a message for people."""
+
+    code: FaultCode
+    message: str
+    axis: str | None = None
+
+
+class SessionProgress(OpenWireModel):
+    """Where the running session is."""
+
+    name: str
+    step_index: int
+    step_count: int
+    step_kind: str | None = None
+    revolutions_done: int = 0
+    revolutions_total: int = 0
+    tilt_target_deg: float | None = None
+
+
+class AxesFlags(OpenWireModel):
+    """A yes/no per axis (calibrated, homed)."""
+
+    tilt: bool = False
+    rotate: bool = False
+
+
+class EstopInfo(OpenWireModel):
+    """E-stop input and latch: `latched` stays true after release until Resume/Home/Stop."""
+
+    active: bool = False
+    latched: bool = False
+
+
+class Status(OpenWireModel):
+    """The machine's status, published on every change and as a heartbeat."""
+
+    schema_version: int = SCHEMA_VERSION
+    machine_id: str
+    state: MachineState
+    previous_state: MachineState | None = None
+    session: SessionProgress | None = None
+    warnings: list[str] = Field(default_factory=list)
+    fault: Fault | None = None
+    estop: EstopInfo = EstopInfo()
+    calibrated: AxesFlags = AxesFlags()
+    homed: AxesFlags = AxesFlags()
+    tilt_deg: float | None = None
+    rotate_deg: float | None = None
+    rider_connected: bool = False
+    seq: int
+    cycle: int
+    time: float
+    uptime_s: float = 0.0

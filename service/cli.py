@@ -1,0 +1,124 @@
+"""The `machine` command: run the daemon, check a config, or watch one session in the terminal."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TextIO
+
+from schema.findings import Findings
+from service.config import HalBackend, MachineConfig
+from service.logfmt import setup_logging
+from service.validate import validate_file
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_CONFIG = 2
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, help="machine config (TOML); project defaults if omitted")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="machine", description=__doc__)
+    sub = parser.add_subparsers(dest="cmd", required=True)
+
+    run = sub.add_parser("run", help="run the machine daemon")
+    _add_config_args(run)
+    hal = run.add_mutually_exclusive_group()
+    hal.add_argument("--sim", action="store_const", const="sim", dest="hal", help="simulator HAL")
+    hal.add_argument("--hal", choices=[b.value for b in HalBackend], help="HAL backend")
+    run.add_argument("--zenoh-config", type=Path, help="zenoh.json5 to open the session with")
+    run.add_argument("--listen", action="append", default=[], help="extra Zenoh listen endpoint")
+    run.add_argument("--connect", action="append", default=[], help="extra Zenoh connect endpoint")
+    run.add_argument("--id", dest="machine_id", help="override machine.id")
+    run.add_argument("--period", type=float, help="override loop.period_s (seconds)")
+    run.add_argument("--data-dir", type=Path, help="override data_dir")
+    run.add_argument("--fastdata", action="store_true", help="serve the FastData UDP axis stream")
+    run.add_argument(
+        "--once-session",
+        action="store_true",
+        help="no network: calibrate, home and run the default session once, then exit",
+    )
+    run.add_argument("--speed", type=float, default=1.0, help="with --once-session: sim speed-up")
+
+    val = sub.add_parser("validate", help="check a machine config and print every finding")
+    _add_config_args(val)
+    val.add_argument("--json", action="store_true", help="print the findings as JSON")
+
+    demo = sub.add_parser("demo", help="same as `run --sim --once-session`")
+    _add_config_args(demo)
+    demo.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    return parser
+
+
+def load_config(path: Path | None, stream: TextIO = sys.stderr) -> MachineConfig | None:
+    """The config, or None after printing every finding (the caller exits with code 2)."""
+    if path is None:
+        return MachineConfig()
+    config, findings = validate_file(path)
+    for f in findings.findings:
+        print(
+            f"{path}: {f.severity}: {f.category} at {f.path or '/'}: {f.message}",
+            file=stream,
+        )
+    return config
+
+
+def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(findings.model_dump(mode="json"), indent=2))
+        return
+    if not findings.findings:
+        print(f"{path or 'defaults'}: ok, no findings")
+    for f in findings.findings:
+        print(f"{f.severity:7} {f.category:14} {f.path or '/':32} {f.message}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
+    if args.cmd == "validate":
+        if args.config is None:
+            print_findings(Findings(ok=True, findings=[]), None, args.json)
+            return EXIT_OK
+        _, findings = validate_file(args.config)
+        print_findings(findings, args.config, args.json)
+        return EXIT_OK if findings.ok else EXIT_CONFIG
+    config = load_config(args.config)
+    if config is None:
+        return EXIT_CONFIG
+    if args.cmd == "demo" or args.once_session:
+        from service.demo import run_demo
+
+        return run_demo(config, speed=args.speed)
+    from service.daemon import DaemonOptions, run_daemon
+
+    overrides: dict[str, dict[str, object]] = {}
+    if args.hal:
+        overrides["hal"] = {"backend": args.hal}
+    if args.machine_id:
+        overrides["machine"] = {"id": args.machine_id}
+    if args.period is not None:
+        overrides["loop"] = {"period_s": args.period}
+    if args.fastdata:
+        overrides["fastdata"] = {"enabled": True}
+    try:
+        config = config.with_overrides(**overrides)
+        if args.data_dir is not None:
+            config = config.model_copy(update={"data_dir": str(args.data_dir)})
+    except ValueError as exc:
+        print(f"machine: bad command-line override: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    options = DaemonOptions(
+        zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect
+    )
+    return run_daemon(config, options)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

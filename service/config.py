@@ -1,0 +1,146 @@
+"""The machine config (`machine.toml`): pydantic models with the project defaults."""
+
+from __future__ import annotations
+
+import tomllib
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from hal.iomap import IoMap
+from hal.physics import PhysicsParams
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class MachineSection(_Section):
+    """Identity on the bus: keys are `<key_prefix>/<id>/...`."""
+
+    id: str = Field(default="m1", pattern=r"^[A-Za-z0-9_\-]{1,32}$")
+    key_prefix: str = Field(default="machine", pattern=r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
+
+
+class LoopSection(_Section):
+    """The scan task: period, and the real-time measures that help hold short periods."""
+
+    period_s: float = Field(default=0.010, ge=0.001, le=1.0)
+    spin_s: float = Field(default=0.0, ge=0.0, le=0.005)
+    gc_freeze: bool = True
+    cpu: int | None = Field(default=None, ge=0)
+    rt_priority: int | None = Field(default=None, ge=1, le=99)
+    watchdog_periods: int = Field(default=3, ge=2, le=1000)
+    max_commands_per_cycle: int = Field(default=64, ge=1, le=10_000)
+    stats_window: int = Field(default=1000, ge=10, le=100_000)
+
+
+class RotateSection(_Section):
+    """The rotate axis: a relay + direction, and a home switch once per revolution."""
+
+    nominal_speed_dps: float = Field(default=90.0, gt=0, le=3600)
+    revolution_timeout_s: float = Field(default=8.0, gt=0, le=600)
+    backoff_timeout_s: float = Field(default=2.0, gt=0, le=60)
+    speed_tolerance: float = Field(default=0.5, gt=0, lt=1)
+
+
+class TiltSection(_Section):
+    """The tilt axis: a relay + direction, an analog position, a home switch at 0°."""
+
+    nominal_speed_dps: float = Field(default=15.0, gt=0, le=360)
+    min_deg: float = Field(default=0.0, ge=-90, le=90)
+    max_deg: float = Field(default=60.0, ge=-90, le=120)
+    tolerance_deg: float = Field(default=1.0, gt=0, le=10)
+    home_timeout_s: float = Field(default=10.0, gt=0, le=600)
+    move_timeout_margin_s: float = Field(default=2.0, ge=0, le=600)
+    follow_window_s: float = Field(default=0.5, gt=0, le=60)
+    follow_min_counts: int = Field(default=4, ge=1, le=10_000)
+    noise_jump_counts: int = Field(default=60, ge=1, le=65_535)
+    noise_max_jumps: int = Field(default=3, ge=1, le=1000)
+    calibration_stroke_s: float = Field(default=2.0, gt=0, le=60)
+    calibration_samples: int = Field(default=10, ge=1, le=1000)
+    gain_min_counts_per_deg: float = Field(default=5.0, gt=0)
+    gain_max_counts_per_deg: float = Field(default=500.0, gt=0)
+
+
+class RiderLossPolicy(StrEnum):
+    """What the machine does when the controlling Rider disappears mid-motion."""
+
+    PAUSE = "pause"
+    STOP = "stop"
+    IGNORE = "ignore"
+
+
+class RiderLossSection(_Section):
+    policy: RiderLossPolicy = RiderLossPolicy.PAUSE
+    grace_s: float = Field(default=0.0, ge=0.0, le=60.0)
+
+
+class BusSection(_Section):
+    """Publication rates of the Zenoh adapter."""
+
+    heartbeat_s: float = Field(default=1.0, gt=0, le=60)
+    diag_period_s: float = Field(default=1.0, gt=0, le=60)
+    axis_every_cycles: int = Field(default=1, ge=1, le=10_000)
+    ai_deadband_counts: int = Field(default=2, ge=0, le=65_535)
+    transaction_window: int = Field(default=4096, ge=1, le=1_000_000)
+    inbox_capacity: int = Field(default=1024, ge=1, le=1_000_000)
+
+
+class HalBackend(StrEnum):
+    SIM = "sim"
+    REVPI = "revpi"
+
+
+class RevPiSection(_Section):
+    """Where revpimodio2 finds the process image and the piCtory config."""
+
+    procimg: str = "/dev/piControl0"
+    configrsc: str | None = None
+
+
+class HalSection(_Section):
+    backend: HalBackend = HalBackend.SIM
+    iomap: IoMap = IoMap()
+    sim: PhysicsParams = PhysicsParams()
+    revpi: RevPiSection = RevPiSection()
+
+
+class FastDataSection(_Section):
+    enabled: bool = False
+    host: str = "0.0.0.0"
+    port: int = Field(default=60000, ge=1, le=65535)
+
+
+class MachineConfig(_Section):
+    """Everything a machine daemon needs; every field has a project default."""
+
+    machine: MachineSection = MachineSection()
+    loop: LoopSection = LoopSection()
+    rotate: RotateSection = RotateSection()
+    tilt: TiltSection = TiltSection()
+    rider_loss: RiderLossSection = RiderLossSection()
+    bus: BusSection = BusSection()
+    hal: HalSection = HalSection()
+    fastdata: FastDataSection = FastDataSection()
+    data_dir: str = "data"
+
+    @property
+    def key_base(self) -> str:
+        """`machine/<id>`: the root of this machine's keys."""
+        return f"{self.machine.key_prefix}/{self.machine.id}"
+
+    def with_overrides(self, **sections: dict[str, Any]) -> MachineConfig:
+        """A copy with some section fields replaced (validated again)."""
+        data = self.model_dump(by_alias=True)
+        for name, fields in sections.items():
+            data[name] = {**data.get(name, {}), **fields}
+        return MachineConfig.model_validate(data)
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    """The raw TOML of a config file (no validation)."""
+    with path.open("rb") as fh:
+        return tomllib.load(fh)

@@ -1,0 +1,440 @@
+"""`ControlAPI`: the machine's state machine. Pure logic: no IO, no clock, time comes in."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from schema.commands import (
+    DEFAULT_SESSION,
+    CheckResult,
+    Command,
+    CommandRequest,
+    Reply,
+    ReplyCode,
+    RotateStep,
+    Session,
+    StartRequest,
+    TiltStep,
+)
+from schema.status import (
+    MOTION_STATES,
+    AxesFlags,
+    EstopInfo,
+    Fault,
+    FaultCode,
+    MachineState,
+    SessionProgress,
+)
+from service.config import MachineConfig, RiderLossPolicy
+from service.controllers import (
+    Chain,
+    Controller,
+    Outcome,
+    RotateCalibrate,
+    RotateHome,
+    SessionRun,
+    TiltCalibrate,
+    TiltHome,
+)
+from service.devices import Calibration, Devices
+from service.errors import (
+    EstopActive,
+    InvalidSession,
+    MachineError,
+    NotCalibrated,
+    NotHome,
+    WrongState,
+)
+
+S = MachineState
+REST_STATES = frozenset({S.IDLE, S.DONE, S.WARNING_NEEDS_CALIBRATION, S.WARNING_NOT_HOME})
+_ALLOWED: dict[Command, frozenset[MachineState]] = {
+    Command.CALIBRATE_TILT: REST_STATES | {S.FAULT_HW},
+    Command.CALIBRATE_ROTATE: REST_STATES | {S.FAULT_HW},
+    Command.HOME: REST_STATES | {S.FAULT_HW, S.FAULT_ESTOP},
+    Command.START: REST_STATES,
+    Command.PAUSE: MOTION_STATES,
+    Command.RESUME: frozenset({S.PAUSED, S.FAULT_ESTOP}),
+    Command.STOP: frozenset(S),
+    Command.CHECK_CALIBRATION: frozenset(S),
+    Command.CHECK_HOME: frozenset(S),
+}
+READ_ONLY = frozenset({Command.CHECK_CALIBRATION, Command.CHECK_HOME})
+
+
+def allowed_states(command: Command) -> frozenset[MachineState]:
+    """The states in which `command` is accepted (E-stop released)."""
+    return _ALLOWED[command]
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """A state change, for the log and for observers."""
+
+    old: MachineState
+    new: MachineState
+    reason: str
+    at: float
+
+
+@dataclass
+class _Refs:
+    """Which axes have a position reference since power-up or the last hardware fault."""
+
+    tilt: bool = False
+    rotate: bool = False
+
+
+@dataclass
+class ControlAPI:
+    """Commands in, a state and desired outputs out; `update(now)` once per scan cycle."""
+
+    devices: Devices
+    config: MachineConfig
+    calibration: Calibration = field(default_factory=Calibration)
+    on_calibrated: Callable[[Calibration], None] | None = None
+    on_transition: Callable[[Transition], None] | None = None
+    wall_offset: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.devices.tilt.calibration = self.calibration.tilt
+        self.refs = _Refs()
+        self.state = (
+            S.WARNING_NEEDS_CALIBRATION if not self.calibration.complete else S.WARNING_NOT_HOME
+        )
+        self.previous_state: MachineState | None = None
+        self.fault: Fault | None = None
+        self.controller: Controller | None = None
+        self.session_run: SessionRun | None = None
+        self.estop_latched = False
+        self.rider_connected = False
+        self.rider_warning: str | None = None
+        self._resume_to: MachineState | None = None
+        self._estop_from: MachineState | None = None
+        self._running: Command | None = None
+        self.devices.stop_all()
+
+    # ------------------------------------------------------------------------- commands
+    def handle(self, command: Command, request: CommandRequest, now: float) -> Reply:
+        """Act on one command and say what happened; refusals change nothing but the reply."""
+        stamp = now + self.wall_offset
+        try:
+            code, result = self._dispatch(command, request, now)
+        except MachineError as exc:
+            return Reply.failure(
+                exc.to_error(),
+                transaction_id=request.transaction_id,
+                command=command.value,
+                timecode=stamp,
+                state=self.state,
+            )
+        return Reply(
+            transaction_id=request.transaction_id,
+            command=command.value,
+            timecode=stamp,
+            success=True,
+            code=code,
+            state=self.state,
+            result=result,
+        )
+
+    def _dispatch(
+        self, command: Command, request: CommandRequest, now: float
+    ) -> tuple[ReplyCode, CheckResult | None]:
+        if command is Command.CHECK_CALIBRATION:
+            return ReplyCode.RESP_CHECK, self._check_calibration(now)
+        if command is Command.CHECK_HOME:
+            return ReplyCode.RESP_CHECK, self._check_home(now)
+        if self.devices.safety.is_estop_active():
+            raise EstopActive(
+                f"{command.value} refused: the E-stop is active; release it, then Resume,"
+                " Home or Stop"
+            )
+        if self.state not in _ALLOWED[command]:
+            allowed = ", ".join(sorted(_ALLOWED[command]))
+            raise WrongState(
+                f"{command.value} is not accepted in state {self.state}; accepted in: {allowed}"
+            )
+        if command is Command.START:
+            assert isinstance(request, StartRequest)
+            self._start(request.session or DEFAULT_SESSION, now)
+            return ReplyCode.RESP_START_ACCEPTED, None
+        if command is Command.HOME:
+            self._begin(
+                Command.HOME,
+                S.HOMING,
+                Chain([self._tilt_home, self._rotate_home]),
+                now,
+                "Home",
+            )
+            return ReplyCode.RESP_HOME_ACCEPTED, None
+        if command is Command.CALIBRATE_TILT:
+            tilt = self.devices.tilt
+            self._begin(
+                command, S.CALIBRATING, TiltCalibrate(tilt, self.config.tilt), now, "CalibrateTilt"
+            )
+            return ReplyCode.RESP_CALIBRATION_ACCEPTED, None
+        if command is Command.CALIBRATE_ROTATE:
+            rotate = self.devices.rotate
+
+            def calibrate() -> Controller:
+                return RotateCalibrate(rotate, self.config.rotate)
+
+            self._begin(
+                command, S.CALIBRATING, Chain([self._tilt_home, calibrate]), now, "CalibrateRotate"
+            )
+            return ReplyCode.RESP_CALIBRATION_ACCEPTED, None
+        if command is Command.PAUSE:
+            self._pause(now, "Pause")
+            return ReplyCode.RESP_PAUSED, None
+        if command is Command.RESUME:
+            self._resume(now)
+            return ReplyCode.RESP_RESUMED, None
+        self._stop(now, "Stop")
+        return ReplyCode.RESP_DONE, None
+
+    def _tilt_home(self) -> Controller:
+        return TiltHome(self.devices.tilt, self.config.tilt)
+
+    def _rotate_home(self) -> Controller:
+        return RotateHome(self.devices.rotate, self.config.rotate)
+
+    def _start(self, session: Session, now: float) -> None:
+        if not self.calibration.complete:
+            missing = [a for a in ("tilt", "rotate") if getattr(self.calibration, a) is None]
+            self._set_state(S.WARNING_NEEDS_CALIBRATION, now, "Start: not calibrated")
+            raise NotCalibrated(f"Start refused: {' and '.join(missing)} not calibrated")
+        home = self.homed()
+        if not (home.tilt and home.rotate):
+            missing = [a for a in ("tilt", "rotate") if not getattr(home, a)]
+            self._set_state(S.WARNING_NOT_HOME, now, "Start: not home")
+            raise NotHome(f"Start refused: {' and '.join(missing)} not home; send Home first")
+        problem = self._session_problem(session)
+        if problem is not None:
+            path, message = problem
+            self._enter_fault(
+                Fault(code=FaultCode.INVALID_SESSION, message=message), now, "Start: bad session"
+            )
+            raise InvalidSession(message, path)
+        run = SessionRun(
+            session, self.devices.tilt, self.devices.rotate, self.config.tilt, self.config.rotate
+        )
+        self.session_run = run
+        self._begin(Command.START, S.RUNNING, run, now, f"Start session {session.name!r}")
+
+    def _session_problem(self, session: Session) -> tuple[str, str] | None:
+        """The first step this machine cannot do, as (JSON pointer, message)."""
+        lo, hi = self.config.tilt.min_deg, self.config.tilt.max_deg
+        for i, step in enumerate(session.steps):
+            if isinstance(step, TiltStep) and not lo <= step.degrees <= hi:
+                return (
+                    f"/session/steps/{i}/degrees",
+                    f"step {i}: tilt {step.degrees:g}° is outside this machine's range"
+                    f" {lo:g}..{hi:g}°",
+                )
+            if isinstance(step, RotateStep) and step.revolutions < 1:
+                return (f"/session/steps/{i}/revolutions", f"step {i}: revolutions must be ≥ 1")
+        return None
+
+    def _begin(
+        self, command: Command, state: MachineState, ctl: Controller, now: float, why: str
+    ) -> None:
+        self._discard_controller()
+        if command is not Command.START:
+            self.session_run = None
+        self.controller = ctl
+        self._running = command
+        self.fault = None
+        self.rider_warning = None
+        self.estop_latched = False
+        self._resume_to = self._estop_from = None
+        self._set_state(state, now, why)
+
+    def _pause(self, now: float, why: str) -> None:
+        if self.controller is not None:
+            self.controller.halt()
+        self._resume_to = self.state
+        self._set_state(S.PAUSED, now, why)
+
+    def _resume(self, now: float) -> None:
+        if self.state is S.FAULT_ESTOP:
+            target = self._estop_from or self._rest_state()
+            self.estop_latched = False
+            self._estop_from = None
+            if target is S.PAUSED:
+                self._set_state(S.PAUSED, now, "Resume after E-stop (still paused)")
+                return
+        else:
+            target = self._resume_to or self._rest_state()
+            self._resume_to = None
+        if target in MOTION_STATES and self.controller is not None:
+            self.controller.resume(now)
+        elif target in MOTION_STATES:
+            target = self._rest_state()
+        self._set_state(target, now, "Resume")
+
+    def _stop(self, now: float, why: str) -> None:
+        self._discard_controller()
+        self.session_run = None
+        self.fault = None
+        self.estop_latched = False
+        self._resume_to = self._estop_from = None
+        self._set_state(S.DONE, now, why)
+
+    def _discard_controller(self) -> None:
+        if self.controller is not None:
+            self.controller.abandon()
+        self.controller = None
+        self._running = None
+        self.devices.stop_all()
+
+    # ---------------------------------------------------------------------------- checks
+    def _check_calibration(self, now: float) -> CheckResult:
+        cal = self.calibration
+        result = CheckResult(
+            ok=cal.complete, tilt=cal.tilt is not None, rotate=cal.rotate is not None
+        )
+        if self.state in REST_STATES:
+            if not result.ok:
+                self._set_state(S.WARNING_NEEDS_CALIBRATION, now, "CheckCalibration failed")
+            elif self.state is S.WARNING_NEEDS_CALIBRATION:
+                self._set_state(self._rest_state(), now, "CheckCalibration passed")
+        return result
+
+    def _check_home(self, now: float) -> CheckResult:
+        home = self.homed()
+        result = CheckResult(ok=home.tilt and home.rotate, tilt=home.tilt, rotate=home.rotate)
+        if self.state in REST_STATES:
+            if not result.ok:
+                self._set_state(S.WARNING_NOT_HOME, now, "CheckHome failed")
+            elif self.state is S.WARNING_NOT_HOME:
+                self._set_state(self._rest_state(), now, "CheckHome passed")
+        return result
+
+    def homed(self) -> AxesFlags:
+        """An axis is home when it has a reference and its home switch is closed now."""
+        return AxesFlags(
+            tilt=self.refs.tilt and self.devices.tilt.is_home(),
+            rotate=self.refs.rotate and self.devices.rotate.is_home(),
+        )
+
+    def _rest_state(self) -> MachineState:
+        if not self.calibration.complete:
+            return S.WARNING_NEEDS_CALIBRATION
+        home = self.homed()
+        return S.IDLE if home.tilt and home.rotate else S.WARNING_NOT_HOME
+
+    # ----------------------------------------------------------------------------- cycle
+    def on_estop(self, now: float) -> None:
+        """Called in every cycle the E-stop is active: latch, halt, outputs off."""
+        if self.controller is not None:
+            self.controller.halt()
+        self.devices.stop_all()
+        if self.state is not S.FAULT_ESTOP:
+            self._estop_from = self.state
+            self.estop_latched = True
+            self._set_state(S.FAULT_ESTOP, now, "E-stop pressed")
+
+    def update(self, now: float) -> None:
+        """Step the active controller; in every other state hold all outputs off."""
+        ctl = self.controller
+        if self.state not in MOTION_STATES or ctl is None:
+            self.devices.stop_all()
+            return
+        outcome = ctl.update(now)
+        if outcome is Outcome.BUSY:
+            return
+        if outcome is Outcome.FAULT:
+            assert ctl.fault is not None
+            self._enter_fault(ctl.fault, now, f"{self._running} failed")
+            return
+        self._finish(ctl, now)
+
+    def _finish(self, ctl: Controller, now: float) -> None:
+        command = self._running
+        self.controller, self._running = None, None
+        self.devices.stop_all()
+        if command is Command.START:
+            self._set_state(S.DONE, now, "session complete")
+            return
+        if command is Command.HOME:
+            self.refs.tilt = self.refs.rotate = True
+        elif command is Command.CALIBRATE_TILT:
+            assert isinstance(ctl, TiltCalibrate) and ctl.result is not None
+            self.refs.tilt = True
+            self._store_calibration(Calibration(tilt=ctl.result, rotate=self.calibration.rotate))
+        elif command is Command.CALIBRATE_ROTATE:
+            assert isinstance(ctl, Chain)
+            cal = ctl.finished[-1]
+            assert isinstance(cal, RotateCalibrate) and cal.result is not None
+            self.refs.tilt = self.refs.rotate = True
+            self._store_calibration(Calibration(tilt=self.calibration.tilt, rotate=cal.result))
+        self._set_state(self._rest_state(), now, f"{command} complete")
+
+    def _store_calibration(self, cal: Calibration) -> None:
+        self.calibration = cal
+        self.devices.tilt.calibration = cal.tilt
+        if self.on_calibrated is not None:
+            self.on_calibrated(cal)
+
+    def _enter_fault(self, fault: Fault, now: float, why: str) -> None:
+        self._discard_controller()
+        self.session_run = None
+        self.fault = fault
+        self.refs.tilt = self.refs.rotate = False
+        self._resume_to = None
+        self._set_state(S.FAULT_HW, now, f"{why}: {fault.message}")
+
+    def external_fault(self, fault: Fault, now: float) -> None:
+        """A fault raised outside the controllers (watchdog, supervisor, loop exception)."""
+        self._enter_fault(fault, now, fault.code.value)
+
+    def rider_lost(self, now: float) -> bool:
+        """The controlling Rider is gone: apply the rider-loss policy; True if it acted."""
+        self.rider_connected = False
+        policy = self.config.rider_loss.policy
+        if self.state not in MOTION_STATES or policy is RiderLossPolicy.IGNORE:
+            return False
+        self.rider_warning = f"controlling Rider lost during {self.state}; policy {policy}"
+        if policy is RiderLossPolicy.PAUSE:
+            self._pause(now, "Rider lost")
+        else:
+            self._stop(now, "Rider lost")
+        return True
+
+    def _set_state(self, new: MachineState, now: float, why: str) -> None:
+        if new is self.state:
+            return
+        old = self.state
+        self.previous_state, self.state = old, new
+        if self.on_transition is not None:
+            self.on_transition(Transition(old=old, new=new, reason=why, at=now + self.wall_offset))
+
+    # ---------------------------------------------------------------------------- status
+    def session_progress(self) -> SessionProgress | None:
+        return self.session_run.progress() if self.session_run is not None else None
+
+    def estop_info(self) -> EstopInfo:
+        return EstopInfo(active=self.devices.safety.is_estop_active(), latched=self.estop_latched)
+
+    def status_key(self) -> tuple[object, ...]:
+        """Cheap fingerprint of everything in `Status` except positions and time."""
+        run = self.session_run
+        home = self.homed()
+        return (
+            self.state,
+            self.previous_state,
+            self.fault,
+            self.devices.safety.is_estop_active(),
+            self.estop_latched,
+            self.calibration,
+            home.tilt,
+            home.rotate,
+            run.index if run is not None else None,
+            run.revolutions_done() if run is not None else None,
+            len(self.warnings),
+            self.rider_warning,
+            self.rider_connected,
+        )

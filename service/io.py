@@ -1,0 +1,98 @@
+"""Typed IO (`DI`, `AI`, `RO`) over the process image, named by the IO map."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hal.base import Inputs, Outputs
+from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
+from schema.io import IoKind
+
+
+class ProcessImage:
+    """The cycle's copy of all IO: inputs as last scanned, outputs as they will be written."""
+
+    def __init__(self, iomap: IoMap) -> None:
+        self.iomap = iomap
+        self.inputs = Inputs(
+            di=dict.fromkeys(iomap.channels(DIGITAL_INPUTS), False),
+            ai=dict.fromkeys(iomap.channels(ANALOG_INPUTS), 0),
+        )
+        self.outputs = Outputs(ro=dict.fromkeys(iomap.channels(RELAY_OUTPUTS), False))
+
+    def all_outputs_off(self) -> None:
+        for ch in self.outputs.ro:
+            self.outputs.ro[ch] = False
+
+
+@dataclass(frozen=True, slots=True)
+class DI:
+    """A digital input."""
+
+    name: str
+    channel: str
+    image: ProcessImage
+    kind = IoKind.DI
+
+    @property
+    def value(self) -> bool:
+        return self.image.inputs.di[self.channel]
+
+
+@dataclass(frozen=True, slots=True)
+class AI:
+    """An analog input in raw counts."""
+
+    name: str
+    channel: str
+    image: ProcessImage
+    kind = IoKind.AI
+
+    @property
+    def value(self) -> int:
+        return self.image.inputs.ai[self.channel]
+
+
+@dataclass(frozen=True, slots=True)
+class RO:
+    """A relay output; setting it changes the image, the HAL writes it at the cycle's end."""
+
+    name: str
+    channel: str
+    image: ProcessImage
+    kind = IoKind.RO
+
+    @property
+    def value(self) -> bool:
+        return self.image.outputs.ro[self.channel]
+
+    def set(self, on: bool) -> None:
+        self.image.outputs.ro[self.channel] = on
+
+
+class IoPoints:
+    """Every logical IO point of the ride, typed and bound to one process image."""
+
+    def __init__(self, image: ProcessImage) -> None:
+        m = image.iomap
+        self.image = image
+        self.rotate_home = DI(Signal.ROTATE_HOME, m.rotate_home, image)
+        self.tilt_home = DI(Signal.TILT_HOME, m.tilt_home, image)
+        self.estop = DI(Signal.ESTOP, m.estop, image)
+        self.tilt_position = AI(Signal.TILT_POSITION, m.tilt_position, image)
+        self.rotate_relay = RO(Signal.ROTATE_RELAY, m.rotate_relay, image)
+        self.rotate_dir = RO(Signal.ROTATE_DIR, m.rotate_dir, image)
+        self.tilt_relay = RO(Signal.TILT_RELAY, m.tilt_relay, image)
+        self.tilt_dir = RO(Signal.TILT_DIR, m.tilt_dir, image)
+
+    def all(self) -> tuple[DI | AI | RO, ...]:
+        return (
+            self.rotate_home,
+            self.tilt_home,
+            self.estop,
+            self.tilt_position,
+            self.rotate_relay,
+            self.rotate_dir,
+            self.tilt_relay,
+            self.tilt_dir,
+        )

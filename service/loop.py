@@ -1,0 +1,298 @@
+"""The scan loop: read inputs → E-stop → commands → update → write outputs → publish.
+
+`ScanLoop.step(now)` is a pure function of (inputs, queued commands, now); the real-time runner
+in `service/runner.py` calls it on absolute deadlines. Everything here runs on the scan thread,
+which alone owns machine state; other threads only put work into the `Inbox`.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from hal.base import Hal
+from schema.axes import AxisRecord
+from schema.commands import Command, CommandRequest, Reply
+from schema.errors import Error, ErrorCode
+from schema.io import IoValue
+from schema.status import Status
+from service.axes import AxisTracker
+from service.config import MachineConfig
+from service.control import ControlAPI
+from service.devices import Devices
+from service.io import AI, IoPoints, ProcessImage
+from service.transactions import TransactionLog
+
+
+class LoopSink(Protocol):
+    """Where the loop's publications go (the Zenoh bus, or a list in tests)."""
+
+    def publish_status(self, status: Status) -> None: ...
+
+    def publish_io(self, points: list[IoValue]) -> None: ...
+
+    def publish_axes(self, records: list[AxisRecord]) -> None: ...
+
+
+class NullSink:
+    """Publishes nothing."""
+
+    def publish_status(self, status: Status) -> None:
+        pass
+
+    def publish_io(self, points: list[IoValue]) -> None:
+        pass
+
+    def publish_axes(self, records: list[AxisRecord]) -> None:
+        pass
+
+
+class Task(Protocol):
+    """Work for the scan thread: `run` there, or `reject` if it can never run."""
+
+    def run(self, loop: ScanLoop, now: float) -> None: ...
+
+    def reject(self, error: Error) -> None: ...
+
+
+@dataclass
+class PendingCommand:
+    """A decoded command waiting for the scan thread; `respond` sends its one reply."""
+
+    command: Command
+    request: CommandRequest
+    respond: Callable[[Reply], None]
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        self.respond(loop.execute(self.command, self.request, now))
+
+    def reject(self, error: Error) -> None:
+        self.respond(
+            Reply.failure(
+                error,
+                transaction_id=self.request.transaction_id,
+                command=self.command.value,
+                timecode=0.0,
+            )
+        )
+
+
+@dataclass
+class LoopCall:
+    """Any other work for the scan thread (a parameter write, a sim fault, a rider loss)."""
+
+    fn: Callable[[ScanLoop, float], None]
+    on_reject: Callable[[Error], None] | None = None
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        self.fn(loop, now)
+
+    def reject(self, error: Error) -> None:
+        if self.on_reject is not None:
+            self.on_reject(error)
+
+
+class Inbox:
+    """Thread-safe queue into the scan thread; `put` wakes the runner so replies are prompt."""
+
+    def __init__(self, capacity: int = 1024) -> None:
+        self.capacity = capacity
+        self._items: deque[Task] = deque()
+        self._lock = threading.Lock()
+        self.wake = threading.Event()
+        self.closed = False
+
+    def put(self, task: Task) -> bool:
+        """Queue a task; False (and nothing queued) when full or closed."""
+        with self._lock:
+            if self.closed or len(self._items) >= self.capacity:
+                return False
+            self._items.append(task)
+        self.wake.set()
+        return True
+
+    def take(self, limit: int) -> list[Task]:
+        with self._lock:
+            n = min(limit, len(self._items))
+            out = [self._items.popleft() for _ in range(n)]
+            if not self._items:
+                self.wake.clear()
+        return out
+
+    def close(self) -> list[Task]:
+        """Refuse further tasks and hand back the ones never run."""
+        with self._lock:
+            self.closed = True
+            out = list(self._items)
+            self._items.clear()
+        return out
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+@dataclass
+class Published:
+    """The latest records, readable from any thread (each is replaced, never mutated)."""
+
+    status: Status | None = None
+    io: dict[str, IoValue] = field(default_factory=dict)
+    axes: dict[str, AxisRecord] = field(default_factory=dict)
+
+
+class ScanLoop:
+    """One scan cycle per `step(now)`; commands between cycles with `service_inbox(now)`."""
+
+    def __init__(
+        self,
+        hal: Hal,
+        control: ControlAPI,
+        config: MachineConfig,
+        sink: LoopSink | None = None,
+        inbox: Inbox | None = None,
+        started_at: float = 0.0,
+    ) -> None:
+        self.hal = hal
+        self.control = control
+        self.devices: Devices = control.devices
+        self.points: IoPoints = self.devices.points
+        self.image: ProcessImage = self.points.image
+        self.config = config
+        self.sink: LoopSink = sink or NullSink()
+        self.inbox = inbox or Inbox(config.bus.inbox_capacity)
+        self.transactions = TransactionLog(config.bus.transaction_window)
+        self.axes = AxisTracker(self.devices, config)
+        self.published = Published()
+        self.cycle = 0
+        self.commands_handled = 0
+        self.started_at = started_at
+        self.wall_offset = control.wall_offset
+        self._status_key: tuple[object, ...] | None = None
+        self._status_due = 0.0
+        self._seq = 0
+        self._io_last: dict[str, bool | int] = {}
+        self._max_tasks = config.loop.max_commands_per_cycle
+
+    # ------------------------------------------------------------------------------ cycle
+    def step(self, now: float) -> None:
+        """One scan cycle, in the design's order."""
+        self.cycle += 1
+        self.image.inputs = self.hal.scan_inputs()
+        if self.devices.safety.is_estop_active():
+            # Same cycle the input is seen: state, controllers and outputs, before anything else.
+            self.control.on_estop(now)
+            self.image.all_outputs_off()
+            self.hal.force_all_outputs_safe()
+            self.service_inbox(now)  # commands are refused with ESTOP_ACTIVE, checks answered
+            self._publish(now)
+            return
+        self.service_inbox(now)
+        self.control.update(now)
+        self.hal.scan_outputs(self.image.outputs)
+        self._publish(now)
+
+    def service_inbox(self, now: float) -> int:
+        """Run queued tasks (bounded per call so a storm cannot stretch a cycle unboundedly)."""
+        tasks = self.inbox.take(self._max_tasks)
+        for task in tasks:
+            task.run(self, now)
+        return len(tasks)
+
+    def execute(self, command: Command, request: CommandRequest, now: float) -> Reply:
+        """One command with at-most-once semantics by transaction id."""
+        self.commands_handled += 1
+        stamp = now + self.wall_offset
+        repeat = self.transactions.lookup(request.transaction_id, command.value, stamp)
+        if repeat is not None:
+            return repeat
+        reply = self.control.handle(command, request, now)
+        self.transactions.record(request.transaction_id, command.value, reply)
+        return reply
+
+    def go_safe(self) -> None:
+        """Outputs off in the image and at the HAL, whatever state the loop is in."""
+        self.image.all_outputs_off()
+        self.hal.force_all_outputs_safe()
+
+    # ---------------------------------------------------------------------------- publish
+    def _publish(self, now: float) -> None:
+        wall = now + self.wall_offset
+        control = self.control
+        fault = control.fault
+        self.axes.update(
+            now, control.state, fault.axis if fault else None, control.calibration.rotate
+        )
+        due = self.axes.due(self.cycle)
+        if due:
+            records = [self.axes.record(name, self.cycle, wall) for name in due]
+            self.published.axes = {**self.published.axes, **{r.axis: r for r in records}}
+            self.sink.publish_axes(records)
+        changed = self._io_changes(wall)
+        if changed:
+            self.published.io = {**self.published.io, **{p.name: p for p in changed}}
+            self.sink.publish_io(changed)
+        key = control.status_key()
+        if key != self._status_key or now >= self._status_due:
+            self._status_key = key
+            self._status_due = now + self.config.bus.heartbeat_s
+            status = self.build_status(now)
+            self.published.status = status
+            self.sink.publish_status(status)
+
+    def build_status(self, now: float) -> Status:
+        control = self.control
+        self._seq += 1
+        warnings = list(control.warnings)
+        if control.rider_warning:
+            warnings.append(control.rider_warning)
+        tilt = self.devices.tilt.read_position_degrees()
+        return Status(
+            machine_id=self.config.machine.id,
+            state=control.state,
+            previous_state=control.previous_state,
+            session=control.session_progress(),
+            warnings=warnings,
+            fault=control.fault,
+            estop=control.estop_info(),
+            calibrated={
+                "tilt": control.calibration.tilt is not None,
+                "rotate": control.calibration.rotate is not None,
+            },
+            homed=control.homed(),
+            tilt_deg=None if tilt is None else round(tilt, 2),
+            rotate_deg=None if self.axes.rotate.angle is None else round(self.axes.rotate.angle, 1),
+            rider_connected=control.rider_connected,
+            seq=self._seq,
+            cycle=self.cycle,
+            time=now + self.wall_offset,
+            uptime_s=round(now - self.started_at, 3),
+        )
+
+    def _io_changes(self, wall: float) -> list[IoValue]:
+        last = self._io_last
+        deadband = self.config.bus.ai_deadband_counts
+        out: list[IoValue] = []
+        for point in self.points.all():
+            value = point.value
+            prev = last.get(point.name)
+            if prev is not None:
+                if isinstance(point, AI):
+                    if abs(int(value) - int(prev)) <= deadband:
+                        continue
+                elif value == prev:
+                    continue
+            last[point.name] = value
+            out.append(
+                IoValue(
+                    name=point.name, kind=point.kind, channel=point.channel, value=value, time=wall
+                )
+            )
+        return out
+
+    def reject_pending(self, why: str) -> None:
+        """On shutdown: every queued command still gets its one reply."""
+        for task in self.inbox.close():
+            task.reject(Error(code=ErrorCode.NOT_AVAILABLE, message=why))

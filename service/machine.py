@@ -1,0 +1,61 @@
+"""The assembled core: HAL → process image → devices → ControlAPI → scan loop."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from hal.base import Hal
+from service.config import MachineConfig
+from service.control import ControlAPI, Transition
+from service.devices import Calibration, Devices
+from service.io import IoPoints, ProcessImage
+from service.loop import LoopSink, ScanLoop
+from service.persist import CalibrationStore
+
+log = logging.getLogger("machine")
+
+
+def log_transition(t: Transition) -> None:
+    log.info("event=state old=%s new=%s reason=%r", t.old, t.new, t.reason)
+
+
+class Machine:
+    """Everything below the bus, wired together; outputs are made safe before anything else."""
+
+    def __init__(
+        self,
+        config: MachineConfig,
+        hal: Hal,
+        *,
+        now: float,
+        wall_offset: float = 0.0,
+        store: CalibrationStore | None = None,
+        sink: LoopSink | None = None,
+        on_transition: Callable[[Transition], None] | None = log_transition,
+    ) -> None:
+        hal.force_all_outputs_safe()
+        self.config = config
+        self.hal = hal
+        self.store = store
+        self.image = ProcessImage(config.hal.iomap)
+        self.points = IoPoints(self.image)
+        self.devices = Devices(self.points)
+        warnings: list[str] = []
+        if store is not None:
+            calibration, warning = store.load()
+            if warning:
+                warnings.append(warning)
+                log.warning("event=calibration_load_failed detail=%r", warning)
+        else:
+            calibration = Calibration()
+        self.control = ControlAPI(
+            devices=self.devices,
+            config=config,
+            calibration=calibration,
+            on_calibrated=store.save if store is not None else None,
+            on_transition=on_transition,
+            wall_offset=wall_offset,
+            warnings=warnings,
+        )
+        self.loop = ScanLoop(hal, self.control, config, sink=sink, started_at=now)

@@ -1,0 +1,202 @@
+"""Files that must survive a crash: atomic writes, and loads that never crash the daemon."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from service.devices import Calibration, RotateCalibration, TiltCalibration
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_FILE = "calibration.json"
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write temp file, fsync, rename over `path`, fsync the directory: never a torn file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            written = os.write(fd, view)
+            view = view[written:]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    try:
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """What a load found: the data (None = use defaults) and a warning if something was wrong."""
+
+    data: dict[str, Any] | None
+    warning: str | None = None
+    kept_as: Path | None = None
+
+
+def load_json(path: Path) -> Loaded:
+    """Read a JSON object; a corrupt file is moved aside (`.corrupt-<time>`) and reported."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return Loaded(None)
+    except OSError as exc:
+        return Loaded(None, f"{path}: unreadable ({exc.strerror}); using defaults")
+    try:
+        data = json.loads(raw)
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object, found {type(data).__name__}")
+    except (ValueError, RecursionError) as exc:
+        kept = keep_aside(path)
+        return Loaded(
+            None, f"{path}: corrupt ({str(exc)[:120]}); kept as {kept.name}; using defaults", kept
+        )
+    return Loaded(data)
+
+
+def keep_aside(path: Path) -> Path:
+    """Rename a bad file out of the way without overwriting any earlier one."""
+    stamp = time.strftime("%Y%m%dT%H%M%S")
+    n = 0
+    while True:
+        kept = path.with_name(f"{path.name}.corrupt-{stamp}" + (f"-{n}" if n else ""))
+        if not kept.exists():
+            break
+        n += 1
+    os.replace(path, kept)
+    return kept
+
+
+class _CalibrationFile(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    version: int = 1
+    tilt: dict[str, float] | None = None
+    rotate: dict[str, float] | None = None
+    saved_at: float | None = None
+
+
+def calibration_to_json(cal: Calibration, saved_at: float) -> bytes:
+    doc = _CalibrationFile(
+        tilt=None
+        if cal.tilt is None
+        else {
+            "offset_counts": cal.tilt.offset_counts,
+            "gain_counts_per_deg": cal.tilt.gain_counts_per_deg,
+        },
+        rotate=None
+        if cal.rotate is None
+        else {
+            "revolution_s": cal.rotate.revolution_s,
+            "home_arc_deg": cal.rotate.home_arc_deg,
+        },
+        saved_at=saved_at,
+    )
+    return doc.model_dump_json(indent=2).encode()
+
+
+def load_calibration(data_dir: Path) -> tuple[Calibration, str | None]:
+    """The stored calibration, or an empty one and a warning saying why."""
+    path = data_dir / CALIBRATION_FILE
+    loaded = load_json(path)
+    if loaded.data is None:
+        return Calibration(), loaded.warning
+    try:
+        doc = _CalibrationFile.model_validate(loaded.data)
+        tilt = TiltCalibration(**doc.tilt) if doc.tilt else None
+        rotate = RotateCalibration(**doc.rotate) if doc.rotate else None
+        if tilt is not None and tilt.gain_counts_per_deg == 0:
+            raise ValueError("tilt gain is zero")
+        if rotate is not None and rotate.revolution_s <= 0:
+            raise ValueError("revolution time must be positive")
+    except (ValidationError, TypeError, ValueError) as exc:
+        kept = keep_aside(path)
+        return Calibration(), (
+            f"{path}: invalid calibration ({str(exc).splitlines()[0][:120]}); kept as"
+            f" {kept.name}; using defaults"
+        )
+    return Calibration(tilt=tilt, rotate=rotate), None
+
+
+class BackgroundWriter:
+    """Runs file writes off the scan thread, in order, so an fsync never costs a cycle."""
+
+    def __init__(self, name: str = "persist") -> None:
+        self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+        self.failures = 0
+
+    def submit(self, job: Callable[[], None]) -> None:
+        self._jobs.put(job)
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until every submitted write is done."""
+        done = threading.Event()
+        self._jobs.put(done.set)
+        return done.wait(timeout)
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._jobs.put(None)
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                job()
+            except OSError as exc:
+                self.failures += 1
+                log.error("event=persist_failed error=%r", str(exc))
+
+
+class CalibrationStore:
+    """The calibration file in the data directory; writes go through a background writer."""
+
+    def __init__(
+        self,
+        data_dir: Path,
+        writer: BackgroundWriter | None = None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.data_dir = data_dir
+        self.writer = writer
+        self.clock = clock
+
+    @property
+    def path(self) -> Path:
+        return self.data_dir / CALIBRATION_FILE
+
+    def load(self) -> tuple[Calibration, str | None]:
+        return load_calibration(self.data_dir)
+
+    def save(self, cal: Calibration) -> None:
+        data = calibration_to_json(cal, self.clock())
+        if self.writer is None:
+            atomic_write(self.path, data)
+        else:
+            self.writer.submit(lambda: atomic_write(self.path, data))

@@ -1,0 +1,46 @@
+"""At-most-once commands: a repeated `transaction_id` gets the first reply, nothing acts twice."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+from schema.commands import Reply
+from schema.errors import Error, ErrorCode
+
+
+class TransactionLog:
+    """The last `capacity` replies by transaction id (oldest forgotten first)."""
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self.capacity = capacity
+        self._replies: OrderedDict[str, tuple[str, Reply]] = OrderedDict()
+        self.repeats = 0
+
+    def lookup(self, transaction_id: str, command: str, timecode: float) -> Reply | None:
+        """The stored reply for a repeat, a refusal if the id was used for another command."""
+        hit = self._replies.get(transaction_id)
+        if hit is None:
+            return None
+        self.repeats += 1
+        first_command, reply = hit
+        if first_command == command:
+            return reply
+        return Reply.failure(
+            Error(
+                code=ErrorCode.DUPLICATE_TRANSACTION,
+                message=f"transaction_id {transaction_id!r} was already used for {first_command}",
+                path="/transaction_id",
+            ),
+            transaction_id=transaction_id,
+            command=command,
+            timecode=timecode,
+            state=reply.state,
+        )
+
+    def record(self, transaction_id: str, command: str, reply: Reply) -> None:
+        self._replies[transaction_id] = (command, reply)
+        if len(self._replies) > self.capacity:
+            self._replies.popitem(last=False)
+
+    def __len__(self) -> int:
+        return len(self._replies)

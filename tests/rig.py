@@ -1,0 +1,140 @@
+"""A machine on the simulator with a fake clock: thousands of cycles in milliseconds."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from hal.physics import PhysicsParams
+from hal.sim import SimHal
+from schema.axes import AxisRecord
+from schema.commands import Command, Reply, StartRequest
+from schema.commands import CommandRequest as Req
+from schema.io import IoValue
+from schema.status import MachineState, Status
+from service.config import MachineConfig
+from service.control import Transition
+from service.loop import PendingCommand
+from service.machine import Machine
+from service.persist import CalibrationStore
+
+
+class FakeClock:
+    """Time that moves only when told to."""
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.t = start
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> float:
+        self.t += dt
+        return self.t
+
+
+class RecordingSink:
+    """Keeps everything the loop publishes."""
+
+    def __init__(self) -> None:
+        self.statuses: list[Status] = []
+        self.io: list[IoValue] = []
+        self.axes: list[AxisRecord] = []
+
+    def publish_status(self, status: Status) -> None:
+        self.statuses.append(status)
+
+    def publish_io(self, points: list[IoValue]) -> None:
+        self.io.extend(points)
+
+    def publish_axes(self, records: list[AxisRecord]) -> None:
+        self.axes.extend(records)
+
+
+_ids = itertools.count(1)
+
+
+class Rig:
+    """A simulated ride: `send()` a command, `run_until()` a condition, then inspect it."""
+
+    def __init__(
+        self,
+        config: MachineConfig | None = None,
+        data_dir: Path | None = None,
+        physics: PhysicsParams | None = None,
+    ) -> None:
+        self.config = config or MachineConfig()
+        self.clock = FakeClock()
+        self.period = self.config.loop.period_s
+        self.hal = SimHal(self.clock, self.config.hal.iomap, physics or self.config.hal.sim)
+        self.sink = RecordingSink()
+        self.transitions: list[Transition] = []
+        self.store = CalibrationStore(data_dir, clock=self.clock) if data_dir else None
+        self.machine = Machine(
+            self.config,
+            self.hal,
+            now=self.clock(),
+            store=self.store,
+            sink=self.sink,
+            on_transition=self.transitions.append,
+        )
+        self.loop = self.machine.loop
+        self.control = self.machine.control
+        self.replies: list[Reply] = []
+        self.step()
+
+    @property
+    def state(self) -> MachineState:
+        return self.control.state
+
+    def step(self, n: int = 1) -> None:
+        for _ in range(n):
+            self.clock.advance(self.period)
+            self.loop.step(self.clock())
+
+    def send(self, command: Command, **payload: Any) -> Reply:
+        """Queue a command the way the bus does and let the runner service it between cycles."""
+        payload.setdefault("transaction_id", f"t{next(_ids)}")
+        model = StartRequest if command is Command.START else Req
+        got: list[Reply] = []
+        self.loop.inbox.put(PendingCommand(command, model.model_validate(payload), got.append))
+        self.loop.service_inbox(self.clock())
+        assert len(got) == 1, f"{command} got {len(got)} replies"
+        self.replies.append(got[0])
+        return got[0]
+
+    def run_until(self, pred: Callable[[], bool], max_s: float = 120.0) -> float:
+        """Step until `pred()`; returns the simulated seconds it took, fails after `max_s`."""
+        start = self.clock()
+        limit = int(max_s / self.period) + 1
+        for _ in range(limit):
+            if pred():
+                return self.clock() - start
+            self.step()
+        raise AssertionError(f"condition not met within {max_s} s; state {self.state}")
+
+    def run_to_state(self, *states: MachineState, max_s: float = 120.0) -> float:
+        return self.run_until(lambda: self.state in states, max_s)
+
+    def relays_on(self) -> bool:
+        return self.hal.outputs.any_on()
+
+    def calibrate(self) -> None:
+        """CalibrateTilt then CalibrateRotate, each to completion."""
+        for cmd in (Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE):
+            assert self.send(cmd).success
+            self.run_until(lambda: self.state is not MachineState.CALIBRATING)
+        assert self.control.calibration.complete, self.state
+
+    def home(self) -> None:
+        assert self.send(Command.HOME).success
+        self.run_to_state(MachineState.IDLE, MachineState.FAULT_HW, MachineState.WARNING_NOT_HOME)
+        assert self.state is MachineState.IDLE, self.control.fault
+
+    def ready(self) -> Rig:
+        """Calibrated and homed: IDLE, ready to Start."""
+        self.calibrate()
+        self.home()
+        return self
