@@ -101,10 +101,15 @@ DEFAULT_SESSION = Session(
 
 
 class CommandRequest(WireModel):
-    """The envelope of every command: an id that makes a retry safe, and the sender's time."""
+    """The envelope of every command: an id that makes a retry safe, and the sender's time.
+
+    `rider` names the sending Rider (its liveliness id); the machine watches the Rider that
+    started motion and applies the rider-loss policy when it disappears.
+    """
 
     transaction_id: TransactionId
     timecode: float | None = None
+    rider: TransactionId | None = None
 
 
 class StartRequest(CommandRequest):

@@ -61,6 +61,10 @@ _ALLOWED: dict[Command, frozenset[MachineState]] = {
     Command.CHECK_HOME: frozenset(S),
 }
 READ_ONLY = frozenset({Command.CHECK_CALIBRATION, Command.CHECK_HOME})
+MOVING_COMMANDS = frozenset(
+    {Command.START, Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE, Command.RESUME}
+)
+"""Commands that set the machine moving: their sender becomes the controlling Rider."""
 
 
 def allowed_states(command: Command) -> frozenset[MachineState]:
@@ -110,6 +114,7 @@ class ControlAPI:
         self.session_run: SessionRun | None = None
         self.estop_latched = False
         self.rider_connected = False
+        self.controller_rider: str | None = None
         self.rider_warning: str | None = None
         self._resume_to: MachineState | None = None
         self._estop_from: MachineState | None = None
@@ -122,6 +127,9 @@ class ControlAPI:
         stamp = now + self.wall_offset
         try:
             code, result = self._dispatch(command, request, now)
+            if command in MOVING_COMMANDS:
+                self.controller_rider = request.rider
+                self.rider_connected = request.rider is not None
         except MachineError as exc:
             return Reply.failure(
                 exc.to_error(),

@@ -1,0 +1,80 @@
+"""Fault injection requests for `machine/<id>/sim/<fault>` (simulator backend only)."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Literal
+
+from pydantic import Field
+
+from schema.base import OpenWireModel, WireModel
+from schema.commands import TransactionId
+
+
+class SimAxis(StrEnum):
+    ROTATE = "rotate"
+    TILT = "tilt"
+
+
+class SwitchState(StrEnum):
+    OPEN = "open"
+    CLOSED = "closed"
+
+
+class SimEstop(WireModel):
+    """`sim/estop`: press or release the E-stop."""
+
+    transaction_id: TransactionId | None = None
+    pressed: bool
+
+
+class SimHomeSwitch(WireModel):
+    """`sim/home`: stick a home switch open or closed (`stuck: null` repairs it)."""
+
+    transaction_id: TransactionId | None = None
+    axis: SimAxis = Field(strict=False)
+    stuck: SwitchState | None = Field(default=None, strict=False)
+
+
+class SimTiltSignal(WireModel):
+    """`sim/tilt_ai`: freeze the tilt analog input or add noise (counts, uniform ±)."""
+
+    transaction_id: TransactionId | None = None
+    frozen: bool = False
+    noise_counts: float = Field(default=0.0, ge=0.0, le=30000.0)
+
+
+class SimStall(WireModel):
+    """`sim/stall`: a drive that gets power but does not move."""
+
+    transaction_id: TransactionId | None = None
+    axis: SimAxis = Field(strict=False)
+    stalled: bool = True
+
+
+class SimClear(WireModel):
+    """`sim/clear`: repair every injected fault (the E-stop stays as it is)."""
+
+    transaction_id: TransactionId | None = None
+
+
+class SimWorldState(OpenWireModel):
+    """What the simulated world looks like: the truth the controller cannot see."""
+
+    kind: Literal["world"] = "world"
+    time: float
+    tilt_deg: float
+    rotate_deg: float
+    revolutions: float
+    estop_pressed: bool
+    relays: dict[str, bool]
+    faults: dict[str, object]
+
+
+SIM_REQUESTS: dict[str, type[WireModel]] = {
+    "estop": SimEstop,
+    "home": SimHomeSwitch,
+    "tilt_ai": SimTiltSignal,
+    "stall": SimStall,
+    "clear": SimClear,
+}
