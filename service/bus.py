@@ -1,0 +1,551 @@
+"""The Zenoh adapter: the only daemon module that imports `zenoh`.
+
+Queryables decode requests on Zenoh's callback thread and hand them to the scan thread through
+the `Inbox`; the scan thread owns all machine state and sends each command's one reply.
+Read-only queries (status, IO, axes, diagnostics) are answered from the latest published
+records without touching state. Publishers drop rather than block under congestion.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Protocol
+
+import zenoh
+from pydantic import BaseModel
+
+from hal.physics import SwitchFault
+from hal.sim import SimHal
+from schema.axes import AxisRecord
+from schema.codec import DecodeError, Format, decode_raw, encode, sniff_format, validate
+from schema.commands import REQUEST_MODELS, Command, Reply, transaction_id_of
+from schema.errors import Error, ErrorCode
+from schema.findings import Findings
+from schema.io import IoValue
+from schema.params import ParamSet, ParamValue
+from schema.sim import (
+    SIM_REQUESTS,
+    SimClear,
+    SimEstop,
+    SimHomeSwitch,
+    SimStall,
+    SimTiltSignal,
+    SimWorldState,
+    SwitchState,
+)
+from schema.status import MOTION_STATES, Status
+from service.config import MachineConfig
+from service.errors import MachineError
+from service.loop import LoopCall, PendingCommand, ScanLoop
+from service.timing import CycleStats
+
+log = logging.getLogger(__name__)
+
+WILDCARD_CHARS = ("*", "$")
+DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+
+
+class ParamService(Protocol):
+    """What the bus needs from the parameter registry (service/params.py)."""
+
+    def list(self) -> list[ParamValue]: ...
+
+    def get(self, name: str) -> ParamValue: ...
+
+    def set(self, name: str, req: ParamSet, *, moving: bool, now: float) -> ParamValue: ...
+
+
+class ConfigChecker(Protocol):
+    """Validates the running config, or a candidate one sent as a TOML/JSON payload."""
+
+    def __call__(self, candidate: bytes | None) -> Findings: ...
+
+
+def reply_format(query: zenoh.Query, payload: bytes | None = None) -> Format:
+    """JSON when asked (`?format=json`, a JSON encoding, or JSON text sent); msgpack otherwise."""
+    fmt = query.parameters.get("format")
+    if fmt is not None:
+        return Format.JSON if fmt.lower() == "json" else Format.MSGPACK
+    encoding = str(query.encoding) if query.encoding is not None else None
+    if payload:
+        return sniff_format(payload, encoding)
+    return Format.JSON if encoding and encoding.startswith(Format.JSON) else Format.MSGPACK
+
+
+def _payload(query: zenoh.Query) -> bytes:
+    return query.payload.to_bytes() if query.payload is not None else b""
+
+
+def _encoding(query: zenoh.Query) -> str | None:
+    return str(query.encoding) if query.encoding is not None else None
+
+
+class ZenohBus:
+    """Puts one machine on Zenoh under `<key_prefix>/<id>`; implements the loop's `LoopSink`."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        loop: ScanLoop,
+        stats: CycleStats,
+        config: MachineConfig,
+        *,
+        sim: SimHal | None = None,
+        params: ParamService | None = None,
+        check_config: ConfigChecker | None = None,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.session = session
+        self.loop = loop
+        self.stats = stats
+        self.config = config
+        self.sim = sim
+        self.params = params
+        self.check_config = check_config
+        self.wall = wall
+        self.base = config.key_base
+        self._declared: list[Any] = []
+        self._io_pubs: dict[str, zenoh.Publisher] = {}
+        self._axis_pubs: dict[str, zenoh.Publisher] = {}
+        self._stop = threading.Event()
+        self._diag_thread: threading.Thread | None = None
+        self._token: zenoh.LivelinessToken | None = None
+        self.riders_alive: set[str] = set()
+
+    # ---------------------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        """Declare queryables, publishers and the liveliness token; start the diag publisher."""
+        s, b = self.session, self.base
+        for command in Command:
+            self._declared.append(
+                s.declare_queryable(f"{b}/cmd/{command.key}", self._command_handler(command))
+            )
+        self._declared.append(s.declare_queryable(f"{b}/cmd/**", self._on_cmd_other))
+        self._declared.append(s.declare_queryable(f"{b}/status", self._on_status))
+        self._declared.append(s.declare_queryable(f"{b}/io/**", self._on_io))
+        self._declared.append(s.declare_queryable(f"{b}/axis/**", self._on_axis))
+        self._declared.append(s.declare_queryable(f"{b}/diag/cycle", self._on_diag))
+        self._declared.append(s.declare_queryable(f"{b}/config/validate", self._on_validate))
+        if self.params is not None:
+            self._declared.append(s.declare_queryable(f"{b}/params/**", self._on_params))
+        if self.sim is not None:
+            self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        drop = zenoh.CongestionControl.DROP
+        self._status_pub = s.declare_publisher(
+            f"{b}/status",
+            encoding=Format.MSGPACK.value,
+            congestion_control=drop,
+            priority=zenoh.Priority.DATA_HIGH,
+            express=True,
+        )
+        self._diag_pub = s.declare_publisher(
+            f"{b}/diag/cycle", encoding=Format.MSGPACK.value, congestion_control=drop
+        )
+        self._declared += [self._status_pub, self._diag_pub]
+        self._declared.append(
+            s.liveliness().declare_subscriber("rider/*/alive", self._on_rider, history=True)
+        )
+        self._token = s.liveliness().declare_token(f"{b}/alive")
+        self._diag_thread = threading.Thread(target=self._diag_loop, name="diag", daemon=True)
+        self._diag_thread.start()
+        log.info("event=bus_started base=%s zid=%s", b, s.zid())
+
+    def close(self) -> None:
+        """Undeclare everything (the session itself is closed by its owner)."""
+        self._stop.set()
+        if self._diag_thread is not None:
+            self._diag_thread.join(timeout=2.0)
+        if self._token is not None:
+            self._token.undeclare()
+        for entity in reversed(self._declared + list(self._io_pubs.values())):
+            entity.undeclare()
+        for pub in self._axis_pubs.values():
+            pub.undeclare()
+        self._declared.clear()
+
+    # ----------------------------------------------------------------------- publications
+    def publish_status(self, status: Status) -> None:
+        self._status_pub.put(encode(status))
+
+    def publish_io(self, points: list[IoValue]) -> None:
+        for point in points:
+            key = f"{self.base}/io/{point.kind}/{point.name}"
+            pub = self._io_pubs.get(key)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key,
+                    encoding=Format.MSGPACK.value,
+                    congestion_control=zenoh.CongestionControl.DROP,
+                )
+                self._io_pubs[key] = pub
+            pub.put(encode(point))
+
+    def publish_axes(self, records: list[AxisRecord]) -> None:
+        for record in records:
+            pub = self._axis_pubs.get(record.axis)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    f"{self.base}/axis/{record.axis}",
+                    encoding=Format.MSGPACK.value,
+                    congestion_control=zenoh.CongestionControl.DROP,
+                )
+                self._axis_pubs[record.axis] = pub
+            pub.put(encode(record))
+
+    def _diag_loop(self) -> None:
+        period = self.config.bus.diag_period_s
+        while not self._stop.wait(period):
+            self._diag_pub.put(encode(self.stats.diag(self.wall())))
+
+    # --------------------------------------------------------------------------- commands
+    def _command_handler(self, command: Command) -> Callable[[zenoh.Query], None]:
+        own_key = f"{self.base}/cmd/{command.key}"
+
+        def handler(query: zenoh.Query) -> None:
+            if str(query.key_expr) != own_key:
+                query.drop()  # a wildcard query: the cmd/** queryable refuses it, once
+                return
+            self._on_command(command, own_key, query)
+
+        return handler
+
+    def _on_command(self, command: Command, key: str, query: zenoh.Query) -> None:
+        data = _payload(query)
+        fmt = reply_format(query, data)
+        raw: Any = None
+        try:
+            raw = decode_raw(data, sniff_format(data, _encoding(query))) if data else None
+            if raw is None:
+                raise DecodeError(
+                    Error(
+                        code=ErrorCode.BAD_PAYLOAD,
+                        message="a command needs a payload with at least a transaction_id,"
+                        ' e.g. {"transaction_id": "t1"}',
+                        path="/transaction_id",
+                    )
+                )
+            request = validate(REQUEST_MODELS[command], raw)
+        except DecodeError as exc:
+            self._reply_now(query, key, fmt, exc.error, command, transaction_id_of(raw))
+            return
+
+        def respond(reply: Reply) -> None:
+            with query:
+                query.reply(key, encode(reply, fmt), encoding=fmt.value)
+
+        if not self.loop.inbox.put(PendingCommand(command, request, respond)):
+            self._reply_now(
+                query,
+                key,
+                fmt,
+                Error(code=ErrorCode.BUSY, message="command queue full; retry later"),
+                command,
+                request.transaction_id,
+            )
+
+    def _on_cmd_other(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        prefix = f"{self.base}/cmd/"
+        suffix = key[len(prefix) :] if key.startswith(prefix) else key
+        if Command.from_key(suffix) is not None:
+            query.drop()  # a concrete command key: its own queryable answers
+            return
+        fmt = reply_format(query, _payload(query))
+        if any(c in key for c in WILDCARD_CHARS):
+            error = Error(
+                code=ErrorCode.BAD_KEY,
+                message=f"wildcards are not allowed in a command key: {key!r}; name one command"
+                f" of one machine, e.g. {prefix}home",
+            )
+            with query:
+                query.reply_err(encode(_failure(error, None, self.wall()), fmt), encoding=fmt.value)
+            return
+        known = ", ".join(c.key for c in Command)
+        error = Error(
+            code=ErrorCode.UNKNOWN_COMMAND,
+            message=f"unknown command {suffix!r}; known: {known}",
+        )
+        self._reply_now(query, key, fmt, error, None, transaction_id_of(_try_raw(query)))
+
+    def _reply_now(
+        self,
+        query: zenoh.Query,
+        key: str,
+        fmt: Format,
+        error: Error,
+        command: Command | None,
+        transaction_id: str | None,
+    ) -> None:
+        reply = Reply.failure(
+            error,
+            transaction_id=transaction_id,
+            command=command.value if command else None,
+            timecode=self.wall(),
+            state=self.loop.published.status.state if self.loop.published.status else None,
+        )
+        with query:
+            query.reply(key, encode(reply, fmt), encoding=fmt.value)
+
+    # ------------------------------------------------------------------------- read-only
+    def _on_status(self, query: zenoh.Query) -> None:
+        with query:
+            status = self.loop.published.status
+            if status is not None:
+                fmt = reply_format(query)
+                query.reply(f"{self.base}/status", encode(status, fmt), encoding=fmt.value)
+
+    def _on_io(self, query: zenoh.Query) -> None:
+        with query:
+            fmt = reply_format(query)
+            asked = query.key_expr
+            for point in self.loop.published.io.values():
+                key = f"{self.base}/io/{point.kind}/{point.name}"
+                if asked.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, encode(point, fmt), encoding=fmt.value)
+
+    def _on_axis(self, query: zenoh.Query) -> None:
+        with query:
+            fmt = reply_format(query)
+            asked = query.key_expr
+            for record in self.loop.published.axes.values():
+                key = f"{self.base}/axis/{record.axis}"
+                if asked.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, encode(record, fmt), encoding=fmt.value)
+
+    def _on_diag(self, query: zenoh.Query) -> None:
+        fmt = reply_format(query)
+        key = f"{self.base}/diag/cycle"
+        if "reset" not in query.parameters:
+            with query:
+                query.reply(key, encode(self.stats.diag(self.wall()), fmt), encoding=fmt.value)
+            return
+
+        def reset(loop: ScanLoop, now: float) -> None:
+            with query:
+                query.reply(key, encode(self.stats.diag(self.wall()), fmt), encoding=fmt.value)
+            self.stats.reset(self.wall())
+
+        self._to_loop(query, key, fmt, reset)
+
+    def _on_validate(self, query: zenoh.Query) -> None:
+        key = f"{self.base}/config/validate"
+        data = _payload(query)
+        fmt = reply_format(query)
+        if self.check_config is None:
+            error = Error(code=ErrorCode.NOT_AVAILABLE, message="no config checker")
+            self._reply_now(query, key, fmt, error, None, None)
+            return
+        with query:
+            findings = self.check_config(data or None)
+            query.reply(key, encode(findings, fmt), encoding=fmt.value)
+
+    # ------------------------------------------------------------------------- parameters
+    def _on_params(self, query: zenoh.Query) -> None:
+        params = self.params
+        assert params is not None
+        key = str(query.key_expr)
+        name = key[len(f"{self.base}/params/") :]
+        data = _payload(query)
+        fmt = reply_format(query, data)
+        if any(c in name for c in WILDCARD_CHARS) or not data:
+            # Reads never touch the scan thread: the registry hands out immutable values.
+            with query:
+                if any(c in name for c in WILDCARD_CHARS):
+                    for p in params.list():
+                        pkey = f"{self.base}/params/{p.name}"
+                        if query.key_expr.intersects(zenoh.KeyExpr(pkey)):
+                            query.reply(pkey, encode(p, fmt), encoding=fmt.value)
+                    return
+                try:
+                    query.reply(key, encode(params.get(name), fmt), encoding=fmt.value)
+                except MachineError as exc:
+                    query.reply(
+                        key,
+                        encode(_failure(exc.to_error(), None, self.wall()), fmt),
+                        encoding=fmt.value,
+                    )
+            return
+        try:
+            req = validate(ParamSet, decode_raw(data, sniff_format(data, _encoding(query))))
+        except DecodeError as exc:
+            self._reply_now(query, key, fmt, exc.error, None, transaction_id_of(exc.raw))
+            return
+
+        def apply(loop: ScanLoop, now: float) -> None:
+            with query:
+                try:
+                    value = params.set(
+                        name, req, moving=loop.control.state in MOTION_STATES, now=self.wall()
+                    )
+                except MachineError as exc:
+                    reply = _failure(exc.to_error(), req.transaction_id, self.wall())
+                    query.reply(key, encode(reply, fmt), encoding=fmt.value)
+                    return
+                query.reply(key, encode(value, fmt), encoding=fmt.value)
+
+        self._to_loop(query, key, fmt, apply)
+
+    # ------------------------------------------------------------------------------ sim
+    def _on_sim(self, query: zenoh.Query) -> None:
+        sim = self.sim
+        assert sim is not None
+        key = str(query.key_expr)
+        what = key[len(f"{self.base}/sim/") :]
+        data = _payload(query)
+        fmt = reply_format(query, data)
+        if what == "world":
+            with query:
+                query.reply(key, encode(_world(sim, self.wall()), fmt), encoding=fmt.value)
+            return
+        model = SIM_REQUESTS.get(what)
+        if model is None:
+            known = ", ".join([*SIM_REQUESTS, "world"])
+            error = Error(
+                code=ErrorCode.UNKNOWN_COMMAND, message=f"unknown sim key {what!r}; known: {known}"
+            )
+            self._reply_now(query, key, fmt, error, None, None)
+            return
+        try:
+            req = validate(
+                model, decode_raw(data or b"{}", sniff_format(data or b"{}", _encoding(query)))
+            )
+        except DecodeError as exc:
+            self._reply_now(query, key, fmt, exc.error, None, transaction_id_of(exc.raw))
+            return
+
+        def inject(loop: ScanLoop, now: float) -> None:
+            _apply_sim(sim, req)
+            with query:
+                query.reply(key, encode(_world(sim, self.wall()), fmt), encoding=fmt.value)
+
+        self._to_loop(query, key, fmt, inject)
+
+    # ---------------------------------------------------------------------------- riders
+    def _on_rider(self, sample: zenoh.Sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        if len(parts) != 3:
+            return
+        rider = parts[1]
+        alive = sample.kind == zenoh.SampleKind.PUT
+        if alive:
+            self.riders_alive.add(rider)
+        else:
+            self.riders_alive.discard(rider)
+
+        def update(loop: ScanLoop, now: float) -> None:
+            control = loop.control
+            if control.controller_rider != rider:
+                return
+            if alive:
+                control.rider_connected = True
+            elif control.rider_lost(now):
+                log.warning(
+                    "event=rider_lost rider=%s policy=%s", rider, self.config.rider_loss.policy
+                )
+
+        self.loop.inbox.put(LoopCall(update))
+
+    # ------------------------------------------------------------------------------ help
+    def _to_loop(
+        self,
+        query: zenoh.Query,
+        key: str,
+        fmt: Format,
+        fn: Callable[[ScanLoop, float], None],
+    ) -> None:
+        def rejected(error: Error) -> None:
+            self._reply_now(query, key, fmt, error, None, None)
+
+        if not self.loop.inbox.put(LoopCall(fn, rejected)):
+            rejected(Error(code=ErrorCode.BUSY, message="command queue full; retry later"))
+
+
+def _failure(error: Error, transaction_id: str | None, stamp: float) -> Reply:
+    return Reply.failure(error, transaction_id=transaction_id, command=None, timecode=stamp)
+
+
+def _try_raw(query: zenoh.Query) -> Any:
+    data = _payload(query)
+    try:
+        return decode_raw(data, sniff_format(data, _encoding(query))) if data else None
+    except DecodeError:
+        return None
+
+
+def _apply_sim(sim: SimHal, req: BaseModel) -> None:
+    if isinstance(req, SimEstop):
+        if req.pressed:
+            sim.press_estop()
+        else:
+            sim.release_estop()
+    elif isinstance(req, SimHomeSwitch):
+        fault = None
+        if req.stuck is SwitchState.OPEN:
+            fault = SwitchFault.STUCK_OPEN
+        elif req.stuck is SwitchState.CLOSED:
+            fault = SwitchFault.STUCK_CLOSED
+        sim.stick_home(req.axis.value, fault)
+    elif isinstance(req, SimTiltSignal):
+        sim.freeze_tilt_ai(req.frozen)
+        sim.set_tilt_noise(req.noise_counts)
+    elif isinstance(req, SimStall):
+        sim.stall(req.axis.value, req.stalled)
+    elif isinstance(req, SimClear):
+        sim.clear_faults()
+
+
+def _world(sim: SimHal, stamp: float) -> SimWorldState:
+    w = sim.world
+    f = w.faults
+    return SimWorldState(
+        time=stamp,
+        tilt_deg=w.tilt_deg,
+        rotate_deg=w.rotate_deg,
+        revolutions=w.revolutions,
+        estop_pressed=f.estop_pressed,
+        relays=sim.outputs.ro,
+        faults={
+            "rotate_home": f.rotate_home,
+            "tilt_home": f.tilt_home,
+            "tilt_ai_frozen": f.tilt_ai_frozen,
+            "tilt_ai_noise_counts": f.tilt_ai_noise_counts,
+            "rotate_stalled": f.rotate_stalled,
+            "tilt_stalled": f.tilt_stalled,
+        },
+    )
+
+
+def zenoh_config(
+    path: Path | None, listen: list[str] | None = None, connect: list[str] | None = None
+) -> zenoh.Config:
+    """The session config: the shared zenoh.json5 (or Zenoh's defaults), endpoints replaced."""
+    conf = zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+    if path is None:
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("listen/endpoints", json.dumps([DEFAULT_LISTEN]))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    return conf
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    return zenoh.open(conf)
+
+
+def close_session(session: zenoh.Session, timeout: float = 3.0) -> bool:
+    """Close off the calling thread with a bound: a lossy link can make close() hang."""
+    done = threading.Event()
+
+    def closer() -> None:
+        session.close()
+        done.set()
+
+    threading.Thread(target=closer, name="zenoh-close", daemon=True).start()
+    return done.wait(timeout)

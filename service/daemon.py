@@ -1,0 +1,140 @@
+"""`machine run`: assemble the daemon, run the scan loop, and always leave the outputs safe."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+
+from hal.base import Hal
+from hal.sim import SimHal
+from schema.findings import Finding, Findings, Severity
+from service import bus as zbus
+from service.config import HalBackend, MachineConfig
+from service.machine import Machine
+from service.persist import BackgroundWriter, CalibrationStore
+from service.runner import LoopFailed, RealtimeRunner, tune_thread
+from service.timing import CycleStats
+from service.validate import semantic_findings, validate_data
+
+log = logging.getLogger("machine")
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+
+
+@dataclass
+class DaemonOptions:
+    """How to reach the bus; the rest is in the machine config."""
+
+    zenoh_config: Path | None = None
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+
+
+def make_hal(config: MachineConfig, clock: object) -> Hal:
+    """The configured backend; the simulator by default."""
+    if config.hal.backend is HalBackend.REVPI:
+        from hal.revpi import RevPiHal
+
+        rp = config.hal.revpi
+        return RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc)
+    return SimHal(time.monotonic, config.hal.iomap, config.hal.sim)
+
+
+def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
+    """Run until SIGTERM/SIGINT; returns the process exit code."""
+    clock = time.monotonic
+    wall_offset = time.time() - clock()
+    hal = make_hal(config, clock)
+    hal.force_all_outputs_safe()
+    writer = BackgroundWriter()
+    store = CalibrationStore(Path(config.data_dir), writer)
+    stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
+    machine = Machine(config, hal, now=clock(), wall_offset=wall_offset, store=store)
+    loop = machine.loop
+    runner = RealtimeRunner(loop, config.loop.period_s, stats, spin_s=config.loop.spin_s)
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("event=signal signal=%s", signal.Signals(signum).name)
+        runner.stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        session = zbus.open_session(
+            zbus.zenoh_config(options.zenoh_config, options.listen, options.connect)
+        )
+    except Exception as exc:  # noqa: BLE001 - zenoh raises plain ZError; outputs already safe
+        log.error("event=zenoh_open_failed error=%r", str(exc))
+        hal.close()
+        writer.close()
+        return EXIT_FAILED
+    bus = zbus.ZenohBus(
+        session,
+        loop,
+        stats,
+        config,
+        sim=hal if isinstance(hal, SimHal) else None,
+        check_config=lambda candidate: _check(config, candidate),
+    )
+    loop.sink = bus
+    code = EXIT_OK
+    try:
+        bus.start()
+        applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
+        log.info(
+            "event=started id=%s hal=%s period_s=%g tuning=%s",
+            config.machine.id,
+            config.hal.backend,
+            config.loop.period_s,
+            ",".join(applied) or "none",
+        )
+        runner.run()
+    except LoopFailed as exc:
+        log.error("event=loop_failed error=%r", str(exc))
+        code = EXIT_FAILED
+    finally:
+        # Outputs first: nothing below may delay them.
+        loop.go_safe()
+        loop.reject_pending("machine daemon is shutting down")
+        bus.close()
+        if not zbus.close_session(session):
+            log.warning("event=zenoh_close_timeout")
+        hal.close()
+        writer.flush()
+        writer.close()
+        log.info("event=stopped code=%d cycles=%d", code, stats.cycles)
+    return code
+
+
+def _check(config: MachineConfig, candidate: bytes | None) -> Findings:
+    """Findings for the running config, or for a candidate sent as TOML or JSON text."""
+    if candidate is None:
+        findings = semantic_findings(config)
+        return Findings(
+            ok=not any(f.severity is Severity.ERROR for f in findings), findings=findings
+        )
+    try:
+        text = candidate.decode()
+        data = json.loads(text) if text.lstrip().startswith("{") else tomllib.loads(text)
+    except (ValueError, RecursionError) as exc:  # JSON, TOML and UTF-8 errors
+        return Findings(
+            ok=False,
+            findings=[
+                Finding(
+                    category="syntax",
+                    severity=Severity.ERROR,
+                    path="",
+                    message=f"candidate config is neither TOML nor a JSON object: {exc}",
+                )
+            ],
+        )
+    if not isinstance(data, dict):
+        data = {"": data}
+    return validate_data(data)[1]
