@@ -1,0 +1,489 @@
+"""The `rider` command: operate a machine from a terminal or a script.
+
+Exit codes: 0 done; 1 the machine refused (its error is printed); 2 bad usage or input;
+3 no reply (machine or network down); 4 several machines alive and none named.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import tomllib
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from rider.client import (
+    AmbiguousMachine,
+    CommandRefused,
+    MachineTimeout,
+    NoMachine,
+    Rider,
+    RiderError,
+    env_connect,
+)
+from schema.axes import AxisRecord, PnStatus
+from schema.commands import CheckResult, Reply, Session
+from schema.diag import CycleDiag
+from schema.findings import Findings
+from schema.io import IoValue
+from schema.params import ParamValue
+from schema.status import MachineState, Status
+
+EXIT_OK = 0
+EXIT_REFUSED = 1
+EXIT_USAGE = 2
+EXIT_NO_REPLY = 3
+EXIT_AMBIGUOUS = 4
+
+TERMINAL_STATES = {
+    MachineState.DONE,
+    MachineState.IDLE,
+    MachineState.FAULT_HW,
+    MachineState.FAULT_ESTOP,
+    MachineState.WARNING_NEEDS_CALIBRATION,
+    MachineState.WARNING_NOT_HOME,
+    MachineState.PAUSED,
+}
+
+
+class UsageError(Exception):
+    """Bad arguments or an unreadable input file."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="rider", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        help="Zenoh endpoint of the machine (default tcp/127.0.0.1:7447 or $RIDER_CONNECT)",
+    )
+    p.add_argument("--zenoh-config", type=Path, help="zenoh.json5 (shared with the daemon)")
+    p.add_argument(
+        "--machine", "-m", default=None, help="machine id (default: the only machine alive)"
+    )
+    p.add_argument("--prefix", default="machine", help="key prefix (default: machine)")
+    p.add_argument("--timeout", type=float, default=2.0, help="reply timeout in seconds")
+    p.add_argument("--json", action="store_true", help="print JSON instead of tables")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    sub.add_parser("status", help="the machine's status")
+    w = sub.add_parser("watch", help="live status / IO / axis updates")
+    w.add_argument("--keys", default="status,io/**,axis/**", help="comma-separated keys")
+    w.add_argument(
+        "--for", dest="duration", type=float, default=None, help="stop after this many seconds"
+    )
+    w.add_argument(
+        "--until",
+        nargs="*",
+        default=None,
+        metavar="STATE",
+        help="stop when the machine reaches one of these states",
+    )
+    for name, text in (
+        ("home", "home both axes (tilt, then rotate)"),
+        ("pause", "pause motion, relays off"),
+        ("resume", "resume after pause or a released E-stop"),
+        ("stop", "stop, clear the session, DONE"),
+    ):
+        c = sub.add_parser(name, help=text)
+        c.add_argument("--wait", action="store_true", help="wait until the motion ends")
+    cal = sub.add_parser("calibrate", help="calibrate an axis")
+    cal.add_argument("axis", choices=["tilt", "rotate"])
+    cal.add_argument("--wait", action="store_true", help="wait until calibration ends")
+    st = sub.add_parser("start", help="start a session (default: tilt 45°, rotate CW x3)")
+    st.add_argument("--session", type=Path, help="session file (JSON or TOML)")
+    st.add_argument("--wait", action="store_true", help="wait until the session ends")
+    chk = sub.add_parser("check", help="check calibration or home")
+    chk.add_argument("what", choices=["calibration", "home"])
+    sub.add_parser("io", help="all IO points")
+    sub.add_parser("axes", help="the latest axis records")
+    d = sub.add_parser("diag", help="scan-loop diagnostics")
+    d.add_argument("--reset", action="store_true", help="reset min/max and overrun counters")
+    pr = sub.add_parser("params", help="online parameters")
+    prs = pr.add_subparsers(dest="params_cmd", required=True)
+    prs.add_parser("list")
+    g = prs.add_parser("get")
+    g.add_argument("name")
+    s = prs.add_parser("set")
+    s.add_argument("name")
+    s.add_argument("value", help="JSON value (number, true/false, or a string)")
+    s.add_argument("--persist", action="store_true", help="keep it across restarts")
+    r = prs.add_parser("reset")
+    r.add_argument("name")
+    v = sub.add_parser("validate", help="check the running config, or a candidate file")
+    v.add_argument("--config", type=Path, help="candidate config (TOML or JSON)")
+    m = sub.add_parser("machines", help="machines alive on the network")
+    m.add_argument("--watch", action="store_true", help="follow arrivals and departures")
+    m.add_argument("--for", dest="duration", type=float, default=None)
+    sim = sub.add_parser("sim", help="simulator fault injection")
+    sim.add_argument(
+        "fault", choices=["estop", "release", "home", "tilt_ai", "stall", "clear", "world"]
+    )
+    sim.add_argument(
+        "args", nargs="*", help="e.g. `home rotate open`, `tilt_ai frozen`, `stall tilt`"
+    )
+    fd = sub.add_parser("fastdata", help="read the FastData UDP axis stream")
+    fd.add_argument("rest", nargs=argparse.REMAINDER)
+    ui = sub.add_parser("ui", help="serve the operator web UI")
+    ui.add_argument("rest", nargs=argparse.REMAINDER)
+    return p
+
+
+# ------------------------------------------------------------------------------- printing
+def emit(obj: Any, as_json: bool, human: Callable[[], str]) -> None:
+    if as_json:
+        if isinstance(obj, BaseModel):
+            print(obj.model_dump_json())
+        elif isinstance(obj, list):
+            print(
+                json.dumps(
+                    [o.model_dump(mode="json") if isinstance(o, BaseModel) else o for o in obj]
+                )
+            )
+        else:
+            print(json.dumps(obj))
+    else:
+        print(human())
+
+
+def fmt_status(s: Status) -> str:
+    rows = [
+        ("machine", s.machine_id),
+        ("state", f"{s.state}" + (f" (from {s.previous_state})" if s.previous_state else "")),
+        ("calibrated", f"tilt={_yn(s.calibrated.tilt)} rotate={_yn(s.calibrated.rotate)}"),
+        ("home", f"tilt={_yn(s.homed.tilt)} rotate={_yn(s.homed.rotate)}"),
+        ("e-stop", f"active={_yn(s.estop.active)} latched={_yn(s.estop.latched)}"),
+        ("tilt", "?" if s.tilt_deg is None else f"{s.tilt_deg:.1f}°"),
+        ("rotate", "?" if s.rotate_deg is None else f"{s.rotate_deg:.0f}°"),
+    ]
+    if s.session is not None:
+        p = s.session
+        rows.append(
+            (
+                "session",
+                f"{p.name} step {min(p.step_index + 1, p.step_count)}/{p.step_count}"
+                f" ({p.step_kind or 'done'})"
+                f" revolutions {p.revolutions_done}/{p.revolutions_total}",
+            )
+        )
+    if s.fault is not None:
+        rows.append(("fault", f"{s.fault.code}: {s.fault.message}"))
+    for warning in s.warnings:
+        rows.append(("warning", warning))
+    rows.append(("seq/uptime", f"{s.seq} / {s.uptime_s:.1f} s"))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
+def fmt_reply(r: Reply) -> str:
+    line = f"{r.command}: {r.code} -> state {r.state}"
+    if r.result is not None:
+        line += f" ok={_yn(r.result.ok)} tilt={_yn(r.result.tilt)} rotate={_yn(r.result.rotate)}"
+    return line
+
+
+def fmt_io(points: list[IoValue]) -> str:
+    lines = [f"{'kind':4} {'name':12} {'channel':14} value"]
+    for p in points:
+        value = ("ON" if p.value else "off") if isinstance(p.value, bool) else str(p.value)
+        lines.append(f"{p.kind:4} {p.name:12} {p.channel:14} {value}")
+    return "\n".join(lines)
+
+
+def fmt_axis(a: AxisRecord) -> str:
+    flags = [f.name or "" for f in PnStatus if a.pn_status & f]
+    return (
+        f"axis {a.axis:6} #{a.axis_number} pos={a.position_fb:8.2f} cmd={a.position_cmd:8.2f}"
+        f" vel={a.velocity_fb:7.2f} [{'|'.join(flags).lower()}] cycle={a.cycle}"
+    )
+
+
+def fmt_diag(d: CycleDiag) -> str:
+    def us(x: float) -> str:
+        return f"{x * 1e6:8.0f}"
+
+    return "\n".join(
+        [
+            f"period {d.period_s * 1000:g} ms, {d.cycles} cycles, overruns {d.overruns},"
+            f" missed {d.missed_cycles}, window {d.window}",
+            f"{'µs':10} {'last':>8} {'p50':>8} {'p99':>8} {'max':>8} {'mean':>8}",
+            f"{'execution':10} {us(d.execution.last)} {us(d.execution.p50)} {us(d.execution.p99)}"
+            f" {us(d.execution.max)} {us(d.execution.mean)}",
+            f"{'jitter':10} {us(d.jitter.last)} {us(d.jitter.p50)} {us(d.jitter.p99)}"
+            f" {us(d.jitter.max)} {us(d.jitter.mean)}",
+        ]
+    )
+
+
+def fmt_param(p: ParamValue) -> str:
+    flags = (" persisted" if p.persisted else "") + (
+        " locked-while-moving" if p.locked_while_moving else ""
+    )
+    rng = (
+        f" [{p.minimum:g}..{p.maximum:g}]"
+        if p.minimum is not None and p.maximum is not None
+        else ""
+    )
+    return f"{p.name:32} {p.value!s:>10} {p.unit:6} default {p.default!s}{rng}{flags}"
+
+
+def fmt_findings(f: Findings) -> str:
+    if not f.findings:
+        return "ok, no findings"
+    return "\n".join(
+        f"{x.severity:7} {x.category:14} {x.path or '/':28} {x.message}" for x in f.findings
+    )
+
+
+def fmt_update(u: Status | IoValue | AxisRecord) -> str:
+    stamp = time.strftime("%H:%M:%S", time.localtime(u.time))
+    if isinstance(u, Status):
+        extra = ""
+        if u.session is not None:
+            extra = f" revs {u.session.revolutions_done}/{u.session.revolutions_total}"
+        if u.fault is not None:
+            extra += f" fault {u.fault.code}"
+        tilt = "?" if u.tilt_deg is None else f"{u.tilt_deg:.1f}"
+        return f"{stamp} status {u.state} tilt={tilt}{extra}"
+    if isinstance(u, IoValue):
+        return f"{stamp} io {u.kind}/{u.name} = {u.value}"
+    return f"{stamp} {fmt_axis(u)}"
+
+
+def _yn(b: bool) -> str:
+    return "yes" if b else "no"
+
+
+# ------------------------------------------------------------------------------ commands
+def load_session(path: Path) -> Session:
+    try:
+        text = path.read_text()
+        data = (
+            json.loads(text)
+            if path.suffix == ".json" or text.lstrip().startswith("{")
+            else tomllib.loads(text)
+        )
+        return Session.model_validate(data)
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read ({exc.strerror})") from exc
+    except (ValueError, ValidationError) as exc:
+        raise UsageError(f"{path}: not a valid session: {exc}") from exc
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def run(args: argparse.Namespace, rider: Rider) -> int:
+    cmd = args.cmd
+    if cmd == "status":
+        status = rider.status()
+        emit(status, args.json, lambda: fmt_status(status))
+    elif cmd == "watch":
+        return watch(args, rider)
+    elif cmd in ("home", "pause", "resume", "stop", "calibrate", "start"):
+        return motion(args, rider)
+    elif cmd == "check":
+        result: CheckResult = (
+            rider.check_calibration() if args.what == "calibration" else rider.check_home()
+        )
+        emit(
+            result,
+            args.json,
+            lambda: (
+                f"{args.what}: ok={_yn(result.ok)} tilt={_yn(result.tilt)}"
+                f" rotate={_yn(result.rotate)}"
+            ),
+        )
+        return EXIT_OK if result.ok else EXIT_REFUSED
+    elif cmd == "io":
+        points = rider.io()
+        emit(points, args.json, lambda: fmt_io(points))
+    elif cmd == "axes":
+        records = rider.axes()
+        emit(records, args.json, lambda: "\n".join(fmt_axis(a) for a in records))
+    elif cmd == "diag":
+        d = rider.diag(reset=args.reset)
+        emit(d, args.json, lambda: fmt_diag(d))
+    elif cmd == "params":
+        return params(args, rider)
+    elif cmd == "validate":
+        candidate = None
+        if args.config is not None:
+            try:
+                candidate = args.config.read_bytes()
+            except OSError as exc:
+                raise UsageError(f"{args.config}: cannot read ({exc.strerror})") from exc
+        findings = rider.validate(candidate)
+        emit(findings, args.json, lambda: fmt_findings(findings))
+        return EXIT_OK if findings.ok else EXIT_REFUSED
+    elif cmd == "machines":
+        return machines(args, rider)
+    elif cmd == "sim":
+        return sim(args, rider)
+    return EXIT_OK
+
+
+def motion(args: argparse.Namespace, rider: Rider) -> int:
+    if args.cmd == "calibrate":
+        reply = rider.calibrate_tilt() if args.axis == "tilt" else rider.calibrate_rotate()
+    elif args.cmd == "start":
+        session = load_session(args.session) if args.session else None
+        reply = rider.start(session)
+    else:
+        reply = getattr(rider, args.cmd)()
+    emit(reply, args.json, lambda: fmt_reply(reply))
+    if getattr(args, "wait", False):
+        ends = TERMINAL_STATES if args.cmd == "pause" else TERMINAL_STATES - {MachineState.PAUSED}
+        final = rider.wait_for(ends, timeout=600, after=reply.timecode)
+        emit(final, args.json, lambda: fmt_status(final))
+        if final.state in (MachineState.FAULT_HW, MachineState.FAULT_ESTOP):
+            return EXIT_REFUSED
+    return EXIT_OK
+
+
+def watch(args: argparse.Namespace, rider: Rider) -> int:
+    keys = [k.strip() for k in args.keys.split(",") if k.strip()]
+    until = {MachineState(s.upper()) for s in args.until} if args.until else None
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    for update in rider.watch(keys, timeout=0.5 if deadline else None):
+        print(update.model_dump_json() if args.json else fmt_update(update), flush=True)
+        if until and isinstance(update, Status) and update.state in until:
+            return EXIT_OK
+        if deadline is not None and time.monotonic() > deadline:
+            break
+    return EXIT_OK if until is None else EXIT_NO_REPLY
+
+
+def params(args: argparse.Namespace, rider: Rider) -> int:
+    sub = args.params_cmd
+    if sub == "list":
+        values = rider.params()
+        emit(values, args.json, lambda: "\n".join(fmt_param(p) for p in values))
+        return EXIT_OK
+    if sub == "get":
+        value = rider.param(args.name)
+    elif sub == "set":
+        value = rider.set_param(args.name, _parse_value(args.value), persist=args.persist)
+    else:
+        value = rider.reset_param(args.name)
+    emit(value, args.json, lambda: fmt_param(value))
+    return EXIT_OK
+
+
+def machines(args: argparse.Namespace, rider: Rider) -> int:
+    def show() -> list[str]:
+        found = rider.machines()
+        lines = []
+        for m in found:
+            up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"
+            lines.append(f"{m.id:16} {m.state or '?':28} up {up}")
+        emit(
+            [m.__dict__ for m in found], args.json, lambda: "\n".join(lines) or "no machines alive"
+        )
+        return [m.id for m in found]
+
+    ids = show()
+    if not args.watch:
+        return EXIT_OK
+    seen = set(ids)
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    for change in rider.follow_machines(timeout=0.5):
+        if change is not None:
+            mid, alive = change
+            if alive and mid not in seen:
+                print(f"+ {mid} arrived", flush=True)
+                seen.add(mid)
+            elif not alive and mid in seen:
+                print(f"- {mid} left", flush=True)
+                seen.discard(mid)
+        if deadline is not None and time.monotonic() > deadline:
+            break
+    return EXIT_OK
+
+
+def sim(args: argparse.Namespace, rider: Rider) -> int:
+    f, a = args.fault, args.args
+    try:
+        if f == "estop":
+            world = rider.sim("estop", pressed=True)
+        elif f == "release":
+            world = rider.sim("estop", pressed=False)
+        elif f == "home":
+            stuck = a[1] if len(a) > 1 and a[1] != "none" else None
+            world = rider.sim("home", axis=a[0], stuck=stuck)
+        elif f == "tilt_ai":
+            frozen = "frozen" in a
+            noise = next((float(x) for x in a if x.replace(".", "", 1).isdigit()), 0.0)
+            world = rider.sim("tilt_ai", frozen=frozen, noise_counts=noise)
+        elif f == "stall":
+            world = rider.sim("stall", axis=a[0], stalled=not (len(a) > 1 and a[1] == "off"))
+        else:
+            world = rider.sim(f)
+    except IndexError as exc:
+        raise UsageError(f"sim {f}: missing argument") from exc
+    emit(world, args.json, lambda: world.model_dump_json(indent=2))
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.cmd == "fastdata":
+        from rider.fastdata import main as fastdata_main
+
+        return int(fastdata_main(args.rest))
+    connect = args.connect or env_connect()
+    if args.cmd == "ui":
+        from rider.ui.app import main as ui_main
+
+        return int(
+            ui_main(
+                args.rest, connect=connect, zenoh_config=args.zenoh_config, machine=args.machine
+            )
+        )
+    try:
+        # A one-shot command that exits at once supervises nothing; `--wait` and live views do.
+        supervise = bool(getattr(args, "wait", False)) or args.cmd == "watch"
+        with Rider(
+            args.machine,
+            supervise=supervise,
+            connect=connect,
+            zenoh_config_path=args.zenoh_config,
+            key_prefix=args.prefix,
+            timeout=args.timeout,
+        ) as rider:
+            return run(args, rider)
+    except UsageError as exc:
+        print(f"rider: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except CommandRefused as exc:
+        if args.json:
+            print(exc.reply.model_dump_json())
+        print(f"rider: refused: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    except AmbiguousMachine as exc:
+        print(f"rider: {exc}", file=sys.stderr)
+        return EXIT_AMBIGUOUS
+    except (MachineTimeout, NoMachine) as exc:
+        print(f"rider: {exc}", file=sys.stderr)
+        return EXIT_NO_REPLY
+    except RiderError as exc:
+        print(f"rider: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    except KeyboardInterrupt:
+        return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,533 @@
+"""The Rider client: one method per command, status, IO, diagnostics and a live `watch()`.
+
+It speaks only the wire models in `schema/` over Zenoh. Every command carries a fresh
+transaction id; on a timeout the same id is retried, so a retry can never act twice.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import os
+import queue
+import threading
+import time
+import uuid
+from collections.abc import AsyncIterator, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import zenoh
+from pydantic import BaseModel, ValidationError
+
+from schema.axes import AxisRecord
+from schema.codec import DecodeError, Format, decode, encode, pack
+from schema.commands import (
+    CheckResult,
+    Command,
+    CommandRequest,
+    Reply,
+    Session,
+    StartRequest,
+)
+from schema.diag import CycleDiag
+from schema.errors import Error, ErrorCode
+from schema.findings import Findings
+from schema.io import IoValue
+from schema.params import ParamSet, ParamValue
+from schema.sim import SimWorldState
+from schema.status import MachineState, Status
+
+M = TypeVar("M", bound=BaseModel)
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+DEFAULT_TIMEOUT_S = 2.0
+
+
+class RiderError(Exception):
+    """Base of every error the Rider client raises."""
+
+
+class MachineTimeout(RiderError):
+    """No reply within the timeout: the machine is gone, or the network is."""
+
+
+class CommandRefused(RiderError):
+    """The machine answered with an error (wrong state, bad payload, ...)."""
+
+    def __init__(self, reply: Reply) -> None:
+        error = reply.error or Error(code=ErrorCode.INTERNAL, message="refused without reason")
+        where = f" at {error.path}" if error.path else ""
+        super().__init__(f"{error.code}: {error.message}{where}")
+        self.reply = reply
+        self.error = error
+
+
+class BadReply(RiderError):
+    """The machine's reply could not be decoded (version mismatch, corrupt data)."""
+
+
+class NoMachine(RiderError):
+    """No machine is alive, or the one asked for is not."""
+
+
+class AmbiguousMachine(RiderError):
+    """Several machines are alive and none was named."""
+
+
+@dataclass(frozen=True)
+class MachineInfo:
+    """A machine found through its liveliness token."""
+
+    id: str
+    state: MachineState | None
+    uptime_s: float | None
+
+
+Update = Status | IoValue | AxisRecord
+
+
+def zenoh_config(
+    path: Path | None, connect: Iterable[str] | None, listen: Iterable[str] | None = None
+) -> zenoh.Config:
+    """A Rider's session config: the shared zenoh.json5 with the Rider's own endpoints.
+
+    A Rider connects out and does not listen (unless asked), so it never takes the daemon's
+    port when both run on one host.
+    """
+    conf = zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+    if path is None:
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen or [])))
+    endpoints = list(connect or [])
+    if endpoints:
+        conf.insert_json5("connect/endpoints", json.dumps(endpoints))
+    elif not json.loads(conf.get_json("connect/endpoints") or "[]"):
+        conf.insert_json5("connect/endpoints", json.dumps([DEFAULT_CONNECT]))
+    return conf
+
+
+class Rider:
+    """A synchronous Rider session; use as a context manager so the session always closes."""
+
+    def __init__(
+        self,
+        machine_id: str | None = "m1",
+        *,
+        connect: Iterable[str] | None = None,
+        zenoh_config_path: Path | None = None,
+        listen: Iterable[str] | None = None,
+        key_prefix: str = "machine",
+        timeout: float = DEFAULT_TIMEOUT_S,
+        retries: int = 1,
+        supervise: bool = True,
+    ) -> None:
+        """`supervise`: name this Rider in motion commands, so the machine applies its
+        rider-loss policy if this process disappears mid-motion (off for one-shot CLI calls)."""
+        self.key_prefix = key_prefix
+        self.timeout = timeout
+        self.retries = retries
+        self._conf = zenoh_config(zenoh_config_path, connect, listen)
+        self._session: zenoh.Session | None = None
+        self._token: zenoh.LivelinessToken | None = None
+        self._ids = itertools.count(1)
+        self._tag = uuid.uuid4().hex[:8]
+        self._machine_id = machine_id
+        self.supervise = supervise
+        self.rider_id = ""
+
+    # ---------------------------------------------------------------------------- session
+    def open(self) -> Rider:
+        self._session = zenoh.open(self._conf)
+        self.rider_id = str(self._session.zid())
+        self._token = self._session.liveliness().declare_token(f"rider/{self.rider_id}/alive")
+        return self
+
+    def close(self) -> None:
+        """Undeclare the liveliness token and close the session (always do this)."""
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def __enter__(self) -> Rider:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise RiderError("the Rider is not open; use `with Rider(...) as r:`")
+        return self._session
+
+    @property
+    def machine_id(self) -> str:
+        """The machine this Rider talks to: the one named, else the only one alive."""
+        if self._machine_id is None:
+            alive = self.machines(with_status=False)
+            if not alive:
+                raise NoMachine("no machine is alive on the network")
+            if len(alive) > 1:
+                ids = ", ".join(m.id for m in alive)
+                raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
+            self._machine_id = alive[0].id
+        return self._machine_id
+
+    @property
+    def base(self) -> str:
+        return f"{self.key_prefix}/{self.machine_id}"
+
+    # --------------------------------------------------------------------------- commands
+    def new_transaction_id(self) -> str:
+        return f"{self._tag}-{next(self._ids)}"
+
+    def command(
+        self,
+        command: Command,
+        request: CommandRequest | None = None,
+        *,
+        check: bool = True,
+        timeout: float | None = None,
+    ) -> Reply:
+        """Send one command; raises `CommandRefused` on an error reply when `check`."""
+        if request is None:
+            request = CommandRequest.model_validate(self._req())
+        payload = encode(request)
+        key = f"{self.base}/cmd/{command.key}"
+        last: RiderError | None = None
+        for _ in range(self.retries + 1):
+            try:
+                reply = self._get_one(key, payload, Reply, timeout)
+            except MachineTimeout as exc:
+                last = exc  # same transaction id again: at most once on the machine
+                continue
+            if check and not reply.success:
+                raise CommandRefused(reply)
+            return reply
+        assert last is not None
+        raise last
+
+    def _req(self, **extra: Any) -> dict[str, Any]:
+        return {
+            "transaction_id": self.new_transaction_id(),
+            "timecode": time.time(),
+            "rider": self.rider_id if self.supervise else None,
+            **extra,
+        }
+
+    def calibrate_tilt(self) -> Reply:
+        return self.command(Command.CALIBRATE_TILT)
+
+    def calibrate_rotate(self) -> Reply:
+        return self.command(Command.CALIBRATE_ROTATE)
+
+    def home(self) -> Reply:
+        return self.command(Command.HOME)
+
+    def start(self, session: Session | None = None) -> Reply:
+        request = StartRequest.model_validate(self._req(session=session))
+        return self.command(Command.START, request)
+
+    def pause(self) -> Reply:
+        return self.command(Command.PAUSE)
+
+    def resume(self) -> Reply:
+        return self.command(Command.RESUME)
+
+    def stop(self) -> Reply:
+        return self.command(Command.STOP)
+
+    def check_calibration(self) -> CheckResult:
+        return _result(self.command(Command.CHECK_CALIBRATION))
+
+    def check_home(self) -> CheckResult:
+        return _result(self.command(Command.CHECK_HOME))
+
+    # ---------------------------------------------------------------------------- reading
+    def status(self, timeout: float | None = None) -> Status:
+        return self._get_one(f"{self.base}/status", None, Status, timeout)
+
+    def io(self) -> list[IoValue]:
+        points = self._get_all(f"{self.base}/io/**", IoValue)
+        return sorted(points, key=lambda p: (p.kind, p.name))
+
+    def axes(self) -> list[AxisRecord]:
+        return sorted(self._get_all(f"{self.base}/axis/**", AxisRecord), key=lambda a: a.axis)
+
+    def diag(self, reset: bool = False) -> CycleDiag:
+        key = f"{self.base}/diag/cycle" + ("?reset" if reset else "")
+        return self._get_one(key, None, CycleDiag, None)
+
+    def validate(self, candidate: bytes | None = None) -> Findings:
+        """Findings for the running config, or for a candidate TOML/JSON config."""
+        return self._get_one(f"{self.base}/config/validate", candidate, Findings, None)
+
+    def params(self) -> list[ParamValue]:
+        return sorted(self._get_all(f"{self.base}/params/**", ParamValue), key=lambda p: p.name)
+
+    def param(self, name: str) -> ParamValue:
+        return self._get_one(f"{self.base}/params/{name}", None, ParamValue, None)
+
+    def set_param(self, name: str, value: Any, *, persist: bool = False) -> ParamValue:
+        req = ParamSet.model_validate(
+            {"transaction_id": self.new_transaction_id(), "value": value, "persist": persist}
+        )
+        return self._get_one(f"{self.base}/params/{name}", encode(req), ParamValue, None)
+
+    def reset_param(self, name: str) -> ParamValue:
+        req = ParamSet(transaction_id=self.new_transaction_id(), reset=True)
+        return self._get_one(f"{self.base}/params/{name}", encode(req), ParamValue, None)
+
+    def sim(self, fault: str, **payload: Any) -> SimWorldState:
+        """Inject a simulator fault (estop, home, tilt_ai, stall, clear) or read the `world`."""
+        body = None if fault == "world" else pack(payload)
+        return self._get_one(f"{self.base}/sim/{fault}", body, SimWorldState, None)
+
+    def machines(self, with_status: bool = True) -> list[MachineInfo]:
+        """Machines alive on the network (their liveliness tokens), with state and uptime."""
+        found = []
+        for reply in self.session.liveliness().get(
+            f"{self.key_prefix}/*/alive", timeout=self.timeout
+        ):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                found.append(parts[-2])
+        out = []
+        for mid in sorted(set(found)):
+            state: MachineState | None = None
+            uptime: float | None = None
+            if with_status:
+                try:
+                    st = self._get_one(f"{self.key_prefix}/{mid}/status", None, Status, None)
+                    state, uptime = st.state, st.uptime_s
+                except RiderError:
+                    pass  # alive but not answering yet: listed without a state
+            out.append(MachineInfo(id=mid, state=state, uptime_s=uptime))
+        return out
+
+    def follow_machines(self, timeout: float = 0.5) -> Iterator[tuple[str, bool] | None]:
+        """(id, alive) as machines' liveliness tokens come and go; None after each quiet
+        `timeout`, so the caller can check its own deadline. Runs until the caller stops."""
+        q: queue.Queue[tuple[str, bool]] = queue.Queue()
+
+        def on_token(sample: zenoh.Sample) -> None:
+            parts = str(sample.key_expr).split("/")
+            q.put((parts[-2], sample.kind == zenoh.SampleKind.PUT))
+
+        sub = self.session.liveliness().declare_subscriber(
+            f"{self.key_prefix}/*/alive", on_token, history=True
+        )
+        try:
+            while True:
+                try:
+                    yield q.get(timeout=timeout)
+                except queue.Empty:
+                    yield None
+        finally:
+            sub.undeclare()
+
+    # ------------------------------------------------------------------------------ watch
+    def watch(
+        self,
+        keys: Iterable[str] = ("status", "io/**", "axis/**"),
+        *,
+        timeout: float | None = None,
+        capacity: int = 4096,
+    ) -> Iterator[Update]:
+        """Status / IO / axis updates as they are published, newest last.
+
+        Starts with the current status, so a late joiner is never blank. Stops after `timeout`
+        seconds without any update (None = never).
+        """
+        q: queue.Queue[zenoh.Sample] = queue.Queue(maxsize=capacity)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            # A slow reader drops updates rather than stall Zenoh's thread.
+            with contextlib.suppress(queue.Full):
+                q.put_nowait(sample)
+
+        subs = [self.session.declare_subscriber(f"{self.base}/{k}", on_sample) for k in keys]
+        try:
+            if any(k == "status" for k in keys):
+                yield self.status()
+            while True:
+                try:
+                    sample = q.get(timeout=timeout)
+                except queue.Empty:
+                    return
+                update = self._decode_update(sample)
+                if update is not None:
+                    yield update
+        finally:
+            for sub in subs:
+                sub.undeclare()
+
+    def wait_for(
+        self, states: Iterable[MachineState], timeout: float = 60.0, *, after: float = 0.0
+    ) -> Status:
+        """Block until the machine is in one of `states`; raise MachineTimeout otherwise.
+
+        Statuses stamped before `after` (e.g. a command reply's timecode) are ignored, so a
+        status published before the command took effect never ends the wait early.
+        """
+        wanted = set(states)
+        deadline = time.monotonic() + timeout
+        for update in self.watch(("status",), timeout=min(1.5, timeout)):
+            if isinstance(update, Status) and update.time >= after and update.state in wanted:
+                return update
+            if time.monotonic() > deadline:
+                break
+        last = self.status()  # the watch went quiet: ask once before giving up
+        if last.state in wanted and last.time >= after:
+            return last
+        raise MachineTimeout(f"machine still {last.state} after {timeout:g} s")
+
+    def _decode_update(self, sample: zenoh.Sample) -> Update | None:
+        key = str(sample.key_expr)
+        data = sample.payload.to_bytes()
+        fmt = Format.JSON if str(sample.encoding).startswith(Format.JSON) else Format.MSGPACK
+        model: type[BaseModel]
+        if key.endswith("/status"):
+            model = Status
+        elif "/io/" in key:
+            model = IoValue
+        elif "/axis/" in key:
+            model = AxisRecord
+        else:
+            return None
+        try:
+            result = decode(model, data, fmt)
+        except DecodeError:
+            return None
+        assert isinstance(result, Status | IoValue | AxisRecord)
+        return result
+
+    # ---------------------------------------------------------------------------- plumbing
+    def _get_one(self, key: str, payload: bytes | None, model: type[M], timeout: float | None) -> M:
+        replies = self._get(key, payload, timeout)
+        if not replies:
+            raise MachineTimeout(
+                f"no reply from {key} within {timeout or self.timeout:g} s (is the machine up?)"
+            )
+        return self._decode(replies[0], model)
+
+    def _get_all(self, key: str, model: type[M]) -> list[M]:
+        return [self._decode(r, model) for r in self._get(key, None, None)]
+
+    def _get(self, key: str, payload: bytes | None, timeout: float | None) -> list[zenoh.Reply]:
+        kwargs: dict[str, Any] = {"timeout": timeout or self.timeout}
+        if payload is not None:
+            kwargs["payload"] = payload
+            kwargs["encoding"] = Format.MSGPACK.value
+        return list(self.session.get(key, **kwargs))
+
+    @staticmethod
+    def _decode(reply: zenoh.Reply, model: type[M]) -> M:
+        sample = reply.ok
+        if sample is None:
+            err = reply.err
+            data = err.payload.to_bytes() if err is not None else b""
+            enc = str(err.encoding) if err is not None else ""
+            fmt = Format.JSON if enc.startswith(Format.JSON) else Format.MSGPACK
+            try:
+                refused = decode(Reply, data, fmt)
+            except DecodeError as exc:
+                raise BadReply(f"error reply: {data[:200]!r}") from exc
+            raise CommandRefused(refused)
+        data = sample.payload.to_bytes()
+        fmt = Format.JSON if str(sample.encoding).startswith(Format.JSON) else Format.MSGPACK
+        try:
+            return decode(model, data, fmt)
+        except DecodeError as exc:
+            # An error reply on a key that normally carries `model` (e.g. unknown parameter).
+            try:
+                refused = decode(Reply, data, fmt)
+            except DecodeError:
+                raise BadReply(f"{sample.key_expr}: {exc.error.message}") from exc
+            if refused.success:
+                raise BadReply(f"{sample.key_expr}: {exc.error.message}") from exc
+            raise CommandRefused(refused) from exc
+        except ValidationError as exc:  # pragma: no cover - decode wraps these
+            raise BadReply(str(exc)) from exc
+
+
+def _result(reply: Reply) -> CheckResult:
+    if reply.result is None:
+        raise BadReply(f"{reply.command} reply carries no result")
+    return reply.result
+
+
+class AsyncRider:
+    """The same client for asyncio: blocking Zenoh calls run in a worker thread."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._sync = Rider(*args, **kwargs)
+
+    async def __aenter__(self) -> AsyncRider:
+        await asyncio.to_thread(self._sync.open)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await asyncio.to_thread(self._sync.close)
+
+    @property
+    def rider_id(self) -> str:
+        return self._sync.rider_id
+
+    async def command(self, command: Command, request: CommandRequest | None = None) -> Reply:
+        return await asyncio.to_thread(self._sync.command, command, request)
+
+    async def start(self, session: Session | None = None) -> Reply:
+        return await asyncio.to_thread(self._sync.start, session)
+
+    async def status(self) -> Status:
+        return await asyncio.to_thread(self._sync.status)
+
+    def __getattr__(self, name: str) -> Any:
+        target = getattr(self._sync, name)
+        if not callable(target):
+            return target
+
+        async def call(*args: Any, **kwargs: Any) -> Any:
+            return await asyncio.to_thread(target, *args, **kwargs)
+
+        return call
+
+    async def watch(
+        self, keys: Iterable[str] = ("status", "io/**", "axis/**"), timeout: float | None = None
+    ) -> AsyncIterator[Update]:
+        """Updates as an async iterator (a thread feeds an asyncio queue)."""
+        loop = asyncio.get_running_loop()
+        out: asyncio.Queue[Update | None] = asyncio.Queue()
+        stop = threading.Event()
+
+        def pump() -> None:
+            try:
+                for update in self._sync.watch(keys, timeout=timeout):
+                    loop.call_soon_threadsafe(out.put_nowait, update)
+                    if stop.is_set():
+                        break
+            finally:
+                loop.call_soon_threadsafe(out.put_nowait, None)
+
+        worker = threading.Thread(target=pump, name="rider-watch", daemon=True)
+        worker.start()
+        try:
+            while (item := await out.get()) is not None:
+                yield item
+        finally:
+            stop.set()
+
+
+def env_connect() -> list[str]:
+    """Endpoints from RIDER_CONNECT (comma separated), if set."""
+    raw = os.environ.get("RIDER_CONNECT", "")
+    return [e.strip() for e in raw.split(",") if e.strip()]

@@ -1,0 +1,151 @@
+"""Real processes for integration tests: a daemon on a free loopback port, and clean-up."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rider.client import Rider
+
+REPO = Path(__file__).resolve().parent.parent
+START_TIMEOUT_S = 20.0
+STOP_TIMEOUT_S = 10.0
+
+ZENOH_TEST_CONFIG = """{
+  mode: "peer",
+  scouting: { multicast: { enabled: false }, gossip: { enabled: false } },
+  transport: { link: { tx: { lease: 1000, keep_alive: 4 } } },
+}
+"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def write_zenoh_config(directory: Path) -> Path:
+    path = directory / "zenoh-test.json5"
+    path.write_text(ZENOH_TEST_CONFIG)
+    return path
+
+
+@dataclass
+class Daemon:
+    """A `machine run` child process; `stop()` sends SIGTERM and waits (bounded)."""
+
+    proc: subprocess.Popen[str]
+    endpoint: str
+    machine_id: str
+    data_dir: Path
+    zenoh_config: Path
+    log_path: Path
+    extra: list[str] = field(default_factory=list)
+
+    def rider(self, **kwargs: object) -> Rider:
+        return Rider(
+            self.machine_id,
+            connect=[self.endpoint],
+            zenoh_config_path=self.zenoh_config,
+            **kwargs,  # type: ignore[arg-type]
+        )
+
+    def log(self) -> str:
+        return self.log_path.read_text() if self.log_path.exists() else ""
+
+    def stop(self, sig: int = signal.SIGTERM) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(STOP_TIMEOUT_S)
+        return self.proc.returncode
+
+
+def machine_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "service.cli", *args]
+
+
+def rider_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "rider.cli", *args]
+
+
+def start_daemon(
+    tmp: Path,
+    machine_id: str = "m1",
+    *,
+    extra: list[str] | None = None,
+    port: int | None = None,
+    netns: str | None = None,
+    listen_host: str = "127.0.0.1",
+    wait: bool = True,
+) -> Daemon:
+    """Start `machine run --sim` and wait until its liveliness token is seen."""
+    port = port or free_port()
+    endpoint = f"tcp/{listen_host}:{port}"
+    data_dir = tmp / f"data-{machine_id}"
+    zconf = write_zenoh_config(tmp)
+    log_path = tmp / f"daemon-{machine_id}.log"
+    cmd = machine_cmd(
+        "run",
+        "--sim",
+        "--id",
+        machine_id,
+        "--zenoh-config",
+        str(zconf),
+        "--listen",
+        endpoint,
+        "--data-dir",
+        str(data_dir),
+        *(extra or []),
+    )
+    if netns:
+        cmd = ["ip", "netns", "exec", netns, *cmd]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    with log_path.open("w") as log:
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env
+        )
+    daemon = Daemon(proc, endpoint, machine_id, data_dir, zconf, log_path, extra or [])
+    if wait:
+        try:
+            wait_alive(daemon)
+        except BaseException:
+            daemon.stop(signal.SIGKILL)
+            raise
+    return daemon
+
+
+def wait_alive(daemon: Daemon, timeout: float = START_TIMEOUT_S) -> None:
+    """Block until the daemon answers a status query (its liveliness token as the event)."""
+    with daemon.rider(timeout=1.0) as r:
+        for change in r.follow_machines(timeout=0.2):
+            if change == (daemon.machine_id, True):
+                break
+            if daemon.proc.poll() is not None:
+                raise RuntimeError(f"daemon exited with {daemon.proc.returncode}:\n{daemon.log()}")
+            if change is None:
+                timeout -= 0.2
+                if timeout <= 0:
+                    raise TimeoutError(f"daemon not alive in time:\n{daemon.log()}")
+        r.status(timeout=5.0)
+
+
+@contextlib.contextmanager
+def running_daemon(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Iterator[Daemon]:
+    daemon = start_daemon(tmp, machine_id, **kwargs)  # type: ignore[arg-type]
+    try:
+        yield daemon
+    finally:
+        daemon.stop()
