@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable
 from pathlib import Path
@@ -10,12 +11,13 @@ from typing import Any
 from hal.physics import PhysicsParams
 from hal.sim import SimHal
 from schema.axes import AxisRecord
-from schema.commands import Command, Reply, StartRequest
+from schema.commands import Command, Reply, Session, StartRequest, TiltStep
 from schema.commands import CommandRequest as Req
 from schema.io import IoValue
 from schema.status import MachineState, Status
 from service.config import MachineConfig
 from service.control import Transition
+from service.devices import Calibration
 from service.loop import PendingCommand
 from service.machine import Machine
 from service.persist import CalibrationStore
@@ -53,6 +55,21 @@ class RecordingSink:
         self.axes.extend(records)
 
 
+class MemoryStore:
+    """A calibration store kept in memory: a machine that powers up already calibrated."""
+
+    def __init__(self, calibration: Calibration | None = None) -> None:
+        self.calibration = calibration or Calibration()
+        self.saved: list[Calibration] = []
+
+    def load(self) -> tuple[Calibration, str | None]:
+        return self.calibration, None
+
+    def save(self, cal: Calibration) -> None:
+        self.calibration = cal
+        self.saved.append(cal)
+
+
 _ids = itertools.count(1)
 
 
@@ -64,7 +81,11 @@ class Rig:
         config: MachineConfig | None = None,
         data_dir: Path | None = None,
         physics: PhysicsParams | None = None,
+        calibration: Calibration | None = None,
     ) -> None:
+        """`calibration` powers the machine up with that calibration already stored."""
+        if data_dir is not None and calibration is not None:
+            raise ValueError("give data_dir or calibration, not both")
         self.config = config or MachineConfig()
         self.clock = FakeClock()
         self.period = self.config.loop.period_s
@@ -72,11 +93,12 @@ class Rig:
         self.sink = RecordingSink()
         self.transitions: list[Transition] = []
         self.store = CalibrationStore(data_dir, clock=self.clock) if data_dir else None
+        self.memory = MemoryStore(calibration) if calibration is not None else None
         self.machine = Machine(
             self.config,
             self.hal,
             now=self.clock(),
-            store=self.store,
+            store=self.store or self.memory,  # type: ignore[arg-type]
             sink=self.sink,
             on_transition=self.transitions.append,
         )
@@ -138,3 +160,56 @@ class Rig:
         self.calibrate()
         self.home()
         return self
+
+
+@functools.cache
+def known_calibration() -> Calibration:
+    """What a real calibration run on the default simulator finds (run once per test session)."""
+    rig = Rig()
+    rig.calibrate()
+    return rig.control.calibration
+
+
+BAD_SESSION = Session(name="too-steep", steps=[TiltStep(degrees=80.0)])
+"""Outside the default machine's tilt range (0..60°): Start with it ends in FAULT_HW."""
+
+
+def rig_in(state: MachineState, *, estop_held: bool = True) -> Rig:
+    """A rig driven into `state` the way an operator would get there.
+
+    Calibration-free states start from a bare machine; the others from a calibrated one.
+    `estop_held=False` releases the E-stop again after entering FAULT_ESTOP.
+    """
+    S = MachineState
+    if state in (S.WARNING_NEEDS_CALIBRATION, S.CALIBRATING):
+        rig = Rig()
+        if state is S.CALIBRATING:
+            assert rig.send(Command.CALIBRATE_TILT).success
+            rig.step(5)
+    else:
+        rig = Rig(calibration=known_calibration())
+        if state is S.HOMING:
+            assert rig.send(Command.HOME).success
+            rig.step(5)
+        elif state is not S.WARNING_NOT_HOME:
+            rig.home()
+    if state in (S.RUNNING, S.PAUSED, S.DONE):
+        assert rig.send(Command.START).success
+        rig.step(5)
+        if state is S.PAUSED:
+            assert rig.send(Command.PAUSE).success
+            rig.step()
+        elif state is S.DONE:
+            rig.run_to_state(S.DONE, S.FAULT_HW)
+    elif state is S.FAULT_ESTOP:
+        rig.hal.press_estop()
+        rig.step()
+        if not estop_held:
+            rig.hal.release_estop()
+            rig.step()
+    elif state is S.FAULT_HW:
+        reply = rig.send(Command.START, session=BAD_SESSION.model_dump())
+        assert not reply.success
+        rig.step()
+    assert rig.state is state, (state, rig.state, rig.control.fault)
+    return rig
