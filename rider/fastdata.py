@@ -120,7 +120,8 @@ def format_header() -> str:
 def format_row(r: FastAxisData) -> str:
     flags = status_flags(r.pnStatus)
     return f"{r.axisnumber:>4} {flags:<24} {r.drvStat:>7} {r.bus_cycle_num:>10}" + "".join(
-        f" {v:>10.3f}" for v in (r.pCmd, r.pFb, r.vCmd, r.vFb)
+        f" {v + 0.0:>10.3f}"  # + 0.0 turns -0.0 into 0.0
+        for v in (r.pCmd, r.pFb, r.vCmd, r.vFb)
     )
 
 
