@@ -82,12 +82,13 @@ class Rig:
         data_dir: Path | None = None,
         physics: PhysicsParams | None = None,
         calibration: Calibration | None = None,
+        clock: FakeClock | None = None,
     ) -> None:
         """`calibration` powers the machine up with that calibration already stored."""
         if data_dir is not None and calibration is not None:
             raise ValueError("give data_dir or calibration, not both")
         self.config = config or MachineConfig()
-        self.clock = FakeClock()
+        self.clock = clock or FakeClock()
         self.period = self.config.loop.period_s
         self.hal = SimHal(self.clock, self.config.hal.iomap, physics or self.config.hal.sim)
         self.sink = RecordingSink()

@@ -1,0 +1,333 @@
+"""The real-time runner on simulated time: absolute deadlines, overruns, jitter, failures."""
+
+from __future__ import annotations
+
+import logging
+import random
+from collections.abc import Callable
+
+import pytest
+
+from schema.commands import Command, Reply, StartRequest
+from schema.status import FaultCode, MachineState
+from service.loop import PendingCommand
+from service.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
+from service.timing import CycleStats
+from tests.rig import FakeClock, Rig, known_calibration
+
+S = MachineState
+PERIOD = 0.010
+TICK = 1e-6
+
+
+class TickingClock(FakeClock):
+    """Simulated time that moves on by `tick` at every read, so a busy-wait makes progress."""
+
+    def __init__(self, tick: float = TICK) -> None:
+        super().__init__()
+        self.tick = tick
+        self.reads = 0
+
+    def __call__(self) -> float:
+        self.reads += 1
+        if self.reads > 10_000_000:
+            raise AssertionError("runner is spinning without end")
+        self.t += self.tick
+        return self.t
+
+
+class FakeWake:
+    """The inbox's wake event on simulated time: a wait moves the clock instead of sleeping.
+
+    `oversleep` makes every timed-out wait return that much late, as a loaded OS does;
+    `arrivals` are (time, action) pairs run when the wait reaches them (a command arriving).
+    """
+
+    def __init__(self, clock: TickingClock, oversleep: float = 0.0) -> None:
+        self.clock = clock
+        self.oversleep = oversleep
+        self.arrivals: list[tuple[float, Callable[[], None]]] = []
+        self.waits: list[float] = []
+        self._set = False
+
+    def set(self) -> None:
+        self._set = True
+
+    def clear(self) -> None:
+        self._set = False
+
+    def is_set(self) -> bool:
+        return self._set
+
+    def wait(self, timeout: float | None = None) -> bool:
+        assert timeout is not None, "the runner must always wait with a deadline"
+        assert timeout > 0
+        self.waits.append(timeout)
+        if len(self.waits) > 1_000_000:
+            raise AssertionError("runner keeps waking without progress")
+        if self._set:
+            return True
+        until = self.clock.t + timeout
+        if self.arrivals and self.arrivals[0][0] <= until:
+            at, action = self.arrivals.pop(0)
+            self.clock.t = max(self.clock.t, at)
+            action()
+            return self._set
+        self.clock.t = until + self.oversleep
+        return False
+
+
+class Harness:
+    """A rig whose loop is run by a `RealtimeRunner` on simulated time, step by step observed."""
+
+    def __init__(
+        self,
+        cycles: int,
+        *,
+        cost: Callable[[int], float] = lambda i: 0.002,
+        fail: Callable[[int], bool] = lambda i: False,
+        fail_after_step: bool = False,
+        homed: bool = False,
+        running: bool = False,
+        spin_s: float = 0.0,
+        oversleep: float = 0.0,
+    ) -> None:
+        self.clock = TickingClock()
+        self.rig = Rig(calibration=known_calibration(), clock=self.clock)
+        if homed or running:
+            self.rig.home()
+        if running:
+            assert self.rig.send(Command.START).success
+            self.rig.run_until(self.rig.relays_on)
+        loop = self.rig.loop
+        self.wake = FakeWake(self.clock, oversleep)
+        loop.inbox.wake = self.wake  # type: ignore[assignment]
+        self.stats = CycleStats(PERIOD, window=100, now=self.clock())
+        self.runner = RealtimeRunner(loop, PERIOD, self.stats, spin_s=spin_s, clock=self.clock)
+        self.starts: list[float] = []
+        self.ends: list[float] = []
+        self.seen: list[tuple[MachineState, bool]] = []
+        """(state, any relay on) at the start of each cycle: what the previous cycle left."""
+        real_step = loop.step
+
+        def step(now: float) -> None:
+            i = len(self.starts)
+            self.starts.append(now)
+            self.seen.append((self.rig.state, self.rig.relays_on()))
+            try:
+                if fail(i) and not fail_after_step:
+                    raise RuntimeError(f"injected failure in cycle {i}")
+                real_step(now)
+                self.clock.advance(cost(i))
+                if fail(i):
+                    raise RuntimeError(f"injected failure after cycle {i} wrote its outputs")
+            finally:
+                self.ends.append(self.clock.t)
+                if len(self.starts) >= cycles:
+                    self.runner.stop()
+
+        loop.step = step  # type: ignore[method-assign]
+        self.t0 = self.clock.t
+
+    def run(self) -> None:
+        self.runner.run()
+
+    def grid_offsets(self) -> list[float]:
+        """Each cycle's start relative to its ideal slot on the first cycle's grid, in periods."""
+        first = self.starts[0]
+        return [(s - first) / PERIOD for s in self.starts]
+
+
+def assert_on_grid(h: Harness) -> None:
+    for k, offset in enumerate(h.grid_offsets()):
+        assert offset == pytest.approx(round(offset), abs=50 * TICK / PERIOD), (k, offset)
+
+
+def test_cycles_start_on_absolute_deadlines() -> None:
+    h = Harness(300)
+    h.run()
+
+    assert len(h.starts) == 300
+    # The first deadline is one period after start; every later one a whole period after it.
+    assert h.starts[0] - h.t0 == pytest.approx(PERIOD, abs=20 * TICK)
+    assert [round(o) for o in h.grid_offsets()] == list(range(300))
+    assert_on_grid(h)
+    assert h.runner.heartbeat == 300
+    assert h.stats.cycles == 300
+    assert h.stats.overruns == 0
+    assert h.stats.missed_cycles == 0
+    jitter = h.stats.jitter.stats()
+    assert 0 <= jitter.min <= jitter.max < 20 * TICK
+    assert h.stats.execution.stats().last == pytest.approx(0.002, abs=50 * TICK)
+    # Between cycles it sleeps (one wait per cycle), it does not spin.
+    assert len(h.wake.waits) == 300
+    assert all(w == pytest.approx(PERIOD - 0.002, abs=50 * TICK) for w in h.wake.waits[1:])
+
+
+def test_varying_execution_time_does_not_drift_the_schedule() -> None:
+    rng = random.Random(7)
+    costs = [rng.uniform(0.0, 0.009) for _ in range(500)]
+    h = Harness(500, cost=lambda i: costs[i])
+    h.run()
+    assert_on_grid(h)
+    assert round(h.grid_offsets()[-1]) == 499
+    assert h.stats.overruns == 0
+    assert h.stats.execution.stats().max == pytest.approx(max(costs), abs=50 * TICK)
+
+
+@pytest.mark.parametrize(
+    ("cost_periods", "missed"), [(1.2, 1), (3.5, 3), (10.0, 10)], ids=["1.2", "3.5", "10"]
+)
+def test_overrun_is_counted_and_missed_cycles_are_skipped(cost_periods: float, missed: int) -> None:
+    long = 5
+    h = Harness(20, cost=lambda i: cost_periods * PERIOD if i == long else 0.001)
+    h.run()
+
+    assert h.stats.overruns == 1
+    assert h.stats.missed_cycles == missed
+    slots = [round(o) for o in h.grid_offsets()]
+    # No burst: the cycles whose deadlines passed during the long one never run...
+    assert slots[long + 1] - slots[long] == missed + 1
+    # ...the next cycle starts on the next future deadline, and the grid is kept.
+    assert h.starts[long + 1] >= h.ends[long]
+    assert h.starts[long + 1] - h.ends[long] < PERIOD
+    assert_on_grid(h)
+    assert slots == sorted(set(slots))
+    assert h.stats.execution.stats().max == pytest.approx(cost_periods * PERIOD, abs=50 * TICK)
+    h.stats.reset(h.clock())
+    assert h.stats.overruns == 0
+    assert h.stats.missed_cycles == 0
+    assert h.stats.cycles == 20  # the cycle count is not a resettable counter
+
+
+def test_repeated_overruns_accumulate() -> None:
+    h = Harness(40, cost=lambda i: 0.025 if i % 10 == 3 else 0.001)
+    h.run()
+    assert h.stats.overruns == 4
+    assert h.stats.missed_cycles == 8
+    assert h.stats.diag(h.clock()).overruns == 4
+
+
+def test_late_wakeups_are_recorded_as_jitter() -> None:
+    h = Harness(100, oversleep=0.0003)
+    h.run()
+    jitter = h.stats.jitter.stats()
+    assert jitter.min == pytest.approx(0.0003, abs=20 * TICK)
+    assert jitter.p50 == pytest.approx(0.0003, abs=20 * TICK)
+    assert jitter.max == pytest.approx(0.0003, abs=20 * TICK)
+    assert h.stats.overruns == 0
+
+
+def test_spinning_the_last_stretch_absorbs_late_wakeups() -> None:
+    h = Harness(100, oversleep=0.0003, spin_s=0.0005)
+    h.run()
+    assert h.stats.jitter.stats().max < 20 * TICK
+    assert all(w == pytest.approx(PERIOD - 0.002 - 0.0005, abs=50 * TICK) for w in h.wake.waits[1:])
+
+
+def test_a_command_is_answered_when_it_arrives_not_at_the_next_deadline() -> None:
+    h = Harness(30, homed=True)
+    replies: list[Reply] = []
+    inbox = h.rig.loop.inbox
+    arrive = h.clock.t + 5 * PERIOD + 0.0043
+
+    def put() -> None:
+        inbox.put(
+            PendingCommand(Command.START, StartRequest(transaction_id="rt-1"), replies.append)
+        )
+
+    h.wake.arrivals.append((arrive, put))
+    h.run()
+
+    assert len(replies) == 1
+    assert replies[0].success
+    answered = replies[0].timecode
+    assert answered == pytest.approx(arrive, abs=20 * TICK)
+    # Between two cycles, more than half a period before the next one would have seen it.
+    after = next(i for i, start in enumerate(h.starts) if start > answered)
+    assert h.starts[after - 1] < answered
+    assert h.starts[after] - answered > PERIOD / 2
+    # Motion begins at the next cycle boundary: that cycle is the first to write a relay on.
+    assert h.seen[after] == (S.RUNNING, False)
+    assert h.seen[after + 1] == (S.RUNNING, True)
+    assert_on_grid(h)  # the early wake did not shift the schedule
+    assert h.rig.state is S.RUNNING
+
+
+def test_stop_wakes_a_waiting_runner_at_once() -> None:
+    h = Harness(1000)
+    stop_at = h.clock.t + 3 * PERIOD + 0.004
+    h.wake.arrivals.append((stop_at, h.runner.stop))
+    h.run()
+    assert len(h.starts) == 3
+    assert h.clock.t == pytest.approx(stop_at, abs=20 * TICK)
+
+
+def test_shutdown_leaves_outputs_safe() -> None:
+    h = Harness(50, running=True)
+    h.run()
+    assert all(on for _, on in h.seen)  # it was driving the whole time
+    assert not h.rig.relays_on()
+
+
+@pytest.mark.parametrize("after_step", [False, True], ids=["before-write", "after-write"])
+def test_exception_in_a_cycle_forces_outputs_safe_and_faults(
+    after_step: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    h = Harness(30, running=True, fail=lambda i: i == 10, fail_after_step=after_step)
+    with caplog.at_level(logging.ERROR, logger="service.runner"):
+        h.run()
+
+    assert h.seen[10] == (S.RUNNING, True)
+    state, relays = h.seen[11]  # what the failed cycle left behind
+    assert state is S.FAULT_HW
+    assert not relays
+    fault = h.rig.control.fault
+    assert fault is not None
+    assert fault.code is FaultCode.LOOP_EXCEPTION
+    assert "injected failure" in fault.message
+    assert h.runner.errors == 1
+    assert len(h.starts) == 30  # it kept cycling, safely
+    assert all(not on for _, on in h.seen[11:])
+    assert not h.rig.relays_on()
+    assert len([r for r in caplog.records if "loop_exception" in r.getMessage()]) == 1
+    assert_on_grid(h)
+
+
+def test_repeated_failures_raise_loop_failed_with_outputs_safe() -> None:
+    h = Harness(10_000, running=True, fail=lambda i: i >= 3, fail_after_step=True)
+    with pytest.raises(LoopFailed, match="failed 50 cycles in a row"):
+        h.run()
+    assert h.runner.errors == MAX_CONSECUTIVE_ERRORS
+    assert len(h.starts) == 3 + MAX_CONSECUTIVE_ERRORS
+    assert not h.rig.relays_on()
+    assert not any(h.rig.loop.image.outputs.ro.values())
+    assert h.rig.state is S.FAULT_HW
+
+
+def test_intermittent_failures_never_stop_the_loop() -> None:
+    h = Harness(3 * MAX_CONSECUTIVE_ERRORS, fail=lambda i: i % 2 == 0)
+    h.run()
+    assert h.runner.errors == 3 * MAX_CONSECUTIVE_ERRORS // 2
+    assert len(h.starts) == 3 * MAX_CONSECUTIVE_ERRORS
+    assert h.rig.state is S.FAULT_HW
+
+
+def test_cycle_stats_percentiles_and_window() -> None:
+    stats = CycleStats(PERIOD, window=10)
+    for i in range(1, 21):
+        stats.record(i * 1e-5, i * 1e-4, 0)
+    diag = stats.diag(5.0)
+    assert diag.cycles == 20
+    assert diag.window == 10
+    assert diag.execution.min == pytest.approx(1e-4)
+    assert diag.execution.max == pytest.approx(20e-4)
+    assert diag.execution.mean == pytest.approx(10.5e-4)
+    assert diag.execution.last == pytest.approx(20e-4)
+    # Percentiles over the last 10 samples only (11..20).
+    assert diag.execution.p50 in (pytest.approx(15e-4), pytest.approx(16e-4))
+    assert diag.execution.p99 == pytest.approx(20e-4)
+    assert diag.jitter.max == pytest.approx(20e-5)
+    assert diag.period_s == PERIOD
+    assert diag.time == 5.0
+    assert CycleStats(PERIOD).diag(0.0).execution.max == 0.0
