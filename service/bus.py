@@ -38,7 +38,7 @@ from schema.sim import (
     SimWorldState,
     SwitchState,
 )
-from schema.status import MOTION_STATES, Status
+from schema.status import MOTION_STATES, Fault, FaultCode, MachineState, Status
 from service.config import MachineConfig
 from service.errors import MachineError
 from service.loop import LoopCall, PendingCommand, ScanLoop
@@ -196,6 +196,26 @@ class ZenohBus:
                 )
                 self._axis_pubs[record.axis] = pub
             pub.put(encode(record))
+
+    def publish_watchdog_trip(self, stalled_s: float) -> None:
+        """From the watchdog thread: tell everyone at once, the scan thread may be stuck."""
+        last = self.loop.published.status
+        if last is None:
+            return
+        status = last.model_copy(
+            update={
+                "state": MachineState.FAULT_HW,
+                "previous_state": last.state,
+                "fault": Fault(
+                    code=FaultCode.WATCHDOG,
+                    message=f"scan loop stalled for {stalled_s * 1000:.0f} ms;"
+                    " outputs forced safe by the watchdog",
+                ),
+                "seq": last.seq + 1,
+                "time": self.wall(),
+            }
+        )
+        self._status_pub.put(encode(status))
 
     def _diag_loop(self) -> None:
         period = self.config.bus.diag_period_s

@@ -21,6 +21,7 @@ from service.persist import BackgroundWriter, CalibrationStore
 from service.runner import LoopFailed, RealtimeRunner, tune_thread
 from service.timing import CycleStats
 from service.validate import semantic_findings, validate_data
+from service.watchdog import GuardedHal, Watchdog
 
 log = logging.getLogger("machine")
 
@@ -51,13 +52,15 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     """Run until SIGTERM/SIGINT; returns the process exit code."""
     clock = time.monotonic
     wall_offset = time.time() - clock()
-    hal = make_hal(config, clock)
-    hal.force_all_outputs_safe()
+    raw_hal = make_hal(config, clock)
+    raw_hal.force_all_outputs_safe()
+    hal = GuardedHal(raw_hal)
     writer = BackgroundWriter()
     store = CalibrationStore(Path(config.data_dir), writer)
     stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
     machine = Machine(config, hal, now=clock(), wall_offset=wall_offset, store=store)
     loop = machine.loop
+    loop.guard = hal
     runner = RealtimeRunner(loop, config.loop.period_s, stats, spin_s=config.loop.spin_s)
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -80,13 +83,21 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         loop,
         stats,
         config,
-        sim=hal if isinstance(hal, SimHal) else None,
+        sim=raw_hal if isinstance(raw_hal, SimHal) else None,
         check_config=lambda candidate: _check(config, candidate),
     )
     loop.sink = bus
+    watchdog = Watchdog(
+        lambda: runner.heartbeat,
+        hal,
+        config.loop.period_s,
+        config.loop.watchdog_periods,
+        on_trip=bus.publish_watchdog_trip,
+    )
     code = EXIT_OK
     try:
         bus.start()
+        watchdog.start()
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
@@ -102,6 +113,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     finally:
         # Outputs first: nothing below may delay them.
         loop.go_safe()
+        watchdog.stop()
         loop.reject_pending("machine daemon is shutting down")
         bus.close()
         if not zbus.close_session(session):

@@ -18,13 +18,14 @@ from schema.axes import AxisRecord
 from schema.commands import Command, CommandRequest, Reply
 from schema.errors import Error, ErrorCode
 from schema.io import IoValue
-from schema.status import Status
+from schema.status import Fault, FaultCode, Status
 from service.axes import AxisTracker
 from service.config import MachineConfig
 from service.control import ControlAPI
 from service.devices import Devices
 from service.io import AI, IoPoints, ProcessImage
 from service.transactions import TransactionLog
+from service.watchdog import GuardedHal
 
 
 class LoopSink(Protocol):
@@ -154,8 +155,10 @@ class ScanLoop:
         sink: LoopSink | None = None,
         inbox: Inbox | None = None,
         started_at: float = 0.0,
+        guard: GuardedHal | None = None,
     ) -> None:
         self.hal = hal
+        self.guard = guard
         self.control = control
         self.devices: Devices = control.devices
         self.points: IoPoints = self.devices.points
@@ -181,6 +184,17 @@ class ScanLoop:
         """One scan cycle, in the design's order."""
         self.cycle += 1
         self.image.inputs = self.hal.scan_inputs()
+        if self.guard is not None and self.guard.latched:
+            # The watchdog forced the outputs safe while this thread was stalled: make the
+            # machine state say so before the latch lets any output through again.
+            self.control.external_fault(
+                Fault(
+                    code=FaultCode.WATCHDOG,
+                    message="scan loop stalled; the watchdog forced the outputs safe",
+                ),
+                now,
+            )
+            self.guard.unlatch()
         if self.devices.safety.is_estop_active():
             # Same cycle the input is seen: state, controllers and outputs, before anything else.
             self.control.on_estop(now)

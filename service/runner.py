@@ -65,7 +65,7 @@ class RealtimeRunner:
         clock, period, spin = self.clock, self.period, self.spin_s
         wake, stop = self.loop.inbox.wake, self.stop_event
         loop, stats = self.loop, self.stats
-        deadline = clock() + period
+        deadline = clock()  # first scan at once: commands need a real input image
         consecutive = 0
         while not stop.is_set():
             while True:

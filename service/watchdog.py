@@ -1,0 +1,111 @@
+"""The loop watchdog: a scan thread that stops cycling is caught and the outputs go safe.
+
+A thread watches the runner's heartbeat. If it has not moved for `periods` scan periods, the
+watchdog latches the HAL safe (`GuardedHal`): outputs drop at once, and every later write is
+forced safe too, so a loop that wakes up again cannot re-energise a relay with stale decisions.
+The scan thread clears the latch only after it has put the machine into FAULT_HW.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+from hal.base import Hal, Inputs, Outputs
+
+log = logging.getLogger(__name__)
+
+
+class GuardedHal:
+    """A `Hal` whose outputs a watchdog can latch safe from another thread."""
+
+    def __init__(self, inner: Hal) -> None:
+        self.inner = inner
+        self._latched = threading.Event()
+
+    @property
+    def latched(self) -> bool:
+        return self._latched.is_set()
+
+    def latch_safe(self) -> None:
+        self._latched.set()
+        self.inner.force_all_outputs_safe()
+
+    def unlatch(self) -> None:
+        self._latched.clear()
+
+    def scan_inputs(self) -> Inputs:
+        return self.inner.scan_inputs()
+
+    def scan_outputs(self, outputs: Outputs) -> None:
+        if self._latched.is_set():
+            self.inner.force_all_outputs_safe()
+        else:
+            self.inner.scan_outputs(outputs)
+
+    def force_all_outputs_safe(self) -> None:
+        self.inner.force_all_outputs_safe()
+
+    def read_estop(self) -> bool:
+        return self.inner.read_estop()
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+class Watchdog:
+    """Checks every period that `heartbeat()` moved within `periods` periods."""
+
+    def __init__(
+        self,
+        heartbeat: Callable[[], int],
+        hal: GuardedHal,
+        period_s: float,
+        periods: int = 3,
+        on_trip: Callable[[float], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.heartbeat = heartbeat
+        self.hal = hal
+        self.period = period_s
+        self.limit = period_s * periods
+        self.on_trip = on_trip
+        self.clock = clock
+        self.trips = 0
+        self.tripped_at: float | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="watchdog", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        last_beat = self.heartbeat()
+        last_change = self.clock()
+        while not self._stop.wait(self.period):
+            beat = self.heartbeat()
+            now = self.clock()
+            if beat != last_beat:
+                last_beat, last_change = beat, now
+                if self.tripped_at is not None and not self.hal.latched:
+                    self.tripped_at = None  # the loop recovered and took the fault
+                continue
+            if self.tripped_at is None and now - last_change > self.limit:
+                self.check(now, now - last_change)
+
+    def check(self, now: float, stalled_s: float) -> None:
+        """Trip: latch outputs safe and report (also callable directly, e.g. from tests)."""
+        self.hal.latch_safe()
+        self.trips += 1
+        self.tripped_at = now
+        log.error("event=watchdog_trip stalled_s=%.4f limit_s=%.4f", stalled_s, self.limit)
+        if self.on_trip is not None:
+            self.on_trip(stalled_s)

@@ -1,0 +1,119 @@
+"""The watchdog catches a scan thread that stops cycling and forces the outputs safe."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from hal.sim import SimHal
+from schema.commands import Command, CommandRequest
+from schema.status import FaultCode, MachineState
+from service.config import MachineConfig
+from service.loop import LoopCall, PendingCommand, ScanLoop
+from service.machine import Machine
+from service.runner import RealtimeRunner
+from service.timing import CycleStats
+from service.watchdog import GuardedHal, Watchdog
+from tests.rig import Rig
+
+WAIT_S = 10.0
+
+
+def test_latched_hal_writes_only_safe_outputs() -> None:
+    rig = Rig()
+    guard = GuardedHal(rig.hal)
+    on = rig.hal.outputs
+    on.ro = dict.fromkeys(on.ro, True)
+    guard.scan_outputs(on)
+    assert rig.hal.outputs.any_on()
+    guard.latch_safe()
+    assert not rig.hal.outputs.any_on()
+    guard.scan_outputs(on)  # a stale write after the trip
+    assert not rig.hal.outputs.any_on()
+    guard.unlatch()
+    guard.scan_outputs(on)
+    assert rig.hal.outputs.any_on()
+
+
+def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
+    rig = Rig()
+    guard = GuardedHal(rig.hal)
+    rig.loop.hal = guard
+    rig.loop.guard = guard
+    assert rig.send(Command.HOME).success
+    rig.step(3)
+    assert rig.relays_on()
+    guard.latch_safe()
+    assert not rig.relays_on()
+    rig.step()
+    assert rig.state is MachineState.FAULT_HW
+    assert rig.control.fault is not None and rig.control.fault.code is FaultCode.WATCHDOG
+    assert not guard.latched
+    rig.step(50)
+    assert not rig.relays_on()
+
+
+def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
+    """A real runner thread blocked inside a cycle: the watchdog trips and outputs drop."""
+    config = MachineConfig().with_overrides(loop={"period_s": 0.005})
+    hal = SimHal(time.monotonic, config.hal.iomap, config.hal.sim)
+    guard = GuardedHal(hal)
+    machine = Machine(config, guard, now=time.monotonic(), on_transition=None)
+    loop: ScanLoop = machine.loop
+    loop.guard = guard
+    stats = CycleStats(config.loop.period_s)
+    runner = RealtimeRunner(loop, config.loop.period_s, stats)
+    tripped = threading.Event()
+    stalled: list[float] = []
+
+    def on_trip(stalled_s: float) -> None:
+        stalled.append(stalled_s)
+        tripped.set()
+
+    dog = Watchdog(lambda: runner.heartbeat, guard, config.loop.period_s, 3, on_trip=on_trip)
+    replies: list[object] = []
+    loop.inbox.put(
+        PendingCommand(Command.HOME, CommandRequest(transaction_id="h1"), replies.append)
+    )
+    moving = threading.Event()
+    release = threading.Event()
+
+    def watch_relays(lp: ScanLoop, now: float) -> None:
+        if hal.outputs.any_on():
+            moving.set()
+        else:
+            lp.inbox.put(LoopCall(watch_relays))
+
+    def block(lp: ScanLoop, now: float) -> None:
+        release.wait(WAIT_S)  # a controller stuck in a blocking call
+
+    thread = threading.Thread(target=runner.run, daemon=True)
+    thread.start()
+    dog.start()
+    try:
+        loop.inbox.put(LoopCall(watch_relays))
+        assert moving.wait(WAIT_S), "homing never energised a relay"
+        loop.inbox.put(LoopCall(block))
+        assert tripped.wait(WAIT_S), "watchdog did not trip"
+        assert not hal.outputs.any_on()
+        assert stalled[0] >= 3 * config.loop.period_s
+    finally:
+        release.set()
+        seen = threading.Event()
+
+        def faulted(lp: ScanLoop, now: float) -> None:
+            if lp.control.state is MachineState.FAULT_HW:
+                seen.set()
+            else:
+                lp.inbox.put(LoopCall(faulted))
+
+        loop.inbox.put(LoopCall(faulted))
+        got_fault = seen.wait(WAIT_S)
+        dog.stop()
+        runner.stop()
+        thread.join(WAIT_S)
+    assert got_fault
+    assert machine.control.fault is not None
+    assert machine.control.fault.code is FaultCode.WATCHDOG
+    assert not hal.outputs.any_on()
+    assert not thread.is_alive()
