@@ -11,7 +11,7 @@ from pydantic import Field, StringConstraints, field_validator
 from schema import SCHEMA_VERSION
 from schema.base import OpenWireModel, WireModel
 from schema.errors import Error
-from schema.status import MachineState
+from schema.status import MOTION_STATES, MachineState
 
 
 class Command(StrEnum):
@@ -48,6 +48,27 @@ _KEYS: dict[Command, str] = {
     Command.CHECK_HOME: "check/home",
 }
 _BY_KEY = {v: k for k, v in _KEYS.items()}
+
+
+_S = MachineState
+REST_STATES = frozenset({_S.IDLE, _S.DONE, _S.WARNING_NEEDS_CALIBRATION, _S.WARNING_NOT_HOME})
+"""States with no motion and no fault: a new motion command may begin."""
+
+READ_ONLY_COMMANDS = frozenset({Command.CHECK_CALIBRATION, Command.CHECK_HOME})
+"""Commands that only read: answered in every state, even with the E-stop active."""
+
+ALLOWED_STATES: dict[Command, frozenset[MachineState]] = {
+    Command.CALIBRATE_TILT: REST_STATES | {_S.FAULT_HW},
+    Command.CALIBRATE_ROTATE: REST_STATES | {_S.FAULT_HW},
+    Command.HOME: REST_STATES | {_S.FAULT_HW, _S.FAULT_ESTOP},
+    Command.START: REST_STATES,
+    Command.PAUSE: MOTION_STATES,
+    Command.RESUME: frozenset({_S.PAUSED, _S.FAULT_ESTOP}),
+    Command.STOP: frozenset(_S),
+    Command.CHECK_CALIBRATION: frozenset(_S),
+    Command.CHECK_HOME: frozenset(_S),
+}
+"""The states in which the machine accepts each command while the E-stop is released."""
 
 
 class Direction(StrEnum):

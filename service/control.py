@@ -6,7 +6,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from schema.commands import (
+    ALLOWED_STATES,
     DEFAULT_SESSION,
+    READ_ONLY_COMMANDS,
+    REST_STATES,
     CheckResult,
     Command,
     CommandRequest,
@@ -48,19 +51,8 @@ from service.errors import (
 )
 
 S = MachineState
-REST_STATES = frozenset({S.IDLE, S.DONE, S.WARNING_NEEDS_CALIBRATION, S.WARNING_NOT_HOME})
-_ALLOWED: dict[Command, frozenset[MachineState]] = {
-    Command.CALIBRATE_TILT: REST_STATES | {S.FAULT_HW},
-    Command.CALIBRATE_ROTATE: REST_STATES | {S.FAULT_HW},
-    Command.HOME: REST_STATES | {S.FAULT_HW, S.FAULT_ESTOP},
-    Command.START: REST_STATES,
-    Command.PAUSE: MOTION_STATES,
-    Command.RESUME: frozenset({S.PAUSED, S.FAULT_ESTOP}),
-    Command.STOP: frozenset(S),
-    Command.CHECK_CALIBRATION: frozenset(S),
-    Command.CHECK_HOME: frozenset(S),
-}
-READ_ONLY = frozenset({Command.CHECK_CALIBRATION, Command.CHECK_HOME})
+_ALLOWED = ALLOWED_STATES
+READ_ONLY = READ_ONLY_COMMANDS
 MOVING_COMMANDS = frozenset(
     {Command.START, Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE, Command.RESUME}
 )

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, FiniteFloat, ValidationError
 
 from service.devices import Calibration, RotateCalibration, TiltCalibration
 
@@ -93,8 +93,8 @@ class _CalibrationFile(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     version: int = 1
-    tilt: dict[str, float] | None = None
-    rotate: dict[str, float] | None = None
+    tilt: dict[str, FiniteFloat] | None = None  # NaN or infinity means a corrupt file
+    rotate: dict[str, FiniteFloat] | None = None
     saved_at: float | None = None
 
 
