@@ -11,9 +11,15 @@ from collections.abc import Iterable, Sequence
 from typing import TextIO
 
 from schema.axes import PnStatus
-from schema.fastdata import MAX_REQUEST_BYTES, FastAxisData, FastDataError, ServerData, decode
+from schema.fastdata import (
+    DEFAULT_PORT,
+    MAX_REQUEST_BYTES,
+    FastAxisData,
+    FastDataError,
+    ServerData,
+    decode,
+)
 
-DEFAULT_PORT = 60000
 MAX_REPLY_BYTES = 65535
 
 EXIT_OK = 0

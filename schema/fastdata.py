@@ -18,6 +18,9 @@ SERVERDATA_VERSION = 1
 FAST_AXIS_DATA_VERSION = 1
 """The axis record layout this code writes; sent as `int_array[0]` by the machine's server."""
 
+DEFAULT_PORT = 60000
+"""The UDP port servers listen on unless configured otherwise."""
+
 MAX_REQUEST_BYTES = 256
 """An axis mask longer than this is refused: one byte per axis index 0..255."""
 

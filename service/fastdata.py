@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 from schema.axes import AxisRecord, PnStatus
 from schema.fastdata import (
+    DEFAULT_PORT,
     FAST_AXIS_DATA_VERSION,
     MAX_REQUEST_BYTES,
     SERVERDATA_VERSION,
@@ -26,7 +27,6 @@ from schema.fastdata import (
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PORT = 60000
 DEFAULT_MAX_RATE = 2000.0
 """Requests handled per second, at most; beyond it the kernel queues, then drops, the excess.
 

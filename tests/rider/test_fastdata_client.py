@@ -233,6 +233,7 @@ def test_cli_watch_streams_count_polls(
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("axis")
     assert [ln.split()[0] for ln in lines[1:]] == ["0", "0", "0"]
+    server.close()  # joins the server thread: its counters are final
     assert server.stats.replies == 3
 
 

@@ -163,6 +163,7 @@ def test_malformed_requests_are_ignored_and_server_keeps_answering(
     # that reply would be read here instead of the good one's.
     reply = ask(client, server, b"\x01\x01")
     assert [a.axisnumber for a in reply.axes] == [0, 1]
+    server.close()  # joins the server thread: its counters are final
     assert server.stats.ignored == 1
     assert server.stats.replies == 1
     assert server.stats.requests == 2
@@ -182,6 +183,7 @@ def test_many_peers_and_a_burst_of_junk(server: FastDataServer) -> None:
     finally:
         for p in peers:
             p.close()
+    server.close()  # joins the server thread: its counters are final
     assert server.stats.ignored == 200
     assert server.stats.replies == 4
 
