@@ -1,0 +1,95 @@
+"""The physical world behind a RevPi process image: relays in, sensors out, for tests.
+
+It plays the field wiring against the same image file the `RevPiHal` uses, with revpimodio2 in
+simulator mode (inputs and outputs swapped), and the simulator HAL's physics, faults and IO
+mapping, so the RevPi backend runs the same sessions as the simulator end to end.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from hal.base import HalError, Outputs
+from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap
+from hal.physics import PhysicsParams, World
+from hal.revpi import bind_ios, open_modio, raise_for_errors, read_config
+from hal.sim import SimHal
+
+
+class ProcImgSim:
+    """Each `step()`: the relays the loop wrote → physics up to now → sensors into the image.
+
+    The world's drive changes when the loop wrote the relays (the previous step's time), then
+    the world moves to now, as with `SimHal`. Call `step()` after advancing the shared clock and
+    before `ScanLoop.step()`. Inject faults on `ride` (a `SimHal`: `ride.press_estop()`, ...).
+    """
+
+    def __init__(
+        self,
+        iomap: IoMap,
+        procimg: str,
+        configrsc: str,
+        clock: Callable[[], float],
+        params: PhysicsParams | None = None,
+    ) -> None:
+        read_config(configrsc)
+        self._clock = clock
+        self._t = clock()
+        self.ride = SimHal(lambda: self._t, iomap, params)
+        self._rpi, _ = open_modio(configrsc, procimg, simulator=True)
+        try:
+            bound, findings = bind_ios(self._rpi, iomap)
+            raise_for_errors(findings)
+        except BaseException:
+            self._rpi.cleanup()
+            raise
+        ios = {b.signal: (b.channel, b.io) for b in bound}
+        self._di = [ios[s] for s in DIGITAL_INPUTS]
+        self._ai = [ios[s] for s in ANALOG_INPUTS]
+        self._ro = [ios[s] for s in RELAY_OUTPUTS]
+        # Only the modules carrying our sensors are written, so the HAL's bytes stay the HAL's.
+        sensors = [io for _, io in self._di + self._ai]
+        self._sensor_devices = [d for d in self._rpi.device if any(io in d for io in sensors)]
+        self.steps = 0
+        self.closed = False
+        self.step()
+
+    @property
+    def world(self) -> World:
+        """The ride's mechanics (positions, drive, faults)."""
+        return self.ride.world
+
+    def step(self) -> None:
+        """Read the relays, advance the physics to the clock's now, write the sensors."""
+        if self.closed:
+            raise HalError("procimg sim: closed")
+        rpi = self._rpi
+        if not rpi.readprocimg():
+            raise HalError("procimg sim: cannot read the process image")
+        self.ride.scan_outputs(Outputs(ro={ch: bool(io.value) for ch, io in self._ro}))
+        self._t = self._clock()
+        sensed = self.ride.scan_inputs()
+        for ch, io in self._di:
+            io.value = sensed.di[ch]
+        for ch, io in self._ai:
+            io.value = sensed.ai[ch]
+        for dev in self._sensor_devices:
+            if not rpi.writeprocimg(dev):
+                raise HalError("procimg sim: cannot write the process image")
+        self.steps += 1
+
+    def relays(self) -> dict[str, bool]:
+        """The relay outputs as the field sees them after the last `step()`."""
+        return self.ride.outputs.ro
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self._rpi.cleanup()
+
+    def __enter__(self) -> ProcImgSim:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

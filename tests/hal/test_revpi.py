@@ -1,0 +1,537 @@
+"""The RevPi backend against a process-image file and the piCtory fixture (no hardware)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from hal.base import Hal, HalError, Outputs
+from hal.iomap import DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
+from hal.procimg_sim import ProcImgSim
+from hal.revpi import RevPiConfigError, RevPiHal, check_revpi_io
+from schema.commands import Command, CommandRequest, Reply, StartRequest
+from schema.findings import Finding, Severity
+from schema.status import MachineState
+from service.config import MachineConfig
+from service.loop import PendingCommand
+from service.machine import Machine
+from tests.fixtures.revpi import (
+    CONFIG_RSC,
+    address,
+    find_entry,
+    load,
+    make_image,
+    read_bit,
+    read_word,
+    write_bit,
+    write_config,
+    write_word,
+)
+from tests.rig import FakeClock
+
+CONFIG = str(CONFIG_RSC)
+MAP = IoMap()
+
+
+@pytest.fixture
+def image(tmp_path: Path) -> str:
+    return make_image(tmp_path)
+
+
+@pytest.fixture
+def hal(image: str) -> Iterator[RevPiHal]:
+    h = RevPiHal(MAP, image, CONFIG)
+    yield h
+    h.close()
+
+
+def relay_byte(image: str) -> int:
+    byte, _ = address("O_1")
+    return Path(image).read_bytes()[byte]
+
+
+# -- the layout ---------------------------------------------------------------------------
+def test_fixture_has_the_real_product_layout() -> None:
+    # Core (11 bytes) at 0, DIO at 11 (I_x at +0, O_x at +70), AIO at 124: see docs/revpi.md.
+    assert [address(f"I_{n}") for n in (1, 2, 3)] == [(11, 0), (11, 1), (11, 2)]
+    assert [address(f"O_{n}") for n in (1, 2, 3, 4)] == [(81, 0), (81, 1), (81, 2), (81, 3)]
+    assert address("InputValue_1") == (124, None)
+    types = {d["name"]: int(d["productType"]) for d in load()["Devices"]}
+    assert types == {"core": 95, "dio": 96, "aio": 103}
+
+
+def test_default_iomap_resolves_without_findings(image: str) -> None:
+    assert check_revpi_io(MAP, CONFIG, image) == []
+
+
+def test_revpi_hal_is_a_hal(hal: RevPiHal) -> None:
+    assert isinstance(hal, Hal)
+
+
+# -- round trips through the file ---------------------------------------------------------
+@pytest.mark.parametrize("signal", DIGITAL_INPUTS)
+def test_each_digital_input_is_read_from_its_bit(hal: RevPiHal, image: str, signal: Signal) -> None:
+    channel = MAP.channel(signal)
+    write_bit(image, channel, True)
+    di = hal.scan_inputs().di
+    assert di[channel] is True
+    assert [ch for ch, on in di.items() if on] == [channel]
+    write_bit(image, channel, False)
+    assert hal.scan_inputs().di[channel] is False
+
+
+def test_neighbouring_bits_do_not_leak_into_inputs(hal: RevPiHal, image: str) -> None:
+    byte, _ = address("I_1")
+    for other in ("I_4", "I_5", "I_6", "I_7", "I_8", "I_9", "I_16"):
+        write_bit(image, other, True)
+    assert Path(image).read_bytes()[byte] == 0b1111_1000
+    assert not any(hal.scan_inputs().di.values())
+
+
+@pytest.mark.parametrize("raw", [0, 1, 1680, -1, -32768, 32767])
+def test_analog_input_is_a_signed_little_endian_word(hal: RevPiHal, image: str, raw: int) -> None:
+    write_word(image, "InputValue_1", raw)
+    write_word(image, "InputValue_2", 999)  # the next word must not bleed in
+    assert hal.scan_inputs().ai == {"InputValue_1": raw}
+
+
+@pytest.mark.parametrize("signal", RELAY_OUTPUTS)
+def test_each_relay_is_written_to_its_bit_and_nothing_else(
+    hal: RevPiHal, image: str, signal: Signal
+) -> None:
+    channel = MAP.channel(signal)
+    before = Path(image).read_bytes()
+    hal.scan_outputs(Outputs(ro={channel: True}))
+    after = Path(image).read_bytes()
+    byte, bit = address(channel)
+    assert bit is not None
+    assert after[byte] == 1 << bit
+    assert read_bit(image, channel) is True
+    assert [i for i in range(len(after)) if after[i] != before[i]] == [byte]
+    hal.scan_outputs(Outputs(ro={channel: False}))
+    assert Path(image).read_bytes() == before
+
+
+def test_a_channel_missing_from_outputs_is_written_off(hal: RevPiHal, image: str) -> None:
+    hal.scan_outputs(Outputs(ro={"O_1": True, "O_3": True}))
+    assert relay_byte(image) == 0b0101
+    hal.scan_outputs(Outputs(ro={"O_3": True}))
+    assert relay_byte(image) == 0b0100
+
+
+def test_outputs_do_not_overwrite_inputs(hal: RevPiHal, image: str) -> None:
+    write_bit(image, "I_2", True)
+    write_word(image, "InputValue_1", -77)
+    hal.scan_outputs(Outputs(ro=dict.fromkeys(MAP.channels(RELAY_OUTPUTS), True)))
+    assert read_bit(image, "I_2") is True
+    assert read_word(image, "InputValue_1") == -77
+    assert relay_byte(image) == 0b1111
+
+
+# -- safe outputs -------------------------------------------------------------------------
+def test_outputs_are_safe_on_open(tmp_path: Path) -> None:
+    image = make_image(tmp_path, fill=0xFF)  # every relay and PWM byte "on" before we start
+    h = RevPiHal(MAP, image, CONFIG)
+    try:
+        data = Path(image).read_bytes()
+        start, _ = address("O_1")
+        end, _ = address("PWM_16")
+        assert data[start : end + 1] == bytes(end + 1 - start)  # the DIO's outputs: defaults
+        assert data[address("I_1")[0]] == 0xFF  # inputs untouched
+        assert data[address("InputValue_1")[0]] == 0xFF
+    finally:
+        h.close()
+
+
+def test_close_leaves_outputs_safe_and_can_repeat(hal: RevPiHal, image: str) -> None:
+    hal.scan_outputs(Outputs(ro={"O_1": True, "O_2": True}))
+    hal.close()
+    assert relay_byte(image) == 0
+    hal.close()
+    with pytest.raises(HalError, match="closed"):
+        hal.scan_inputs()
+    with pytest.raises(HalError, match="closed"):
+        hal.scan_outputs(Outputs(ro={"O_1": True}))
+    assert relay_byte(image) == 0
+
+
+def test_force_safe_works_after_close(hal: RevPiHal, image: str) -> None:
+    hal.close()
+    write_bit(image, "O_1", True)  # someone else switched it on
+    hal.force_all_outputs_safe()
+    assert relay_byte(image) == 0
+
+
+def test_force_safe_works_when_revpimodio_is_broken(hal: RevPiHal, image: str) -> None:
+    hal.scan_outputs(Outputs(ro={"O_1": True, "O_3": True}))
+    hal._rpi._myfh.close()  # the loop's IO path is dead (device gone, handle closed)
+    with pytest.raises(HalError, match="cannot write"):
+        hal.scan_outputs(Outputs(ro={"O_1": True}))
+    with pytest.raises(HalError, match="cannot read"):
+        hal.scan_inputs()
+    hal.force_all_outputs_safe()
+    assert relay_byte(image) == 0
+
+
+def test_force_safe_does_not_wait_for_a_stuck_scan(hal: RevPiHal, image: str) -> None:
+    hal.scan_outputs(Outputs(ro={"O_2": True}))
+    hal._lock.acquire()  # a scan thread stuck in the middle of its write
+    try:
+        done = threading.Event()
+        t = threading.Thread(target=lambda: (hal.force_all_outputs_safe(), done.set()))
+        t.start()
+        t.join(timeout=10)
+        assert done.is_set()
+    finally:
+        hal._lock.release()
+    assert relay_byte(image) == 0
+
+
+@pytest.mark.parametrize("active_low", [True, False])
+def test_read_estop_reads_the_image_and_honours_active_low(image: str, active_low: bool) -> None:
+    h = RevPiHal(IoMap(estop_active_low=active_low), image, CONFIG)
+    try:
+        write_bit(image, "I_3", True)
+        assert h.read_estop() is (not active_low)
+        write_bit(image, "I_3", False)
+        assert h.read_estop() is active_low
+    finally:
+        h.close()
+
+
+def test_read_estop_follows_a_remapped_bit(tmp_path: Path) -> None:
+    image = make_image(tmp_path)
+    h = RevPiHal(IoMap(estop="I_12"), image, CONFIG)  # bit 11: the DIO's second byte
+    try:
+        write_bit(image, "I_12", True)
+        assert h.read_estop() is False
+        assert h.scan_inputs().di["I_12"] is True
+        write_bit(image, "I_12", False)
+        write_bit(image, "I_4", True)  # same bit number in the first byte: must not count
+        assert h.read_estop() is True
+    finally:
+        h.close()
+
+
+def test_truncated_image_is_an_error_not_garbage(hal: RevPiHal, image: str) -> None:
+    with open(image, "r+b") as fh:
+        fh.truncate(100)
+    with pytest.raises(HalError, match="shorter"):
+        hal.scan_inputs()
+
+
+# -- a whole session through the file -----------------------------------------------------
+_ids = itertools.count(1)
+
+
+class RevPiRide:
+    """The machine on `RevPiHal`, with `ProcImgSim` as the world, on one fake clock."""
+
+    def __init__(self, directory: Path) -> None:
+        self.config = MachineConfig()
+        self.image = make_image(directory)
+        self.clock = FakeClock()
+        self.period = self.config.loop.period_s
+        iomap = self.config.hal.iomap
+        self.sim = ProcImgSim(iomap, self.image, CONFIG, self.clock, self.config.hal.sim)
+        self.hal = RevPiHal(iomap, self.image, CONFIG)
+        self.machine = Machine(self.config, self.hal, now=self.clock(), on_transition=None)
+        self.loop = self.machine.loop
+        self.control = self.machine.control
+
+    @property
+    def state(self) -> MachineState:
+        return self.control.state
+
+    def step(self) -> None:
+        self.clock.advance(self.period)
+        self.sim.step()
+        self.loop.step(self.clock())
+
+    def send(self, command: Command) -> Reply:
+        model = StartRequest if command is Command.START else CommandRequest
+        request = model.model_validate({"transaction_id": f"r{next(_ids)}"})
+        got: list[Reply] = []
+        self.loop.inbox.put(PendingCommand(command, request, got.append))
+        self.loop.service_inbox(self.clock())
+        assert len(got) == 1
+        return got[0]
+
+    def run_until(self, pred: Callable[[], bool], max_s: float = 120.0) -> None:
+        for _ in range(int(max_s / self.period)):
+            if pred():
+                return
+            self.step()
+        raise AssertionError(f"not reached in {max_s} s; state {self.state}")
+
+    def close(self) -> None:
+        self.hal.close()
+        self.sim.close()
+
+
+@pytest.fixture
+def ride(tmp_path: Path) -> Iterator[RevPiRide]:
+    r = RevPiRide(tmp_path)
+    yield r
+    r.close()
+
+
+def _finish(ride: RevPiRide, command: Command, busy: MachineState) -> None:
+    assert ride.send(command).success
+    ride.run_until(lambda: ride.state is not busy)
+
+
+def test_full_session_through_the_process_image(ride: RevPiRide) -> None:
+    ride.step()
+    assert ride.state is not MachineState.FAULT_ESTOP  # the sim wrote a released E-stop
+    _finish(ride, Command.CALIBRATE_TILT, MachineState.CALIBRATING)
+    _finish(ride, Command.CALIBRATE_ROTATE, MachineState.CALIBRATING)
+    assert ride.control.calibration.complete, ride.state
+    _finish(ride, Command.HOME, MachineState.HOMING)
+    assert ride.state is MachineState.IDLE, ride.control.fault
+    revs_before = ride.sim.world.revolutions
+    assert ride.send(Command.START).success
+    seen_on: set[str] = set()
+
+    def done() -> bool:
+        seen_on.update(ch for ch, on in ride.sim.relays().items() if on)
+        return ride.state in (MachineState.DONE, MachineState.FAULT_HW)
+
+    ride.run_until(done)
+    assert ride.state is MachineState.DONE, ride.control.fault
+    # The default session (tilt to 45°, three revolutions CW) happened in the physics.
+    assert ride.sim.world.tilt_deg == pytest.approx(45.0, abs=ride.config.tilt.tolerance_deg)
+    assert ride.sim.world.revolutions - revs_before == pytest.approx(3.0, abs=0.1)
+    assert {"O_1", "O_3", "O_4"} <= seen_on  # rotate relay, tilt relay, tilt up
+    assert relay_byte(ride.image) == 0
+    assert ride.hal.read_estop() is False
+
+
+def test_estop_drops_the_relays_in_the_same_cycle(ride: RevPiRide) -> None:
+    ride.step()
+    _finish(ride, Command.CALIBRATE_TILT, MachineState.CALIBRATING)
+    _finish(ride, Command.CALIBRATE_ROTATE, MachineState.CALIBRATING)
+    _finish(ride, Command.HOME, MachineState.HOMING)
+    assert ride.send(Command.START).success
+    ride.run_until(lambda: relay_byte(ride.image) & 0b0001 != 0)  # rotating
+    assert ride.state is MachineState.RUNNING
+    ride.sim.ride.press_estop()
+    ride.step()  # one cycle: the sim writes the pressed E-stop, the loop sees it
+    assert read_bit(ride.image, "I_3") is False  # normally closed: pressed reads low
+    assert ride.state is MachineState.FAULT_ESTOP
+    assert relay_byte(ride.image) == 0
+    assert ride.hal.read_estop() is True
+    for _ in range(50):  # and they stay off while it is pressed
+        ride.step()
+        assert relay_byte(ride.image) == 0
+
+
+def test_machine_start_up_forces_outputs_safe(tmp_path: Path) -> None:
+    image = make_image(tmp_path)
+    write_bit(image, "O_1", True)
+    write_bit(image, "O_3", True)
+    h = RevPiHal(MAP, image, CONFIG)
+    try:
+        assert relay_byte(image) == 0
+    finally:
+        h.close()
+
+
+# -- findings -----------------------------------------------------------------------------
+def errors(findings: list[Finding]) -> list[tuple[str, str]]:
+    return [(f.category, f.path) for f in findings if f.severity is Severity.ERROR]
+
+
+@pytest.mark.parametrize(
+    ("field", "channel", "category", "words"),
+    [
+        ("estop", "O_5", "io_type", "digital output"),
+        ("tiltPosition", "I_5", "io_type", "digital input"),
+        ("tiltHome", "InputValue_2", "io_type", "16-bit input"),
+        ("rotateRelay", "I_6", "io_type", "digital input"),
+        ("tiltDir", "OutputValue_1", "io_type", "16-bit output"),
+        ("rotateHome", "InputDebounce", "io_type", "memory value"),
+        ("rotateRelay", "O_99", "io_missing", "candidates: O_1"),
+        ("estop", "EStop", "io_missing", "digital input"),
+        ("tiltPosition", "__class__", "io_missing", "analog input"),
+    ],
+)
+def test_wrong_or_missing_io_is_a_finding(
+    image: str, field: str, channel: str, category: str, words: str
+) -> None:
+    iomap = IoMap.model_validate({field: channel})
+    findings = check_revpi_io(iomap, CONFIG, image)
+    assert errors(findings) == [(category, f"/hal/iomap/{field}")]
+    assert words in findings[0].message
+    assert channel in findings[0].message
+    before = Path(image).read_bytes()
+    with pytest.raises(RevPiConfigError) as exc:
+        RevPiHal(iomap, image, CONFIG)
+    assert errors(exc.value.findings) == [(category, f"/hal/iomap/{field}")]
+    assert Path(image).read_bytes() == before  # a config that does not fit touches nothing
+
+
+def test_every_bad_signal_is_reported_at_once(image: str) -> None:
+    iomap = IoMap.model_validate({"estop": "O_5", "tiltPosition": "nope", "tiltRelay": "I_9"})
+    paths = sorted(path for _, path in errors(check_revpi_io(iomap, CONFIG, image)))
+    assert paths == ["/hal/iomap/estop", "/hal/iomap/tiltPosition", "/hal/iomap/tiltRelay"]
+
+
+@pytest.mark.parametrize(
+    ("content", "words"),
+    [
+        ("", "not valid JSON"),
+        ('{ "App": ', "not valid JSON"),
+        ("[1, 2]", "not a JSON object"),
+        ('{"App": {}, "Summary": {}}', "Devices"),
+        ('{"App": {}, "Summary": {}, "Devices": {}}', "Devices"),
+        ('{"App": {}, "Summary": {}, "Devices": [7]}', "device #0"),
+        ('{"App": {}, "Summary": {}, "Devices": [{"name": "x"}]}', "lacks type"),
+    ],
+)
+def test_broken_config_rsc_is_a_clear_finding(
+    tmp_path: Path, image: str, content: str, words: str
+) -> None:
+    path = tmp_path / "config.rsc"
+    path.write_text(content, encoding="utf-8")
+    findings = check_revpi_io(MAP, str(path), image)
+    assert errors(findings) == [("revpi_config", "/hal/revpi/configrsc")]
+    assert words in findings[0].message
+    with pytest.raises(RevPiConfigError, match="configrsc"):
+        RevPiHal(MAP, image, str(path))
+
+
+def test_binary_config_rsc_is_a_finding(tmp_path: Path, image: str) -> None:
+    path = tmp_path / "config.rsc"
+    path.write_bytes(b"\xff\xfe\x00garbage")
+    findings = check_revpi_io(MAP, str(path), image)
+    assert errors(findings) == [("revpi_config", "/hal/revpi/configrsc")]
+
+
+def test_missing_config_rsc_is_a_finding(tmp_path: Path, image: str) -> None:
+    findings = check_revpi_io(MAP, str(tmp_path / "nowhere.rsc"), image)
+    assert errors(findings) == [("revpi_config", "/hal/revpi/configrsc")]
+    assert "cannot read" in findings[0].message
+
+
+def test_config_revpimodio_rejects_is_a_finding(tmp_path: Path, image: str) -> None:
+    data = load()
+    data["Devices"][1]["offset"] = "eleven"
+    findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
+    assert errors(findings) == [("revpi_config", "/hal/revpi/configrsc")]
+    assert "revpimodio2 rejects" in findings[0].message
+
+
+def test_a_module_missing_from_the_config_makes_its_ios_missing(tmp_path: Path, image: str) -> None:
+    data = load()
+    data["Devices"] = [d for d in data["Devices"] if d["name"] != "aio"]
+    findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
+    assert errors(findings) == [("io_missing", "/hal/iomap/tiltPosition")]
+
+
+def test_relay_defaulting_on_is_a_warning(tmp_path: Path, image: str) -> None:
+    data = load()
+    find_entry(data, "O_2")[1] = "1"
+    findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
+    assert [(f.category, f.severity, f.path) for f in findings] == [
+        ("io_default", Severity.WARNING, "/hal/iomap/rotateDir")
+    ]
+    h = RevPiHal(MAP, image, write_config(tmp_path, data))  # a warning does not stop it
+    try:
+        assert relay_byte(image) == 0  # safe means off, whatever the default says
+    finally:
+        h.close()
+
+
+def test_unmapped_outputs_take_their_piCtory_default(tmp_path: Path, image: str) -> None:
+    data = load()
+    find_entry(data, "O_8")[1] = "1"
+    find_entry(data, "PWM_1")[1] = "50"
+    h = RevPiHal(MAP, image, write_config(tmp_path, data))
+    try:
+        h.scan_outputs(Outputs(ro={"O_1": True}))
+        assert read_bit(image, "O_8") is True
+        assert Path(image).read_bytes()[address("PWM_1")[0]] == 50
+        h.force_all_outputs_safe()
+        assert relay_byte(image) == 0b1000_0000  # O_8 at its default, the relays off
+    finally:
+        h.close()
+
+
+def test_overlapping_modules_are_a_warning(tmp_path: Path, image: str) -> None:
+    data = load()
+    data["Devices"][2]["offset"] = 120  # the AIO overlaps the DIO's last bytes
+    findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
+    assert any(f.category == "revpi_config" and f.severity is Severity.WARNING for f in findings), (
+        findings
+    )
+
+
+def _short_image(directory: Path) -> str:
+    path = directory / "short"
+    path.write_bytes(bytes(100))
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    ("make", "words"),
+    [
+        (lambda d: str(d / "absent"), "no process image"),
+        (str, "not a process image"),
+        (_short_image, "needs 213"),
+    ],
+)
+def test_bad_process_image_is_a_finding(
+    tmp_path: Path, make: Callable[[Path], str], words: str
+) -> None:
+    procimg = make(tmp_path)
+    findings = check_revpi_io(MAP, CONFIG, procimg)
+    assert errors(findings) == [("revpi_procimg", "/hal/revpi/procimg")]
+    assert words in findings[0].message
+    with pytest.raises(RevPiConfigError, match="procimg"):
+        RevPiHal(MAP, procimg, CONFIG)
+
+
+def test_no_config_and_none_at_the_known_places_is_a_finding(image: str) -> None:
+    if any(Path(p).exists() for p in ("/etc/revpi/config.rsc", "/opt/KUNBUS/config.rsc")):
+        pytest.skip("this host has a piCtory config")
+    findings = check_revpi_io(MAP, None, image)
+    assert errors(findings) == [("revpi_config", "/hal/revpi/configrsc")]
+    assert "/etc/revpi/config.rsc" in findings[0].message
+
+
+def test_findings_serialise_for_the_wire(image: str) -> None:
+    findings = check_revpi_io(IoMap(estop="O_5"), CONFIG, image)
+    wire = json.loads(json.dumps([f.model_dump(mode="json") for f in findings]))
+    assert wire[0]["category"] == "io_type"
+    assert wire[0]["severity"] == "error"
+
+
+def test_package_imports_without_revpimodio2() -> None:
+    code = (
+        "import sys; sys.modules['revpimodio2'] = None\n"
+        "import hal.revpi, hal.procimg_sim\n"
+        "from hal.iomap import IoMap\n"
+        "f = hal.revpi.check_revpi_io(IoMap(), sys.argv[1], sys.argv[1])\n"
+        "print(f[-1].category)\n"
+        "try:\n"
+        "    hal.revpi.RevPiHal(IoMap(), sys.argv[1], sys.argv[1])\n"
+        "except hal.revpi.RevPiConfigError as e:\n"
+        "    print(e.findings[0].category)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, CONFIG],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+        cwd=Path(__file__).parents[2],
+    )
+    assert out.stdout.split() == ["revpi_unavailable", "revpi_unavailable"]
