@@ -207,7 +207,7 @@ def open_modio(
 
 
 @dataclass(frozen=True)
-class _Bound:
+class BoundIo:
     """A logical signal and the revpimodio2 IO object it resolved to."""
 
     signal: Signal
@@ -215,7 +215,7 @@ class _Bound:
     io: Any
 
 
-def bind_ios(rpi: Any, iomap: IoMap) -> tuple[list[_Bound], list[Finding]]:
+def bind_ios(rpi: Any, iomap: IoMap) -> tuple[list[BoundIo], list[Finding]]:
     """Resolve every signal of the IO map to a piCtory IO of the right kind.
 
     In simulator mode revpimodio2 swaps inputs and outputs, so the kinds are checked as the
@@ -225,7 +225,7 @@ def bind_ios(rpi: Any, iomap: IoMap) -> tuple[list[_Bound], list[Finding]]:
     from revpimodio2.io import IOBase
 
     real_input, real_output = (rp.OUT, rp.INP) if rpi.simulator else (rp.INP, rp.OUT)
-    bound: list[_Bound] = []
+    bound: list[BoundIo] = []
     findings: list[Finding] = []
     for signal, kind in _KIND.items():
         channel = iomap.channel(signal)
@@ -264,7 +264,7 @@ def bind_ios(rpi: Any, iomap: IoMap) -> tuple[list[_Bound], list[Finding]]:
                     " it on before the daemon runs; set its default to 0",
                 )
             )
-        bound.append(_Bound(signal, channel, io))
+        bound.append(BoundIo(signal, channel, io))
     return bound, findings
 
 
@@ -328,7 +328,7 @@ class RevPiHal:
         """Bytes of the process image the piCtory config covers."""
         return int(self._rpi.length)
 
-    def _setup(self, bound: list[_Bound]) -> None:
+    def _setup(self, bound: list[BoundIo]) -> None:
         rpi = self._rpi
         by_kind = {k: [(b.channel, b.io) for b in bound if _KIND[b.signal] is k] for k in IoKind}
         self._di = by_kind[IoKind.DI]
