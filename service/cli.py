@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from schema.findings import Findings
+from schema.findings import Findings, Severity
 from service.config import HalBackend, MachineConfig
 from service.logfmt import setup_logging
 from service.validate import validate_file
@@ -77,6 +77,11 @@ def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None
         print(f"{path or 'defaults'}: ok, no findings")
     for f in findings.findings:
         print(f"{f.severity:7} {f.category:14} {f.path or '/':32} {f.message}")
+    if findings.findings:
+        errors = sum(f.severity is Severity.ERROR for f in findings.findings)
+        warnings = len(findings.findings) - errors
+        verdict = "the daemon will not start" if errors else "the daemon will start"
+        print(f"{path}: {errors} error(s), {warnings} warning(s); {verdict}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -41,6 +41,7 @@ class RotateSection(_Section):
     """The rotate axis: a relay + direction, and a home switch once per revolution."""
 
     nominal_speed_dps: float = Field(default=90.0, gt=0, le=3600)
+    home_arc_deg: float = Field(default=10.0, gt=0, lt=180)
     revolution_timeout_s: float = Field(default=8.0, gt=0, le=600)
     backoff_timeout_s: float = Field(default=2.0, gt=0, le=60)
     speed_tolerance: float = Field(default=0.5, gt=0, lt=1)
@@ -125,7 +126,7 @@ class MachineConfig(_Section):
     bus: BusSection = BusSection()
     hal: HalSection = HalSection()
     fastdata: FastDataSection = FastDataSection()
-    data_dir: str = "data"
+    data_dir: str = Field(default="data", min_length=1)
 
     @property
     def key_base(self) -> str:
