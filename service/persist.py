@@ -8,7 +8,7 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,27 +24,62 @@ CALIBRATION_FILE = "calibration.json"
 
 def atomic_write(path: Path, data: bytes) -> None:
     """Write temp file, fsync, rename over `path`, fsync the directory: never a torn file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    if not path.parent.is_dir():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _fsync_dir(path.parent.parent)  # the new directory's own entry must survive too
+    tmp = _temp_name(path, os.getpid(), threading.get_ident())
     try:
-        view = memoryview(data)
-        while view:
-            written = os.write(fd, view)
-            view = view[written:]
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            view = memoryview(data)
+            while view:
+                written = os.write(fd, view)
+                view = view[written:]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
-    except OSError:
+    except BaseException:
+        # A full disk or an interrupt must not leave the half-written temp file behind.
         tmp.unlink(missing_ok=True)
         raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(path: Path) -> None:
+    dir_fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
+
+
+def _temp_name(path: Path, pid: int, tid: int) -> Path:
+    return path.with_name(f".{path.name}.{pid}.{tid}.tmp")
+
+
+def remove_stale_temps(path: Path) -> list[Path]:
+    """Delete temp files that writers of `path` left behind when they died mid-write."""
+    removed = []
+    for tmp in path.parent.glob(f".{path.name}.*.*.tmp"):
+        pid_text = tmp.name[len(path.name) + 2 :].split(".", 1)[0]
+        if not pid_text.isdigit() or _alive(int(pid_text)):
+            continue
+        tmp.unlink(missing_ok=True)
+        removed.append(tmp)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's process: not ours to judge
+    return True
 
 
 @dataclass(frozen=True)
@@ -57,7 +92,12 @@ class Loaded:
 
 
 def load_json(path: Path) -> Loaded:
-    """Read a JSON object; a corrupt file is moved aside (`.corrupt-<time>`) and reported."""
+    """Read a JSON object; a corrupt file is moved aside (`.corrupt-<time>`) and reported.
+
+    Temp files left by writers that died mid-write are removed first (the file itself is whole).
+    """
+    if path.parent.is_dir():
+        remove_stale_temps(path)
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -200,3 +240,85 @@ class CalibrationStore:
             atomic_write(self.path, data)
         else:
             self.writer.submit(lambda: atomic_write(self.path, data))
+
+
+PARAMS_FILE = "params.json"
+PARAMS_VERSION = 1
+
+ParamScalar = float | int | bool | str
+
+
+@dataclass(frozen=True)
+class StoredParam:
+    """One persisted override: the value and when it was written online (wall time)."""
+
+    value: ParamScalar
+    changed_at: float | None = None
+
+
+class _ParamEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    value: ParamScalar
+    changed_at: float | None = None
+
+
+class _ParamsFile(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    version: int
+    params: dict[str, Any]
+
+
+class ParamStore:
+    """The persisted parameter overrides, `params.json` in the data directory.
+
+    Only values written with `persist: true` are here; everything else is the project default.
+    """
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = data_dir
+
+    @property
+    def path(self) -> Path:
+        return self.data_dir / PARAMS_FILE
+
+    def load(self) -> tuple[dict[str, StoredParam], list[str]]:
+        """The stored overrides, and a warning per thing that was wrong (never raises)."""
+        loaded = load_json(self.path)
+        if loaded.data is None:
+            return {}, [loaded.warning] if loaded.warning else []
+        try:
+            doc = _ParamsFile.model_validate(loaded.data)
+            if doc.version != PARAMS_VERSION:
+                raise ValueError(f"version {doc.version} is not {PARAMS_VERSION}")
+        except (ValidationError, ValueError) as exc:
+            kept = keep_aside(self.path)
+            return {}, [
+                f"{self.path}: invalid parameter file ({str(exc).splitlines()[0][:120]});"
+                f" kept as {kept.name}; using defaults"
+            ]
+        out: dict[str, StoredParam] = {}
+        warnings = []
+        for name, raw in doc.params.items():
+            try:
+                entry = _ParamEntry.model_validate(raw)
+            except ValidationError as exc:
+                first = exc.errors(include_url=False)[0]
+                warnings.append(
+                    f"{self.path}: parameter {name!r} ignored ({first['msg']}); using the default"
+                )
+                continue
+            out[name] = StoredParam(entry.value, entry.changed_at)
+        return out, warnings
+
+    def save(self, params: Mapping[str, StoredParam]) -> None:
+        """Write every override at once, atomically (raises OSError if the disk refuses)."""
+        doc = {
+            "version": PARAMS_VERSION,
+            "params": {
+                name: {"value": p.value, "changed_at": p.changed_at}
+                for name, p in sorted(params.items())
+            },
+        }
+        atomic_write(self.path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())

@@ -1,0 +1,330 @@
+"""Online parameters: project defaults from the config, live values, persisted overrides."""
+
+from __future__ import annotations
+
+import builtins
+import logging
+import math
+import threading
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
+import annotated_types as at
+from pydantic import BaseModel, ValidationError
+
+from schema.errors import ErrorCode
+from schema.findings import Severity
+from schema.params import ParamSet, ParamValue
+from service.config import MachineConfig
+from service.errors import MachineError, ParamLocked, ParamOutOfRange, StorageFailed, UnknownParam
+from service.persist import ParamScalar, ParamStore, StoredParam
+from service.validate import semantic_findings
+
+log = logging.getLogger(__name__)
+
+
+class ParamWrongType(MachineError):
+    """A parameter write whose value has the wrong type (or is missing)."""
+
+    code = ErrorCode.BAD_PAYLOAD
+
+
+# (name, unit, locked while moving, description). Type, bounds and default come from the
+# config model, so a range is written down once. loop.period_s is deliberately absent: the
+# runner's timing and the validation of the period hold for one period per process.
+_ONLINE: tuple[tuple[str, str, bool, str], ...] = (
+    ("tilt.tolerance_deg", "°", True, "settle window (±) around a tilt target"),
+    ("tilt.nominal_speed_dps", "°/s", True, "tilt speed, for timeouts and calibration"),
+    ("tilt.min_deg", "°", True, "lowest tilt a session may ask for"),
+    ("tilt.max_deg", "°", True, "highest tilt a session may ask for"),
+    ("tilt.home_timeout_s", "s", False, "time allowed to reach the tilt home switch"),
+    ("tilt.move_timeout_margin_s", "s", False, "slack added to every tilt move's timeout"),
+    ("rotate.nominal_speed_dps", "°/s", True, "rotate speed, for timeouts and calibration"),
+    ("rotate.speed_tolerance", "", True, "accepted revolution-time deviation (fraction)"),
+    ("rotate.revolution_timeout_s", "s", False, "time allowed for one revolution"),
+    ("rotate.backoff_timeout_s", "s", False, "time allowed to leave the rotate home switch"),
+    ("bus.heartbeat_s", "s", False, "status is republished at least this often"),
+    ("rider_loss.policy", "", False, "what to do when the controlling Rider disappears"),
+    ("rider_loss.grace_s", "s", False, "how long a lost Rider may take to come back"),
+)
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One online parameter: where it lives in the config, its type, unit and bounds."""
+
+    name: str
+    section: str
+    field: str
+    kind: type
+    unit: str
+    description: str
+    locked_while_moving: bool
+    minimum: float | None = None
+    maximum: float | None = None
+    min_exclusive: bool = False
+    max_exclusive: bool = False
+    choices: tuple[str, ...] = ()
+
+    def default(self, config: MachineConfig) -> ParamScalar:
+        """The value in `config` (enums as their string)."""
+        value = getattr(getattr(config, self.section), self.field)
+        return value.value if isinstance(value, StrEnum) else _scalar(value)
+
+    def check(self, value: object) -> ParamScalar:
+        """The value in this parameter's type, or ParamWrongType / ParamOutOfRange."""
+        if self.choices:
+            if not isinstance(value, str):
+                raise self._wrong(value, "one of " + ", ".join(self.choices))
+            if value not in self.choices:
+                raise ParamOutOfRange(
+                    f"{self.name} must be one of {', '.join(self.choices)}; got {value!r}",
+                    "/value",
+                )
+            return value
+        if self.kind is bool:
+            if not isinstance(value, bool):
+                raise self._wrong(value, "true or false")
+            return value
+        # bool is an int in Python, but `true` is never a number on the wire.
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self._wrong(value, "an integer" if self.kind is int else "a number")
+        if self.kind is int and not isinstance(value, int):
+            raise self._wrong(value, "an integer")
+        number: float | int = float(value) if self.kind is float else value
+        if not math.isfinite(number) or not self._in_range(number):
+            raise ParamOutOfRange(
+                f"{self.name} must be {self.range_text()}; got {number:g}", "/value"
+            )
+        return number
+
+    def range_text(self) -> str:
+        """E.g. `> 0 and ≤ 10 °`."""
+        parts = []
+        if self.minimum is not None:
+            parts.append(f"{'>' if self.min_exclusive else '≥'} {self.minimum:g}")
+        if self.maximum is not None:
+            parts.append(f"{'<' if self.max_exclusive else '≤'} {self.maximum:g}")
+        text = " and ".join(parts) or "any number"
+        return f"{text} {self.unit}".rstrip()
+
+    def _in_range(self, v: float) -> bool:
+        lo, hi = self.minimum, self.maximum
+        if lo is not None and (v <= lo if self.min_exclusive else v < lo):
+            return False
+        return not (hi is not None and (v >= hi if self.max_exclusive else v > hi))
+
+    def _wrong(self, value: object, expected: str) -> ParamWrongType:
+        return ParamWrongType(
+            f"{self.name} expects {expected}; got {type(value).__name__} {value!r}", "/value"
+        )
+
+
+def _scalar(value: object) -> ParamScalar:
+    if isinstance(value, bool | int | float | str):
+        return value
+    raise TypeError(f"not a parameter value: {value!r}")
+
+
+def _spec(name: str, unit: str, locked: bool, description: str) -> ParamSpec:
+    section, field = name.split(".")
+    section_model = MachineConfig.model_fields[section].annotation
+    assert isinstance(section_model, type) and issubclass(section_model, BaseModel)
+    info = section_model.model_fields[field]
+    kind = info.annotation
+    assert isinstance(kind, type), f"{name}: optional or union fields cannot be parameters"
+    bounds: dict[str, Any] = {}
+    for m in info.metadata:
+        if isinstance(m, at.Gt):
+            bounds.update(minimum=float(m.gt), min_exclusive=True)  # type: ignore[arg-type]
+        elif isinstance(m, at.Ge):
+            bounds.update(minimum=float(m.ge))  # type: ignore[arg-type]
+        elif isinstance(m, at.Lt):
+            bounds.update(maximum=float(m.lt), max_exclusive=True)  # type: ignore[arg-type]
+        elif isinstance(m, at.Le):
+            bounds.update(maximum=float(m.le))  # type: ignore[arg-type]
+    choices = tuple(e.value for e in kind) if issubclass(kind, StrEnum) else ()
+    return ParamSpec(
+        name, section, field, kind, unit, description, locked, choices=choices, **bounds
+    )
+
+
+SPECS: dict[str, ParamSpec] = {row[0]: _spec(*row) for row in _ONLINE}
+"""Every online parameter by its dotted name, in a stable order."""
+
+
+def _errors(config: MachineConfig) -> set[tuple[str, str, str]]:
+    return {
+        (f.category, f.path, f.message)
+        for f in semantic_findings(config)
+        if f.severity is Severity.ERROR
+    }
+
+
+class ParamRegistry:
+    """The live parameters of one machine; thread-safe, so the bus may call it directly.
+
+    The project config stays as loaded; `config` is it with the live values applied, and
+    `generation` counts changes so the scan loop can pick a new config at a cycle boundary.
+    """
+
+    def __init__(self, config: MachineConfig, store: ParamStore) -> None:
+        self._project = config
+        self._store = store
+        self._lock = threading.Lock()
+        self._live: dict[str, ParamScalar] = {}
+        self._changed_at: dict[str, float | None] = {}
+        self._stored: dict[str, StoredParam] = {}
+        self._config = config
+        self.generation = 0
+        self.warnings: builtins.list[str] = self._load()
+
+    @property
+    def config(self) -> MachineConfig:
+        """The project config with every live value applied (validated, immutable)."""
+        return self._config
+
+    @property
+    def project(self) -> MachineConfig:
+        """The config as loaded from the file: the project defaults."""
+        return self._project
+
+    def names(self) -> builtins.list[str]:
+        return builtins.list(SPECS)
+
+    def list(self) -> builtins.list[ParamValue]:
+        """Every parameter's live record."""
+        with self._lock:
+            return [self._record(spec) for spec in SPECS.values()]
+
+    def get(self, name: str) -> ParamValue:
+        """One parameter's live record, or UnknownParam."""
+        spec = _lookup(name)
+        with self._lock:
+            return self._record(spec)
+
+    def set(self, name: str, req: ParamSet, *, moving: bool, now: float) -> ParamValue:
+        """Write (or reset) a parameter; nothing changes unless every check and the disk agree.
+
+        `moving`: a controller or session is active (paused included): parameters that are
+        `locked_while_moving` are refused. `now` is the wall time recorded as `changed_at`.
+        """
+        spec = _lookup(name)
+        if req.reset and req.value is not None:
+            raise ParamWrongType(f"{name}: a reset takes no value", "/value")
+        if not req.reset and req.value is None:
+            raise ParamWrongType(f"{name}: give a value, or reset: true", "/value")
+        value = None if req.reset else spec.check(req.value)
+        if moving and spec.locked_while_moving:
+            raise ParamLocked(
+                f"{name} cannot change while the machine is moving; Stop or wait until it is"
+                " done, then write again",
+                "/value",
+            )
+        with self._lock:
+            live = dict(self._live)
+            if value is None:
+                live.pop(name, None)
+            else:
+                live[name] = value
+            candidate = self._candidate(live, spec, value)
+            stored = dict(self._stored)
+            if req.reset:
+                stored.pop(name, None)
+            elif req.persist:
+                assert value is not None
+                stored[name] = StoredParam(value, now)
+            if stored != self._stored:
+                self._save(stored, name)
+            self._live, self._stored, self._config = live, stored, candidate
+            self._changed_at[name] = None if req.reset else now
+            self.generation += 1
+            log.info(
+                "event=param_set name=%s value=%r persist=%s reset=%s",
+                name,
+                value,
+                req.persist,
+                req.reset,
+            )
+            return self._record(spec)
+
+    # ----------------------------------------------------------------------- internals
+    def _record(self, spec: ParamSpec) -> ParamValue:
+        value = self._live.get(spec.name, spec.default(self._project))
+        stored = self._stored.get(spec.name)
+        return ParamValue(
+            name=spec.name,
+            value=value,
+            default=spec.default(self._project),
+            persisted=stored is not None and stored.value == value,
+            changed_at=self._changed_at.get(spec.name),
+            unit=spec.unit,
+            minimum=spec.minimum,
+            maximum=spec.maximum,
+            locked_while_moving=spec.locked_while_moving,
+            description=spec.description
+            + (f" (one of {', '.join(spec.choices)})" if spec.choices else ""),
+        )
+
+    def _candidate(
+        self, live: dict[str, ParamScalar], spec: ParamSpec, value: ParamScalar | None
+    ) -> MachineConfig:
+        """The config with `live` applied, refused if it breaks a cross-field check."""
+        sections: dict[str, dict[str, Any]] = {}
+        for name, v in live.items():
+            s = SPECS[name]
+            sections.setdefault(s.section, {})[s.field] = v
+        shown = f"{spec.name}={value!r}" if value is not None else f"{spec.name} reset"
+        try:
+            candidate = self._project.with_overrides(**sections)
+        except ValidationError as exc:
+            raise ParamOutOfRange(f"{shown}: {exc.errors()[0]['msg']}", "/value") from exc
+        new = sorted(_errors(candidate) - _errors(self._config))
+        if new:
+            _, path, message = new[0]
+            raise ParamOutOfRange(f"{shown} conflicts with {path}: {message}", "/value")
+        return candidate
+
+    def _save(self, stored: dict[str, StoredParam], name: str) -> None:
+        try:
+            self._store.save(stored)
+        except OSError as exc:
+            raise StorageFailed(
+                f"{name}: could not write {self._store.path} ({exc.strerror or exc});"
+                " nothing was changed",
+                "/persist",
+            ) from exc
+
+    def _load(self) -> builtins.list[str]:
+        """Apply the persisted overrides one by one; each one that no longer fits is a warning."""
+        entries, warnings = self._store.load()
+        path = self._store.path
+        for name, entry in entries.items():
+            spec = SPECS.get(name)
+            try:
+                if spec is None:
+                    raise UnknownParam("not an online parameter")
+                value = spec.check(entry.value)
+                live = {**self._live, name: value}
+                self._config = self._candidate(live, spec, value)
+            except (UnknownParam, ParamWrongType, ParamOutOfRange) as exc:
+                default = f"the default {spec.default(self._project)!r}" if spec else "nothing"
+                warnings.append(
+                    f"{path}: persisted {name}={entry.value!r} ignored ({exc.message});"
+                    f" using {default}"
+                )
+                continue
+            self._live[name] = value
+            self._stored[name] = StoredParam(value, entry.changed_at)
+            self._changed_at[name] = entry.changed_at
+        for w in warnings:
+            log.warning("event=params_load detail=%r", w)
+        return warnings
+
+
+def _lookup(name: str) -> ParamSpec:
+    spec = SPECS.get(name)
+    if spec is None:
+        raise UnknownParam(f"unknown parameter {name!r}; known: {', '.join(SPECS)}")
+    return spec
