@@ -11,7 +11,7 @@ from typing import TextIO
 from schema.findings import Findings, Severity
 from service.config import HalBackend, MachineConfig
 from service.logfmt import setup_logging
-from service.validate import validate_file
+from service.validate import findings_of, hardware_findings, validate_file
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -91,7 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.config is None:
             print_findings(Findings(ok=True, findings=[]), None, args.json)
             return EXIT_OK
-        _, findings = validate_file(args.config)
+        config, findings = validate_file(args.config)
+        if config is not None:
+            findings = findings_of([*findings.findings, *hardware_findings(config)])
         print_findings(findings, args.config, args.json)
         return EXIT_OK if findings.ok else EXIT_CONFIG
     config = load_config(args.config)

@@ -381,3 +381,17 @@ def validate_file(path: Path) -> tuple[MachineConfig | None, Findings]:
 
 def _one(category: Category, message: str) -> Findings:
     return findings_of([_error(category, "", message)])
+
+
+def hardware_findings(config: MachineConfig) -> list[Finding]:
+    """What the chosen backend finds on this host (piCtory config, process image, IO names).
+
+    Not part of `validate_data`: it reads files of the host, and `machine run --hal` may pick
+    another backend than the file does. `machine validate` adds it to the report.
+    """
+    if config.hal.backend is not HalBackend.REVPI:
+        return []
+    from hal.revpi import check_revpi_io  # only with that backend: it pulls in revpimodio2
+
+    revpi = config.hal.revpi
+    return check_revpi_io(config.hal.iomap, revpi.configrsc, revpi.procimg)

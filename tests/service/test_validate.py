@@ -284,3 +284,24 @@ def test_daemon_refuses_to_start_on_an_error_and_prints_every_finding(bad_toml: 
     for path in BAD_PATHS:
         assert path in done.stderr
     assert not (bad_toml.parent / "data").exists()  # it never got as far as the data directory
+
+
+@pytest.mark.integration
+def test_machine_validate_checks_the_revpi_io_names(tmp_path: Path) -> None:
+    pytest.importorskip("revpimodio2")
+    from tests.fixtures.revpi import CONFIG_RSC, make_image
+
+    image = make_image(tmp_path)
+    good = tmp_path / "revpi.toml"
+    head = (
+        f'[hal]\nbackend = "revpi"\n[hal.revpi]\nprocimg = "{image}"\nconfigrsc = "{CONFIG_RSC}"\n'
+    )
+    good.write_text(head)
+    done = machine("validate", "--config", str(good), cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    bad = tmp_path / "revpi-bad.toml"
+    bad.write_text(head + '[hal.iomap]\ntiltHome = "I_99"\n')
+    done = machine("validate", "--json", "--config", str(bad), cwd=tmp_path)
+    assert done.returncode == 2
+    paths = {(f["category"], f["path"]) for f in json.loads(done.stdout)["findings"]}
+    assert ("io_missing", "/hal/iomap/tiltHome") in paths
