@@ -53,7 +53,9 @@ class AxisTracker:
         self._last_t: float | None = None
         self._tilt_prev: float | None = None
         self.samples: dict[str, AxisSample] = {}
-        self._was_moving = {"rotate": False, "tilt": False}
+        # None: never published, so the first cycle publishes every axis once.
+        self._was_moving: dict[str, bool | None] = {"rotate": None, "tilt": None}
+        self._settling: set[str] = set()
         self.tilt_target: float | None = None
 
     def update(
@@ -97,13 +99,19 @@ class AxisTracker:
         self._tilt_prev = tilt
 
     def due(self, cycle: int) -> list[str]:
-        """Axes to publish this cycle: every Nth cycle while moving, and once when they stop."""
+        """Axes to publish this cycle: every Nth cycle while moving, on any change, and once
+        more the cycle after a stop, so the last record says settled with zero velocity."""
         out = []
         every = self.config.bus.axis_every_cycles
         for name, sample in self.samples.items():
             moving = bool(sample.status & PnStatus.MOVING)
-            if (moving and cycle % every == 0) or moving != self._was_moving[name]:
+            was = self._was_moving[name]
+            if (moving and cycle % every == 0) or moving != was or name in self._settling:
                 out.append(name)
+            if name in self._settling:
+                self._settling.discard(name)
+            elif was and not moving:
+                self._settling.add(name)
             self._was_moving[name] = moving
         return out
 

@@ -236,8 +236,9 @@ def test_axis_records_while_moving_and_once_when_stopped() -> None:
     rig.send(C.STOP)
     rig.step(10)
     stopped = [a for a in rig.sink.axes if a.axis == "tilt"]
-    assert len(stopped) == 1
-    assert stopped[0].pn_status & 1  # SETTLED
+    assert len(stopped) == 2  # the stop itself, then one settled record
+    assert all(a.pn_status & 1 for a in stopped)  # SETTLED
+    assert stopped[-1].velocity_fb == 0.0
 
 
 def test_hal_error_in_a_cycle_propagates_for_the_runner_to_handle() -> None:
