@@ -130,10 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "args", nargs="*", help="e.g. `home rotate open`, `tilt_ai frozen`, `stall tilt`"
     )
-    fd = sub.add_parser("fastdata", help="read the FastData UDP axis stream")
-    fd.add_argument("rest", nargs=argparse.REMAINDER)
-    ui = sub.add_parser("ui", help="serve the operator web UI")
-    ui.add_argument("rest", nargs=argparse.REMAINDER)
+    # These two parse their own options (see rider/fastdata.py and rider/ui/app.py).
+    sub.add_parser("fastdata", help="read the FastData UDP axis stream", add_help=False)
+    sub.add_parser("ui", help="serve the operator web UI", add_help=False)
     return p
 
 
@@ -438,19 +437,20 @@ def sim(args: argparse.Namespace, rider: Rider) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, rest = parser.parse_known_args(argv)
+    if args.cmd not in ("fastdata", "ui") and rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
     if args.cmd == "fastdata":
         from rider.fastdata import main as fastdata_main
 
-        return int(fastdata_main(args.rest))
+        return int(fastdata_main(rest))
     connect = args.connect or env_connect()
     if args.cmd == "ui":
         from rider.ui.app import main as ui_main
 
         return int(
-            ui_main(
-                args.rest, connect=connect, zenoh_config=args.zenoh_config, machine=args.machine
-            )
+            ui_main(rest, connect=connect, zenoh_config=args.zenoh_config, machine=args.machine)
         )
     try:
         # A one-shot command that exits at once supervises nothing; `--wait` and live views do.

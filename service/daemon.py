@@ -16,6 +16,7 @@ from hal.sim import SimHal
 from schema.findings import Finding, Findings, Severity
 from service import bus as zbus
 from service.config import HalBackend, MachineConfig
+from service.fastdata import FastDataServer
 from service.machine import Machine
 from service.persist import BackgroundWriter, CalibrationStore
 from service.runner import LoopFailed, RealtimeRunner, tune_thread
@@ -94,10 +95,20 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         config.loop.watchdog_periods,
         on_trip=bus.publish_watchdog_trip,
     )
+    fastdata: FastDataServer | None = None
     code = EXIT_OK
     try:
         bus.start()
         watchdog.start()
+        if config.fastdata.enabled:
+            fastdata = FastDataServer(
+                lambda: loop.published.axes,
+                config.fastdata.host,
+                config.fastdata.port,
+                cycle=lambda: loop.cycle,
+            )
+            fastdata.start()
+            log.info("event=fastdata_started address=%s:%d", *fastdata.address)
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
@@ -114,6 +125,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         # Outputs first: nothing below may delay them.
         loop.go_safe()
         watchdog.stop()
+        if fastdata is not None:
+            fastdata.close()
         loop.reject_pending("machine daemon is shutting down")
         bus.close()
         if not zbus.close_session(session):

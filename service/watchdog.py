@@ -88,17 +88,22 @@ class Watchdog:
             self._thread.join(timeout=2.0)
 
     def _run(self) -> None:
+        # Armed once the first cycle has completed: before it the outputs are safe anyway, and
+        # start-up work (imports, gc.freeze) must not count as a stall.
         last_beat = self.heartbeat()
         last_change = self.clock()
+        armed = False
         while not self._stop.wait(self.period):
             beat = self.heartbeat()
             now = self.clock()
+            if not armed:
+                armed = beat > 0
             if beat != last_beat:
                 last_beat, last_change = beat, now
                 if self.tripped_at is not None and not self.hal.latched:
                     self.tripped_at = None  # the loop recovered and took the fault
                 continue
-            if self.tripped_at is None and now - last_change > self.limit:
+            if armed and self.tripped_at is None and now - last_change > self.limit:
                 self.check(now, now - last_change)
 
     def check(self, now: float, stalled_s: float) -> None:
