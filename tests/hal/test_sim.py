@@ -53,7 +53,7 @@ class Sim:
         return self.hal.world
 
 
-def rising_edges(values: list[bool]) -> int:
+def rising_edges(values: list[bool | int]) -> int:
     return sum(1 for a, b in itertools.pairwise(values) if b and not a)
 
 
@@ -317,7 +317,7 @@ def test_force_safe_and_close_drop_every_output() -> None:
 
 
 def test_custom_io_map_channels_are_used() -> None:
-    iomap = IoMap(rotateHome="I_7", tiltPosition="InputValue_3", rotateRelay="O_9")
+    iomap = IoMap(rotate_home="I_7", tilt_position="InputValue_3", rotate_relay="O_9")
     sim = Sim(iomap=iomap)
     inputs = sim.hal.scan_inputs()
     assert "I_7" in inputs.di

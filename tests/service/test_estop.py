@@ -7,7 +7,7 @@ import random
 import pytest
 
 from hal.iomap import IoMap
-from schema.commands import Command, CommandRequest
+from schema.commands import Command, CommandRequest, Reply
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
 from service.config import MachineConfig
@@ -182,7 +182,7 @@ def test_estops_anywhere_in_a_session_keep_the_revolution_count(seed: int) -> No
 
 def test_command_queued_in_the_estop_cycle_is_refused_in_that_cycle() -> None:
     rig = enter(S.IDLE)
-    got = []
+    got: list[Reply] = []
     rig.loop.inbox.put(PendingCommand(C.START, CommandRequest(transaction_id="q1"), got.append))
     rig.loop.inbox.put(
         PendingCommand(C.CHECK_HOME, CommandRequest(transaction_id="q2"), got.append)

@@ -79,6 +79,7 @@ class RideMachine(RuleBasedStateMachine):
         self.queued: dict[str, list[Reply]] = {}
         self.tids = 0
         self.cycles = 0
+        self.positions = (0.0, 0.0)
         self.check_cycle(moved_allowed=True)
 
     # ------------------------------------------------------------------------------- rules
