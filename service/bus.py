@@ -38,7 +38,7 @@ from schema.sim import (
     SimWorldState,
     SwitchState,
 )
-from schema.status import MOTION_STATES, Fault, FaultCode, MachineState, Status
+from schema.status import Fault, FaultCode, MachineState, Status
 from service.config import MachineConfig
 from service.errors import MachineError
 from service.loop import LoopCall, PendingCommand, ScanLoop
@@ -395,20 +395,16 @@ class ZenohBus:
         except DecodeError as exc:
             self._reply_now(query, key, fmt, exc.error, None, transaction_id_of(exc.raw))
             return
-
-        def apply(loop: ScanLoop, now: float) -> None:
-            with query:
-                try:
-                    value = params.set(
-                        name, req, moving=loop.control.state in MOTION_STATES, now=self.wall()
-                    )
-                except MachineError as exc:
-                    reply = _failure(exc.to_error(), req.transaction_id, self.wall())
-                    query.reply(key, encode(reply, fmt), encoding=fmt.value)
-                    return
-                query.reply(key, encode(value, fmt), encoding=fmt.value)
-
-        self._to_loop(query, key, fmt, apply)
+        # The registry is thread-safe and its write (with fsync) stays off the scan thread;
+        # the loop picks the new config up at the next cycle boundary.
+        with query:
+            try:
+                value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
+            except MachineError as exc:
+                reply = _failure(exc.to_error(), req.transaction_id, self.wall())
+                query.reply(key, encode(reply, fmt), encoding=fmt.value)
+                return
+            query.reply(key, encode(value, fmt), encoding=fmt.value)
 
     # ------------------------------------------------------------------------------ sim
     def _on_sim(self, query: zenoh.Query) -> None:
@@ -462,7 +458,7 @@ class ZenohBus:
             if control.controller_rider != rider:
                 return
             if alive:
-                control.rider_connected = True
+                control.rider_back()
             elif control.rider_lost(now):
                 log.warning(
                     "event=rider_lost rider=%s policy=%s", rider, self.config.rider_loss.policy

@@ -107,6 +107,7 @@ class ControlAPI:
         self.estop_latched = False
         self.rider_connected = False
         self.controller_rider: str | None = None
+        self._rider_gone_at: float | None = None
         self.rider_warning: str | None = None
         self._resume_to: MachineState | None = None
         self._estop_from: MachineState | None = None
@@ -122,6 +123,7 @@ class ControlAPI:
             if command in MOVING_COMMANDS:
                 self.controller_rider = request.rider
                 self.rider_connected = request.rider is not None
+                self._rider_gone_at = None
         except MachineError as exc:
             return Reply.failure(
                 exc.to_error(),
@@ -339,6 +341,9 @@ class ControlAPI:
 
     def update(self, now: float) -> None:
         """Step the active controller; in every other state hold all outputs off."""
+        gone = self._rider_gone_at
+        if gone is not None and now - gone >= self.config.rider_loss.grace_s:
+            self._apply_rider_loss(now)
         ctl = self.controller
         if self.state not in MOTION_STATES or ctl is None:
             self.devices.stop_all()
@@ -391,9 +396,26 @@ class ControlAPI:
         """A fault raised outside the controllers (watchdog, supervisor, loop exception)."""
         self._enter_fault(fault, now, fault.code.value)
 
+    def is_moving(self) -> bool:
+        """Motion is under way or can be resumed (paused, or halted by a released E-stop)."""
+        return self.state in MOTION_STATES or self.controller is not None
+
     def rider_lost(self, now: float) -> bool:
-        """The controlling Rider is gone: apply the rider-loss policy; True if it acted."""
+        """The controlling Rider is gone: apply the rider-loss policy now, or after the
+        configured grace period if it does not come back; True if it acted now."""
         self.rider_connected = False
+        if self.config.rider_loss.grace_s > 0:
+            self._rider_gone_at = now
+            return False
+        return self._apply_rider_loss(now)
+
+    def rider_back(self) -> None:
+        """The controlling Rider's token is back (within the grace period nothing happened)."""
+        self.rider_connected = True
+        self._rider_gone_at = None
+
+    def _apply_rider_loss(self, now: float) -> bool:
+        self._rider_gone_at = None
         policy = self.config.rider_loss.policy
         if self.state not in MOTION_STATES or policy is RiderLossPolicy.IGNORE:
             return False

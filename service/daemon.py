@@ -18,7 +18,8 @@ from service import bus as zbus
 from service.config import HalBackend, MachineConfig
 from service.fastdata import FastDataServer
 from service.machine import Machine
-from service.persist import BackgroundWriter, CalibrationStore
+from service.params import ParamRegistry
+from service.persist import BackgroundWriter, CalibrationStore, ParamStore
 from service.runner import LoopFailed, RealtimeRunner, tune_thread
 from service.timing import CycleStats
 from service.validate import semantic_findings, validate_data
@@ -58,10 +59,16 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     hal = GuardedHal(raw_hal)
     writer = BackgroundWriter()
     store = CalibrationStore(Path(config.data_dir), writer)
+    registry = ParamRegistry(config, ParamStore(Path(config.data_dir)))
+    for warning in registry.warnings:
+        log.warning("event=params_load detail=%r", warning)
+    config = registry.config  # persisted online values survive a restart
     stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
     machine = Machine(config, hal, now=clock(), wall_offset=wall_offset, store=store)
     loop = machine.loop
     loop.guard = hal
+    loop.params = registry
+    machine.control.warnings.extend(registry.warnings)
     runner = RealtimeRunner(loop, config.loop.period_s, stats, spin_s=config.loop.spin_s)
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -85,7 +92,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         stats,
         config,
         sim=raw_hal if isinstance(raw_hal, SimHal) else None,
-        check_config=lambda candidate: _check(config, candidate),
+        params=registry,
+        check_config=lambda candidate: _check(registry.config, candidate),
     )
     loop.sink = bus
     watchdog = Watchdog(

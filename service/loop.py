@@ -38,6 +38,16 @@ class LoopSink(Protocol):
     def publish_axes(self, records: list[AxisRecord]) -> None: ...
 
 
+class LiveConfig(Protocol):
+    """Online parameters: a config that changes, and a counter that says when."""
+
+    @property
+    def generation(self) -> int: ...
+
+    @property
+    def config(self) -> MachineConfig: ...
+
+
 class NullSink:
     """Publishes nothing."""
 
@@ -156,9 +166,12 @@ class ScanLoop:
         inbox: Inbox | None = None,
         started_at: float = 0.0,
         guard: GuardedHal | None = None,
+        params: LiveConfig | None = None,
     ) -> None:
         self.hal = hal
         self.guard = guard
+        self.params = params
+        self._params_generation = params.generation if params is not None else 0
         self.control = control
         self.devices: Devices = control.devices
         self.points: IoPoints = self.devices.points
@@ -183,6 +196,8 @@ class ScanLoop:
     def step(self, now: float) -> None:
         """One scan cycle, in the design's order."""
         self.cycle += 1
+        if self.params is not None and self.params.generation != self._params_generation:
+            self.apply_config(self.params.config)
         self.image.inputs = self.hal.scan_inputs()
         if self.guard is not None and self.guard.latched:
             # The watchdog forced the outputs safe while this thread was stalled: make the
@@ -207,6 +222,14 @@ class ScanLoop:
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
         self._publish(now)
+
+    def apply_config(self, config: MachineConfig) -> None:
+        """Take new online parameter values; running controllers keep what they started with."""
+        if self.params is not None:
+            self._params_generation = self.params.generation
+        self.config = config
+        self.control.config = config
+        self.axes.config = config
 
     def service_inbox(self, now: float) -> int:
         """Run queued tasks (bounded per call so a storm cannot stretch a cycle unboundedly)."""
