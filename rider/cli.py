@@ -19,6 +19,7 @@ from pydantic import BaseModel, ValidationError
 
 from rider.client import (
     AmbiguousMachine,
+    BadCredentials,
     CommandRefused,
     MachineTimeout,
     NoMachine,
@@ -464,7 +465,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             timeout=args.timeout,
         ) as rider:
             return run(args, rider)
-    except UsageError as exc:
+    except (UsageError, BadCredentials) as exc:
         print(f"rider: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except CommandRefused as exc:

@@ -33,6 +33,7 @@ from schema.commands import (
     Session,
     StartRequest,
 )
+from schema.credentials import RIDER, CredentialError, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
 from schema.findings import Findings
@@ -64,6 +65,10 @@ class CommandRefused(RiderError):
         super().__init__(f"{error.code}: {error.message}{where}")
         self.reply = reply
         self.error = error
+
+
+class BadCredentials(RiderError):
+    """A RIDER_ZENOH_* variable is incomplete or names a file that cannot be read."""
 
 
 class BadReply(RiderError):
@@ -108,6 +113,12 @@ def zenoh_config(
         conf.insert_json5("connect/endpoints", json.dumps(endpoints))
     elif not json.loads(conf.get_json("connect/endpoints") or "[]"):
         conf.insert_json5("connect/endpoints", json.dumps([DEFAULT_CONNECT]))
+    try:
+        settings = zenoh_settings(RIDER)
+    except CredentialError as exc:
+        raise BadCredentials(str(exc)) from exc
+    for setting, value in settings.items():
+        conf.insert_json5(setting, value)
     return conf
 
 

@@ -17,28 +17,18 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import zenoh
-from pydantic import BaseModel
 
-from hal.physics import SwitchFault
 from hal.sim import SimHal
 from schema.axes import AxisRecord
 from schema.codec import DecodeError, Format, decode_raw, encode, sniff_format, validate
 from schema.commands import REQUEST_MODELS, Command, Reply, transaction_id_of
+from schema.credentials import MACHINE, zenoh_settings
 from schema.errors import Error, ErrorCode
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
-from schema.sim import (
-    SIM_REQUESTS,
-    SimClear,
-    SimEstop,
-    SimHomeSwitch,
-    SimStall,
-    SimTiltSignal,
-    SimWorldState,
-    SwitchState,
-)
 from schema.status import Fault, FaultCode, MachineState, Status
+from service import simfaults
 from service.config import MachineConfig
 from service.errors import MachineError
 from service.loop import LoopCall, PendingCommand, ScanLoop
@@ -414,30 +404,24 @@ class ZenohBus:
         what = key[len(f"{self.base}/sim/") :]
         data = _payload(query)
         fmt = reply_format(query, data)
-        if what == "world":
+        if what == simfaults.WORLD:
             with query:
-                query.reply(key, encode(_world(sim, self.wall()), fmt), encoding=fmt.value)
-            return
-        model = SIM_REQUESTS.get(what)
-        if model is None:
-            known = ", ".join([*SIM_REQUESTS, "world"])
-            error = Error(
-                code=ErrorCode.UNKNOWN_COMMAND, message=f"unknown sim key {what!r}; known: {known}"
-            )
-            self._reply_now(query, key, fmt, error, None, None)
+                query.reply(
+                    key, encode(simfaults.world_state(sim, self.wall()), fmt), encoding=fmt.value
+                )
             return
         try:
-            req = validate(
-                model, decode_raw(data or b"{}", sniff_format(data or b"{}", _encoding(query)))
-            )
+            req = simfaults.decode_request(what, data, _encoding(query))
         except DecodeError as exc:
             self._reply_now(query, key, fmt, exc.error, None, transaction_id_of(exc.raw))
             return
 
         def inject(loop: ScanLoop, now: float) -> None:
-            _apply_sim(sim, req)
+            simfaults.apply_fault(sim, req)
             with query:
-                query.reply(key, encode(_world(sim, self.wall()), fmt), encoding=fmt.value)
+                query.reply(
+                    key, encode(simfaults.world_state(sim, self.wall()), fmt), encoding=fmt.value
+                )
 
         self._to_loop(query, key, fmt, inject)
 
@@ -493,49 +477,6 @@ def _try_raw(query: zenoh.Query) -> Any:
         return None
 
 
-def _apply_sim(sim: SimHal, req: BaseModel) -> None:
-    if isinstance(req, SimEstop):
-        if req.pressed:
-            sim.press_estop()
-        else:
-            sim.release_estop()
-    elif isinstance(req, SimHomeSwitch):
-        fault = None
-        if req.stuck is SwitchState.OPEN:
-            fault = SwitchFault.STUCK_OPEN
-        elif req.stuck is SwitchState.CLOSED:
-            fault = SwitchFault.STUCK_CLOSED
-        sim.stick_home(req.axis.value, fault)
-    elif isinstance(req, SimTiltSignal):
-        sim.freeze_tilt_ai(req.frozen)
-        sim.set_tilt_noise(req.noise_counts)
-    elif isinstance(req, SimStall):
-        sim.stall(req.axis.value, req.stalled)
-    elif isinstance(req, SimClear):
-        sim.clear_faults()
-
-
-def _world(sim: SimHal, stamp: float) -> SimWorldState:
-    w = sim.world
-    f = w.faults
-    return SimWorldState(
-        time=stamp,
-        tilt_deg=w.tilt_deg,
-        rotate_deg=w.rotate_deg,
-        revolutions=w.revolutions,
-        estop_pressed=f.estop_pressed,
-        relays=sim.outputs.ro,
-        faults={
-            "rotate_home": f.rotate_home,
-            "tilt_home": f.tilt_home,
-            "tilt_ai_frozen": f.tilt_ai_frozen,
-            "tilt_ai_noise_counts": f.tilt_ai_noise_counts,
-            "rotate_stalled": f.rotate_stalled,
-            "tilt_stalled": f.tilt_stalled,
-        },
-    )
-
-
 def zenoh_config(
     path: Path | None, listen: list[str] | None = None, connect: list[str] | None = None
 ) -> zenoh.Config:
@@ -548,6 +489,9 @@ def zenoh_config(
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
+    # Secrets come from files named in the environment, never from the image or this file.
+    for setting, value in zenoh_settings(MACHINE).items():
+        conf.insert_json5(setting, value)
     return conf
 
 

@@ -1,0 +1,86 @@
+"""Simulator fault requests (`machine/<id>/sim/<fault>`): decode, apply, and report the world.
+
+Shared by the daemon's bus (simulator HAL in-process) and the supervisor (the world runs there
+while the daemon drives it through a process image), so both answer the same keys the same way.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel
+
+from hal.physics import SwitchFault
+from hal.sim import SimHal
+from schema.codec import DecodeError, decode_raw, sniff_format, validate
+from schema.errors import Error, ErrorCode
+from schema.sim import (
+    SIM_REQUESTS,
+    SimClear,
+    SimEstop,
+    SimHomeSwitch,
+    SimStall,
+    SimTiltSignal,
+    SimWorldState,
+    SwitchState,
+)
+
+WORLD = "world"
+"""`sim/world`: read the world, change nothing."""
+
+
+def decode_request(what: str, data: bytes, encoding: str | None) -> BaseModel:
+    """The fault request for `sim/<what>`; `DecodeError` for an unknown key or a bad payload."""
+    model = SIM_REQUESTS.get(what)
+    if model is None:
+        known = ", ".join([*SIM_REQUESTS, WORLD])
+        raise DecodeError(
+            Error(
+                code=ErrorCode.UNKNOWN_COMMAND, message=f"unknown sim key {what!r}; known: {known}"
+            )
+        )
+    body = data or b"{}"  # every field of a fault request has a default but the few required
+    return validate(model, decode_raw(body, sniff_format(body, encoding)))
+
+
+def apply_fault(sim: SimHal, req: BaseModel) -> None:
+    """Inject (or repair) the fault a decoded request asks for."""
+    if isinstance(req, SimEstop):
+        if req.pressed:
+            sim.press_estop()
+        else:
+            sim.release_estop()
+    elif isinstance(req, SimHomeSwitch):
+        fault = None
+        if req.stuck is SwitchState.OPEN:
+            fault = SwitchFault.STUCK_OPEN
+        elif req.stuck is SwitchState.CLOSED:
+            fault = SwitchFault.STUCK_CLOSED
+        sim.stick_home(req.axis.value, fault)
+    elif isinstance(req, SimTiltSignal):
+        sim.freeze_tilt_ai(req.frozen)
+        sim.set_tilt_noise(req.noise_counts)
+    elif isinstance(req, SimStall):
+        sim.stall(req.axis.value, req.stalled)
+    elif isinstance(req, SimClear):
+        sim.clear_faults()
+
+
+def world_state(sim: SimHal, stamp: float) -> SimWorldState:
+    """The simulated world as the `sim/world` reply reports it."""
+    w = sim.world
+    f = w.faults
+    return SimWorldState(
+        time=stamp,
+        tilt_deg=w.tilt_deg,
+        rotate_deg=w.rotate_deg,
+        revolutions=w.revolutions,
+        estop_pressed=f.estop_pressed,
+        relays=sim.outputs.ro,
+        faults={
+            "rotate_home": f.rotate_home,
+            "tilt_home": f.tilt_home,
+            "tilt_ai_frozen": f.tilt_ai_frozen,
+            "tilt_ai_noise_counts": f.tilt_ai_noise_counts,
+            "rotate_stalled": f.rotate_stalled,
+            "tilt_stalled": f.tilt_stalled,
+        },
+    )
