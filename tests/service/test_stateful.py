@@ -210,7 +210,9 @@ class RideMachine(RuleBasedStateMachine):
         status = rig.loop.published.status
         assert status is not None
         assert status.state is state
-        assert status.estop.latched is (state is S.FAULT_ESTOP and rig.control.estop_latched)
+        # The latch is set exactly while in FAULT_ESTOP; the input shows the button as it is.
+        assert status.estop.latched is (state is S.FAULT_ESTOP)
+        assert status.estop.active is rig.hal.world.faults.estop_pressed
 
     def check_reply(self, command: Command, tid: str, reply: Reply) -> None:
         assert reply.transaction_id == tid
