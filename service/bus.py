@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import zenoh
+from pydantic import BaseModel
 
 from hal.sim import SimHal
 from schema.axes import AxisRecord
@@ -310,21 +311,20 @@ class ZenohBus:
                 query.reply(f"{self.base}/status", encode(status, fmt), encoding=fmt.value)
 
     def _on_io(self, query: zenoh.Query) -> None:
-        with query:
-            fmt = reply_format(query)
-            asked = query.key_expr
-            for point in self.loop.published.io.values():
-                key = f"{self.base}/io/{point.kind}/{point.name}"
-                if asked.intersects(zenoh.KeyExpr(key)):
-                    query.reply(key, encode(point, fmt), encoding=fmt.value)
+        points = self.loop.published.io.values()
+        self._reply_matching(query, [(f"io/{p.kind}/{p.name}", p) for p in points])
 
     def _on_axis(self, query: zenoh.Query) -> None:
+        records = self.loop.published.axes.values()
+        self._reply_matching(query, [(f"axis/{r.axis}", r) for r in records])
+
+    def _reply_matching(self, query: zenoh.Query, items: list[tuple[str, BaseModel]]) -> None:
+        """One reply per record whose key the (possibly wildcard) query selects."""
         with query:
             fmt = reply_format(query)
-            asked = query.key_expr
-            for record in self.loop.published.axes.values():
-                key = f"{self.base}/axis/{record.axis}"
-                if asked.intersects(zenoh.KeyExpr(key)):
+            for suffix, record in items:
+                key = f"{self.base}/{suffix}"
+                if query.key_expr.intersects(zenoh.KeyExpr(key)):
                     query.reply(key, encode(record, fmt), encoding=fmt.value)
 
     def _on_diag(self, query: zenoh.Query) -> None:

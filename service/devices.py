@@ -49,17 +49,16 @@ class Calibration:
         return self.tilt is not None and self.rotate is not None
 
 
-class RotateAxis:
-    """Relay + direction output and a home switch that closes once per revolution."""
+class _RelayAxis:
+    """An axis driven by a relay and a direction output, with a home switch."""
 
     def __init__(self, relay: RO, direction: RO, home: DI) -> None:
         self.relay = relay
         self.direction = direction
         self.home = home
 
-    def rotate_one(self, direction: Direction) -> None:
-        """Energise the drive in `direction` (revolutions are counted by the controller)."""
-        self.direction.set(direction is Direction.CCW)
+    def _drive(self, reverse: bool) -> None:
+        self.direction.set(reverse)
         self.relay.set(True)
 
     def stop(self) -> None:
@@ -71,6 +70,14 @@ class RotateAxis:
 
     def is_driven(self) -> bool:
         return self.relay.value
+
+
+class RotateAxis(_RelayAxis):
+    """Relay + direction output and a home switch that closes once per revolution."""
+
+    def rotate_one(self, direction: Direction) -> None:
+        """Energise the drive in `direction` (revolutions are counted by the controller)."""
+        self._drive(direction is Direction.CCW)
 
     def driven_direction(self) -> Direction | None:
         if not self.relay.value:
@@ -78,30 +85,17 @@ class RotateAxis:
         return Direction.CCW if self.direction.value else Direction.CW
 
 
-class TiltAxis:
+class TiltAxis(_RelayAxis):
     """Relay + direction output, an analog position in raw counts, a home switch at 0°."""
 
     def __init__(self, relay: RO, direction: RO, home: DI, position: AI) -> None:
-        self.relay = relay
-        self.direction = direction
-        self.home = home
+        super().__init__(relay, direction, home)
         self.position = position
         self.calibration: TiltCalibration | None = None
 
     def tilt_one(self, direction: TiltDirection) -> None:
         """Energise the drive up or down."""
-        self.direction.set(direction is TiltDirection.UP)
-        self.relay.set(True)
-
-    def stop(self) -> None:
-        self.relay.set(False)
-        self.direction.set(False)
-
-    def is_home(self) -> bool:
-        return self.home.value
-
-    def is_driven(self) -> bool:
-        return self.relay.value
+        self._drive(direction is TiltDirection.UP)
 
     def driven_direction(self) -> TiltDirection | None:
         if not self.relay.value:
