@@ -21,7 +21,15 @@ from pydantic import BaseModel
 
 from hal.sim import SimHal
 from schema.axes import AxisRecord
-from schema.codec import DecodeError, Format, decode_raw, encode, sniff_format, validate
+from schema.codec import (
+    MAX_PAYLOAD_BYTES,
+    DecodeError,
+    Format,
+    decode_raw,
+    encode,
+    sniff_format,
+    validate,
+)
 from schema.commands import REQUEST_MODELS, Command, Reply, transaction_id_of
 from schema.credentials import MACHINE, zenoh_settings
 from schema.errors import Error, ErrorCode
@@ -348,6 +356,14 @@ class ZenohBus:
         fmt = reply_format(query)
         if self.check_config is None:
             error = Error(code=ErrorCode.NOT_AVAILABLE, message="no config checker")
+            self._reply_now(query, key, fmt, error, None, None)
+            return
+        if len(data) > MAX_PAYLOAD_BYTES:
+            # Parsing runs on Zenoh's thread and holds the GIL: a few MiB stall the scan loop.
+            error = Error(
+                code=ErrorCode.PAYLOAD_TOO_LARGE,
+                message=f"candidate config is {len(data)} bytes, the limit is {MAX_PAYLOAD_BYTES}",
+            )
             self._reply_now(query, key, fmt, error, None, None)
             return
         with query:
