@@ -1,0 +1,154 @@
+"""`LiveView`: link state, batching and the minute of history, driven with explicit times."""
+
+from __future__ import annotations
+
+from rider.ui.view import LOST_AFTER_S, Event, LiveView, MachineFound, Note, Presence
+from schema.axes import AxisRecord, PnStatus
+from schema.diag import CycleDiag, TimingStats
+from schema.io import IoKind, IoValue
+from schema.status import MachineState, Status
+
+WALL = 1_700_000_000.0
+
+
+def status(t: float, state: MachineState = MachineState.IDLE, **kw: object) -> Status:
+    return Status.model_validate(
+        {"machine_id": "m1", "state": state, "seq": 1, "cycle": 1, "time": WALL + t, **kw}
+    )
+
+
+def axis(name: str, t: float, pos: float, bits: int) -> AxisRecord:
+    return AxisRecord(
+        axis=name,
+        axis_number=1,
+        pn_status=bits,
+        cycle=1,
+        position_cmd=pos,
+        position_fb=pos,
+        velocity_cmd=0.0,
+        velocity_fb=0.0,
+        time=WALL + t,
+    )
+
+
+def io(name: str, kind: IoKind, value: bool | int) -> IoValue:
+    return IoValue(name=name, kind=kind, channel="X", value=value, time=WALL)
+
+
+def kinds(events: list[Event]) -> list[str]:
+    return [e.kind for e in events]
+
+
+def test_link_is_down_until_the_first_status_and_says_why() -> None:
+    view = LiveView()
+    assert not view.link.up
+    view.apply(Note("no machine is alive on the network yet; searching…"), 0.0)
+    assert "searching" in view.link.reason
+    view.apply(MachineFound("m1"), 0.1)
+    assert "waiting for machine m1" in view.link.reason
+    events = view.apply(status(0.2), 0.2)
+    assert kinds(events) == ["status", "link"]
+    assert events[1].data == {"up": True, "reason": "", "machine": "m1"}
+
+
+def test_link_is_lost_when_the_heartbeat_stops_for_more_than_the_limit() -> None:
+    view = LiveView()
+    view.apply(MachineFound("m1"), 0.0)
+    view.apply(status(0.0), 0.0)
+    assert "link" not in kinds(view.tick(LOST_AFTER_S - 0.01, WALL))
+    assert view.link.up
+    events = view.tick(LOST_AFTER_S + 0.01, WALL)
+    assert "link" in kinds(events)
+    assert not view.link.up
+    assert "no status from machine m1" in view.link.reason
+    assert "link" not in kinds(view.tick(LOST_AFTER_S + 0.5, WALL))  # said once, not per tick
+    view.apply(status(3.0), 3.0)
+    assert view.link.up
+
+
+def test_liveliness_loss_drops_the_link_at_once_and_a_new_status_restores_it() -> None:
+    view = LiveView()
+    view.apply(MachineFound("m1"), 0.0)
+    view.apply(status(0.0), 0.0)
+    events = view.apply(Presence(alive=False), 0.1)
+    assert kinds(events) == ["link"]
+    assert "machine m1 is gone" in view.link.reason
+    assert "link" not in kinds(view.tick(1.0, WALL))  # still down: no new status came
+    view.apply(Presence(alive=True), 5.0)
+    assert not view.link.up  # a token alone is not data yet
+    view.apply(status(5.0), 5.0)
+    assert view.link.up
+
+
+def test_digital_io_goes_out_at_once_and_analog_io_is_batched_to_the_tick() -> None:
+    view = LiveView()
+    view.apply(status(0.0), 0.0)
+    assert kinds(view.apply(io("estop", IoKind.DI, True), 0.01)) == ["io"]
+    assert kinds(view.apply(io("rotateRelay", IoKind.RO, True), 0.01)) == ["io"]
+    for counts in range(100, 200):
+        assert view.apply(io("tiltPosition", IoKind.AI, counts), 0.02) == []
+    batched = [e for e in view.tick(0.1, WALL) if e.kind == "io"]
+    assert len(batched) == 1
+    assert batched[0].data[0]["value"] == 199
+    assert [e for e in view.tick(0.2, WALL) if e.kind == "io"] == []
+
+
+def test_gauges_follow_the_axis_stream_while_moving_and_the_status_otherwise() -> None:
+    view = LiveView()
+    moving = PnStatus.MOVING | PnStatus.DRIVE_ENABLED
+    view.apply(status(0.0, tilt_deg=10.0, rotate_deg=None), 0.0)
+    view.apply(axis("tilt", 0.5, 12.5, moving), 0.5)
+    view.apply(axis("rotate", 0.5, 90.0, moving), 0.5)
+    sample = view.sample(WALL + 0.5)
+    assert sample["tilt"] == 12.5
+    assert sample["rotate"] is None  # the machine does not know the rotate angle yet
+    assert sample["tilt_bits"] == int(moving)
+    view.apply(status(1.0, tilt_deg=20.0, rotate_deg=45.0), 1.0)
+    assert view.sample(WALL + 1.0)["tilt"] == 20.0  # the newer heartbeat wins over old records
+
+
+def test_history_keeps_one_minute_of_samples_only_while_the_link_is_up() -> None:
+    view = LiveView()
+    t = 0.0
+    for _ in range(800):  # 80 s of ticks with a heartbeat every second
+        if round(t * 10) % 10 == 0:
+            view.apply(status(t, tilt_deg=5.0), t)
+        view.tick(t, WALL + t)
+        t = round(t + 0.1, 3)
+    samples = list(view.history)
+    assert len(samples) <= 601
+    assert samples[-1]["t"] - samples[0]["t"] <= 60.0 + 1e-6
+    assert samples[-1]["tilt"] == 5.0
+    view.apply(Presence(alive=False), t)
+    before = len(view.history)
+    assert [e for e in view.tick(t + 0.1, WALL + t + 0.1) if e.kind == "sample"] == []
+    assert len(view.history) == before
+
+
+def test_snapshot_has_everything_a_new_page_needs() -> None:
+    view = LiveView()
+    view.apply(MachineFound("m1"), 0.0)
+    view.apply(status(0.0, state=MachineState.RUNNING), 0.0)
+    view.apply(io("estop", IoKind.DI, True), 0.0)
+    view.apply(
+        CycleDiag(
+            period_s=0.01,
+            cycles=5,
+            execution=TimingStats(),
+            jitter=TimingStats(),
+            overruns=0,
+            missed_cycles=0,
+            commands=0,
+            window=10,
+            since=WALL,
+            time=WALL,
+        ),
+        0.0,
+    )
+    view.tick(0.1, WALL + 0.1)
+    snap = view.snapshot(WALL + 0.2)
+    assert snap["link"]["up"] is True
+    assert snap["status"]["state"] == "RUNNING"
+    assert snap["io"][0]["name"] == "estop"
+    assert snap["diag"]["period_s"] == 0.01
+    assert len(snap["history"]) == 1
