@@ -160,8 +160,8 @@ class ControlAPI:
                 f"{command.value} is not accepted in state {self.state}; accepted in: {allowed}"
             )
         if command is Command.START:
-            assert isinstance(request, StartRequest)
-            self._start(request.session or DEFAULT_SESSION, now)
+            session = request.session if isinstance(request, StartRequest) else None
+            self._start(session or DEFAULT_SESSION, now)
             return ReplyCode.RESP_START_ACCEPTED, None
         if command is Command.HOME:
             self._begin(
@@ -309,7 +309,8 @@ class ControlAPI:
         home = self.homed()
         result = CheckResult(ok=home.tilt and home.rotate, tilt=home.tilt, rotate=home.rotate)
         if self.state in REST_STATES:
-            if not result.ok:
+            # Needing calibration is the bigger problem: that warning is not hidden.
+            if not result.ok and self.state is not S.WARNING_NEEDS_CALIBRATION:
                 self._set_state(S.WARNING_NOT_HOME, now, "CheckHome failed")
             elif self.state is S.WARNING_NOT_HOME:
                 self._set_state(self._rest_state(), now, "CheckHome passed")
@@ -389,7 +390,8 @@ class ControlAPI:
         self.session_run = None
         self.fault = fault
         self.refs.tilt = self.refs.rotate = False
-        self._resume_to = None
+        self._resume_to = self._estop_from = None
+        self.estop_latched = False  # a still-pressed E-stop latches again next cycle
         self._set_state(S.FAULT_HW, now, f"{why}: {fault.message}")
 
     def external_fault(self, fault: Fault, now: float) -> None:

@@ -8,6 +8,7 @@ which alone owns machine state; other threads only put work into the `Inbox`.
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -86,7 +87,7 @@ class PendingCommand:
                 error,
                 transaction_id=self.request.transaction_id,
                 command=self.command.value,
-                timecode=0.0,
+                timecode=time.time(),
             )
         )
 

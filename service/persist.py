@@ -167,10 +167,12 @@ def load_calibration(data_dir: Path) -> tuple[Calibration, str | None]:
         doc = _CalibrationFile.model_validate(loaded.data)
         tilt = TiltCalibration(**doc.tilt) if doc.tilt else None
         rotate = RotateCalibration(**doc.rotate) if doc.rotate else None
-        if tilt is not None and tilt.gain_counts_per_deg == 0:
-            raise ValueError("tilt gain is zero")
+        if tilt is not None and not tilt.gain_counts_per_deg > 0:
+            raise ValueError("tilt gain must be positive")
         if rotate is not None and rotate.revolution_s <= 0:
             raise ValueError("revolution time must be positive")
+        if rotate is not None and not 0 < rotate.home_arc_deg < 360:
+            raise ValueError("home arc must be between 0 and 360 degrees")
     except (ValidationError, TypeError, ValueError) as exc:
         kept = keep_aside(path)
         return Calibration(), (

@@ -160,8 +160,8 @@ EXPECTED: dict[str, dict[Command, Ok | Refused]] = {
         C.RESUME: WRONG,
         C.STOP: STOP,
         C.CHECK_CALIBRATION: check(S.WARNING_NEEDS_CALIBRATION),
-        # Not home either; CheckHome reports the warning it checked for.
-        C.CHECK_HOME: check(S.WARNING_NOT_HOME),
+        # Not home either, but the calibration warning is the bigger one and stays.
+        C.CHECK_HOME: check(S.WARNING_NEEDS_CALIBRATION),
     },
     S.WARNING_NOT_HOME: {
         C.CALIBRATE_TILT: CAL,

@@ -217,7 +217,7 @@ def test_invalid_calibration_values_are_kept_aside(tmp_path: Path) -> None:
     (tmp_path / CALIBRATION_FILE).write_bytes(doc)
     cal, warning = CalibrationStore(tmp_path).load()
     assert cal == Calibration()
-    assert warning is not None and "gain is zero" in warning
+    assert warning is not None and "gain must be positive" in warning
     assert [p.read_bytes() for p in _kept(tmp_path, CALIBRATION_FILE)] == [doc]
 
 
