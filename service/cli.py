@@ -23,11 +23,8 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="machine", description=__doc__)
-    sub = parser.add_subparsers(dest="cmd", required=True)
-
-    run = sub.add_parser("run", help="run the machine daemon")
+def _add_run_args(run: argparse.ArgumentParser) -> None:
+    """What `run` takes; `supervise` takes the same and passes the result to its child."""
     _add_config_args(run)
     hal = run.add_mutually_exclusive_group()
     hal.add_argument("--sim", action="store_const", const="sim", dest="hal", help="simulator HAL")
@@ -39,12 +36,28 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--period", type=float, help="override loop.period_s (seconds)")
     run.add_argument("--data-dir", type=Path, help="override data_dir")
     run.add_argument("--fastdata", action="store_true", help="serve the FastData UDP axis stream")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="machine", description=__doc__)
+    sub = parser.add_subparsers(dest="cmd", required=True)
+
+    run = sub.add_parser("run", help="run the machine daemon")
+    _add_run_args(run)
     run.add_argument(
         "--once-session",
         action="store_true",
         help="no network: calibrate, home and run the default session once, then exit",
     )
     run.add_argument("--speed", type=float, default=1.0, help="with --once-session: sim speed-up")
+
+    sup = sub.add_parser(
+        "supervise",
+        help="run the daemon as a child: outputs safe, FAULT_HW and a restart when it dies",
+    )
+    _add_run_args(sup)
+    sup.add_argument("--backoff", type=float, default=0.5, help="first restart delay (s)")
+    sup.add_argument("--backoff-max", type=float, default=8.0, help="longest restart delay (s)")
 
     val = sub.add_parser("validate", help="check a machine config and print every finding")
     _add_config_args(val)
@@ -99,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config(args.config)
     if config is None:
         return EXIT_CONFIG
-    if args.cmd == "demo" or args.once_session:
+    if args.cmd == "demo" or getattr(args, "once_session", False):
         from service.demo import run_demo
 
         return run_demo(config, speed=args.speed)
@@ -124,6 +137,16 @@ def main(argv: list[str] | None = None) -> int:
     options = DaemonOptions(
         zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect
     )
+    if args.cmd == "supervise":
+        from service.supervisor import SupervisorOptions, run_supervisor
+
+        if not 0 < args.backoff <= args.backoff_max:
+            print("machine: need 0 < --backoff <= --backoff-max", file=sys.stderr)
+            return EXIT_CONFIG
+        sup = SupervisorOptions(
+            backoff_s=args.backoff, backoff_max_s=args.backoff_max, log_level=args.log_level
+        )
+        return run_supervisor(config, options, sup)
     return run_daemon(config, options)
 
 

@@ -1,0 +1,107 @@
+"""The simulated ride as a real-time world behind a process image, for `machine supervise --sim`.
+
+The daemon drives it through the same process-image file as real RevPi hardware, and it lives in
+the supervisor, so it keeps running (and can be observed) while the daemon dies and restarts.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from pydantic import BaseModel
+
+from hal.base import HalError
+from hal.iomap import IoMap
+from hal.physics import PhysicsParams
+from hal.procimg_sim import ProcImgSim
+from schema.sim import SimWorldState
+from service import simfaults
+
+log = logging.getLogger(__name__)
+
+IMAGE_BYTES = 4096
+"""The size of piControl's process image."""
+
+
+def make_image(path: Path) -> str:
+    """A fresh, all-zero process-image file (every output off)."""
+    path.write_bytes(bytes(IMAGE_BYTES))
+    return str(path)
+
+
+class SimWorld:
+    """`ProcImgSim` stepped every `period_s` on its own thread; faults land between steps."""
+
+    def __init__(
+        self,
+        iomap: IoMap,
+        procimg: str,
+        configrsc: str,
+        params: PhysicsParams,
+        period_s: float,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.period = period_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._sim = ProcImgSim(iomap, procimg, configrsc, clock, params)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.failures = 0
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="sim-world", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        with self._lock:
+            self._sim.close()
+
+    def step_now(self) -> None:
+        """One step at once, e.g. so the world has seen outputs the supervisor just dropped."""
+        with self._lock:
+            self._step()
+
+    def apply(self, request: BaseModel) -> None:
+        """Inject (or repair) a fault decoded from a `sim/<fault>` request."""
+        with self._lock:
+            simfaults.apply_fault(self._sim.ride, request)
+
+    def state(self, stamp: float) -> SimWorldState:
+        with self._lock:
+            return simfaults.world_state(self._sim.ride, stamp)
+
+    def relays(self) -> dict[str, bool]:
+        with self._lock:
+            return dict(self._sim.relays())
+
+    def _run(self) -> None:
+        deadline = self._clock()
+        while not self._stop.is_set():
+            with self._lock:
+                self._step()
+            deadline += self.period
+            delay = deadline - self._clock()
+            if delay < 0:
+                deadline = self._clock()  # fell behind (a loaded host): no burst of steps
+                delay = 0.0
+            self._stop.wait(delay)
+
+    def _step(self) -> None:
+        if self._sim.closed:
+            return
+        try:
+            self._sim.step()
+        except HalError as exc:
+            self.failures += 1
+            if self.failures == 1:
+                log.error("event=sim_world_step_failed error=%r", str(exc))
+        else:
+            self.failures = 0

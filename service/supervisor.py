@@ -1,0 +1,438 @@
+"""`machine supervise`: run the daemon as a child process that may die but never leaves outputs on.
+
+If the child dies (a crash, SIGKILL, an exit nobody asked for) or freezes (its liveliness token
+goes while the process still exists), the supervisor writes the safe output image itself,
+publishes FAULT_HW (DAEMON_DIED) for the machine, and restarts the daemon with back-off; the new
+daemon comes up with outputs safe and not home. The supervisor is the machine's Zenoh router
+(see `supervisor_bus`), so Riders keep their session across restarts.
+
+With the simulator the ride's world runs here (`SimWorld`) behind a process-image file and the
+child runs the RevPi backend on that file, so the world outlives the daemon and tests can watch
+it; on a Revolution Pi the supervisor writes the safe image to the real process image.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from types import FrameType
+from typing import Any, Protocol
+
+import hal
+from hal.base import HalError
+from schema.credentials import MACHINE, env_name
+from service import bus as zbus
+from service.config import HalBackend, MachineConfig
+from service.daemon import DaemonOptions
+from service.simworld import SimWorld, make_image
+from service.supervisor_bus import (
+    SupervisorBus,
+    child_config,
+    requires_credentials,
+    router_config,
+)
+
+log = logging.getLogger("machine.supervisor")
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_CONFIG = 2
+SUPERVISOR_DIR = "supervisor"
+SIM_CONFIG_RSC = "sim_config.rsc"
+"""The piCtory config (Core + DIO + AIO) the simulated world is wired by, shipped in `hal/`."""
+
+
+class SafeOutputs(Protocol):
+    """What the supervisor needs from a HAL: drop the outputs, from any thread, any time."""
+
+    def force_all_outputs_safe(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class SupervisorOptions:
+    """Restart policy and bounds."""
+
+    backoff_s: float = 0.5
+    backoff_max_s: float = 8.0
+    stable_s: float = 10.0
+    """A child up this long resets the back-off to `backoff_s`."""
+    start_timeout_s: float = 30.0
+    """A child whose liveliness token has not appeared by then is killed and restarted."""
+    exit_grace_s: float = 1.0
+    """After the token goes: how long a child that is still running may take to exit."""
+    stop_timeout_s: float = 10.0
+    world_period_s: float = 0.005
+    log_level: str = "info"
+
+
+class Backoff:
+    """0.5 s, 1 s, 2 s, … up to a maximum; back to the start after a stable run."""
+
+    def __init__(self, first_s: float, most_s: float) -> None:
+        self.first = first_s
+        self.most = most_s
+        self._next = first_s
+
+    def delay(self, lived_s: float | None, stable_s: float) -> float:
+        if lived_s is not None and lived_s >= stable_s:
+            self._next = self.first
+        delay = self._next
+        self._next = min(self._next * 2, self.most)
+        return delay
+
+
+class Kind(Enum):
+    EXITED = "exited"
+    PRESENCE = "presence"
+    STOP = "stop"
+
+
+@dataclass(frozen=True)
+class Event:
+    kind: Kind
+    generation: int = 0
+    code: int = 0
+    present: bool = False
+
+
+@dataclass
+class Child:
+    proc: subprocess.Popen[bytes]
+    generation: int
+    started: float
+    up_since: float | None = None
+    down: bool = False
+
+
+def describe_exit(code: int) -> str:
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        return f"the daemon was killed by {name}"
+    if code == 0:
+        return "the daemon exited (code 0) without being asked to"
+    return f"the daemon exited with code {code}"
+
+
+class Supervisor:
+    """Owns the child daemon, the safe-output path, the router session and (sim) the world."""
+
+    def __init__(
+        self, config: MachineConfig, zenoh: DaemonOptions, options: SupervisorOptions
+    ) -> None:
+        self.config = config
+        self.zenoh = zenoh
+        self.options = options
+        self.dir = Path(config.data_dir).resolve() / SUPERVISOR_DIR
+        self.events: queue.SimpleQueue[Event] = queue.SimpleQueue()  # put() is signal-safe
+        self.child: Child | None = None
+        self.generation = 0
+        self.world: SimWorld | None = None
+        self.safe: SafeOutputs | None = None
+        self.backoff = Backoff(options.backoff_s, options.backoff_max_s)
+        self.bus: SupervisorBus
+        self._sockdir = Path(tempfile.mkdtemp(prefix="machine-sup-"))
+        self.private = f"unixsock-stream/{self._sockdir / 'zenoh.sock'}"
+
+    # ------------------------------------------------------------------------- lifecycle
+    def run(self) -> int:
+        """Until SIGTERM/SIGINT (0), a config problem (2) or a bus that cannot open (1)."""
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._on_signal)
+        try:
+            child_cfg = self._prepare_hal()
+        except (HalError, OSError, ValueError) as exc:  # the IO map, image or config: fatal
+            log.error("event=supervisor_hal_failed error=%r", str(exc))
+            self._cleanup()
+            return EXIT_CONFIG
+        try:
+            conf = router_config(
+                self.zenoh.zenoh_config, self.zenoh.listen, self.zenoh.connect, self.private
+            )
+            if requires_credentials(conf) and not os.environ.get(env_name(MACHINE, "USER")):
+                log.error(
+                    "event=supervisor_no_credentials detail=%r",
+                    "the router checks user/password: give the daemon its identity with"
+                    f" {env_name(MACHINE, 'USER')} and {env_name(MACHINE, 'PASSWORD_FILE')}",
+                )
+                self._cleanup()
+                return EXIT_CONFIG
+            session = zbus.open_session(conf)
+        except Exception as exc:  # noqa: BLE001 - zenoh raises plain ZError; outputs already safe
+            log.error("event=zenoh_open_failed error=%r", str(exc))
+            self._cleanup()
+            return EXIT_FAILED
+        self.bus = SupervisorBus(
+            session, self.config, world=self.world, on_presence=self._on_presence
+        )
+        code = EXIT_OK
+        try:
+            self._write_child_files(child_cfg, child_config(self.zenoh.zenoh_config, self.private))
+            self.bus.start()
+            log.info(
+                "event=supervisor_started id=%s hal=%s private=%s",
+                self.config.machine.id,
+                self.config.hal.backend,
+                self.private,
+            )
+            code = self._loop()
+        finally:
+            self._stop_child()
+            self._force_safe()
+            self.bus.close()
+            if not zbus.close_session(session):
+                log.warning("event=zenoh_close_timeout")
+            self._cleanup()
+            log.info("event=supervisor_stopped code=%d restarts=%d", code, self.generation - 1)
+        return code
+
+    def _prepare_hal(self) -> MachineConfig:
+        """The safe-output path (and, with the simulator, the world); the child's config."""
+        from hal.revpi import RevPiHal
+
+        self.dir.mkdir(parents=True, exist_ok=True)
+        config = self.config
+        if config.hal.backend is HalBackend.SIM:
+            procimg = make_image(self.dir / "procimg")
+            configrsc = str(Path(hal.__file__).with_name(SIM_CONFIG_RSC))
+            self.world = SimWorld(
+                config.hal.iomap, procimg, configrsc, config.hal.sim, self.options.world_period_s
+            )
+            revpi = {"procimg": procimg, "configrsc": configrsc}
+            config = config.with_overrides(hal={"backend": HalBackend.REVPI, "revpi": revpi})
+        rp = config.hal.revpi
+        self.safe = RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc)  # opens safe
+        if self.world is not None:
+            self.world.start()
+        return config.model_copy(update={"data_dir": str(Path(config.data_dir).resolve())})
+
+    def _write_child_files(self, config: MachineConfig, zenoh_json: str) -> None:
+        data = config.model_dump(mode="json", by_alias=True, exclude_none=True)
+        _write_private(self.dir / "machine.toml", to_toml(data))
+        _write_private(self.dir / "zenoh-child.json5", zenoh_json)
+
+    def _cleanup(self) -> None:
+        if self.world is not None:
+            self.world.stop()
+        if self.safe is not None:
+            self.safe.close()
+        shutil.rmtree(self._sockdir, ignore_errors=True)
+
+    # ------------------------------------------------------------------------- the loop
+    def _loop(self) -> int:
+        restart_at: float | None = time.monotonic()
+        heartbeat = self.config.bus.heartbeat_s
+        while True:
+            now = time.monotonic()
+            if self.child is None and restart_at is not None and now >= restart_at:
+                self._spawn()
+                restart_at = None
+            timeout = heartbeat
+            if restart_at is not None:
+                timeout = min(timeout, max(0.0, restart_at - now))
+            child = self.child
+            if child is not None and child.up_since is None and not child.down:
+                timeout = min(timeout, max(0.0, child.started + self.options.start_timeout_s - now))
+            try:
+                event = self.events.get(timeout=timeout)
+            except queue.Empty:
+                limit = self.options.start_timeout_s
+                if (
+                    child is not None
+                    and not child.down
+                    and child.up_since is None
+                    and time.monotonic() - child.started >= limit
+                ):
+                    self._freeze(child, f"the daemon was not up within {limit:g} s")
+                    restart_at = self._schedule(child)
+                else:
+                    self.bus.republish()
+                continue
+            if event.kind is Kind.STOP:
+                return EXIT_OK
+            if event.kind is Kind.PRESENCE:
+                restart_at = self._presence(event.present) or restart_at
+                continue
+            if child is None or event.generation != child.generation or child.down:
+                continue  # an exit we already handled (a child we killed as frozen)
+            self._went_down(child, describe_exit(event.code))
+            if event.code == EXIT_CONFIG:
+                log.error("event=child_config_error detail=%r", "not restarting a config error")
+                return EXIT_CONFIG
+            restart_at = self._schedule(child)
+
+    def _presence(self, present: bool) -> float | None:
+        child = self.child
+        if child is None or child.down:
+            return None
+        now = time.monotonic()
+        if present:
+            if child.up_since is None:
+                child.up_since = now
+                self.bus.daemon_up()
+                log.info(
+                    "event=daemon_up generation=%d pid=%d start_s=%.3f",
+                    child.generation,
+                    child.proc.pid,
+                    now - child.started,
+                )
+            return None
+        if child.up_since is None:
+            return None  # the token of an earlier child, gone late
+        self._freeze(child, "the daemon stopped answering (its liveliness token is gone)")
+        return self._schedule(child)
+
+    def _freeze(self, child: Child, reason: str) -> None:
+        """A child that is gone from the bus: outputs safe first, then find out why, then kill."""
+        self._force_safe()
+        try:
+            code = child.proc.wait(timeout=0.1)  # a crash closes its link before the exit shows
+        except subprocess.TimeoutExpired:
+            self._went_down(child, f"{reason}; killed after {self.options.exit_grace_s:g} s")
+            try:
+                child.proc.wait(timeout=self.options.exit_grace_s)
+            except subprocess.TimeoutExpired:
+                child.proc.kill()
+                child.proc.wait(timeout=self.options.stop_timeout_s)
+            return
+        self._went_down(child, describe_exit(code))
+
+    def _went_down(self, child: Child, reason: str) -> None:
+        t0 = time.monotonic()
+        self._force_safe()
+        if self.world is not None:
+            self.world.step_now()  # the world has seen the relays drop before anyone is told
+        safe_s = time.monotonic() - t0
+        child.down = True
+        self.bus.daemon_down(reason)
+        log.error(
+            "event=daemon_down generation=%d reason=%r safe_ms=%.2f",
+            child.generation,
+            reason,
+            safe_s * 1e3,
+        )
+
+    def _schedule(self, child: Child) -> float:
+        lived = time.monotonic() - child.up_since if child.up_since is not None else None
+        delay = self.backoff.delay(lived, self.options.stable_s)
+        self.child = None
+        log.info("event=restart_scheduled in_s=%.2f", delay)
+        return time.monotonic() + delay
+
+    # --------------------------------------------------------------------------- helpers
+    def _spawn(self) -> None:
+        self.generation += 1
+        cmd = [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "run",
+            "--config",
+            str(self.dir / "machine.toml"),
+            "--zenoh-config",
+            str(self.dir / "zenoh-child.json5"),
+            "--log-level",
+            self.options.log_level,
+        ]
+        proc = subprocess.Popen(cmd)
+        child = Child(proc, self.generation, time.monotonic())
+        self.child = child
+        log.info("event=child_started generation=%d pid=%d", child.generation, proc.pid)
+        threading.Thread(
+            target=self._reap, args=(child,), name=f"reap-{child.generation}", daemon=True
+        ).start()
+
+    def _reap(self, child: Child) -> None:
+        code = child.proc.wait()
+        self.events.put(Event(Kind.EXITED, child.generation, code=code))
+
+    def _stop_child(self) -> None:
+        """SIGTERM (the daemon leaves its outputs safe and closes cleanly), bounded."""
+        child = self.child
+        if child is None or child.proc.poll() is not None:
+            return
+        child.down = True
+        child.proc.send_signal(signal.SIGTERM)
+        try:
+            child.proc.wait(timeout=self.options.stop_timeout_s)
+        except subprocess.TimeoutExpired:
+            log.error("event=child_stop_timeout pid=%d", child.proc.pid)
+            child.proc.kill()
+            child.proc.wait(timeout=self.options.stop_timeout_s)
+
+    def _force_safe(self) -> None:
+        if self.safe is not None:
+            self.safe.force_all_outputs_safe()
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        log.info("event=signal signal=%s", signal.Signals(signum).name)
+        self.events.put(Event(Kind.STOP))
+
+    def _on_presence(self, present: bool) -> None:
+        self.events.put(Event(Kind.PRESENCE, present=present))
+
+
+def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: SupervisorOptions) -> int:
+    """`machine supervise`: returns the process exit code."""
+    return Supervisor(config, zenoh, options).run()
+
+
+# ------------------------------------------------------------------------------ TOML out
+_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def to_toml(data: Mapping[str, Any], prefix: str = "") -> str:
+    """A TOML document of plain data (None values left out), for the child's config file."""
+    lines: list[str] = []
+    tables: list[tuple[str, Mapping[str, Any]]] = []
+    for key, value in data.items():
+        if value is None:
+            continue
+        if isinstance(value, Mapping):
+            tables.append((f"{prefix}.{_key(key)}" if prefix else _key(key), value))
+        else:
+            lines.append(f"{_key(key)} = {_value(value)}")
+    parts = ["\n".join(lines)] if lines else []
+    parts += [f"[{name}]\n{to_toml(table, name)}" for name, table in tables]
+    return "\n\n".join(p for p in parts if p.strip()) + "\n"
+
+
+def _key(key: str) -> str:
+    return key if _BARE_KEY.match(key) else json.dumps(key)
+
+
+def _value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a TOML basic string
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_value(v) for v in value) + "]"
+    raise TypeError(f"no TOML form for {type(value).__name__}")
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Owner-only: the child's zenoh config may carry what the user's file carries."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)

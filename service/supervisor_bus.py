@@ -1,0 +1,262 @@
+"""The supervisor's side of Zenoh: the machine's router, and its voice while the daemon is down.
+
+The supervisor's session runs in router mode on the machine's public endpoints; the daemon
+child connects to it as a client over a private socket, and Riders connect to the router. So
+Riders stay connected across a daemon restart, and hear the supervisor in between: a FAULT_HW
+status on `machine/<id>/status`, answers to status queries, and a clear NOT_AVAILABLE error
+for commands. The daemon's liveliness token tells the supervisor the child is up or gone.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from schema.codec import DecodeError, Format, decode, decode_raw, encode, sniff_format
+from schema.commands import Reply, transaction_id_of
+from schema.errors import Error, ErrorCode
+from schema.status import Fault, FaultCode, MachineState, Status
+from service import bus as zbus
+from service import simfaults
+from service.config import MachineConfig
+from service.simworld import SimWorld
+
+log = logging.getLogger(__name__)
+
+
+def router_config(
+    path: Path | None, listen: list[str], connect: list[str], private: str
+) -> zenoh.Config:
+    """The daemon's own session config, as a router that also listens on `private`."""
+    conf = zbus.zenoh_config(path, listen, connect)
+    endpoints = json.loads(conf.get_json("listen/endpoints") or "[]")
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps([*endpoints, private]))
+    return conf
+
+
+def child_config(path: Path | None, private: str) -> str:
+    """The daemon child's Zenoh config (JSON): a client of the supervisor's private endpoint.
+
+    A client listens nowhere, so nobody reaches the daemon but through the router, where the
+    access control is enforced; the child itself runs none (it would deny its only link).
+    """
+    conf = zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([private]))
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("access_control/enabled", "false")
+    conf.insert_json5("transport/auth/usrpwd/dictionary_file", "null")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return str(conf)
+
+
+def requires_credentials(conf: zenoh.Config) -> bool:
+    """True when the router checks user/password (so the child must present some)."""
+    return json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file") or "null") is not None
+
+
+class SupervisorBus:
+    """Watches the daemon child's presence and speaks for the machine while it is down."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        config: MachineConfig,
+        *,
+        world: SimWorld | None = None,
+        on_presence: Callable[[bool], None],
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.session = session
+        self.config = config
+        self.world = world
+        self.on_presence = on_presence
+        self.wall = wall
+        self.base = config.key_base
+        self._lock = threading.Lock()
+        self._last: tuple[bytes, str] | None = None
+        self._down: Status | None = None
+        self._down_entities: list[Any] = []
+        self._declared: list[Any] = []
+
+    def start(self) -> None:
+        s, b = self.session, self.base
+        self._status_pub = s.declare_publisher(
+            f"{b}/status",
+            encoding=Format.MSGPACK.value,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_HIGH,
+            express=True,
+            # Our own FAULT_HW must not come back to us as "the daemon's last status".
+            allowed_destination=zenoh.Locality.REMOTE,
+        )
+        self._declared.append(self._status_pub)
+        self._declared.append(s.declare_subscriber(f"{b}/status", self._on_daemon_status))
+        self._declared.append(
+            s.liveliness().declare_subscriber(f"{b}/alive", self._on_token, history=True)
+        )
+        if self.world is not None:
+            self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        log.info("event=supervisor_bus_started base=%s zid=%s", b, s.zid())
+
+    def close(self) -> None:
+        with self._lock:
+            entities, self._down_entities = self._down_entities, []
+        for entity in reversed(self._declared + entities):
+            entity.undeclare()
+        self._declared.clear()
+
+    # ------------------------------------------------------------------------ daemon down
+    def daemon_down(self, reason: str) -> Status:
+        """Publish FAULT_HW (DAEMON_DIED); answer status and command queries until `daemon_up`."""
+        status = self._fault_status(reason)
+        with self._lock:
+            self._down = status
+            declare = not self._down_entities
+        if declare:
+            s, b = self.session, self.base
+            entities = [
+                s.declare_queryable(f"{b}/status", self._on_status),
+                s.declare_queryable(f"{b}/cmd/**", self._on_command),
+            ]
+            with self._lock:
+                self._down_entities = entities
+        self._status_pub.put(encode(status))
+        return status
+
+    def republish(self) -> None:
+        """The heartbeat while the daemon is down (late joiners and lossy links)."""
+        with self._lock:
+            down = self._down
+            if down is None:
+                return
+            down = down.model_copy(update={"seq": down.seq + 1, "time": self.wall()})
+            self._down = down
+        self._status_pub.put(encode(down))
+
+    def daemon_up(self) -> None:
+        """The daemon answers for itself again."""
+        with self._lock:
+            self._down = None
+            entities, self._down_entities = self._down_entities, []
+        for entity in entities:
+            entity.undeclare()
+
+    def _fault_status(self, reason: str) -> Status:
+        fault = Fault(code=FaultCode.DAEMON_DIED, message=f"{reason}; outputs forced safe")
+        now = self.wall()
+        last = self._last_status()
+        if last is None:
+            return Status(
+                machine_id=self.config.machine.id,
+                state=MachineState.FAULT_HW,
+                fault=fault,
+                seq=0,
+                cycle=0,
+                time=now,
+            )
+        return last.model_copy(
+            update={
+                "state": MachineState.FAULT_HW,
+                "previous_state": last.state,
+                "session": None,
+                "fault": fault,
+                "seq": last.seq + 1,
+                "time": now,
+                "uptime_s": 0.0,
+            }
+        )
+
+    def _last_status(self) -> Status | None:
+        with self._lock:
+            last = self._last
+        if last is None:
+            return None
+        data, encoding = last
+        fmt = Format.JSON if encoding.startswith(Format.JSON) else Format.MSGPACK
+        try:
+            return decode(Status, data, fmt)
+        except DecodeError as exc:
+            log.warning("event=daemon_status_undecodable error=%r", exc.error.message)
+            return None
+
+    # -------------------------------------------------------------------------- callbacks
+    def _on_daemon_status(self, sample: zenoh.Sample) -> None:
+        # Decoded only when needed: the daemon may publish at every cycle while moving.
+        with self._lock:
+            self._last = (sample.payload.to_bytes(), str(sample.encoding))
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        self.on_presence(sample.kind == zenoh.SampleKind.PUT)
+
+    def _on_status(self, query: zenoh.Query) -> None:
+        with query:
+            with self._lock:
+                down = self._down
+            if down is not None:
+                fmt = zbus.reply_format(query)
+                query.reply(f"{self.base}/status", encode(down, fmt), encoding=fmt.value)
+
+    def _on_command(self, query: zenoh.Query) -> None:
+        data = _payload(query)
+        fmt = zbus.reply_format(query, data)
+        error = Error(
+            code=ErrorCode.NOT_AVAILABLE,
+            message="the machine daemon is down and being restarted by its supervisor;"
+            " outputs are safe; retry when machine/<id>/alive is back",
+        )
+        reply = Reply.failure(
+            error,
+            transaction_id=transaction_id_of(_raw(data, query)),
+            command=None,
+            timecode=self.wall(),
+            state=MachineState.FAULT_HW,
+        )
+        with query:
+            query.reply(str(query.key_expr), encode(reply, fmt), encoding=fmt.value)
+
+    def _on_sim(self, query: zenoh.Query) -> None:
+        world = self.world
+        assert world is not None
+        key = str(query.key_expr)
+        what = key[len(f"{self.base}/sim/") :]
+        data = _payload(query)
+        fmt = zbus.reply_format(query, data)
+        with query:
+            if what != simfaults.WORLD:
+                try:
+                    req = simfaults.decode_request(what, data, _encoding(query))
+                except DecodeError as exc:
+                    reply = Reply.failure(
+                        exc.error,
+                        transaction_id=transaction_id_of(exc.raw),
+                        command=None,
+                        timecode=self.wall(),
+                    )
+                    query.reply(key, encode(reply, fmt), encoding=fmt.value)
+                    return
+                world.apply(req)
+            query.reply(key, encode(world.state(self.wall()), fmt), encoding=fmt.value)
+
+
+def _payload(query: zenoh.Query) -> bytes:
+    return query.payload.to_bytes() if query.payload is not None else b""
+
+
+def _encoding(query: zenoh.Query) -> str | None:
+    return str(query.encoding) if query.encoding is not None else None
+
+
+def _raw(data: bytes, query: zenoh.Query) -> Any:
+    try:
+        return decode_raw(data, sniff_format(data, _encoding(query))) if data else None
+    except DecodeError:
+        return None
