@@ -1,0 +1,1 @@
+"""Benchmarks: each module prints tables and rewrites its section of BENCHMARKS.md."""

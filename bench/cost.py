@@ -1,0 +1,222 @@
+"""Cost: the daemon's CPU (% of one core) and memory idle at 10 ms and 1 ms, and the largest
+command rate it sustains with zero overruns.
+
+CPU comes from /proc/<pid>/stat (all threads), memory from /proc/<pid>/status. Beside it in the
+same run: the same runner with an empty scan (the floor for a Python loop) and a bare Zenoh
+session process (the floor for memory). The rate is stepped up open-loop by a Rider process;
+a step counts as sustained when every command got a successful reply, the rate was reached,
+and the loop had no overrun.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bench.common import (
+    Child,
+    CpuMeter,
+    Options,
+    Section,
+    Table,
+    Target,
+    main_for,
+    mib,
+    ms,
+    python_module,
+    rss_bytes,
+)
+from bench.daemon import bench_daemon
+from tests.procs import free_port, write_zenoh_config
+
+RATES = (250, 500, 1000, 2000, 3000, 4000, 6000)
+
+
+@dataclass(frozen=True)
+class Idle:
+    label: str
+    period_s: float | None
+    cpu: float
+    rss: int
+    peak: int
+    threads: int
+
+
+def _status_field(pid: int, name: str) -> int:
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith(name + ":"):
+                return int(line.split()[1])
+    return 0
+
+
+def _idle_of(label: str, period_s: float | None, pid: int, seconds: float) -> Idle:
+    time.sleep(min(1.0, seconds))  # past start-up
+    meter = CpuMeter(pid)
+    meter.start()
+    time.sleep(seconds)
+    return Idle(
+        label,
+        period_s,
+        meter.percent(),
+        rss_bytes(pid),
+        _status_field(pid, "VmHWM") * 1024,
+        _status_field(pid, "Threads"),
+    )
+
+
+def idle_daemon(period_s: float, seconds: float) -> Idle:
+    with bench_daemon(period_s) as daemon:
+        return _idle_of(f"daemon, {period_s * 1e3:g} ms", period_s, daemon.proc.pid, seconds)
+
+
+def idle_bare(period_s: float, seconds: float, tmp: Path) -> Idle:
+    child = Child(
+        python_module(
+            "bench.baselines.bare_loop", "--period", period_s, "--duration", seconds + 5.0
+        ),
+        tmp / "bare.log",
+    )
+    try:
+        child.expect("ready")
+        return _idle_of(f"empty runner, {period_s * 1e3:g} ms", period_s, child.pid, seconds)
+    finally:
+        child.stop()
+
+
+def idle_zenoh(seconds: float, tmp: Path, zenoh_config: Path) -> Idle:
+    child = Child(
+        python_module(
+            "bench.baselines.zenoh_echo",
+            "--listen",
+            f"tcp/127.0.0.1:{free_port()}",
+            "--zenoh-config",
+            zenoh_config,
+        ),
+        tmp / "zenoh.log",
+    )
+    try:
+        child.expect("ready")
+        return _idle_of("bare Zenoh session (echo queryable)", None, child.pid, seconds)
+    finally:
+        child.stop()
+
+
+def rate_steps(rates: list[int], step_s: float, tmp: Path) -> list[dict[str, Any]]:
+    with contextlib.ExitStack() as stack:
+        daemon = stack.enter_context(bench_daemon(0.010))
+        child = Child(
+            python_module(
+                "bench.load",
+                "steps",
+                "--connect",
+                daemon.endpoint,
+                "--zenoh-config",
+                daemon.zenoh_config,
+                "--rates",
+                ",".join(str(r) for r in rates),
+                "--step-s",
+                step_s,
+                "--daemon-pid",
+                daemon.proc.pid,
+            ),
+            tmp / "steps.log",
+        )
+        stack.callback(child.stop)
+        child.expect("ready")
+        result = json.loads(child.expect("result", timeout=len(rates) * (step_s + 10) + 10))
+        steps: list[dict[str, Any]] = result["steps"]
+        return steps
+
+
+def sustained(step: dict[str, Any]) -> bool:
+    return bool(
+        step["overruns"] == 0
+        and step["failed"] == 0
+        and step["unanswered"] == 0
+        and step["achieved"] >= 0.95 * step["target"]
+    )
+
+
+def run(opts: Options) -> Section:
+    idle_s = opts.pick(0.5, 15.0, 60.0)
+    rates = opts.pick([200, 400], list(RATES), list(RATES))
+    step_s = opts.pick(0.5, 4.0, 15.0)
+    section = Section("cost", "5. Cost")
+    with tempfile.TemporaryDirectory(prefix="bench-cost-") as tmp_name:
+        tmp = Path(tmp_name)
+        zconf = write_zenoh_config(tmp)
+        idles = [
+            idle_daemon(0.010, idle_s),
+            idle_bare(0.010, idle_s, tmp),
+            idle_daemon(0.001, idle_s),
+            idle_bare(0.001, idle_s, tmp),
+            idle_zenoh(idle_s, tmp, zconf),
+        ]
+        steps = rate_steps(rates, step_s, tmp)
+    table = Table(
+        f"Idle: CPU over {idle_s:g} s and memory",
+        ["process", "CPU % of one core", "RSS MiB", "peak RSS MiB", "threads"],
+    )
+    for i in idles:
+        table.add(i.label, f"{i.cpu:.1f}", mib(i.rss), mib(i.peak), i.threads)
+    section.tables.append(table)
+    rate_table = Table(
+        f"Command rate stepped up (open loop, `check/home`, {step_s:g} s per step, loop at 10 ms)",
+        [
+            "target /s",
+            "achieved /s",
+            "ok",
+            "failed",
+            "unanswered",
+            "RTT p50 ms",
+            "RTT p99 ms",
+            "overruns",
+            "exec max ms",
+            "daemon CPU %",
+            "sustained",
+        ],
+    )
+    for s in steps:
+        rate_table.add(
+            f"{s['target']:g}",
+            f"{s['achieved']:.0f}",
+            s["ok"],
+            s["failed"],
+            s["unanswered"],
+            ms(s["rtt"]["p50"]),
+            ms(s["rtt"]["p99"]),
+            s["overruns"],
+            ms(s["exec_max"]),
+            f"{s['cpu']:.0f}",
+            "yes" if sustained(s) else "no",
+        )
+    section.tables.append(rate_table)
+    for i in idles:
+        if i.label.startswith("daemon"):
+            assert i.period_s is not None
+            limit = 3.0 if i.period_s >= 0.010 else 25.0
+            section.targets.append(
+                Target.at_most(f"CPU idle, {i.label}", i.cpu, limit, lambda x: f"{x:.1f} %")
+            )
+    best = max((s["target"] for s in steps if sustained(s)), default=0)
+    section.notes.append(
+        f"Largest command rate sustained with zero overruns and every reply a success: {best:g}/s"
+        f" (steps tried: {', '.join(str(r) for r in rates)}/s); the load generator is one"
+        " Python process on the same two cores, so the top steps may be limited by it."
+    )
+    return section
+
+
+def main(argv: list[str] | None = None) -> int:
+    return main_for("bench.cost", __doc__ or "", run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,130 @@
+"""A `machine run --sim` child for benchmarks: loop tuning, a calibrated start, clean stops."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from rider.client import Rider
+from schema.status import MachineState
+from service.persist import CALIBRATION_FILE
+from tests.procs import Daemon, start_daemon
+
+STATS_WINDOW = 100_000
+"""The largest diag window: a 60 s run at 1 ms fits, so diag percentiles cover the whole run."""
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """The real-time options of the `[loop]` config section for one run."""
+
+    spin_s: float = 0.0
+    gc_freeze: bool = True
+    cpu: int | None = None
+    rt_priority: int | None = None
+
+    def label(self) -> str:
+        parts = []
+        if self.spin_s:
+            parts.append(f"spin {self.spin_s * 1e3:g} ms")
+        if not self.gc_freeze:
+            parts.append("no gc_freeze")
+        if self.cpu is not None:
+            parts.append(f"pinned cpu {self.cpu}")
+        if self.rt_priority is not None:
+            parts.append(f"SCHED_FIFO {self.rt_priority}")
+        return ", ".join(parts) or "defaults"
+
+
+def config_toml(
+    period_s: float,
+    tuning: Tuning,
+    heartbeat_s: float | None = None,
+    watchdog_periods: int | None = None,
+) -> str:
+    lines = [
+        "[loop]",
+        f"period_s = {period_s!r}",
+        f"spin_s = {tuning.spin_s!r}",
+        f"gc_freeze = {str(tuning.gc_freeze).lower()}",
+        f"stats_window = {STATS_WINDOW}",
+    ]
+    if tuning.cpu is not None:
+        lines.append(f"cpu = {tuning.cpu}")
+    if tuning.rt_priority is not None:
+        lines.append(f"rt_priority = {tuning.rt_priority}")
+    if watchdog_periods is not None:
+        lines.append(f"watchdog_periods = {watchdog_periods}")
+    if heartbeat_s is not None:
+        lines += ["", "[bus]", f"heartbeat_s = {heartbeat_s!r}"]
+    return "\n".join(lines) + "\n"
+
+
+@functools.cache
+def calibration_file() -> bytes:
+    """What the default simulator's calibration run stores (found once, with a fake clock)."""
+    from tests.rig import Rig
+
+    with tempfile.TemporaryDirectory() as tmp:
+        rig = Rig(data_dir=Path(tmp))
+        rig.calibrate()
+        return (Path(tmp) / CALIBRATION_FILE).read_bytes()
+
+
+@contextlib.contextmanager
+def bench_daemon(
+    period_s: float = 0.010,
+    tuning: Tuning = Tuning(),
+    *,
+    calibrated: bool = False,
+    heartbeat_s: float | None = None,
+    watchdog_periods: int | None = None,
+) -> Iterator[Daemon]:
+    """A daemon on a free loopback port in its own temp dir; stopped (bounded) on exit."""
+    with tempfile.TemporaryDirectory(prefix="bench-") as tmp_name:
+        tmp = Path(tmp_name)
+        config = tmp / "machine.toml"
+        config.write_text(config_toml(period_s, tuning, heartbeat_s, watchdog_periods))
+        if calibrated:
+            data = tmp / "data-m1"
+            data.mkdir()
+            (data / CALIBRATION_FILE).write_bytes(calibration_file())
+        daemon = start_daemon(tmp, "m1", extra=["--config", str(config)])
+        try:
+            yield daemon
+        finally:
+            daemon.stop()
+
+
+HOME_TRIES = 5
+
+
+def home_and_start(rider: Rider, timeout: float = 30.0) -> list[str]:
+    """Home a calibrated machine, then start the default session (relays on, axes moving).
+
+    On a busy host a stalled scan can trip the watchdog or make homing miss the switch
+    (FAULT_HW): home again, a few times; returns the faults seen on the way.
+    """
+    faults: list[str] = []
+    for _ in range(HOME_TRIES):
+        reply = rider.home()
+        status = rider.wait_for(
+            [MachineState.IDLE, MachineState.FAULT_HW], timeout=timeout, after=reply.timecode
+        )
+        if status.state is MachineState.IDLE:
+            rider.start()
+            return faults
+        faults.append(str(status.fault.code if status.fault else status.state))
+    raise HomingFailed(faults)
+
+
+class HomingFailed(RuntimeError):
+    """Homing kept faulting; `faults` says how."""
+
+    def __init__(self, faults: list[str]) -> None:
+        super().__init__(f"homing failed {len(faults)} times: {', '.join(faults)}")
+        self.faults = faults

@@ -1,0 +1,207 @@
+"""Command round trip, Rider process → daemon process over tcp/127.0.0.1, beside its baselines.
+
+Sequential `check/home` commands to a daemon scanning at 10 ms, interleaved in rounds with a
+bare zenoh-python echo queryable, gRPC unary over a Unix socket and a raw UDP echo, each in a
+process of its own, so all of them see the same machine noise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import msgpack
+import zenoh
+
+from bench.baselines.udp_echo import UdpClient
+from bench.common import (
+    Child,
+    Dist,
+    Options,
+    Section,
+    Table,
+    Target,
+    main_for,
+    ms,
+    python_module,
+    share,
+)
+from bench.daemon import bench_daemon
+from rider.client import Rider
+from rider.client import zenoh_config as rider_zenoh_config
+from schema.codec import Format, decode, encode
+from schema.commands import CommandRequest, Reply
+from tests.procs import free_port
+
+PERIOD_S = 0.010
+RIDER = "daemon: Rider.check_home()"
+RAW = "daemon: raw zenoh get"
+ECHO = "bare zenoh echo queryable"
+ECHO_DIRECT = "bare zenoh echo, direct callback"
+ECHO_HANDOFF = "zenoh echo via a woken thread"
+GRPC = "gRPC unary over UDS"
+UDP = "raw UDP echo"
+
+
+def _request(tid: str) -> bytes:
+    return bytes(msgpack.packb({"transaction_id": tid, "timecode": time.time(), "rider": None}))
+
+
+def _get_one(session: zenoh.Session, key: str, payload: bytes) -> bytes:
+    replies = list(session.get(key, payload=payload, encoding=Format.MSGPACK.value, timeout=2.0))
+    if len(replies) != 1 or replies[0].ok is None:
+        raise RuntimeError(f"{key}: expected one reply, got {len(replies)}")
+    return replies[0].ok.payload.to_bytes()
+
+
+def _client_codec_cost(rider: Rider, reply: bytes, n: int) -> float:
+    """Seconds per command the Rider spends on its own models (encode request, decode reply)."""
+    t0 = time.perf_counter()
+    for _ in range(n):
+        encode(CommandRequest.model_validate(rider._req()))
+        decode(Reply, reply, Format.MSGPACK)
+    return (time.perf_counter() - t0) / n
+
+
+def run(opts: Options) -> Section:
+    count = opts.pick(300, 5000, 20000)
+    warmup = opts.pick(50, 500, 1000)
+    rounds = opts.pick(2, 10, 20)
+    per_round = max(1, count // rounds)
+    section = Section("roundtrip", "1. Command round trip")
+    calls: dict[str, Callable[[], object]] = {}
+    with contextlib.ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-rt-")))
+        daemon = stack.enter_context(bench_daemon(PERIOD_S))
+        zconf = daemon.zenoh_config
+
+        echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
+        echo = Child(
+            python_module(
+                "bench.baselines.zenoh_echo", "--listen", echo_endpoint, "--zenoh-config", zconf
+            ),
+            tmp / "zenoh-echo.log",
+        )
+        stack.callback(echo.stop)
+        echo.expect("ready")
+        udp = Child(python_module("bench.baselines.udp_echo"), tmp / "udp-echo.log")
+        stack.callback(udp.stop)
+        udp_client = UdpClient(int(udp.expect("ready")))
+        stack.callback(udp_client.close)
+        grpc_missing = ""
+        try:
+            from bench.baselines.grpc_uds import GrpcClient
+        except ImportError:
+            grpc_missing = "grpcio is not installed (pip install -e '.[bench]'): no gRPC row"
+        else:
+            sock = tmp / "grpc.sock"
+            grpc_server = Child(
+                python_module("bench.baselines.grpc_uds", "--socket", sock), tmp / "grpc.log"
+            )
+            stack.callback(grpc_server.stop)
+            grpc_server.expect("ready")
+            grpc_client = GrpcClient(str(sock))
+            stack.callback(grpc_client.close)
+
+        rider = stack.enter_context(daemon.rider(supervise=False))
+        echo_session = stack.enter_context(
+            zenoh.open(rider_zenoh_config(zconf, connect=[echo_endpoint]))
+        )
+        ids = itertools.count()
+        cmd_key = f"{rider.base}/cmd/check/home"
+        echo_payload = _request("echo-000000")
+        calls[RIDER] = rider.check_home
+        calls[RAW] = lambda: _get_one(rider.session, cmd_key, _request(f"raw-{next(ids)}"))
+        calls[ECHO] = lambda: _get_one(echo_session, "bench/echo", echo_payload)
+        calls[ECHO_DIRECT] = lambda: _get_one(echo_session, "bench/echo-direct", echo_payload)
+        calls[ECHO_HANDOFF] = lambda: _get_one(echo_session, "bench/echo-handoff", echo_payload)
+        if not grpc_missing:
+            calls[GRPC] = lambda: grpc_client.call(echo_payload)
+        calls[UDP] = lambda: udp_client.call(echo_payload)
+
+        first = decode(Reply, _get_one(rider.session, cmd_key, _request("check")), Format.MSGPACK)
+        if not first.success:
+            raise RuntimeError(f"check/home refused: {first.error}")
+        for fn in calls.values():
+            for _ in range(warmup):
+                fn()
+        samples: dict[str, list[float]] = {name: [] for name in calls}
+        names = list(calls)
+        for r in range(rounds):
+            # Rotate the order each round, so no transport always follows the same neighbour.
+            for name in names[r % len(names) :] + names[: r % len(names)]:
+                fn, out = calls[name], samples[name]
+                for _ in range(per_round):
+                    t0 = time.perf_counter()
+                    fn()
+                    out.append(time.perf_counter() - t0)
+        codec = _client_codec_cost(rider, encode(first), opts.pick(200, 2000))
+
+    dists = {name: Dist.of(s) for name, s in samples.items()}
+    table = Table(
+        f"Round trip, {per_round * rounds} sequential requests each after {warmup} warm-up"
+        f" (interleaved in {rounds} rounds); daemon loop at {PERIOD_S * 1e3:g} ms, simulator",
+        ["path", "p50 ms", "p90 ms", "p99 ms", "max ms", "p50 vs zenoh echo"],
+    )
+    echo_p50 = dists[ECHO].p50
+    for name, d in dists.items():
+        table.add(name, ms(d.p50), ms(d.p90), ms(d.p99), ms(d.max), f"{d.p50 / echo_p50:.2f}×")
+    section.tables.append(table)
+    section.notes.append(
+        "Baselines are bare echoes doing no work; the daemon decodes and validates the request,"
+        " hands it to the scan thread (which wakes early for it), runs the command and encodes"
+        " the reply."
+    )
+    section.notes.append(
+        f"The Rider API row adds the client's own models: {codec * 1e6:.0f} µs per command to"
+        " build and encode the request and decode the reply (measured in-process)."
+    )
+    section.notes.append(
+        "`direct callback`: the same echo declared with `zenoh.handlers.Callback(fn,"
+        " indirect=False)`, which runs the Python callback on Zenoh's receive thread instead of"
+        " handing it to a Python thread first (the default)."
+    )
+    if grpc_missing:
+        section.notes.append(grpc_missing)
+    for name in (RIDER, RAW):
+        ratio = dists[name].p50 / echo_p50
+        section.targets.append(
+            Target.at_most(f"{name} p50 ÷ zenoh echo p50", ratio, 1.3, lambda x: f"{x:.2f}×")
+        )
+    if GRPC in dists:
+        grpc_p50 = dists[GRPC].p50
+        d = dists[RIDER]
+        section.targets.append(
+            Target(
+                f"{RIDER} p50 below gRPC p50",
+                f"< {ms(grpc_p50)} ms",
+                f"{ms(d.p50)} ms",
+                d.p50 < grpc_p50,
+                "" if d.p50 < grpc_p50 else f"{100 * (d.p50 / grpc_p50 - 1):.0f} % over",
+            )
+        )
+    p99 = dists[RIDER].p99
+    section.targets.append(
+        Target.at_most(f"{RIDER} p99 (< 20 % of the period)", p99, 0.2 * PERIOD_S, _ms_unit)
+    )
+    section.notes.append(
+        f"p99 of the Rider path is {share(p99, PERIOD_S)} of the {PERIOD_S * 1e3:g} ms period."
+    )
+    return section
+
+
+def _ms_unit(seconds: float) -> str:
+    return f"{ms(seconds)} ms"
+
+
+def main(argv: list[str] | None = None) -> int:
+    return main_for("bench.roundtrip", __doc__ or "", run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

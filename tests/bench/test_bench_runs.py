@@ -1,0 +1,157 @@
+"""The benchmarks run: each `--quick` smoke run finishes, writes its section, and leaves no
+process behind, even when stopped midway. No timing is asserted: speed is what they report."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+from bench import all as bench_all
+from bench.common import Dist, Options, Section, Table, Target, pct, write_section
+
+REPO = Path(__file__).resolve().parents[2]
+MODULES = ["roundtrip", "loop_timing", "estop", "status_latency", "cost"]
+MARKER = "BENCH_TEST_RUN"
+RUN_TIMEOUT_S = 150.0
+
+
+def _marked_pids(marker: str) -> list[int]:
+    """Processes whose environment carries this test's marker (the bench and its children)."""
+    needle = f"{MARKER}={marker}".encode()
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            env = (entry / "environ").read_bytes()
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue  # exited meanwhile, or not ours to read
+        if needle in env.split(b"\0") and stat.rsplit(")", 1)[1].split()[0] != "Z":
+            found.append(int(entry.name))
+    return found
+
+
+def _bench(module: str, marker: str, *args: str) -> subprocess.Popen[str]:
+    env = {**os.environ, MARKER: marker, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [sys.executable, "-m", f"bench.{module}", *args],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+@pytest.mark.integration
+def test_every_benchmark_runs_quick_and_writes_its_section(tmp_path: Path) -> None:
+    marker = uuid.uuid4().hex
+    procs = {m: _bench(m, marker, "--quick", "--out", str(tmp_path / f"{m}.md")) for m in MODULES}
+    outputs: dict[str, str] = {}
+    try:
+        for module, proc in procs.items():
+            outputs[module] = proc.communicate(timeout=RUN_TIMEOUT_S)[0]
+    finally:
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    for module, proc in procs.items():
+        assert proc.returncode == 0, f"bench.{module}:\n{outputs[module][-4000:]}"
+        text = (tmp_path / f"{module}.md").read_text()
+        assert f"<!-- bench:{module} -->" in text and f"<!-- /bench:{module} -->" in text
+        assert "<!-- bench:machine -->" in text
+        assert "**Targets**" in text, f"bench.{module} reported no target"
+        assert "|---|" in text
+    assert _marked_pids(marker) == []
+
+
+@pytest.mark.integration
+def test_a_benchmark_stopped_midway_stops_its_children(tmp_path: Path) -> None:
+    marker = uuid.uuid4().hex
+    proc = _bench("roundtrip", marker, "--quick", "--no-write")
+    try:
+        deadline = time.monotonic() + 60.0
+        # The bench, the daemon and at least two baseline servers are up.
+        while len(_marked_pids(marker)) < 4:
+            assert proc.poll() is None, proc.communicate()[0][-4000:]
+            assert time.monotonic() < deadline, "children never started"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        if proc.stdout is not None:
+            proc.stdout.close()
+    assert _marked_pids(marker) == []
+
+
+def test_percentiles_are_nearest_rank() -> None:
+    values = [float(v) for v in range(1, 101)]
+    assert pct(values, 0.50) == 50.0
+    assert pct(values, 0.99) == 99.0
+    assert pct(values, 1.0) == 100.0
+    d = Dist.of(list(reversed(values)))
+    assert (d.n, d.min, d.p50, d.p90, d.max) == (100, 1.0, 50.0, 90.0, 100.0)
+    assert Dist.of([]).n == 0
+
+
+def test_write_section_replaces_only_its_own_block(tmp_path: Path) -> None:
+    path = tmp_path / "B.md"
+    write_section(path, "a", "A", "first")
+    with path.open("a") as fh:
+        fh.write("\nHand-written analysis.\n")
+    write_section(path, "b", "B", "other")
+    write_section(path, "a", "A", "second")
+    text = path.read_text()
+    assert "second" in text and "first" not in text
+    assert "Hand-written analysis." in text and "other" in text
+    assert text.index("<!-- bench:a -->") < text.index("Hand-written") < text.index("bench:b")
+
+
+def test_targets_say_by_how_much_they_were_missed() -> None:
+    met = Target.at_most("x", 1.0, 2.0, str)
+    missed = Target.at_most("x", 3.0, 2.0, str)
+    assert met.met and met.verdict == "met"
+    assert missed.met is False and "50 % over" in missed.verdict
+
+
+def test_a_table_refuses_a_row_of_the_wrong_width() -> None:
+    table = Table("t", ["a", "b"])
+    table.add(1, 2)
+    with pytest.raises(ValueError, match="2 columns"):
+        table.add(1)
+    assert table.markdown().splitlines()[-1] == "| 1 | 2 |"
+
+
+def test_all_runs_each_benchmark_and_writes_every_section(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    ran: list[bool] = []
+
+    def fake(key: str) -> object:
+        def run(opts: Options) -> Section:
+            ran.append(opts.quick)
+            section = Section(key, key.upper())
+            section.tables.append(Table("T", ["k"], [[key]]))
+            return section
+
+        return run
+
+    monkeypatch.setattr(bench_all, "BENCHMARKS", [("bench.x", fake("x")), ("bench.y", fake("y"))])
+    out = tmp_path / "B.md"
+    assert bench_all.main(["--quick", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert ran == [True, True]
+    for key in ("machine", "x", "y", "run"):
+        assert f"<!-- bench:{key} -->" in text
