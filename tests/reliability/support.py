@@ -1,0 +1,297 @@
+"""Made at test time for the reliability suite: identities, certificates, secured and supervised
+machines, and waits that end on Zenoh events (a status sample, a liveliness token)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import secrets
+import signal
+import subprocess
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from rider.client import Rider
+from schema.codec import Format, decode
+from schema.credentials import MACHINE, RIDER, env_name
+from schema.status import Status
+from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, machine_cmd, write_zenoh_config
+
+PROFILES = REPO / "zenoh"
+ACL_PROFILE = PROFILES / "acl.json5"
+TLS_PROFILE = PROFILES / "tls.json5"
+USERS = ("machine", "rider", "monitor")
+
+FAST_CONFIG = """\
+[rotate]
+nominal_speed_dps = 720.0
+home_arc_deg = 30.0
+revolution_timeout_s = 2.0
+backoff_timeout_s = 1.0
+
+[tilt]
+nominal_speed_dps = 90.0
+home_timeout_s = 3.0
+move_timeout_margin_s = 1.0
+calibration_stroke_s = 0.4
+follow_window_s = 0.3
+
+[loop]
+# A shared 2-core host stalls the scan thread now and then; these tests are not about that.
+watchdog_periods = 50
+
+[bus]
+heartbeat_s = 0.2
+
+[hal.sim]
+rotate_speed_dps = 720.0
+home_arc_deg = 30.0
+tilt_speed_dps = 90.0
+"""
+"""Fast mechanics (a revolution in 0.5 s, tilt 90°/s): a whole ride takes a few seconds."""
+
+STEP_TIMEOUT_S = 20.0
+
+
+# ---------------------------------------------------------------------------- identities
+@dataclass(frozen=True)
+class Identities:
+    """A dictionary of random passwords, one password file per user, and a wrong one."""
+
+    dictionary: Path
+    password_files: Mapping[str, Path]
+    wrong_password: Path
+
+    def env(self, side: str, user: str, password_file: Path | None = None) -> dict[str, str]:
+        """The `<SIDE>_ZENOH_USER/PASSWORD_FILE` variables for `user`."""
+        pwd = password_file or self.password_files.get(user, self.wrong_password)
+        return {env_name(side, "USER"): user, env_name(side, "PASSWORD_FILE"): str(pwd)}
+
+
+def make_identities(directory: Path) -> Identities:
+    directory.mkdir(parents=True, exist_ok=True)
+    passwords = {user: secrets.token_urlsafe(18) for user in USERS}
+    files: dict[str, Path] = {}
+    for user, password in passwords.items():
+        files[user] = _secret(directory / f"{user}.password", password + "\n")
+    dictionary = _secret(directory / "users", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    wrong = _secret(directory / "wrong.password", secrets.token_urlsafe(18) + "\n")
+    return Identities(dictionary, files, wrong)
+
+
+def _secret(path: Path, text: str) -> Path:
+    path.write_text(text)
+    path.chmod(0o600)
+    return path
+
+
+# ---------------------------------------------------------------------------------- TLS
+@dataclass(frozen=True)
+class Tls:
+    """A throw-away CA and a machine certificate it signed (for localhost and 127.0.0.1)."""
+
+    ca: Path
+    certificate: Path
+    private_key: Path
+
+    def machine_env(self) -> dict[str, str]:
+        return {
+            env_name(MACHINE, "TLS_CERTIFICATE"): str(self.certificate),
+            env_name(MACHINE, "TLS_PRIVATE_KEY"): str(self.private_key),
+        }
+
+    def rider_env(self) -> dict[str, str]:
+        return {env_name(RIDER, "TLS_ROOT_CA"): str(self.ca)}
+
+
+def make_tls(directory: Path) -> Tls:
+    """With the openssl CLI: nothing private is committed, everything is made here."""
+    directory.mkdir(parents=True, exist_ok=True)
+    ca_key, ca = directory / "ca.key", directory / "ca.crt"
+    key, csr, cert = directory / "machine.key", directory / "machine.csr", directory / "machine.crt"
+    ext = directory / "machine.ext"
+    ext.write_text(
+        "basicConstraints=CA:FALSE\n"
+        "keyUsage=digitalSignature,keyEncipherment\n"
+        "extendedKeyUsage=serverAuth,clientAuth\n"
+        "subjectAltName=DNS:localhost,IP:127.0.0.1\n"
+    )
+    for cmd in (
+        ["genpkey", "-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out", ca_key],
+        ["req", "-x509", "-new", "-key", ca_key, "-subj", "/CN=test ride CA", "-days", "2",
+         "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=keyCertSign",
+         "-out", ca],
+        ["genpkey", "-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out", key],
+        ["req", "-new", "-key", key, "-subj", "/CN=localhost", "-out", csr],
+        ["x509", "-req", "-in", csr, "-CA", ca, "-CAkey", ca_key, "-CAcreateserial",
+         "-days", "2", "-extfile", ext, "-out", cert],
+    ):  # fmt: skip
+        subprocess.run(["openssl", *map(str, cmd)], check=True, capture_output=True, timeout=30)
+    return Tls(ca, cert, key)
+
+
+# ------------------------------------------------------------------------------ processes
+@contextlib.contextmanager
+def environ(values: Mapping[str, str | None]) -> Iterator[None]:
+    """Set (None: unset) environment variables for the block; a Rider reads them when built."""
+    saved = {k: os.environ.get(k) for k in values}
+    for k, v in values.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+RIDER_VARIABLES = tuple(
+    env_name(RIDER, item)
+    for item in ("USER", "PASSWORD_FILE", "TLS_ROOT_CA", "TLS_CERTIFICATE", "TLS_PRIVATE_KEY")
+)
+
+
+def rider_as(daemon: Daemon, env: Mapping[str, str], **kwargs: object) -> Rider:
+    """A Rider (not yet open) built with exactly these RIDER_ZENOH_* variables."""
+    with environ({**dict.fromkeys(RIDER_VARIABLES), **env}):
+        return daemon.rider(**kwargs)
+
+
+def write_fast_config(directory: Path) -> Path:
+    path = directory / "machine-fast.toml"
+    path.write_text(FAST_CONFIG)
+    return path
+
+
+def start_machine(
+    tmp: Path,
+    *,
+    command: str = "run",
+    profile: Path | None = None,
+    scheme: str = "tcp",
+    env: Mapping[str, str] | None = None,
+    rider_env: Mapping[str, str] | None = None,
+    machine_id: str = "m1",
+    extra: list[str] | None = None,
+    wait: bool = True,
+) -> Daemon:
+    """`machine run|supervise --sim` with a Zenoh profile, on a free loopback port.
+
+    The returned `Daemon`'s zenoh config is a Rider's (peer, no access control): a Rider must
+    never open its session with the machine's ACL profile, which would deny its own link.
+    """
+    endpoint = f"{scheme}/127.0.0.1:{free_port()}"
+    data_dir = tmp / f"data-{machine_id}"
+    rider_conf = write_zenoh_config(tmp)
+    log_path = tmp / f"{command}-{machine_id}.log"
+    cmd = machine_cmd(
+        command,
+        "--sim",
+        "--id",
+        machine_id,
+        "--zenoh-config",
+        str(profile or rider_conf),
+        "--listen",
+        endpoint,
+        "--data-dir",
+        str(data_dir),
+        "--config",
+        str(write_fast_config(tmp)),
+        *(extra or []),
+    )
+    child_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+    with log_path.open("w") as log:
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, text=True, cwd=REPO, env=child_env
+        )
+    daemon = Daemon(proc, endpoint, machine_id, data_dir, rider_conf, log_path, extra or [])
+    if wait:
+        try:
+            wait_status(daemon, rider_env or {})
+        except BaseException:
+            daemon.stop(signal.SIGKILL)
+            raise
+    return daemon
+
+
+def supervisor_child(daemon: Daemon) -> int:
+    """The pid of the daemon child of a `machine supervise` process."""
+    out = subprocess.run(
+        ["pgrep", "-P", str(daemon.proc.pid)],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=10,
+    ).stdout.split()
+    assert len(out) == 1, f"expected one child of the supervisor, found {out}"
+    return int(out[0])
+
+
+# ---------------------------------------------------------------------------------- waits
+class StatusFeed:
+    """Every status sample published for the machine, decoded, in order (a subscription)."""
+
+    def __init__(self, rider: Rider) -> None:
+        self._q: queue.SimpleQueue[Status] = queue.SimpleQueue()
+        self._sub = rider.session.declare_subscriber(f"{rider.base}/status", self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        fmt = Format.JSON if str(sample.encoding).startswith(Format.JSON) else Format.MSGPACK
+        self._q.put(decode(Status, sample.payload.to_bytes(), fmt))
+
+    def next(self, timeout: float = STEP_TIMEOUT_S) -> Status:
+        try:
+            return self._q.get(timeout=timeout)
+        except queue.Empty:
+            raise AssertionError(f"no status within {timeout:g} s") from None
+
+    def until(self, pred: object, timeout: float = STEP_TIMEOUT_S) -> Status:
+        """The first status for which `pred(status)` holds (bounded)."""
+        assert callable(pred)
+        seen: list[Status] = []
+        while True:
+            try:
+                status = self._q.get(timeout=timeout)
+            except queue.Empty:
+                last = seen[-1] if seen else None
+                message = f"no matching status within {timeout:g} s; last {last}"
+                raise AssertionError(message) from None
+            if pred(status):
+                return status
+            seen.append(status)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def wait_status(
+    daemon: Daemon, rider_env: Mapping[str, str], timeout: float = START_TIMEOUT_S
+) -> Status:
+    """Block until the machine publishes a status (its scan loop runs and its bus is up).
+
+    A status sample, not a query: a daemon's status queryable exists a moment before its first
+    scan has produced anything to answer with.
+    """
+    with rider_as(daemon, rider_env, timeout=1.0) as r:
+        feed = StatusFeed(r)
+        try:
+            for _ in range(int(timeout / 0.25)):
+                try:
+                    return feed.next(timeout=0.25)
+                except AssertionError:
+                    if daemon.proc.poll() is not None:
+                        raise RuntimeError(
+                            f"exited with {daemon.proc.returncode}:\n{daemon.log()}"
+                        ) from None
+            raise TimeoutError(f"no status within {timeout:g} s:\n{daemon.log()}")
+        finally:
+            feed.close()

@@ -1,0 +1,220 @@
+"""`machine supervise`: a daemon that dies or freezes mid-ride leaves the outputs safe.
+
+The supervisor runs the simulated world itself (behind a process-image file) and the daemon as
+a child on the RevPi backend, so the world is the ground truth across the daemon's death: its
+relays must be off by the time the supervisor announces FAULT_HW, and the restarted daemon comes
+up not home, with its calibration.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from rider.client import CommandRefused, Rider
+from schema.codec import Format, encode
+from schema.commands import REST_STATES, Reply, RotateStep, Session, TiltStep
+from schema.credentials import MACHINE, RIDER, env_name
+from schema.errors import ErrorCode
+from schema.status import FAULT_STATES, FaultCode, MachineState, Status
+from tests.fixtures.revpi import CONFIG_RSC, address
+from tests.procs import STOP_TIMEOUT_S, Daemon
+from tests.reliability.support import (
+    ACL_PROFILE,
+    StatusFeed,
+    make_identities,
+    rider_as,
+    start_machine,
+    supervisor_child,
+)
+
+pytestmark = pytest.mark.integration
+
+SETTLED = REST_STATES | FAULT_STATES
+LONG_RIDE = Session(name="long", steps=[TiltStep(degrees=30.0), RotateStep(revolutions=40)])
+"""Twenty seconds of rotation at the fast config: the daemon dies in the middle of it."""
+RELAYS = ("O_1", "O_2", "O_3", "O_4")
+
+
+@pytest.fixture
+def supervised(tmp_path: Path) -> Iterator[Daemon]:
+    daemon = start_machine(tmp_path, command="supervise")
+    try:
+        yield daemon
+    finally:
+        daemon.stop()
+
+
+def settle(feed: StatusFeed, reply: Reply) -> Status:
+    assert reply.success, reply
+    return feed.until(lambda s: s.time >= reply.timecode and s.state in SETTLED)
+
+
+def ride_until_rotating(r: Rider, feed: StatusFeed) -> None:
+    """Calibrate what is missing, home, start the long ride; return while the rotate relay is on."""
+    status = r.status()
+    if not status.calibrated.tilt:
+        settle(feed, r.calibrate_tilt())
+    if not status.calibrated.rotate:
+        settle(feed, r.calibrate_rotate())
+    assert settle(feed, r.home()).state is MachineState.IDLE
+    reply = r.start(LONG_RIDE)
+    feed.until(
+        lambda s: (
+            s.time >= reply.timecode and s.session is not None and s.session.revolutions_done >= 1
+        )
+    )
+    assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
+
+
+def daemon_died(status: Status) -> bool:
+    return (
+        status.state is MachineState.FAULT_HW
+        and status.fault is not None
+        and status.fault.code is FaultCode.DAEMON_DIED
+    )
+
+
+def image_relays(daemon: Daemon) -> dict[str, bool]:
+    """The relay bits in the supervisor's process-image file, read without revpimodio2."""
+    image = (daemon.data_dir / "supervisor" / "procimg").read_bytes()
+    out = {}
+    for name in RELAYS:
+        byte, bit = address(name, CONFIG_RSC)
+        assert bit is not None
+        out[name] = bool(image[byte] >> bit & 1)
+    return out
+
+
+def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(
+    supervised: Daemon,
+) -> None:
+    with supervised.rider(timeout=3.0) as r:
+        feed = StatusFeed(r)
+        try:
+            ride_until_rotating(r, feed)
+            child = supervisor_child(supervised)
+            t_kill = time.monotonic()
+            os.kill(child, signal.SIGKILL)
+            down = feed.until(daemon_died)
+            t_down = time.monotonic()
+            world = r.sim("world")
+            assert not any(world.relays.values()), world.relays
+            assert not any(image_relays(supervised).values())
+            assert "SIGKILL" in down.fault.message if down.fault else False
+            assert down.previous_state is MachineState.RUNNING
+            # While the daemon is down the supervisor answers for the machine.
+            assert r.status().state is MachineState.FAULT_HW
+            with pytest.raises(CommandRefused) as refused:
+                r.home()
+            assert refused.value.error.code is ErrorCode.NOT_AVAILABLE
+            back = feed.until(lambda s: not daemon_died(s))
+            t_back = time.monotonic()
+        finally:
+            feed.close()
+        assert back.state is MachineState.WARNING_NOT_HOME, back
+        assert back.calibrated.tilt and back.calibrated.rotate
+        assert not back.homed.tilt and not back.homed.rotate
+        assert not any(r.sim("world").relays.values())
+    assert supervisor_child(supervised) != child
+    print(  # the numbers for the report (pytest -s)
+        f"\nSIGKILL → FAULT_HW seen {1e3 * (t_down - t_kill):.1f} ms;"
+        f" → restarted daemon's status {t_back - t_kill:.2f} s"
+    )
+
+
+def test_frozen_daemon_is_caught_by_its_liveliness_and_replaced(supervised: Daemon) -> None:
+    with supervised.rider(timeout=3.0) as r:
+        feed = StatusFeed(r)
+        try:
+            ride_until_rotating(r, feed)
+            child = supervisor_child(supervised)
+            t_stop = time.monotonic()
+            os.kill(child, signal.SIGSTOP)  # alive, holding its relays, answering nothing
+            down = feed.until(daemon_died)
+            t_down = time.monotonic()
+            assert not any(r.sim("world").relays.values())
+            assert down.fault is not None and "stopped answering" in down.fault.message
+            back = feed.until(lambda s: not daemon_died(s))
+        finally:
+            feed.close()
+        assert back.state is MachineState.WARNING_NOT_HOME, back
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)  # the frozen process was killed, not left behind
+    print(f"\nSIGSTOP → FAULT_HW seen {t_down - t_stop:.2f} s (the Zenoh lease is 1 s)")
+
+
+def test_sigterm_stops_the_child_cleanly_and_leaves_outputs_safe(supervised: Daemon) -> None:
+    with supervised.rider(timeout=3.0) as r:
+        feed = StatusFeed(r)
+        try:
+            ride_until_rotating(r, feed)
+        finally:
+            feed.close()
+        # Still riding (this Rider is connected, so no rider-loss pause): relays on in the image.
+        child = supervisor_child(supervised)
+        assert any(image_relays(supervised).values())
+        supervised.proc.send_signal(signal.SIGTERM)
+        assert supervised.proc.wait(STOP_TIMEOUT_S) == 0
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)
+    assert not any(image_relays(supervised).values())
+    log = supervised.log()
+    assert "event=stopped code=0" in log  # the daemon's own clean shutdown
+    assert "event=daemon_down" not in log
+
+
+def test_supervisor_router_enforces_the_acl_profile(tmp_path: Path) -> None:
+    ids = make_identities(tmp_path / "users")
+    rider_env = ids.env(RIDER, "rider")
+    daemon = start_machine(
+        tmp_path,
+        command="supervise",
+        profile=ACL_PROFILE,
+        env={
+            env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary),
+            **ids.env(MACHINE, "machine"),
+        },
+        rider_env=rider_env,
+    )
+    try:
+        with (
+            rider_as(daemon, rider_env) as r,
+            rider_as(daemon, ids.env(RIDER, "monitor"), timeout=1.5) as m,
+        ):
+            assert r.check_calibration().ok is False  # through the router to the child
+            assert m.status().machine_id == "m1"  # the monitor reads
+            denied = list(m.session.get(f"{m.base}/cmd/home", payload=b'{"transaction_id":"x"}'))
+            assert denied == []
+            # A monitor cannot speak for the machine: its fake status never reaches a Rider.
+            feed = StatusFeed(r)
+            try:
+                fake = Status(machine_id="m1", state=MachineState.DONE, seq=0, cycle=0, time=0.0)
+                m.session.put(f"{m.base}/status", encode(fake), encoding=Format.MSGPACK.value)
+                sent = time.time()
+                seen = [feed.next()]
+                while seen[-1].time < sent:
+                    seen.append(feed.next())
+            finally:
+                feed.close()
+            assert all(s.time > 0 for s in seen)
+    finally:
+        daemon.stop()
+
+
+def test_supervisor_refuses_an_acl_router_without_the_daemon_identity(tmp_path: Path) -> None:
+    ids = make_identities(tmp_path / "users")
+    daemon = start_machine(
+        tmp_path,
+        command="supervise",
+        profile=ACL_PROFILE,
+        env={env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)},
+        wait=False,
+    )
+    assert daemon.proc.wait(STOP_TIMEOUT_S) == 2
+    assert "MACHINE_ZENOH_USER" in daemon.log()
