@@ -1,0 +1,101 @@
+"""A Rider in its own process, for tests that need one: it runs steps and reports JSON lines.
+
+    python -m tests.integration.rider_proc --connect tcp/10.0.0.1:7447 alive prepare start done
+
+Steps: `alive` (wait for the machine's liveliness token), `prepare` (calibrate + home),
+`start` (the default session, or `--revolutions N` at 45°, with this process as the
+supervising Rider), `running` (wait
+for the first revolution), `done` (wait for DONE), `hold` (report, then block until killed or
+stdin closes). Each step prints `{"step": ..., "status": ...}`; `done` adds the simulated
+world's revolutions travelled since `start`. Exit code 0, or 1 with `{"error": ...}`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from rider.client import Rider, RiderError
+from schema.commands import Reply, RotateStep, Session, TiltStep
+from schema.status import MachineState
+from tests.integration.support import STEP_TIMEOUT_S, prepare, wait_revolutions
+
+STEPS = ("alive", "prepare", "start", "running", "done", "hold")
+
+
+def report(step: str, **fields: Any) -> None:
+    print(json.dumps({"step": step, "time": time.time(), **fields}), flush=True)
+
+
+def wait_alive(rider: Rider, machine_id: str, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    for change in rider.follow_machines(timeout=0.2):
+        if change == (machine_id, True):
+            return
+        if time.monotonic() > deadline:
+            raise RiderError(f"machine {machine_id} not alive within {timeout:g} s")
+
+
+def run(rider: Rider, machine_id: str, steps: Sequence[str], revolutions: int | None) -> None:
+    revolutions_at_start = 0.0
+    started: Reply | None = None
+    for step in steps:
+        if step == "alive":
+            wait_alive(rider, machine_id, STEP_TIMEOUT_S)
+            report(step, status=rider.status(timeout=5.0).model_dump(mode="json"))
+        elif step == "prepare":
+            report(step, status=prepare(rider).model_dump(mode="json"))
+        elif step == "start":
+            revolutions_at_start = rider.sim("world").revolutions
+            session = None
+            if revolutions is not None:
+                session = Session(
+                    name=f"{revolutions} revolutions",
+                    steps=[TiltStep(degrees=45.0), RotateStep(revolutions=revolutions)],
+                )
+            started = rider.start(session)
+            report(step, reply=started.model_dump(mode="json"), rider=rider.rider_id)
+        elif step == "running":
+            if started is None:
+                raise RiderError("`running` needs `start` first")
+            report(step, status=wait_revolutions(rider, started, 1).model_dump(mode="json"))
+        elif step == "done":
+            final = rider.wait_for({MachineState.DONE}, STEP_TIMEOUT_S)
+            world = rider.sim("world")
+            report(
+                step,
+                status=final.model_dump(mode="json"),
+                world=world.model_dump(mode="json"),
+                revolutions=world.revolutions - revolutions_at_start,
+            )
+        elif step == "hold":
+            report(step, rider=rider.rider_id)
+            sys.stdin.read()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="rider_proc", description=__doc__)
+    p.add_argument("--connect", action="append", required=True)
+    p.add_argument("--zenoh-config", type=Path)
+    p.add_argument("--machine", default="m1")
+    p.add_argument("--revolutions", type=int, help="session length (default: the default session)")
+    p.add_argument("steps", nargs="+", choices=STEPS)
+    args = p.parse_args(argv)
+    try:
+        with Rider(
+            args.machine, connect=args.connect, zenoh_config_path=args.zenoh_config
+        ) as rider:
+            run(rider, args.machine, args.steps, args.revolutions)
+    except (RiderError, AssertionError) as exc:
+        print(json.dumps({"error": f"{type(exc).__name__}: {exc}"}), flush=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,130 @@
+"""Shared by the integration tests: a fast simulator config and waits that end on events.
+
+The fast config speeds the simulated mechanics up (one revolution in 0.5 s, tilt 90°/s) so a
+whole calibrate → home → session run takes a few seconds, and loosens the loop watchdog so a
+loaded CI host does not trip it in the middle of a test.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from rider.client import Rider
+from schema.commands import REST_STATES, Reply
+from schema.status import FAULT_STATES, MachineState, Status
+from tests.procs import Daemon, running_daemon, start_daemon
+
+FAST_CONFIG = """\
+[rotate]
+nominal_speed_dps = 720.0
+home_arc_deg = 30.0
+revolution_timeout_s = 2.0
+backoff_timeout_s = 1.0
+
+[tilt]
+nominal_speed_dps = 90.0
+home_timeout_s = 3.0
+move_timeout_margin_s = 1.0
+calibration_stroke_s = 0.4
+follow_window_s = 0.3
+
+[loop]
+# A shared 2-core host stalls the scan thread for tens of ms now and then; 3 periods (the
+# default) would trip the watchdog in the middle of a test that is not about the watchdog.
+watchdog_periods = 100
+
+[bus]
+heartbeat_s = 0.2
+
+[hal.sim]
+rotate_speed_dps = 720.0
+home_arc_deg = 30.0
+tilt_speed_dps = 90.0
+"""
+
+SETTLED = REST_STATES | FAULT_STATES
+"""States in which a motion command has ended, well or not."""
+
+STEP_TIMEOUT_S = 20.0
+"""Bound for one motion (calibration, homing, a session): seconds at the fast config."""
+
+
+def write_fast_config(directory: Path) -> Path:
+    path = directory / "machine-fast.toml"
+    path.write_text(FAST_CONFIG)
+    return path
+
+
+def fast_args(directory: Path, *more: str) -> list[str]:
+    """`machine run` arguments for the fast simulator."""
+    return ["--config", str(write_fast_config(directory)), *more]
+
+
+def start_fast(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Daemon:
+    return start_daemon(tmp, machine_id, extra=fast_args(tmp), **kwargs)  # type: ignore[arg-type]
+
+
+@contextlib.contextmanager
+def fast_daemon(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Iterator[Daemon]:
+    with running_daemon(tmp, machine_id, extra=fast_args(tmp), **kwargs) as daemon:
+        yield daemon
+
+
+def settle(rider: Rider, reply: Reply, timeout: float = STEP_TIMEOUT_S) -> Status:
+    """Wait until the motion `reply` started has ended (a rest or fault state)."""
+    return rider.wait_for(SETTLED, timeout, after=reply.timecode)
+
+
+def prepare(rider: Rider) -> Status:
+    """Calibrate what is not calibrated, then home; the machine ends IDLE."""
+    status = rider.status()
+    if not status.calibrated.tilt:
+        settle(rider, rider.calibrate_tilt())
+    if not status.calibrated.rotate:
+        settle(rider, rider.calibrate_rotate())
+    status = settle(rider, rider.home())
+    assert status.state is MachineState.IDLE, status
+    return status
+
+
+def wait_revolutions(
+    rider: Rider, reply: Reply, done: int, timeout: float = STEP_TIMEOUT_S
+) -> Status:
+    """Wait until the session `reply` started has completed `done` revolutions."""
+    deadline = time.monotonic() + timeout
+    for update in rider.watch(("status",), timeout=timeout):
+        if isinstance(update, Status) and update.time >= reply.timecode:
+            if update.session is not None and update.session.revolutions_done >= done:
+                return update
+            assert update.state not in SETTLED, f"session ended early: {update}"
+        assert time.monotonic() < deadline, f"no {done} revolutions in {timeout:g} s"
+    raise AssertionError(f"status went quiet before {done} revolutions")
+
+
+def wait_cycles(rider: Rider, cycles: int, timeout: float = STEP_TIMEOUT_S) -> Status:
+    """Wait on status heartbeats until the scan loop has run `cycles` more cycles."""
+    return states_over(rider, cycles, timeout)[-1]
+
+
+def states_over(rider: Rider, cycles: int, timeout: float = STEP_TIMEOUT_S) -> list[Status]:
+    """Every status published while the scan loop runs `cycles` more cycles."""
+    start = rider.status().cycle
+    deadline = time.monotonic() + timeout
+    seen: list[Status] = []
+    for update in rider.watch(("status",), timeout=timeout):
+        if isinstance(update, Status):
+            seen.append(update)
+            if update.cycle >= start + cycles:
+                return seen
+        assert time.monotonic() < deadline, f"loop did not run {cycles} cycles in {timeout:g} s"
+    raise AssertionError("status went quiet")
+
+
+def relays_off(rider: Rider) -> bool:
+    """True when every relay output is off, both as published and in the simulated world."""
+    published = all(p.value is False for p in rider.io() if p.kind == "ro")
+    world = not any(rider.sim("world").relays.values())
+    return published and world

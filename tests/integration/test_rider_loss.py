@@ -1,0 +1,130 @@
+"""Losing the controlling Rider mid-session: the machine pauses with its relays off.
+
+A child Python process starts the session as the supervising Rider and is SIGKILLed; this test
+(another Rider, one that never commands motion) watches the machine react.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from schema.commands import ReplyCode
+from schema.status import MachineState, Status
+from tests.integration.support import (
+    STEP_TIMEOUT_S,
+    fast_daemon,
+    relays_off,
+    wait_revolutions,
+)
+from tests.procs import REPO, Daemon
+
+pytestmark = pytest.mark.integration
+
+LONG_SESSION = ("--revolutions", "40", "prepare", "start", "running", "hold")
+"""20 s of motion at the fast config: still running whenever the test gets to act."""
+
+LOSS_BOUND_S = 5.0
+"""Upper bound the test waits for the pause; the lease in the test config is 1 s."""
+
+
+@pytest.fixture(scope="module")
+def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    with fast_daemon(tmp_path_factory.mktemp("rider-loss")) as daemon:
+        yield daemon
+
+
+def rider_process(daemon: Daemon, *steps: str) -> subprocess.Popen[str]:
+    cmd = [
+        sys.executable,
+        "-m",
+        "tests.integration.rider_proc",
+        "--connect",
+        daemon.endpoint,
+        "--zenoh-config",
+        str(daemon.zenoh_config),
+        "--machine",
+        daemon.machine_id,
+        *steps,
+    ]
+    return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO)
+
+
+def read_step(proc: subprocess.Popen[str], step: str) -> dict[str, Any]:
+    """The child's report for `step`; the child is bounded by its own step timeouts."""
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        record: dict[str, Any] = json.loads(line)
+        assert "error" not in record, record["error"]
+        if record["step"] == step:
+            return record
+    raise AssertionError(f"rider process ended (code {proc.wait(5)}) before step {step}")
+
+
+def test_killing_the_rider_mid_session_pauses_with_relays_off(machine: Daemon) -> None:
+    child = rider_process(machine, *LONG_SESSION)
+    try:
+        started = read_step(child, "start")
+        assert started["reply"]["code"] == ReplyCode.RESP_START_ACCEPTED
+        held = read_step(child, "hold")
+        with machine.rider() as observer:
+            running = observer.status()
+            assert running.state is MachineState.RUNNING
+            assert running.rider_connected
+            killed_at = time.monotonic()
+            child.send_signal(signal.SIGKILL)
+            child.wait(STEP_TIMEOUT_S)
+            paused = observer.wait_for({MachineState.PAUSED}, LOSS_BOUND_S)
+            noticed_s = time.monotonic() - killed_at
+            print(
+                f"rider loss: killed -> PAUSED seen by another Rider in {noticed_s * 1000:.0f} ms"
+            )
+
+            assert paused.previous_state is MachineState.RUNNING
+            assert not paused.rider_connected
+            assert any("Rider lost" in w for w in paused.warnings), paused.warnings
+            assert relays_off(observer)
+            assert f"rider={held['rider']}" in machine.log()
+
+            # Another Rider may take over: the paused session resumes where it was.
+            assert paused.session is not None
+            reply = observer.resume()
+            assert reply.code is ReplyCode.RESP_RESUMED
+            wait_revolutions(observer, reply, paused.session.revolutions_done + 1)
+            reply = observer.stop()
+            assert observer.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=reply.timecode)
+    finally:
+        if child.poll() is None:
+            child.kill()
+        child.wait(STEP_TIMEOUT_S)
+
+
+def test_a_reading_rider_that_leaves_changes_nothing(machine: Daemon) -> None:
+    child = rider_process(machine, *LONG_SESSION)
+    try:
+        read_step(child, "hold")
+        with machine.rider() as observer:
+            # A one-shot reader (the CLI's `rider status`) supervises nothing: it comes and goes.
+            with machine.rider(supervise=False) as reader:
+                before = reader.status()
+            assert before.state is MachineState.RUNNING and before.session is not None
+            goal = before.session.revolutions_done + 2
+            states = []
+            for update in observer.watch(("status",), timeout=STEP_TIMEOUT_S):
+                assert isinstance(update, Status)
+                states.append(update.state)
+                if update.session is not None and update.session.revolutions_done >= goal:
+                    break
+            assert set(states) == {MachineState.RUNNING}, states
+            reply = observer.stop()
+            assert observer.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=reply.timecode)
+    finally:
+        child.kill()
+        child.wait(STEP_TIMEOUT_S)

@@ -1,0 +1,189 @@
+"""A whole ride over real Zenoh: the daemon (simulator) in its own process, this test as the Rider.
+
+calibrate → home → start → DONE, pause / resume, stop, and an E-stop injected through the
+simulator's fault queryable; the simulated world (`sim/world`) is the ground truth for what
+moved.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+from rider.client import CommandRefused, Rider
+from schema.commands import ReplyCode
+from schema.errors import ErrorCode
+from schema.status import MachineState, Status
+from tests.integration.support import (
+    STEP_TIMEOUT_S,
+    fast_daemon,
+    prepare,
+    relays_off,
+    settle,
+    wait_cycles,
+    wait_revolutions,
+)
+from tests.procs import Daemon
+
+pytestmark = pytest.mark.integration
+
+REVOLUTION_SLACK = 0.1
+"""The rotate axis stops on the home switch: a session of 3 travels 3 revolutions ± a bit."""
+
+TILT_SLACK_DEG = 2.0
+"""Tilt ends within the controller's tolerance (1°) of 45° as it sees it; the world's
+truth differs by the calibration error on top."""
+
+QUIET_CYCLES = 20
+"""Scan cycles to watch for unwanted motion (paused, stopped, E-stop released)."""
+
+
+@pytest.fixture(scope="module")
+def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    with fast_daemon(tmp_path_factory.mktemp("session")) as daemon:
+        yield daemon
+
+
+@pytest.fixture
+def rider(machine: Daemon) -> Iterator[Rider]:
+    with machine.rider() as r:
+        yield r
+
+
+def run_to_done(rider: Rider, after: float) -> list[Status]:
+    """Every status until DONE (bounded); fails on any other resting or fault state."""
+    seen: list[Status] = []
+    for update in rider.watch(("status",), timeout=STEP_TIMEOUT_S):
+        if not isinstance(update, Status) or update.time < after:
+            continue
+        seen.append(update)
+        if update.state is MachineState.DONE:
+            return seen
+        assert update.state in (MachineState.RUNNING, MachineState.PAUSED), update
+    raise AssertionError(f"no DONE; last status {seen[-1] if seen else None}")
+
+
+def test_calibrate_home_start_runs_the_default_session_to_done(rider: Rider) -> None:
+    reply = rider.calibrate_tilt()
+    assert reply.code is ReplyCode.RESP_CALIBRATION_ACCEPTED
+    assert reply.state is MachineState.CALIBRATING
+    assert settle(rider, reply).calibrated.tilt
+
+    reply = rider.calibrate_rotate()
+    assert reply.state is MachineState.CALIBRATING
+    status = settle(rider, reply)
+    assert status.calibrated.tilt and status.calibrated.rotate
+
+    reply = rider.home()
+    assert reply.code is ReplyCode.RESP_HOME_ACCEPTED
+    status = settle(rider, reply)
+    assert status.state is MachineState.IDLE
+    assert status.homed.tilt and status.homed.rotate
+
+    before = rider.sim("world")
+    reply = rider.start()
+    assert reply.code is ReplyCode.RESP_START_ACCEPTED
+    assert reply.state is MachineState.RUNNING
+    seen = run_to_done(rider, reply.timecode)
+
+    final = seen[-1]
+    assert final.session is not None
+    assert (final.session.revolutions_done, final.session.revolutions_total) == (3, 3)
+    assert final.session.step_index == final.session.step_count
+    progress = [s.session.revolutions_done for s in seen if s.session is not None]
+    assert progress == sorted(progress), "revolutions never count backwards"
+    assert final.tilt_deg == pytest.approx(45.0, abs=1.0)
+    world = rider.sim("world")
+    assert world.revolutions - before.revolutions == pytest.approx(3.0, abs=REVOLUTION_SLACK)
+    assert world.tilt_deg == pytest.approx(45.0, abs=TILT_SLACK_DEG)
+    assert relays_off(rider)
+
+
+def test_pause_holds_with_relays_off_and_resume_finishes_the_session(rider: Rider) -> None:
+    prepare(rider)
+    before = rider.sim("world")
+    started = rider.start()
+    wait_revolutions(rider, started, 1)
+
+    reply = rider.pause()
+    assert reply.code is ReplyCode.RESP_PAUSED
+    paused = rider.wait_for({MachineState.PAUSED}, STEP_TIMEOUT_S, after=reply.timecode)
+    assert paused.previous_state is MachineState.RUNNING
+    assert relays_off(rider)
+    held = rider.sim("world")
+    wait_cycles(rider, QUIET_CYCLES)
+    still = rider.sim("world")
+    assert (still.revolutions, still.tilt_deg) == (held.revolutions, held.tilt_deg)
+    assert rider.status().state is MachineState.PAUSED
+
+    reply = rider.resume()
+    assert reply.code is ReplyCode.RESP_RESUMED
+    assert reply.state is MachineState.RUNNING
+    final = run_to_done(rider, reply.timecode)[-1]
+    assert final.session is not None and final.session.revolutions_done == 3
+    world = rider.sim("world")
+    assert world.revolutions - before.revolutions == pytest.approx(3.0, abs=REVOLUTION_SLACK)
+
+
+def test_stop_ends_the_session_done_and_nothing_moves(rider: Rider) -> None:
+    prepare(rider)
+    started = rider.start()
+    wait_revolutions(rider, started, 1)
+
+    reply = rider.stop()
+    assert reply.code is ReplyCode.RESP_DONE
+    done = rider.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=reply.timecode)
+    assert done.session is None, "stop clears the session"
+    assert relays_off(rider)
+    held = rider.sim("world")
+    wait_cycles(rider, QUIET_CYCLES)
+    still = rider.sim("world")
+    assert (still.revolutions, still.tilt_deg) == (held.revolutions, held.tilt_deg)
+    with pytest.raises(CommandRefused) as refused:
+        rider.resume()
+    assert refused.value.error.code is ErrorCode.WRONG_STATE
+
+
+def test_estop_from_the_simulator_latches_release_moves_nothing_resume_continues(
+    rider: Rider,
+) -> None:
+    prepare(rider)
+    before = rider.sim("world")
+    started = rider.start()
+    wait_revolutions(rider, started, 1)
+
+    pressed = rider.sim("estop", pressed=True)
+    assert pressed.estop_pressed
+    fault = rider.wait_for({MachineState.FAULT_ESTOP}, STEP_TIMEOUT_S, after=pressed.time)
+    assert fault.previous_state is MachineState.RUNNING
+    assert fault.estop.active and fault.estop.latched
+    assert relays_off(rider)
+    for command in (rider.resume, rider.start, rider.home):
+        with pytest.raises(CommandRefused) as refused:
+            command()
+        assert refused.value.error.code is ErrorCode.ESTOP_ACTIVE
+
+    released = rider.sim("estop", pressed=False)
+    assert not released.estop_pressed
+    for update in rider.watch(("status",), timeout=STEP_TIMEOUT_S):
+        if isinstance(update, Status) and not update.estop.active:
+            break
+    else:
+        raise AssertionError("the released E-stop never showed in the status")
+    assert update.state is MachineState.FAULT_ESTOP, "release alone changes nothing"
+    assert update.estop.latched
+    wait_cycles(rider, QUIET_CYCLES)
+    still = rider.sim("world")
+    assert (still.revolutions, still.tilt_deg) == (released.revolutions, released.tilt_deg)
+    assert relays_off(rider)
+    assert rider.status().state is MachineState.FAULT_ESTOP
+
+    reply = rider.resume()
+    assert reply.code is ReplyCode.RESP_RESUMED
+    assert reply.state is MachineState.RUNNING
+    final = run_to_done(rider, reply.timecode)[-1]
+    assert final.session is not None and final.session.revolutions_done == 3
+    assert not final.estop.latched
+    world = rider.sim("world")
+    assert world.revolutions - before.revolutions == pytest.approx(3.0, abs=REVOLUTION_SLACK)

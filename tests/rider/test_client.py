@@ -1,0 +1,140 @@
+"""The Rider client against real daemons over tcp/127.0.0.1: errors, discovery, asyncio."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from rider.client import (
+    AmbiguousMachine,
+    AsyncRider,
+    CommandRefused,
+    MachineTimeout,
+    NoMachine,
+    Rider,
+)
+from schema.axes import AxisRecord
+from schema.commands import Command, CommandRequest, ReplyCode
+from schema.errors import ErrorCode
+from schema.io import IoValue
+from schema.status import MachineState, Status
+from tests.integration.support import SETTLED, STEP_TIMEOUT_S, fast_daemon
+from tests.procs import Daemon, free_port, write_zenoh_config
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture(scope="module")
+def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    with fast_daemon(tmp_path_factory.mktemp("client")) as daemon:
+        yield daemon
+
+
+def nowhere(tmp_path: Path, machine_id: str | None = "m1") -> Rider:
+    """A Rider pointed at a loopback port nobody listens on."""
+    return Rider(
+        machine_id,
+        connect=[f"tcp/127.0.0.1:{free_port()}"],
+        zenoh_config_path=write_zenoh_config(tmp_path),
+        timeout=0.3,
+    )
+
+
+def test_no_machine_raises_machine_timeout(tmp_path: Path) -> None:
+    with nowhere(tmp_path) as rider:
+        with pytest.raises(MachineTimeout, match="machine/m1/status"):
+            rider.status()
+        with pytest.raises(MachineTimeout, match="machine/m1/cmd/home"):
+            rider.home()
+        with pytest.raises(MachineTimeout):
+            rider.wait_for({MachineState.IDLE}, timeout=0.5)
+
+
+def test_no_machine_alive_raises_no_machine_when_none_is_named(tmp_path: Path) -> None:
+    with nowhere(tmp_path, None) as rider:
+        assert rider.machines() == []
+        with pytest.raises(NoMachine):
+            rider.status()
+
+
+def test_a_refusal_raises_command_refused_with_the_error_code(machine: Daemon) -> None:
+    with machine.rider() as rider:
+        assert not rider.status().calibrated.rotate, "runs first, on the fresh module daemon"
+        with pytest.raises(CommandRefused) as refused:
+            rider.start()
+        assert refused.value.error.code is ErrorCode.NOT_CALIBRATED
+        assert refused.value.reply.command == Command.START.value
+        assert refused.value.reply.transaction_id is not None
+        with pytest.raises(CommandRefused) as wrong:
+            rider.pause()
+        assert wrong.value.error.code is ErrorCode.WRONG_STATE
+        assert "NOT_CALIBRATED" in str(refused.value)
+        # check=False hands the refusal back as a value instead.
+        reply = rider.command(Command.RESUME, check=False)
+        assert not reply.success and reply.error is not None
+        assert reply.error.code is ErrorCode.WRONG_STATE
+
+
+def test_a_given_transaction_id_is_sent_as_is_and_replayed(machine: Daemon) -> None:
+    with machine.rider() as rider:
+        request = CommandRequest(transaction_id="client-fixed-1")
+        first = rider.command(Command.CHECK_CALIBRATION, request)
+        again = rider.command(Command.CHECK_CALIBRATION, request)
+    assert first.transaction_id == "client-fixed-1"
+    assert again == first
+
+
+def test_watch_streams_status_io_and_axis_updates_during_motion(machine: Daemon) -> None:
+    with machine.rider() as rider:
+        reply = rider.calibrate_tilt()
+        kinds: set[type] = set()
+        for update in rider.watch(timeout=STEP_TIMEOUT_S):
+            kinds.add(type(update))
+            done = isinstance(update, Status) and update.time >= reply.timecode
+            if done and update.state in SETTLED:
+                break
+        assert kinds == {Status, IoValue, AxisRecord}
+        assert rider.status().calibrated.tilt
+
+
+def test_two_machines_alive_and_none_named_is_ambiguous(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    with fast_daemon(tmp_path / "a", "a") as a, fast_daemon(tmp_path / "b", "b") as b:
+        both = [a.endpoint, b.endpoint]
+        conf = write_zenoh_config(tmp_path)
+        with Rider(None, connect=both, zenoh_config_path=conf) as rider:
+            assert [m.id for m in rider.machines()] == ["a", "b"]
+            with pytest.raises(AmbiguousMachine, match="a, b"):
+                rider.status()
+        with Rider("b", connect=both, zenoh_config_path=conf) as rider:
+            assert rider.status().machine_id == "b"
+
+
+def test_async_rider_commands_reads_and_watches(machine: Daemon) -> None:
+    async def session() -> tuple[Status, list[Status]]:
+        async with AsyncRider(
+            "m1", connect=[machine.endpoint], zenoh_config_path=machine.zenoh_config
+        ) as rider:
+            status, diag, points = await asyncio.gather(rider.status(), rider.diag(), rider.io())
+            assert status.machine_id == "m1" and diag.cycles > 0 and points
+            with pytest.raises(CommandRefused) as refused:
+                await rider.resume()
+            assert refused.value.error.code is ErrorCode.WRONG_STATE
+            reply = await rider.calibrate_rotate()
+            assert reply.code is ReplyCode.RESP_CALIBRATION_ACCEPTED
+            seen: list[Status] = []
+            async for update in rider.watch(("status",), timeout=STEP_TIMEOUT_S):
+                assert isinstance(update, Status)
+                if update.time >= reply.timecode:
+                    seen.append(update)
+                    if update.state in SETTLED:
+                        break
+            return await rider.status(), seen
+
+    final, seen = asyncio.run(asyncio.wait_for(session(), timeout=60))
+    assert seen[0].state is MachineState.CALIBRATING
+    assert final.calibrated.rotate
