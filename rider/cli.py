@@ -357,12 +357,20 @@ def watch(args: argparse.Namespace, rider: Rider) -> int:
     keys = [k.strip() for k in args.keys.split(",") if k.strip()]
     until = {MachineState(s.upper()) for s in args.until} if args.until else None
     deadline = None if args.duration is None else time.monotonic() + args.duration
-    for update in rider.watch(keys, timeout=0.5 if deadline else None):
-        print(update.model_dump_json() if args.json else fmt_update(update), flush=True)
-        if until and isinstance(update, Status) and update.state in until:
-            return EXIT_OK
-        if deadline is not None and time.monotonic() > deadline:
-            break
+    shown = -1  # seq of the last status printed
+    # With a deadline, a quiet half second ends one `rider.watch` so the deadline is checked;
+    # the next one starts with the current status again, skipped when it was already shown.
+    while deadline is None or time.monotonic() < deadline:
+        for update in rider.watch(keys, timeout=0.5 if deadline else None):
+            if isinstance(update, Status):
+                if update.seq == shown:
+                    continue
+                shown = update.seq
+            print(update.model_dump_json() if args.json else fmt_update(update), flush=True)
+            if until and isinstance(update, Status) and update.state in until:
+                return EXIT_OK
+            if deadline is not None and time.monotonic() > deadline:
+                break
     return EXIT_OK if until is None else EXIT_NO_REPLY
 
 

@@ -13,12 +13,16 @@ import secrets
 import shutil
 import signal
 import subprocess
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 IP_TIMEOUT_S = 10.0
 SUBNET = "10.213.7"
 """Private addresses that exist only inside the two namespaces, never on the host."""
+
+NETNS_ETC = Path("/etc/netns")
+"""`ip netns exec NS` bind-mounts every file of /etc/netns/NS over the same file in /etc."""
 
 
 class NetnsUnavailable(Exception):
@@ -120,3 +124,20 @@ def veth_pair(prefix: str = "zt") -> Iterator[NsPair]:
         # Deleting a namespace destroys the veth end inside it, and with it the peer.
         for ns in reversed(created):
             _delete(ns)
+
+
+@contextlib.contextmanager
+def hosts_file(ns: str, names: Mapping[str, str]) -> Iterator[Path]:
+    """Make `names` (host name → address) resolve inside namespace `ns`, as a container's
+    /etc/hosts does; the file and its directory are removed on exit, always."""
+    directory = NETNS_ETC / ns
+    path = directory / "hosts"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)  # ns names are unique per test run
+        lines = ["127.0.0.1 localhost", *(f"{addr} {name}" for name, addr in names.items())]
+        path.write_text("\n".join(lines) + "\n")
+        yield path
+    finally:
+        path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            directory.rmdir()
