@@ -15,7 +15,7 @@ from pathlib import Path
 from rider.client import Rider
 from schema.commands import REST_STATES, Reply
 from schema.status import FAULT_STATES, MachineState, Status
-from tests.procs import Daemon, running_daemon, start_daemon
+from tests.procs import Daemon, running_daemon
 
 FAST_CONFIG = """\
 [rotate]
@@ -37,7 +37,8 @@ follow_window_s = 0.3
 watchdog_periods = 100
 
 [bus]
-heartbeat_s = 0.2
+heartbeat_s = {heartbeat_s}
+diag_period_s = 0.5
 
 [hal.sim]
 rotate_speed_dps = 720.0
@@ -52,24 +53,24 @@ STEP_TIMEOUT_S = 20.0
 """Bound for one motion (calibration, homing, a session): seconds at the fast config."""
 
 
-def write_fast_config(directory: Path) -> Path:
+def write_fast_config(directory: Path, heartbeat_s: float = 0.2) -> Path:
+    """The fast config; status is republished every `heartbeat_s` even when nothing changes."""
     path = directory / "machine-fast.toml"
-    path.write_text(FAST_CONFIG)
+    path.write_text(FAST_CONFIG.format(heartbeat_s=heartbeat_s))
     return path
 
 
-def fast_args(directory: Path, *more: str) -> list[str]:
+def fast_args(directory: Path, *more: str, heartbeat_s: float = 0.2) -> list[str]:
     """`machine run` arguments for the fast simulator."""
-    return ["--config", str(write_fast_config(directory)), *more]
-
-
-def start_fast(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Daemon:
-    return start_daemon(tmp, machine_id, extra=fast_args(tmp), **kwargs)  # type: ignore[arg-type]
+    return ["--config", str(write_fast_config(directory, heartbeat_s)), *more]
 
 
 @contextlib.contextmanager
-def fast_daemon(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Iterator[Daemon]:
-    with running_daemon(tmp, machine_id, extra=fast_args(tmp), **kwargs) as daemon:
+def fast_daemon(
+    tmp: Path, machine_id: str = "m1", *, heartbeat_s: float = 0.2, **kwargs: object
+) -> Iterator[Daemon]:
+    extra = fast_args(tmp, heartbeat_s=heartbeat_s)
+    with running_daemon(tmp, machine_id, extra=extra, **kwargs) as daemon:
         yield daemon
 
 

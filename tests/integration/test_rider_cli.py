@@ -7,13 +7,16 @@ Exit codes: 0 done, 1 refused (or the motion ended in a fault), 2 bad usage, 3 n
 from __future__ import annotations
 
 import json
+import queue
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 
+from rider.client import Rider
 from schema.commands import Reply, ReplyCode
 from schema.diag import CycleDiag
 from schema.errors import ErrorCode
@@ -244,3 +247,44 @@ def test_two_machines_and_none_named_exits_4(machine: Daemon, tmp_path: Path) ->
             ok_json(rider(machine, *both, "-m", "m2", "--json", "status"))[0]
         )
         assert named.machine_id == "m2"
+
+
+def test_watch_until_waits_through_a_quiet_spell(tmp_path: Path) -> None:
+    """`watch --until` keeps waiting while nothing is published (here: a 10 s heartbeat)."""
+    with fast_daemon(tmp_path, heartbeat_s=10.0) as quiet:
+        watcher = background(
+            quiet,
+            "--json",
+            "watch",
+            "--keys",
+            "status",
+            "--for",
+            str(STEP_TIMEOUT_S),
+            "--until",
+            "CALIBRATING",
+        )
+        try:
+            assert watcher.stdout is not None
+            first = Status.model_validate_json(watcher.stdout.readline())
+            assert first.state is MachineState.WARNING_NEEDS_CALIBRATION
+            with quiet.rider(supervise=False) as rider:
+                diag_samples(rider, 3)  # over a second in which no status is published
+                rider.calibrate_tilt()
+            code, lines = finish(watcher)
+        finally:
+            if watcher.poll() is None:
+                watcher.kill()
+                watcher.wait(CLI_TIMEOUT_S)
+        assert code == OK, lines
+        assert Status.model_validate(lines[-1]).state is MachineState.CALIBRATING
+
+
+def diag_samples(rider: Rider, count: int) -> None:
+    """Wait for `count` publications of diag/cycle (one every 0.5 s in the fast config)."""
+    samples: queue.Queue[zenoh.Sample] = queue.Queue()
+    sub = rider.session.declare_subscriber(f"{rider.base}/diag/cycle", samples.put)
+    try:
+        for _ in range(count):
+            samples.get(timeout=STEP_TIMEOUT_S)
+    finally:
+        sub.undeclare()
