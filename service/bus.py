@@ -291,6 +291,16 @@ class ZenohBus:
         )
         self._reply_now(query, key, fmt, error, None, transaction_id_of(_try_raw(query)))
 
+    def _refuse_wildcard(
+        self, query: zenoh.Query, key: str, fmt: Format, what: str, example: str
+    ) -> None:
+        error = Error(
+            code=ErrorCode.BAD_KEY,
+            message=f"wildcards are not allowed in {what}: {key!r}; name one key of one machine,"
+            f" e.g. {self.base}/{example}",
+        )
+        self._reply_now(query, key, fmt, error, None, transaction_id_of(_try_raw(query)))
+
     def _reply_now(
         self,
         query: zenoh.Query,
@@ -378,10 +388,15 @@ class ZenohBus:
         name = key[len(f"{self.base}/params/") :]
         data = _payload(query)
         fmt = reply_format(query, data)
-        if any(c in name for c in WILDCARD_CHARS) or not data:
+        wild = any(c in key for c in WILDCARD_CHARS)
+        if wild and data:
+            # A write must name one parameter of one machine: `machine/*/params/x` reaches all.
+            self._refuse_wildcard(query, key, fmt, "a parameter write", "params/<name>")
+            return
+        if wild or not data:
             # Reads never touch the scan thread: the registry hands out immutable values.
             with query:
-                if any(c in name for c in WILDCARD_CHARS):
+                if wild:
                     for p in params.list():
                         pkey = f"{self.base}/params/{p.name}"
                         if query.key_expr.intersects(zenoh.KeyExpr(pkey)):
@@ -420,6 +435,10 @@ class ZenohBus:
         what = key[len(f"{self.base}/sim/") :]
         data = _payload(query)
         fmt = reply_format(query, data)
+        if any(c in key for c in WILDCARD_CHARS):
+            # Injection acts on the machine: `machine/*/sim/estop` must not press every E-stop.
+            self._refuse_wildcard(query, key, fmt, "a simulator key", "sim/<fault>")
+            return
         if what == simfaults.WORLD:
             with query:
                 query.reply(
