@@ -1,0 +1,369 @@
+"""The deployment files as data: compose services, Dockerfile instructions, the build context.
+
+Tests read compose.yaml and the Dockerfile through this module, check them against the
+package (entry points, the real argparse parsers, files in the repo), and turn a service's
+container command into the same command on this host (`host_argv`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import re
+import shlex
+import sys
+import tomllib
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from tests.procs import REPO
+
+COMPOSE = REPO / "compose.yaml"
+REVPI_OVERRIDE = REPO / "docker" / "compose.revpi.yaml"
+DOCKERFILE = REPO / "Dockerfile"
+DOCKERIGNORE = REPO / ".dockerignore"
+
+_VAR = re.compile(r"\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:-|:\?)(?P<arg>[^}]*))?\}")
+
+
+class SpecError(AssertionError):
+    """A deployment file says something the package or the repo cannot honour."""
+
+
+# ----------------------------------------------------------------------------- compose
+def interpolate(text: str, env: Mapping[str, str]) -> str:
+    """Compose's `${NAME}`, `${NAME:-default}` and `${NAME:?error}` forms."""
+
+    def one(m: re.Match[str]) -> str:
+        name, op, arg = m["name"], m["op"], m["arg"]
+        value = env.get(name, "")
+        if value:
+            return value
+        if op == ":-":
+            return str(arg)
+        if op == ":?":
+            raise SpecError(f"${{{name}}} is required: {arg}")
+        return ""
+
+    return _VAR.sub(one, text)
+
+
+def load_compose(path: Path = COMPOSE, env: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The parsed file with variables interpolated in its strings (as compose does: after
+    parsing, so a value keeps the type its quoting gave it)."""
+    data = yaml.safe_load(path.read_text())
+    if not isinstance(data, dict):
+        raise SpecError(f"{path}: not a mapping")
+    out: dict[str, Any] = _interpolate_tree(data, env or {})
+    return out
+
+
+def _interpolate_tree(node: Any, env: Mapping[str, str]) -> Any:
+    if isinstance(node, str):
+        return interpolate(node, env)
+    if isinstance(node, list):
+        return [_interpolate_tree(x, env) for x in node]
+    if isinstance(node, dict):
+        return {k: _interpolate_tree(v, env) for k, v in node.items()}
+    return node
+
+
+def service(compose: Mapping[str, Any], name: str) -> dict[str, Any]:
+    services = compose.get("services") or {}
+    if name not in services:
+        raise SpecError(f"compose has no service {name!r} (has {sorted(services)})")
+    svc: dict[str, Any] = services[name]
+    return svc
+
+
+def command(svc: Mapping[str, Any]) -> list[str]:
+    """The service's command as an argv (exec form, or a string split like a shell)."""
+    cmd = svc.get("command")
+    if isinstance(cmd, str):
+        return shlex.split(cmd)
+    if not isinstance(cmd, list):
+        raise SpecError(f"command is neither a list nor a string: {cmd!r}")
+    return [str(x) for x in cmd]
+
+
+def healthcheck_argv(svc: Mapping[str, Any]) -> list[str]:
+    """`healthcheck.test` as an argv: `[CMD, …]` or `[CMD-SHELL, "…"]`."""
+    test = (svc.get("healthcheck") or {}).get("test")
+    if not isinstance(test, list) or not test:
+        raise SpecError(f"healthcheck.test must be a non-empty list, got {test!r}")
+    kind, *rest = (str(x) for x in test)
+    if kind == "CMD":
+        return rest
+    if kind == "CMD-SHELL":
+        return ["sh", "-c", " ".join(rest)]
+    raise SpecError(f"healthcheck.test must start with CMD or CMD-SHELL, got {kind!r}")
+
+
+def environment(svc: Mapping[str, Any]) -> dict[str, str]:
+    env = svc.get("environment") or {}
+    if isinstance(env, list):
+        return dict(str(e).split("=", 1) for e in env)
+    return {str(k): str(v) for k, v in env.items()}
+
+
+@dataclass(frozen=True)
+class Mount:
+    """One `volumes:` entry: a bind mount (source is a path) or a named volume."""
+
+    source: str
+    target: str
+    read_only: bool
+
+    @property
+    def is_bind(self) -> bool:
+        return self.source.startswith(("./", "../", "/"))
+
+
+def mounts(svc: Mapping[str, Any]) -> list[Mount]:
+    out = []
+    for entry in svc.get("volumes") or []:
+        if not isinstance(entry, str):
+            raise SpecError(f"use the short volume syntax SRC:DST[:ro], got {entry!r}")
+        parts = entry.split(":")
+        if len(parts) not in (2, 3):
+            raise SpecError(f"volume {entry!r} is not SRC:DST[:ro]")
+        out.append(Mount(parts[0], parts[1], len(parts) == 3 and "ro" in parts[2].split(",")))
+    return out
+
+
+def seconds(duration: str | int | float) -> float:
+    """Compose durations such as `10s`, `1m30s`, `500ms`."""
+    if isinstance(duration, int | float):
+        return float(duration)
+    units = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0}
+    parts = re.findall(r"(\d+(?:\.\d+)?)(ms|s|m|h)", duration)
+    if not parts or "".join(n + u for n, u in parts) != duration:
+        raise SpecError(f"not a duration: {duration!r}")
+    return sum(float(n) * units[u] for n, u in parts)
+
+
+# -------------------------------------------------------------------------- Dockerfile
+@dataclass(frozen=True)
+class Instruction:
+    keyword: str
+    args: str
+    stage: int
+    """Index of the build stage (the FROM) the instruction belongs to."""
+
+
+def dockerfile(path: Path = DOCKERFILE) -> list[Instruction]:
+    """Instructions with line continuations joined and comments dropped."""
+    out: list[Instruction] = []
+    stage = -1
+    pending = ""
+    for raw in path.read_text().splitlines():
+        line = raw.strip()
+        if line.startswith("#") or (not line and not pending):
+            continue
+        if line.endswith("\\"):
+            pending += line[:-1] + " "
+            continue
+        full = (pending + line).strip()
+        pending = ""
+        if not full:
+            continue
+        keyword, _, args = full.partition(" ")
+        keyword = keyword.upper()
+        if keyword == "FROM":
+            stage += 1
+        out.append(Instruction(keyword, args.strip(), stage))
+    if pending:
+        raise SpecError(f"{path}: ends inside a line continuation")
+    return out
+
+
+def exec_form(args: str) -> list[str]:
+    """A JSON-array (exec form) argument list; shell form is refused."""
+    try:
+        value = json.loads(args)
+    except ValueError as exc:
+        raise SpecError(f"not exec (JSON array) form: {args!r}") from exc
+    if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
+        raise SpecError(f"not a JSON array of strings: {args!r}")
+    return value
+
+
+def split_options(args: str) -> tuple[dict[str, str], str]:
+    """`--interval=10s --retries=3 CMD [...]` → ({interval: 10s, retries: 3}, `CMD [...]`)."""
+    options: dict[str, str] = {}
+    rest = args
+    while rest.startswith("--"):
+        option, _, rest = rest.partition(" ")
+        name, _, value = option[2:].partition("=")
+        options[name] = value
+        rest = rest.lstrip()
+    return options, rest
+
+
+def final_stage(instructions: Sequence[Instruction]) -> list[Instruction]:
+    last = max(i.stage for i in instructions)
+    return [i for i in instructions if i.stage == last]
+
+
+# ------------------------------------------------------------------------ build context
+def ignore_patterns(path: Path = DOCKERIGNORE) -> list[tuple[bool, re.Pattern[str]]]:
+    """(is_exception, regex) per `.dockerignore` line, in order (the last match wins)."""
+    out = []
+    for raw in path.read_text().splitlines():
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        negate = line.startswith("!")
+        pattern = line[1:] if negate else line
+        out.append((negate, _glob_regex(pattern.strip().strip("/"))))
+    return out
+
+
+def _glob_regex(pattern: str) -> re.Pattern[str]:
+    out = ""
+    i = 0
+    while i < len(pattern):
+        if pattern.startswith("**/", i):
+            out += "(?:.*/)?"
+            i += 3
+        elif pattern.startswith("**", i):
+            out += ".*"
+            i += 2
+        elif pattern[i] == "*":
+            out += "[^/]*"
+            i += 1
+        elif pattern[i] == "?":
+            out += "[^/]"
+            i += 1
+        else:
+            out += re.escape(pattern[i])
+            i += 1
+    return re.compile(out + r"\Z")
+
+
+def in_context(rel: str, patterns: Sequence[tuple[bool, re.Pattern[str]]]) -> bool:
+    """Whether Docker sends `rel` (relative to the context) to the build: a pattern excludes
+    a path when it matches the path or one of its parent directories."""
+    parts = rel.strip("/").split("/")
+    prefixes = ["/".join(parts[: i + 1]) for i in range(len(parts))]
+    excluded = False
+    for negate, regex in patterns:
+        if any(regex.match(p) for p in prefixes):
+            excluded = not negate
+    return not excluded
+
+
+def context_files(root: Path = REPO) -> Iterator[str]:
+    """Every file of the build context, relative to `root` (version-control data skipped)."""
+    patterns = ignore_patterns(root / ".dockerignore")
+    for dirpath, dirnames, filenames in os.walk(root):
+        rel_dir = os.path.relpath(dirpath, root)
+        dirnames[:] = [d for d in dirnames if d != ".git"]
+        for name in filenames:
+            rel = name if rel_dir == "." else f"{rel_dir}/{name}"
+            if in_context(rel, patterns):
+                yield rel
+
+
+# ------------------------------------------------------------------------------ package
+def pyproject() -> dict[str, Any]:
+    return tomllib.loads((REPO / "pyproject.toml").read_text())
+
+
+def entry_points() -> dict[str, str]:
+    """Console script name → module (`machine` → `service.cli`)."""
+    scripts: dict[str, str] = pyproject()["project"]["scripts"]
+    return {name: target.partition(":")[0] for name, target in scripts.items()}
+
+
+def parse_cli(argv: Sequence[str]) -> argparse.Namespace:
+    """Parse a `machine …` or `rider …` command line with the package's own parsers, the way
+    their `main()` does (including `rider ui`'s own options); raise SpecError if it fails."""
+    if not argv:
+        raise SpecError("empty command")
+    program, args = argv[0], list(argv[1:])
+    scripts = entry_points()
+    if program not in scripts:
+        raise SpecError(f"{program!r} is not an entry point of the package ({sorted(scripts)})")
+    if program == "machine":
+        from service.cli import build_parser as machine_parser
+
+        return _parse(machine_parser(), args, argv)
+    from rider.cli import build_parser as rider_parser
+
+    ns, rest = _parse_known(rider_parser(), args, argv)
+    if ns.cmd == "ui":
+        from rider.ui.app import build_parser as ui_parser
+
+        ns.ui = _parse(ui_parser(), rest, argv)
+    elif rest:
+        raise SpecError(f"{shlex.join(argv)}: unrecognized arguments {rest}")
+    return ns
+
+
+def _parse(
+    parser: argparse.ArgumentParser, args: list[str], argv: Sequence[str]
+) -> argparse.Namespace:
+    ns, rest = _parse_known(parser, args, argv)
+    if rest:
+        raise SpecError(f"{shlex.join(argv)}: unrecognized arguments {rest}")
+    return ns
+
+
+def _parse_known(
+    parser: argparse.ArgumentParser, args: list[str], argv: Sequence[str]
+) -> tuple[argparse.Namespace, list[str]]:
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            return parser.parse_known_args(args)
+    except SystemExit as exc:
+        raise SpecError(f"{shlex.join(argv)} does not parse: {err.getvalue().strip()}") from exc
+
+
+def host_argv(
+    argv: Sequence[str], paths: Mapping[str, Path], python: str = sys.executable
+) -> list[str]:
+    """A container command as the same command here: an entry point runs as `python -m
+    module`, `python` is this interpreter, and container paths become host paths."""
+    scripts = entry_points()
+    head = argv[0]
+    if head in scripts:
+        prefix = [python, "-m", scripts[head]]
+    elif head == "python":
+        prefix = [python]
+    else:
+        raise SpecError(f"{head!r} is neither an entry point nor python")
+    return prefix + [host_path(a, paths) for a in argv[1:]]
+
+
+def host_path(arg: str, paths: Mapping[str, Path]) -> str:
+    """`arg` with a container path (a mount target, or a file below one) replaced."""
+    for target, host in paths.items():
+        if arg == target:
+            return str(host)
+        if arg.startswith(target.rstrip("/") + "/"):
+            return str(host / arg[len(target.rstrip("/")) + 1 :])
+    return arg
+
+
+def mount_paths(
+    svc: Mapping[str, Any], volumes_dir: Path, replace: Mapping[str, Path] | None = None
+) -> dict[str, Path]:
+    """Container path → host path for a service: bind mounts from the repo (or `replace`d by
+    source), named volumes as directories under `volumes_dir`."""
+    out: dict[str, Path] = {}
+    for m in mounts(svc):
+        if m.is_bind:
+            out[m.target] = (replace or {}).get(m.source) or (REPO / m.source).resolve()
+        else:
+            out[m.target] = volumes_dir / m.source
+            out[m.target].mkdir(parents=True, exist_ok=True)
+    return out

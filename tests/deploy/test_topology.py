@@ -1,0 +1,257 @@
+"""compose.yaml replayed in network namespaces: the two containers without a container engine.
+
+The `machine` service runs in one namespace, the `rider` service (the operator UI) in another,
+joined by a veth pair; each namespace has a hosts file that makes the compose service names
+resolve, as the compose network's DNS does. The commands are compose.yaml's own, read from the
+parsed file: only container paths become host paths (by the service's mounts), and the mounted
+machine.toml is swapped for a fast simulator config (a site mounts its own config there too).
+`docker compose exec rider rider …` is the Rider CLI in the rider namespace with that service's
+environment. The router profile's router runs beside the Rider (the namespace helper makes
+pairs), so it too reaches the machine across the veth, by name.
+
+Skipped, with the reason, where namespaces cannot be created (not root, no iproute2).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from rider.cli import EXIT_NO_REPLY, EXIT_OK
+from schema.status import MachineState, Status
+from tests.deploy import spec
+from tests.integration.support import write_fast_config
+from tests.netns import NetnsUnavailable, NsPair, hosts_file, unavailable_reason, veth_pair
+from tests.procs import REPO
+
+pytestmark = [
+    pytest.mark.integration,
+    pytest.mark.netns,
+    pytest.mark.skipif(unavailable_reason() is not None, reason=str(unavailable_reason())),
+]
+
+READY_TIMEOUT_S = 30.0
+"""Bound for a service to start (the daemon's bus up, the UI listening, the router open)."""
+STEP_TIMEOUT_S = 60.0
+"""Bound for one Rider CLI process (a calibration, homing or a whole session at fast speed)."""
+STOP_TIMEOUT_S = 15.0
+
+ALL_STATES = [s.value for s in MachineState]
+SITE_CLIENT = REPO / "docker" / "rider-client.json5"
+
+
+@dataclass
+class Child:
+    """A service's process; a thread drains its output so a test can wait for a line."""
+
+    name: str
+    proc: subprocess.Popen[str]
+    lines: list[str] = field(default_factory=list)
+    ended: bool = False
+    cond: threading.Condition = field(default_factory=threading.Condition)
+
+    @classmethod
+    def start(cls, name: str, argv: list[str], env: dict[str, str]) -> Child:
+        proc = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env
+        )
+        child = cls(name, proc)
+        threading.Thread(target=child._drain, name=f"drain-{name}", daemon=True).start()
+        return child
+
+    def _drain(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self.cond:
+                self.lines.append(line.rstrip("\n"))
+                self.cond.notify_all()
+        with self.cond:
+            self.ended = True
+            self.cond.notify_all()
+
+    def wait_line(self, text: str, timeout: float = READY_TIMEOUT_S) -> str:
+        """The first output line containing `text`; fails when the process ends or time's up."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                found = next((line for line in self.lines if text in line), None)
+                if found is not None:
+                    return found
+                left = deadline - time.monotonic()
+                if self.ended or left <= 0:
+                    raise AssertionError(f"{self.name}: no line with {text!r}:\n{self.log()}")
+                self.cond.wait(left)
+
+    def log(self) -> str:
+        return "\n".join(self.lines)
+
+    def stop(self, timeout: float = STOP_TIMEOUT_S) -> int:
+        """SIGTERM, as `docker compose stop` sends; SIGKILL only if it overstays `timeout`."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(STOP_TIMEOUT_S)
+        return self.proc.returncode
+
+
+@dataclass
+class Stack:
+    """compose.yaml's services placed in the two namespaces of `net`."""
+
+    net: NsPair
+    tmp: Path
+    compose: dict[str, Any]
+    children: dict[str, Child] = field(default_factory=dict)
+
+    def ns(self, name: str) -> str:
+        return self.net.a if name == "machine" else self.net.b
+
+    def svc(self, name: str) -> dict[str, Any]:
+        return spec.service(self.compose, name)
+
+    def paths(self, name: str) -> dict[str, Path]:
+        fast = write_fast_config(self.tmp)
+        return spec.mount_paths(self.svc(name), self.tmp / "volumes", {"./machine.toml": fast})
+
+    def env(self, name: str) -> dict[str, str]:
+        return {**os.environ, "PYTHONUNBUFFERED": "1", **spec.environment(self.svc(name))}
+
+    def up(self, name: str) -> Child:
+        argv = spec.command(self.svc(name))
+        if name == "router":  # the image's entrypoint is zenohd; compose gives its arguments
+            paths = self.paths(name)
+            host = [sys.executable, "-m", "tests.deploy.zenohd"]
+            host += [spec.host_path(a, paths) for a in argv]
+        else:
+            host = spec.host_argv(argv, self.paths(name))
+        child = Child.start(name, self.net.cmd(self.ns(name), host), self.env(name))
+        self.children[name] = child
+        return child
+
+    def run(self, name: str, argv: list[str]) -> subprocess.CompletedProcess[str]:
+        """A command in service `name`'s namespace, with its environment (compose exec)."""
+        return subprocess.run(
+            self.net.cmd(self.ns(name), spec.host_argv(argv, self.paths(name))),
+            capture_output=True,
+            text=True,
+            timeout=STEP_TIMEOUT_S,
+            cwd=REPO,
+            env=self.env(name),
+            check=False,
+        )
+
+    def rider(self, *args: str) -> subprocess.CompletedProcess[str]:
+        """`docker compose exec rider rider ARGS`; exit 0 required."""
+        done = self.run("rider", ["rider", *args])
+        assert done.returncode == EXIT_OK, self.explain(args, done)
+        return done
+
+    def healthcheck(self, name: str) -> int:
+        return self.run(name, spec.healthcheck_argv(self.svc(name))).returncode
+
+    def explain(self, what: object, done: subprocess.CompletedProcess[str]) -> str:
+        logs = "\n".join(f"--- {n}\n{c.log()}" for n, c in self.children.items())
+        return f"{what}: exit {done.returncode}\n{done.stdout}\n{done.stderr}\n{logs}"
+
+    def close(self) -> None:
+        for child in reversed(self.children.values()):
+            child.stop()
+
+
+def image_healthcheck() -> list[str]:
+    (check,) = [i.args for i in spec.final_stage(spec.dockerfile()) if i.keyword == "HEALTHCHECK"]
+    return spec.exec_form(spec.split_options(check)[1].removeprefix("CMD "))
+
+
+def last_status(output: str) -> Status:
+    return Status.model_validate_json(output.strip().splitlines()[-1])
+
+
+@pytest.fixture
+def stack(tmp_path: Path) -> Iterator[Stack]:
+    try:
+        with contextlib.ExitStack() as stack:
+            net = stack.enter_context(veth_pair("zd"))
+            # The compose network's DNS: every service name, from every container.
+            names = {"machine": net.addr_a, "rider": net.addr_b, "router": net.addr_b}
+            for ns in (net.a, net.b):
+                stack.enter_context(hosts_file(ns, names))
+            site = Stack(net, tmp_path, spec.load_compose())
+            stack.callback(site.close)
+            yield site
+    except NetnsUnavailable as exc:
+        pytest.skip(f"cannot create network namespaces here: {exc}")
+
+
+def test_compose_stack_runs_a_session_to_done_and_stops_safely(stack: Stack) -> None:
+    machine = stack.up("machine")
+    machine.wait_line("event=started")
+    ui = stack.up("rider")
+    ui.wait_line("rider ui: http://")
+
+    # Docker's view: the daemon answers in its own container, the UI in its own.
+    assert stack.healthcheck("machine") == EXIT_OK, machine.log()
+    assert stack.run("machine", image_healthcheck()).returncode == EXIT_OK
+    assert stack.healthcheck("rider") == EXIT_OK, ui.log()
+
+    # An operator at the rider container: a whole session over tcp/machine:7447.
+    stack.rider("calibrate", "tilt", "--wait")
+    stack.rider("calibrate", "rotate", "--wait")
+    stack.rider("home", "--wait")
+    done = last_status(stack.rider("--json", "start", "--wait").stdout)
+    assert done.state is MachineState.DONE
+    status = last_status(stack.rider("--json", "status").stdout)
+    assert status.state is MachineState.DONE and status.machine_id == "m1"
+    assert status.session is not None and status.session.revolutions_done == 3
+
+    # The UI, fed over the same veth, shows the session's end too.
+    port = str(spec.parse_cli(spec.command(stack.svc("rider"))).ui.port)
+    probe = stack.run(
+        "rider",
+        ["python", "-m", "tests.deploy.ui_probe", f"http://127.0.0.1:{port}", "DONE"],
+    )
+    assert probe.returncode == 0, stack.explain("ui_probe", probe)
+
+    # `docker compose stop` in the middle of a ride: SIGTERM, outputs safe, exit 0 in time.
+    stack.rider("home", "--wait")
+    stack.rider("start")
+    stack.rider("watch", "--keys", "status", "--until", "RUNNING", "--for", "30")
+    grace = spec.seconds(stack.svc("machine")["stop_grace_period"])
+    machine.proc.send_signal(signal.SIGTERM)
+    try:
+        code = machine.proc.wait(grace)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"still running after {grace:g} s: docker would SIGKILL it") from None
+    assert code == 0, machine.log()
+    machine.wait_line("event=signal signal=SIGTERM")
+    machine.wait_line("event=stopped code=0")
+    assert stack.healthcheck("machine") == EXIT_NO_REPLY
+    assert ui.stop(grace) == 0, ui.log()
+
+
+def test_router_profile_reaches_the_machine_by_name(stack: Stack) -> None:
+    stack.up("machine").wait_line("event=started")
+    stack.up("router").wait_line("ready")
+    site = ["rider", "--zenoh-config", str(SITE_CLIENT), "--connect", "tcp/router:7447"]
+    # The router connects to tcp/machine:7447 on its own: wait for the machine's status.
+    until = ["watch", "--keys", "status", "--until", *ALL_STATES, "--for", "30"]
+    stack.rider(*site[1:], "--machine", "m1", *until)
+    found = json.loads(stack.rider(*site[1:], "--json", "machines").stdout)
+    assert [m["id"] for m in found] == ["m1"]
+    status = last_status(stack.rider(*site[1:], "-m", "m1", "--json", "status").stdout)
+    assert status.machine_id == "m1"
