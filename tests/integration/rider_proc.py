@@ -2,7 +2,7 @@
 
     python -m tests.integration.rider_proc --connect tcp/10.0.0.1:7447 alive prepare start done
 
-Steps: `alive` (wait for the machine's liveliness token), `prepare` (calibrate + home),
+Steps: `alive` (wait for the machine's first published status), `prepare` (calibrate + home),
 `start` (the default session, or `--revolutions N` at 45°, with this process as the
 supervising Rider), `running` (wait
 for the first revolution), `done` (wait for DONE), `hold` (report, then block until killed or
@@ -14,40 +14,57 @@ from __future__ import annotations
 
 import argparse
 import json
+import queue
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
 from rider.client import Rider, RiderError
+from schema.codec import Format, decode
 from schema.commands import Reply, RotateStep, Session, TiltStep
-from schema.status import MachineState
+from schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, prepare, wait_revolutions
 
 STEPS = ("alive", "prepare", "start", "running", "done", "hold")
+
+
+def command(endpoint: str, zenoh_config: Path, machine_id: str, *args: str) -> list[str]:
+    """The command line that runs this module as its own process."""
+    me = [sys.executable, "-m", "tests.integration.rider_proc", "--connect", endpoint]
+    return [*me, "--zenoh-config", str(zenoh_config), "--machine", machine_id, *args]
 
 
 def report(step: str, **fields: Any) -> None:
     print(json.dumps({"step": step, "time": time.time(), **fields}), flush=True)
 
 
-def wait_alive(rider: Rider, machine_id: str, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    for change in rider.follow_machines(timeout=0.2):
-        if change == (machine_id, True):
-            return
-        if time.monotonic() > deadline:
-            raise RiderError(f"machine {machine_id} not alive within {timeout:g} s")
+def wait_alive(rider: Rider, timeout: float) -> Status:
+    """The machine's first published status (a heartbeat comes every 0.2 s at the fast config).
+
+    A sample, unlike the liveliness token, proves the machine's declarations have reached this
+    session: its queryables answer the queries that follow even while it is still starting.
+    """
+    samples: queue.Queue[zenoh.Sample] = queue.Queue()
+    sub = rider.session.declare_subscriber(f"{rider.base}/status", samples.put)
+    try:
+        sample = samples.get(timeout=timeout)
+    except queue.Empty:
+        raise RiderError(f"no status from {rider.base} within {timeout:g} s") from None
+    finally:
+        sub.undeclare()
+    return decode(Status, sample.payload.to_bytes(), Format.MSGPACK)
 
 
-def run(rider: Rider, machine_id: str, steps: Sequence[str], revolutions: int | None) -> None:
+def run(rider: Rider, steps: Sequence[str], revolutions: int | None) -> None:
     revolutions_at_start = 0.0
     started: Reply | None = None
     for step in steps:
         if step == "alive":
-            wait_alive(rider, machine_id, STEP_TIMEOUT_S)
-            report(step, status=rider.status(timeout=5.0).model_dump(mode="json"))
+            report(step, status=wait_alive(rider, STEP_TIMEOUT_S).model_dump(mode="json"))
         elif step == "prepare":
             report(step, status=prepare(rider).model_dump(mode="json"))
         elif step == "start":
@@ -90,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with Rider(
             args.machine, connect=args.connect, zenoh_config_path=args.zenoh_config
         ) as rider:
-            run(rider, args.machine, args.steps, args.revolutions)
+            run(rider, args.steps, args.revolutions)
     except (RiderError, AssertionError) as exc:
         print(json.dumps({"error": f"{type(exc).__name__}: {exc}"}), flush=True)
         return 1

@@ -11,6 +11,9 @@ import contextlib
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
+
+import pytest
 
 from rider.client import Rider
 from schema.commands import REST_STATES, Reply
@@ -72,6 +75,20 @@ def fast_daemon(
     extra = fast_args(tmp, heartbeat_s=heartbeat_s)
     with running_daemon(tmp, machine_id, extra=extra, **kwargs) as daemon:
         yield daemon
+
+
+def module_machine(name: str) -> Any:
+    """A module-scoped `machine` fixture: one fast daemon shared by the tests of a module.
+
+    Use as `machine = module_machine("session")` at module level.
+    """
+
+    @pytest.fixture(scope="module")
+    def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+        with fast_daemon(tmp_path_factory.mktemp(name)) as daemon:
+            yield daemon
+
+    return machine
 
 
 def settle(rider: Rider, reply: Reply, timeout: float = STEP_TIMEOUT_S) -> Status:

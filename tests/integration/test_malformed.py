@@ -28,7 +28,7 @@ from schema.sim import SIM_REQUESTS, SimWorldState
 from schema.status import FAULT_STATES, MachineState, Status
 from tests.integration.support import (
     STEP_TIMEOUT_S,
-    fast_daemon,
+    module_machine,
     prepare,
     relays_off,
     wait_cycles,
@@ -205,10 +205,7 @@ def refusal(session: zenoh.Session, key: str, bad: Bad, *, path: bool = True) ->
     return reply
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("malformed")) as daemon:
-        yield daemon
+machine = module_machine("malformed")
 
 
 @pytest.fixture

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ import pytest
 
 from rider.client import MachineTimeout, Rider
 from schema.status import MachineState, Status
+from tests.integration import rider_proc
 from tests.integration.support import STEP_TIMEOUT_S, fast_args
 from tests.netns import NetnsUnavailable, NsPair, unavailable_reason, veth_pair
 from tests.procs import REPO, Daemon, rider_cmd, start_daemon
@@ -48,16 +48,8 @@ class Site:
         return self.net.cmd(self.net.a, args)
 
     def rider_proc(self, *steps: str) -> list[str]:
-        return [
-            sys.executable,
-            "-m",
-            "tests.integration.rider_proc",
-            "--connect",
-            self.daemon.endpoint,
-            "--zenoh-config",
-            str(self.daemon.zenoh_config),
-            *steps,
-        ]
+        d = self.daemon
+        return rider_proc.command(d.endpoint, d.zenoh_config, d.machine_id, *steps)
 
     def rider_cli(self, *args: str) -> list[str]:
         endpoint, zconf = self.daemon.endpoint, str(self.daemon.zenoh_config)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import queue
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ from schema.errors import ErrorCode
 from schema.io import IoValue
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
-from tests.integration.support import STEP_TIMEOUT_S, fast_daemon, prepare
+from tests.integration.support import STEP_TIMEOUT_S, fast_daemon, module_machine, prepare
 from tests.procs import REPO, Daemon, free_port, rider_cmd
 
 pytestmark = pytest.mark.integration
@@ -32,10 +31,7 @@ CLI_TIMEOUT_S = 30.0
 OK, REFUSED, USAGE, NO_REPLY, AMBIGUOUS = 0, 1, 2, 3, 4
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("cli")) as daemon:
-        yield daemon
+machine = module_machine("cli")
 
 
 def args_for(daemon: Daemon, *args: str) -> list[str]:
@@ -69,19 +65,13 @@ def ok_json(done: subprocess.CompletedProcess[str]) -> list[dict[str, Any]]:
     return json_lines(done.stdout)
 
 
+WATCH_UNTIL = ("--json", "watch", "--keys", "status", "--for", str(STEP_TIMEOUT_S), "--until")
+"""`rider … STATE`: watch the status until the machine is in STATE (bounded)."""
+
+
 def wait_state(daemon: Daemon, state: MachineState) -> Status:
-    """`rider watch --until STATE` (bounded); its last line is the status it stopped on."""
-    done = rider(
-        daemon,
-        "--json",
-        "watch",
-        "--keys",
-        "status",
-        "--for",
-        str(STEP_TIMEOUT_S),
-        "--until",
-        state.value,
-    )
+    """`rider watch --until STATE`; its last line is the status it stopped on."""
+    done = rider(daemon, *WATCH_UNTIL, state.value)
     last = Status.model_validate(ok_json(done)[-1])
     assert last.state is state
     return last
@@ -116,17 +106,7 @@ def test_a_whole_session_from_the_cli_with_json_output(machine: Daemon) -> None:
     check = ok_json(rider(machine, "--json", "check", "calibration"))[0]
     assert check == {"ok": True, "tilt": True, "rotate": True}
 
-    watcher = background(
-        machine,
-        "--json",
-        "watch",
-        "--keys",
-        "status",
-        "--for",
-        str(STEP_TIMEOUT_S),
-        "--until",
-        "DONE",
-    )
+    watcher = background(machine, *WATCH_UNTIL, "DONE")
     assert watcher.stdout is not None
     Status.model_validate_json(watcher.stdout.readline())  # subscribed: it printed the current
     reply, final = ok_json(rider(machine, "--json", "start", "--wait"))
@@ -252,17 +232,7 @@ def test_two_machines_and_none_named_exits_4(machine: Daemon, tmp_path: Path) ->
 def test_watch_until_waits_through_a_quiet_spell(tmp_path: Path) -> None:
     """`watch --until` keeps waiting while nothing is published (here: a 10 s heartbeat)."""
     with fast_daemon(tmp_path, heartbeat_s=10.0) as quiet:
-        watcher = background(
-            quiet,
-            "--json",
-            "watch",
-            "--keys",
-            "status",
-            "--for",
-            str(STEP_TIMEOUT_S),
-            "--until",
-            "CALIBRATING",
-        )
+        watcher = background(quiet, *WATCH_UNTIL, "CALIBRATING")
         try:
             assert watcher.stdout is not None
             first = Status.model_validate_json(watcher.stdout.readline())

@@ -9,18 +9,17 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import sys
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
 from schema.commands import ReplyCode
 from schema.status import MachineState, Status
+from tests.integration import rider_proc
 from tests.integration.support import (
     STEP_TIMEOUT_S,
-    fast_daemon,
+    module_machine,
     relays_off,
     wait_revolutions,
 )
@@ -35,25 +34,11 @@ LOSS_BOUND_S = 5.0
 """Upper bound the test waits for the pause; the lease in the test config is 1 s."""
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("rider-loss")) as daemon:
-        yield daemon
+machine = module_machine("rider-loss")
 
 
 def rider_process(daemon: Daemon, *steps: str) -> subprocess.Popen[str]:
-    cmd = [
-        sys.executable,
-        "-m",
-        "tests.integration.rider_proc",
-        "--connect",
-        daemon.endpoint,
-        "--zenoh-config",
-        str(daemon.zenoh_config),
-        "--machine",
-        daemon.machine_id,
-        *steps,
-    ]
+    cmd = rider_proc.command(daemon.endpoint, daemon.zenoh_config, daemon.machine_id, *steps)
     return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO)
 
 

@@ -14,10 +14,11 @@ import pytest
 from rider.client import CommandRefused, Rider
 from schema.commands import ReplyCode
 from schema.errors import ErrorCode
+from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 from tests.integration.support import (
     STEP_TIMEOUT_S,
-    fast_daemon,
+    module_machine,
     prepare,
     relays_off,
     settle,
@@ -39,16 +40,21 @@ QUIET_CYCLES = 20
 """Scan cycles to watch for unwanted motion (paused, stopped, E-stop released)."""
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("session")) as daemon:
-        yield daemon
+machine = module_machine("session")
 
 
 @pytest.fixture
 def rider(machine: Daemon) -> Iterator[Rider]:
     with machine.rider() as r:
         yield r
+
+
+def holds_still(rider: Rider, since: SimWorldState) -> None:
+    """Nothing moves for a while after `since`, and the relays stay off."""
+    wait_cycles(rider, QUIET_CYCLES)
+    now = rider.sim("world")
+    assert (now.revolutions, now.tilt_deg) == (since.revolutions, since.tilt_deg)
+    assert relays_off(rider)
 
 
 def run_to_done(rider: Rider, after: float) -> list[Status]:
@@ -62,6 +68,18 @@ def run_to_done(rider: Rider, after: float) -> list[Status]:
             return seen
         assert update.state in (MachineState.RUNNING, MachineState.PAUSED), update
     raise AssertionError(f"no DONE; last status {seen[-1] if seen else None}")
+
+
+def resume_to_done(rider: Rider, before: SimWorldState) -> Status:
+    """Resume; the default session started at `before` ends DONE, 3 revolutions in all."""
+    reply = rider.resume()
+    assert reply.code is ReplyCode.RESP_RESUMED
+    assert reply.state is MachineState.RUNNING
+    final = run_to_done(rider, reply.timecode)[-1]
+    assert final.session is not None and final.session.revolutions_done == 3
+    world = rider.sim("world")
+    assert world.revolutions - before.revolutions == pytest.approx(3.0, abs=REVOLUTION_SLACK)
+    return final
 
 
 def test_calibrate_home_start_runs_the_default_session_to_done(rider: Rider) -> None:
@@ -111,19 +129,10 @@ def test_pause_holds_with_relays_off_and_resume_finishes_the_session(rider: Ride
     paused = rider.wait_for({MachineState.PAUSED}, STEP_TIMEOUT_S, after=reply.timecode)
     assert paused.previous_state is MachineState.RUNNING
     assert relays_off(rider)
-    held = rider.sim("world")
-    wait_cycles(rider, QUIET_CYCLES)
-    still = rider.sim("world")
-    assert (still.revolutions, still.tilt_deg) == (held.revolutions, held.tilt_deg)
+    holds_still(rider, rider.sim("world"))
     assert rider.status().state is MachineState.PAUSED
 
-    reply = rider.resume()
-    assert reply.code is ReplyCode.RESP_RESUMED
-    assert reply.state is MachineState.RUNNING
-    final = run_to_done(rider, reply.timecode)[-1]
-    assert final.session is not None and final.session.revolutions_done == 3
-    world = rider.sim("world")
-    assert world.revolutions - before.revolutions == pytest.approx(3.0, abs=REVOLUTION_SLACK)
+    resume_to_done(rider, before)
 
 
 def test_stop_ends_the_session_done_and_nothing_moves(rider: Rider) -> None:
@@ -136,10 +145,7 @@ def test_stop_ends_the_session_done_and_nothing_moves(rider: Rider) -> None:
     done = rider.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=reply.timecode)
     assert done.session is None, "stop clears the session"
     assert relays_off(rider)
-    held = rider.sim("world")
-    wait_cycles(rider, QUIET_CYCLES)
-    still = rider.sim("world")
-    assert (still.revolutions, still.tilt_deg) == (held.revolutions, held.tilt_deg)
+    holds_still(rider, rider.sim("world"))
     with pytest.raises(CommandRefused) as refused:
         rider.resume()
     assert refused.value.error.code is ErrorCode.WRONG_STATE
@@ -173,17 +179,8 @@ def test_estop_from_the_simulator_latches_release_moves_nothing_resume_continues
         raise AssertionError("the released E-stop never showed in the status")
     assert update.state is MachineState.FAULT_ESTOP, "release alone changes nothing"
     assert update.estop.latched
-    wait_cycles(rider, QUIET_CYCLES)
-    still = rider.sim("world")
-    assert (still.revolutions, still.tilt_deg) == (released.revolutions, released.tilt_deg)
+    holds_still(rider, released)
     assert relays_off(rider)
     assert rider.status().state is MachineState.FAULT_ESTOP
 
-    reply = rider.resume()
-    assert reply.code is ReplyCode.RESP_RESUMED
-    assert reply.state is MachineState.RUNNING
-    final = run_to_done(rider, reply.timecode)[-1]
-    assert final.session is not None and final.session.revolutions_done == 3
-    assert not final.estop.latched
-    world = rider.sim("world")
-    assert world.revolutions - before.revolutions == pytest.approx(3.0, abs=REVOLUTION_SLACK)
+    assert not resume_to_done(rider, before).estop.latched

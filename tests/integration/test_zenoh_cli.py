@@ -10,7 +10,6 @@ import json
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ from schema.errors import ErrorCode
 from schema.io import IoValue
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
-from tests.integration.support import STEP_TIMEOUT_S, fast_daemon, settle, states_over
+from tests.integration.support import STEP_TIMEOUT_S, module_machine, settle, states_over
 from tests.procs import REPO, Daemon
 
 pytestmark = [
@@ -39,10 +38,7 @@ CLI_TIMEOUT_S = 30.0
 BASE = "machine/m1"
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("zenoh-cli")) as daemon:
-        yield daemon
+machine = module_machine("zenoh-cli")
 
 
 def zenoh_get(

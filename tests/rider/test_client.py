@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,16 +20,13 @@ from schema.commands import Command, CommandRequest, ReplyCode
 from schema.errors import ErrorCode
 from schema.io import IoValue
 from schema.status import MachineState, Status
-from tests.integration.support import SETTLED, STEP_TIMEOUT_S, fast_daemon
+from tests.integration.support import SETTLED, STEP_TIMEOUT_S, fast_daemon, module_machine
 from tests.procs import Daemon, free_port, write_zenoh_config
 
 pytestmark = pytest.mark.integration
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("client")) as daemon:
-        yield daemon
+machine = module_machine("client")
 
 
 def nowhere(tmp_path: Path, machine_id: str | None = "m1") -> Rider:
