@@ -1,0 +1,55 @@
+"""Real-time tuning of the scan thread: what `tune_thread` applies, to the calling thread only."""
+
+from __future__ import annotations
+
+import ctypes
+import sys
+import threading
+from collections.abc import Callable
+
+import pytest
+
+from service.runner import TIMER_SLACK_NS, tune_thread
+
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux")
+PR_GET_TIMERSLACK = 30
+
+
+def _slack() -> int:
+    """The calling thread's timer slack in ns, as the kernel reports it."""
+    return int(ctypes.CDLL(None).prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0))
+
+
+def _in_thread(fn: Callable[[], list[str]]) -> tuple[list[str], int]:
+    """Run `tune_thread` on a fresh thread; return what it applied and that thread's slack."""
+    out: list[tuple[list[str], int]] = []
+
+    def body() -> None:
+        applied = fn()
+        out.append((applied, _slack()))
+
+    t = threading.Thread(target=body)
+    t.start()
+    t.join(10.0)
+    return out[0]
+
+
+@linux_only
+def test_scan_thread_gets_a_fine_timer_slack() -> None:
+    applied, slack = _in_thread(lambda: tune_thread(False, None, None))
+    assert slack == TIMER_SLACK_NS
+    assert f"timer_slack={TIMER_SLACK_NS}ns" in applied
+
+
+@linux_only
+def test_timer_slack_stays_with_the_thread_that_asked() -> None:
+    before = _slack()
+    _in_thread(lambda: tune_thread(False, None, None))
+    assert _slack() == before != TIMER_SLACK_NS
+
+
+@linux_only
+def test_timer_slack_can_be_left_to_the_kernel() -> None:
+    applied, slack = _in_thread(lambda: tune_thread(False, None, None, timer_slack_ns=None))
+    assert not any(a.startswith("timer_slack") for a in applied)
+    assert slack != TIMER_SLACK_NS
