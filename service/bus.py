@@ -118,7 +118,8 @@ class ZenohBus:
 
     # ---------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
-        """Declare queryables, publishers and the liveliness token; start the diag publisher."""
+        """Declare queryables and publishers, start the diag publisher; the liveliness token
+        follows with the first status (`publish_status`)."""
         s, b = self.session, self.base
         for command in Command:
             self._declared.append(
@@ -149,7 +150,6 @@ class ZenohBus:
         self._declared.append(
             s.liveliness().declare_subscriber("rider/*/alive", self._on_rider, history=True)
         )
-        self._token = s.liveliness().declare_token(f"{b}/alive")
         self._diag_thread = threading.Thread(target=self._diag_loop, name="diag", daemon=True)
         self._diag_thread.start()
         log.info("event=bus_started base=%s zid=%s", b, s.zid())
@@ -170,6 +170,10 @@ class ZenohBus:
     # ----------------------------------------------------------------------- publications
     def publish_status(self, status: Status) -> None:
         self._status_pub.put(encode(status))
+        if self._token is None:
+            # Alive once there is a status to answer with: a Rider that sees the token and
+            # asks at once must get one (the loop sets `published.status` before this call).
+            self._token = self.session.liveliness().declare_token(f"{self.base}/alive")
 
     def publish_io(self, points: list[IoValue]) -> None:
         for point in points:
