@@ -153,7 +153,12 @@ class Rider:
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
-        self._session = zenoh.open(self._conf)
+        try:
+            self._session = zenoh.open(self._conf)
+        except zenoh.ZError as exc:
+            # e.g. a client whose router is down: a clear error, not a traceback
+            where = str(exc).split(" at /", 1)[0]
+            raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
         self.rider_id = str(self._session.zid())
         self._token = self._session.liveliness().declare_token(f"rider/{self.rider_id}/alive")
         return self
