@@ -63,18 +63,20 @@ class Watch:
 def axis_jitter(times: list[tuple[int, float]], period: float) -> Dist:
     """Wake-up lateness seen from outside: each record's stamp against the cycle grid.
 
-    A record's time is its cycle's start; `time - cycle * period` is constant for a perfect
-    loop, so its spread above the minimum is the jitter. After an overrun the runner skips
-    whole deadlines, so offsets are folded onto one period (centred, so a record slightly
-    earlier than the first is not counted as a period late).
+    A record's time is its cycle's start, so `time - cycle * period` is its deadline's offset
+    plus its lateness. After an overrun the runner skips whole deadlines, which only raises the
+    offset, never lowers it: the lowest offset from each record on is that record's baseline,
+    and the lateness is its height above it.
     """
     if len(times) < 2:
         return Dist.of([])
-    first = times[0][1] - times[0][0] * period
-    half = period / 2
-    folded = [((t - c * period - first) + half) % period - half for c, t in times]
-    low = min(folded)
-    return Dist.of([f - low for f in folded])
+    offsets = [t - c * period for c, t in times]
+    lateness = []
+    floor = float("inf")
+    for offset in reversed(offsets):
+        floor = min(floor, offset)
+        lateness.append(offset - floor)
+    return Dist.of(lateness)
 
 
 def paced(
@@ -210,6 +212,7 @@ def one_step(
             "rtt": rtt.__dict__,
             "overruns": diag.overruns,
             "missed": diag.missed_cycles,
+            "exec_p99": diag.execution.p99,
             "exec_max": diag.execution.max,
             "jitter_p99": diag.jitter.p99,
             "cpu": cpu_pct,

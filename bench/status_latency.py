@@ -113,8 +113,8 @@ def on_change(period_s: float, changes: int, seed: int = 4) -> Measured:
 def run(opts: Options) -> Section:
     section = Section("status_latency", "4. Status latency")
     results = [
-        every_cycle(0.010, opts.pick(1.0, 20.0, 120.0)),
-        on_change(0.010, opts.pick(10, 300, 2000)),
+        every_cycle(0.010, opts.pick(1.0, 15.0, 120.0)),
+        on_change(0.010, opts.pick(10, 200, 2000)),
         every_cycle(0.001, opts.pick(0.5, 5.0, 30.0)),
     ]
     table = Table(

@@ -14,7 +14,7 @@ import time
 from typing import Any, cast
 
 from service.loop import Inbox, ScanLoop
-from service.runner import RealtimeRunner, tune_thread
+from service.runner import TIMER_SLACK_NS, RealtimeRunner, tune_thread
 from service.timing import CycleStats
 
 
@@ -42,10 +42,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-gc-freeze", action="store_true")
     parser.add_argument("--cpu", type=int)
     parser.add_argument("--rt-priority", type=int)
+    parser.add_argument(
+        "--kernel-timer-slack", action="store_true", help="keep the kernel's timer slack"
+    )
     args = parser.parse_args(argv)
     stats = CycleStats(args.period, 100_000, time.time())
     runner = RealtimeRunner(cast(ScanLoop, EmptyScan()), args.period, stats, spin_s=args.spin)
-    applied = tune_thread(not args.no_gc_freeze, args.cpu, args.rt_priority)
+    slack = None if args.kernel_timer_slack else TIMER_SLACK_NS
+    applied = tune_thread(not args.no_gc_freeze, args.cpu, args.rt_priority, slack)
     timer = threading.Timer(args.duration, runner.stop)
     timer.daemon = True
     timer.start()
