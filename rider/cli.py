@@ -391,31 +391,29 @@ def params(args: argparse.Namespace, rider: Rider) -> int:
 
 
 def machines(args: argparse.Namespace, rider: Rider) -> int:
-    def show() -> list[str]:
-        found = rider.machines()
-        lines = []
-        for m in found:
-            up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"
-            lines.append(f"{m.id:16} {m.state or '?':28} up {up}")
-        emit(
-            [m.__dict__ for m in found], args.json, lambda: "\n".join(lines) or "no machines alive"
-        )
-        return [m.id for m in found]
-
-    ids = show()
-    if not args.watch:
+    # Follow before listing: a machine that leaves while the list is taken is still reported.
+    changes = rider.follow_machines(timeout=0.5, history=False) if args.watch else None
+    found = rider.machines()
+    lines = []
+    for m in found:
+        up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"
+        lines.append(f"{m.id:16} {m.state or '?':28} up {up}")
+    emit([m.__dict__ for m in found], args.json, lambda: "\n".join(lines) or "no machines alive")
+    if changes is None:
         return EXIT_OK
-    seen = set(ids)
+    sys.stdout.flush()
+    alive = {m.id for m in found}
     deadline = None if args.duration is None else time.monotonic() + args.duration
-    for change in rider.follow_machines(timeout=0.5):
-        if change is not None:
-            mid, alive = change
-            if alive and mid not in seen:
-                print(f"+ {mid} arrived", flush=True)
-                seen.add(mid)
-            elif not alive and mid in seen:
-                print(f"- {mid} left", flush=True)
-                seen.discard(mid)
+    for change in changes:
+        if change is not None and change[1] != (change[0] in alive):
+            mid, up_now = change  # e.g. one that came and went before the listing: skipped
+            if up_now:
+                alive.add(mid)
+            else:
+                alive.discard(mid)
+            event = {"id": mid, "alive": up_now, "time": time.time()}
+            text = f"{'+' if up_now else '-'} {mid} {'arrived' if up_now else 'left'}"
+            print(json.dumps(event) if args.json else text, flush=True)
         if deadline is not None and time.monotonic() > deadline:
             break
     return EXIT_OK

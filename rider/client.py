@@ -308,30 +308,51 @@ class Rider:
         return self._get_one(f"{self.base}/sim/{fault}", body, SimWorldState, None)
 
     def machines(self, with_status: bool = True) -> list[MachineInfo]:
-        """Machines alive on the network (their liveliness tokens), with state and uptime."""
-        found = []
+        """Machines alive on the network (their liveliness tokens), with state and uptime.
+
+        One query of `<prefix>/*/status` fills in every state; a machine alive but silent
+        within the timeout is listed with `state=None`.
+        """
+        found: set[str] = set()
         for reply in self.session.liveliness().get(
             f"{self.key_prefix}/*/alive", timeout=self.timeout
         ):
             if reply.ok is not None:
-                parts = str(reply.ok.key_expr).split("/")
-                found.append(parts[-2])
-        out = []
-        for mid in sorted(set(found)):
-            state: MachineState | None = None
-            uptime: float | None = None
-            if with_status:
+                found.add(str(reply.ok.key_expr).split("/")[-2])
+        statuses: dict[str, Status] = {}
+        if with_status:
+            for reply in self._get(f"{self.key_prefix}/*/status", None, None):
+                if reply.ok is None:
+                    continue
                 try:
-                    st = self._get_one(f"{self.key_prefix}/{mid}/status", None, Status, None)
-                    state, uptime = st.state, st.uptime_s
+                    status = self._decode(reply, Status)
                 except RiderError:
-                    pass  # alive but not answering yet: listed without a state
-            out.append(MachineInfo(id=mid, state=state, uptime_s=uptime))
+                    continue  # one bad reply must not hide the other machines
+                statuses[str(reply.ok.key_expr).split("/")[-2]] = status
+        out = []
+        # One that answers is alive too: a liveliness query racing a history subscription of
+        # this session (`follow_machines`) can come back short.
+        for mid in sorted(found | statuses.keys()):
+            st = statuses.get(mid)
+            out.append(
+                MachineInfo(
+                    id=mid,
+                    state=st.state if st else None,
+                    uptime_s=st.uptime_s if st else None,
+                )
+            )
         return out
 
-    def follow_machines(self, timeout: float = 0.5) -> Iterator[tuple[str, bool] | None]:
+    def follow_machines(
+        self, timeout: float = 0.5, *, history: bool = True
+    ) -> Iterator[tuple[str, bool] | None]:
         """(id, alive) as machines' liveliness tokens come and go; None after each quiet
-        `timeout`, so the caller can check its own deadline. Runs until the caller stops."""
+        `timeout`, so the caller can check its own deadline. Runs until the caller stops.
+
+        `history` first yields every machine alive now. The subscription starts at this call,
+        not at the first `next()`: a `machines()` taken after it cannot miss a departure (use
+        `history=False` then; a liveliness query racing a history replay comes back short).
+        """
         q: queue.Queue[tuple[str, bool]] = queue.Queue()
 
         def on_token(sample: zenoh.Sample) -> None:
@@ -339,16 +360,9 @@ class Rider:
             q.put((parts[-2], sample.kind == zenoh.SampleKind.PUT))
 
         sub = self.session.liveliness().declare_subscriber(
-            f"{self.key_prefix}/*/alive", on_token, history=True
+            f"{self.key_prefix}/*/alive", on_token, history=history
         )
-        try:
-            while True:
-                try:
-                    yield q.get(timeout=timeout)
-                except queue.Empty:
-                    yield None
-        finally:
-            sub.undeclare()
+        return _drain_changes(q, sub, timeout)
 
     # ------------------------------------------------------------------------------ watch
     def watch(
@@ -473,6 +487,19 @@ class Rider:
             raise CommandRefused(refused) from exc
         except ValidationError as exc:  # pragma: no cover - decode wraps these
             raise BadReply(str(exc)) from exc
+
+
+def _drain_changes(
+    q: queue.Queue[tuple[str, bool]], sub: Any, timeout: float
+) -> Iterator[tuple[str, bool] | None]:
+    try:
+        while True:
+            try:
+                yield q.get(timeout=timeout)
+            except queue.Empty:
+                yield None
+    finally:
+        sub.undeclare()
 
 
 def _result(reply: Reply) -> CheckResult:
