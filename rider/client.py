@@ -552,14 +552,23 @@ class AsyncRider:
         out: asyncio.Queue[Update | None] = asyncio.Queue()
         stop = threading.Event()
 
+        def deliver(item: Update | None) -> bool:
+            """Hand `item` to the loop; False once the consumer or the loop itself is gone."""
+            if stop.is_set() or loop.is_closed():
+                return False
+            try:
+                loop.call_soon_threadsafe(out.put_nowait, item)
+            except RuntimeError:  # the loop closed between the check and the call
+                return False
+            return True
+
         def pump() -> None:
             try:
                 for update in self._sync.watch(keys, timeout=timeout):
-                    loop.call_soon_threadsafe(out.put_nowait, update)
-                    if stop.is_set():
+                    if not deliver(update):
                         break
             finally:
-                loop.call_soon_threadsafe(out.put_nowait, None)
+                deliver(None)
 
         worker = threading.Thread(target=pump, name="rider-watch", daemon=True)
         worker.start()
