@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,7 @@ from rider.client import (
     MachineTimeout,
     NoMachine,
     Rider,
+    Update,
 )
 from schema.axes import AxisRecord
 from schema.commands import Command, CommandRequest, ReplyCode
@@ -134,3 +136,29 @@ def test_async_rider_commands_reads_and_watches(machine: Daemon) -> None:
     final, seen = asyncio.run(asyncio.wait_for(session(), timeout=60))
     assert seen[0].state is MachineState.CALIBRATING
     assert final.calibrated.rotate
+
+
+def test_async_watch_ends_cleanly_once_its_event_loop_is_gone(machine: Daemon) -> None:
+    """The thread feeding an abandoned watch must not die on the closed loop."""
+
+    async def first_update() -> Update:
+        async with AsyncRider(
+            "m1", connect=[machine.endpoint], zenoh_config_path=machine.zenoh_config
+        ) as rider:
+            async for update in rider.watch(("status",), timeout=1.0):
+                return update
+        raise AssertionError("no update")
+
+    errors: list[BaseException | None] = []
+    earlier = set(threading.enumerate())
+    previous = threading.excepthook
+    threading.excepthook = lambda args: errors.append(args.exc_value)
+    try:
+        assert isinstance(asyncio.run(asyncio.wait_for(first_update(), 30)), Status)
+        for thread in set(threading.enumerate()) - earlier:
+            if thread.name == "rider-watch":
+                thread.join(STEP_TIMEOUT_S)  # its watch ends after 1 s without updates
+                assert not thread.is_alive()
+    finally:
+        threading.excepthook = previous
+    assert not errors, errors
