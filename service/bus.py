@@ -109,8 +109,7 @@ class ZenohBus:
         self.wall = wall
         self.base = config.key_base
         self._declared: list[Any] = []
-        self._io_pubs: dict[str, zenoh.Publisher] = {}
-        self._axis_pubs: dict[str, zenoh.Publisher] = {}
+        self._data_pubs: dict[str, zenoh.Publisher] = {}
         self._stop = threading.Event()
         self._diag_thread: threading.Thread | None = None
         self._token: zenoh.LivelinessToken | None = None
@@ -147,6 +146,10 @@ class ZenohBus:
             f"{b}/diag/cycle", encoding=Format.MSGPACK.value, congestion_control=drop
         )
         self._declared += [self._status_pub, self._diag_pub]
+        for point in self.loop.points.all():
+            self._publisher(f"{b}/io/{point.kind}/{point.name}")
+        for axis in ("rotate", "tilt"):
+            self._publisher(f"{b}/axis/{axis}")
         self._declared.append(
             s.liveliness().declare_subscriber("rider/*/alive", self._on_rider, history=True)
         )
@@ -161,11 +164,10 @@ class ZenohBus:
             self._diag_thread.join(timeout=2.0)
         if self._token is not None:
             self._token.undeclare()
-        for entity in reversed(self._declared + list(self._io_pubs.values())):
+        for entity in reversed(self._declared + list(self._data_pubs.values())):
             entity.undeclare()
-        for pub in self._axis_pubs.values():
-            pub.undeclare()
         self._declared.clear()
+        self._data_pubs.clear()
 
     # ----------------------------------------------------------------------- publications
     def publish_status(self, status: Status) -> None:
@@ -175,30 +177,26 @@ class ZenohBus:
             # asks at once must get one (the loop sets `published.status` before this call).
             self._token = self.session.liveliness().declare_token(f"{self.base}/alive")
 
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        """The publisher of a data key; declared up front in `start()`, so a first
+        publication never pays for a declaration inside a scan cycle."""
+        pub = self._data_pubs.get(key)
+        if pub is None:
+            pub = self.session.declare_publisher(
+                key,
+                encoding=Format.MSGPACK.value,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+            self._data_pubs[key] = pub
+        return pub
+
     def publish_io(self, points: list[IoValue]) -> None:
         for point in points:
-            key = f"{self.base}/io/{point.kind}/{point.name}"
-            pub = self._io_pubs.get(key)
-            if pub is None:
-                pub = self.session.declare_publisher(
-                    key,
-                    encoding=Format.MSGPACK.value,
-                    congestion_control=zenoh.CongestionControl.DROP,
-                )
-                self._io_pubs[key] = pub
-            pub.put(encode(point))
+            self._publisher(f"{self.base}/io/{point.kind}/{point.name}").put(encode(point))
 
     def publish_axes(self, records: list[AxisRecord]) -> None:
         for record in records:
-            pub = self._axis_pubs.get(record.axis)
-            if pub is None:
-                pub = self.session.declare_publisher(
-                    f"{self.base}/axis/{record.axis}",
-                    encoding=Format.MSGPACK.value,
-                    congestion_control=zenoh.CongestionControl.DROP,
-                )
-                self._axis_pubs[record.axis] = pub
-            pub.put(encode(record))
+            self._publisher(f"{self.base}/axis/{record.axis}").put(encode(record))
 
     def publish_watchdog_trip(self, stalled_s: float) -> None:
         """From the watchdog thread: tell everyone at once, the scan thread may be stuck."""

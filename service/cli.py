@@ -30,8 +30,18 @@ def _add_run_args(run: argparse.ArgumentParser) -> None:
     hal.add_argument("--sim", action="store_const", const="sim", dest="hal", help="simulator HAL")
     hal.add_argument("--hal", choices=[b.value for b in HalBackend], help="HAL backend")
     run.add_argument("--zenoh-config", type=Path, help="zenoh.json5 to open the session with")
-    run.add_argument("--listen", action="append", default=[], help="extra Zenoh listen endpoint")
-    run.add_argument("--connect", action="append", default=[], help="extra Zenoh connect endpoint")
+    run.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        help="Zenoh listen endpoint (repeatable; replaces the config file's)",
+    )
+    run.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        help="Zenoh connect endpoint (repeatable; replaces the config file's)",
+    )
     run.add_argument("--id", dest="machine_id", help="override machine.id")
     run.add_argument("--period", type=float, help="override loop.period_s (seconds)")
     run.add_argument("--data-dir", type=Path, help="override data_dir")

@@ -18,6 +18,10 @@ from hal.base import Hal, Inputs, Outputs
 log = logging.getLogger(__name__)
 
 
+ARM_AFTER_CYCLES = 10
+"""The first cycles do one-off work (first publications, caches); the watchdog starts after."""
+
+
 class GuardedHal:
     """A `Hal` whose outputs a watchdog can latch safe from another thread."""
 
@@ -88,8 +92,8 @@ class Watchdog:
             self._thread.join(timeout=2.0)
 
     def _run(self) -> None:
-        # Armed once the first cycle has completed: before it the outputs are safe anyway, and
-        # start-up work (imports, gc.freeze) must not count as a stall.
+        # Armed once the first cycles have completed: before them the outputs are safe
+        # anyway, and start-up work (imports, gc.freeze) must not count as a stall.
         last_beat = self.heartbeat()
         last_change = self.clock()
         armed = False
@@ -97,7 +101,7 @@ class Watchdog:
             beat = self.heartbeat()
             now = self.clock()
             if not armed:
-                armed = beat > 0
+                armed = beat >= ARM_AFTER_CYCLES
             if beat != last_beat:
                 last_beat, last_change = beat, now
                 if self.tripped_at is not None and not self.hal.latched:

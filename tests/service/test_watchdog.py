@@ -13,7 +13,7 @@ from service.loop import LoopCall, PendingCommand, ScanLoop
 from service.machine import Machine
 from service.runner import RealtimeRunner
 from service.timing import CycleStats
-from service.watchdog import GuardedHal, Watchdog
+from service.watchdog import ARM_AFTER_CYCLES, GuardedHal, Watchdog
 from tests.rig import Rig
 
 WAIT_S = 10.0
@@ -79,8 +79,8 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     release = threading.Event()
 
     def watch_relays(lp: ScanLoop, now: float) -> None:
-        if hal.outputs.any_on():
-            moving.set()
+        if hal.outputs.any_on() and runner.heartbeat >= ARM_AFTER_CYCLES:
+            moving.set()  # relays on, and the watchdog armed
         else:
             lp.inbox.put(LoopCall(watch_relays))
 
