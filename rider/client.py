@@ -46,6 +46,7 @@ M = TypeVar("M", bound=BaseModel)
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 2.0
+EMPTY_RETRY_S = 0.05
 
 
 class RiderError(Exception):
@@ -442,12 +443,19 @@ class Rider:
 
     # ---------------------------------------------------------------------------- plumbing
     def _get_one(self, key: str, payload: bytes | None, model: type[M], timeout: float | None) -> M:
-        replies = self._get(key, payload, timeout)
-        if not replies:
-            raise MachineTimeout(
-                f"no reply from {key} within {timeout or self.timeout:g} s (is the machine up?)"
-            )
-        return self._decode(replies[0], model)
+        """The first reply. An empty answer that comes back early means no queryable was
+        matched yet (a peer's declarations still on their way just after open): ask again
+        until the timeout. Safe for commands too: the transaction id makes them at-most-once."""
+        limit = timeout or self.timeout
+        deadline = time.monotonic() + limit
+        while True:
+            remaining = deadline - time.monotonic()
+            replies = self._get(key, payload, max(remaining, 0.05))
+            if replies:
+                return self._decode(replies[0], model)
+            if deadline - time.monotonic() < EMPTY_RETRY_S:
+                raise MachineTimeout(f"no reply from {key} within {limit:g} s (is the machine up?)")
+            time.sleep(EMPTY_RETRY_S)
 
     def _get_all(self, key: str, model: type[M]) -> list[M]:
         return [self._decode(r, model) for r in self._get(key, None, None)]
