@@ -261,6 +261,7 @@ class ControlAPI:
         self._set_state(S.PAUSED, now, why)
 
     def _resume(self, now: float) -> None:
+        self.rider_warning = None  # whoever resumes has taken over
         if self.state is S.FAULT_ESTOP:
             target = self._estop_from or self._rest_state()
             self.estop_latched = False

@@ -57,3 +57,13 @@ def test_loss_outside_motion_does_nothing() -> None:
     rig.control.rider_lost(rig.clock())
     rig.step(10)
     assert rig.state is S.IDLE
+
+
+def test_resume_by_another_rider_clears_the_rider_lost_warning() -> None:
+    rig = _running("pause")
+    rig.control.rider_lost(rig.clock())
+    rig.step()
+    assert rig.control.rider_warning is not None
+    assert rig.send(Command.RESUME, rider="r2").success
+    assert rig.control.rider_warning is None
+    assert rig.control.controller_rider == "r2"
