@@ -13,7 +13,9 @@ from bench.common import (
     Section,
     Table,
     build_parser,
+    busy_percent,
     command_line,
+    host_cpu,
     interrupts_as_exceptions,
     measure,
     options_from,
@@ -30,17 +32,21 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
 ]
 
 
-def run_all(opts: Options, command: str) -> Table:
+def run_all(opts: Options, command: str, flags: list[str]) -> Table:
     """Run each benchmark in turn, saving each section as soon as it is done."""
-    summary = Table("Run", ["benchmark", "seconds", "load avg before", "load avg after"])
+    summary = Table(
+        "Run", ["benchmark", "seconds", "host CPU busy", "load avg before", "load avg after"]
+    )
     t0 = time.monotonic()
     before = os.getloadavg()
+    busy0 = host_cpu()
     for prog, run in BENCHMARKS:
-        section = measure(run, opts, f"{command} ({prog})")
+        section = measure(run, opts, command_line(prog, flags), part_of=command)
         save(section, opts)
         summary.add(
             prog,
             f"{section.seconds:.0f}",
+            f"{section.host_busy:.0f} %",
             "/".join(f"{x:.2f}" for x in section.load_before),
             "/".join(f"{x:.2f}" for x in section.load_after),
         )
@@ -48,12 +54,14 @@ def run_all(opts: Options, command: str) -> Table:
     summary.add(
         "all",
         f"{time.monotonic() - t0:.0f}",
+        f"{busy_percent(busy0, host_cpu()):.0f} %",
         "/".join(f"{x:.2f}" for x in before),
         "/".join(f"{x:.2f}" for x in after),
     )
     summary.note = (
-        f"{time.strftime('%Y-%m-%d %H:%M %Z')}, `{command}`; load average = 1/5/15-minute run"
-        " queue of this shared 2-core machine (other work was running: numbers are noisy)"
+        f"{time.strftime('%Y-%m-%d %H:%M %Z')}, `{command}`. Host CPU busy = share of both"
+        " cores' time used by anyone (the benchmarks themselves included); load average ="
+        " runnable tasks, 1/5/15-minute means — above 2 the two cores were oversubscribed"
     )
     return summary
 
@@ -62,8 +70,10 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     opts = options_from(build_parser("bench.all", __doc__ or "").parse_args(argv))
     command = command_line("bench.all", argv)
+    if os.environ.get("MAKELEVEL"):
+        command = "make bench"
     with interrupts_as_exceptions():
-        summary = run_all(opts, command)
+        summary = run_all(opts, command, argv)
     print(summary.text())
     if opts.out is not None:
         write_section(opts.out, "run", "Run", summary.markdown())

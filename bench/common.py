@@ -159,11 +159,16 @@ class Section:
     load_before: tuple[float, float, float] = (NAN, NAN, NAN)
     load_after: tuple[float, float, float] = (NAN, NAN, NAN)
     seconds: float = NAN
+    host_busy: float = NAN
+    """Percent of all the host's CPU time that was busy (anyone's) during the benchmark."""
+    part_of: str = ""
 
     def provenance(self) -> str:
+        part = f" (part of `{self.part_of}`)" if self.part_of else ""
         return (
-            f"Measured {self.date} with `{self.command}` in {self.seconds:.0f} s; load average"
-            f" (1/5/15 min) before {_load(self.load_before)}, after {_load(self.load_after)}."
+            f"Measured {self.date} with `{self.command}`{part} in {self.seconds:.0f} s; host CPU"
+            f" {self.host_busy:.0f} % busy; load average (1/5/15 min) before"
+            f" {_load(self.load_before)}, after {_load(self.load_after)}."
         )
 
     def all_tables(self) -> list[Table]:
@@ -283,16 +288,23 @@ def command_line(prog: str, argv: Sequence[str]) -> str:
 
 
 def measure(
-    run: Callable[[Options], Section], opts: Options, command: str, out: TextIO = sys.stdout
+    run: Callable[[Options], Section],
+    opts: Options,
+    command: str,
+    out: TextIO = sys.stdout,
+    part_of: str = "",
 ) -> Section:
     """Run one benchmark and stamp its section with date, command, load and duration."""
     before = os.getloadavg()
+    busy0 = host_cpu()
     t0 = time.monotonic()
     section = run(opts)
     section.seconds = time.monotonic() - t0
+    section.host_busy = busy_percent(busy0, host_cpu())
     section.load_before, section.load_after = before, os.getloadavg()
     section.date = time.strftime("%Y-%m-%d %H:%M %Z")
     section.command = command
+    section.part_of = part_of
     print(section.text(), file=out, flush=True)
     print(file=out)
     return section
@@ -395,6 +407,19 @@ def python_module(module: str, *args: object) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------- /proc
+def host_cpu() -> tuple[int, int]:
+    """(busy, total) CPU ticks of the whole host so far, from /proc/stat."""
+    with open("/proc/stat") as fh:
+        ticks = [int(x) for x in fh.readline().split()[1:]]
+    idle = ticks[3] + ticks[4]  # idle + iowait
+    return sum(ticks) - idle, sum(ticks)
+
+
+def busy_percent(before: tuple[int, int], after: tuple[int, int]) -> float:
+    total = after[1] - before[1]
+    return 100.0 * (after[0] - before[0]) / total if total > 0 else NAN
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU seconds of a process (all its threads)."""
     with open(f"/proc/{pid}/stat") as fh:
