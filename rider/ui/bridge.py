@@ -81,8 +81,17 @@ class Bridge:
     # ----------------------------------------------------------------------------- thread
     def _run(self) -> None:
         try:
-            if self._open() and self._find_machine():
-                self._follow()
+            if not (self._open() and self._find_machine()):
+                return
+            while not self._stop.is_set():
+                try:
+                    self._follow()
+                except zenoh.ZError as exc:
+                    # Keep serving the page: say what broke, then declare everything again.
+                    log.error("event=ui_bridge_error error=%r", str(exc))
+                    self._emit(Note(f"Zenoh error: {exc}; retrying"))
+                    self._undeclare()
+                    self._stop.wait(self.retry_s)
         finally:
             self._close()
 
@@ -125,34 +134,40 @@ class Bridge:
                 f"{base}/alive", lambda s: self._enqueue(True, s), history=True
             )
         )
-        self._refresh()
-        last_status: float | None = None
+        last_status = time.monotonic() if self._refresh() else None
         while not self._stop.is_set():
             try:
                 presence, sample = self._samples.get(timeout=POLL_S)
             except queue.Empty:
                 continue
             if presence:
-                self._emit(Presence(sample.kind == zenoh.SampleKind.PUT))
+                alive = sample.kind == zenoh.SampleKind.PUT
+                if not alive:
+                    last_status = None  # a machine that comes back gets a full refresh
+                self._emit(Presence(alive))
                 continue
             update = _decode(sample)
             if update is None:
                 continue
-            self._emit(update)
             if isinstance(update, Status):
                 now = time.monotonic()
-                back = last_status is not None and now - last_status > LOST_AFTER_S
+                back = last_status is None or now - last_status > LOST_AFTER_S
                 last_status = now
-                if back:
-                    self._refresh()  # IO is published on change only: ask for all of it again
+                # IO is published on change only: after a gap, ask for all of it again. The
+                # fresh status comes last, so the page is whole when it shows the link up.
+                if back and self._refresh():
+                    continue
+            self._emit(update)
 
-    def _refresh(self) -> None:
-        """Ask for the whole picture: status, every IO point, both axes, diagnostics."""
+    def _refresh(self) -> bool:
+        """Ask for the whole picture (IO, axes, diagnostics, then status); True if the
+        machine answered with its status."""
         rider = self.rider
-        reads: list[Callable[[], object]] = [rider.status, rider.io, rider.axes, rider.diag]
+        reads: list[Callable[[], object]] = [rider.io, rider.axes, rider.diag, rider.status]
+        got_status = False
         for read in reads:
             if self._stop.is_set():
-                return
+                return False
             try:
                 got = read()
             except RiderError as exc:
@@ -161,6 +176,8 @@ class Bridge:
             for update in got if isinstance(got, list) else [got]:
                 if isinstance(update, Status | IoValue | AxisRecord | CycleDiag):
                     self._emit(update)
+                    got_status = got_status or isinstance(update, Status)
+        return got_status
 
     def _enqueue(self, presence: bool, sample: zenoh.Sample) -> None:
         # Zenoh's callback thread: never block it; a full queue drops the sample.
@@ -173,11 +190,14 @@ class Bridge:
         except RuntimeError:
             self._stop.set()  # the event loop is gone: the server is shutting down
 
-    def _close(self) -> None:
+    def _undeclare(self) -> None:
         for sub in self._subs:
             with contextlib.suppress(zenoh.ZError):
                 sub.undeclare()
         self._subs.clear()
+
+    def _close(self) -> None:
+        self._undeclare()
         if self._opened:
             self._opened = False
             self.rider.close()

@@ -66,10 +66,12 @@ STATE_HINTS: dict[MachineState, str] = {
     S.WARNING_NOT_HOME: "Not home: press Home before Start.",
     S.PAUSED: "Paused, outputs off: Resume continues, Stop ends the session.",
     S.FAULT_HW: "Hardware fault, outputs off: fix the cause, then Home or calibrate again.",
-    S.FAULT_ESTOP: "E-stop: release it, then Resume returns to the previous state, Home "
-    "re-homes, Stop ends the session.",
+    S.FAULT_ESTOP: "Released but latched: Resume returns to the previous state, Home re-homes,"
+    " Stop ends the session.",
 }
 """One line per state that needs the operator, shown in the banner."""
+
+ESTOP_PRESSED_HINT = "Outputs off. Release the E-stop, then Resume, Home or Stop."
 
 
 SESSION_PRESETS: list[tuple[str, str, Session]] = [
@@ -125,6 +127,7 @@ def ui_config(*, monitor: bool, lost_after_s: float, history_s: float) -> dict[s
         ],
         "tones": {s.value: state_tone(s) for s in MachineState},
         "hints": {s.value: hint for s, hint in STATE_HINTS.items()},
+        "estop_pressed": ESTOP_PRESSED_HINT,
         "sessions": [
             {"id": sid, "label": label, "session": session.model_dump(mode="json")}
             for sid, label, session in SESSION_PRESETS

@@ -124,6 +124,15 @@ def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(
         expect(page.locator("#cmd-resume")).to_be_enabled()
         shot(page, "09-estop-released-latched")
 
+        # The E-stop goes in again while the operator is still reading the Home dialog.
+        page.click("#cmd-home")
+        expect(page.locator("#confirm")).to_be_visible()
+        r.sim("estop", pressed=True)
+        expect(page.locator("#fault-title")).to_have_text("E-STOP PRESSED")
+        confirm(page, "Home both axes?")
+        expect(page.locator("#cmd-result")).to_have_text("Home not sent: E-stop active")
+        state_is(page, "FAULT_ESTOP")
+
 
 def test_a_command_refused_in_the_wrong_state_shows_the_machine_error(
     page: Any, ui: UiServer
@@ -232,7 +241,10 @@ def test_lost_ui_server_is_shown_and_the_page_reconnects_by_itself(
     expect(page.locator("#link-server")).to_have_attribute("data-up", "false")
     shot(page, "14-ui-server-lost")
 
-    with running_ui(tmp_path, fast_daemon, port=first.port):
+    # It comes back read-only: the page follows the server's new options by itself.
+    with running_ui(tmp_path, fast_daemon, port=first.port, monitor=True):
         expect(page.locator("#banner-lost")).to_be_hidden(timeout=RIDE_S)
         expect(page.locator("#link-server")).to_have_attribute("data-up", "true")
         state_is(page, "WARNING_NEEDS_CALIBRATION")
+        expect(page.locator("#mode-badge")).to_be_visible()
+        expect(page.locator("#commands")).to_be_hidden()

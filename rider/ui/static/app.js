@@ -26,22 +26,28 @@
   const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
 
   // ------------------------------------------------------------------------- start-up
+  async function fetchConfig() {
+    try {
+      const r = await fetch("/api/config", { cache: "no-store" });
+      return r.ok ? await r.json() : null;
+    } catch (err) {
+      return null; // the server is not up (yet): the caller retries
+    }
+  }
+
+  function applyConfig(cfg) {
+    ui.cfg = cfg;
+    buildCommands();
+    buildSessions();
+  }
+
   async function boot() {
-    for (;;) {
-      try {
-        const r = await fetch("/api/config", { cache: "no-store" });
-        if (r.ok) {
-          ui.cfg = await r.json();
-          break;
-        }
-      } catch (err) {
-        // the server is not up yet: shown below, retried
-      }
+    let cfg;
+    while (!(cfg = await fetchConfig())) {
       setServer(false, "the UI server is not answering; retrying…");
       await sleep(1000);
     }
-    buildCommands();
-    buildSessions();
+    applyConfig(cfg);
     buildGauges();
     connect();
     setInterval(watchdog, 250);
@@ -60,6 +66,16 @@
       ui.history = d.history || [];
       ui.sample = d.sample;
       clock(d.now);
+      if (ui.server.dropped) {
+        // The server may have restarted with other options (e.g. --monitor): re-read them.
+        ui.server.dropped = false;
+        fetchConfig().then((cfg) => {
+          if (cfg) {
+            applyConfig(cfg);
+            render();
+          }
+        });
+      }
       setServer(true, "");
     },
     status(d) { ui.status = d; },
@@ -105,6 +121,7 @@
   function drop(reason) {
     if (ui.es) ui.es.close();
     ui.es = null;
+    ui.server.dropped = true;
     setServer(false, reason);
     if (!ui.retry) {
       ui.retry = setTimeout(() => {
@@ -185,9 +202,9 @@
     let fault = null;
     if (!lost && st) {
       if (st.estop.active) {
-        fault = ["E-STOP PRESSED", "Outputs off. " + (ui.cfg.hints.FAULT_ESTOP || "")];
+        fault = ["E-STOP PRESSED", ui.cfg.estop_pressed];
       } else if (st.state === "FAULT_ESTOP" || st.estop.latched) {
-        fault = ["E-STOP LATCHED", "Released. " + (ui.cfg.hints.FAULT_ESTOP || "")];
+        fault = ["E-STOP LATCHED", ui.cfg.hints.FAULT_ESTOP];
       } else if (st.fault) {
         const axis = st.fault.axis ? ` (${st.fault.axis} axis)` : "";
         fault = [`FAULT ${st.fault.code}`, `${st.fault.message}${axis}`];
@@ -293,6 +310,7 @@
 
   function buildSessions() {
     const sel = $("session-select");
+    const keep = sel.value;
     sel.innerHTML = "";
     for (const s of [...ui.cfg.sessions, ...ui.uploaded]) {
       const o = document.createElement("option");
@@ -300,6 +318,7 @@
       o.textContent = s.label;
       sel.append(o);
     }
+    if ([...sel.options].some((o) => o.value === keep)) sel.value = keep;
     $("session-file").onchange = upload;
   }
 
@@ -363,6 +382,12 @@
       question = `${c.confirm}\n\nSession: ${s.label}`;
     }
     if (question && !(await confirmDialog(question))) return;
+    const changed = why(c);
+    if (changed) {
+      // The machine moved on while the dialog was open: do not send a stale decision.
+      result(false, `${c.label} not sent: ${changed}`);
+      return;
+    }
     await send(c.key, body);
   }
 
