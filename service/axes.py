@@ -54,7 +54,7 @@ class AxisTracker:
         self._tilt_prev: float | None = None
         self.samples: dict[str, AxisSample] = {}
         # None: never published, so the first cycle publishes every axis once.
-        self._was_moving: dict[str, bool | None] = {"rotate": None, "tilt": None}
+        self._last_status: dict[str, int | None] = {"rotate": None, "tilt": None}
         self._settling: set[str] = set()
         self.tilt_target: float | None = None
 
@@ -99,20 +99,21 @@ class AxisTracker:
         self._tilt_prev = tilt
 
     def due(self, cycle: int) -> list[str]:
-        """Axes to publish this cycle: every Nth cycle while moving, on any change, and once
-        more the cycle after a stop, so the last record says settled with zero velocity."""
+        """Axes to publish this cycle: every Nth cycle while moving, whenever the status bits
+        change (moving, drive enabled by the E-stop, fault), and once more the cycle after a
+        stop, so the last record says settled with zero velocity."""
         out = []
         every = self.config.bus.axis_every_cycles
         for name, sample in self.samples.items():
             moving = bool(sample.status & PnStatus.MOVING)
-            was = self._was_moving[name]
-            if (moving and cycle % every == 0) or moving != was or name in self._settling:
+            last = self._last_status[name]
+            if (moving and cycle % every == 0) or sample.status != last or name in self._settling:
                 out.append(name)
             if name in self._settling:
                 self._settling.discard(name)
-            elif was and not moving:
+            elif last is not None and last & PnStatus.MOVING and not moving:
                 self._settling.add(name)
-            self._was_moving[name] = moving
+            self._last_status[name] = sample.status
         return out
 
     def record(self, name: str, cycle: int, time: float) -> AxisRecord:

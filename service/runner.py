@@ -100,6 +100,7 @@ class RealtimeRunner:
                 missed = int((end - deadline) // period) + 1
                 deadline += missed * period
             stats.record(jitter, end - start, missed)
+            stats.commands = loop.commands_handled
             self.heartbeat += 1
 
     def _on_error(self, exc: Exception, now: float, consecutive: int) -> None:

@@ -251,3 +251,14 @@ def test_hal_error_in_a_cycle_propagates_for_the_runner_to_handle() -> None:
     rig.hal.scan_inputs = broken  # type: ignore[method-assign]
     with pytest.raises(OSError, match="process image gone"):
         rig.step()
+
+
+def test_estop_publishes_drive_disabled_for_a_standing_axis() -> None:
+    rig = rig_in(S.IDLE)
+    rig.step(3)
+    rig.sink.axes.clear()
+    rig.hal.press_estop()
+    rig.step()
+    records = {a.axis: a for a in rig.sink.axes}
+    assert set(records) == {"rotate", "tilt"}
+    assert all(not a.pn_status & 4 for a in records.values())  # DRIVE_ENABLED cleared
