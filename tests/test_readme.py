@@ -1,0 +1,83 @@
+"""The README's examples run against a real daemon, so the documentation cannot drift."""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.integration.support import write_fast_config
+from tests.procs import REPO, rider_cmd, running_daemon
+
+README = (REPO / "README.md").read_text()
+BLOCK = re.compile(r"```(\w+)\n(.*?)```", re.S)
+RUN_TIMEOUT_S = 120
+
+
+def blocks(lang: str) -> list[str]:
+    return [body for kind, body in BLOCK.findall(README) if kind == lang]
+
+
+def quick_start_rider_lines() -> list[str]:
+    """The `rider …` lines of the quick start, without their comments."""
+    lines = []
+    for body in blocks("sh"):
+        for line in body.splitlines():
+            command = line.split("#", 1)[0].strip()
+            if command.startswith("rider "):
+                lines.append(command)
+    return lines
+
+
+def test_readme_has_the_examples_this_test_runs() -> None:
+    assert "make run" in README and "make test" in README
+    assert len(quick_start_rider_lines()) >= 6
+    assert len(blocks("python")) == 1
+
+
+@pytest.mark.integration
+def test_quick_start_rider_commands_work_in_order(tmp_path: Path) -> None:
+    config = write_fast_config(tmp_path)
+    with running_daemon(tmp_path, extra=["--config", str(config)]) as daemon:
+        env = {**os.environ, "RIDER_CONNECT": daemon.endpoint}
+        for line in quick_start_rider_lines():
+            args = shlex.split(line)[1:]
+            done = subprocess.run(
+                rider_cmd("--zenoh-config", str(daemon.zenoh_config), *args),
+                check=False,
+                capture_output=True,
+                text=True,
+                timeout=RUN_TIMEOUT_S,
+                env=env,
+                cwd=REPO,
+            )
+            assert done.returncode == 0, f"{line}: {done.stderr}{done.stdout}"
+        with daemon.rider() as r:
+            status = r.status()
+    assert status.estop.active  # the last quick-start line pressed the E-stop
+    assert status.session is not None and status.session.revolutions_done == 3
+
+
+@pytest.mark.integration
+def test_python_example_runs_a_session(tmp_path: Path) -> None:
+    config = write_fast_config(tmp_path)
+    with running_daemon(tmp_path, extra=["--config", str(config)]) as daemon:
+        code = blocks("python")[0].replace("tcp/127.0.0.1:7447", daemon.endpoint)
+        code = code.replace(
+            'Rider("m1", ', f'Rider("m1", zenoh_config_path=Path({str(daemon.zenoh_config)!r}), '
+        )
+        done = subprocess.run(
+            [sys.executable, "-c", "from pathlib import Path\n" + code],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=RUN_TIMEOUT_S,
+            cwd=REPO,
+        )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "DONE 3"
