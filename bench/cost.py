@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import subprocess
 import sys
 import tempfile
 import time
@@ -56,11 +57,16 @@ def _status_field(pid: int, name: str) -> int:
     return 0
 
 
-def _idle_of(label: str, period_s: float | None, pid: int, seconds: float) -> Idle:
+def _idle_of(
+    label: str, period_s: float | None, proc: subprocess.Popen[str], seconds: float
+) -> Idle:
+    pid = proc.pid
     time.sleep(min(1.0, seconds))  # past start-up
     meter = CpuMeter(pid)
     meter.start()
     time.sleep(seconds)
+    if proc.poll() is not None:
+        raise RuntimeError(f"{label}: the process exited ({proc.returncode}) while measured")
     return Idle(
         label,
         period_s,
@@ -73,7 +79,7 @@ def _idle_of(label: str, period_s: float | None, pid: int, seconds: float) -> Id
 
 def idle_daemon(period_s: float, seconds: float) -> Idle:
     with bench_daemon(period_s) as daemon:
-        return _idle_of(f"daemon, {period_s * 1e3:g} ms", period_s, daemon.proc.pid, seconds)
+        return _idle_of(f"daemon, {period_s * 1e3:g} ms", period_s, daemon.proc, seconds)
 
 
 def idle_bare(period_s: float, seconds: float, tmp: Path) -> Idle:
@@ -85,7 +91,7 @@ def idle_bare(period_s: float, seconds: float, tmp: Path) -> Idle:
     )
     try:
         child.expect("ready")
-        return _idle_of(f"empty runner, {period_s * 1e3:g} ms", period_s, child.pid, seconds)
+        return _idle_of(f"empty runner, {period_s * 1e3:g} ms", period_s, child.proc, seconds)
     finally:
         child.stop()
 
@@ -103,7 +109,7 @@ def idle_zenoh(seconds: float, tmp: Path, zenoh_config: Path) -> Idle:
     )
     try:
         child.expect("ready")
-        return _idle_of("bare Zenoh session (echo queryable)", None, child.pid, seconds)
+        return _idle_of("bare Zenoh session (echo queryable)", None, child.proc, seconds)
     finally:
         child.stop()
 
@@ -181,6 +187,7 @@ def run(opts: Options) -> Section:
             "exec p99 ms",
             "exec max ms",
             "daemon CPU %",
+            "generator CPU %",
             "sustained",
         ],
     )
@@ -197,6 +204,7 @@ def run(opts: Options) -> Section:
             ms(s["exec_p99"]),
             ms(s["exec_max"]),
             f"{s['cpu']:.0f}",
+            f"{s['generator_cpu']:.0f}",
             "yes" if sustained(s) else "no",
         )
     section.tables.append(rate_table)
@@ -210,8 +218,8 @@ def run(opts: Options) -> Section:
     best = max((s["target"] for s in steps if sustained(s)), default=0)
     section.notes.append(
         f"Largest command rate sustained with zero overruns and every reply a success: {best:g}/s"
-        f" (steps tried: {', '.join(str(r) for r in rates)}/s); the load generator is one"
-        " Python process on the same two cores, so the top steps may be limited by it."
+        f" (steps tried: {', '.join(str(r) for r in rates)}/s). The generator is one Python"
+        " process on the same two cores: where it nears 100 % of a core, it is the limit."
     )
     return section
 

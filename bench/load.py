@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 import time
@@ -157,6 +158,8 @@ def one_step(
     cpu = CpuMeter(daemon_pid) if daemon_pid else None
     if cpu:
         cpu.start()
+    own = CpuMeter(os.getpid())
+    own.start()
 
     def handler(sent: float) -> zenoh.handlers.Callback[zenoh.Reply]:
         def on_reply(reply: zenoh.Reply) -> None:
@@ -199,6 +202,7 @@ def one_step(
     while counts.done < n - stalled and time.monotonic() < drain:
         time.sleep(0.01)
     cpu_pct = cpu.percent() if cpu else float("nan")
+    own_pct = own.percent()
     diag = rider.diag()
     with counts.lock:
         rtt = Dist.of(counts.rtts)
@@ -216,6 +220,7 @@ def one_step(
             "exec_max": diag.execution.max,
             "jitter_p99": diag.jitter.p99,
             "cpu": cpu_pct,
+            "generator_cpu": own_pct,
         }
 
 

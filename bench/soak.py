@@ -367,6 +367,7 @@ def soak(opts: SoakOptions) -> Section:
     section.tables += [
         traffic_table(storm, rides, churn, elapsed, opts),
         memory_table(samples, steady),
+        rss_curve(samples),
         loop_table(diag0, diag1, restarted),
     ]
     if opts.kills:
@@ -404,18 +405,48 @@ def traffic_table(
 
 
 def memory_table(samples: list[Sample], steady: list[Sample]) -> Table:
-    t = Table("Memory (RSS)", ["process", "after warm-up MiB", "end MiB", "max MiB", "MiB/h"])
-    for name, values in (
-        ("daemon", [s.daemon_rss for s in steady]),
-        ("supervisor", [s.supervisor_rss for s in steady]),
-    ):
+    half = [s for s in steady if s.t >= (steady[0].t + steady[-1].t) / 2] or steady
+    t = Table(
+        "Memory (RSS)",
+        ["process", "after warm-up MiB", "end MiB", "max MiB", "MiB/h", "MiB/h, 2nd half"],
+    )
+    for name, pick in (("daemon", _daemon_rss), ("supervisor", _supervisor_rss)):
+        values = [pick(s) for s in steady]
         slope = growth_per_hour([s.t for s in steady], values)
-        t.add(name, mib(values[0]), mib(values[-1]), mib(max(values)), f"{slope / 2**20:+.1f}")
+        late = growth_per_hour([s.t for s in half], [pick(s) for s in half])
+        t.add(
+            name,
+            mib(values[0]),
+            mib(values[-1]),
+            mib(max(values)),
+            f"{slope / 2**20:+.1f}",
+            f"{late / 2**20:+.1f}",
+        )
     t.note = (
         f"{len(samples)} samples every {SAMPLE_EVERY_S:g} s; MiB/h = least-squares slope of"
-        f" the samples after the first {WARMUP_S:g} s"
+        f" the samples after the first {WARMUP_S:g} s, and of the second half alone"
     )
     return t
+
+
+def rss_curve(samples: list[Sample], rows: int = 10) -> Table:
+    """RSS over time, a row per tenth of the run."""
+    t = Table("RSS over time", ["minute", "daemon MiB", "supervisor MiB"])
+    step = max(1, len(samples) // rows)
+    picked = samples[::step]
+    if samples and picked[-1] is not samples[-1]:
+        picked.append(samples[-1])
+    for s in picked:
+        t.add(f"{s.t / 60:.1f}", mib(s.daemon_rss), mib(s.supervisor_rss))
+    return t
+
+
+def _daemon_rss(s: Sample) -> int:
+    return s.daemon_rss
+
+
+def _supervisor_rss(s: Sample) -> int:
+    return s.supervisor_rss
 
 
 def loop_table(diag0: CycleDiag, diag1: CycleDiag, restarted: bool) -> Table:

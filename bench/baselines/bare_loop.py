@@ -23,6 +23,7 @@ class EmptyScan:
 
     def __init__(self) -> None:
         self.inbox = Inbox()
+        self.commands_handled = 0
 
     def step(self, now: float) -> None:
         pass
