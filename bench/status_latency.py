@@ -13,12 +13,14 @@ import random
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import zenoh
 
 from bench.common import Dist, Options, Section, Table, Target, main_for, ms, share
 from bench.daemon import bench_daemon
+from rider.client import Rider
 from schema.codec import Format, decode
 from schema.status import Status
 
@@ -58,37 +60,37 @@ class Measured:
     negative: int
 
 
-def every_cycle(period_s: float, seconds: float) -> Measured:
-    """A status every cycle: heartbeat set below the period."""
+@contextlib.contextmanager
+def _watched(period_s: float, heartbeat_s: float | None) -> Iterator[tuple[Rider, Arrivals]]:
+    """A daemon, a Rider noting every status's arrival, and the daemon's diag reset."""
     with contextlib.ExitStack() as stack:
-        daemon = stack.enter_context(bench_daemon(period_s, heartbeat_s=period_s / 2))
+        daemon = stack.enter_context(bench_daemon(period_s, heartbeat_s=heartbeat_s))
         rider = stack.enter_context(daemon.rider(supervise=False))
         arrivals = Arrivals()
         sub = rider.session.declare_subscriber(f"{rider.base}/status", arrivals.on_sample)
         stack.callback(sub.undeclare)
         rider.diag(reset=True)
+        yield rider, arrivals
+
+
+def _measured(label: str, period_s: float, latencies: list[float], exec_p50: float) -> Measured:
+    negative = sum(x < 0 for x in latencies)
+    return Measured(label, period_s, Dist.of(latencies), exec_p50, negative)
+
+
+def every_cycle(period_s: float, seconds: float) -> Measured:
+    """A status every cycle: heartbeat set below the period."""
+    with _watched(period_s, period_s / 2) as (rider, arrivals):
         time.sleep(seconds)
         exec_p50 = rider.diag().execution.p50
     lat, _ = arrivals.latencies()
-    return Measured(
-        f"a status every cycle, {period_s * 1e3:g} ms",
-        period_s,
-        Dist.of(lat),
-        exec_p50,
-        sum(x < 0 for x in lat),
-    )
+    return _measured(f"a status every cycle, {period_s * 1e3:g} ms", period_s, lat, exec_p50)
 
 
 def on_change(period_s: float, changes: int, seed: int = 4) -> Measured:
     """Status changes triggered by E-stop presses and releases, default publication config."""
     rng = random.Random(seed)
-    with contextlib.ExitStack() as stack:
-        daemon = stack.enter_context(bench_daemon(period_s))
-        rider = stack.enter_context(daemon.rider(supervise=False))
-        arrivals = Arrivals()
-        sub = rider.session.declare_subscriber(f"{rider.base}/status", arrivals.on_sample)
-        stack.callback(sub.undeclare)
-        rider.diag(reset=True)
+    with _watched(period_s, None) as (rider, arrivals):
         for i in range(changes):
             rider.sim("estop", pressed=i % 2 == 0)
             time.sleep(rng.uniform(2 * period_s, 5 * period_s))
@@ -101,13 +103,8 @@ def on_change(period_s: float, changes: int, seed: int = 4) -> Measured:
         for x, prev, cur in zip(lat[1:], statuses[:-1], statuses[1:], strict=True)
         if cur.estop != prev.estop
     ]
-    return Measured(
-        f"on change (E-stop toggles), {period_s * 1e3:g} ms",
-        period_s,
-        Dist.of(changed),
-        exec_p50,
-        sum(x < 0 for x in changed),
-    )
+    label = f"on change (E-stop toggles), {period_s * 1e3:g} ms"
+    return _measured(label, period_s, changed, exec_p50)
 
 
 def run(opts: Options) -> Section:
