@@ -34,7 +34,7 @@ from typing import Any, Protocol
 
 import hal
 from hal.base import HalError
-from schema.credentials import MACHINE, env_name
+from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
 from service.config import HalBackend, MachineConfig
 from service.daemon import DaemonOptions
@@ -176,6 +176,10 @@ class Supervisor:
                 self._cleanup()
                 return EXIT_CONFIG
             session = zbus.open_session(conf)
+        except CredentialError as exc:
+            log.error("event=supervisor_bad_credentials error=%r", str(exc))
+            self._cleanup()
+            return EXIT_CONFIG
         except Exception as exc:  # noqa: BLE001 - zenoh raises plain ZError; outputs already safe
             log.error("event=zenoh_open_failed error=%r", str(exc))
             self._cleanup()
@@ -206,7 +210,7 @@ class Supervisor:
 
     def _prepare_hal(self) -> MachineConfig:
         """The safe-output path (and, with the simulator, the world); the child's config."""
-        from hal.revpi import RevPiHal
+        from hal.revpi import RevPiHal  # revpimodio2 is an optional extra: import on use
 
         self.dir.mkdir(parents=True, exist_ok=True)
         config = self.config

@@ -12,6 +12,7 @@ import subprocess
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -242,7 +243,7 @@ class StatusFeed:
 
     def __init__(self, rider: Rider) -> None:
         self._q: queue.SimpleQueue[Status] = queue.SimpleQueue()
-        self._sub = rider.session.declare_subscriber(f"{rider.base}/status", self._on_sample)
+        self._sub: Any = rider.session.declare_subscriber(f"{rider.base}/status", self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         fmt = Format.JSON if str(sample.encoding).startswith(Format.JSON) else Format.MSGPACK
