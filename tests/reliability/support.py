@@ -20,42 +20,13 @@ from rider.client import Rider
 from schema.codec import Format, decode
 from schema.credentials import MACHINE, RIDER, env_name
 from schema.status import Status
+from tests.integration.support import STEP_TIMEOUT_S, write_fast_config
 from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, machine_cmd, write_zenoh_config
 
 PROFILES = REPO / "zenoh"
 ACL_PROFILE = PROFILES / "acl.json5"
 TLS_PROFILE = PROFILES / "tls.json5"
 USERS = ("machine", "rider", "monitor")
-
-FAST_CONFIG = """\
-[rotate]
-nominal_speed_dps = 720.0
-home_arc_deg = 30.0
-revolution_timeout_s = 2.0
-backoff_timeout_s = 1.0
-
-[tilt]
-nominal_speed_dps = 90.0
-home_timeout_s = 3.0
-move_timeout_margin_s = 1.0
-calibration_stroke_s = 0.4
-follow_window_s = 0.3
-
-[loop]
-# A shared 2-core host stalls the scan thread now and then; these tests are not about that.
-watchdog_periods = 50
-
-[bus]
-heartbeat_s = 0.2
-
-[hal.sim]
-rotate_speed_dps = 720.0
-home_arc_deg = 30.0
-tilt_speed_dps = 90.0
-"""
-"""Fast mechanics (a revolution in 0.5 s, tilt 90°/s): a whole ride takes a few seconds."""
-
-STEP_TIMEOUT_S = 20.0
 
 
 # ---------------------------------------------------------------------------- identities
@@ -165,12 +136,6 @@ def rider_as(daemon: Daemon, env: Mapping[str, str], **kwargs: object) -> Rider:
     """A Rider (not yet open) built with exactly these RIDER_ZENOH_* variables."""
     with environ({**dict.fromkeys(RIDER_VARIABLES), **env}):
         return daemon.rider(**kwargs)
-
-
-def write_fast_config(directory: Path) -> Path:
-    path = directory / "machine-fast.toml"
-    path.write_text(FAST_CONFIG)
-    return path
 
 
 def start_machine(
