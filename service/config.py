@@ -33,6 +33,7 @@ class LoopSection(_Section):
     cpu: int | None = Field(default=None, ge=0)
     rt_priority: int | None = Field(default=None, ge=1, le=99)
     watchdog_periods: int = Field(default=3, ge=2, le=1000)
+    watchdog_min_s: float = Field(default=0.02, ge=0.0, le=10.0)
     max_commands_per_cycle: int = Field(default=64, ge=1, le=10_000)
     stats_window: int = Field(default=1000, ge=10, le=100_000)
 

@@ -101,6 +101,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         hal,
         config.loop.period_s,
         config.loop.watchdog_periods,
+        config.loop.watchdog_min_s,
         on_trip=bus.publish_watchdog_trip,
     )
     fastdata: FastDataServer | None = None

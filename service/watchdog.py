@@ -60,7 +60,9 @@ class GuardedHal:
 
 
 class Watchdog:
-    """Checks every period that `heartbeat()` moved within `periods` periods."""
+    """Trips when `heartbeat()` has not moved for `periods` periods (but never less than
+    `min_s`: at very short periods a fixed floor keeps ordinary OS hiccups from tripping it).
+    It checks three times per limit, so a stall is caught between 1 and 4/3 limits."""
 
     def __init__(
         self,
@@ -68,13 +70,14 @@ class Watchdog:
         hal: GuardedHal,
         period_s: float,
         periods: int = 3,
+        min_s: float = 0.0,
         on_trip: Callable[[float], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.heartbeat = heartbeat
         self.hal = hal
-        self.period = period_s
-        self.limit = period_s * periods
+        self.limit = max(period_s * periods, min_s)
+        self.period = self.limit / 3
         self.on_trip = on_trip
         self.clock = clock
         self.trips = 0

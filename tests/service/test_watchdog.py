@@ -5,6 +5,8 @@ from __future__ import annotations
 import threading
 import time
 
+import pytest
+
 from hal.sim import SimHal
 from schema.commands import Command, CommandRequest
 from schema.status import FaultCode, MachineState
@@ -117,3 +119,10 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     assert machine.control.fault.code is FaultCode.WATCHDOG
     assert not hal.outputs.any_on()
     assert not thread.is_alive()
+
+
+def test_watchdog_limit_is_periods_with_a_floor() -> None:
+    guard = GuardedHal(Rig().hal)
+    assert Watchdog(lambda: 0, guard, 0.010, 3, 0.02).limit == pytest.approx(0.030)
+    assert Watchdog(lambda: 0, guard, 0.001, 3, 0.02).limit == pytest.approx(0.020)
+    assert Watchdog(lambda: 0, guard, 0.001, 3, 0.0).limit == pytest.approx(0.003)
