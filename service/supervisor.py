@@ -4,7 +4,7 @@ If the child dies (a crash, SIGKILL, an exit nobody asked for) or freezes (its l
 goes while the process still exists), the supervisor writes the safe output image itself,
 publishes FAULT_HW (DAEMON_DIED) for the machine, and restarts the daemon with back-off; the new
 daemon comes up with outputs safe and not home. The supervisor is the machine's Zenoh router
-(see `supervisor_bus`), so Riders keep their session across restarts.
+(see `service.bus.supervisor`), so Riders keep their session across restarts.
 
 With the simulator the ride's world runs here (`SimWorld`) behind a process-image file and the
 child runs the RevPi backend on that file, so the world outlives the daemon and tests can watch
@@ -36,15 +36,15 @@ import hal
 from hal.base import HalError
 from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
-from service.config import HalBackend, MachineConfig
-from service.daemon import DaemonOptions
-from service.simworld import SimWorld, make_image
-from service.supervisor_bus import (
+from service.bus.supervisor import (
     SupervisorBus,
     child_config,
     requires_credentials,
     router_config,
 )
+from service.config import HalBackend, MachineConfig
+from service.daemon import DaemonOptions
+from service.simworld import SimWorld, make_image
 
 log = logging.getLogger("machine.supervisor")
 

@@ -11,9 +11,9 @@ import pytest
 
 from hal.revpi import check_revpi_io
 from schema.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
+from service.bus.supervisor import child_config, requires_credentials, router_config
 from service.config import HalBackend, MachineConfig
 from service.supervisor import SIM_CONFIG_RSC, Backoff, describe_exit, to_toml
-from service.supervisor_bus import child_config, requires_credentials, router_config
 from tests.reliability.support import ACL_PROFILE
 
 PRIVATE = "unixsock-stream//tmp/machine-sup-x/zenoh.sock"

@@ -19,12 +19,20 @@ from typing import Any
 
 import zenoh
 
-from schema.codec import DecodeError, Format, decode, decode_raw, encode, sniff_format
+from schema.codec import DecodeError, Format, decode, encode
 from schema.commands import Reply, transaction_id_of
 from schema.errors import Error, ErrorCode
 from schema.status import Fault, FaultCode, MachineState, Status
-from service import bus as zbus
 from service import simfaults
+from service.bus import (
+    _encoding,
+    _failure,
+    _payload,
+    _try_raw,
+    file_config,
+    reply_format,
+    zenoh_config,
+)
 from service.config import MachineConfig
 from service.simworld import SimWorld
 
@@ -35,7 +43,7 @@ def router_config(
     path: Path | None, listen: list[str], connect: list[str], private: str
 ) -> zenoh.Config:
     """The daemon's own session config, as a router that also listens on `private`."""
-    conf = zbus.zenoh_config(path, listen, connect)
+    conf = zenoh_config(path, listen, connect)
     endpoints = json.loads(conf.get_json("listen/endpoints") or "[]")
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("listen/endpoints", json.dumps([*endpoints, private]))
@@ -48,7 +56,7 @@ def child_config(path: Path | None, private: str) -> str:
     A client listens nowhere, so nobody reaches the daemon but through the router, where the
     access control is enforced; the child itself runs none (it would deny its only link).
     """
-    conf = zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+    conf = file_config(path)
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([private]))
     conf.insert_json5("listen/endpoints", "[]")
@@ -202,12 +210,12 @@ class SupervisorBus:
             with self._lock:
                 down = self._down
             if down is not None:
-                fmt = zbus.reply_format(query)
+                fmt = reply_format(query)
                 query.reply(f"{self.base}/status", encode(down, fmt), encoding=fmt.value)
 
     def _on_command(self, query: zenoh.Query) -> None:
         data = _payload(query)
-        fmt = zbus.reply_format(query, data)
+        fmt = reply_format(query, data)
         error = Error(
             code=ErrorCode.NOT_AVAILABLE,
             message="the machine daemon is down and being restarted by its supervisor;"
@@ -215,7 +223,7 @@ class SupervisorBus:
         )
         reply = Reply.failure(
             error,
-            transaction_id=transaction_id_of(_raw(data, query)),
+            transaction_id=transaction_id_of(_try_raw(query)),
             command=None,
             timecode=self.wall(),
             state=MachineState.FAULT_HW,
@@ -229,34 +237,14 @@ class SupervisorBus:
         key = str(query.key_expr)
         what = key[len(f"{self.base}/sim/") :]
         data = _payload(query)
-        fmt = zbus.reply_format(query, data)
+        fmt = reply_format(query, data)
         with query:
             if what != simfaults.WORLD:
                 try:
                     req = simfaults.decode_request(what, data, _encoding(query))
                 except DecodeError as exc:
-                    reply = Reply.failure(
-                        exc.error,
-                        transaction_id=transaction_id_of(exc.raw),
-                        command=None,
-                        timecode=self.wall(),
-                    )
+                    reply = _failure(exc.error, transaction_id_of(exc.raw), self.wall())
                     query.reply(key, encode(reply, fmt), encoding=fmt.value)
                     return
                 world.apply(req)
             query.reply(key, encode(world.state(self.wall()), fmt), encoding=fmt.value)
-
-
-def _payload(query: zenoh.Query) -> bytes:
-    return query.payload.to_bytes() if query.payload is not None else b""
-
-
-def _encoding(query: zenoh.Query) -> str | None:
-    return str(query.encoding) if query.encoding is not None else None
-
-
-def _raw(data: bytes, query: zenoh.Query) -> Any:
-    try:
-        return decode_raw(data, sniff_format(data, _encoding(query))) if data else None
-    except DecodeError:
-        return None

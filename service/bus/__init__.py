@@ -1,4 +1,4 @@
-"""The Zenoh adapter: the only daemon module that imports `zenoh`.
+"""The machine's Zenoh adapter; this package (with `bus.supervisor`) alone imports `zenoh`.
 
 Queryables decode requests on Zenoh's callback thread and hand them to the scan thread through
 the `Inbox`; the scan thread owns all machine state and sends each command's one reply.
@@ -514,11 +514,16 @@ def _try_raw(query: zenoh.Query) -> Any:
         return None
 
 
+def file_config(path: Path | None) -> zenoh.Config:
+    """The zenoh.json5 at `path` as it is, or Zenoh's defaults without one."""
+    return zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+
+
 def zenoh_config(
     path: Path | None, listen: list[str] | None = None, connect: list[str] | None = None
 ) -> zenoh.Config:
     """The session config: the shared zenoh.json5 (or Zenoh's defaults), endpoints replaced."""
-    conf = zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+    conf = file_config(path)
     if path is None:
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("listen/endpoints", json.dumps([DEFAULT_LISTEN]))
