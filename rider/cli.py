@@ -25,6 +25,7 @@ from rider.client import (
     NoMachine,
     Rider,
     RiderError,
+    Update,
     env_connect,
 )
 from schema.axes import AxisRecord, PnStatus
@@ -243,8 +244,10 @@ def fmt_findings(f: Findings) -> str:
     )
 
 
-def fmt_update(u: Status | IoValue | AxisRecord) -> str:
+def fmt_update(u: Update) -> str:
     stamp = time.strftime("%H:%M:%S", time.localtime(u.time))
+    if isinstance(u, CycleDiag):
+        return f"{stamp} diag\n{fmt_diag(u)}"
     if isinstance(u, Status):
         extra = ""
         if u.session is not None:

@@ -1,4 +1,4 @@
-"""The Rider client: one method per command, status, IO, diagnostics and a live `watch()`.
+"""The Rider client: one method per command, status, IO, diagnostics, `watch()` and `subscribe()`.
 
 It speaks only the wire models in `schema/` over Zenoh. Every command carries a fresh
 transaction id; on a timeout the same id is retried, so a retry can never act twice.
@@ -10,12 +10,13 @@ import asyncio
 import contextlib
 import itertools
 import json
+import logging
 import os
 import queue
 import threading
 import time
 import uuid
-from collections.abc import AsyncIterator, Iterable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -43,6 +44,8 @@ from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 
 M = TypeVar("M", bound=BaseModel)
+
+log = logging.getLogger(__name__)
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 2.0
@@ -76,6 +79,10 @@ class BadReply(RiderError):
     """The machine's reply could not be decoded (version mismatch, corrupt data)."""
 
 
+class BusError(RiderError):
+    """Zenoh refused an operation (a query, a subscription): the session is broken or closed."""
+
+
 class NoMachine(RiderError):
     """No machine is alive, or the one asked for is not."""
 
@@ -93,7 +100,27 @@ class MachineInfo:
     uptime_s: float | None
 
 
-Update = Status | IoValue | AxisRecord
+Update = Status | IoValue | AxisRecord | CycleDiag
+
+
+class Subscription:
+    """What `Rider.subscribe` declared; `close()` undeclares it all (also as a context manager)."""
+
+    def __init__(self, entities: list[Any]) -> None:
+        self._entities = entities
+
+    def close(self) -> None:
+        """Undeclare everything; never raises, so a broken session can still be cleaned up."""
+        entities, self._entities = self._entities, []
+        for entity in reversed(entities):
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
+
+    def __enter__(self) -> Subscription:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def zenoh_config(
@@ -385,8 +412,7 @@ class Rider:
             with contextlib.suppress(queue.Full):
                 q.put_nowait(sample)
 
-        subs = [self.session.declare_subscriber(f"{self.base}/{k}", on_sample) for k in keys]
-        try:
+        with self._declare(keys, on_sample):
             if any(k == "status" for k in keys):
                 yield self.status()
             while True:
@@ -394,12 +420,63 @@ class Rider:
                     sample = q.get(timeout=timeout)
                 except queue.Empty:
                     return
-                update = self._decode_update(sample)
+                try:
+                    update = _decode_update(sample)
+                except BadReply:
+                    continue
                 if update is not None:
                     yield update
-        finally:
-            for sub in subs:
-                sub.undeclare()
+
+    def subscribe(
+        self,
+        keys: Iterable[str],
+        on_update: Callable[[Update], None],
+        on_presence: Callable[[bool], None] | None = None,
+    ) -> Subscription:
+        """Call `on_update` with each decoded publication on `keys` (under this machine, e.g.
+        `status`, `io/**`, `diag/cycle`) and `on_presence` with the machine's liveliness
+        (True at once if it is alive now). Both run on Zenoh's thread: hand off, never block.
+        """
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                update = _decode_update(sample)
+            except BadReply as exc:
+                log.warning("event=bad_sample key=%s error=%r", sample.key_expr, str(exc))
+                return
+            if update is not None:
+                on_update(update)
+
+        def on_token(sample: zenoh.Sample) -> None:
+            if on_presence is not None:
+                on_presence(sample.kind == zenoh.SampleKind.PUT)
+
+        return self._declare(keys, on_sample, on_token if on_presence is not None else None)
+
+    def _declare(
+        self,
+        keys: Iterable[str],
+        on_sample: Callable[[zenoh.Sample], None],
+        on_token: Callable[[zenoh.Sample], None] | None = None,
+    ) -> Subscription:
+        """Subscribers on `keys` under this machine (and on its `alive` token, with history);
+        all or nothing."""
+        base, session = self.base, self.session
+        entities: list[Any] = []
+        try:
+            with _bus_errors(f"cannot subscribe under {base}"):
+                for key in keys:
+                    entities.append(session.declare_subscriber(f"{base}/{key}", on_sample))
+                if on_token is not None:
+                    entities.append(
+                        session.liveliness().declare_subscriber(
+                            f"{base}/alive", on_token, history=True
+                        )
+                    )
+        except BusError:
+            Subscription(entities).close()
+            raise
+        return Subscription(entities)
 
     def wait_for(
         self, states: Iterable[MachineState], timeout: float = 60.0, *, after: float = 0.0
@@ -420,26 +497,6 @@ class Rider:
         if last.state in wanted and last.time >= after:
             return last
         raise MachineTimeout(f"machine still {last.state} after {timeout:g} s")
-
-    def _decode_update(self, sample: zenoh.Sample) -> Update | None:
-        key = str(sample.key_expr)
-        data = sample.payload.to_bytes()
-        fmt = Format.JSON if str(sample.encoding).startswith(Format.JSON) else Format.MSGPACK
-        model: type[BaseModel]
-        if key.endswith("/status"):
-            model = Status
-        elif "/io/" in key:
-            model = IoValue
-        elif "/axis/" in key:
-            model = AxisRecord
-        else:
-            return None
-        try:
-            result = decode(model, data, fmt)
-        except DecodeError:
-            return None
-        assert isinstance(result, Status | IoValue | AxisRecord)
-        return result
 
     # ---------------------------------------------------------------------------- plumbing
     def _get_one(self, key: str, payload: bytes | None, model: type[M], timeout: float | None) -> M:
@@ -465,7 +522,8 @@ class Rider:
         if payload is not None:
             kwargs["payload"] = payload
             kwargs["encoding"] = Format.MSGPACK.value
-        return list(self.session.get(key, **kwargs))
+        with _bus_errors(f"cannot query {key}"):
+            return list(self.session.get(key, **kwargs))
 
     @staticmethod
     def _decode(reply: zenoh.Reply, model: type[M]) -> M:
@@ -473,15 +531,14 @@ class Rider:
         if sample is None:
             err = reply.err
             data = err.payload.to_bytes() if err is not None else b""
-            enc = str(err.encoding) if err is not None else ""
-            fmt = Format.JSON if enc.startswith(Format.JSON) else Format.MSGPACK
+            fmt = _format_of(err.encoding if err is not None else None)
             try:
                 refused = decode(Reply, data, fmt)
             except DecodeError as exc:
                 raise BadReply(f"error reply: {data[:200]!r}") from exc
             raise CommandRefused(refused)
         data = sample.payload.to_bytes()
-        fmt = Format.JSON if str(sample.encoding).startswith(Format.JSON) else Format.MSGPACK
+        fmt = _format_of(sample.encoding)
         try:
             return decode(model, data, fmt)
         except DecodeError as exc:
@@ -495,6 +552,44 @@ class Rider:
             raise CommandRefused(refused) from exc
         except ValidationError as exc:  # pragma: no cover - decode wraps these
             raise BadReply(str(exc)) from exc
+
+
+def _format_of(encoding: zenoh.Encoding | None) -> Format:
+    return Format.JSON if str(encoding or "").startswith(Format.JSON) else Format.MSGPACK
+
+
+def _decode_update(sample: zenoh.Sample) -> Update | None:
+    """A published sample as its wire model; None for a key that carries none of them.
+
+    Raises `BadReply` for data that does not decode as the key's model."""
+    key = str(sample.key_expr)
+    model: type[BaseModel]
+    if key.endswith("/status"):
+        model = Status
+    elif "/io/" in key:
+        model = IoValue
+    elif "/axis/" in key:
+        model = AxisRecord
+    elif key.endswith("/diag/cycle"):
+        model = CycleDiag
+    else:
+        return None
+    try:
+        result = decode(model, sample.payload.to_bytes(), _format_of(sample.encoding))
+    except DecodeError as exc:
+        raise BadReply(f"{key}: {exc.error.message}") from exc
+    assert isinstance(result, Status | IoValue | AxisRecord | CycleDiag)
+    return result
+
+
+@contextlib.contextmanager
+def _bus_errors(what: str) -> Iterator[None]:
+    """Zenoh's own error (a closed or broken session, a bad key) as a `BusError`."""
+    try:
+        yield
+    except zenoh.ZError as exc:
+        where = str(exc).split(" at /", 1)[0]  # not the Rust source path of the check
+        raise BusError(f"{what}: {where}") from exc
 
 
 def _drain_changes(

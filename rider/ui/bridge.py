@@ -1,8 +1,8 @@
 """`Bridge`: one Rider session on a background thread that feeds machine updates to the UI.
 
-Zenoh callbacks only enqueue samples; the bridge thread decodes them, asks for a fresh
-picture (IO, axes, diagnostics) whenever the machine comes (back), and hands every update to
-`sink`. Nothing a browser does can block it.
+The Rider's subscription only enqueues decoded updates (on Zenoh's thread); the bridge thread
+asks for a fresh picture (IO, axes, diagnostics) whenever the machine comes (back), and hands
+every update to `sink`. Nothing a browser does can block it.
 """
 
 from __future__ import annotations
@@ -13,15 +13,18 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
-import zenoh
-from pydantic import BaseModel
-
-from rider.client import AmbiguousMachine, CommandRefused, NoMachine, Rider, RiderError
+from rider.client import (
+    AmbiguousMachine,
+    BusError,
+    CommandRefused,
+    NoMachine,
+    Rider,
+    RiderError,
+    Subscription,
+)
 from rider.ui.view import LOST_AFTER_S, MachineFound, Note, Presence, Update
 from schema.axes import AxisRecord
-from schema.codec import DecodeError, Format, decode
 from schema.commands import Command, Reply, Session
 from schema.diag import CycleDiag
 from schema.io import IoValue
@@ -48,8 +51,8 @@ class Bridge:
         self.retry_s = retry_s
         self.machine_id: str | None = None
         self._stop = threading.Event()
-        self._samples: queue.Queue[tuple[bool, zenoh.Sample]] = queue.Queue(maxsize=8192)
-        self._subs: list[Any] = []
+        self._updates: queue.Queue[Update] = queue.Queue(maxsize=8192)
+        self._sub: Subscription | None = None
         self._opened = False
         self._thread = threading.Thread(target=self._run, name="rider-ui-bridge", daemon=True)
 
@@ -86,7 +89,7 @@ class Bridge:
             while not self._stop.is_set():
                 try:
                     self._follow()
-                except zenoh.ZError as exc:
+                except BusError as exc:
                     # Keep serving the page: say what broke, then declare everything again.
                     log.error("event=ui_bridge_error error=%r", str(exc))
                     self._emit(Note(f"Zenoh error: {exc}; retrying"))
@@ -99,8 +102,8 @@ class Bridge:
         while not self._stop.is_set():
             try:
                 self.rider.open()
-            except zenoh.ZError as exc:
-                self._emit(Note(f"cannot open the Zenoh session: {exc}"))
+            except RiderError as exc:  # says "cannot open the Zenoh session: ..."
+                self._emit(Note(str(exc)))
                 self._stop.wait(self.retry_s)
                 continue
             self._opened = True
@@ -124,30 +127,19 @@ class Bridge:
         return False
 
     def _follow(self) -> None:
-        session, base = self.rider.session, self.rider.base
-        for key in WATCHED:
-            self._subs.append(
-                session.declare_subscriber(f"{base}/{key}", lambda s: self._enqueue(False, s))
-            )
-        self._subs.append(
-            session.liveliness().declare_subscriber(
-                f"{base}/alive", lambda s: self._enqueue(True, s), history=True
-            )
+        self._sub = self.rider.subscribe(
+            WATCHED, self._enqueue, lambda alive: self._enqueue(Presence(alive))
         )
         last_status = time.monotonic() if self._refresh() else None
         while not self._stop.is_set():
             try:
-                presence, sample = self._samples.get(timeout=POLL_S)
+                update = self._updates.get(timeout=POLL_S)
             except queue.Empty:
                 continue
-            if presence:
-                alive = sample.kind == zenoh.SampleKind.PUT
-                if not alive:
+            if isinstance(update, Presence):
+                if not update.alive:
                     last_status = None  # a machine that comes back gets a full refresh
-                self._emit(Presence(alive))
-                continue
-            update = _decode(sample)
-            if update is None:
+                self._emit(update)
                 continue
             if isinstance(update, Status):
                 now = time.monotonic()
@@ -170,6 +162,8 @@ class Bridge:
                 return False
             try:
                 got = read()
+            except BusError:
+                raise  # the session is broken: `_run` declares everything again
             except RiderError as exc:
                 log.info("event=ui_refresh_failed error=%r", str(exc))
                 continue
@@ -179,10 +173,10 @@ class Bridge:
                     got_status = got_status or isinstance(update, Status)
         return got_status
 
-    def _enqueue(self, presence: bool, sample: zenoh.Sample) -> None:
-        # Zenoh's callback thread: never block it; a full queue drops the sample.
+    def _enqueue(self, update: Update) -> None:
+        # Zenoh's callback thread: never block it; a full queue drops the update.
         with contextlib.suppress(queue.Full):
-            self._samples.put_nowait((presence, sample))
+            self._updates.put_nowait(update)
 
     def _emit(self, update: Update) -> None:
         try:
@@ -191,10 +185,9 @@ class Bridge:
             self._stop.set()  # the event loop is gone: the server is shutting down
 
     def _undeclare(self) -> None:
-        for sub in self._subs:
-            with contextlib.suppress(zenoh.ZError):
-                sub.undeclare()
-        self._subs.clear()
+        if self._sub is not None:
+            self._sub.close()
+            self._sub = None
 
     def _close(self) -> None:
         self._undeclare()
@@ -202,27 +195,3 @@ class Bridge:
             self._opened = False
             self.rider.close()
             log.info("event=ui_session_closed")
-
-
-def _decode(sample: zenoh.Sample) -> Update | None:
-    """A published sample as its wire model; None for keys we do not show or bad data."""
-    key = str(sample.key_expr)
-    model: type[BaseModel]
-    if key.endswith("/status"):
-        model = Status
-    elif "/io/" in key:
-        model = IoValue
-    elif "/axis/" in key:
-        model = AxisRecord
-    elif key.endswith("/diag/cycle"):
-        model = CycleDiag
-    else:
-        return None
-    fmt = Format.JSON if str(sample.encoding).startswith(Format.JSON) else Format.MSGPACK
-    try:
-        update = decode(model, sample.payload.to_bytes(), fmt)
-    except DecodeError as exc:
-        log.warning("event=ui_bad_sample key=%s error=%r", key, exc.error.message)
-        return None
-    assert isinstance(update, Status | IoValue | AxisRecord | CycleDiag)
-    return update

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import queue
 import threading
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import pytest
 from rider.client import (
     AmbiguousMachine,
     AsyncRider,
+    BusError,
     CommandRefused,
     MachineTimeout,
     NoMachine,
@@ -19,6 +21,7 @@ from rider.client import (
 )
 from schema.axes import AxisRecord
 from schema.commands import Command, CommandRequest, ReplyCode
+from schema.diag import CycleDiag
 from schema.errors import ErrorCode
 from schema.io import IoValue
 from schema.status import MachineState, Status
@@ -96,6 +99,35 @@ def test_watch_streams_status_io_and_axis_updates_during_motion(machine: Daemon)
                 break
         assert kinds == {Status, IoValue, AxisRecord}
         assert rider.status().calibrated.tilt
+
+
+def test_subscribe_delivers_decoded_updates_and_the_machines_presence(tmp_path: Path) -> None:
+    updates: queue.Queue[Update] = queue.Queue()
+    presence: queue.Queue[bool] = queue.Queue()
+    with (
+        fast_daemon(tmp_path) as daemon,
+        daemon.rider() as rider,
+        rider.subscribe(("status", "diag/cycle"), updates.put, presence.put),
+    ):
+        assert presence.get(timeout=STEP_TIMEOUT_S) is True  # the token's history
+        kinds: set[type] = set()
+        for _ in range(1000):  # a heartbeat every 0.2 s, diagnostics every 0.5 s
+            kinds.add(type(updates.get(timeout=STEP_TIMEOUT_S)))
+            if kinds == {Status, CycleDiag}:
+                break
+        assert kinds == {Status, CycleDiag}
+        daemon.stop()
+        assert presence.get(timeout=STEP_TIMEOUT_S) is False
+
+
+def test_zenoh_errors_surface_as_bus_errors(machine: Daemon) -> None:
+    with machine.rider() as rider:
+        with pytest.raises(BusError, match="cannot subscribe under machine/m1: Invalid Key"):
+            rider.subscribe(("status", "io//x"), lambda update: None)
+        with pytest.raises(BusError, match="cannot query machine/m1/params/a//b") as got:
+            rider.param("a//b")
+        assert " at /" not in str(got.value)
+        assert rider.status().machine_id == "m1"  # the session still works
 
 
 def test_two_machines_alive_and_none_named_is_ambiguous(tmp_path: Path) -> None:
