@@ -307,7 +307,9 @@ class Rider:
         return sorted(self._get_all(f"{self.base}/axis/**", AxisRecord), key=lambda a: a.axis)
 
     def diag(self, reset: bool = False) -> CycleDiag:
-        key = f"{self.base}/diag/cycle" + ("?reset" if reset else "")
+        """The scan loop's diagnostics; `reset` also clears min/max, overruns and missed
+        cycles (a command key, `diag/reset`, so the ACL can keep it from read-only identities)."""
+        key = f"{self.base}/diag/reset" if reset else f"{self.base}/diag/cycle"
         return self._get_one(key, None, CycleDiag, None)
 
     def validate(self, candidate: bytes | None = None) -> Findings:

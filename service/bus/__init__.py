@@ -129,6 +129,7 @@ class ZenohBus:
         self._declared.append(s.declare_queryable(f"{b}/io/**", self._on_io))
         self._declared.append(s.declare_queryable(f"{b}/axis/**", self._on_axis))
         self._declared.append(s.declare_queryable(f"{b}/diag/cycle", self._on_diag))
+        self._declared.append(s.declare_queryable(f"{b}/diag/reset", self._on_diag_reset))
         self._declared.append(s.declare_queryable(f"{b}/config/validate", self._on_validate))
         if self.params is not None:
             self._declared.append(s.declare_queryable(f"{b}/params/**", self._on_params))
@@ -350,9 +351,29 @@ class ZenohBus:
     def _on_diag(self, query: zenoh.Query) -> None:
         fmt = reply_format(query)
         key = f"{self.base}/diag/cycle"
-        if "reset" not in query.parameters:
-            with query:
-                query.reply(key, encode(self.stats.diag(self.wall()), fmt), encoding=fmt.value)
+        if "reset" in query.parameters:
+            # The old spelling of a reset: a write hidden in a parameter, which no ACL can see.
+            error = Error(
+                code=ErrorCode.BAD_KEY,
+                message=f"diag/cycle is read-only; reset the counters with a query on"
+                f" {self.base}/diag/reset",
+            )
+            self._reply_now(query, key, fmt, error, None, None)
+            return
+        with query:
+            query.reply(key, encode(self.stats.diag(self.wall()), fmt), encoding=fmt.value)
+
+    def _on_diag_reset(self, query: zenoh.Query) -> None:
+        """Reply with the counters as they were, then reset them, on the scan thread."""
+        key = f"{self.base}/diag/reset"
+        asked = str(query.key_expr)
+        fmt = reply_format(query)
+        if asked != key:
+            if asked.endswith("/diag/reset"):
+                # `machine/*/diag/reset` would reset every machine's counters at once.
+                self._refuse_wildcard(query, asked, fmt, "a diagnostics reset", "diag/reset")
+            else:
+                query.drop()  # a wildcard read (e.g. `diag/**`) that only happens to cover it
             return
 
         def reset(loop: ScanLoop, now: float) -> None:

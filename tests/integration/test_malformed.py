@@ -342,6 +342,19 @@ def test_wildcard_command_keys_get_bad_key_and_nothing_acts(machine: Daemon, rid
     assert len(fresh) == 1 and fresh[0].model(Reply).success
 
 
+def test_diag_reset_is_its_own_key_and_refuses_wildcards(machine: Daemon, rider: Rider) -> None:
+    since = rider.diag().since
+    no_payload = Bad("no payload", b"", code=ErrorCode.BAD_KEY)
+    old = refusal(rider.session, f"{BASE}/diag/cycle?reset", no_payload)
+    assert old.error is not None and f"{BASE}/diag/reset" in old.error.message
+    refusal(rider.session, "machine/*/diag/reset", no_payload)  # would reset every machine
+    # A wildcard read that covers the reset key only reads.
+    (read,) = ask(rider.session, f"{BASE}/diag/**", b"")
+    assert read.ok and read.key == f"{BASE}/diag/cycle"
+    assert decode(CycleDiag, read.data, Format.MSGPACK).since == since
+    assert rider.diag().since == since
+
+
 def test_a_refused_payload_does_not_use_up_its_transaction_id(
     machine: Daemon, rider: Rider
 ) -> None:

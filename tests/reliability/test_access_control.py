@@ -2,8 +2,9 @@
 
 A real daemon runs the ACL profile with a dictionary made for the test; sessions open as the
 rider, as the monitor, with a wrong password, as an unknown user and with no credentials at
-all. Every command key (and the parameter, sim and config keys) is tried with a valid request;
-the machine's state, parameters and simulated world are compared before and after.
+all. Every command key (and the parameter, sim, config and diagnostics-reset keys) is tried with
+a valid request; the machine's state, parameters, simulated world and cycle counters are
+compared before and after.
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ def forbidden_requests() -> list[tuple[str, bytes]]:
         (f"sim/{k}", pack({"transaction_id": f"intruder-{k}", **v})) for k, v in SIM_FAULTS.items()
     ]
     out.append(("config/validate", b""))
+    out.append(("diag/reset", b""))
     return out
 
 
@@ -90,6 +92,7 @@ class Snapshot:
     status: tuple[object, ...]
     world: dict[str, Any]
     params: dict[str, tuple[object, bool]]
+    diag_since: float
 
 
 def snapshot(r: Rider) -> Snapshot:
@@ -97,7 +100,10 @@ def snapshot(r: Rider) -> Snapshot:
     world = r.sim("world").model_dump(exclude={"time"})
     params = {p.name: (p.value, p.persisted) for p in r.params()}
     return Snapshot(
-        (st.state, st.calibrated, st.homed, st.estop, st.fault, st.session), world, params
+        (st.state, st.calibrated, st.homed, st.estop, st.fault, st.session),
+        world,
+        params,
+        r.diag().since,  # moves only when the counters are reset
     )
 
 
@@ -142,6 +148,8 @@ def test_rider_identity_commands_writes_params_and_reads(machine: Daemon, ids: I
         assert r.set_param(PARAM, 1.5).value == 1.5
         assert r.reset_param(PARAM).value == r.param(PARAM).default
         assert r.io() and r.axes() is not None and r.diag().cycles > 0
+        before_reset = r.diag(reset=True)
+        assert r.diag().since >= before_reset.time  # reset after its reply was stamped
         assert r.validate().ok
         assert r.sim("world").estop_pressed is False
 

@@ -101,6 +101,18 @@ def test_watch_streams_status_io_and_axis_updates_during_motion(machine: Daemon)
         assert rider.status().calibrated.tilt
 
 
+def test_diag_reset_replies_with_the_counters_before_it_and_restarts_them(
+    machine: Daemon,
+) -> None:
+    with machine.rider() as rider:
+        before = rider.diag()
+        old = rider.diag(reset=True)
+        after = rider.diag()
+    assert old.since == before.since and old.cycles >= before.cycles  # not yet reset
+    assert after.since >= old.time > before.since  # reset on the scan thread after the reply
+    assert after.cycles >= old.cycles  # the cycle count is not one of the reset counters
+
+
 def test_subscribe_delivers_decoded_updates_and_the_machines_presence(tmp_path: Path) -> None:
     updates: queue.Queue[Update] = queue.Queue()
     presence: queue.Queue[bool] = queue.Queue()
