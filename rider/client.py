@@ -402,7 +402,7 @@ class Rider:
         timeout: float | None = None,
         capacity: int = 4096,
     ) -> Iterator[Update]:
-        """Status / IO / axis updates as they are published, newest last.
+        """Status / IO / axis (and, if asked for, `diag/cycle`) updates as published, newest last.
 
         Starts with the current status, so a late joiner is never blank. Stops after `timeout`
         seconds without any update (None = never).
