@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
 import time
 import tomllib
@@ -20,7 +21,13 @@ from service.fastdata import FastDataServer
 from service.machine import Machine
 from service.params import ParamRegistry
 from service.persist import BackgroundWriter, CalibrationStore, ParamStore
-from service.runner import LoopFailed, RealtimeRunner, tune_thread
+from service.runner import (
+    SUPERVISOR_PID_ENV,
+    LoopFailed,
+    RealtimeRunner,
+    die_with_parent,
+    tune_thread,
+)
 from service.timing import CycleStats
 from service.validate import semantic_findings, validate_data
 from service.watchdog import GuardedHal, Watchdog
@@ -52,6 +59,12 @@ def make_hal(config: MachineConfig, clock: object) -> Hal:
 
 def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     """Run until SIGTERM/SIGINT; returns the process exit code."""
+    supervisor = os.environ.get(SUPERVISOR_PID_ENV)
+    if supervisor and not die_with_parent(int(supervisor)):
+        # Never run unsupervised by accident: the supervisor is what makes outputs safe
+        # when this process dies.
+        log.error("event=supervisor_gone pid=%s", supervisor)
+        return EXIT_FAILED
     clock = time.monotonic
     wall_offset = time.time() - clock()
     raw_hal = make_hal(config, clock)

@@ -6,6 +6,7 @@ import ctypes
 import gc
 import logging
 import os
+import signal
 import sys
 import threading
 import time
@@ -24,6 +25,9 @@ TIMER_SLACK_NS = 1_000
 """The scan thread's timer slack. Linux lets a timed wait end up to 50 µs late by default,
 which was half of the median wake-up jitter measured at 1 ms (bench/loop_timing.py)."""
 PR_SET_TIMERSLACK = 29
+PR_SET_PDEATHSIG = 1
+SUPERVISOR_PID_ENV = "MACHINE_SUPERVISOR_PID"
+"""Set by `machine supervise` for its child: the daemon stops when the supervisor dies."""
 
 
 class LoopFailed(Exception):
@@ -148,15 +152,27 @@ def tune_thread(
     return applied
 
 
-def set_timer_slack(ns: int) -> bool:
-    """Set the calling thread's timer slack (Linux); False where that is not possible."""
+def _prctl(option: int, arg: int) -> bool:
+    """Linux prctl(2) on the calling thread/process; False where it is not available."""
     if not sys.platform.startswith("linux"):
         return False
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        ok = int(libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0)) == 0
+        return int(libc.prctl(option, ctypes.c_ulong(arg), 0, 0, 0)) == 0
     except (OSError, AttributeError):
         return False
-    if not ok:
+
+
+def die_with_parent(parent_pid: int) -> bool:
+    """Get SIGTERM (the safe shutdown path) when the parent process dies; False if the parent
+    is already gone or the OS cannot do it."""
+    ok = _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    return ok and os.getppid() == parent_pid
+
+
+def set_timer_slack(ns: int) -> bool:
+    """Set the calling thread's timer slack (Linux); False where that is not possible."""
+    ok = _prctl(PR_SET_TIMERSLACK, ns)
+    if not ok and sys.platform.startswith("linux"):
         log.warning("event=timer_slack_failed ns=%d errno=%d", ns, ctypes.get_errno())
     return ok

@@ -44,6 +44,7 @@ from service.bus.supervisor import (
 )
 from service.config import HalBackend, MachineConfig
 from service.daemon import DaemonOptions
+from service.runner import SUPERVISOR_PID_ENV
 from service.simworld import SimWorld, make_image
 
 log = logging.getLogger("machine.supervisor")
@@ -356,7 +357,8 @@ class Supervisor:
             "--log-level",
             self.options.log_level,
         ]
-        proc = subprocess.Popen(cmd)
+        env = {**os.environ, SUPERVISOR_PID_ENV: str(os.getpid())}
+        proc = subprocess.Popen(cmd, env=env)
         child = Child(proc, self.generation, time.monotonic())
         self.child = child
         log.info("event=child_started generation=%d pid=%d", child.generation, proc.pid)
