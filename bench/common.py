@@ -20,6 +20,8 @@ from pathlib import Path
 from types import FrameType
 from typing import TextIO, TypeVar
 
+from tests.procs import stop_process
+
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "BENCHMARKS.md"
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -390,13 +392,7 @@ class Child:
 
     def stop(self, sig: int = signal.SIGTERM) -> int:
         """Signal, wait (bounded), then kill; returns the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_TIMEOUT_S)
+        stop_process(self.proc, sig)
         if self.proc.stdout is not None:
             self.proc.stdout.close()
         return self.proc.returncode

@@ -11,6 +11,7 @@ import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from rider.client import Rider
 
@@ -24,6 +25,20 @@ ZENOH_TEST_CONFIG = """{
   transport: { link: { tx: { lease: 1000, keep_alive: 4 } } },
 }
 """
+
+
+def stop_process(
+    proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, timeout: float = STOP_TIMEOUT_S
+) -> int:
+    """Signal, wait (bounded), then kill: a child process never outlives its test."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout)
+    return proc.returncode
 
 
 def free_port() -> int:
@@ -63,14 +78,7 @@ class Daemon:
         return self.log_path.read_text() if self.log_path.exists() else ""
 
     def stop(self, sig: int = signal.SIGTERM) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_TIMEOUT_S)
-        return self.proc.returncode
+        return stop_process(self.proc, sig)
 
 
 def machine_cmd(*args: str) -> list[str]:

@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 from rider.client import Rider
 from tests.integration.support import fast_args
-from tests.procs import REPO, START_TIMEOUT_S, STOP_TIMEOUT_S, Daemon, free_port, start_daemon
+from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, start_daemon, stop_process
 
 DOC = REPO / "docs" / "site.md"
 PEER_CONFIG = REPO / "zenoh.json5"
@@ -119,13 +119,8 @@ class Router:
             raise
 
     def kill(self, sig: int = signal.SIGKILL) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_TIMEOUT_S)
+        if self.proc is not None:
+            stop_process(self.proc, sig)
 
 
 @dataclass

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tests.procs import REPO, START_TIMEOUT_S, STOP_TIMEOUT_S, Daemon, free_port, rider_cmd
+from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, rider_cmd, stop_process
 
 FAST_CONFIG = Path(__file__).resolve().parent / "fast.toml"
 """Quicker sim physics, so a whole ride fits in a test."""
@@ -36,14 +36,7 @@ class UiServer:
         return self.log_path.read_text() if self.log_path.exists() else ""
 
     def stop(self, sig: int = signal.SIGTERM) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_TIMEOUT_S)
-        return self.proc.returncode
+        return stop_process(self.proc, sig)
 
 
 def start_ui(
