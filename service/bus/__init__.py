@@ -416,15 +416,12 @@ class ZenohBus:
             # A write must name one parameter of one machine: `machine/*/params/x` reaches all.
             self._refuse_wildcard(query, key, fmt, "a parameter write", "params/<name>")
             return
-        if wild or not data:
-            # Reads never touch the scan thread: the registry hands out immutable values.
+        # Reads never touch the scan thread: the registry hands out immutable values.
+        if wild:
+            self._reply_matching(query, [(f"params/{p.name}", p) for p in params.list()])
+            return
+        if not data:
             with query:
-                if wild:
-                    for p in params.list():
-                        pkey = f"{self.base}/params/{p.name}"
-                        if query.key_expr.intersects(zenoh.KeyExpr(pkey)):
-                            query.reply(pkey, encode(p, fmt), encoding=fmt.value)
-                    return
                 try:
                     query.reply(key, encode(params.get(name), fmt), encoding=fmt.value)
                 except MachineError as exc:
