@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import signal
+import threading
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -84,9 +86,14 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     machine.control.warnings.extend(registry.warnings)
     runner = RealtimeRunner(loop, config.loop.period_s, stats, spin_s=config.loop.spin_s)
 
+    exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
+    exit_deadline.daemon = True
+
     def on_signal(signum: int, frame: FrameType | None) -> None:
         log.info("event=signal signal=%s", signal.Signals(signum).name)
         runner.stop()
+        with contextlib.suppress(RuntimeError):  # armed by an earlier signal already
+            exit_deadline.start()
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
@@ -151,13 +158,33 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
             fastdata.close()
         loop.reject_pending("machine daemon is shutting down")
         bus.close()
-        if not zbus.close_session(session):
+        closed = zbus.close_session(session)
+        if not closed:
+            # An open session can hang the interpreter's exit: keep the deadline armed.
             log.warning("event=zenoh_close_timeout")
+            with contextlib.suppress(RuntimeError):
+                exit_deadline.start()
         hal.close()
         writer.flush()
         writer.close()
         log.info("event=stopped code=%d cycles=%d", code, stats.cycles)
+        if closed:
+            exit_deadline.cancel()
     return code
+
+
+SHUTDOWN_DEADLINE_S = 5.0
+"""A stop that has not finished by then (a blocked call in the bus, a hung session close) ends
+the process anyway, outputs forced safe first: `docker compose stop` gives 10 s."""
+
+
+def _exit_now(hal: Hal) -> None:
+    try:
+        hal.force_all_outputs_safe()
+    finally:
+        log.error("event=shutdown_stuck deadline_s=%g action=exit", SHUTDOWN_DEADLINE_S)
+        logging.shutdown()
+        os._exit(EXIT_FAILED)
 
 
 def _check(config: MachineConfig, candidate: bytes | None) -> Findings:

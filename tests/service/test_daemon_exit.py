@@ -1,0 +1,41 @@
+"""The shutdown deadline: a stop that hangs still ends the process, outputs safe first."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from tests.procs import REPO
+
+SCRIPT = """
+import time
+from hal.sim import SimHal
+from service.daemon import _exit_now
+
+hal = SimHal(time.monotonic)
+hal.scan_outputs(hal.outputs.__class__(ro=dict.fromkeys(hal.outputs.ro, True)))
+assert hal.outputs.any_on()
+real_safe = hal.force_all_outputs_safe
+
+def safe_and_report():
+    real_safe()
+    print("safe", not hal.outputs.any_on(), flush=True)
+
+hal.force_all_outputs_safe = safe_and_report
+_exit_now(hal)
+print("not reached", flush=True)
+"""
+
+
+def test_exit_deadline_forces_outputs_safe_then_ends_the_process() -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", SCRIPT],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 1
+    assert done.stdout.split() == ["safe", "True"]
+    assert "event=shutdown_stuck" in done.stderr
