@@ -421,15 +421,13 @@ class ZenohBus:
             self._reply_matching(query, [(f"params/{p.name}", p) for p in params.list()])
             return
         if not data:
+            try:
+                value = params.get(name)
+            except MachineError as exc:
+                self._reply_now(query, key, fmt, exc.to_error(), None, None)
+                return
             with query:
-                try:
-                    query.reply(key, encode(params.get(name), fmt), encoding=fmt.value)
-                except MachineError as exc:
-                    query.reply(
-                        key,
-                        encode(_failure(exc.to_error(), None, self.wall()), fmt),
-                        encoding=fmt.value,
-                    )
+                query.reply(key, encode(value, fmt), encoding=fmt.value)
             return
         try:
             req = validate(ParamSet, decode_raw(data, sniff_format(data, _encoding(query))))
@@ -438,13 +436,12 @@ class ZenohBus:
             return
         # The registry is thread-safe and its write (with fsync) stays off the scan thread;
         # the loop picks the new config up at the next cycle boundary.
+        try:
+            value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
+        except MachineError as exc:
+            self._reply_now(query, key, fmt, exc.to_error(), None, req.transaction_id)
+            return
         with query:
-            try:
-                value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
-            except MachineError as exc:
-                reply = _failure(exc.to_error(), req.transaction_id, self.wall())
-                query.reply(key, encode(reply, fmt), encoding=fmt.value)
-                return
             query.reply(key, encode(value, fmt), encoding=fmt.value)
 
     # ------------------------------------------------------------------------------ sim
