@@ -6,6 +6,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
+from schema.findings import Finding
+
 
 @dataclass(frozen=True, slots=True)
 class Inputs:
@@ -31,6 +33,17 @@ class Outputs:
 
 class HalError(Exception):
     """The IO backend failed (device gone, image unreadable); the loop goes safe on it."""
+
+
+class HalConfigError(HalError):
+    """The backend cannot run with this configuration; `findings` say what and where.
+
+    `machine run` and `machine supervise` print the findings and exit with code 2.
+    """
+
+    def __init__(self, findings: list[Finding]) -> None:
+        self.findings = findings
+        super().__init__("; ".join(f"{f.path}: {f.message}" for f in findings))
 
 
 @runtime_checkable

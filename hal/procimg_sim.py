@@ -13,7 +13,8 @@ from typing import Any
 from hal.base import HalError, Outputs
 from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap
 from hal.physics import PhysicsParams, World
-from hal.revpi import bind_ios, open_modio, raise_for_errors, read_config
+from hal.pictory import read_config
+from hal.revpi import bind_ios, open_modio, raise_for_errors
 from hal.sim import SimHal
 
 
@@ -44,12 +45,12 @@ class ProcImgSim:
         except BaseException:
             self._rpi.cleanup()
             raise
-        ios = {b.signal: (b.channel, b.io) for b in bound}
+        ios = {b.signal: b for b in bound}
         self._di = [ios[s] for s in DIGITAL_INPUTS]
         self._ai = [ios[s] for s in ANALOG_INPUTS]
         self._ro = [ios[s] for s in RELAY_OUTPUTS]
         # Only the modules carrying our sensors are written, so the HAL's bytes stay the HAL's.
-        sensors = [io for _, io in self._di + self._ai]
+        sensors = [b.io for b in self._di + self._ai]
         self._sensor_devices = [d for d in self._rpi.device if any(io in d for io in sensors)]
         self.steps = 0
         self.closed = False
@@ -67,13 +68,13 @@ class ProcImgSim:
         rpi = self._rpi
         if not rpi.readprocimg():
             raise HalError("procimg sim: cannot read the process image")
-        self.ride.scan_outputs(Outputs(ro={ch: bool(io.value) for ch, io in self._ro}))
+        self.ride.scan_outputs(Outputs(ro={b.channel: b.read_bool() for b in self._ro}))
         self._t = self._clock()
         sensed = self.ride.scan_inputs()
-        for ch, io in self._di:
-            io.value = sensed.di[ch]
-        for ch, io in self._ai:
-            io.value = sensed.ai[ch]
+        for b in self._di:
+            b.write_bool(sensed.di[b.channel])
+        for b in self._ai:
+            b.io.value = sensed.ai[b.channel]
         for dev in self._sensor_devices:
             if not rpi.writeprocimg(dev):
                 raise HalError("procimg sim: cannot write the process image")

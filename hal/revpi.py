@@ -1,36 +1,52 @@
 """The Revolution Pi backend: the IO map bound to piCtory IOs through revpimodio2.
 
-One cycle reads the whole process image once (`readprocimg`) and writes the output modules once
-(`writeprocimg`). The safe image and the E-stop bit are also reachable through a file descriptor
-of our own, so a watchdog can drop the outputs even while revpimodio2 or the scan thread is stuck.
+revpimodio2 reads the piCtory config and the whole process image once per cycle
+(`readprocimg`, in its monitoring mode, so it never writes a byte on its own: not the base
+module's RS485 limits when it opens, not a module's other outputs). The machine writes only
+its own output bits, through a file descriptor of its own: a byte it shares with other outputs
+is read from the image and written back with only its bits changed. The safe state (every
+mapped relay off) goes through the same descriptor, so a watchdog can drop the outputs even
+while revpimodio2 or the scan thread is stuck.
 """
 
 from __future__ import annotations
 
-import json
+import functools
 import logging
 import os
 import stat
 import threading
 import warnings
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
 from hal.base import HalError, Inputs, Outputs
 from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
+from hal.pictory import (
+    BYTE_IO_BASES,
+    CONFIG_PATH,
+    STATUS_MODULES,
+    Module,
+    RevPiConfigError,
+    io_modules,
+    layout_findings,
+    product_name,
+    read_config,
+)
 from schema.findings import Finding, Severity
 from schema.io import IoKind
+
+__all__ = ["RevPiConfigError", "RevPiHal", "check_revpi_io", "read_config"]
 
 log = logging.getLogger("machine.hal.revpi")
 
 KNOWN_CONFIGRSC = ("/etc/revpi/config.rsc", "/opt/KUNBUS/config.rsc")
 """Where piCtory saves its config on a device; searched when none is configured."""
-CONFIG_PATH = "/hal/revpi/configrsc"
 PROCIMG_PATH = "/hal/revpi/procimg"
 CONFIG_PROBLEMS = (KeyError, ValueError, TypeError, IndexError, AttributeError, RuntimeError)
 """What revpimodio2 raises on a config.rsc it cannot use."""
-_DEVICE_KEYS = ("type", "productType", "position", "name", "offset", "inp", "out", "mem")
 
 _KIND = {
     **dict.fromkeys(DIGITAL_INPUTS, IoKind.DI),
@@ -38,21 +54,14 @@ _KIND = {
     **dict.fromkeys(RELAY_OUTPUTS, IoKind.RO),
 }
 _WANTED = {
-    IoKind.DI: "a digital input (one bit of an input module)",
-    IoKind.AI: "an analog input (a 16-bit input word, e.g. InputValue_1 of an AIO)",
+    IoKind.DI: "a digital input (one bit of an input module, e.g. I_1 of a DIO)",
+    IoKind.AI: "an analog input: a 16-bit input word, e.g. InputValue_1 of an AIO",
     IoKind.RO: "a digital output (one bit of an output module, e.g. O_1 of a DIO)",
 }
+_ANALOG_FIRST = frozenset({"AIO", "MIO"})
 _LOCK_WAIT_S = 0.05
 """How long a safe write waits for a scan write in progress before writing anyway."""
 _CANDIDATES = 6
-
-
-class RevPiConfigError(HalError):
-    """The piCtory config, the process image or the IO map does not fit; see `findings`."""
-
-    def __init__(self, findings: list[Finding]) -> None:
-        self.findings = findings
-        super().__init__("; ".join(f"{f.path}: {f.message}" for f in findings))
 
 
 def raise_for_errors(findings: list[Finding]) -> None:
@@ -79,45 +88,6 @@ def locate_configrsc(configrsc: str | None) -> str:
             )
         ]
     )
-
-
-def read_config(path: str) -> dict[str, Any]:
-    """The parsed config.rsc, checked for the shape revpimodio2 relies on."""
-
-    def bad(why: str) -> RevPiConfigError:
-        return RevPiConfigError([_error("revpi_config", CONFIG_PATH, f"{path}: {why}")])
-
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
-    except OSError as exc:
-        raise bad(f"cannot read the piCtory config ({exc.strerror})") from exc
-    except UnicodeDecodeError as exc:
-        raise bad("not a piCtory config (not UTF-8 text)") from exc
-    except json.JSONDecodeError as exc:
-        raise bad(f"not valid JSON (line {exc.lineno} column {exc.colno}: {exc.msg})") from exc
-    if not isinstance(data, dict):
-        raise bad("not a piCtory config (the top level is not a JSON object)")
-    shapes = {"App": dict, "Summary": dict, "Devices": list}
-    missing = [k for k, kind in shapes.items() if not isinstance(data.get(k), kind)]
-    if missing:
-        raise bad(f"not a piCtory config (missing or malformed: {', '.join(missing)})")
-    for n, device in enumerate(data["Devices"]):
-        if not isinstance(device, dict):
-            raise bad(f"device #{n} is not a JSON object")
-        lacking = [k for k in _DEVICE_KEYS if k not in device]
-        if lacking:
-            raise bad(f"device #{n} ({device.get('name', '?')}) lacks {', '.join(lacking)}")
-        for section in ("inp", "out", "mem"):
-            entries = device[section]
-            if not isinstance(entries, dict) or not all(
-                isinstance(e, list) and len(e) >= 8 for e in entries.values()
-            ):
-                raise bad(
-                    f"device {device['name']!r}: {section!r} must map indexes to IO entries"
-                    " [name, default, bitlen, byte, export, idx, bmk, bit]"
-                )
-    return data
 
 
 def procimg_findings(procimg: str, need_bytes: int | None) -> list[Finding]:
@@ -191,7 +161,13 @@ def open_modio(
             ) from exc
         except CONFIG_PROBLEMS as exc:
             raise RevPiConfigError(
-                [_error("revpi_config", CONFIG_PATH, f"revpimodio2 rejects {configrsc}: {exc}")]
+                [
+                    _error(
+                        "revpi_config",
+                        CONFIG_PATH,
+                        f"revpimodio2 rejects {configrsc}: {type(exc).__name__} {exc}",
+                    )
+                ]
             ) from exc
     notes = [
         Finding(
@@ -208,53 +184,95 @@ def open_modio(
 
 @dataclass(frozen=True)
 class BoundIo:
-    """A logical signal and the revpimodio2 IO object it resolved to."""
+    """A logical signal and the revpimodio2 IO it resolved to.
+
+    `bit` is set when the channel names one bit of a byte or word (`"DIn.3"`): the RevPi
+    Compact and Flat lay out their digital IO as whole bytes.
+    """
 
     signal: Signal
     channel: str
     io: Any
+    bit: int | None = None
+
+    @property
+    def byte(self) -> int:
+        """The absolute byte of the process image that holds this bit (or word)."""
+        return int(self.io.address) + (self.bit // 8 if self.bit is not None else 0)
+
+    @property
+    def mask(self) -> int:
+        """This bit within `byte`."""
+        return int(self.io._bitshift) if self.bit is None else 1 << self.bit % 8
+
+    def read_bool(self) -> bool:
+        """The bit from revpimodio2's copy of the image (after its `readprocimg`)."""
+        if self.bit is None:
+            return bool(self.io.value)
+        return bool(int.from_bytes(self.io.get_value(), "little") >> self.bit & 1)
+
+    def write_bool(self, on: bool) -> None:
+        """Set the bit in revpimodio2's buffer (its `writeprocimg` writes it)."""
+        if self.bit is None:
+            self.io.value = on
+            return
+        raw = self.io.get_value()
+        value = int.from_bytes(raw, "little")
+        value = value | 1 << self.bit if on else value & ~(1 << self.bit)
+        self.io.set_value(value.to_bytes(len(raw), "little"))
+
+    def default_on(self) -> bool:
+        """Whether piCtory's default value switches this bit on."""
+        default = self.io.get_defaultvalue()
+        if self.bit is None:
+            return bool(default)
+        return bool(int.from_bytes(bytes(default or b""), "little") >> self.bit & 1)
 
 
-def bind_ios(rpi: Any, iomap: IoMap) -> tuple[list[BoundIo], list[Finding]]:
+def _resolve(rpi: Any, channel: str) -> tuple[Any, int | None] | None:
+    """The IO a channel names (`"I_1"`), or a byte IO and one of its bits (`"DIn.3"`)."""
+    from revpimodio2.io import IOBase
+
+    io = getattr(rpi.io, channel, None)  # IOList has no .get; names are attributes
+    if isinstance(io, IOBase):
+        return io, None
+    name, dot, bit = channel.rpartition(".")
+    if dot and bit.isdigit():
+        io = getattr(rpi.io, name, None)
+        if isinstance(io, IOBase):
+            return io, int(bit)
+    return None
+
+
+def bind_ios(
+    rpi: Any, iomap: IoMap, known: Mapping[str, Module] | None = None
+) -> tuple[list[BoundIo], list[Finding]]:
     """Resolve every signal of the IO map to a piCtory IO of the right kind.
 
     In simulator mode revpimodio2 swaps inputs and outputs, so the kinds are checked as the
-    real device sees them.
+    real device sees them. `known` (IO name → module, from the file) explains a name that is
+    in the file but that revpimodio2 ignored.
     """
     rp = import_revpimodio2()
-    from revpimodio2.io import IOBase
-
-    real_input, real_output = (rp.OUT, rp.INP) if rpi.simulator else (rp.INP, rp.OUT)
+    directions = (rp.OUT, rp.INP) if rpi.simulator else (rp.INP, rp.OUT)
     bound: list[BoundIo] = []
     findings: list[Finding] = []
     for signal, kind in _KIND.items():
         channel = iomap.channel(signal)
         path = f"/hal/iomap/{signal.value}"
-        io = getattr(rpi.io, channel, None)  # IOList has no .get; names are attributes
-        if not isinstance(io, IOBase):
-            near = _candidates(rpi, kind, real_input, real_output)
+        found = _resolve(rpi, channel)
+        if found is None:
+            findings.append(_missing(rpi, signal, channel, known or {}, directions))
+            continue
+        io, bit = found
+        problem = _misfit(io, bit, kind, directions)
+        if problem is not None:
             findings.append(
-                _error(
-                    "io_missing",
-                    path,
-                    f"{signal.value} is mapped to {channel!r}, but the piCtory config has no IO"
-                    f" of that name; it must be {_WANTED[kind]}"
-                    + (f"; candidates: {', '.join(near)}" if near else ""),
-                )
+                _error("io_type", path, f"{signal.value} must be {_WANTED[kind]}, but {problem}")
             )
             continue
-        actual = _kind_of(io, real_input, real_output)
-        if actual is not kind:
-            findings.append(
-                _error(
-                    "io_type",
-                    path,
-                    f"{signal.value} must be {_WANTED[kind]}, but {channel!r} is"
-                    f" {_describe(io, real_input, real_output)}",
-                )
-            )
-            continue
-        if kind is IoKind.RO and io.defaultvalue:
+        b = BoundIo(signal, channel, io, bit)
+        if kind is IoKind.RO and b.default_on():
             findings.append(
                 Finding(
                     category="io_default",
@@ -264,8 +282,185 @@ def bind_ios(rpi: Any, iomap: IoMap) -> tuple[list[BoundIo], list[Finding]]:
                     " it on before the daemon runs; set its default to 0",
                 )
             )
-        bound.append(BoundIo(signal, channel, io))
+        bound.append(b)
     return bound, findings
+
+
+def _missing(
+    rpi: Any,
+    signal: Signal,
+    channel: str,
+    known: Mapping[str, Module],
+    directions: tuple[int, int],
+) -> Finding:
+    path = f"/hal/iomap/{signal.value}"
+    mod = known.get(channel) or known.get(channel.rpartition(".")[0])
+    if mod is not None:
+        return _error(
+            "io_missing",
+            path,
+            f"{signal.value} is mapped to {channel!r}, which is on module {mod.label} in the"
+            " piCtory config, but revpimodio2 ignored it: see the revpi_layout finding at"
+            f" {CONFIG_PATH}",
+        )
+    kind = _KIND[signal]
+    near = _candidates(rpi, kind, directions)
+    return _error(
+        "io_missing",
+        path,
+        f"{signal.value} is mapped to {channel!r}, but the piCtory config has no IO of that"
+        f" name; it must be {_WANTED[kind]}" + (f"; candidates: {', '.join(near)}" if near else ""),
+    )
+
+
+def _misfit(io: Any, bit: int | None, kind: IoKind, directions: tuple[int, int]) -> str | None:
+    """Why this IO (or this bit of it) cannot carry a signal of this kind; None if it can."""
+    real_input, real_output = directions
+    is_bit = io._bitshift is not None
+    bits = int(io._bitlength)
+    name = io.name
+    if bit is not None:
+        if kind is IoKind.AI:
+            return f"{name!r}.{bit} is one bit; an analog value is a whole word"
+        if is_bit:
+            return f"{name!r} is a single bit already: map it as {name!r}"
+        if bit >= bits:
+            return f"{name!r} has {bits} bits (0..{bits - 1}), so it has no bit {bit}"
+    want = real_output if kind is IoKind.RO else real_input
+    if io.type != want or (kind is IoKind.AI and is_bit):
+        return f"{name!r} is {_describe(io, directions)}"
+    if kind is IoKind.AI:
+        product = product_name(_device_dict(io))
+        if bits != 16:
+            return f"{name!r} is {_describe(io, directions)}"
+        if _product_code(io) in STATUS_MODULES:
+            return f"{name!r} is a status word of module {io._parentdevice.name!r} ({product})"
+        return None
+    if bit is None and not is_bit:
+        hint = f"map one bit of it as '{name}.N' with N = 0..{bits - 1}, e.g. '{name}.0'"
+        if _product_code(io) in BYTE_IO_BASES:
+            hint = (
+                f"the {product_name(_device_dict(io))} carries its digital IO as whole bytes,"
+                f" so the machine needs a bit IO: {hint}"
+            )
+        return f"{name!r} is {_describe(io, directions)}; {hint}"
+    return None
+
+
+def _device_dict(io: Any) -> dict[str, Any]:
+    dev = io._parentdevice
+    return {"productType": dev.producttype, "type": dev.type}
+
+
+def _product_code(io: Any) -> int:
+    return int(io._parentdevice.producttype)
+
+
+def _describe(io: Any, directions: tuple[int, int]) -> str:
+    real_input, real_output = directions
+    where = f" of module {io._parentdevice.name!r} ({product_name(_device_dict(io))})"
+    if io._bitshift is not None:
+        width, unit = "a digital", ""
+    else:
+        bits = int(io._bitlength)
+        width = f"an {bits}-bit" if bits in (8, 11, 18) else f"a {bits}-bit"
+        unit = {8: " byte", 16: " word"}.get(bits, " value")
+    if io.type == real_input:
+        return f"{width} input{unit}{where}"
+    if io.type == real_output:
+        return f"{width} output{unit}{where}"
+    return f"{width} memory value (a module setting){where}"
+
+
+def _candidates(rpi: Any, kind: IoKind, directions: tuple[int, int]) -> list[str]:
+    names: list[tuple[int, str]] = []
+    for io in rpi.io:
+        if _misfit(io, None, kind, directions) is None:
+            analog = product_name(_device_dict(io)) in _ANALOG_FIRST
+            names.append((0 if kind is IoKind.AI and analog else 1, io.name))
+        elif kind is not IoKind.AI and _product_code(io) in BYTE_IO_BASES:
+            whole = io._bitshift is None and int(io._bitlength) == 8
+            want = directions[1] if kind is IoKind.RO else directions[0]
+            if whole and io.type == want:
+                names.append((1, f"{io.name}.0..7"))
+    ordered = [n for _, n in sorted(names, key=lambda p: p[0])]
+    if len(ordered) > _CANDIDATES:
+        return [*ordered[:_CANDIDATES], "…"]
+    return ordered
+
+
+def shared_output_findings(bound: list[BoundIo]) -> list[Finding]:
+    """Which outputs on the relays' modules are not the machine's (a warning per module)."""
+    relays = [b for b in bound if _KIND[b.signal] is IoKind.RO]
+    findings = []
+    for dev in _unique(b.io._parentdevice for b in relays):
+        mine = [b for b in relays if b.io._parentdevice is dev]
+        masks: dict[int, int] = {}
+        for b in mine:
+            masks[b.byte] = masks.get(b.byte, 0) | b.mask
+        same, other = [], []
+        for io in dev.get_outputs():
+            parts = [b for b in mine if b.io is io]
+            if any(b.bit is None for b in parts):
+                continue  # one of our bits
+            if parts:
+                taken = {b.bit for b in parts}
+                free = [n for n in range(int(io._bitlength)) if n not in taken]
+                same.append(f"bits {_bit_list(free)} of {io.name!r}")
+            elif _bytes_of(io) & masks.keys():
+                same.append(io.name)
+            else:
+                other.append(io.name)
+        if not same and not other:
+            continue
+        ours = ", ".join(b.channel for b in mine)
+        text = (
+            f"module {dev.name!r} ({product_name(_device_dict(mine[0].io))}) also carries"
+            " outputs the machine does not own"
+        )
+        if same:
+            where = ", ".join(str(n) for n in sorted(masks))
+            text += (
+                f"; {_names(same)} share byte {where} with {ours}: the daemon changes only its"
+                " own bits there (read, change, write back) and keeps theirs as it finds them"
+            )
+        if other:
+            text += f"; it never writes {_names(other)}"
+        findings.append(
+            Finding(
+                category="io_shared",
+                severity=Severity.WARNING,
+                path=f"/hal/iomap/{mine[0].signal.value}",
+                message=text,
+            )
+        )
+    return findings
+
+
+def _unique(items: Any) -> list[Any]:
+    out: list[Any] = []
+    for item in items:
+        if not any(item is seen for seen in out):
+            out.append(item)
+    return out
+
+
+def _bytes_of(io: Any) -> set[int]:
+    if io._bitshift is not None:
+        return {int(io.address)}
+    return set(range(int(io.address), int(io.address) + max(1, int(io._bitlength) // 8)))
+
+
+def _bit_list(bits: list[int]) -> str:
+    if bits and bits == list(range(bits[0], bits[-1] + 1)) and len(bits) > 2:
+        return f"{bits[0]}..{bits[-1]}"
+    return ", ".join(str(b) for b in bits)
+
+
+def _names(names: list[str]) -> str:
+    if len(names) <= _CANDIDATES:
+        return ", ".join(names)
+    return f"{', '.join(names[:3])}, …, {names[-1]} ({len(names)} outputs)"
 
 
 def check_revpi_io(iomap: IoMap, configrsc: str | None, procimg: str) -> list[Finding]:
@@ -277,24 +472,54 @@ def check_revpi_io(iomap: IoMap, configrsc: str | None, procimg: str) -> list[Fi
     findings = procimg_findings(procimg, need_bytes=None)
     try:
         path = locate_configrsc(configrsc)
-        read_config(path)
-        rpi, notes = open_modio(path, os.devnull, monitoring=True)
+        data = read_config(path)
     except RevPiConfigError as exc:
         return findings + exc.findings
+    layout = layout_findings(data, path)
+    try:
+        rpi, notes = open_modio(path, os.devnull, monitoring=True)
+    except RevPiConfigError as exc:
+        # Our layout finding says what revpimodio2's bare exception does not.
+        return findings + (layout or exc.findings)
+    if layout:
+        notes = _fold_layout_notes(layout, notes)
     try:
         if not findings:
             findings += procimg_findings(procimg, need_bytes=rpi.length)
-        _, problems = bind_ios(rpi, iomap)
+        bound, problems = bind_ios(rpi, iomap, io_modules(data))
+        problems += shared_output_findings(bound)
     finally:
         rpi.cleanup()
-    return findings + notes + problems
+    return findings + layout + notes + problems
+
+
+def _fold_layout_notes(layout: list[Finding], notes: list[Finding]) -> list[Finding]:
+    """revpimodio2 warns once per ignored IO about what a layout finding already says."""
+    said = ("is not in the device offset", "Offset value", "Device offset ERROR")
+    ignored = [n for n in notes if any(s in n.message for s in said)]
+    if not ignored:
+        return notes
+    rest = [n for n in notes if n not in ignored]
+    count = sum("is not in the device offset" in n.message for n in ignored)
+    if count:
+        rest.append(
+            Finding(
+                category="revpi_config",
+                severity=Severity.WARNING,
+                path=CONFIG_PATH,
+                message=f"revpimodio2 ignores {count} IO(s) that lie in the overlap above",
+            )
+        )
+    return rest
 
 
 class RevPiHal:
     """A `Hal` on a Revolution Pi process image (`/dev/piControl0`, or a file in tests).
 
-    Outputs are forced safe when it opens and when it closes. The safe image is every output
-    of the modules we drive at its piCtory default, with every mapped relay off.
+    It writes only the mapped relay bits: a byte they share with other outputs is read from
+    the image and written back with only those bits changed, and nothing else is ever written
+    (no piCtory defaults, no other module). The safe state is every mapped relay off; it is
+    written when the HAL opens and when it closes.
     """
 
     def __init__(self, iomap: IoMap, procimg: str, configrsc: str | None = None) -> None:
@@ -304,16 +529,20 @@ class RevPiHal:
         """Held while the scan writes outputs; a safe write waits for it only briefly."""
         self._raw_lock = threading.Lock()
         self._fd: int | None = None
-        self._safe: list[tuple[int, bytes]] = []
+        self._owned: dict[int, int] = {}
+        """Byte address → the mask of our relay bits in it."""
         self._closed = False
         # Check on a read-only view first: a config that does not fit must not touch the image.
         findings = check_revpi_io(iomap, configrsc, procimg)
         raise_for_errors(findings)
+        self.findings = findings
+        """The warnings of the check (errors stop the constructor)."""
         for f in findings:
             log.warning("event=revpi_config_warning path=%s detail=%r", f.path, f.message)
         path = locate_configrsc(configrsc)
         self.configrsc = path
-        self._rpi, _ = open_modio(path, procimg)
+        # Monitoring: revpimodio2 reads, never writes (on open it would write the base module).
+        self._rpi, _ = open_modio(path, procimg, monitoring=True)
         try:
             bound, findings = bind_ios(self._rpi, iomap)
             raise_for_errors(findings)
@@ -329,25 +558,15 @@ class RevPiHal:
         return int(self._rpi.length)
 
     def _setup(self, bound: list[BoundIo]) -> None:
-        rpi = self._rpi
-        by_kind = {k: [(b.channel, b.io) for b in bound if _KIND[b.signal] is k] for k in IoKind}
-        self._di = by_kind[IoKind.DI]
-        self._ai = by_kind[IoKind.AI]
-        self._ro = by_kind[IoKind.RO]
-        # Only the modules carrying our relays are written: other modules' outputs stay theirs.
-        self._out_devices = _owners(rpi, [io for _, io in self._ro])
-        self._lengths = [(dev, len(dev)) for dev in rpi.device]
-        for dev in self._out_devices:
-            rpi.setdefaultvalues(dev)
-            for _, io in self._ro:
-                if io in dev:
-                    io.value = False
-            start, end = _output_span(dev)
-            self._safe.append((start, bytes(dev)[start - dev.offset : end - dev.offset]))
-        estop = rpi.io[self.iomap.estop]
-        self._estop_addr = int(estop.address)
-        # The IOs at a byte address are listed by bit, which gives the E-stop's bit.
-        self._estop_mask = 1 << rpi.io[estop.address].index(estop)
+        by_kind = {k: [b for b in bound if _KIND[b.signal] is k] for k in IoKind}
+        self._di = [(b.channel, b) for b in by_kind[IoKind.DI]]
+        self._ai = [(b.channel, b.io) for b in by_kind[IoKind.AI]]
+        self._ro = [(b.channel, b.byte, b.mask) for b in by_kind[IoKind.RO]]
+        for _, byte, mask in self._ro:
+            self._owned[byte] = self._owned.get(byte, 0) | mask
+        self._lengths = [(dev, len(dev)) for dev in self._rpi.device]
+        estop = next(b for b in bound if b.signal is Signal.ESTOP)
+        self._estop_addr, self._estop_mask = estop.byte, estop.mask
         self._fd = os.open(self.procimg, os.O_RDWR)
 
     # -- Hal protocol -------------------------------------------------------------------
@@ -365,37 +584,37 @@ class RevPiHal:
             if len(dev) != length:
                 raise HalError(f"process image {self.procimg} is shorter than the piCtory config")
         return Inputs(
-            di={ch: bool(io.value) for ch, io in self._di},
+            di={ch: b.read_bool() for ch, b in self._di},
             ai={ch: int(io.value) for ch, io in self._ai},
         )
 
     def scan_outputs(self, outputs: Outputs) -> None:
-        """One write per output module; a channel missing from `outputs` is written off."""
-        rpi = self._live()
+        """Our relay bits, each byte read and written back; a channel missing is written off."""
+        self._live()
+        bits = dict.fromkeys(self._owned, 0)
+        for ch, byte, mask in self._ro:
+            if outputs.ro.get(ch, False):
+                bits[byte] |= mask
         with self._lock:
-            for ch, io in self._ro:
-                io.value = bool(outputs.ro.get(ch, False))
-            try:
-                # A list, not a generator: every module is written even if one fails.
-                ok = all([rpi.writeprocimg(dev) for dev in self._out_devices])
-            except (OSError, ValueError) as exc:
-                raise HalError(f"cannot write the process image {self.procimg}: {exc}") from exc
-            if not ok:
-                raise HalError(f"cannot write the process image {self.procimg}")
+            for byte, mask in self._owned.items():
+                self._io(
+                    functools.partial(_merge, offset=byte, mask=mask, bits=bits[byte]), "write"
+                )
 
     def force_all_outputs_safe(self) -> None:
-        """Write the safe image through our own descriptor; works after the loop or close."""
+        """Our relays off through our own descriptor; works after the loop failed or close."""
         got = self._lock.acquire(timeout=_LOCK_WAIT_S)
         try:
-            for start, data in self._safe:
-                self._raw(start, data)
+            for byte, mask in self._owned.items():
+                self._io(functools.partial(_merge, offset=byte, mask=mask, bits=0), "write")
         finally:
             if got:
                 self._lock.release()
 
     def read_estop(self) -> bool:
         """True when the E-stop is active, read from the image now (not from the last scan)."""
-        level = bool(self._raw(self._estop_addr, None)[0] & self._estop_mask)
+        raw = self._io(lambda fd: _read_byte(fd, self._estop_addr), "read")
+        level = bool(raw & self._estop_mask)
         return not level if self.iomap.estop_active_low else level
 
     def close(self) -> None:
@@ -414,22 +633,24 @@ class RevPiHal:
             raise HalError("the RevPi HAL is closed")
         return self._rpi
 
-    def _raw(self, offset: int, data: bytes | None) -> bytes:
-        """Write `data` at `offset`, or read the byte there; on an error reopen and retry once."""
+    def _io(self, op: Callable[[int], int], what: str) -> int:
+        """Run `op` on our descriptor; on an OS error reopen the image and retry once."""
         with self._raw_lock:
             for attempt in (1, 2):
                 try:
                     if self._fd is None:
                         self._fd = os.open(self.procimg, os.O_RDWR)
                     try:
-                        return _pio(self._fd, offset, data)
+                        return op(self._fd)
                     finally:
                         if self._closed:
                             self._drop_fd()  # a safe write after close() leaves nothing open
                 except OSError as exc:
                     self._drop_fd()
                     if attempt == 2:
-                        raise HalError(f"process image {self.procimg}: {exc}") from exc
+                        raise HalError(
+                            f"cannot {what} the process image {self.procimg}: {exc}"
+                        ) from exc
         raise AssertionError("unreachable")
 
     def _drop_fd(self) -> None:
@@ -447,55 +668,24 @@ class RevPiHal:
             self._drop_fd()
 
 
-def _pio(fd: int, offset: int, data: bytes | None) -> bytes:
-    """Seek and write `data` (or read one byte): what revpimodio2 does, on our descriptor."""
-    os.lseek(fd, offset, os.SEEK_SET)
-    if data is None:
-        got = os.read(fd, 1)
-        if len(got) != 1:
-            raise OSError(f"the image ends before byte {offset}")
-        return got
-    if os.write(fd, data) != len(data):
+def _read_byte(fd: int, offset: int) -> int:
+    got = os.pread(fd, 1, offset)
+    if len(got) != 1:
+        raise OSError(f"the image ends before byte {offset}")
+    return got[0]
+
+
+def _merge(fd: int, offset: int, mask: int, bits: int) -> int:
+    """Set the `mask` bits of one byte to `bits`, keeping the others as the image has them.
+
+    Written only when it changes. Between the read and the write (microseconds) another
+    program's change to the same byte could be lost: `io_shared` warns where bytes are shared.
+    """
+    old = _read_byte(fd, offset)
+    new = old & ~mask | bits
+    if new != old and os.pwrite(fd, bytes([new]), offset) != 1:
         raise OSError(f"short write at byte {offset}")
-    return data
-
-
-def _kind_of(io: Any, real_input: int, real_output: int) -> IoKind | None:
-    bit = isinstance(io.value, bool)
-    if io.type == real_input:
-        return IoKind.DI if bit else IoKind.AI
-    if io.type == real_output and bit:
-        return IoKind.RO
-    return None
-
-
-def _describe(io: Any, real_input: int, real_output: int) -> str:
-    width = "a digital" if isinstance(io.value, bool) else f"a {8 * io.length}-bit"
-    if io.type == real_input:
-        return f"{width} input"
-    if io.type == real_output:
-        return f"{width} output"
-    return f"{width} memory value (a module setting)"
-
-
-def _candidates(rpi: Any, kind: IoKind, real_input: int, real_output: int) -> list[str]:
-    names = [io.name for io in rpi.io if _kind_of(io, real_input, real_output) is kind]
-    if len(names) > _CANDIDATES:
-        return [*names[:_CANDIDATES], "…"]
-    return names
-
-
-def _owners(rpi: Any, ios: list[Any]) -> list[Any]:
-    """The devices holding these IOs, in process-image order, each once."""
-    return [dev for dev in rpi.device if any(io in dev for io in ios)]
-
-
-def _output_span(dev: Any) -> tuple[int, int]:
-    """The absolute byte range of a device's outputs: what `writeprocimg(dev)` writes."""
-    outs = dev.get_outputs()
-    start = min(io.address for io in outs)
-    end = max(io.address + (1 if isinstance(io.value, bool) else io.length) for io in outs)
-    return start, end
+    return new
 
 
 def _error(category: str, path: str, message: str) -> Finding:

@@ -67,8 +67,13 @@ def test_fixture_has_the_real_product_layout() -> None:
     assert types == {"core": 95, "dio": 96, "aio": 103}
 
 
-def test_default_iomap_resolves_without_findings(image: str) -> None:
-    assert check_revpi_io(MAP, CONFIG, image) == []
+def test_default_iomap_resolves_with_only_the_shared_module_warning(image: str) -> None:
+    findings = check_revpi_io(MAP, CONFIG, image)
+    assert [(f.category, f.severity, f.path) for f in findings] == [
+        ("io_shared", Severity.WARNING, "/hal/iomap/rotateRelay")
+    ]
+    assert "O_5, O_6, O_7, O_8 share byte 81 with O_1, O_2, O_3, O_4" in findings[0].message
+    assert "never writes O_9" in findings[0].message
 
 
 def test_revpi_hal_is_a_hal(hal: RevPiHal) -> None:
@@ -136,18 +141,18 @@ def test_outputs_do_not_overwrite_inputs(hal: RevPiHal, image: str) -> None:
 
 
 # -- safe outputs -------------------------------------------------------------------------
-def test_outputs_are_safe_on_open(tmp_path: Path) -> None:
-    image = make_image(tmp_path, fill=0xFF)  # every relay and PWM byte "on" before we start
+def test_open_drops_our_relays_and_writes_nothing_else(tmp_path: Path) -> None:
+    image = make_image(tmp_path, fill=0xFF)  # every output "on" before we start
+    before = Path(image).read_bytes()
     h = RevPiHal(MAP, image, CONFIG)
     try:
-        data = Path(image).read_bytes()
-        start, _ = address("O_1")
-        end, _ = address("PWM_16")
-        assert data[start : end + 1] == bytes(end + 1 - start)  # the DIO's outputs: defaults
-        assert data[address("I_1")[0]] == 0xFF  # inputs untouched
-        assert data[address("InputValue_1")[0]] == 0xFF
+        after = Path(image).read_bytes()
+        byte, _ = address("O_1")
+        assert after[byte] == 0b1111_0000  # O_1..O_4 off; O_5..O_8 are not ours: kept
+        assert [i for i in range(len(after)) if after[i] != before[i]] == [byte]
     finally:
         h.close()
+    assert Path(image).read_bytes()[byte] == 0b1111_0000
 
 
 def test_close_leaves_outputs_safe_and_can_repeat(hal: RevPiHal, image: str) -> None:
@@ -171,12 +176,10 @@ def test_force_safe_works_after_close(hal: RevPiHal, image: str) -> None:
 
 def test_force_safe_works_when_revpimodio_is_broken(hal: RevPiHal, image: str) -> None:
     hal.scan_outputs(Outputs(ro={"O_1": True, "O_3": True}))
-    hal._rpi._myfh.close()  # the loop's IO path is dead (device gone, handle closed)
-    with pytest.raises(HalError, match="cannot write"):
-        hal.scan_outputs(Outputs(ro={"O_1": True}))
+    hal._rpi._myfh.close()  # revpimodio2's IO path is dead (handle closed)
     with pytest.raises(HalError, match="cannot read"):
         hal.scan_inputs()
-    hal.force_all_outputs_safe()
+    hal.force_all_outputs_safe()  # our own descriptor still reaches the image
     assert relay_byte(image) == 0
 
 
@@ -423,10 +426,18 @@ def test_missing_config_rsc_is_a_finding(tmp_path: Path, image: str) -> None:
 
 def test_config_revpimodio_rejects_is_a_finding(tmp_path: Path, image: str) -> None:
     data = load()
-    data["Devices"][1]["offset"] = "eleven"
+    find_entry(data, "O_2")[2] = "one"  # a bit length revpimodio2 cannot read
     findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
     assert errors(findings) == [("revpi_config", "/hal/revpi/configrsc")]
     assert "revpimodio2 rejects" in findings[0].message
+
+
+def test_offset_that_is_not_a_number_is_a_layout_finding(tmp_path: Path, image: str) -> None:
+    data = load()
+    data["Devices"][1]["offset"] = "eleven"
+    findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
+    assert errors(findings) == [("revpi_layout", "/hal/revpi/configrsc")]
+    assert "'eleven', not a number" in findings[0].message
 
 
 def test_a_module_missing_from_the_config_makes_its_ios_missing(tmp_path: Path, image: str) -> None:
@@ -440,7 +451,7 @@ def test_relay_defaulting_on_is_a_warning(tmp_path: Path, image: str) -> None:
     data = load()
     find_entry(data, "O_2")[1] = "1"
     findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
-    assert [(f.category, f.severity, f.path) for f in findings] == [
+    assert [(f.category, f.severity, f.path) for f in findings if f.category != "io_shared"] == [
         ("io_default", Severity.WARNING, "/hal/iomap/rotateDir")
     ]
     h = RevPiHal(MAP, image, write_config(tmp_path, data))  # a warning does not stop it
@@ -450,28 +461,41 @@ def test_relay_defaulting_on_is_a_warning(tmp_path: Path, image: str) -> None:
         h.close()
 
 
-def test_unmapped_outputs_take_their_piCtory_default(tmp_path: Path, image: str) -> None:
+def test_unmapped_outputs_are_never_written_not_even_their_default(
+    tmp_path: Path, image: str
+) -> None:
     data = load()
     find_entry(data, "O_8")[1] = "1"
     find_entry(data, "PWM_1")[1] = "50"
     h = RevPiHal(MAP, image, write_config(tmp_path, data))
     try:
         h.scan_outputs(Outputs(ro={"O_1": True}))
-        assert read_bit(image, "O_8") is True
-        assert Path(image).read_bytes()[address("PWM_1")[0]] == 50
+        assert read_bit(image, "O_8") is False  # piControl applies defaults, not the daemon
+        assert Path(image).read_bytes()[address("PWM_1")[0]] == 0
+        write_bit(image, "O_7", True)  # another program drives O_7 in our byte
+        h.scan_outputs(Outputs(ro={"O_1": False, "O_2": True}))
+        assert relay_byte(image) == 0b0100_0010
         h.force_all_outputs_safe()
-        assert relay_byte(image) == 0b1000_0000  # O_8 at its default, the relays off
+        assert relay_byte(image) == 0b0100_0000  # the relays off, O_7 as it was
     finally:
         h.close()
+    assert relay_byte(image) == 0b0100_0000
 
 
-def test_overlapping_modules_are_a_warning(tmp_path: Path, image: str) -> None:
+def test_overlapping_modules_are_one_clear_error(tmp_path: Path, image: str) -> None:
     data = load()
     data["Devices"][2]["offset"] = 120  # the AIO overlaps the DIO's last bytes
     findings = check_revpi_io(MAP, write_config(tmp_path, data), image)
-    assert any(f.category == "revpi_config" and f.severity is Severity.WARNING for f in findings), (
-        findings
-    )
+    assert errors(findings) == [
+        ("revpi_layout", "/hal/revpi/configrsc"),
+        ("io_missing", "/hal/iomap/tiltPosition"),  # InputValue_1 lies in the overlap
+    ]
+    assert "overlap at bytes 120–123" in findings[0].message
+    assert "must start at byte 124" in findings[0].message
+    missing = next(f for f in findings if f.category == "io_missing")
+    assert "revpimodio2 ignored it" in missing.message
+    notes = [f.message for f in findings if f.category == "revpi_config"]
+    assert notes == ["revpimodio2 ignores 2 IO(s) that lie in the overlap above"]
 
 
 def _short_image(directory: Path) -> str:
