@@ -11,6 +11,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+import select
+import signal
+import subprocess
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,15 +25,20 @@ import pytest
 import zenoh
 
 from rider.client import Rider
-from schema.codec import Format, encode, pack
-from schema.commands import Command, CommandRequest, StartRequest
+from schema.codec import Format, decode, encode, pack
+from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.credentials import MACHINE, RIDER, env_name
+from schema.errors import ErrorCode
 from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
 from schema.status import MachineState
-from tests.procs import Daemon
+from tests.integration import rider_proc
+from tests.integration.support import STEP_TIMEOUT_S, relays_off
+from tests.procs import REPO, Daemon, free_port, stop_process
+from tests.reliability.forger import FORGED_SEQ
 from tests.reliability.support import (
     ACL_PROFILE,
+    RIDER_VARIABLES,
     TLS_PROFILE,
     Identities,
     StatusFeed,
@@ -204,3 +214,129 @@ def test_missing_password_file_is_a_clear_error(machine: Daemon, tmp_path: Path)
     env = {env_name(RIDER, "USER"): "rider", env_name(RIDER, "PASSWORD_FILE"): "/nonexistent"}
     with environ(env), pytest.raises(BadCredentials, match="RIDER_ZENOH_PASSWORD_FILE"):
         machine.rider()
+
+
+# ------------------------------------------------------------------------------- forgeries
+FORGER_START_S = 20.0
+LOSS_BOUND_S = 5.0
+"""The victim's lease (1 s) plus margin for a loaded host: the pause comes, forged token or not."""
+
+
+@contextlib.contextmanager
+def forger(daemon: Daemon, env: dict[str, str], *args: str) -> Iterator[str]:
+    """`tests.reliability.forger` as its own process with its own credentials; yields its zid."""
+    child_env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
+    cmd = [sys.executable, "-m", "tests.reliability.forger", "--connect", daemon.endpoint]
+    cmd += ["--listen", f"tcp/127.0.0.1:{free_port()}", "--duration", "60", *args]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, text=True, cwd=REPO, env={**child_env, **env}
+    )
+    try:
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], FORGER_START_S)
+        line = proc.stdout.readline() if ready else ""
+        assert line.startswith("ready "), f"forger did not start (code {proc.poll()}): {line!r}"
+        yield line.split()[1]
+    finally:
+        stop_process(proc)
+
+
+FORGED_MACHINE = (
+    "--token", "machine/m1/alive",
+    "--queryable", "machine/m1/cmd/start",
+    "--queryable", "machine/m1/status",
+    "--put", "machine/m1/status",
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("who", ["rider", "monitor"])
+def test_a_peer_with_valid_credentials_cannot_pose_as_the_machine(
+    machine: Daemon, ids: Identities, who: str, tmp_path: Path
+) -> None:
+    with forger(machine, ids.env(RIDER, who), *FORGED_MACHINE) as forged_zid:
+        # A Rider on Zenoh's defaults (gossip on, as `rider` without --zenoh-config): the one
+        # most likely to be told about the forger and dial it.
+        with environ({**dict.fromkeys(RIDER_VARIABLES), **ids.env(RIDER, "rider")}):
+            rider = Rider("m1", connect=[machine.endpoint], timeout=DENIED_WAIT_S)
+        with rider as r:
+            feed = StatusFeed(r)
+            try:
+                # Heartbeats every 0.2 s, forged samples every 0.05 s: 5 real ones would come
+                # with ~20 fakes if the forger's publication got through.
+                samples = [feed.next() for _ in range(5)]
+            finally:
+                feed.close()
+            assert all(s.seq < FORGED_SEQ for s in samples), samples
+            start = encode(StartRequest(transaction_id=f"forgery-{who}"))
+            replies = list(
+                r.session.get(
+                    f"{r.base}/cmd/start",
+                    payload=start,
+                    encoding=Format.MSGPACK.value,
+                    timeout=DENIED_WAIT_S,
+                )
+            )
+            status_repliers = {
+                str(rep.replier_id.zid)
+                for rep in r.session.get(f"{r.base}/status", timeout=DENIED_WAIT_S)
+                if rep.replier_id is not None
+            }
+            tokens = list(r.session.liveliness().get("machine/*/alive", timeout=DENIED_WAIT_S))
+            peers = {str(z) for z in r.session.info.peers_zid()}
+    assert forged_zid not in peers, "the forger got a link to the Rider"
+    assert len(replies) == 1, [rep.ok for rep in replies]
+    reply = decode(Reply, replies[0].ok.payload.to_bytes(), Format.MSGPACK)  # type: ignore[union-attr]
+    assert reply.success is False and reply.error is not None
+    assert reply.error.code is ErrorCode.NOT_CALIBRATED  # the real machine's answer
+    assert forged_zid not in status_repliers and len(status_repliers) == 1
+    assert len(tokens) == 1
+    assert "forged" not in machine.log()
+
+
+def test_a_monitor_cannot_keep_a_killed_rider_alive(
+    tmp_path_factory: pytest.TempPathFactory, ids: Identities
+) -> None:
+    """Issue 15, point 3: the monitor holds `rider/<victim>/alive`; the victim is SIGKILLed."""
+    daemon = start_machine(
+        tmp_path_factory.mktemp("acl-loss"),
+        profile=ACL_PROFILE,
+        env={env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)},
+        rider_env=ids.env(RIDER, "rider"),
+    )
+    victim_env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
+    victim_env.update(ids.env(RIDER, "rider"))
+    cmd = rider_proc.command(daemon.endpoint, daemon.zenoh_config, daemon.machine_id)
+    cmd += ["--revolutions", "40", "prepare", "start", "running", "hold"]
+    victim = subprocess.Popen(
+        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO, env=victim_env
+    )
+    try:
+        held = read_step(victim, "hold")
+        token = f"rider/{held['rider']}/alive"
+        with (
+            forger(daemon, ids.env(RIDER, "monitor"), "--token", token),
+            session_as(daemon, ids.env(RIDER, "rider")) as observer,
+        ):
+            assert observer.status().state is MachineState.RUNNING
+            victim.send_signal(signal.SIGKILL)
+            victim.wait(STEP_TIMEOUT_S)
+            paused = observer.wait_for({MachineState.PAUSED}, LOSS_BOUND_S)
+            assert paused.previous_state is MachineState.RUNNING
+            assert not paused.rider_connected
+            assert relays_off(observer)
+    finally:
+        if victim.poll() is None:
+            victim.kill()
+        victim.wait(STEP_TIMEOUT_S)
+        daemon.stop()
+
+
+def read_step(proc: subprocess.Popen[str], step: str) -> dict[str, Any]:
+    """The rider_proc child's report for `step` (the child bounds itself with step timeouts)."""
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        record: dict[str, Any] = json.loads(line)
+        assert "error" not in record, record["error"]
+        if record["step"] == step:
+            return record
+    raise AssertionError(f"rider process ended (code {proc.wait(5)}) before step {step}")

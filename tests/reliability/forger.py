@@ -1,0 +1,101 @@
+"""A hostile peer for the access-control tests: `python -m tests.reliability.forger …`.
+
+It opens its own Zenoh session with the `RIDER_ZENOH_*` credentials it is given (any identity,
+or none), listens on its own endpoint with gossip on (so other peers could be told about it and
+dial it), and pretends to be what it is not: it holds liveliness tokens, answers queries with a
+fake "accepted" reply and publishes a fake IDLE status. It prints `ready <zid>` once everything
+is declared and exits by itself after `--duration` seconds (or on SIGTERM/SIGKILL).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+
+import zenoh
+
+from schema.codec import Format, encode
+from schema.commands import Reply, ReplyCode
+from schema.credentials import RIDER, zenoh_settings
+from schema.status import MachineState, Status
+
+FAKE_TX = "forged"
+FORGED_SEQ = 10**9
+"""The sequence number of every forged status (a real one never gets there)."""
+
+
+def fake_status(machine_id: str) -> bytes:
+    return encode(
+        Status(
+            machine_id=machine_id,
+            state=MachineState.IDLE,
+            seq=FORGED_SEQ,
+            cycle=1,
+            time=time.time(),
+        )
+    )
+
+
+def fake_reply() -> bytes:
+    return encode(
+        Reply(
+            transaction_id=FAKE_TX,
+            command="start",
+            timecode=time.time(),
+            success=True,
+            code=ReplyCode.RESP_START_ACCEPTED,
+        )
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="forger")
+    p.add_argument("--connect", required=True)
+    p.add_argument("--listen", default="tcp/127.0.0.1:0")
+    p.add_argument("--token", action="append", default=[], help="liveliness token to hold")
+    p.add_argument("--queryable", action="append", default=[], help="key to answer")
+    p.add_argument("--put", action="append", default=[], help="status key to publish on")
+    p.add_argument("--machine-id", default="m1")
+    p.add_argument("--duration", type=float, default=30.0)
+    args = p.parse_args(argv)
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([args.listen]))
+    conf.insert_json5("connect/endpoints", json.dumps([args.connect]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "true")
+    conf.insert_json5("transport/link/tx/lease", "1000")
+    for setting, value in zenoh_settings(RIDER).items():
+        conf.insert_json5(setting, value)
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    reply = fake_reply()
+
+    def answer(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, reply, encoding=Format.MSGPACK.value)
+
+    with zenoh.open(conf) as session:
+        held = [session.liveliness().declare_token(k) for k in args.token]
+        held += [session.declare_queryable(k, answer) for k in args.queryable]
+        pubs = [session.declare_publisher(k) for k in args.put]
+        print(f"ready {session.zid()}", flush=True)
+        deadline = time.monotonic() + args.duration
+        while not stop.is_set() and time.monotonic() < deadline:
+            for pub in pubs:
+                pub.put(fake_status(args.machine_id), encoding=Format.MSGPACK.value)
+            stop.wait(0.05)
+        for h in held:
+            h.undeclare()
+        for pub in pubs:
+            pub.undeclare()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
