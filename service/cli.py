@@ -73,6 +73,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(val)
     val.add_argument("--json", action="store_true", help="print the findings as JSON")
 
+    cred = sub.add_parser("credentials", help="make the Zenoh login files of the ACL profiles")
+    cred_sub = cred.add_subparsers(dest="cred_cmd", required=True)
+    init = cred_sub.add_parser(
+        "init", help="random passwords for machine, rider and monitor, and the dictionary"
+    )
+    init.add_argument("directory", type=Path, help="where to write them (created 0700)")
+    init.add_argument("--force", action="store_true", help="replace existing files")
+
     demo = sub.add_parser("demo", help="same as `run --sim --once-session`")
     _add_config_args(demo)
     demo.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
@@ -107,8 +115,30 @@ def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None
         print(f"{path}: {errors} error(s), {warnings} warning(s); {verdict}")
 
 
+def credentials_init(directory: Path, force: bool) -> int:
+    from service.credentials import DICTIONARY, CredentialsExist, init_credentials, password_file
+
+    try:
+        written = init_credentials(directory, force=force)
+    except (CredentialsExist, OSError) as exc:
+        print(f"machine: credentials: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    for path in written:
+        print(f"wrote {path}")
+    d = directory.resolve()
+    print(
+        "machine: MACHINE_ZENOH_DICTIONARY_FILE="
+        f"{d / DICTIONARY} machine run --zenoh-config zenoh/acl.json5\n"
+        f"rider:   RIDER_ZENOH_USER=rider RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'rider')}\n"
+        f"monitor: RIDER_ZENOH_USER=monitor RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'monitor')}"
+    )
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.cmd == "credentials":
+        return credentials_init(args.directory, args.force)
     setup_logging(args.log_level)
     if args.cmd == "validate":
         if args.config is None:

@@ -18,6 +18,7 @@ from hal.base import Hal
 from hal.sim import SimHal
 from schema.findings import Finding, Findings, Severity
 from service import bus as zbus
+from service.bus.exposure import warn_if_exposed
 from service.config import HalBackend, MachineConfig
 from service.fastdata import FastDataServer
 from service.machine import Machine
@@ -98,9 +99,9 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     try:
-        session = zbus.open_session(
-            zbus.zenoh_config(options.zenoh_config, options.listen, options.connect)
-        )
+        zconf = zbus.zenoh_config(options.zenoh_config, options.listen, options.connect)
+        warn_if_exposed(zconf, log)
+        session = zbus.open_session(zconf)
     except Exception as exc:  # noqa: BLE001 - zenoh raises plain ZError; outputs already safe
         log.error("event=zenoh_open_failed error=%r", str(exc))
         hal.close()

@@ -36,6 +36,7 @@ import hal
 from hal.base import HalError
 from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
+from service.bus.exposure import warn_if_exposed
 from service.bus.supervisor import (
     SupervisorBus,
     child_config,
@@ -176,6 +177,7 @@ class Supervisor:
                 )
                 self._cleanup()
                 return EXIT_CONFIG
+            warn_if_exposed(conf, log)
             session = zbus.open_session(conf)
         except CredentialError as exc:
             log.error("event=supervisor_bad_credentials error=%r", str(exc))

@@ -46,7 +46,8 @@ from service.timing import CycleStats
 log = logging.getLogger(__name__)
 
 WILDCARD_CHARS = ("*", "$")
-DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+"""Without --listen or a config file: this host only (beyond it, use an authenticated profile)."""
 
 
 class ParamService(Protocol):

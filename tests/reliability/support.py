@@ -20,13 +20,14 @@ from rider.client import Rider
 from schema.codec import Format, decode
 from schema.credentials import MACHINE, RIDER, env_name
 from schema.status import Status
+from service.credentials import DICTIONARY, IDENTITIES, init_credentials, password_file
 from tests.integration.support import STEP_TIMEOUT_S, write_fast_config
 from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, machine_cmd, write_zenoh_config
 
 PROFILES = REPO / "zenoh"
 ACL_PROFILE = PROFILES / "acl.json5"
 TLS_PROFILE = PROFILES / "tls.json5"
-USERS = ("machine", "rider", "monitor")
+USERS = IDENTITIES
 
 
 # ---------------------------------------------------------------------------- identities
@@ -45,14 +46,11 @@ class Identities:
 
 
 def make_identities(directory: Path) -> Identities:
-    directory.mkdir(parents=True, exist_ok=True)
-    passwords = {user: secrets.token_urlsafe(18) for user in USERS}
-    files: dict[str, Path] = {}
-    for user, password in passwords.items():
-        files[user] = _secret(directory / f"{user}.password", password + "\n")
-    dictionary = _secret(directory / "users", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    """With `machine credentials init`'s own code, so every ACL test also checks its files."""
+    init_credentials(directory, USERS)
+    files = {user: password_file(directory, user) for user in USERS}
     wrong = _secret(directory / "wrong.password", secrets.token_urlsafe(18) + "\n")
-    return Identities(dictionary, files, wrong)
+    return Identities(directory / DICTIONARY, files, wrong)
 
 
 def _secret(path: Path, text: str) -> Path:

@@ -1,0 +1,57 @@
+"""`machine credentials init DIR`: the dictionary and password files of the ACL profiles.
+
+One `<user>.password` file per identity (one line, a random password) and `zenoh-users` (one
+`user:password` line each): exactly what `MACHINE_ZENOH_DICTIONARY_FILE`,
+`<SIDE>_ZENOH_PASSWORD_FILE` and the subjects of zenoh/acl.json5 expect (docs/security.md).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+
+IDENTITIES = ("machine", "rider", "monitor")
+"""The ACL subjects of zenoh/acl.json5 and zenoh/tls.json5, by user name."""
+DICTIONARY = "zenoh-users"
+PASSWORD_BYTES = 24
+"""192 random bits per password (URL-safe base64, no ':' and no spaces)."""
+
+
+class CredentialsExist(FileExistsError):
+    """A file `init` would write exists already (pass force to replace it)."""
+
+
+def password_file(directory: Path, user: str) -> Path:
+    return directory / f"{user}.password"
+
+
+def init_credentials(
+    directory: Path, users: tuple[str, ...] = IDENTITIES, *, force: bool = False
+) -> list[Path]:
+    """Write fresh random credentials (files 0600, directory 0700); the paths written."""
+    targets = [password_file(directory, u) for u in users] + [directory / DICTIONARY]
+    existing = [p for p in targets if p.exists()]
+    if existing and not force:
+        names = ", ".join(str(p) for p in existing)
+        raise CredentialsExist(
+            f"{names}: exists already (--force replaces; every Rider needs the new file)"
+        )
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    passwords = {u: secrets.token_urlsafe(PASSWORD_BYTES) for u in users}
+    for user, password in passwords.items():
+        _write_secret(password_file(directory, user), password + "\n")
+    _write_secret(directory / DICTIONARY, "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    return targets
+
+
+def _write_secret(path: Path, text: str) -> None:
+    """Created 0600 from the start (never readable by others, not even for a moment)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.chmod(tmp, 0o600)  # O_CREAT keeps an existing tmp file's mode
+    os.replace(tmp, path)
