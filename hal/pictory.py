@@ -197,6 +197,7 @@ def layout_findings(data: dict[str, Any], path: str) -> list[Finding]:
                     " reset the driver (`piTest -x`)",
                 )
             )
+    found += _duplicates(data, path)
     for mod in placed:
         if _end(mod) > IMAGE_BYTES:
             found.append(
@@ -210,6 +211,26 @@ def layout_findings(data: dict[str, Any], path: str) -> list[Finding]:
                     " and reset the driver (`piTest -x`)",
                 )
             )
+    return found
+
+
+def _duplicates(data: dict[str, Any], path: str) -> list[Finding]:
+    """IO names used twice: revpimodio2 refuses the whole file over the first one."""
+    seen: dict[str, Module] = {}
+    found: list[Finding] = []
+    for mod in modules(data):
+        for name in mod.ios:
+            if name in seen and len(found) < _SHOWN:
+                found.append(
+                    error(
+                        "revpi_layout",
+                        CONFIG_PATH,
+                        f"{path}: the IO name {name!r} is used on module {seen[name].label} and"
+                        f" again on {mod.label}; IO names must be unique (piCtory renames a copy"
+                        " to e.g. 'I_1_i03'): rename one in piCtory and save",
+                    )
+                )
+            seen.setdefault(name, mod)
     return found
 
 

@@ -58,7 +58,10 @@ _WANTED = {
     IoKind.AI: "an analog input: a 16-bit input word, e.g. InputValue_1 of an AIO",
     IoKind.RO: "a digital output (one bit of an output module, e.g. O_1 of a DIO)",
 }
+_MODULE_FOR = {IoKind.DI: "DI or DIO module", IoKind.RO: "DO, DIO or RO module"}
 _ANALOG_FIRST = frozenset({"AIO", "MIO"})
+_NOT_DIGITAL = ("Status", "Temperature", "Frequency", "LED")
+"""Words in the names of a Compact's or Flat's status bytes: never offered as bit IOs."""
 _LOCK_WAIT_S = 0.05
 """How long a safe write waits for a scan write in progress before writing anyway."""
 _CANDIDATES = 6
@@ -305,11 +308,22 @@ def _missing(
         )
     kind = _KIND[signal]
     near = _candidates(rpi, kind, directions)
+    if near:
+        hint = f"; candidates: {', '.join(near)}"
+        if any(n.endswith(".0..7") for n in near):
+            hint += (
+                " (a RevPi Compact or Flat carries its digital IO as whole bytes: map one bit"
+                " as 'NAME.N', e.g. '" + next(n for n in near if n.endswith(".0..7"))[:-5] + ".0')"
+            )
+    elif kind is IoKind.AI:
+        hint = "; this piCtory config has no analog input word at all: add an AIO (or MIO) module"
+    else:
+        hint = f"; this piCtory config has no IO of that kind at all: add a {_MODULE_FOR[kind]}"
     return _error(
         "io_missing",
         path,
         f"{signal.value} is mapped to {channel!r}, but the piCtory config has no IO of that"
-        f" name; it must be {_WANTED[kind]}" + (f"; candidates: {', '.join(near)}" if near else ""),
+        f" name; it must be {_WANTED[kind]}{hint}",
     )
 
 
@@ -381,7 +395,8 @@ def _candidates(rpi: Any, kind: IoKind, directions: tuple[int, int]) -> list[str
         elif kind is not IoKind.AI and _product_code(io) in BYTE_IO_BASES:
             whole = io._bitshift is None and int(io._bitlength) == 8
             want = directions[1] if kind is IoKind.RO else directions[0]
-            if whole and io.type == want:
+            status = any(word in io.name for word in _NOT_DIGITAL)
+            if whole and io.type == want and not status:
                 names.append((1, f"{io.name}.0..7"))
     ordered = [n for _, n in sorted(names, key=lambda p: p[0])]
     if len(ordered) > _CANDIDATES:

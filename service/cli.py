@@ -11,7 +11,7 @@ from typing import TextIO
 from schema.findings import Findings, Severity
 from service.config import HalBackend, MachineConfig
 from service.logfmt import setup_logging
-from service.validate import findings_of, hardware_findings, validate_file
+from service.validate import finding_line, findings_of, hardware_findings, validate_file
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -23,12 +23,18 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
 
+def _add_hal_args(p: argparse.ArgumentParser) -> None:
+    hal = p.add_mutually_exclusive_group()
+    hal.add_argument("--sim", action="store_const", const="sim", dest="hal", help="simulator HAL")
+    hal.add_argument(
+        "--hal", choices=[b.value for b in HalBackend], help="HAL backend (overrides hal.backend)"
+    )
+
+
 def _add_run_args(run: argparse.ArgumentParser) -> None:
     """What `run` takes; `supervise` takes the same and passes the result to its child."""
     _add_config_args(run)
-    hal = run.add_mutually_exclusive_group()
-    hal.add_argument("--sim", action="store_const", const="sim", dest="hal", help="simulator HAL")
-    hal.add_argument("--hal", choices=[b.value for b in HalBackend], help="HAL backend")
+    _add_hal_args(run)
     run.add_argument("--zenoh-config", type=Path, help="zenoh.json5 to open the session with")
     run.add_argument(
         "--listen",
@@ -71,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     val = sub.add_parser("validate", help="check a machine config and print every finding")
     _add_config_args(val)
+    _add_hal_args(val)
     val.add_argument("--json", action="store_true", help="print the findings as JSON")
 
     cred = sub.add_parser("credentials", help="make the Zenoh login files of the ACL profiles")
@@ -93,11 +100,16 @@ def load_config(path: Path | None, stream: TextIO = sys.stderr) -> MachineConfig
         return MachineConfig()
     config, findings = validate_file(path)
     for f in findings.findings:
-        print(
-            f"{path}: {f.severity}: {f.category} at {f.path or '/'}: {f.message}",
-            file=stream,
-        )
+        print(finding_line(str(path), f), file=stream)
     return config
+
+
+def check_hardware(config: MachineConfig, source: str, stream: TextIO = sys.stderr) -> bool:
+    """Print the host check's findings (`hardware_findings`); False when any is an error."""
+    found = hardware_findings(config)
+    for f in found:
+        print(finding_line(source, f), file=stream)
+    return findings_of(found).ok
 
 
 def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None:
@@ -112,7 +124,7 @@ def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None
         errors = sum(f.severity is Severity.ERROR for f in findings.findings)
         warnings = len(findings.findings) - errors
         verdict = "the daemon will not start" if errors else "the daemon will start"
-        print(f"{path}: {errors} error(s), {warnings} warning(s); {verdict}")
+        print(f"{path or 'defaults'}: {errors} error(s), {warnings} warning(s); {verdict}")
 
 
 def credentials_init(directory: Path, force: bool) -> int:
@@ -141,14 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         return credentials_init(args.directory, args.force)
     setup_logging(args.log_level)
     if args.cmd == "validate":
-        if args.config is None:
-            print_findings(Findings(ok=True, findings=[]), None, args.json)
-            return EXIT_OK
-        config, findings = validate_file(args.config)
-        if config is not None:
-            findings = findings_of([*findings.findings, *hardware_findings(config)])
-        print_findings(findings, args.config, args.json)
-        return EXIT_OK if findings.ok else EXIT_CONFIG
+        return _validate(args.config, args.hal, args.json)
     config = load_config(args.config)
     if config is None:
         return EXIT_CONFIG
@@ -174,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"machine: bad command-line override: {exc}", file=sys.stderr)
         return EXIT_CONFIG
+    # The backend's own check, on the config that will run: the same findings, the same way,
+    # for `run` and `supervise`, before anything opens.
+    if not check_hardware(config, str(args.config or "machine")):
+        return EXIT_CONFIG
     options = DaemonOptions(
         zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect
     )
@@ -188,6 +197,21 @@ def main(argv: list[str] | None = None) -> int:
         )
         return run_supervisor(config, options, sup)
     return run_daemon(config, options)
+
+
+def _validate(path: Path | None, hal: str | None, as_json: bool) -> int:
+    """`machine validate`: the file's findings and, for the backend that would run, the host's."""
+    if path is None:
+        config: MachineConfig | None = MachineConfig()
+        findings = Findings(ok=True, findings=[])
+    else:
+        config, findings = validate_file(path)
+    if config is not None:
+        if hal:
+            config = config.with_overrides(hal={"backend": hal})
+        findings = findings_of([*findings.findings, *hardware_findings(config)])
+    print_findings(findings, path, as_json)
+    return EXIT_OK if findings.ok else EXIT_CONFIG
 
 
 if __name__ == "__main__":

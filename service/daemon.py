@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 import tomllib
@@ -14,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
-from hal.base import Hal
+from hal.base import Hal, HalConfigError, HalError
 from hal.sim import SimHal
 from schema.findings import Finding, Findings, Severity
 from service import bus as zbus
@@ -32,13 +33,14 @@ from service.runner import (
     tune_thread,
 )
 from service.timing import CycleStats
-from service.validate import semantic_findings, validate_data
+from service.validate import finding_line, semantic_findings, validate_data
 from service.watchdog import GuardedHal, Watchdog
 
 log = logging.getLogger("machine")
 
 EXIT_OK = 0
 EXIT_FAILED = 1
+EXIT_CONFIG = 2
 
 
 @dataclass
@@ -60,6 +62,27 @@ def make_hal(config: MachineConfig, clock: object) -> Hal:
     return SimHal(time.monotonic, config.hal.iomap, config.hal.sim)
 
 
+def open_hal(config: MachineConfig, clock: object, source: str = "machine") -> Hal | None:
+    """The backend, or None after printing why it cannot open as findings on stderr."""
+    try:
+        return make_hal(config, clock)
+    except HalConfigError as exc:
+        found = exc.findings
+    except (HalError, OSError) as exc:  # anything else the backend meets while it opens
+        found = [
+            Finding(
+                category="hal",
+                severity=Severity.ERROR,
+                path="/hal/backend",
+                message=f"the {config.hal.backend} backend cannot open: {exc}",
+            )
+        ]
+    for f in found:
+        print(finding_line(source, f), file=sys.stderr)
+    log.error("event=hal_failed backend=%s findings=%d", config.hal.backend, len(found))
+    return None
+
+
 def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     """Run until SIGTERM/SIGINT; returns the process exit code."""
     supervisor = os.environ.get(SUPERVISOR_PID_ENV)
@@ -70,7 +93,9 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         return EXIT_FAILED
     clock = time.monotonic
     wall_offset = time.time() - clock()
-    raw_hal = make_hal(config, clock)
+    raw_hal = open_hal(config, clock)
+    if raw_hal is None:
+        return EXIT_CONFIG
     raw_hal.force_all_outputs_safe()
     hal = GuardedHal(raw_hal)
     writer = BackgroundWriter()

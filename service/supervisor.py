@@ -33,7 +33,7 @@ from types import FrameType
 from typing import Any, Protocol
 
 import hal
-from hal.base import HalError
+from hal.base import HalConfigError, HalError
 from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
@@ -47,6 +47,7 @@ from service.config import HalBackend, MachineConfig
 from service.daemon import DaemonOptions
 from service.runner import SUPERVISOR_PID_ENV
 from service.simworld import SimWorld, make_image
+from service.validate import finding_line
 
 log = logging.getLogger("machine.supervisor")
 
@@ -161,7 +162,13 @@ class Supervisor:
             signal.signal(sig, self._on_signal)
         try:
             child_cfg = self._prepare_hal()
-        except (HalError, OSError, ValueError) as exc:  # the IO map, image or config: fatal
+        except HalConfigError as exc:  # the IO map, image or config: fatal, said as `run` says it
+            for f in exc.findings:
+                print(finding_line("machine", f), file=sys.stderr)
+            log.error("event=supervisor_hal_failed error=%r", str(exc))
+            self._cleanup()
+            return EXIT_CONFIG
+        except (HalError, OSError, ValueError) as exc:
             log.error("event=supervisor_hal_failed error=%r", str(exc))
             self._cleanup()
             return EXIT_CONFIG

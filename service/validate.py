@@ -386,8 +386,9 @@ def _one(category: Category, message: str) -> Findings:
 def hardware_findings(config: MachineConfig) -> list[Finding]:
     """What the chosen backend finds on this host (piCtory config, process image, IO names).
 
-    Not part of `validate_data`: it reads files of the host, and `machine run --hal` may pick
-    another backend than the file does. `machine validate` adds it to the report.
+    Not part of `validate_data`: it reads files of the host, and `--hal` may pick another
+    backend than the file does. `machine validate` adds it to the report; `machine run` and
+    `machine supervise` run it (on the config with their overrides) before they start.
     """
     if config.hal.backend is not HalBackend.REVPI:
         return []
@@ -395,3 +396,8 @@ def hardware_findings(config: MachineConfig) -> list[Finding]:
 
     revpi = config.hal.revpi
     return check_revpi_io(config.hal.iomap, revpi.configrsc, revpi.procimg)
+
+
+def finding_line(source: str, f: Finding) -> str:
+    """One finding as `machine run`, `supervise` and the config loader print it on stderr."""
+    return f"{source}: {f.severity}: {f.category} at {f.path or '/'}: {f.message}"

@@ -237,14 +237,14 @@ _ids = itertools.count(1)
 class RevPiRide:
     """The machine on `RevPiHal`, with `ProcImgSim` as the world, on one fake clock."""
 
-    def __init__(self, directory: Path) -> None:
-        self.config = MachineConfig()
+    def __init__(self, directory: Path, iomap: IoMap = MAP, configrsc: str = CONFIG) -> None:
+        self.config = MachineConfig().with_overrides(hal={"iomap": iomap.model_dump()})
         self.image = make_image(directory)
         self.clock = FakeClock()
         self.period = self.config.loop.period_s
         iomap = self.config.hal.iomap
-        self.sim = ProcImgSim(iomap, self.image, CONFIG, self.clock, self.config.hal.sim)
-        self.hal = RevPiHal(iomap, self.image, CONFIG)
+        self.sim = ProcImgSim(iomap, self.image, configrsc, self.clock, self.config.hal.sim)
+        self.hal = RevPiHal(iomap, self.image, configrsc)
         self.machine = Machine(self.config, self.hal, now=self.clock(), on_transition=None)
         self.loop = self.machine.loop
         self.control = self.machine.control
