@@ -12,6 +12,7 @@ import sys
 import time
 import tomllib
 from collections.abc import Callable, Sequence
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from rider.client import (
 from schema.axes import AxisRecord, PnStatus
 from schema.commands import CheckResult, Reply, Session
 from schema.diag import CycleDiag
+from schema.events import Event, EventKind, EventQuery, EventSummary, describe
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamValue
@@ -132,6 +134,24 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "args", nargs="*", help="e.g. `home rotate open`, `tilt_ai frozen`, `stall tilt`"
     )
+    ev = sub.add_parser("events", help="the machine's event history (what happened, when, who)")
+    ev.add_argument(
+        "--since", help="a seq number, an age (30m, 12h, 7d) or a local time (2026-11-27T14:00)"
+    )
+    ev.add_argument("--until", help="as --since")
+    ev.add_argument(
+        "--kind",
+        action="append",
+        default=[],
+        help=f"only these kinds (repeatable or comma-separated): {', '.join(EventKind)}",
+    )
+    ev.add_argument("--last", type=int, help="only the newest N (default 20 without --since)")
+    ev.add_argument("--follow", action="store_true", help="then print new events as they happen")
+    ev.add_argument("--for", dest="duration", type=float, help="with --follow: stop after S s")
+    ev.add_argument(
+        "--summary", action="store_true", help="sessions, ride time, E-stops, faults by code"
+    )
+    ev.add_argument("--json", action="store_true", default=argparse.SUPPRESS, help="JSON lines")
     # These two parse their own options (see rider/fastdata.py and rider/ui/app.py).
     sub.add_parser("fastdata", help="read the FastData UDP axis stream", add_help=False)
     sub.add_parser("ui", help="serve the operator web UI", add_help=False)
@@ -335,6 +355,8 @@ def run(args: argparse.Namespace, rider: Rider) -> int:
         return machines(args, rider)
     elif cmd == "sim":
         return sim(args, rider)
+    elif cmd == "events":
+        return events(args, rider)
     return EXIT_OK
 
 
@@ -443,6 +465,101 @@ def sim(args: argparse.Namespace, rider: Rider) -> int:
     except IndexError as exc:
         raise UsageError(f"sim {f}: missing argument") from exc
     emit(world, args.json, lambda: world.model_dump_json(indent=2))
+    return EXIT_OK
+
+
+AGE_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 7 * 86400.0}
+
+
+def parse_point(text: str, now: float) -> tuple[int | None, float | None]:
+    """`--since`/`--until`: (seq, None) for a number, (None, Unix time) for an age or a time."""
+    text = text.strip()
+    if text.isdigit():
+        return int(text), None
+    unit = AGE_UNITS.get(text[-1:].lower())
+    if unit is not None:
+        try:
+            return None, now - float(text[:-1]) * unit
+        except ValueError:
+            pass
+    try:
+        return None, datetime.fromisoformat(text).timestamp()
+    except ValueError:
+        raise UsageError(
+            f"{text!r} is neither a seq number, an age (30m, 12h, 7d) nor a time (2026-11-27T14:00)"
+        ) from None
+
+
+def event_query(args: argparse.Namespace, now: float) -> EventQuery:
+    since = until = None
+    since_time = until_time = None
+    if args.since:
+        since, since_time = parse_point(args.since, now)
+    if args.until:
+        until, until_time = parse_point(args.until, now)
+    kinds = tuple(k for arg in args.kind for k in arg.split(",") if k)
+    known = {k.value for k in EventKind}
+    for kind in kinds:
+        if kind not in known:
+            raise UsageError(f"unknown event kind {kind!r}; known: {', '.join(sorted(known))}")
+    last = args.last
+    if last is None and args.since is None and not args.summary:
+        last = 20
+    return EventQuery(
+        since=since,
+        until=until,
+        since_time=since_time,
+        until_time=until_time,
+        kinds=kinds,
+        last=last,
+    )
+
+
+def fmt_event(e: Event, with_machine: bool = False) -> str:
+    stamp = datetime.fromtimestamp(e.time).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
+    who = f"{e.machine_id:8} " if with_machine else ""
+    return f"{stamp} {who}#{e.seq:<6} {e.kind:15} {describe(e.details)}"
+
+
+def fmt_summary(s: EventSummary) -> str:
+    faults = ", ".join(f"{code} x{n}" for code, n in s.faults_by_code.items()) or "none"
+    rows = [
+        ("machine", s.machine_id),
+        ("events", str(s.events)),
+        (
+            "sessions",
+            f"{s.sessions_started} started, {s.sessions_done} done, {s.sessions_stopped}"
+            f" stopped, {s.sessions_faulted} faulted",
+        ),
+        ("ride time", f"{s.ride_time_s:.1f} s"),
+        ("e-stops", str(s.estops)),
+        ("faults", faults),
+        ("commands", f"{s.commands} ({s.commands_refused} refused)"),
+        ("starts", f"{s.daemon_starts} ({s.unclean_stops} after an unclean stop)"),
+    ]
+    if s.dropped:
+        rows.append(("dropped", f"{s.dropped} events (queue full)"))
+    return "\n".join(f"{k:<9}  {v}" for k, v in rows)
+
+
+def events(args: argparse.Namespace, rider: Rider) -> int:
+    now = time.time()
+    query = event_query(args, now)
+    many = "*" in rider.machine_id
+    if args.summary:
+        summaries = rider.events_summary(query.since_time, query.until_time)
+        emit(summaries, args.json, lambda: "\n\n".join(fmt_summary(x) for x in summaries))
+        return EXIT_OK
+    if not args.follow:
+        for event in rider.events(query):
+            print(event.model_dump_json() if args.json else fmt_event(event, many))
+        return EXIT_OK
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    for item in rider.follow_events(query, timeout=0.5):
+        if item is not None:
+            print(item.model_dump_json() if args.json else fmt_event(item, many), flush=True)
+        if deadline is not None and time.monotonic() > deadline:
+            break
     return EXIT_OK
 
 

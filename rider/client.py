@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import itertools
 import json
 import logging
@@ -37,6 +38,7 @@ from schema.commands import (
 from schema.credentials import RIDER, CredentialError, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
+from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
@@ -337,6 +339,99 @@ class Rider:
         body = None if fault == "world" else pack(payload)
         return self._get_one(f"{self.base}/sim/{fault}", body, SimWorldState, None)
 
+    # ----------------------------------------------------------------------------- events
+    def event_pages(self, query: EventQuery | None = None) -> list[EventPage]:
+        """Every page of the history `query` selects, from this machine, or from every machine
+        that answers when the machine id is `*` (each machine's pages in order)."""
+        query = query or EventQuery()
+        pages: list[EventPage] = []
+        pending = [(self.base, query)]
+        while pending:
+            base, q = pending.pop(0)
+            for page in self._event_query(base, q):
+                pages.append(page)
+                if page.more and page.next_since is not None:
+                    nxt = dataclasses.replace(q, since=page.next_since)
+                    pending.append((f"{self.key_prefix}/{page.machine_id}", nxt))
+        return pages
+
+    def events(self, query: EventQuery | None = None, **criteria: Any) -> list[Event]:
+        """The events `query` (or `EventQuery(**criteria)`) selects, oldest first; with the
+        machine id `*`, every machine's, ordered by time."""
+        query = query or EventQuery(**criteria)
+        found = [e for page in self.event_pages(query) for e in page.events]
+        if "*" in self.machine_id:
+            found.sort(key=lambda e: (e.time, e.machine_id, e.seq))
+        return found
+
+    def events_summary(
+        self, since_time: float | None = None, until_time: float | None = None
+    ) -> list[EventSummary]:
+        """Sessions, ride time, E-stops and faults by code over a time range, per machine."""
+        q = EventQuery(since_time=since_time, until_time=until_time)
+        by_machine: dict[str, list[Event]] = {}
+        for page in self.event_pages(q):
+            by_machine.setdefault(page.machine_id, []).extend(page.events)
+        return [
+            summarize(mid, evs, since_time, until_time) for mid, evs in sorted(by_machine.items())
+        ]
+
+    def follow_events(
+        self, query: EventQuery | None = None, *, timeout: float | None = None
+    ) -> Iterator[Event | None]:
+        """The history `query` selects, then each new event as it is written; None after each
+        quiet `timeout` (None: wait forever), so the caller can check its own deadline.
+
+        The subscription starts before the history is read, so nothing falls in between.
+        """
+        query = query or EventQuery()
+        q: queue.Queue[zenoh.Sample] = queue.Queue(maxsize=65536)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            with contextlib.suppress(queue.Full):
+                q.put_nowait(sample)
+
+        with self._declare(("events/*",), on_sample):
+            last: dict[str, int] = {}
+            for event in self.events(query):
+                last[event.machine_id] = event.seq
+                yield event
+            while True:
+                try:
+                    sample = q.get(timeout=timeout)
+                except queue.Empty:
+                    yield None
+                    continue
+                try:
+                    event = self._decode_sample(sample, Event)
+                except BadReply as exc:
+                    log.warning("event=bad_event key=%s error=%r", sample.key_expr, str(exc))
+                    continue
+                if event.seq <= last.get(event.machine_id, -1) or not query.matches(event):
+                    continue
+                last[event.machine_id] = event.seq
+                yield event
+
+    def _event_query(self, base: str, q: EventQuery) -> list[EventPage]:
+        key = f"{base}/events"
+        params = q.params()
+        selector = f"{key}?{params}" if params else key
+        if "*" not in base:
+            return [self._get_one(selector, None, EventPage, None)]
+        deadline = time.monotonic() + self.timeout
+        while True:
+            replies = self._get(selector, None, None)
+            if replies or time.monotonic() > deadline - EMPTY_RETRY_S:
+                return [self._decode(r, EventPage) for r in replies]
+            time.sleep(EMPTY_RETRY_S)
+
+    @staticmethod
+    def _decode_sample(sample: zenoh.Sample, model: type[M]) -> M:
+        try:
+            return decode(model, sample.payload.to_bytes(), _format_of(sample.encoding))
+        except DecodeError as exc:
+            raise BadReply(f"{sample.key_expr}: {exc.error.message}") from exc
+
     def machines(self, with_status: bool = True) -> list[MachineInfo]:
         """Machines alive on the network (their liveliness tokens), with state and uptime.
 
@@ -524,6 +619,9 @@ class Rider:
         if payload is not None:
             kwargs["payload"] = payload
             kwargs["encoding"] = Format.MSGPACK.value
+            # Who asked, for the machine's event history (the payload's `rider` field means
+            # "watch me" and stays unset for one-shot commands).
+            kwargs["attachment"] = f"rider={self.rider_id}".encode()
         with _bus_errors(f"cannot query {key}"):
             return list(self.session.get(key, **kwargs))
 

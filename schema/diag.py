@@ -16,6 +16,18 @@ class TimingStats(OpenWireModel):
     p99: float = 0.0
 
 
+class EventsDiag(OpenWireModel):
+    """The event log's writer: events written, queued, dropped (queue full), lost (write failed)."""
+
+    written: int = 0
+    queued: int = 0
+    dropped: int = 0
+    lost: int = 0
+    failures: int = 0
+    last_error: str | None = None
+    file_bytes: int = 0
+
+
 class CycleDiag(OpenWireModel):
     """A PLC task monitor: period, execution time, wake-up jitter, overruns, missed cycles."""
 
@@ -29,3 +41,4 @@ class CycleDiag(OpenWireModel):
     window: int
     since: float
     time: float
+    events: EventsDiag | None = None

@@ -91,6 +91,18 @@ class BusSection(_Section):
     inbox_capacity: int = Field(default=1024, ge=1, le=1_000_000)
 
 
+class EventsSection(_Section):
+    """The event history in `<data_dir>/events.db`: queue, batching, retention, query pages."""
+
+    enabled: bool = True
+    queue_capacity: int = Field(default=4096, ge=16, le=1_000_000)
+    batch_max: int = Field(default=512, ge=1, le=100_000)
+    max_age_days: float = Field(default=90.0, gt=0, le=36_500)
+    max_mb: float = Field(default=64.0, ge=1, le=1_000_000)
+    prune_every_s: float = Field(default=60.0, ge=0.1, le=86_400)
+    page_max: int = Field(default=500, ge=1, le=10_000)
+
+
 class HalBackend(StrEnum):
     SIM = "sim"
     REVPI = "revpi"
@@ -127,6 +139,7 @@ class MachineConfig(_Section):
     bus: BusSection = BusSection()
     hal: HalSection = HalSection()
     fastdata: FastDataSection = FastDataSection()
+    events: EventsSection = EventsSection()
     data_dir: str = Field(default="data", min_length=1)
 
     @property

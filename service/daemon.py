@@ -17,10 +17,12 @@ from types import FrameType
 
 from hal.base import Hal, HalConfigError, HalError
 from hal.sim import SimHal
+from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
 from schema.findings import Finding, Findings, Severity
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.config import HalBackend, MachineConfig
+from service.eventlog import EVENTS_FILE, EventLog
 from service.fastdata import FastDataServer
 from service.machine import Machine
 from service.params import ParamRegistry
@@ -105,7 +107,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         log.warning("event=params_load detail=%r", warning)
     config = registry.config  # persisted online values survive a restart
     stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
-    machine = Machine(config, hal, now=clock(), wall_offset=wall_offset, store=store)
+    events = _event_log(config)
+    machine = Machine(config, hal, now=clock(), wall_offset=wall_offset, store=store, events=events)
     loop = machine.loop
     loop.guard = hal
     loop.params = registry
@@ -114,9 +117,11 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
 
     exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
     exit_deadline.daemon = True
+    reason = ["runner stopped"]
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         log.info("event=signal signal=%s", signal.Signals(signum).name)
+        reason[0] = f"signal {signal.Signals(signum).name}"
         runner.stop()
         with contextlib.suppress(RuntimeError):  # armed by an earlier signal already
             exit_deadline.start()
@@ -131,6 +136,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         log.error("event=zenoh_open_failed error=%r", str(exc))
         hal.close()
         writer.close()
+        _close_event_log(events, f"zenoh session could not open: {exc}", EXIT_FAILED)
         return EXIT_FAILED
     bus = zbus.ZenohBus(
         session,
@@ -140,15 +146,22 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         sim=raw_hal if isinstance(raw_hal, SimHal) else None,
         params=registry,
         check_config=lambda candidate: _check(registry.config, candidate),
+        events=events,
     )
     loop.sink = bus
+
+    def on_trip(stalled_s: float) -> None:
+        bus.publish_watchdog_trip(stalled_s)
+        if events is not None:
+            events.emit_now(WatchdogEvent(stalled_s=stalled_s))
+
     watchdog = Watchdog(
         lambda: runner.heartbeat,
         hal,
         config.loop.period_s,
         config.loop.watchdog_periods,
         config.loop.watchdog_min_s,
-        on_trip=bus.publish_watchdog_trip,
+        on_trip=on_trip,
     )
     fastdata: FastDataServer | None = None
     code = EXIT_OK
@@ -176,6 +189,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     except LoopFailed as exc:
         log.error("event=loop_failed error=%r", str(exc))
         code = EXIT_FAILED
+        reason[0] = f"loop failed: {exc}"
     finally:
         # Outputs first: nothing below may delay them.
         loop.go_safe()
@@ -183,6 +197,10 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         if fastdata is not None:
             fastdata.close()
         loop.reject_pending("machine daemon is shutting down")
+        if events is not None:
+            # Written and published while the bus is still up.
+            events.emit_now(DaemonStopEvent(reason=reason[0], exit_code=code))
+            events.flush(timeout=1.0)
         bus.close()
         closed = zbus.close_session(session)
         if not closed:
@@ -193,10 +211,35 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         hal.close()
         writer.flush()
         writer.close()
+        if events is not None:
+            events.close()
         log.info("event=stopped code=%d cycles=%d", code, stats.cycles)
         if closed:
             exit_deadline.cancel()
     return code
+
+
+def _event_log(config: MachineConfig) -> EventLog | None:
+    """The event history, started, with this start recorded first; None when disabled."""
+    if not config.events.enabled:
+        return None
+    events = EventLog(Path(config.data_dir) / EVENTS_FILE, config.machine.id, config.events)
+    events.start()
+    events.emit_now(
+        DaemonStartEvent(
+            pid=os.getpid(),
+            hal=str(config.hal.backend),
+            period_s=config.loop.period_s,
+            previous_stop_clean=events.previous_stop_clean,
+        )
+    )
+    return events
+
+
+def _close_event_log(events: EventLog | None, reason: str, code: int) -> None:
+    if events is not None:
+        events.emit_now(DaemonStopEvent(reason=reason, exit_code=code))
+        events.close()
 
 
 SHUTDOWN_DEADLINE_S = 5.0

@@ -24,6 +24,7 @@ from service.axes import AxisTracker
 from service.config import MachineConfig
 from service.control import ControlAPI
 from service.devices import Devices
+from service.events import EventRecorder, NullEventSink
 from service.io import AI, IoPoints, ProcessImage
 from service.transactions import TransactionLog
 from service.watchdog import GuardedHal
@@ -77,9 +78,11 @@ class PendingCommand:
     command: Command
     request: CommandRequest
     respond: Callable[[Reply], None]
+    sender: str | None = None
+    """The sending session's id, for the event history (the Rider attaches it)."""
 
     def run(self, loop: ScanLoop, now: float) -> None:
-        self.respond(loop.execute(self.command, self.request, now))
+        self.respond(loop.execute(self.command, self.request, now, sender=self.sender))
 
     def reject(self, error: Error) -> None:
         self.respond(
@@ -168,6 +171,7 @@ class ScanLoop:
         started_at: float = 0.0,
         guard: GuardedHal | None = None,
         params: LiveConfig | None = None,
+        recorder: EventRecorder | None = None,
     ) -> None:
         self.hal = hal
         self.guard = guard
@@ -183,6 +187,7 @@ class ScanLoop:
         self.transactions = TransactionLog(config.bus.transaction_window)
         self.axes = AxisTracker(self.devices, config)
         self.published = Published()
+        self.recorder = recorder or EventRecorder(NullEventSink(), wall_offset=control.wall_offset)
         self.cycle = 0
         self.commands_handled = 0
         self.started_at = started_at
@@ -197,6 +202,7 @@ class ScanLoop:
     def step(self, now: float) -> None:
         """One scan cycle, in the design's order."""
         self.cycle += 1
+        self.recorder.cycle = self.cycle
         if self.params is not None and self.params.generation != self._params_generation:
             self.apply_config(self.params.config)
         self.image.inputs = self.hal.scan_inputs()
@@ -216,12 +222,14 @@ class ScanLoop:
             self.control.on_estop(now)
             self.image.all_outputs_off()
             self.hal.force_all_outputs_safe()
+            self.recorder.observe(self.control, now)
             self.service_inbox(now)  # commands are refused with ESTOP_ACTIVE, checks answered
             self._publish(now)
             return
         self.service_inbox(now)
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
+        self.recorder.observe(self.control, now)
         self._publish(now)
 
     def apply_config(self, config: MachineConfig) -> None:
@@ -239,15 +247,21 @@ class ScanLoop:
             task.run(self, now)
         return len(tasks)
 
-    def execute(self, command: Command, request: CommandRequest, now: float) -> Reply:
+    def execute(
+        self, command: Command, request: CommandRequest, now: float, *, sender: str | None = None
+    ) -> Reply:
         """One command with at-most-once semantics by transaction id."""
         self.commands_handled += 1
         stamp = now + self.wall_offset
         repeat = self.transactions.lookup(request.transaction_id, command.value, stamp)
         if repeat is not None:
+            self.recorder.command(
+                self.control, command, request, repeat, now, sender=sender, repeat=True
+            )
             return repeat
         reply = self.control.handle(command, request, now)
         self.transactions.record(request.transaction_id, command.value, reply)
+        self.recorder.command(self.control, command, request, reply, now, sender=sender)
         return reply
 
     def go_safe(self) -> None:

@@ -9,6 +9,7 @@ from hal.base import Hal
 from service.config import MachineConfig
 from service.control import ControlAPI, Transition
 from service.devices import Calibration, Devices
+from service.events import EventRecorder, EventSink, NullEventSink
 from service.io import IoPoints, ProcessImage
 from service.loop import LoopSink, ScanLoop
 from service.persist import CalibrationStore
@@ -33,7 +34,9 @@ class Machine:
         store: CalibrationStore | None = None,
         sink: LoopSink | None = None,
         on_transition: Callable[[Transition], None] | None = log_transition,
+        events: EventSink | None = None,
     ) -> None:
+        """`events` receives the event history (`service/events.py`); it must never block."""
         hal.force_all_outputs_safe()
         self.config = config
         self.hal = hal
@@ -49,13 +52,31 @@ class Machine:
                 log.warning("event=calibration_load_failed detail=%r", warning)
         else:
             calibration = Calibration()
+        self.recorder = EventRecorder(
+            events or NullEventSink(), wall_offset=wall_offset, persisted=store is not None
+        )
         self.control = ControlAPI(
             devices=self.devices,
             config=config,
             calibration=calibration,
             on_calibrated=store.save if store is not None else None,
-            on_transition=on_transition,
+            on_transition=_both(on_transition, self.recorder.transition),
             wall_offset=wall_offset,
             warnings=warnings,
         )
-        self.loop = ScanLoop(hal, self.control, config, sink=sink, started_at=now)
+        self.loop = ScanLoop(
+            hal, self.control, config, sink=sink, started_at=now, recorder=self.recorder
+        )
+
+
+def _both(
+    first: Callable[[Transition], None] | None, second: Callable[[Transition], None]
+) -> Callable[[Transition], None]:
+    if first is None:
+        return second
+
+    def both(t: Transition) -> None:
+        first(t)
+        second(t)
+
+    return both

@@ -41,6 +41,7 @@ class Category(StrEnum):
     SIMULATOR = "simulator"
     SESSION = "session"
     BUS = "bus"
+    EVENTS = "events"
 
 
 _RANGE_TYPES = {
@@ -304,12 +305,35 @@ def _bus(config: MachineConfig) -> Iterator[Finding]:
             )
 
 
+def _events(config: MachineConfig) -> Iterator[Finding]:
+    ev = config.events
+    if ev.batch_max > ev.queue_capacity:
+        yield _warning(
+            Category.EVENTS,
+            "/events/batch_max",
+            f"batch_max {ev.batch_max} is larger than queue_capacity {ev.queue_capacity}:"
+            " a batch can never fill",
+        )
+    if ev.max_age_days < 1:
+        yield _warning(
+            Category.EVENTS,
+            "/events/max_age_days",
+            f"{ev.max_age_days:g} days of history cannot answer 'what happened yesterday?'",
+        )
+    if ev.prune_every_s > ev.max_age_days * 86_400:
+        yield _error(
+            Category.EVENTS,
+            "/events/prune_every_s",
+            f"pruning every {ev.prune_every_s:g} s cannot hold a {ev.max_age_days:g}-day retention",
+        )
+
+
 def semantic_findings(config: MachineConfig) -> list[Finding]:
     """Checks across fields that the schema alone cannot express (physics, wiring, timing)."""
     out: list[Finding] = []
     for check in (_io_conflicts(config.hal.iomap), _ranges(config), _scan_period(config)):
         out.extend(check)
-    for rule in (_timeouts, _calibration, _simulator, _session, _bus):
+    for rule in (_timeouts, _calibration, _simulator, _session, _bus, _events):
         out.extend(rule(config))
     return out
 

@@ -18,6 +18,7 @@ from schema.status import MachineState, Status
 from service.config import MachineConfig
 from service.control import Transition
 from service.devices import Calibration
+from service.events import EventSink
 from service.loop import PendingCommand
 from service.machine import Machine
 from service.persist import CalibrationStore
@@ -83,6 +84,7 @@ class Rig:
         physics: PhysicsParams | None = None,
         calibration: Calibration | None = None,
         clock: FakeClock | None = None,
+        events: EventSink | None = None,
     ) -> None:
         """`calibration` powers the machine up with that calibration already stored."""
         if data_dir is not None and calibration is not None:
@@ -102,6 +104,7 @@ class Rig:
             store=self.store or self.memory,  # type: ignore[arg-type]
             sink=self.sink,
             on_transition=self.transitions.append,
+            events=events,
         )
         self.loop = self.machine.loop
         self.control = self.machine.control

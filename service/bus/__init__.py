@@ -32,7 +32,9 @@ from schema.codec import (
 )
 from schema.commands import REQUEST_MODELS, Command, Reply, transaction_id_of
 from schema.credentials import MACHINE, zenoh_settings
+from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
+from schema.events import Event, EventPage, EventQuery, ParamEvent, QueryError, RiderEvent
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
@@ -40,6 +42,7 @@ from schema.status import Fault, FaultCode, MachineState, Status
 from service import simfaults
 from service.config import MachineConfig
 from service.errors import MachineError
+from service.eventlog import EventLog
 from service.loop import LoopCall, PendingCommand, ScanLoop
 from service.timing import CycleStats
 
@@ -99,6 +102,7 @@ class ZenohBus:
         params: ParamService | None = None,
         check_config: ConfigChecker | None = None,
         wall: Callable[[], float] = time.time,
+        events: EventLog | None = None,
     ) -> None:
         self.session = session
         self.loop = loop
@@ -107,6 +111,7 @@ class ZenohBus:
         self.sim = sim
         self.params = params
         self.check_config = check_config
+        self.events = events
         self.wall = wall
         self.base = config.key_base
         self._declared: list[Any] = []
@@ -136,6 +141,9 @@ class ZenohBus:
             self._declared.append(s.declare_queryable(f"{b}/params/**", self._on_params))
         if self.sim is not None:
             self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        if self.events is not None:
+            self._declared.append(s.declare_queryable(f"{b}/events", self._on_events))
+            self.events.subscribe(self._publish_events)
         drop = zenoh.CongestionControl.DROP
         self._status_pub = s.declare_publisher(
             f"{b}/status",
@@ -220,10 +228,29 @@ class ZenohBus:
         )
         self._status_pub.put(encode(status))
 
+    def _diag(self) -> CycleDiag:
+        diag = self.stats.diag(self.wall())
+        if self.events is None:
+            return diag
+        return diag.model_copy(update={"events": self.events.diag()})
+
     def _diag_loop(self) -> None:
         period = self.config.bus.diag_period_s
         while not self._stop.wait(period):
-            self._diag_pub.put(encode(self.stats.diag(self.wall())))
+            self._diag_pub.put(encode(self._diag()))
+
+    def _publish_events(self, events: list[Event]) -> None:
+        """From the event log's writer thread: each event on its own key, `events/<seq>`, so a
+        Zenoh storage keeps them all (it keeps the latest sample per key)."""
+        if self._stop.is_set():
+            return
+        for event in events:
+            self.session.put(
+                f"{self.base}/events/{event.seq}",
+                encode(event),
+                encoding=Format.MSGPACK.value,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
 
     # --------------------------------------------------------------------------- commands
     def _command_handler(self, command: Command) -> Callable[[zenoh.Query], None]:
@@ -261,7 +288,8 @@ class ZenohBus:
             with query:
                 query.reply(key, encode(reply, fmt), encoding=fmt.value)
 
-        if not self.loop.inbox.put(PendingCommand(command, request, respond)):
+        sender = _sender(query)
+        if not self.loop.inbox.put(PendingCommand(command, request, respond, sender)):
             self._reply_now(
                 query,
                 key,
@@ -362,7 +390,7 @@ class ZenohBus:
             self._reply_now(query, key, fmt, error, None, None)
             return
         with query:
-            query.reply(key, encode(self.stats.diag(self.wall()), fmt), encoding=fmt.value)
+            query.reply(key, encode(self._diag(), fmt), encoding=fmt.value)
 
     def _on_diag_reset(self, query: zenoh.Query) -> None:
         """Reply with the counters as they were, then reset them, on the scan thread."""
@@ -379,7 +407,7 @@ class ZenohBus:
 
         def reset(loop: ScanLoop, now: float) -> None:
             with query:
-                query.reply(key, encode(self.stats.diag(self.wall()), fmt), encoding=fmt.value)
+                query.reply(key, encode(self._diag(), fmt), encoding=fmt.value)
             self.stats.reset(self.wall())
 
         self._to_loop(query, key, fmt, reset)
@@ -438,12 +466,51 @@ class ZenohBus:
         # The registry is thread-safe and its write (with fsync) stays off the scan thread;
         # the loop picks the new config up at the next cycle boundary.
         try:
+            old = params.get(name).value
             value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
         except MachineError as exc:
             self._reply_now(query, key, fmt, exc.to_error(), None, req.transaction_id)
             return
+        if self.events is not None:
+            self.events.emit_now(
+                ParamEvent(
+                    name=value.name,
+                    old=old,
+                    new=value.value,
+                    persisted=value.persisted,
+                    reset=req.reset,
+                    transaction_id=req.transaction_id,
+                )
+            )
         with query:
             query.reply(key, encode(value, fmt), encoding=fmt.value)
+
+    # --------------------------------------------------------------------------- events
+    def _on_events(self, query: zenoh.Query) -> None:
+        """A page of the history (`?since=&until=&since_time=&until_time=&kind=&limit=&last=`),
+        read on the event log's reader thread."""
+        events = self.events
+        assert events is not None
+        key = f"{self.base}/events"
+        fmt = reply_format(query)
+        try:
+            q = EventQuery.from_text(str(query.parameters))
+        except QueryError as exc:
+            error = Error(code=ErrorCode.BAD_PAYLOAD, message=str(exc), path=f"?{exc.param}")
+            self._reply_now(query, key, fmt, error, None, None)
+            return
+
+        def respond(page: EventPage) -> None:
+            with query:
+                query.reply(key, encode(page, fmt), encoding=fmt.value)
+
+        def fail(message: str) -> None:
+            error = Error(code=ErrorCode.STORAGE_FAILED, message=message)
+            self._reply_now(query, key, fmt, error, None, None)
+
+        if not events.read(q, respond, fail):
+            fail_busy = Error(code=ErrorCode.BUSY, message="event reader busy; retry later")
+            self._reply_now(query, key, fmt, fail_busy, None, None)
 
     # ------------------------------------------------------------------------------ sim
     def _on_sim(self, query: zenoh.Query) -> None:
@@ -494,11 +561,18 @@ class ZenohBus:
             control = loop.control
             if control.controller_rider != rider:
                 return
+            policy = self.config.rider_loss.policy
+            acted = False
             if alive:
                 control.rider_back()
-            elif control.rider_lost(now):
-                log.warning(
-                    "event=rider_lost rider=%s policy=%s", rider, self.config.rider_loss.policy
+            elif acted := control.rider_lost(now):
+                log.warning("event=rider_lost rider=%s policy=%s", rider, policy)
+            if self.events is not None:
+                kind = "rider_returned" if alive else "rider_lost"
+                self.events.emit(
+                    RiderEvent(kind=kind, rider=rider, policy=str(policy), acted=acted),
+                    now + loop.wall_offset,
+                    loop.cycle,
                 )
 
         self.loop.inbox.put(LoopCall(update))
@@ -520,6 +594,15 @@ class ZenohBus:
 
 def _failure(error: Error, transaction_id: str | None, stamp: float) -> Reply:
     return Reply.failure(error, transaction_id=transaction_id, command=None, timecode=stamp)
+
+
+def _sender(query: zenoh.Query) -> str | None:
+    """The Rider's session id from the query's attachment (`rider=<zid>`), if it sent one."""
+    if query.attachment is None:
+        return None
+    text = query.attachment.to_bytes()[:128].decode(errors="replace")
+    name, _, value = text.partition("=")
+    return value[:64] if name == "rider" and value.isalnum() else None
 
 
 def _try_raw(query: zenoh.Query) -> Any:

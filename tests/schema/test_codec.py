@@ -63,6 +63,7 @@ from schema.status import (
     SessionProgress,
     Status,
 )
+from tests.schema.event_samples import EVENT_SAMPLES
 
 MIXED = Session(
     name="mixed",
@@ -192,6 +193,7 @@ SAMPLES: list[BaseModel] = [
         relays={"O_1": True},
         faults={"tilt_ai_frozen": False},
     ),
+    *EVENT_SAMPLES,
 ]
 IDS = [f"{type(m).__name__}-{i}" for i, m in enumerate(SAMPLES)]
 

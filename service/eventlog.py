@@ -1,0 +1,473 @@
+"""The event history on disk: SQLite (WAL) in `<data_dir>/events.db`, written off the scan thread.
+
+`EventLog.emit` only appends to a bounded queue (a full queue counts the event as dropped; the
+count is written as an `events_dropped` event once there is room again). One writer thread
+inserts what is queued in one transaction per batch, hands the written events to listeners (the
+bus publishes them), and prunes by age and size between batches. A reader thread answers
+queries, so neither Zenoh's callback thread nor the scan thread ever waits on the disk.
+
+Crash safety: WAL with `synchronous=NORMAL` keeps every committed batch across a killed
+process (a power cut may lose the last batches, never the database). What a SIGKILL loses is
+what was still queued or in the batch being written: at most `queue_capacity + batch_max`
+events, in practice the last millisecond or so (tests/service/test_eventlog_crash.py measures it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import sqlite3
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from schema.diag import EventsDiag
+from schema.events import (
+    DroppedEvent,
+    Event,
+    EventKind,
+    EventPage,
+    EventQuery,
+    KnownDetails,
+    StorageEvent,
+)
+from service.config import EventsSection
+
+log = logging.getLogger(__name__)
+
+EVENTS_FILE = "events.db"
+MAX_PAGE_BYTES = 256 * 1024
+"""A reply page stops growing past this many bytes of event JSON (and says `more`)."""
+PRUNE_CHUNK = 2000
+"""Rows deleted per transaction while pruning, so queued events are written in between."""
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    time REAL NOT NULL,
+    cycle INTEGER,
+    machine_id TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    details TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS events_time ON events(time);
+CREATE INDEX IF NOT EXISTS events_kind ON events(kind, seq);
+"""
+
+
+# ---------------------------------------------------------------------------------- reading
+def connect(path: Path) -> sqlite3.Connection:
+    """A connection in WAL mode with the table in place (creating the file if needed)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    conn = sqlite3.connect(path, timeout=5.0, check_same_thread=False, isolation_level=None)
+    # auto_vacuum must be chosen before the first table exists; later it is a no-op.
+    conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
+    conn.execute("PRAGMA journal_mode=WAL")
+    conn.execute("PRAGMA synchronous=NORMAL")
+    conn.execute("PRAGMA journal_size_limit=4194304")
+    conn.executescript(_SCHEMA)
+    return conn
+
+
+def connect_readonly(path: Path) -> sqlite3.Connection:
+    """Read an existing log (the offline export); never creates or changes the file."""
+    if not path.is_file():
+        raise FileNotFoundError(f"no event log at {path}")
+    return sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0, check_same_thread=False)
+
+
+def row_event(row: tuple[int, float, int | None, str, str, str]) -> Event:
+    seq, when, cycle, machine_id, kind, details = row
+    return Event.model_validate(
+        {
+            "seq": seq,
+            "time": when,
+            "cycle": cycle,
+            "machine_id": machine_id,
+            "kind": kind,
+            "details": json.loads(details),
+        }
+    )
+
+
+def _where(q: EventQuery) -> tuple[str, list[object]]:
+    clauses: list[str] = []
+    args: list[object] = []
+    for column, op, value in (
+        ("seq", ">=", q.since),
+        ("seq", "<=", q.until),
+        ("time", ">=", q.since_time),
+        ("time", "<=", q.until_time),
+    ):
+        if value is not None:
+            clauses.append(f"{column} {op} ?")
+            args.append(value)
+    if q.kinds:
+        clauses.append(f"kind IN ({','.join('?' * len(q.kinds))})")
+        args.extend(q.kinds)
+    return (" WHERE " + " AND ".join(clauses)) if clauses else "", args
+
+
+_COLUMNS = "SELECT seq, time, cycle, machine_id, kind, details FROM events"
+
+
+def read_page(conn: sqlite3.Connection, machine_id: str, q: EventQuery, page_max: int) -> EventPage:
+    """One bounded page: at most `page_max` events and about `MAX_PAGE_BYTES` of them."""
+    where, args = _where(q)
+    limit = min(q.limit or page_max, page_max)
+    if q.last is not None:
+        n = min(q.last, page_max)
+        rows = conn.execute(f"{_COLUMNS}{where} ORDER BY seq DESC LIMIT ?", [*args, n]).fetchall()
+        rows.reverse()
+        more = False
+    else:
+        sql = f"{_COLUMNS}{where} ORDER BY seq LIMIT ?"
+        rows = conn.execute(sql, [*args, limit + 1]).fetchall()
+        more = len(rows) > limit
+        rows = rows[:limit]
+    events: list[Event] = []
+    size = 0
+    for row in rows:
+        size += len(row[5]) + 64
+        if events and size > MAX_PAGE_BYTES:
+            more = True
+            break
+        events.append(row_event(row))
+    first, last = conn.execute("SELECT MIN(seq), MAX(seq) FROM events").fetchone()
+    next_since = events[-1].seq + 1 if more and events else None
+    return EventPage(
+        machine_id=machine_id,
+        events=events,
+        more=more,
+        next_since=next_since,
+        first_seq=first,
+        last_seq=last,
+    )
+
+
+def iter_events(conn: sqlite3.Connection, q: EventQuery, chunk: int = 1000) -> Iterator[Event]:
+    """Every matching event, oldest first, read in chunks (the offline export)."""
+    since = q.since
+    while True:
+        page_q = EventQuery(
+            since=since,
+            until=q.until,
+            since_time=q.since_time,
+            until_time=q.until_time,
+            kinds=q.kinds,
+        )
+        where, args = _where(page_q)
+        rows = conn.execute(f"{_COLUMNS}{where} ORDER BY seq LIMIT ?", [*args, chunk]).fetchall()
+        for row in rows:
+            yield row_event(row)
+        if len(rows) < chunk:
+            return
+        since = rows[-1][0] + 1
+
+
+# ---------------------------------------------------------------------------------- writing
+Listener = Callable[[list[Event]], None]
+
+
+class EventLog:
+    """The writer (and reader) of the event history; `emit` never blocks."""
+
+    def __init__(
+        self,
+        path: Path,
+        machine_id: str,
+        settings: EventsSection,
+        *,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.path = path
+        self.machine_id = machine_id
+        self.settings = settings
+        self.wall = wall
+        self.capacity = settings.queue_capacity
+        self._items: deque[tuple[KnownDetails, float, int | None]] = deque()
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stopping = False
+        self._listeners: list[Listener] = []
+        self._conn: sqlite3.Connection | None = None
+        self._writer: threading.Thread | None = None
+        self._reads: queue.Queue[_ReadJob] = queue.Queue(maxsize=32)
+        self._reader: threading.Thread | None = None
+        self.written = 0
+        self.dropped = 0
+        self.lost = 0
+        self.failures = 0
+        self.last_error: str | None = None
+        self._dropped_recorded = 0
+        self._failure: tuple[str, int] | None = None
+        self._prune_due = 0.0
+        self.previous_stop_clean: bool | None = None
+        """Whether the last run in this log ended with a `daemon_stop` (None: empty log)."""
+
+    # ------------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Open the database and start the threads; a database that cannot be opened is
+        reported (and its events counted as lost) but never stops the machine."""
+        try:
+            self._conn = connect(self.path)
+            row = self._conn.execute("SELECT kind FROM events ORDER BY seq DESC LIMIT 1").fetchone()
+            if row is not None:
+                self.previous_stop_clean = row[0] == EventKind.DAEMON_STOP
+        except (sqlite3.Error, OSError) as exc:
+            self._fail(f"cannot open {self.path}: {exc}", 0)
+            self._conn = None
+        self._writer = threading.Thread(target=self._run, name="eventlog", daemon=True)
+        self._writer.start()
+        self._reader = threading.Thread(target=self._serve_reads, name="eventlog-read", daemon=True)
+        self._reader.start()
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Write what is queued, then stop both threads."""
+        with self._lock:
+            self._stopping = True
+        self._wake.set()
+        if self._writer is not None:
+            self._writer.join(timeout)
+        if self._reader is not None:
+            self._reads.put(lambda conn, error: None)
+            self._reader.join(timeout)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def subscribe(self, listener: Listener) -> None:
+        """Call `listener` (on the writer thread) with every batch once it is committed."""
+        self._listeners.append(listener)
+
+    # ---------------------------------------------------------------------------- emit
+    def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None:
+        """Queue one event; when the queue is full it is dropped and counted, never waited on."""
+        with self._lock:
+            if len(self._items) >= self.capacity or self._stopping:
+                self.dropped += 1
+                return
+            self._items.append((details, time, cycle))
+        self._wake.set()
+
+    def emit_now(self, details: KnownDetails) -> None:
+        """An event from outside the scan loop, stamped with the wall clock."""
+        self.emit(details, self.wall(), None)
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until everything queued so far is written (tests and shutdown)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                if not self._items and not self._busy:
+                    return True
+            time.sleep(0.002)
+        return False
+
+    @property
+    def queued(self) -> int:
+        return len(self._items)
+
+    # ---------------------------------------------------------------------------- thread
+    _busy = False
+
+    def _take(self) -> list[tuple[KnownDetails, float, int | None]]:
+        with self._lock:
+            n = min(len(self._items), self.settings.batch_max)
+            batch = [self._items.popleft() for _ in range(n)]
+            self._busy = bool(batch) or self.dropped > self._dropped_recorded
+            if not self._items:
+                self._wake.clear()
+            return batch
+
+    def _run(self) -> None:
+        while True:
+            self._wake.wait(timeout=min(1.0, self.settings.prune_every_s))
+            batch = self._take()
+            if batch or self.dropped > self._dropped_recorded:
+                self._write(batch)
+            self._busy = False
+            if self.wall() >= self._prune_due:
+                self._prune()
+            with self._lock:
+                if self._stopping and not self._items:
+                    return
+
+    def _write(self, batch: list[tuple[KnownDetails, float, int | None]]) -> None:
+        now = self.wall()
+        extra: list[KnownDetails] = []
+        if self._failure is not None:
+            error, lost = self._failure
+            extra.append(StorageEvent(what="events", error=error, lost=lost))
+        dropped = self.dropped - self._dropped_recorded
+        if dropped:
+            extra.append(DroppedEvent(count=dropped))
+        items = [(d, now, None) for d in extra] + batch
+        conn = self._conn
+        if conn is None:
+            conn = self._reopen()
+        if conn is None:
+            self._fail(self.last_error or "event log unavailable", len(batch))
+            return
+        written: list[Event] = []
+        try:
+            conn.execute("BEGIN")
+            for details, when, cycle in items:
+                cur = conn.execute(
+                    "INSERT INTO events (time, cycle, machine_id, kind, details)"
+                    " VALUES (?, ?, ?, ?, ?)",
+                    (when, cycle, self.machine_id, details.kind, details.model_dump_json()),
+                )
+                assert cur.lastrowid is not None
+                written.append(
+                    Event(
+                        seq=cur.lastrowid,
+                        time=when,
+                        cycle=cycle,
+                        machine_id=self.machine_id,
+                        kind=details.kind,
+                        details=details,
+                    )
+                )
+            conn.execute("COMMIT")
+        except sqlite3.Error as exc:
+            if conn.in_transaction:
+                conn.execute("ROLLBACK")
+            self._fail(str(exc), len(batch))
+            return
+        self._failure = None
+        self._dropped_recorded += dropped
+        self.written += len(written)
+        for listener in self._listeners:
+            try:
+                listener(written)
+            except Exception as exc:  # noqa: BLE001 - a publishing failure loses no stored event
+                log.warning("event=events_publish_failed error=%r", str(exc))
+
+    def _fail(self, error: str, lost: int) -> None:
+        self.failures += 1
+        self.lost += lost
+        self.last_error = error
+        total = lost + (self._failure[1] if self._failure is not None else 0)
+        self._failure = (error, total)
+        log.error("event=events_write_failed error=%r lost=%d", error, lost)
+
+    def _reopen(self) -> sqlite3.Connection | None:
+        try:
+            self._conn = connect(self.path)
+        except (sqlite3.Error, OSError) as exc:
+            self.last_error = f"cannot open {self.path}: {exc}"
+            return None
+        return self._conn
+
+    # ----------------------------------------------------------------------------- prune
+    def _prune(self) -> None:
+        """Drop events older than `max_age_days`, then the oldest until under `max_mb`."""
+        self._prune_due = self.wall() + self.settings.prune_every_s
+        conn = self._conn
+        if conn is None:
+            return
+        cutoff = self.wall() - self.settings.max_age_days * 86_400
+        limit = int(self.settings.max_mb * 1024 * 1024)
+        try:
+            while self._delete(conn, "WHERE time < ?", (cutoff,)) == PRUNE_CHUNK:
+                self._write_queued()
+            while self.used_bytes(conn) > limit:
+                if self._delete(conn, "", ()) == 0:
+                    break
+                self._write_queued()
+            conn.execute("PRAGMA incremental_vacuum")
+            conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        except sqlite3.Error as exc:
+            log.warning("event=events_prune_failed error=%r", str(exc))
+
+    @staticmethod
+    def _delete(conn: sqlite3.Connection, where: str, args: tuple[object, ...]) -> int:
+        cur = conn.execute(
+            f"DELETE FROM events WHERE seq IN (SELECT seq FROM events {where} ORDER BY seq"
+            " LIMIT ?)",
+            (*args, PRUNE_CHUNK),
+        )
+        return cur.rowcount
+
+    def _write_queued(self) -> None:
+        batch = self._take()
+        if batch:
+            self._write(batch)
+
+    @staticmethod
+    def used_bytes(conn: sqlite3.Connection) -> int:
+        """Bytes of the database in use (free pages not counted)."""
+        page = conn.execute("PRAGMA page_size").fetchone()[0]
+        count = conn.execute("PRAGMA page_count").fetchone()[0]
+        free = conn.execute("PRAGMA freelist_count").fetchone()[0]
+        return int(page * (count - free))
+
+    def file_bytes(self) -> int:
+        """The database file and its WAL on disk."""
+        total = 0
+        for suffix in ("", "-wal"):
+            with contextlib.suppress(OSError):  # not there (yet): counts as empty
+                total += os.path.getsize(f"{self.path}{suffix}")
+        return total
+
+    # ----------------------------------------------------------------------------- reads
+    def read(
+        self, q: EventQuery, respond: Callable[[EventPage], None], fail: Callable[[str], None]
+    ) -> bool:
+        """Answer `q` on the reader thread (`fail` with the reason if the database cannot be
+        read); False, and nothing queued, when the reader is busy."""
+
+        def job(conn: sqlite3.Connection | None, error: str | None) -> None:
+            if conn is None:
+                fail(error or "event log unavailable")
+                return
+            try:
+                page = read_page(conn, self.machine_id, q, self.settings.page_max)
+            except sqlite3.Error as exc:
+                fail(f"event log read failed: {exc}")
+                return
+            respond(page)
+
+        try:
+            self._reads.put_nowait(job)
+        except queue.Full:
+            return False
+        return True
+
+    def _serve_reads(self) -> None:
+        conn: sqlite3.Connection | None = None
+        try:
+            while True:
+                job = self._reads.get()
+                if self._stopping:
+                    return
+                error = None
+                if conn is None:
+                    try:
+                        conn = connect(self.path)
+                    except (sqlite3.Error, OSError) as exc:
+                        error = f"cannot open {self.path}: {exc}"
+                job(conn, error)
+        finally:
+            if conn is not None:
+                conn.close()
+
+    def diag(self) -> EventsDiag:
+        return EventsDiag(
+            written=self.written,
+            queued=self.queued,
+            dropped=self.dropped,
+            lost=self.lost,
+            failures=self.failures,
+            last_error=self.last_error,
+            file_bytes=self.file_bytes(),
+        )
+
+
+_ReadJob = Callable[[sqlite3.Connection | None, str | None], None]

@@ -1,0 +1,292 @@
+"""What the scan loop records: `EventRecorder` turns changes of the machine into event values.
+
+Pure like the loop: no IO, no clock. It hands each event to an `EventSink` (the SQLite writer
+in `service/eventlog.py`, or a list in tests) that must never block. Transitions arrive as they
+happen; everything else is seen by comparing a small snapshot after each command and cycle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from schema.commands import Command, CommandRequest, Reply
+from schema.events import (
+    CalibrationEvent,
+    CommandEvent,
+    CompletionEvent,
+    EstopEvent,
+    EventKind,
+    FaultEvent,
+    KnownDetails,
+    SessionEndedEvent,
+    SessionStartedEvent,
+    StateEvent,
+)
+from schema.status import MOTION_STATES, Fault, MachineState
+from service.control import ControlAPI, Transition
+from service.controllers import SessionRun
+from service.devices import Calibration
+
+S = MachineState
+MOTION_COMMANDS = frozenset(
+    {Command.START, Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE}
+)
+"""Commands that begin a motion which later completes (Resume continues one)."""
+
+
+class EventSink(Protocol):
+    """Takes events without waiting (a full queue counts the event as dropped)."""
+
+    def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None: ...
+
+
+class NullEventSink:
+    """Records nothing."""
+
+    def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None:
+        pass
+
+
+@dataclass
+class ListEventSink:
+    """Keeps every event in a list (tests and the benchmark's baseline)."""
+
+    events: list[tuple[KnownDetails, float, int | None]] = field(default_factory=list)
+
+    def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None:
+        self.events.append((details, time, cycle))
+
+
+@dataclass
+class _Motion:
+    """The motion command in progress, for its completion event."""
+
+    command: Command
+    transaction_id: str | None
+
+
+@dataclass
+class _Session:
+    run: SessionRun
+    started: float
+
+
+Emit = Callable[[KnownDetails], None]
+
+
+class EventRecorder:
+    """Compares the machine before and after each command and cycle, and emits what changed."""
+
+    def __init__(self, sink: EventSink, *, wall_offset: float = 0.0, persisted: bool = False):
+        self.sink = sink
+        self.wall_offset = wall_offset
+        self.persisted = persisted
+        """Calibration changes are written to data_dir (a store is configured)."""
+        self.cycle = 0
+        self._transitions: list[Transition] = []
+        self._seen = False
+        self._estop = False
+        self._latched = False
+        self._fault: Fault | None = None
+        self._calibration: Calibration | None = None
+        self._motion: _Motion | None = None
+        self._session: _Session | None = None
+
+    # --------------------------------------------------------------------------- inputs
+    def transition(self, t: Transition) -> None:
+        """`ControlAPI.on_transition`: kept until the next `observe`, so causes come first."""
+        self._transitions.append(t)
+
+    def command(
+        self,
+        control: ControlAPI,
+        command: Command,
+        request: CommandRequest,
+        reply: Reply,
+        now: float,
+        *,
+        sender: str | None = None,
+        repeat: bool = False,
+    ) -> None:
+        """A command was answered: the command event, then what it changed."""
+        code = reply.error.code.value if reply.error is not None else reply.code.value
+        cause = CommandEvent(
+            command=command.value,
+            transaction_id=request.transaction_id,
+            rider=request.rider or sender,
+            accepted=reply.success,
+            code=code,
+            message=reply.error.message if reply.error is not None else "",
+            state=reply.state,
+            repeat=repeat,
+        )
+        started = None
+        if reply.success and not repeat and command in MOTION_COMMANDS:
+            started = _Motion(command, request.transaction_id)
+        self.observe(control, now, cause=cause, started=started)
+
+    # -------------------------------------------------------------------------- compare
+    def observe(
+        self,
+        control: ControlAPI,
+        now: float,
+        *,
+        cause: CommandEvent | None = None,
+        started: _Motion | None = None,
+    ) -> None:
+        """Emit, in this order: E-stop input changes, the command, the transitions, then
+        their consequences (latch, faults, sessions, completions, calibration)."""
+        wall = now + self.wall_offset
+        emit = self._emitter(wall)
+        if not self._seen:
+            self._baseline(control)
+        estop = control.devices.safety.is_estop_active()
+        if estop != self._estop:
+            self._estop = estop
+            kind = "estop_pressed" if estop else "estop_released"
+            emit(EstopEvent(kind=kind, state=control.state))
+        if cause is not None:
+            emit(cause)
+        reason = ""
+        for t in self._transitions:
+            emit(StateEvent(old=t.old, new=t.new, reason=t.reason))
+            reason = t.reason
+        self._transitions.clear()
+        if control.estop_latched != self._latched:
+            self._latched = control.estop_latched
+            kind = "estop_latched" if self._latched else "estop_reset"
+            emit(EstopEvent(kind=kind, state=control.state, reason=reason))
+        self._faults(control, emit)
+        if started is not None:
+            self._begin(control, started, wall, emit)
+        elif self._motion is not None and self._ended(control):
+            self._complete(control, reason, wall, emit)
+        self._calibrations(control, emit)
+
+    def _emitter(self, wall: float) -> Emit:
+        sink, cycle = self.sink, self.cycle
+
+        def emit(details: KnownDetails) -> None:
+            sink.emit(details, wall, cycle)
+
+        return emit
+
+    def _baseline(self, control: ControlAPI) -> None:
+        self._seen = True
+        self._estop = False  # an E-stop pressed at power-up is recorded as pressed
+        self._latched = control.estop_latched
+        self._fault = control.fault
+        self._calibration = control.calibration
+
+    def _faults(self, control: ControlAPI, emit: Emit) -> None:
+        fault = control.fault
+        if fault == self._fault:
+            return
+        old, self._fault = self._fault, fault
+        if old is not None:
+            cleared = FaultEvent(
+                kind="fault_cleared", code=old.code, message=old.message, axis=old.axis
+            )
+            emit(cleared)
+        if fault is not None:
+            emit(
+                FaultEvent(
+                    kind="fault_raised", code=fault.code, message=fault.message, axis=fault.axis
+                )
+            )
+
+    def _begin(
+        self,
+        control: ControlAPI,
+        started: _Motion,
+        wall: float,
+        emit: Emit,
+    ) -> None:
+        if self._motion is not None:
+            # A new motion replaced one that had not ended (e.g. Home after an E-stop).
+            self._complete(control, f"superseded by {started.command}", wall, emit, "STOPPED")
+        self._motion = started
+        run = control.session_run
+        if started.command is Command.START and run is not None:
+            progress = run.progress()
+            self._session = _Session(run, wall)
+            emit(
+                SessionStartedEvent(
+                    name=progress.name,
+                    steps=progress.step_count,
+                    revolutions_total=progress.revolutions_total,
+                    transaction_id=started.transaction_id,
+                )
+            )
+
+    @staticmethod
+    def _ended(control: ControlAPI) -> bool:
+        """The motion is over: no controller, and not merely paused or halted by an E-stop."""
+        if control.controller is not None or control.state in MOTION_STATES:
+            return False
+        return control.state not in (S.PAUSED, S.FAULT_ESTOP)
+
+    def _complete(
+        self,
+        control: ControlAPI,
+        reason: str,
+        wall: float,
+        emit: Emit,
+        outcome: str | None = None,
+    ) -> None:
+        motion, self._motion = self._motion, None
+        assert motion is not None
+        if outcome is None:
+            if control.state is S.FAULT_HW:
+                outcome = "FAULT"
+            elif reason.endswith("complete"):
+                outcome = "DONE"
+            else:
+                outcome = "STOPPED"
+        session, self._session = self._session, None
+        if session is not None:
+            p = session.run.progress()
+            emit(
+                SessionEndedEvent(
+                    name=p.name,
+                    steps=p.step_count,
+                    steps_done=min(p.step_index, p.step_count),
+                    revolutions_done=p.revolutions_done,
+                    revolutions_total=p.revolutions_total,
+                    duration_s=round(wall - session.started, 3),
+                    outcome=outcome,
+                )
+            )
+        emit(
+            CompletionEvent(
+                command=motion.command.value,
+                transaction_id=motion.transaction_id,
+                outcome=outcome,
+                state=control.state,
+                reason=reason,
+            )
+        )
+
+    def _calibrations(self, control: ControlAPI, emit: Emit) -> None:
+        cal = control.calibration
+        old = self._calibration
+        if cal is old:
+            return
+        self._calibration = cal
+        for axis in ("tilt", "rotate"):
+            before, after = getattr(old, axis, None), getattr(cal, axis)
+            if before != after:
+                emit(
+                    CalibrationEvent(
+                        axis=axis,
+                        old=dataclasses.asdict(before) if before is not None else None,
+                        new=dataclasses.asdict(after) if after is not None else None,
+                        persisted=self.persisted,
+                    )
+                )
+
+
+__all__ = ["EventKind", "EventRecorder", "EventSink", "ListEventSink", "NullEventSink"]
