@@ -138,7 +138,7 @@ def read_page(conn: sqlite3.Connection, machine_id: str, q: EventQuery, page_max
             more = True
             break
         events.append(row_event(row))
-    first, last = conn.execute("SELECT MIN(seq), MAX(seq) FROM events").fetchone()
+    [(first, last)] = conn.execute("SELECT MIN(seq), MAX(seq) FROM events").fetchall()
     next_since = events[-1].seq + 1 if more and events else None
     return EventPage(
         machine_id=machine_id,
@@ -216,9 +216,11 @@ class EventLog:
         reported (and its events counted as lost) but never stops the machine."""
         try:
             self._conn = connect(self.path)
-            row = self._conn.execute("SELECT kind FROM events ORDER BY seq DESC LIMIT 1").fetchone()
-            if row is not None:
-                self.previous_stop_clean = row[0] == EventKind.DAEMON_STOP
+            # fetchall: a cursor left open would hold a read transaction for good.
+            last = "SELECT kind FROM events ORDER BY seq DESC LIMIT 1"
+            rows = self._conn.execute(last).fetchall()
+            if rows:
+                self.previous_stop_clean = rows[0][0] == EventKind.DAEMON_STOP
         except (sqlite3.Error, OSError) as exc:
             self._fail(f"cannot open {self.path}: {exc}", 0)
             self._conn = None

@@ -1,0 +1,258 @@
+"""The event log on disk: what is written reads back, pages, drops are counted, retention holds."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from schema.events import (
+    DaemonStartEvent,
+    DaemonStopEvent,
+    DroppedEvent,
+    Event,
+    EventPage,
+    EventQuery,
+    QueryError,
+    StorageEvent,
+    WatchdogEvent,
+)
+from service.config import EventsSection
+from service.eventlog import EVENTS_FILE, EventLog, connect, iter_events, read_page
+
+T0 = time.time()
+"""Event times near now: retention prunes anything older than `max_age_days`."""
+
+
+def open_log(path: Path, **settings: object) -> EventLog:
+    log = EventLog(path, "m1", EventsSection.model_validate(settings))
+    log.start()
+    return log
+
+
+@pytest.fixture
+def log(tmp_path: Path) -> Iterator[EventLog]:
+    events = open_log(tmp_path / EVENTS_FILE)
+    yield events
+    events.close()
+
+
+def page(log: EventLog, **criteria: object) -> EventPage:
+    with connect(log.path) as conn:
+        return read_page(conn, "m1", EventQuery(**criteria), log.settings.page_max)  # type: ignore[arg-type]
+
+
+def test_written_events_read_back_in_order_with_seq_time_and_cycle(log: EventLog) -> None:
+    for i in range(5):
+        log.emit(WatchdogEvent(stalled_s=i / 10), T0 + i, 10 + i)
+    assert log.flush()
+    got = page(log)
+    assert [e.seq for e in got.events] == [1, 2, 3, 4, 5]
+    assert [e.time for e in got.events] == [T0 + i for i in range(5)]
+    assert [e.cycle for e in got.events] == [10, 11, 12, 13, 14]
+    assert got.events[2].details == WatchdogEvent(stalled_s=0.2)
+    assert (got.more, got.first_seq, got.last_seq) == (False, 1, 5)
+
+
+def test_listeners_get_each_committed_batch_with_its_seq(log: EventLog) -> None:
+    seen: list[Event] = []
+    log.subscribe(seen.extend)
+    log.emit_now(DaemonStopEvent(reason="test", exit_code=0))
+    assert log.flush()
+    assert [(e.seq, e.kind) for e in seen] == [(1, "daemon_stop")]
+
+
+def test_pages_are_bounded_and_continue_from_next_since(tmp_path: Path) -> None:
+    log = open_log(tmp_path / EVENTS_FILE, page_max=4)
+    try:
+        for i in range(10):
+            log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, None)
+        assert log.flush()
+        seqs, since = [], None
+        while True:
+            got = page(log, since=since)
+            assert len(got.events) <= 4
+            seqs += [e.seq for e in got.events]
+            if not got.more:
+                break
+            since = got.next_since
+        assert seqs == list(range(1, 11))
+        assert [e.seq for e in page(log, last=3).events] == [8, 9, 10]
+        assert [e.seq for e in page(log, since=2, until=3).events] == [2, 3]
+        assert [e.seq for e in page(log, since_time=T0 + 5, until_time=T0 + 6).events] == [6, 7]
+    finally:
+        log.close()
+
+
+def test_kind_filter(log: EventLog) -> None:
+    log.emit_now(WatchdogEvent(stalled_s=1.0))
+    log.emit_now(DaemonStopEvent(reason="x", exit_code=1))
+    log.emit_now(WatchdogEvent(stalled_s=2.0))
+    assert log.flush()
+    assert [e.seq for e in page(log, kinds=("watchdog_trip",)).events] == [1, 3]
+    with connect(log.path) as conn:
+        assert len(list(iter_events(conn, EventQuery(kinds=("daemon_stop",)), chunk=1))) == 1
+
+
+def test_a_full_queue_drops_without_waiting_and_records_the_count_later(tmp_path: Path) -> None:
+    log = EventLog(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
+    # Not started: nothing drains the queue, as when the disk is slow.
+    for i in range(20):
+        log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)
+    assert (log.queued, log.dropped) == (16, 4)
+    log.start()
+    try:
+        assert log.flush()
+        events = page(log).events
+        dropped = [e.details for e in events if isinstance(e.details, DroppedEvent)]
+        assert dropped == [DroppedEvent(count=4)]
+        assert len(events) == 17
+        assert log.diag().dropped == 4
+    finally:
+        log.close()
+
+
+def test_emit_never_blocks_while_the_writer_holds_the_database(tmp_path: Path) -> None:
+    log = open_log(tmp_path / EVENTS_FILE, queue_capacity=16)
+    blocker = sqlite3.connect(log.path, timeout=0.1)
+    try:
+        blocker.execute("BEGIN IMMEDIATE")  # the writer's next commit waits on this lock
+        for i in range(100):
+            log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)  # returns at once
+        assert log.dropped >= 100 - 16 - log.settings.batch_max
+    finally:
+        blocker.rollback()
+        blocker.close()
+    assert log.flush()
+    log.close()
+
+
+def test_a_database_that_cannot_be_written_is_reported_and_lost_events_counted(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / EVENTS_FILE
+    path.mkdir()  # a directory where the database belongs
+    log = open_log(path)
+    try:
+        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.emit_now(WatchdogEvent(stalled_s=2.0))
+        assert log.flush()
+        diag = log.diag()
+        assert diag.failures >= 1 and diag.lost == 2
+        assert diag.last_error is not None and "cannot open" in diag.last_error
+    finally:
+        log.close()
+
+
+def test_a_recovered_database_records_the_failure_as_an_event(tmp_path: Path) -> None:
+    log = open_log(tmp_path / EVENTS_FILE)
+    try:
+        blocker = sqlite3.connect(log.path, timeout=0.1)
+        blocker.execute("BEGIN EXCLUSIVE")
+        assert log._conn is not None
+        log._conn.execute("PRAGMA busy_timeout=10")
+        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        assert log.flush()
+        assert log.lost == 1
+        blocker.rollback()
+        blocker.close()
+        log.emit_now(WatchdogEvent(stalled_s=2.0))
+        assert log.flush()
+        first, second = page(log).events
+        assert isinstance(first.details, StorageEvent) and first.details.lost == 1
+        assert second.details == WatchdogEvent(stalled_s=2.0)
+    finally:
+        log.close()
+
+
+def test_retention_prunes_by_age_and_seq_keeps_growing(tmp_path: Path) -> None:
+    now = [1_000_000.0]
+    log = EventLog(
+        tmp_path / EVENTS_FILE,
+        "m1",
+        EventsSection(max_age_days=1, prune_every_s=0.1),
+        wall=lambda: now[0],
+    )
+    log.start()
+    try:
+        for day in (0, 1, 2):
+            log.emit(WatchdogEvent(stalled_s=float(day)), now[0] - (2 - day) * 86_400 - 1, None)
+        assert log.flush()
+        now[0] += 1.0  # prune is due
+        log.emit_now(WatchdogEvent(stalled_s=9.0))
+        assert log.flush()
+        deadline = threading.Event()
+        for _ in range(100):
+            if page(log).first_seq == 3:
+                break
+            deadline.wait(0.02)
+        got = page(log)
+        assert [e.seq for e in got.events] == [3, 4]
+    finally:
+        log.close()
+
+
+def test_retention_keeps_the_database_under_max_mb(tmp_path: Path) -> None:
+    log = open_log(tmp_path / EVENTS_FILE, max_mb=1, prune_every_s=0.1, queue_capacity=100_000)
+    try:
+        big = "x" * 1000
+        for i in range(3000):  # about 3 MB of events
+            log.emit(DaemonStopEvent(reason=big, exit_code=i), T0 + i / 1000, None)
+            if i % 500 == 0:
+                assert log.flush()
+        assert log.flush()
+        for _ in range(100):
+            with connect(log.path) as conn:
+                if EventLog.used_bytes(conn) <= 1024 * 1024:
+                    break
+            threading.Event().wait(0.05)
+            log.emit_now(WatchdogEvent(stalled_s=0.0))  # wakes the writer, prune is due
+        with connect(log.path) as conn:
+            assert EventLog.used_bytes(conn) <= 1024 * 1024
+        got = page(log, last=1)
+        assert got.first_seq is not None and got.first_seq > 1  # the oldest are gone
+        assert got.events[-1].seq > 3000  # the newest are kept, seq never reused
+        assert log.dropped == 0
+    finally:
+        log.close()
+
+
+def test_a_restart_knows_whether_the_last_run_stopped_cleanly(tmp_path: Path) -> None:
+    path = tmp_path / EVENTS_FILE
+    log = open_log(path)
+    assert log.previous_stop_clean is None
+    log.emit_now(DaemonStartEvent(pid=1, hal="sim", period_s=0.01))
+    log.close()
+    log = open_log(path)
+    assert log.previous_stop_clean is False  # the last run never wrote daemon_stop
+    log.emit_now(DaemonStopEvent(reason="signal SIGTERM", exit_code=0))
+    log.close()
+    log = open_log(path)
+    assert log.previous_stop_clean is True
+    log.close()
+
+
+@pytest.mark.parametrize(
+    ("text", "param"),
+    [
+        ("since=abc", "since"),
+        ("limit=0", "limit"),
+        ("kind=bogus", "kind"),
+        ("color=red", "color"),
+        ("since_time=yesterday", "since_time"),
+    ],
+)
+def test_bad_query_parameters_name_the_parameter(text: str, param: str) -> None:
+    with pytest.raises(QueryError) as err:
+        EventQuery.from_text(text)
+    assert err.value.param == param
+
+
+def test_query_text_round_trips_with_either_separator() -> None:
+    q = EventQuery(since=3, until=9, kinds=("command", "state"), limit=5)
+    assert EventQuery.from_text(q.params()) == q
+    assert EventQuery.from_text(q.params().replace(";", "&")) == q

@@ -1,0 +1,178 @@
+"""The event recorder: the exact events a ride produces, in order, from the steppable loop."""
+
+from __future__ import annotations
+
+from schema.commands import Command, RotateStep, Session, TiltStep
+from schema.events import (
+    CalibrationEvent,
+    CommandEvent,
+    CompletionEvent,
+    EstopEvent,
+    FaultEvent,
+    KnownDetails,
+    SessionEndedEvent,
+    SessionStartedEvent,
+    StateEvent,
+)
+from schema.status import MachineState
+from service.events import ListEventSink
+from tests.rig import Rig, known_calibration
+
+S = MachineState
+SHORT = Session(name="short", steps=[TiltStep(degrees=10.0), RotateStep(revolutions=1)])
+
+
+def kinds(sink: ListEventSink, start: int = 0) -> list[str]:
+    return [d.kind for d, _, _ in sink.events[start:]]
+
+
+def details(sink: ListEventSink, start: int = 0) -> list[KnownDetails]:
+    return [d for d, _, _ in sink.events[start:]]
+
+
+def ready_rig() -> tuple[Rig, ListEventSink]:
+    sink = ListEventSink()
+    rig = Rig(calibration=known_calibration(), events=sink)
+    rig.home()
+    return rig, sink
+
+
+def test_a_session_records_command_transition_start_end_and_completion_in_order() -> None:
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    reply = rig.send(Command.START, session=SHORT.model_dump())
+    rig.run_to_state(S.DONE)
+    assert kinds(sink, mark) == [
+        "command",
+        "state",
+        "session_started",
+        "state",
+        "session_ended",
+        "completion",
+    ]
+    cmd, start, started, end, ended, done = details(sink, mark)
+    assert isinstance(cmd, CommandEvent) and cmd.accepted
+    assert (cmd.command, cmd.transaction_id, cmd.code) == (
+        "Start",
+        reply.transaction_id,
+        "RESP_START_ACCEPTED",
+    )
+    assert isinstance(start, StateEvent) and (start.old, start.new) == (S.IDLE, S.RUNNING)
+    assert isinstance(started, SessionStartedEvent)
+    assert (started.name, started.steps, started.revolutions_total) == ("short", 2, 1)
+    assert isinstance(end, StateEvent) and end.reason == "session complete"
+    assert isinstance(ended, SessionEndedEvent)
+    assert (ended.outcome, ended.steps_done, ended.revolutions_done) == ("DONE", 2, 1)
+    assert ended.duration_s > 0
+    assert isinstance(done, CompletionEvent)
+    assert (done.command, done.transaction_id, done.outcome) == (
+        "Start",
+        reply.transaction_id,
+        "DONE",
+    )
+    # Every event carries the cycle it happened in, never decreasing.
+    cycles = [c for _, _, c in sink.events[mark:]]
+    assert cycles == sorted(cycles) and cycles[-1] == rig.loop.cycle
+
+
+def test_estop_mid_session_then_resume_records_press_latch_release_and_reset() -> None:
+    rig, sink = ready_rig()
+    rig.send(Command.START, session=SHORT.model_dump())
+    rig.step(20)
+    mark = len(sink.events)
+    rig.hal.press_estop()
+    rig.step()
+    assert kinds(sink, mark) == ["estop_pressed", "state", "estop_latched"]
+    rig.step(5)
+    assert kinds(sink, mark) == ["estop_pressed", "state", "estop_latched"]  # once, not per cycle
+    rig.hal.release_estop()
+    rig.step()
+    resumed = rig.send(Command.RESUME)
+    assert resumed.success
+    rig.run_to_state(S.DONE)
+    assert kinds(sink, mark) == [
+        "estop_pressed",
+        "state",
+        "estop_latched",
+        "estop_released",
+        "command",
+        "state",
+        "estop_reset",
+        "state",
+        "session_ended",
+        "completion",
+    ]
+    reset = details(sink, mark)[6]
+    assert isinstance(reset, EstopEvent) and reset.reason == "Resume"
+    ended = details(sink, mark)[-2]
+    assert isinstance(ended, SessionEndedEvent) and ended.outcome == "DONE"
+
+
+def test_a_fault_records_raise_session_end_and_completion_then_clear_on_recovery() -> None:
+    rig, sink = ready_rig()
+    rig.send(Command.START, session=SHORT.model_dump())
+    rig.step(5)
+    rig.hal.stall("tilt")
+    mark = len(sink.events)
+    rig.run_to_state(S.FAULT_HW)
+    assert kinds(sink, mark) == ["state", "fault_raised", "session_ended", "completion"]
+    raised, ended, done = details(sink, mark)[1:]
+    assert isinstance(raised, FaultEvent) and raised.code == "TILT_NOT_FOLLOWING"
+    assert raised.axis == "tilt"
+    assert isinstance(ended, SessionEndedEvent) and ended.outcome == "FAULT"
+    assert isinstance(done, CompletionEvent) and done.outcome == "FAULT"
+    assert done.state is S.FAULT_HW
+    rig.hal.clear_faults()
+    mark = len(sink.events)
+    assert rig.send(Command.HOME).success
+    assert kinds(sink, mark)[:3] == ["command", "state", "fault_cleared"]
+
+
+def test_refused_and_repeated_commands_are_recorded_as_such() -> None:
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    refused = rig.send(Command.PAUSE)
+    assert not refused.success
+    rig.send(Command.CHECK_HOME, transaction_id="same")
+    rig.send(Command.CHECK_HOME, transaction_id="same")
+    first, check, again = details(sink, mark)
+    assert isinstance(first, CommandEvent) and not first.accepted
+    assert first.code == "WRONG_STATE" and "Pause" in first.message
+    assert isinstance(check, CommandEvent) and check.accepted and not check.repeat
+    assert isinstance(again, CommandEvent) and again.repeat
+
+
+def test_stop_while_paused_ends_the_session_as_stopped() -> None:
+    rig, sink = ready_rig()
+    rig.send(Command.START, session=SHORT.model_dump())
+    rig.step(5)
+    rig.send(Command.PAUSE)
+    mark = len(sink.events)
+    rig.send(Command.STOP)
+    assert kinds(sink, mark) == ["command", "state", "session_ended", "completion"]
+    ended, done = details(sink, mark)[2:]
+    assert isinstance(ended, SessionEndedEvent) and ended.outcome == "STOPPED"
+    assert isinstance(done, CompletionEvent) and done.outcome == "STOPPED"
+
+
+def test_calibration_records_old_and_new_values_per_axis() -> None:
+    sink = ListEventSink()
+    rig = Rig(events=sink)
+    rig.calibrate()
+    cals = [d for d in details(sink) if isinstance(d, CalibrationEvent)]
+    assert [c.axis for c in cals] == ["tilt", "rotate"]
+    assert cals[0].old is None and cals[0].new is not None
+    assert cals[0].new["gain_counts_per_deg"] > 0
+    assert not cals[0].persisted  # no store in this rig
+    completions = [d for d in details(sink) if isinstance(d, CompletionEvent)]
+    assert [(c.command, c.outcome) for c in completions] == [
+        ("CalibrateTilt", "DONE"),
+        ("CalibrateRotate", "DONE"),
+    ]
+
+
+def test_an_idle_machine_records_nothing() -> None:
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    rig.step(500)
+    assert kinds(sink, mark) == []
