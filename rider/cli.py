@@ -32,7 +32,14 @@ from rider.client import (
 from schema.axes import AxisRecord, PnStatus
 from schema.commands import CheckResult, Reply, Session
 from schema.diag import CycleDiag
-from schema.events import Event, EventKind, EventQuery, EventSummary, describe
+from schema.events import (
+    Event,
+    EventKind,
+    EventQuery,
+    EventSummary,
+    describe,
+    parse_point,
+)
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamValue
@@ -468,35 +475,16 @@ def sim(args: argparse.Namespace, rider: Rider) -> int:
     return EXIT_OK
 
 
-AGE_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 7 * 86400.0}
-
-
-def parse_point(text: str, now: float) -> tuple[int | None, float | None]:
-    """`--since`/`--until`: (seq, None) for a number, (None, Unix time) for an age or a time."""
-    text = text.strip()
-    if text.isdigit():
-        return int(text), None
-    unit = AGE_UNITS.get(text[-1:].lower())
-    if unit is not None:
-        try:
-            return None, now - float(text[:-1]) * unit
-        except ValueError:
-            pass
-    try:
-        return None, datetime.fromisoformat(text).timestamp()
-    except ValueError:
-        raise UsageError(
-            f"{text!r} is neither a seq number, an age (30m, 12h, 7d) nor a time (2026-11-27T14:00)"
-        ) from None
-
-
 def event_query(args: argparse.Namespace, now: float) -> EventQuery:
     since = until = None
     since_time = until_time = None
-    if args.since:
-        since, since_time = parse_point(args.since, now)
-    if args.until:
-        until, until_time = parse_point(args.until, now)
+    try:
+        if args.since:
+            since, since_time = parse_point(args.since, now)
+        if args.until:
+            until, until_time = parse_point(args.until, now)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     kinds = tuple(k for arg in args.kind for k in arg.split(",") if k)
     known = {k.value for k in EventKind}
     for kind in kinds:

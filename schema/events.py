@@ -11,6 +11,7 @@ import re
 from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from datetime import datetime
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
@@ -409,6 +410,28 @@ def summarize(
         unclean_stops=unclean,
         dropped=dropped,
     )
+
+
+AGE_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 7 * 86400.0}
+
+
+def parse_point(text: str, now: float) -> tuple[int | None, float | None]:
+    """`--since`/`--until`: (seq, None) for a number, (None, Unix time) for an age or a time."""
+    text = text.strip()
+    if text.isdigit():
+        return int(text), None
+    unit = AGE_UNITS.get(text[-1:].lower())
+    if unit is not None:
+        try:
+            return None, now - float(text[:-1]) * unit
+        except ValueError:
+            pass
+    try:
+        return None, datetime.fromisoformat(text).timestamp()
+    except ValueError:
+        raise ValueError(
+            f"{text!r} is neither a seq number, an age (30m, 12h, 7d) nor a time (2026-11-27T14:00)"
+        ) from None
 
 
 def describe(details: Details) -> str:

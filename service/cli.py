@@ -88,6 +88,17 @@ def build_parser() -> argparse.ArgumentParser:
     init.add_argument("directory", type=Path, help="where to write them (created 0700)")
     init.add_argument("--force", action="store_true", help="replace existing files")
 
+    ev = sub.add_parser("events", help="the event history, offline (reads <data_dir>/events.db)")
+    evs = ev.add_subparsers(dest="events_cmd", required=True)
+    exp = evs.add_parser("export", help="write events as CSV or JSON lines")
+    _add_config_args(exp)
+    exp.add_argument("--data-dir", type=Path, help="override data_dir")
+    exp.add_argument("--since", help="a seq number, an age (30m, 12h, 7d) or a local time")
+    exp.add_argument("--until", help="as --since")
+    exp.add_argument("--kind", action="append", default=[], help="only these kinds (repeatable)")
+    exp.add_argument("--format", choices=["csv", "jsonl"], default="jsonl")
+    exp.add_argument("--output", "-o", type=Path, help="file to write (default: stdout)")
+
     demo = sub.add_parser("demo", help="same as `run --sim --once-session`")
     _add_config_args(demo)
     demo.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
@@ -157,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config(args.config)
     if config is None:
         return EXIT_CONFIG
+    if args.cmd == "events":
+        from service.export import export_events
+
+        return export_events(args, args.data_dir or Path(config.data_dir))
     if args.cmd == "demo" or getattr(args, "once_session", False):
         from service.demo import run_demo
 

@@ -379,8 +379,11 @@ class EventLog:
         try:
             while self._delete(conn, "WHERE time < ?", (cutoff,)) == PRUNE_CHUNK:
                 self._write_queued()
-            while self.used_bytes(conn) > limit:
-                if self._delete(conn, "", ()) == 0:
+            while (used := self.used_bytes(conn)) > limit:
+                [(rows,)] = conn.execute("SELECT COUNT(*) FROM events").fetchall()
+                # Down to 90 % of the limit, by the average row size: never all at once.
+                excess = int((used - 0.9 * limit) * rows / used) + 1 if rows else 0
+                if self._delete(conn, "", (), min(PRUNE_CHUNK, excess)) == 0:
                     break
                 self._write_queued()
             conn.execute("PRAGMA incremental_vacuum")
@@ -389,11 +392,13 @@ class EventLog:
             log.warning("event=events_prune_failed error=%r", str(exc))
 
     @staticmethod
-    def _delete(conn: sqlite3.Connection, where: str, args: tuple[object, ...]) -> int:
+    def _delete(
+        conn: sqlite3.Connection, where: str, args: tuple[object, ...], n: int = PRUNE_CHUNK
+    ) -> int:
         cur = conn.execute(
             f"DELETE FROM events WHERE seq IN (SELECT seq FROM events {where} ORDER BY seq"
             " LIMIT ?)",
-            (*args, PRUNE_CHUNK),
+            (*args, n),
         )
         return cur.rowcount
 

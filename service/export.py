@@ -1,0 +1,89 @@
+"""`machine events export`: the event history as CSV or JSON lines, read from the database file.
+
+Offline: it needs no running daemon and opens the database read-only, so it can run beside one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sqlite3
+import sys
+import time
+from collections.abc import Iterable
+from datetime import datetime
+from pathlib import Path
+from typing import TextIO
+
+from schema.events import Event, EventKind, EventQuery, describe, parse_point
+from service.eventlog import EVENTS_FILE, connect_readonly, iter_events
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+CSV_COLUMNS = ["seq", "time", "local_time", "cycle", "machine_id", "kind", "text", "details"]
+
+
+def export_events(args: argparse.Namespace, data_dir: Path) -> int:
+    try:
+        query = _query(args.since, args.until, args.kind)
+    except ValueError as exc:
+        print(f"machine: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    path = data_dir / EVENTS_FILE
+    try:
+        conn = connect_readonly(path)
+    except (FileNotFoundError, sqlite3.Error) as exc:
+        print(f"machine: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    try:
+        events = iter_events(conn, query)
+        if args.output is None:
+            write(events, sys.stdout, args.format)
+        else:
+            with args.output.open("w", newline="") as out:
+                write(events, out, args.format)
+    except sqlite3.Error as exc:
+        print(f"machine: reading {path} failed: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    finally:
+        conn.close()
+    return EXIT_OK
+
+
+def _query(since: str | None, until: str | None, kinds: list[str]) -> EventQuery:
+    now = time.time()
+    s_seq, s_time = parse_point(since, now) if since else (None, None)
+    u_seq, u_time = parse_point(until, now) if until else (None, None)
+    wanted = tuple(k for arg in kinds for k in arg.split(",") if k)
+    known = {k.value for k in EventKind}
+    for kind in wanted:
+        if kind not in known:
+            raise ValueError(f"unknown event kind {kind!r}; known: {', '.join(sorted(known))}")
+    return EventQuery(since=s_seq, until=u_seq, since_time=s_time, until_time=u_time, kinds=wanted)
+
+
+def write(events: Iterable[Event], out: TextIO, fmt: str) -> None:
+    """One event per line (jsonl), or a CSV row per event with the details as JSON."""
+    if fmt == "jsonl":
+        for event in events:
+            out.write(event.model_dump_json() + "\n")
+        return
+    writer = csv.writer(out)
+    writer.writerow(CSV_COLUMNS)
+    for e in events:
+        details = e.model_dump(mode="json")["details"]
+        writer.writerow(
+            [
+                e.seq,
+                f"{e.time:.6f}",
+                datetime.fromtimestamp(e.time).isoformat(timespec="milliseconds"),
+                "" if e.cycle is None else e.cycle,
+                e.machine_id,
+                e.kind,
+                describe(e.details),
+                json.dumps(details, separators=(",", ":")),
+            ]
+        )

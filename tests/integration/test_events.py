@@ -1,0 +1,228 @@
+"""The event history end to end: real daemons through sessions, an E-stop, a fault and restarts,
+read back with `rider events` (a subprocess), followed live, and queried raw over Zenoh."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from rider.client import Rider
+from schema.events import Event, EventPage
+from schema.status import MachineState, Status
+from service.eventlog import EVENTS_FILE
+from tests.integration.support import fast_args, prepare, settle
+from tests.procs import REPO, Daemon, machine_cmd, rider_cmd, start_daemon, stop_process
+
+pytestmark = pytest.mark.integration
+
+CLI_TIMEOUT_S = 30.0
+S = MachineState
+
+FIRST_RUN = [
+    "daemon_start",
+    # CalibrateTilt, CalibrateRotate, Home
+    *["command", "state", "state", "completion", "calibration"] * 2,
+    *["command", "state", "state", "completion"],
+    # the default session, to DONE
+    *["command", "state", "session_started", "state", "session_ended", "completion"],
+    # E-stop pressed and released in DONE, then Home resets the latch and re-homes
+    *["estop_pressed", "state", "estop_latched", "estop_released"],
+    *["command", "state", "estop_reset", "state", "completion"],
+    # a session into a stalled tilt: FAULT_HW
+    *["command", "state", "session_started", "state", "fault_raised", "session_ended"],
+    "completion",
+    # a refused command, then a parameter write
+    "command",
+    "param_changed",
+    "daemon_stop",
+]
+
+
+def rider_cli(daemon: Daemon, *args: str) -> subprocess.CompletedProcess[str]:
+    cmd = rider_cmd("--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config))
+    return subprocess.run(
+        [*cmd, *args], capture_output=True, text=True, timeout=CLI_TIMEOUT_S, cwd=REPO, check=False
+    )
+
+
+def cli_events(daemon: Daemon, *args: str) -> list[dict[str, Any]]:
+    out = rider_cli(daemon, "events", "--json", *args)
+    assert out.returncode == 0, out.stderr
+    return [json.loads(line) for line in out.stdout.splitlines() if line.strip()]
+
+
+def raw_page(daemon: Daemon, selector: str) -> EventPage:
+    """A plain zenoh-python query, JSON asked for in the selector, as any client could."""
+    conf = zenoh.Config.from_file(str(daemon.zenoh_config))
+    conf.insert_json5("connect/endpoints", json.dumps([daemon.endpoint]))
+    with zenoh.open(conf) as session:
+        deadline = time.monotonic() + 10.0
+        while True:
+            replies = [r.ok for r in session.get(selector, timeout=5.0) if r.ok is not None]
+            if replies or time.monotonic() > deadline:
+                break
+        [sample] = replies
+        assert str(sample.encoding).startswith("application/json")
+        return EventPage.model_validate_json(sample.payload.to_bytes())
+
+
+def drive_first_run(r: Rider) -> None:
+    prepare(r)
+    settle(r, r.start())
+    r.sim("estop", pressed=True)
+    r.wait_for({S.FAULT_ESTOP}, 10.0)
+    r.sim("estop", pressed=False)
+    # Home is refused until the scan loop has seen the release: wait for it in the status.
+    released = next(
+        u for u in r.watch(("status",), timeout=5.0) if isinstance(u, Status) and not u.estop.active
+    )
+    assert released.state is S.FAULT_ESTOP
+    assert settle(r, r.home()).state is S.IDLE
+    r.sim("stall", axis="tilt", stalled=True)
+    assert settle(r, r.start()).state is S.FAULT_HW
+    r.sim("clear")
+
+
+def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> None:
+    extra = fast_args(tmp_path)
+    daemon = start_daemon(tmp_path, extra=extra)
+    follow = Follower(daemon)
+    try:
+        with daemon.rider(supervise=False) as r:
+            drive_first_run(r)
+            refused = rider_cli(daemon, "pause")
+            assert refused.returncode == 1
+            r.set_param("tilt.tolerance_deg", 1.5)
+            # The follower has seen the parameter write: it follows live.
+            assert follow.wait_for("param_changed")
+        assert daemon.stop() == 0
+        assert follow.wait_for("daemon_stop")
+    finally:
+        followed = follow.stop()
+        daemon.stop(signal.SIGKILL)
+
+    # A restart (clean), then a kill and another restart on the same data_dir.
+    daemon = start_daemon(tmp_path, extra=extra)
+    daemon.stop(signal.SIGKILL)
+    daemon = start_daemon(tmp_path, extra=extra)
+    try:
+        events = cli_events(daemon, "--since", "1")
+        kinds = [e["kind"] for e in events]
+        assert kinds == [*FIRST_RUN, "daemon_start", "daemon_start"], kinds
+        assert [e["seq"] for e in events] == list(range(1, len(events) + 1))
+        starts = [e["details"] for e in events if e["kind"] == "daemon_start"]
+        assert [s["previous_stop_clean"] for s in starts] == [None, True, False]
+        stop = next(e["details"] for e in events if e["kind"] == "daemon_stop")
+        assert stop == {"kind": "daemon_stop", "reason": "signal SIGTERM", "exit_code": 0}
+        _check_details(events)
+
+        # The live follower saw the same events with the same seq numbers, up to the stop.
+        assert followed == events[: len(FIRST_RUN)]
+
+        # A raw Zenoh query returns the same events; a kind filter and paging work there too.
+        page = raw_page(daemon, "machine/m1/events?since=1;format=json")
+        assert [e.model_dump(mode="json") for e in page.events] == events
+        faults = raw_page(daemon, "machine/m1/events?kind=fault_raised;format=json").events
+        assert [e.details.code for e in faults] == ["TILT_NOT_FOLLOWING"]  # type: ignore[union-attr]
+        first = raw_page(daemon, "machine/m1/events?limit=5;format=json")
+        assert (len(first.events), first.more, first.next_since) == (5, True, 6)
+
+        # The summary counts what happened.
+        out = rider_cli(daemon, "--json", "events", "--summary", "--since", "1d")
+        assert out.returncode == 0, out.stderr
+        [summary] = json.loads(out.stdout)
+        assert summary["sessions_started"] == 2
+        assert (summary["sessions_done"], summary["sessions_faulted"]) == (1, 1)
+        assert summary["estops"] == 1
+        assert summary["faults_by_code"] == {"TILT_NOT_FOLLOWING": 1}
+        assert (summary["daemon_starts"], summary["unclean_stops"]) == (3, 1)
+        assert summary["ride_time_s"] > 0
+
+        # Offline: the export reads the database file itself.
+        export = subprocess.run(
+            machine_cmd(
+                "events",
+                "export",
+                "--data-dir",
+                str(daemon.data_dir),
+                "--format",
+                "jsonl",
+                "--kind",
+                "session_ended",
+            ),
+            capture_output=True,
+            text=True,
+            timeout=CLI_TIMEOUT_S,
+            cwd=REPO,
+            check=False,
+        )
+        assert export.returncode == 0, export.stderr
+        ended = [Event.model_validate_json(line) for line in export.stdout.splitlines()]
+        assert [e.details.outcome for e in ended] == ["DONE", "FAULT"]  # type: ignore[union-attr]
+        assert (daemon.data_dir / EVENTS_FILE).is_file()
+    finally:
+        daemon.stop()
+
+
+def _check_details(events: list[dict[str, Any]]) -> None:
+    """Who asked, and what the commands and the fault were."""
+    commands = [e["details"] for e in events if e["kind"] == "command"]
+    assert [c["command"] for c in commands] == [
+        "CalibrateTilt",
+        "CalibrateRotate",
+        "Home",
+        "Start",
+        "Home",
+        "Start",
+        "Pause",
+    ]
+    assert all(c["rider"] for c in commands)  # the sender's session id, even one-shot
+    assert len({c["rider"] for c in commands}) == 2  # the test's Rider and the `rider pause`
+    assert [c["accepted"] for c in commands] == [True] * 6 + [False]
+    assert commands[-1]["code"] == "WRONG_STATE"
+    completions = [e["details"] for e in events if e["kind"] == "completion"]
+    tx = [c["transaction_id"] for c in commands if c["command"] != "Pause"]
+    assert [c["transaction_id"] for c in completions] == tx
+    assert [c["outcome"] for c in completions] == ["DONE"] * 5 + ["FAULT"]
+    param = next(e["details"] for e in events if e["kind"] == "param_changed")
+    assert (param["name"], param["old"], param["new"]) == ("tilt.tolerance_deg", 1.0, 1.5)
+
+
+class Follower:
+    """`rider events --follow --json` in its own process; a thread collects its lines."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        cmd = rider_cmd("--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config))
+        self.proc = subprocess.Popen(
+            [*cmd, "events", "--follow", "--json"], stdout=subprocess.PIPE, text=True, cwd=REPO
+        )
+        self.lines: list[dict[str, Any]] = []
+        self.changed = threading.Condition()
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self.changed:
+                self.lines.append(json.loads(line))
+                self.changed.notify_all()
+
+    def wait_for(self, kind: str, timeout: float = 10.0) -> bool:
+        with self.changed:
+            return self.changed.wait_for(
+                lambda: any(e["kind"] == kind for e in self.lines), timeout
+            )
+
+    def stop(self) -> list[dict[str, Any]]:
+        stop_process(self.proc)
+        self.thread.join(5.0)
+        return list(self.lines)
