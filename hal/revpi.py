@@ -552,8 +552,8 @@ class RevPiHal:
         raise_for_errors(findings)
         self.findings = findings
         """The warnings of the check (errors stop the constructor)."""
-        for f in findings:
-            log.warning("event=revpi_config_warning path=%s detail=%r", f.path, f.message)
+        for f in findings:  # `machine run` prints them; a library user finds them here too
+            log.debug("event=revpi_config_warning path=%s detail=%r", f.path, f.message)
         path = locate_configrsc(configrsc)
         self.configrsc = path
         # Monitoring: revpimodio2 reads, never writes (on open it would write the base module).

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -16,6 +15,7 @@ from service.daemon import DaemonOptions, open_hal
 from service.supervisor import Supervisor, SupervisorOptions
 from tests.fixtures.revpi import CONFIG_RSC, make_image
 from tests.fixtures.revpi.corpus import path
+from tests.procs import machine_cmd
 
 pytest.importorskip("revpimodio2")
 ROOT = Path(__file__).parents[2]
@@ -23,7 +23,7 @@ ROOT = Path(__file__).parents[2]
 
 def machine(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "service.cli", *args],
+        machine_cmd(*args),
         cwd=ROOT,
         check=False,
         capture_output=True,

@@ -207,31 +207,51 @@ def test_a_compact_runs_a_whole_session_on_bits_of_its_bytes(tmp_path: Path) -> 
         ride.close()
 
 
-# -- tiltPosition must be a 16-bit analog word ------------------------------------------------
+# -- tiltPosition must be a 16-bit analog word; digital IOs are bits ------------------------
 @pytest.mark.parametrize(
-    ("layout", "channel", "words"),
+    ("layout", "field", "channel", "words"),
     [
-        ("aio_left", "RevPiStatus", "an 8-bit input byte of module 'core' (RevPi Core)"),
-        ("aio_left", "Counter_1", "a 32-bit input value of module 'dio' (DIO)"),
-        ("gateway", "Input_1", "an 8-bit input byte of module 'pn' (gateway)"),
-        ("aio_left", "Status", "a status word of module 'dio' (DIO)"),
-        ("aio_left", "RS485ErrorCnt", "a status word of module 'core' (RevPi Core)"),
-        ("connect4_ro", "Status", "a status word of module 'di' (DI)"),
-        ("aio_left", "InputStatus_1", "an 8-bit input byte of module 'aio_left' (AIO)"),
-        ("aio_left", "OutputValue_1", "a 16-bit output word"),
-        ("aio_left", "InputValue_1.0", "one bit; an analog value is a whole word"),
+        (
+            "aio_left",
+            "tiltPosition",
+            "RevPiStatus",
+            "an 8-bit input byte of module 'core' (RevPi Core)",
+        ),
+        ("aio_left", "tiltPosition", "Counter_1", "a 32-bit input value of module 'dio' (DIO)"),
+        ("gateway", "tiltPosition", "Input_1", "an 8-bit input byte of module 'pn' (gateway)"),
+        ("aio_left", "tiltPosition", "Status", "a status word of module 'dio' (DIO)"),
+        (
+            "aio_left",
+            "tiltPosition",
+            "RS485ErrorCnt",
+            "a status word of module 'core' (RevPi Core)",
+        ),
+        ("connect4_ro", "tiltPosition", "Status", "a status word of module 'di' (DI)"),
+        (
+            "aio_left",
+            "tiltPosition",
+            "InputStatus_1",
+            "an 8-bit input byte of module 'aio_left' (AIO)",
+        ),
+        ("aio_left", "tiltPosition", "OutputValue_1", "a 16-bit output word"),
+        ("aio_left", "tiltPosition", "InputValue_1.0", "one bit; an analog value is a whole word"),
+        ("compact", "estop", "DIn_i01.8", "has 8 bits (0..7), so it has no bit 8"),
+        ("compact", "estop", "DOut.1", "output byte"),
+        ("compact", "rotateRelay", "DIn_i01.3", "input byte"),
+        ("aio_left", "estop", "I_3.0", "a single bit already: map it as 'I_3'"),
     ],
 )
-def test_tilt_position_must_be_a_16_bit_analog_input_word(
-    tmp_path: Path, layout: str, channel: str, words: str
+def test_an_io_of_the_wrong_kind_is_refused(
+    tmp_path: Path, layout: str, field: str, channel: str, words: str
 ) -> None:
     base = WORKING.get(layout, IoMap())
-    iomap = IoMap.model_validate({**base.model_dump(by_alias=True), "tiltPosition": channel})
+    iomap = IoMap.model_validate({**base.model_dump(by_alias=True), field: channel})
     findings = check_revpi_io(iomap, path(layout), make_image(tmp_path))
-    assert errors(findings) == [("io_type", "/hal/iomap/tiltPosition")]
+    assert errors(findings) == [("io_type", f"/hal/iomap/{field}")]
     bad = next(f for f in findings if f.severity is Severity.ERROR)
     assert words in bad.message
-    assert "16-bit input word" in bad.message
+    if field == "tiltPosition":
+        assert "16-bit input word" in bad.message
 
 
 def test_missing_tilt_position_lists_the_analog_words_renamed_first(tmp_path: Path) -> None:
@@ -270,29 +290,6 @@ def test_the_compact_default_map_lists_bit_candidates(tmp_path: Path) -> None:
     assert "candidates: DIn_i01.0..7" in estop.message
     assert "map one bit as 'NAME.N', e.g. 'DIn_i01.0'" in estop.message
     assert "Status" not in estop.message.split("candidates")[1]
-
-
-@pytest.mark.parametrize(
-    ("field", "channel", "words"),
-    [
-        ("estop", "DIn_i01.8", "has 8 bits (0..7), so it has no bit 8"),
-        ("estop", "DOut.1", "output byte"),
-        ("rotateRelay", "DIn_i01.3", "input byte"),
-    ],
-)
-def test_bad_bit_channels_are_findings(
-    tmp_path: Path, field: str, channel: str, words: str
-) -> None:
-    iomap = IoMap.model_validate({**COMPACT.model_dump(by_alias=True), field: channel})
-    findings = check_revpi_io(iomap, path("compact"), make_image(tmp_path))
-    assert errors(findings) == [("io_type", f"/hal/iomap/{field}")]
-    assert words in findings[0].message
-
-
-def test_a_bit_of_a_bit_io_is_refused(tmp_path: Path) -> None:
-    findings = check_revpi_io(IoMap(estop="I_3.0"), path("aio_left"), make_image(tmp_path))
-    assert errors(findings) == [("io_type", "/hal/iomap/estop")]
-    assert "a single bit already: map it as 'I_3'" in findings[0].message
 
 
 # -- broken layouts: one clear error each, and the HAL touches nothing ------------------------
