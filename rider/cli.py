@@ -32,6 +32,7 @@ from rider.client import (
 from schema.axes import AxisRecord, PnStatus
 from schema.commands import CheckResult, Reply, Session
 from schema.diag import CycleDiag
+from schema.errors import ErrorCode
 from schema.events import (
     Event,
     EventKind,
@@ -50,6 +51,9 @@ EXIT_REFUSED = 1
 EXIT_USAGE = 2
 EXIT_NO_REPLY = 3
 EXIT_AMBIGUOUS = 4
+
+STORAGE_FAILED = f"{ErrorCode.STORAGE_FAILED}:"
+"""How a status warning about a value the machine could not write starts."""
 
 TERMINAL_STATES = {
     MachineState.DONE,
@@ -381,6 +385,12 @@ def motion(args: argparse.Namespace, rider: Rider) -> int:
         final = rider.wait_for(ends, timeout=600, after=reply.timecode)
         emit(final, args.json, lambda: fmt_status(final))
         if final.state in (MachineState.FAULT_HW, MachineState.FAULT_ESTOP):
+            return EXIT_REFUSED
+        unsaved = [w for w in final.warnings if w.startswith(STORAGE_FAILED)]
+        if args.cmd == "calibrate" and unsaved:
+            # Calibrated for now, but not saved: never report that as done.
+            for warning in unsaved:
+                print(f"rider: {warning}", file=sys.stderr)
             return EXIT_REFUSED
     return EXIT_OK
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from schema.commands import (
     ALLOWED_STATES,
@@ -50,6 +51,9 @@ from service.errors import (
     WrongState,
 )
 
+if TYPE_CHECKING:  # types only: the state machine does no IO
+    from service.persist import SaveTicket, StorageHealth
+
 S = MachineState
 _ALLOWED = ALLOWED_STATES
 READ_ONLY = READ_ONLY_COMMANDS
@@ -89,7 +93,10 @@ class ControlAPI:
     devices: Devices
     config: MachineConfig
     calibration: Calibration = field(default_factory=Calibration)
-    on_calibrated: Callable[[Calibration], None] | None = None
+    on_calibrated: Callable[[Calibration], SaveTicket | None] | None = None
+    """Persist a new calibration; a ticket that is not done keeps CALIBRATING until it is."""
+    storage: StorageHealth | None = None
+    """What could not be written to the data dir: its warnings are part of the status."""
     on_transition: Callable[[Transition], None] | None = None
     wall_offset: float = 0.0
     warnings: list[str] = field(default_factory=list)
@@ -112,6 +119,7 @@ class ControlAPI:
         self._resume_to: MachineState | None = None
         self._estop_from: MachineState | None = None
         self._running: Command | None = None
+        self._saving: SaveTicket | None = None
         self.devices.stop_all()
 
     # ------------------------------------------------------------------------- commands
@@ -346,6 +354,8 @@ class ControlAPI:
         gone = self._rider_gone_at
         if gone is not None and now - gone >= self.config.rider_loss.grace_s:
             self._apply_rider_loss(now)
+        if self._saving is not None and self._saving.done:
+            self._saved(self._saving, now)
         ctl = self.controller
         if self.state not in MOTION_STATES or ctl is None:
             self.devices.stop_all()
@@ -371,20 +381,36 @@ class ControlAPI:
         elif command is Command.CALIBRATE_TILT:
             assert isinstance(ctl, TiltCalibrate) and ctl.result is not None
             self.refs.tilt = True
-            self._store_calibration(Calibration(tilt=ctl.result, rotate=self.calibration.rotate))
+            if self._store_calibration(
+                Calibration(tilt=ctl.result, rotate=self.calibration.rotate)
+            ):
+                return
         elif command is Command.CALIBRATE_ROTATE:
             assert isinstance(ctl, Chain)
             cal = ctl.finished[-1]
             assert isinstance(cal, RotateCalibrate) and cal.result is not None
             self.refs.tilt = self.refs.rotate = True
-            self._store_calibration(Calibration(tilt=self.calibration.tilt, rotate=cal.result))
+            if self._store_calibration(Calibration(tilt=self.calibration.tilt, rotate=cal.result)):
+                return
         self._set_state(self._rest_state(), now, f"{command} complete")
 
-    def _store_calibration(self, cal: Calibration) -> None:
+    def _store_calibration(self, cal: Calibration) -> bool:
+        """Use `cal` now and persist it; True while the write is still under way."""
         self.calibration = cal
         self.devices.tilt.calibration = cal.tilt
-        if self.on_calibrated is not None:
-            self.on_calibrated(cal)
+        ticket = self.on_calibrated(cal) if self.on_calibrated is not None else None
+        if ticket is None or ticket.done:
+            return False
+        # Still CALIBRATING (outputs off, no controller) until the disk answers: a Rider that
+        # waits for the calibration learns whether it was saved from the status that ends it.
+        self._saving = ticket
+        return True
+
+    def _saved(self, ticket: SaveTicket, now: float) -> None:
+        self._saving = None
+        if self.state is S.CALIBRATING and self.controller is None:
+            why = "calibration complete" + (", NOT saved" if ticket.problem else "")
+            self._set_state(self._rest_state(), now, why)
 
     def _enter_fault(self, fault: Fault, now: float, why: str) -> None:
         self._discard_controller()
@@ -462,4 +488,5 @@ class ControlAPI:
             len(self.warnings),
             self.rider_warning,
             self.rider_connected,
+            self.storage.version if self.storage is not None else 0,
         )

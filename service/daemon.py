@@ -102,7 +102,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     hal = GuardedHal(raw_hal)
     writer = BackgroundWriter()
     store = CalibrationStore(Path(config.data_dir), writer)
-    registry = ParamRegistry(config, ParamStore(Path(config.data_dir)))
+    registry = ParamRegistry(config, ParamStore(Path(config.data_dir)), store.health)
     for warning in registry.warnings:
         log.warning("event=params_load detail=%r", warning)
     config = registry.config  # persisted online values survive a restart

@@ -300,6 +300,8 @@ class ScanLoop:
         warnings = list(control.warnings)
         if control.rider_warning:
             warnings.append(control.rider_warning)
+        if control.storage is not None:
+            warnings += control.storage.warnings()
         tilt = self.devices.tilt.read_position_degrees()
         return Status(
             machine_id=self.config.machine.id,

@@ -60,6 +60,7 @@ class Machine:
             config=config,
             calibration=calibration,
             on_calibrated=store.save if store is not None else None,
+            storage=store.health if isinstance(store, CalibrationStore) else None,
             on_transition=_both(on_transition, self.recorder.transition),
             wall_offset=wall_offset,
             warnings=warnings,

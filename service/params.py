@@ -18,7 +18,7 @@ from schema.findings import Severity
 from schema.params import ParamSet, ParamValue
 from service.config import MachineConfig
 from service.errors import MachineError, ParamLocked, ParamOutOfRange, StorageFailed, UnknownParam
-from service.persist import ParamScalar, ParamStore, StoredParam
+from service.persist import ParamScalar, ParamStore, StorageHealth, StoredParam
 from service.validate import semantic_findings
 
 log = logging.getLogger(__name__)
@@ -169,9 +169,12 @@ class ParamRegistry:
     `generation` counts changes so the scan loop can pick a new config at a cycle boundary.
     """
 
-    def __init__(self, config: MachineConfig, store: ParamStore) -> None:
+    def __init__(
+        self, config: MachineConfig, store: ParamStore, health: StorageHealth | None = None
+    ) -> None:
         self._project = config
         self._store = store
+        self._health = health
         self._lock = threading.Lock()
         self._live: dict[str, ParamScalar] = {}
         self._changed_at: dict[str, float | None] = {}
@@ -290,11 +293,16 @@ class ParamRegistry:
         try:
             self._store.save(stored)
         except OSError as exc:
-            raise StorageFailed(
+            message = (
                 f"{name}: could not write {self._store.path} ({exc.strerror or exc});"
-                " nothing was changed",
-                "/persist",
-            ) from exc
+                " nothing was changed"
+            )
+            log.error("event=persist_failed what=params detail=%r", message)
+            if self._health is not None:
+                self._health.failed(StorageHealth.PARAMS, message)
+            raise StorageFailed(message, "/persist") from exc
+        if self._health is not None:
+            self._health.recovered()
 
     def _load(self) -> builtins.list[str]:
         """Apply the persisted overrides one by one; each one that no longer fits is a warning."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import logging
 import os
@@ -15,6 +17,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, FiniteFloat, ValidationError
 
+from schema.errors import ErrorCode
 from service.devices import Calibration, RotateCalibration, TiltCalibration
 
 log = logging.getLogger(__name__)
@@ -216,32 +219,176 @@ class BackgroundWriter:
                 log.error("event=persist_failed error=%r", str(exc))
 
 
+STORAGE_FAILED = ErrorCode.STORAGE_FAILED.value
+"""The prefix of every status warning about a value that could not be written (the wire code)."""
+
+
+class StorageHealth:
+    """What could not be written to the data directory, as status warnings (thread-safe).
+
+    Writers report here: the start-up probe, the calibration store, the parameter registry.
+    A later successful write proves the directory works again and clears every warning.
+    """
+
+    DATA_DIR = "data_dir"
+    CALIBRATION = "calibration"
+    PARAMS = "params"
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._problems: dict[str, str] = {}
+        self.version = 0
+        """Counts changes, so the scan loop republishes status when the warnings change."""
+
+    def failed(self, what: str, message: str) -> None:
+        with self._lock:
+            self._problems[what] = f"{STORAGE_FAILED}: {message}"
+            self.version += 1
+
+    def recovered(self) -> None:
+        with self._lock:
+            if self._problems:
+                self._problems.clear()
+                self.version += 1
+
+    def warnings(self) -> list[str]:
+        with self._lock:
+            return list(self._problems.values())
+
+
+def probe_writable(data_dir: Path) -> OSError | None:
+    """None if a file can be created, written, synced and removed in `data_dir` (made if
+    missing); otherwise the error. A read-only mount or a full disk fails here."""
+    probe = data_dir / f".probe-{os.getpid()}"
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, b"probe\n")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        probe.unlink()
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+        return exc
+    return None
+
+
+FULL = (errno.ENOSPC, errno.EDQUOT)
+"""A full disk still renames: a failed save there moved the older file aside already."""
+
+
+class SaveTicket:
+    """The outcome of one background write; the scan thread polls `done` (no lock, no wait)."""
+
+    def __init__(self) -> None:
+        self._done = threading.Event()
+        self.problem: str | None = None
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def finish(self, problem: str | None) -> None:
+        self.problem = problem
+        self._done.set()
+
+
 class CalibrationStore:
-    """The calibration file in the data directory; writes go through a background writer."""
+    """The calibration file in the data directory; writes go through a background writer.
+
+    A save that fails never leaves an older file to be loaded as current: the older file is
+    moved aside (`calibration.json.stale-<time>`); where even that fails (a read-only mount),
+    the start-up probe finds the directory not writable and the file is not trusted.
+    """
 
     def __init__(
         self,
         data_dir: Path,
         writer: BackgroundWriter | None = None,
         clock: Callable[[], float] = time.time,
+        health: StorageHealth | None = None,
     ) -> None:
         self.data_dir = data_dir
         self.writer = writer
         self.clock = clock
+        self.health = health or StorageHealth()
 
     @property
     def path(self) -> Path:
         return self.data_dir / CALIBRATION_FILE
 
     def load(self) -> tuple[Calibration, str | None]:
-        return load_calibration(self.data_dir)
+        """The stored calibration; from a directory that cannot be written, none (and why)."""
+        problem = probe_writable(self.data_dir)
+        if problem is None:
+            return load_calibration(self.data_dir)
+        message = (
+            f"data dir {self.data_dir} is not writable ({problem.strerror or problem});"
+            " calibration and persistent parameters cannot be saved"
+        )
+        trusted = problem.errno in FULL or not self.path.exists()
+        if not trusted:
+            # A calibration that failed to save there could not move this file aside either.
+            message += f"; {self.path.name} is not trusted as current: calibrate again"
+        self.health.failed(StorageHealth.DATA_DIR, message)
+        log.error("event=data_dir_not_writable detail=%r", message)
+        return load_calibration(self.data_dir) if trusted else (Calibration(), None)
 
-    def save(self, cal: Calibration) -> None:
+    def save(self, cal: Calibration) -> SaveTicket:
+        """Write `cal` (in the background when there is a writer); the ticket says how it went."""
         data = calibration_to_json(cal, self.clock())
+        ticket = SaveTicket()
+
+        def job() -> None:
+            try:
+                atomic_write(self.path, data)
+            except OSError as exc:
+                ticket.finish(self._failed(exc))
+                return
+            self.health.recovered()
+            ticket.finish(None)
+
         if self.writer is None:
-            atomic_write(self.path, data)
+            job()
         else:
-            self.writer.submit(lambda: atomic_write(self.path, data))
+            self.writer.submit(job)
+        return ticket
+
+    def _failed(self, exc: OSError) -> str:
+        why = exc.strerror or str(exc)
+        try:
+            stale = retire(self.path)
+        except OSError as retire_exc:
+            older = (
+                f"the older {self.path.name} could not be moved aside"
+                f" ({retire_exc.strerror or retire_exc}) and is not trusted at the next start"
+            )
+        else:
+            older = f"the older file was moved aside to {stale.name}" if stale else "no older file"
+        message = f"calibration not saved to {self.path} ({why}); it is lost at a restart; {older}"
+        self.health.failed(StorageHealth.CALIBRATION, message)
+        log.error("event=persist_failed what=calibration error=%r detail=%r", why, message)
+        return message
+
+
+def retire(path: Path) -> Path | None:
+    """Move `path` aside as `<name>.stale-<time>` so it is never loaded again (None: no file)."""
+    if not path.exists():
+        return None
+    stamp = time.strftime("%Y%m%dT%H%M%S")
+    n = 0
+    while True:
+        stale = path.with_name(f"{path.name}.stale-{stamp}" + (f"-{n}" if n else ""))
+        if not stale.exists():
+            break
+        n += 1
+    os.replace(path, stale)  # a rename needs no data blocks: it works on a full disk
+    with contextlib.suppress(OSError):
+        _fsync_dir(path.parent)
+    return stale
 
 
 PARAMS_FILE = "params.json"

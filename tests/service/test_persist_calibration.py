@@ -167,7 +167,7 @@ def test_saved_file_is_readable_json_with_every_value(tmp_path: Path) -> None:
     assert load_calibration(tmp_path)[0] == CAL
 
 
-def test_background_writer_saves_in_order_and_counts_failures(tmp_path: Path) -> None:
+def test_background_writer_saves_in_order_and_reports_failures(tmp_path: Path) -> None:
     writer = BackgroundWriter(name="test-persist")
     try:
         store = CalibrationStore(tmp_path, writer=writer)
@@ -178,8 +178,11 @@ def test_background_writer_saves_in_order_and_counts_failures(tmp_path: Path) ->
 
         blocked = tmp_path / "a-file"
         blocked.write_text("not a directory")
-        CalibrationStore(blocked / "sub", writer=writer).save(CAL)
+        failing = CalibrationStore(blocked / "sub", writer=writer)
+        ticket = failing.save(CAL)
         assert writer.flush(timeout=10)
-        assert writer.failures == 1
+        assert ticket.done and ticket.problem is not None and "Not a directory" in ticket.problem
+        (warning,) = failing.health.warnings()
+        assert warning.startswith("STORAGE_FAILED: calibration not saved")
     finally:
         writer.close(timeout=10)

@@ -1,0 +1,144 @@
+"""No silent loss on real filesystems: a full tmpfs and a read-only mount (root only).
+
+A real daemon keeps its data dir there; the real `rider` CLI calibrates and writes a persistent
+parameter. Nothing that could not be written is reported saved, and after a restart no older
+calibration file is loaded as current.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from schema.status import MachineState, Status
+from service.devices import Calibration, RotateCalibration, TiltCalibration
+from service.persist import CALIBRATION_FILE, calibration_to_json
+from tests.integration.support import fast_args
+from tests.procs import REPO, Daemon, rider_cmd, start_daemon
+
+pytestmark = pytest.mark.integration
+
+OLD = Calibration(
+    tilt=TiltCalibration(offset_counts=1000.0, gain_counts_per_deg=33.0),
+    rotate=RotateCalibration(revolution_s=0.5, home_arc_deg=30.0),
+)
+CLI_TIMEOUT_S = 60.0
+
+
+def _run(*cmd: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=30, check=False)
+
+
+@contextlib.contextmanager
+def tmpfs(path: Path, size: str) -> Iterator[Path]:
+    """A real tmpfs of `size` at `path`, unmounted afterwards whatever happens."""
+    if os.geteuid() != 0:
+        pytest.skip(f"mounting a tmpfs needs root (running as uid {os.geteuid()})")
+    path.mkdir(parents=True, exist_ok=True)
+    done = _run("mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path))
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
+    try:
+        yield path
+    finally:
+        _run("umount", "-l", str(path))
+
+
+def fill(mount: Path) -> None:
+    """Write until the filesystem says it is full."""
+    with (mount / "filler").open("wb", buffering=0) as fh, contextlib.suppress(OSError):
+        while True:
+            fh.write(b"\0" * 4096)
+
+
+def machine_on(tmp: Path, data: Path) -> Daemon:
+    return start_daemon(tmp, extra=[*fast_args(tmp), "--data-dir", str(data)])
+
+
+def rider(daemon: Daemon, *args: str) -> subprocess.CompletedProcess[str]:
+    cmd = rider_cmd(
+        "--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config),
+        "--machine", daemon.machine_id, *args,
+    )  # fmt: skip
+    return subprocess.run(
+        cmd, capture_output=True, text=True, timeout=CLI_TIMEOUT_S, cwd=REPO, check=False
+    )
+
+
+def storage_warnings(status: Status) -> list[str]:
+    return [w for w in status.warnings if w.startswith("STORAGE_FAILED: ")]
+
+
+def test_full_disk_calibration_and_parameter_are_not_reported_saved(tmp_path: Path) -> None:
+    with tmpfs(tmp_path / "mnt", "256k") as mount:
+        data = mount / "data"
+        data.mkdir()
+        (data / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+        fill(mount)
+        daemon = machine_on(tmp_path, data)
+        try:
+            with daemon.rider() as r:
+                first = r.status()
+            # Full from the start: said at once; the file is still trusted (see persist.py).
+            assert "not writable (No space left on device)" in storage_warnings(first)[0]
+            assert first.calibrated.tilt and first.calibrated.rotate
+
+            cal = rider(daemon, "calibrate", "tilt", "--wait")
+            assert cal.returncode == 1, cal.stdout + cal.stderr
+            assert "STORAGE_FAILED: calibration not saved" in cal.stderr
+            param = rider(daemon, "params", "set", "rider_loss.grace_s", "2", "--persist")
+            assert param.returncode == 1 and "STORAGE_FAILED" in param.stderr, param.stderr
+            shown = rider(daemon, "status")
+            assert "STORAGE_FAILED" in shown.stdout
+
+            assert not (data / CALIBRATION_FILE).exists()  # the older file moved aside
+            assert list(data.glob(f"{CALIBRATION_FILE}.stale-*"))
+        finally:
+            daemon.stop()
+        (mount / "filler").unlink()  # room again: the restart finds no older calibration
+        daemon = machine_on(tmp_path, data)
+        try:
+            with daemon.rider() as r:
+                after = r.status()
+        finally:
+            daemon.stop()
+    assert after.state is MachineState.WARNING_NEEDS_CALIBRATION
+    assert not after.calibrated.tilt and not after.calibrated.rotate
+    assert storage_warnings(after) == []
+
+
+def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: Path) -> None:
+    with tmpfs(tmp_path / "mnt", "1m") as mount:
+        data = mount / "data"
+        data.mkdir()
+        (data / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+        remount = _run("mount", "-o", "remount,ro", str(mount))
+        assert remount.returncode == 0, remount.stderr
+        daemon = machine_on(tmp_path, data)
+        try:
+            with daemon.rider() as r:
+                first = r.status()
+            (warning,) = storage_warnings(first)
+            assert "not writable (Read-only file system)" in warning
+            assert "not trusted" in warning
+            assert not first.calibrated.tilt and not first.calibrated.rotate
+
+            cal = rider(daemon, "calibrate", "tilt", "--wait")
+            assert cal.returncode == 1, cal.stdout + cal.stderr
+            assert "could not be moved aside" in cal.stderr
+        finally:
+            daemon.stop()
+        assert (data / CALIBRATION_FILE).read_bytes() == calibration_to_json(OLD, 1.0)
+        daemon = machine_on(tmp_path, data)
+        try:
+            with daemon.rider() as r:
+                after = r.status()
+        finally:
+            daemon.stop()
+    assert not after.calibrated.tilt  # the older file is still there, still not trusted
+    assert storage_warnings(after)

@@ -1,0 +1,134 @@
+"""No silent loss: a calibration or parameter that cannot be written is never reported saved,
+and an older file is never loaded as current after a failed save (injected write failures;
+the real full and read-only filesystems are in tests/integration/test_storage_failed.py)."""
+
+from __future__ import annotations
+
+import errno
+import json
+from pathlib import Path
+
+import pytest
+
+from schema.commands import Command
+from schema.params import ParamSet
+from schema.status import MachineState
+from service.config import MachineConfig
+from service.devices import Calibration, RotateCalibration, TiltCalibration
+from service.errors import StorageFailed
+from service.params import ParamRegistry
+from service.persist import (
+    CALIBRATION_FILE,
+    ParamStore,
+    SaveTicket,
+    StorageHealth,
+    calibration_to_json,
+)
+from tests.rig import Rig
+
+S = MachineState
+OLD = Calibration(
+    tilt=TiltCalibration(offset_counts=1000.0, gain_counts_per_deg=33.0),
+    rotate=RotateCalibration(revolution_s=4.0, home_arc_deg=9.9),
+)
+
+
+def disk_full(path: Path, data: bytes) -> None:
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_failed_calibration_save_is_a_warning_and_the_older_file_goes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+    rig = Rig(data_dir=tmp_path)
+    assert rig.control.calibration == OLD
+    monkeypatch.setattr("service.persist.atomic_write", disk_full)
+
+    assert rig.send(Command.CALIBRATE_TILT).success
+    rig.run_until(lambda: rig.state is not S.CALIBRATING)
+
+    status = rig.loop.build_status(rig.clock())
+    (warning,) = status.warnings
+    assert warning.startswith("STORAGE_FAILED: calibration not saved")
+    assert "No space left" in warning and "moved aside" in warning
+    assert status.calibrated.tilt  # usable for this run, and said to be unsaved
+    assert not (tmp_path / CALIBRATION_FILE).exists()
+    assert len(list(tmp_path.glob(f"{CALIBRATION_FILE}.stale-*"))) == 1
+
+    monkeypatch.undo()
+    restarted = Rig(data_dir=tmp_path)
+    assert restarted.control.calibration == Calibration()  # not the older one
+    assert restarted.state is S.WARNING_NEEDS_CALIBRATION
+
+
+def test_a_later_good_save_clears_the_warning(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rig = Rig(data_dir=tmp_path)
+    monkeypatch.setattr("service.persist.atomic_write", disk_full)
+    assert rig.send(Command.CALIBRATE_TILT).success
+    rig.run_until(lambda: rig.state is not S.CALIBRATING)
+    assert rig.loop.build_status(rig.clock()).warnings
+    monkeypatch.undo()
+    assert rig.send(Command.CALIBRATE_TILT).success
+    rig.run_until(lambda: rig.state is not S.CALIBRATING)
+    assert rig.loop.build_status(rig.clock()).warnings == []
+    assert (tmp_path / CALIBRATION_FILE).is_file()
+
+
+class SlowStore:
+    """A store whose write the test finishes by hand (a background writer's fsync)."""
+
+    def __init__(self) -> None:
+        self.tickets: list[SaveTicket] = []
+
+    def load(self) -> tuple[Calibration, str | None]:
+        return Calibration(), None
+
+    def save(self, cal: Calibration) -> SaveTicket:
+        self.tickets.append(SaveTicket())
+        return self.tickets[-1]
+
+
+def test_calibration_ends_only_when_the_disk_has_answered() -> None:
+    rig = Rig()
+    store = SlowStore()
+    rig.control.on_calibrated = store.save
+    assert rig.send(Command.CALIBRATE_TILT).success
+    rig.run_until(lambda: bool(store.tickets))
+    rig.step(50)
+    assert rig.state is S.CALIBRATING  # measured, but not yet saved
+    assert rig.control.controller is None and not rig.relays_on()
+    store.tickets[0].finish("disk on fire")
+    rig.step()
+    assert rig.state is S.WARNING_NEEDS_CALIBRATION  # rotate is still to calibrate
+    assert "NOT saved" in rig.transitions[-1].reason
+
+
+def test_a_data_dir_that_cannot_be_written_is_a_warning_from_start(tmp_path: Path) -> None:
+    blocked = tmp_path / "a-file"
+    blocked.write_text("not a directory")
+    rig = Rig(data_dir=blocked / "data")
+    warnings = rig.loop.build_status(rig.clock()).warnings
+    assert [w for w in warnings if w.startswith("STORAGE_FAILED: data dir")], warnings
+    assert "not writable (Not a directory)" in warnings[-1]
+
+
+def test_a_failed_parameter_write_changes_nothing_and_is_a_warning(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    health = StorageHealth()
+    store = ParamStore(tmp_path)
+    registry = ParamRegistry(MachineConfig(), store, health)
+    name = "rider_loss.grace_s"
+    registry.set(name, ParamSet(transaction_id="p1", value=2.0, persist=True), moving=False, now=1)
+    monkeypatch.setattr("service.persist.atomic_write", disk_full)
+    with pytest.raises(StorageFailed, match="No space left"):
+        req = ParamSet(transaction_id="p2", value=3.0, persist=True)
+        registry.set(name, req, moving=False, now=2)
+    assert registry.get("rider_loss.grace_s").value == 2.0
+    (warning,) = health.warnings()
+    assert warning.startswith("STORAGE_FAILED: rider_loss.grace_s: could not write")
+    saved = json.loads(store.path.read_text())
+    assert saved["params"]["rider_loss.grace_s"]["value"] == 2.0  # the file matches what runs
