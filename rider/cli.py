@@ -567,9 +567,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.cmd not in ("fastdata", "ui") and rest:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
     if args.cmd == "fastdata":
+        from rider.fastdata import SET_COMMANDS, parse_set
         from rider.fastdata import main as fastdata_main
 
-        return int(fastdata_main(rest))
+        if not rest or rest[0] not in SET_COMMANDS:
+            return int(fastdata_main(rest))
+        # A user register is an online parameter: write it over Zenoh like `params set`.
+        reg = parse_set(rest)
+        args.cmd, args.params_cmd = "params", "set"
+        args.name, args.value, args.persist = reg.name, reg.value, reg.persist
     connect = args.connect or env_connect()
     if args.cmd == "ui":
         from rider.ui.app import main as ui_main

@@ -14,6 +14,7 @@ from schema.axes import PnStatus
 from schema.fastdata import (
     DEFAULT_PORT,
     MAX_REQUEST_BYTES,
+    USER_REGISTER_LENGTH,
     FastAxisData,
     FastDataError,
     ServerData,
@@ -32,16 +33,17 @@ class FastDataUnavailable(Exception):
 
 
 def axis_mask(axes: Iterable[int] | None = None) -> bytes:
-    """The request naming `axes` (indices 0..255); None asks for every axis."""
+    """The request naming axis numbers `axes` (1..256: cell i asks for axis i + 1, as in
+    seed 002; 1 is rotate, 2 tilt); None asks for every axis."""
     if axes is None:
         return b"\x01" * MAX_REQUEST_BYTES
     wanted = set(axes)
-    bad = sorted(a for a in wanted if not 0 <= a < MAX_REQUEST_BYTES)
+    bad = sorted(a for a in wanted if not 1 <= a <= MAX_REQUEST_BYTES)
     if bad:
-        raise ValueError(f"axis index {bad[0]} outside 0..{MAX_REQUEST_BYTES - 1}")
+        raise ValueError(f"axis number {bad[0]} outside 1..{MAX_REQUEST_BYTES}")
     if not wanted:
         raise ValueError("name at least one axis")
-    return bytes(1 if i in wanted else 0 for i in range(max(wanted) + 1))
+    return bytes(1 if i + 1 in wanted else 0 for i in range(max(wanted)))
 
 
 class FastDataClient:
@@ -96,7 +98,7 @@ class FastDataClient:
 
 
 # ------------------------------------------------------------------------------------ CLI
-_COLUMNS = ("axis", "status", "drvStat", "cycle", "pCmd", "pFb", "vCmd", "vFb")
+_COLUMNS = ("axis", "status", "drvStat", "cycle", "pCmd", "pFb", "cCmd", "cFb", "vCmd", "vFb")
 
 
 def status_flags(pn_status: int) -> str:
@@ -108,10 +110,11 @@ def status_flags(pn_status: int) -> str:
             (PnStatus.MOVING, "moving"),
             (PnStatus.DRIVE_ENABLED, "enabled"),
             (PnStatus.DRIVE_FAULT, "FAULT"),
+            (PnStatus.POSITION_UNKNOWN, "unknown"),
         )
         if pn_status & bit
     ]
-    rest = pn_status & ~0xF
+    rest = pn_status & ~0x1F
     if rest:
         names.append(hex(rest))
     return ",".join(names) or "-"
@@ -127,13 +130,24 @@ def format_row(r: FastAxisData) -> str:
     flags = status_flags(r.pnStatus)
     return f"{r.axisnumber:>4} {flags:<24} {r.drvStat:>7} {r.bus_cycle_num:>10}" + "".join(
         f" {v + 0.0:>10.3f}"  # + 0.0 turns -0.0 into 0.0
-        for v in (r.pCmd, r.pFb, r.vCmd, r.vFb)
+        for v in (r.pCmd, r.pFb, r.cCmd, r.cFb, r.vCmd, r.vFb)
     )
+
+
+def format_registers(reply: ServerData) -> str:
+    """The user registers, one line per array."""
+    ints = " ".join(str(i) for i in reply.ints)
+    doubles = " ".join(f"{d:g}" for d in reply.doubles)
+    return f"int_array: {ints}\ndouble_array: {doubles}"
 
 
 def format_json(reply: ServerData, r: FastAxisData) -> str:
     """One record as a JSON line, every field, with the header version it came with."""
     return json.dumps({"version": reply.version, **r.as_dict()})
+
+
+def format_json_registers(reply: ServerData) -> str:
+    return json.dumps({"int_array": list(reply.ints), "double_array": list(reply.doubles)})
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -146,7 +160,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         dest="axes",
         metavar="N",
-        help="axis index to ask for (repeatable; 0 rotate, 1 tilt); default every axis",
+        help="axis number to ask for (repeatable; 1 rotate, 2 tilt); default every axis",
+    )
+    p.add_argument(
+        "--registers", action="store_true", help="also print the user registers (int/double)"
     )
     p.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for each reply")
     p.add_argument("--watch", action="store_true", help="keep polling and stream the records")
@@ -156,9 +173,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="rider fastdata", description="Read FastData axis records.")
+    p = argparse.ArgumentParser(
+        prog="rider fastdata",
+        description="Read FastData axis records. `rider fastdata set-int|set-double INDEX VALUE"
+        " [--persist]` sets a user register (over Zenoh, as online parameter"
+        " fastdata.int.INDEX / fastdata.double.INDEX).",
+    )
     add_arguments(p)
     return p
+
+
+SET_COMMANDS = {"set-int": "int", "set-double": "double"}
+"""`rider fastdata set-int|set-double`: the register kind each writes."""
+
+
+def parse_set(argv: Sequence[str]) -> argparse.Namespace:
+    """`set-int INDEX VALUE [--persist]` → the online parameter name and value to write."""
+    p = argparse.ArgumentParser(
+        prog=f"rider fastdata {argv[0]}",
+        description="Set a FastData user register; every reply carries it from the next request.",
+    )
+    p.add_argument("index", type=int, help=f"register index 0..{USER_REGISTER_LENGTH - 1}")
+    p.add_argument("value", help="an int32 (set-int) or a finite number (set-double)")
+    p.add_argument("--persist", action="store_true", help="keep it across restarts")
+    args = p.parse_args(argv[1:])
+    if not 0 <= args.index < USER_REGISTER_LENGTH:
+        p.error(f"index {args.index} outside 0..{USER_REGISTER_LENGTH - 1}")
+    args.name = f"fastdata.{SET_COMMANDS[argv[0]]}.{args.index}"
+    return args
 
 
 def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None = None) -> int:
@@ -188,6 +230,9 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
                 got += 1
                 for r in reply.axes:
                     print(format_json(reply, r) if args.json else format_row(r), file=out)
+                if args.registers:
+                    regs = format_json_registers(reply) if args.json else format_registers(reply)
+                    print(regs, file=out)
                 out.flush()
         except KeyboardInterrupt:
             pass  # Ctrl-C ends a watch normally

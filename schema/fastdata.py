@@ -16,13 +16,18 @@ SERVERDATA_VERSION = 1
 """The `version` field of the header this code writes."""
 
 FAST_AXIS_DATA_VERSION = 1
-"""The axis record layout this code writes; sent as `int_array[0]` by the machine's server."""
+"""The axis record layout this code writes (its size is the header's `sizeOfAxesStruct`)."""
+
+USER_REGISTER_LENGTH = 8
+"""Version 1's `int_array` and `double_array` each hold this many user registers."""
+
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 DEFAULT_PORT = 60000
 """The UDP port servers listen on unless configured otherwise."""
 
 MAX_REQUEST_BYTES = 256
-"""An axis mask longer than this is refused: one byte per axis index 0..255."""
+"""An axis mask longer than this is refused: cell i (0..255) asks for axis number i + 1."""
 
 Value = int | float
 

@@ -1,17 +1,24 @@
-"""Axis records (FastData style) built from the devices each cycle."""
+"""Axis records (FastData style) built from the devices each cycle.
+
+Positions: the tilt reads its analog input (known once calibrated); the rotate has no encoder, so
+`RotateEstimator` dead-reckons it from the drive time and re-references it at every home-switch
+edge. `pn_status` follows seed 002: settled means no move is active or held *and* the position is
+within the settle window of the last move's target (see `schema.axes.PnStatus`).
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-from schema.axes import AxisRecord, PnStatus
+from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
 from schema.commands import Direction
 from schema.status import MachineState
 from service.config import MachineConfig
+from service.controllers import Controller, RotateCalibrate, RotateHome, RotateRevolutions
 from service.devices import Devices, RotateCalibration, TiltDirection
 
-ROTATE_AXIS_NUMBER = 0
-TILT_AXIS_NUMBER = 1
+AXIS_NUMBERS = {"rotate": ROTATE_AXIS_NUMBER, "tilt": TILT_AXIS_NUMBER}
 
 
 @dataclass
@@ -23,24 +30,57 @@ class AxisSample:
     velocity_cmd: float
     velocity_fb: float
     status: int
+    known: bool
+    drive_cmd: float
+    drive_fb: float
 
 
 class RotateEstimator:
-    """Rotate angle from the home switch edges and the drive time (there is no encoder)."""
+    """Rotate angle from the home switch edges and the drive time (there is no encoder).
+
+    The outputs written in one cycle move the axis until the next, so each update integrates
+    the direction driven in the *previous* cycle (`drive()` records it after the update), and a
+    switch edge is referenced with that direction even when the controller dropped the relay in
+    the very cycle it saw the edge (Home does). The switch closes at 0° turning CW and opens at
+    0° turning CCW; it closes at the end of its arc turning CCW and opens there turning CW.
+    """
 
     def __init__(self) -> None:
         self.angle: float | None = None
+        self.turns = 0.0
+        """Signed revolutions since the reference (multi-turn, CW positive): the drive unit."""
+        self.velocity = 0.0
+        """°/s over the last interval, from the drive (signed, CW positive)."""
         self._last_home: bool | None = None
+        self._driven: Direction | None = None
 
-    def update(
-        self, dt: float, driven: Direction | None, home: bool, speed: float, arc: float
-    ) -> None:
-        if self.angle is not None and driven is not None:
-            step = speed * dt if driven is Direction.CW else -speed * dt
+    def update(self, dt: float, home: bool, speed: float, arc: float, homing: bool = False) -> None:
+        """`homing`: a Home (or the homing of a calibration) runs, so an edge restarts the turn
+        count from the reference instead of continuing it."""
+        driven = self._driven
+        self.velocity = 0.0 if driven is None else (speed if driven is Direction.CW else -speed)
+        if self.angle is not None and dt > 0:
+            step = self.velocity * dt
             self.angle = (self.angle + step) % 360.0
-        if home and self._last_home is False and driven is not None:
-            self.angle = 0.0 if driven is Direction.CW else arc
-        self._last_home = home
+            self.turns += step / 360.0
+        last, self._last_home = self._last_home, home
+        if driven is not None and last is not None and home != last:
+            self._latch(0.0 if home == (driven is Direction.CW) else arc, homing)
+
+    def drive(self, direction: Direction | None) -> None:
+        """The direction this cycle's outputs drive until the next update."""
+        self._driven = direction
+
+    def forget(self) -> None:
+        """The reference is gone (a hardware fault): unknown until the next switch edge."""
+        self.angle = None
+        self.turns = 0.0
+
+    def _latch(self, deg: float, restart: bool) -> None:
+        frac = deg / 360.0
+        keep = self.angle is not None and not restart
+        self.turns = round(self.turns - frac) + frac if keep else frac
+        self.angle = deg
 
 
 class AxisTracker:
@@ -52,11 +92,17 @@ class AxisTracker:
         self.rotate = RotateEstimator()
         self._last_t: float | None = None
         self._tilt_prev: float | None = None
+        self._state: MachineState | None = None
         self.samples: dict[str, AxisSample] = {}
         # None: never published, so the first cycle publishes every axis once.
         self._last_status: dict[str, int | None] = {"rotate": None, "tilt": None}
         self._settling: set[str] = set()
-        self.tilt_target: float | None = None
+        self.targets: dict[str, float | None] = {"rotate": None, "tilt": None}
+        """Each axis' last move target (degrees), kept after the move ends or is stopped."""
+
+    @property
+    def tilt_target(self) -> float | None:
+        return self.targets["tilt"]
 
     def update(
         self,
@@ -64,39 +110,96 @@ class AxisTracker:
         state: MachineState,
         fault_axis: str | None,
         rotate_cal: RotateCalibration | None,
+        motion: Controller | None = None,
     ) -> None:
+        """Sample both axes; `motion` is the controller owning an axis (running or held)."""
         dt = 0.0 if self._last_t is None else now - self._last_t
         self._last_t = now
-        dev = self.devices
-        cal = dev.tilt.calibration
-        rot_speed = self.config.rotate.nominal_speed_dps
-        arc = 0.0
-        if rotate_cal is not None:  # measured beats nominal
-            rot_speed, arc = rotate_cal.speed_dps, rotate_cal.home_arc_deg
-        driven = dev.rotate.driven_direction()
-        prev_angle = self.rotate.angle
-        self.rotate.update(dt, driven, dev.rotate.is_home(), rot_speed, arc)
-        enabled = 0 if state is MachineState.FAULT_ESTOP else PnStatus.DRIVE_ENABLED
-        angle = self.rotate.angle
-        vcmd = 0.0 if driven is None else (rot_speed if driven is Direction.CW else -rot_speed)
-        self.samples["rotate"] = AxisSample(
-            position_cmd=0.0 if angle is None else angle,
-            position_fb=0.0 if angle is None else angle,
-            velocity_cmd=vcmd,
-            velocity_fb=_rate(prev_angle, angle, dt, wrap=True),
-            status=_bits(driven is not None, enabled, fault_axis == "rotate"),
+        if state is MachineState.FAULT_HW and self._state is not MachineState.FAULT_HW:
+            self.rotate.forget()  # Home is required again; until then the angle is a guess
+        self._state = state
+        holding = motion.axis_name if motion is not None else None
+        if motion is not None and motion.target_deg is not None:
+            self.targets[motion.axis_name] = motion.target_deg
+        enabled = 0 if state is MachineState.FAULT_ESTOP else int(PnStatus.DRIVE_ENABLED)
+        revs = motion if isinstance(motion, RotateRevolutions) else None
+        homing = isinstance(motion, RotateHome | RotateCalibrate)
+        self.samples["rotate"] = self._rotate(
+            dt, rotate_cal, holding == "rotate", enabled, revs, homing
         )
-        tdir = dev.tilt.driven_direction()
-        tilt = dev.tilt.read_position_degrees()
+        self.samples["rotate"].status |= PnStatus.DRIVE_FAULT if fault_axis == "rotate" else 0
+        self.samples["tilt"] = self._tilt(dt, holding == "tilt", enabled)
+        self.samples["tilt"].status |= PnStatus.DRIVE_FAULT if fault_axis == "tilt" else 0
+
+    def _rotate(
+        self,
+        dt: float,
+        cal: RotateCalibration | None,
+        holding: bool,
+        enabled: int,
+        revs: RotateRevolutions | None,
+        homing: bool,
+    ) -> AxisSample:
+        cfg = self.config.rotate
+        speed, arc = cfg.nominal_speed_dps, cfg.home_arc_deg
+        if cal is not None:  # measured beats nominal
+            speed, arc = cal.speed_dps, cal.home_arc_deg
+        rotate, est = self.devices.rotate, self.rotate
+        est.update(dt, rotate.is_home(), speed, arc, homing)
+        driven = rotate.driven_direction()
+        est.drive(driven)
+        angle, target = est.angle, self.targets["rotate"]
+        error = 0.0 if angle is None or target is None else _wrap(target - angle)
+        pos = 0.0 if angle is None else angle
+        turns = est.turns if angle is not None else 0.0
+        turns_cmd = turns + error / 360.0
+        if revs is not None and angle is not None:
+            turns_cmd = _end_turns(turns, revs, arc)
+        return AxisSample(
+            position_cmd=pos if target is None or angle is None else target,
+            position_fb=pos,
+            velocity_cmd=0.0 if driven is None else (speed if driven is Direction.CW else -speed),
+            velocity_fb=est.velocity,
+            status=_bits(
+                known=angle is not None,
+                moving=driven is not None,
+                enabled=enabled,
+                settled=not holding and abs(error) <= cfg.settle_window_deg,
+            ),
+            known=angle is not None,
+            drive_cmd=turns_cmd,
+            drive_fb=turns,
+        )
+
+    def _tilt(self, dt: float, holding: bool, enabled: int) -> AxisSample:
+        tilt_axis = self.devices.tilt
+        cal = tilt_axis.calibration
+        tdir = tilt_axis.driven_direction()
+        raw = tilt_axis.read_raw()
+        tilt = tilt_axis.read_position_degrees()
+        target = self.targets["tilt"]
         tv = self.config.tilt.nominal_speed_dps
-        self.samples["tilt"] = AxisSample(
-            position_cmd=self.tilt_target if self.tilt_target is not None else (tilt or 0.0),
+        error = 0.0 if tilt is None or target is None else target - tilt
+        velocity_fb = _rate(self._tilt_prev, tilt, dt)
+        self._tilt_prev = tilt
+        raw_cmd = float(raw)
+        if cal is not None and target is not None:
+            raw_cmd = cal.offset_counts + cal.gain_counts_per_deg * target
+        return AxisSample(
+            position_cmd=(0.0 if tilt is None else tilt) if target is None else target,
             position_fb=0.0 if tilt is None else tilt,
             velocity_cmd=0.0 if tdir is None else (tv if tdir is TiltDirection.UP else -tv),
-            velocity_fb=_rate(self._tilt_prev, tilt, dt, wrap=False),
-            status=_bits(tdir is not None, enabled, fault_axis == "tilt") if cal else 0,
+            velocity_fb=velocity_fb,
+            status=_bits(
+                known=tilt is not None,
+                moving=tdir is not None,
+                enabled=enabled,
+                settled=not holding and abs(error) <= self.config.tilt.tolerance_deg,
+            ),
+            known=tilt is not None,
+            drive_cmd=raw_cmd,
+            drive_fb=float(raw),
         )
-        self._tilt_prev = tilt
 
     def due(self, cycle: int) -> list[str]:
         """Axes to publish this cycle: every Nth cycle while moving, whenever the status bits
@@ -120,7 +223,7 @@ class AxisTracker:
         s = self.samples[name]
         return AxisRecord(
             axis=name,
-            axis_number=ROTATE_AXIS_NUMBER if name == "rotate" else TILT_AXIS_NUMBER,
+            axis_number=AXIS_NUMBERS[name],
             pn_status=s.status,
             cycle=cycle,
             position_cmd=s.position_cmd,
@@ -128,21 +231,38 @@ class AxisTracker:
             velocity_cmd=s.velocity_cmd,
             velocity_fb=s.velocity_fb,
             time=time,
+            position_known=s.known,
+            drive_cmd=s.drive_cmd,
+            drive_fb=s.drive_fb,
         )
 
 
-def _bits(moving: bool, enabled: int, fault: bool) -> int:
+def _bits(*, known: bool, moving: bool, enabled: int, settled: bool) -> int:
     bits = enabled
-    bits |= PnStatus.MOVING if moving else PnStatus.SETTLED
-    if fault:
-        bits |= PnStatus.DRIVE_FAULT
+    if moving:
+        bits |= PnStatus.MOVING
+    if not known:
+        bits |= PnStatus.POSITION_UNKNOWN
+    elif settled and not moving:
+        bits |= PnStatus.SETTLED
     return int(bits)
 
 
-def _rate(prev: float | None, cur: float | None, dt: float, *, wrap: bool) -> float:
+def _end_turns(turns: float, revs: RotateRevolutions, arc: float) -> float:
+    """Where (in turns) a revolutions move ends: on its remaining-th closing switch edge."""
+    left = max(revs.total - revs.done, 1)
+    if revs.direction is Direction.CW:  # closing edges at whole turns
+        return math.floor(turns) + left
+    a = arc / 360.0  # turning CCW the switch closes at the end of its arc
+    return math.ceil(turns - a) - 1 + a - (left - 1)
+
+
+def _wrap(delta: float) -> float:
+    """An angle difference in [-180, 180)."""
+    return (delta + 180.0) % 360.0 - 180.0
+
+
+def _rate(prev: float | None, cur: float | None, dt: float) -> float:
     if prev is None or cur is None or dt <= 0:
         return 0.0
-    delta = cur - prev
-    if wrap:
-        delta = (delta + 180.0) % 360.0 - 180.0
-    return delta / dt
+    return (cur - prev) / dt

@@ -5,12 +5,16 @@ from __future__ import annotations
 import tomllib
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from hal.iomap import IoMap
 from hal.physics import PhysicsParams
+from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
+
+Int32 = Annotated[int, Field(ge=INT32_MIN, le=INT32_MAX)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
 class _Section(BaseModel):
@@ -46,6 +50,7 @@ class RotateSection(_Section):
     revolution_timeout_s: float = Field(default=8.0, gt=0, le=600)
     backoff_timeout_s: float = Field(default=2.0, gt=0, le=60)
     speed_tolerance: float = Field(default=0.5, gt=0, lt=1)
+    settle_window_deg: float = Field(default=2.0, gt=0, le=30)
 
 
 class TiltSection(_Section):
@@ -126,6 +131,9 @@ class FastDataSection(_Section):
     enabled: bool = False
     host: str = "0.0.0.0"
     port: int = Field(default=60000, ge=1, le=65535)
+    # Version 1's user registers, sent in every reply; missing entries read as 0.
+    user_ints: list[Int32] = Field(default_factory=list, max_length=USER_REGISTER_LENGTH)
+    user_doubles: list[Finite] = Field(default_factory=list, max_length=USER_REGISTER_LENGTH)
 
 
 class MachineConfig(_Section):

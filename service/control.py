@@ -228,8 +228,14 @@ class ControlAPI:
                 Fault(code=FaultCode.INVALID_SESSION, message=message), now, "Start: bad session"
             )
             raise InvalidSession(message, path)
+        assert self.calibration.rotate is not None  # checked complete above
         run = SessionRun(
-            session, self.devices.tilt, self.devices.rotate, self.config.tilt, self.config.rotate
+            session,
+            self.devices.tilt,
+            self.devices.rotate,
+            self.config.tilt,
+            self.config.rotate,
+            self.calibration.rotate.home_arc_deg,
         )
         self.session_run = run
         self._begin(Command.START, S.RUNNING, run, now, f"Start session {session.name!r}")
@@ -424,6 +430,11 @@ class ControlAPI:
     def external_fault(self, fault: Fault, now: float) -> None:
         """A fault raised outside the controllers (watchdog, supervisor, loop exception)."""
         self._enter_fault(fault, now, fault.code.value)
+
+    def motion(self) -> Controller | None:
+        """The controller that owns an axis now (running, paused or held by an E-stop)."""
+        ctl = self.controller
+        return ctl.active() if isinstance(ctl, Chain) else ctl
 
     def is_moving(self) -> bool:
         """Motion is under way or can be resumed (paused, or halted by a released E-stop)."""

@@ -37,6 +37,8 @@ class Controller:
     """Base: a fault ends the controller with outputs stopped."""
 
     axis_name = ""
+    target_deg: float | None = None
+    """Where this controller leaves its axis (the settle check's target); None: nowhere fixed."""
 
     def __init__(self) -> None:
         self.fault: Fault | None = None
@@ -65,6 +67,7 @@ class RotateHome(Controller):
     """Back off the switch if on it (CCW), dwell, then seek its closing edge CW."""
 
     axis_name = "rotate"
+    target_deg = 0.0
 
     def __init__(self, axis: RotateAxis, cfg: RotateSection) -> None:
         super().__init__()
@@ -118,11 +121,18 @@ class RotateRevolutions(Controller):
     axis_name = "rotate"
 
     def __init__(
-        self, axis: RotateAxis, cfg: RotateSection, direction: Direction, revolutions: int
+        self,
+        axis: RotateAxis,
+        cfg: RotateSection,
+        direction: Direction,
+        revolutions: int,
+        home_arc_deg: float = 0.0,
     ) -> None:
         super().__init__()
         self.axis, self.cfg = axis, cfg
         self.direction = direction
+        # The switch closes at 0° turning CW and at the end of its arc turning CCW.
+        self.target_deg = 0.0 if direction is Direction.CW else home_arc_deg
         self.total = revolutions
         self.done = 0
         self._left: bool | None = None
@@ -162,6 +172,7 @@ class RotateCalibrate(Controller):
     """Home, then time one CW revolution edge to edge, and how long the switch stays closed."""
 
     axis_name = "rotate"
+    target_deg = 0.0
 
     def __init__(self, axis: RotateAxis, cfg: RotateSection) -> None:
         super().__init__()
@@ -300,6 +311,7 @@ class TiltHome(Controller):
     """Drive down until the tilt home switch closes."""
 
     axis_name = "tilt"
+    target_deg = 0.0
 
     def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
         super().__init__()
@@ -343,7 +355,7 @@ class TiltMove(Controller):
     def __init__(self, axis: TiltAxis, cfg: TiltSection, target_deg: float) -> None:
         super().__init__()
         self.axis, self.cfg = axis, cfg
-        self.target = target_deg
+        self.target = self.target_deg = target_deg
         self._sup = TiltSupervisor(axis, cfg)
         self._t0: float | None = None
         self._timeout = 0.0
@@ -414,6 +426,7 @@ class TiltCalibrate(Controller):
     """Home (offset at 0°), a timed stroke up at the nominal speed (gain), then home again."""
 
     axis_name = "tilt"
+    target_deg = 0.0
 
     def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
         super().__init__()
@@ -549,6 +562,11 @@ class Chain(Controller):
         if self.current is not None:
             self.current.resume(now)
 
+    def active(self) -> Controller | None:
+        """The controller doing the work now (through nested chains), if any."""
+        current = self.current
+        return current.active() if isinstance(current, Chain) else current
+
 
 class SessionRun(Chain):
     """A session's steps as a chain, with progress for the status record."""
@@ -560,11 +578,14 @@ class SessionRun(Chain):
         rotate: RotateAxis,
         tilt_cfg: TiltSection,
         rotate_cfg: RotateSection,
+        home_arc_deg: float = 0.0,
     ) -> None:
         def make(step: TiltStep | RotateStep) -> Callable[[], Controller]:
             if isinstance(step, TiltStep):
                 return lambda: TiltMove(tilt, tilt_cfg, step.degrees)
-            return lambda: RotateRevolutions(rotate, rotate_cfg, step.direction, step.revolutions)
+            return lambda: RotateRevolutions(
+                rotate, rotate_cfg, step.direction, step.revolutions, home_arc_deg
+            )
 
         super().__init__([make(s) for s in session.steps])
         self.session = session

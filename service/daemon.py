@@ -23,7 +23,7 @@ from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.config import HalBackend, MachineConfig
 from service.eventlog import EVENTS_FILE, EventLog
-from service.fastdata import FastDataServer
+from service.fastdata import FastDataServer, user_registers
 from service.machine import Machine
 from service.params import ParamRegistry
 from service.persist import BackgroundWriter, CalibrationStore, ParamStore
@@ -174,6 +174,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
                 config.fastdata.host,
                 config.fastdata.port,
                 cycle=lambda: loop.cycle,
+                registers=lambda: user_registers(registry.config),
             )
             fastdata.start()
             log.info("event=fastdata_started address=%s:%d", *fastdata.address)

@@ -12,18 +12,19 @@ import selectors
 import socket
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from schema.axes import AxisRecord, PnStatus
 from schema.fastdata import (
     DEFAULT_PORT,
-    FAST_AXIS_DATA_VERSION,
     MAX_REQUEST_BYTES,
     SERVERDATA_VERSION,
+    USER_REGISTER_LENGTH,
     FastAxisData,
     encode,
 )
+from service.config import MachineConfig
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +42,35 @@ _U32 = 0xFFFFFFFF
 Snapshot = Callable[[], Mapping[str, AxisRecord]]
 
 
+@dataclass(frozen=True)
+class UserRegisters:
+    """Version 1's user data: `USER_REGISTER_LENGTH` int32s and doubles set by the operator."""
+
+    ints: tuple[int, ...] = (0,) * USER_REGISTER_LENGTH
+    doubles: tuple[float, ...] = (0.0,) * USER_REGISTER_LENGTH
+
+    @classmethod
+    def of(cls, ints: Sequence[int], doubles: Sequence[float]) -> UserRegisters:
+        """Padded with zeros (or cut) to exactly `USER_REGISTER_LENGTH` each."""
+        n = USER_REGISTER_LENGTH
+        return cls(
+            tuple(ints[:n]) + (0,) * (n - len(ints[:n])),
+            tuple(float(d) for d in doubles[:n]) + (0.0,) * (n - len(doubles[:n])),
+        )
+
+
+Registers = Callable[[], UserRegisters]
+
+
+def user_registers(config: MachineConfig) -> UserRegisters:
+    """The registers as the (live, online-parameter) config holds them."""
+    return UserRegisters.of(config.fastdata.user_ints, config.fastdata.user_doubles)
+
+
 def to_fast_axis(record: AxisRecord, cycle: int | None = None) -> FastAxisData:
-    """Our axis record as `FastAxisData`; quantities the ride has no sensor for are 0.0."""
+    """Our axis record as `FastAxisData`; quantities the ride has no sensor for are 0.0.
+
+    `cCmd`/`cFb` are the position in drive units (tilt: raw analog counts; rotate: turns)."""
     status = record.pn_status & _U32
     return FastAxisData(
         pnStatus=status,
@@ -52,8 +80,8 @@ def to_fast_axis(record: AxisRecord, cycle: int | None = None) -> FastAxisData:
         pCmd=record.position_cmd,
         pFb=record.position_fb,
         pExt=0.0,
-        cCmd=0.0,
-        cFb=0.0,
+        cCmd=record.drive_cmd,
+        cFb=record.drive_fb,
         vCmd=record.velocity_cmd,
         vFb=record.velocity_fb,
         aCmd=0.0,
@@ -62,10 +90,16 @@ def to_fast_axis(record: AxisRecord, cycle: int | None = None) -> FastAxisData:
     )
 
 
-def build_reply(mask: bytes, axes: Mapping[str, AxisRecord], cycle: int | None = None) -> bytes:
+def build_reply(
+    mask: bytes,
+    axes: Mapping[str, AxisRecord],
+    cycle: int | None = None,
+    registers: UserRegisters | None = None,
+) -> bytes:
     """The reply to one axis mask: the wanted axes that exist, by ascending axis number.
 
-    `int_array` = [axis record version, number of axes the server has]; `double_array` is empty.
+    As in seed 002, request cell i asks for axis number i + 1. `int_array` and `double_array`
+    carry the user registers, always `USER_REGISTER_LENGTH` long.
     """
     by_number: dict[int, AxisRecord] = {}
     for name in sorted(axes):
@@ -74,9 +108,10 @@ def build_reply(mask: bytes, axes: Mapping[str, AxisRecord], cycle: int | None =
     wanted = [
         to_fast_axis(by_number[n], cycle)
         for n in sorted(by_number)
-        if 0 <= n < len(mask) and mask[n]
+        if 0 <= n - 1 < len(mask) and mask[n - 1]
     ]
-    return encode(wanted, SERVERDATA_VERSION, ints=(FAST_AXIS_DATA_VERSION, len(by_number)))
+    regs = registers or UserRegisters()
+    return encode(wanted, SERVERDATA_VERSION, ints=regs.ints, doubles=regs.doubles)
 
 
 def valid_mask(request: bytes) -> bool:
@@ -130,9 +165,11 @@ class FastDataServer:
         cycle: Callable[[], int] | None = None,
         *,
         max_rate: float = DEFAULT_MAX_RATE,
+        registers: Registers | None = None,
     ) -> None:
         self.snapshot = snapshot
         self.cycle = cycle
+        self.registers = registers
         self.budget = RequestBudget(max_rate, max(1.0, max_rate / 20), time.monotonic)
         self.host = host
         self.stats = FastDataStats()
@@ -220,7 +257,8 @@ class FastDataServer:
                 self.stats.ignored += 1
                 continue
             try:
-                reply = build_reply(request, self.snapshot(), self._cycle())
+                regs = self.registers() if self.registers is not None else None
+                reply = build_reply(request, self.snapshot(), self._cycle(), regs)
                 sock.sendto(reply, peer)
                 self.stats.replies += 1
             except OSError as exc:  # a full send buffer or an unroutable peer drops one reply

@@ -275,7 +275,11 @@ class ScanLoop:
         control = self.control
         fault = control.fault
         self.axes.update(
-            now, control.state, fault.axis if fault else None, control.calibration.rotate
+            now,
+            control.state,
+            fault.axis if fault else None,
+            control.calibration.rotate,
+            control.motion(),
         )
         due = self.axes.due(self.cycle)
         if due:

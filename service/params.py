@@ -14,6 +14,7 @@ import annotated_types as at
 from pydantic import BaseModel, ValidationError
 
 from schema.errors import ErrorCode
+from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
 from schema.findings import Severity
 from schema.params import ParamSet, ParamValue
 from service.config import MachineConfig
@@ -66,10 +67,14 @@ class ParamSpec:
     min_exclusive: bool = False
     max_exclusive: bool = False
     choices: tuple[str, ...] = ()
+    index: int | None = None
+    """For an element of a list field (the FastData user registers): its position."""
 
     def default(self, config: MachineConfig) -> ParamScalar:
-        """The value in `config` (enums as their string)."""
+        """The value in `config` (enums as their string; a missing list element is zero)."""
         value = getattr(getattr(config, self.section), self.field)
+        if self.index is not None:
+            return _scalar(value[self.index]) if self.index < len(value) else self.kind(0)
         return value.value if isinstance(value, StrEnum) else _scalar(value)
 
     def check(self, value: object) -> ParamScalar:
@@ -103,9 +108,9 @@ class ParamSpec:
         """E.g. `> 0 and ≤ 10 °`."""
         parts = []
         if self.minimum is not None:
-            parts.append(f"{'>' if self.min_exclusive else '≥'} {self.minimum:g}")
+            parts.append(f"{'>' if self.min_exclusive else '≥'} {_num(self.minimum)}")
         if self.maximum is not None:
-            parts.append(f"{'<' if self.max_exclusive else '≤'} {self.maximum:g}")
+            parts.append(f"{'<' if self.max_exclusive else '≤'} {_num(self.maximum)}")
         text = " and ".join(parts) or "any number"
         return f"{text} {self.unit}".rstrip()
 
@@ -119,6 +124,11 @@ class ParamSpec:
         return ParamWrongType(
             f"{self.name} expects {expected}; got {type(value).__name__} {value!r}", "/value"
         )
+
+
+def _num(v: float) -> str:
+    """`0.5`, `10`, and whole numbers in full (an int32 bound, not `2.14748e+09`)."""
+    return str(int(v)) if v.is_integer() else f"{v:g}"
 
 
 def _scalar(value: object) -> ParamScalar:
@@ -150,7 +160,42 @@ def _spec(name: str, unit: str, locked: bool, description: str) -> ParamSpec:
     )
 
 
-SPECS: dict[str, ParamSpec] = {row[0]: _spec(*row) for row in _ONLINE}
+def _register_specs() -> list[ParamSpec]:
+    """`fastdata.int.<i>` and `fastdata.double.<i>`: the FastData user registers (seed 002)."""
+    ints = [
+        ParamSpec(
+            f"fastdata.int.{i}",
+            "fastdata",
+            "user_ints",
+            int,
+            "",
+            f"FastData user register int_array[{i}], sent in every reply",
+            False,
+            minimum=INT32_MIN,
+            maximum=INT32_MAX,
+            index=i,
+        )
+        for i in range(USER_REGISTER_LENGTH)
+    ]
+    doubles = [
+        ParamSpec(
+            f"fastdata.double.{i}",
+            "fastdata",
+            "user_doubles",
+            float,
+            "",
+            f"FastData user register double_array[{i}], sent in every reply",
+            False,
+            index=i,
+        )
+        for i in range(USER_REGISTER_LENGTH)
+    ]
+    return ints + doubles
+
+
+SPECS: dict[str, ParamSpec] = {row[0]: _spec(*row) for row in _ONLINE} | {
+    spec.name: spec for spec in _register_specs()
+}
 """Every online parameter by its dotted name, in a stable order."""
 
 
@@ -277,7 +322,15 @@ class ParamRegistry:
         sections: dict[str, dict[str, Any]] = {}
         for name, v in live.items():
             s = SPECS[name]
-            sections.setdefault(s.section, {})[s.field] = v
+            fields = sections.setdefault(s.section, {})
+            if s.index is None:
+                fields[s.field] = v
+                continue
+            items = fields.setdefault(
+                s.field, list(getattr(self._project, s.section).__dict__[s.field])
+            )
+            items.extend([s.kind(0)] * (s.index + 1 - len(items)))
+            items[s.index] = v
         shown = f"{spec.name}={value!r}" if value is not None else f"{spec.name} reset"
         try:
             candidate = self._project.with_overrides(**sections)

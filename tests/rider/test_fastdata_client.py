@@ -40,22 +40,25 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "fastdata.md"
 
 
 def record(axis: str, number: int, status: PnStatus) -> AxisRecord:
+    k = number - 1
     return AxisRecord(
         axis=axis,
         axis_number=number,
         pn_status=int(status),
         cycle=7,
-        position_cmd=45.0 * (number + 1),
-        position_fb=44.5 * (number + 1),
-        velocity_cmd=-15.0 * number,
-        velocity_fb=-14.25 * number,
+        position_cmd=45.0 * (k + 1),
+        position_fb=44.5 * (k + 1),
+        velocity_cmd=-15.0 * k,
+        velocity_fb=-14.25 * k,
         time=0.0,
+        drive_cmd=3000.0 + 1800.0 * k,
+        drive_fb=2980.0 + 1780.0 * k,
     )
 
 
 AXES = {
-    "rotate": record("rotate", 0, PnStatus.SETTLED | PnStatus.DRIVE_ENABLED),
-    "tilt": record("tilt", 1, PnStatus.MOVING | PnStatus.DRIVE_ENABLED | PnStatus.DRIVE_FAULT),
+    "rotate": record("rotate", 1, PnStatus.SETTLED | PnStatus.DRIVE_ENABLED),
+    "tilt": record("tilt", 2, PnStatus.MOVING | PnStatus.DRIVE_ENABLED | PnStatus.DRIVE_FAULT),
 }
 
 
@@ -100,14 +103,16 @@ def port_args(port: int) -> list[str]:
 
 
 # -------------------------------------------------------------------------- axis mask
-def test_axis_mask_names_axes_by_index() -> None:
-    assert axis_mask([1]) == b"\x00\x01"
-    assert axis_mask([0, 1]) == b"\x01\x01"
-    assert axis_mask([3, 0]) == b"\x01\x00\x00\x01"
+def test_axis_mask_names_axes_by_number_as_the_seed_does() -> None:
+    # Seed 002: cells 0, 5 and 13 ask for axes 1, 6 and 14.
+    assert axis_mask([1, 6, 14]) == bytes(1 if i in (0, 5, 13) else 0 for i in range(14))
+    assert axis_mask([2]) == b"\x00\x01"
+    assert axis_mask([1, 2]) == b"\x01\x01"
+    assert axis_mask([4, 1]) == b"\x01\x00\x00\x01"
     assert axis_mask(None) == b"\x01" * MAX_REQUEST_BYTES
 
 
-@pytest.mark.parametrize(("axes", "message"), [([-1], "-1 outside"), ([256], "256"), ([], "one")])
+@pytest.mark.parametrize(("axes", "message"), [([0], "0 outside"), ([257], "257"), ([], "one")])
 def test_axis_mask_refuses_bad_indices(axes: list[int], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         axis_mask(axes)
@@ -116,18 +121,21 @@ def test_axis_mask_refuses_bad_indices(axes: list[int], message: str) -> None:
 def test_status_flags_name_each_bit() -> None:
     assert status_flags(0) == "-"
     assert status_flags(int(PnStatus.MOVING | PnStatus.DRIVE_ENABLED)) == "moving,enabled"
-    assert status_flags(int(PnStatus.DRIVE_FAULT) | 0x30) == "FAULT,0x30"
+    assert status_flags(int(PnStatus.DRIVE_FAULT) | 0x60) == "FAULT,0x60"
+    assert (
+        status_flags(int(PnStatus.POSITION_UNKNOWN | PnStatus.DRIVE_ENABLED)) == "enabled,unknown"
+    )
 
 
 # ----------------------------------------------------------------------------- client
 def test_query_returns_typed_records(server: FastDataServer) -> None:
     with FastDataClient("127.0.0.1", server.port, timeout=2.0) as client:
         reply = client.query()
-        tilt_only = client.query([1])
+        tilt_only = client.query([2])
     assert reply.axes == (to_fast_axis(AXES["rotate"], 1234), to_fast_axis(AXES["tilt"], 1234))
     (tilt,) = tilt_only.axes
     assert isinstance(tilt, FastAxisData)
-    assert (tilt.axisnumber, tilt.pFb, tilt.vFb, tilt.drvStat) == (1, 89.0, -14.25, 1)
+    assert (tilt.axisnumber, tilt.pFb, tilt.vFb, tilt.drvStat) == (2, 89.0, -14.25, 1)
     assert tilt.pnStatus & PnStatus.MOVING
 
 
@@ -137,7 +145,7 @@ def test_timeout_is_a_clear_error(silent: socket.socket) -> None:
         FastDataClient("127.0.0.1", port, timeout=0.2) as client,
         pytest.raises(FastDataUnavailable, match=f"no reply from 127.0.0.1:{port} within 0.2 s"),
     ):
-        client.query([0])
+        client.query([1])
     assert silent.recvfrom(10)[0] == b"\x01"  # the request did go out
 
 
@@ -146,10 +154,10 @@ def test_closed_port_is_a_clear_error(silent: socket.socket) -> None:
     silent.close()
     with FastDataClient("127.0.0.1", port, timeout=2.0) as client:
         with pytest.raises(FastDataUnavailable, match=f"nothing listens on 127.0.0.1:{port}"):
-            client.query([0])
+            client.query([1])
         # The refusal is not remembered into the next query's answer.
         with pytest.raises(FastDataUnavailable, match="nothing listens"):
-            client.query([0])
+            client.query([1])
 
 
 def test_unreadable_reply_is_a_clear_error(silent: socket.socket) -> None:
@@ -158,7 +166,7 @@ def test_unreadable_reply_is_a_clear_error(silent: socket.socket) -> None:
         FastDataClient(*silent.getsockname(), 2.0) as client,
         pytest.raises(FastDataUnavailable, match=r"unreadable reply.*shorter than the header"),
     ):
-        client.query([0])
+        client.query([1])
 
 
 def test_late_reply_to_a_timed_out_query_is_not_taken_for_the_next(
@@ -182,11 +190,11 @@ def test_late_reply_to_a_timed_out_query_is_not_taken_for_the_next(
     try:
         with FastDataClient(*silent.getsockname(), timeout=0.2) as client:
             with pytest.raises(FastDataUnavailable):
-                client.query([0])
+                client.query([1])
             timed_out.set()
             assert late_sent.wait(5)
             client.timeout = 2.0
-            assert client.query([0]).axes[0].bus_cycle_num == 2
+            assert client.query([1]).axes[0].bus_cycle_num == 2
     finally:
         timed_out.set()
         t.join(5)
@@ -202,25 +210,29 @@ def test_client_reads_a_newer_server_with_longer_records(silent: socket.socket) 
         version=2,
     )
     with answering(silent, data), FastDataClient(*silent.getsockname(), 2.0) as client:
-        reply = client.query([1])
+        reply = client.query([2])
     assert reply.axes == (rec,)
     assert reply.version == 2
     assert reply.axis_struct_size == 104
 
 
 # -------------------------------------------------------------------------------- CLI
+ROTATE_TAIL = ["3000.000", "2980.000", "0.000", "0.000"]  # cCmd cFb vCmd vFb
+TILT_TAIL = ["4800.000", "4760.000", "-15.000", "-14.250"]
+
+
 def test_cli_prints_a_table(server: FastDataServer, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(port_args(server.port)) == EXIT_OK
     lines = capsys.readouterr().out.splitlines()
     assert [ln.split() for ln in lines] == [
-        ["axis", "status", "drvStat", "cycle", "pCmd", "pFb", "vCmd", "vFb"],
-        ["0", "settled,enabled", "0", "1234", "45.000", "44.500", "0.000", "0.000"],
-        ["1", "moving,enabled,FAULT", "1", "1234", "90.000", "89.000", "-15.000", "-14.250"],
+        ["axis", "status", "drvStat", "cycle", "pCmd", "pFb", "cCmd", "cFb", "vCmd", "vFb"],
+        ["1", "settled,enabled", "0", "1234", "45.000", "44.500", *ROTATE_TAIL],
+        ["2", "moving,enabled,FAULT", "1", "1234", "90.000", "89.000", *TILT_TAIL],
     ]
 
 
 def test_cli_one_axis_as_json(server: FastDataServer, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main([*port_args(server.port), "--axis", "1", "--json"]) == EXIT_OK
+    assert main([*port_args(server.port), "--axis", "2", "--json"]) == EXIT_OK
     (line,) = capsys.readouterr().out.splitlines()
     assert json.loads(line) == {"version": 1, **to_fast_axis(AXES["tilt"], 1234).as_dict()}
 
@@ -228,11 +240,11 @@ def test_cli_one_axis_as_json(server: FastDataServer, capsys: pytest.CaptureFixt
 def test_cli_watch_streams_count_polls(
     server: FastDataServer, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    args = [*port_args(server.port), "--watch", "--interval", "0", "--count", "3", "--axis", "0"]
+    args = [*port_args(server.port), "--watch", "--interval", "0", "--count", "3", "--axis", "1"]
     assert main(args) == EXIT_OK
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("axis")
-    assert [ln.split()[0] for ln in lines[1:]] == ["0", "0", "0"]
+    assert [ln.split()[0] for ln in lines[1:]] == ["1", "1", "1"]
     server.close()  # joins the server thread: its counters are final
     assert server.stats.replies == 3
 

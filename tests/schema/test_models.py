@@ -231,7 +231,7 @@ def test_check_result_fields() -> None:
 
 
 def test_axis_record_status_bits() -> None:
-    assert [int(b) for b in PnStatus] == [1, 2, 4, 8]
+    assert [int(b) for b in PnStatus] == [1, 2, 4, 8, 16]  # seed 002's four, then ours
     record = AxisRecord(
         axis="tilt",
         axis_number=1,

@@ -11,9 +11,9 @@ import pytest
 from schema.axes import AxisRecord, PnStatus
 from schema.commands import Command
 from schema.fastdata import (
-    FAST_AXIS_DATA_VERSION,
     MAX_REQUEST_BYTES,
     SERVERDATA_VERSION,
+    USER_REGISTER_LENGTH,
     ServerData,
     decode,
 )
@@ -22,6 +22,7 @@ from service.fastdata import (
     DRV_STAT_FAULT,
     FastDataServer,
     RequestBudget,
+    UserRegisters,
     build_reply,
     to_fast_axis,
 )
@@ -46,7 +47,7 @@ def record(axis: str, number: int, **over: object) -> AxisRecord:
     return AxisRecord.model_validate(values)
 
 
-AXES = {"rotate": record("rotate", 0), "tilt": record("tilt", 1)}
+AXES = {"rotate": record("rotate", 1), "tilt": record("tilt", 2)}
 
 
 @pytest.fixture
@@ -77,19 +78,23 @@ def ask(sock: socket.socket, server: FastDataServer, mask: bytes) -> ServerData:
 
 # ---------------------------------------------------------------------- record mapping
 def test_every_axis_record_field_maps_to_its_fastdata_field() -> None:
-    fast = to_fast_axis(record("tilt", 1, pn_status=int(PnStatus.MOVING), cycle=77))
+    fast = to_fast_axis(
+        record(
+            "tilt", 2, pn_status=int(PnStatus.MOVING), cycle=77, drive_cmd=3000.0, drive_fb=2900.0
+        )
+    )
     assert fast.as_dict() == {
         "pnStatus": int(PnStatus.MOVING),
-        "axisnumber": 1,
+        "axisnumber": 2,
         "drvStat": 0,
         "bus_cycle_num": 77,
-        "pCmd": 11.0,
-        "pFb": 12.0,
+        "pCmd": 12.0,
+        "pFb": 13.0,
         "pExt": 0.0,
-        "cCmd": 0.0,
-        "cFb": 0.0,
-        "vCmd": 13.0,
-        "vFb": 14.0,
+        "cCmd": 3000.0,  # position command in drive units (tilt: raw counts), not a current
+        "cFb": 2900.0,
+        "vCmd": 14.0,
+        "vFb": 15.0,
         "aCmd": 0.0,
         "tAddCmd": 0.0,
         "tFb": 0.0,
@@ -98,21 +103,26 @@ def test_every_axis_record_field_maps_to_its_fastdata_field() -> None:
 
 def test_drive_fault_bit_sets_drvstat() -> None:
     bits = int(PnStatus.DRIVE_FAULT | PnStatus.SETTLED)
-    fast = to_fast_axis(record("rotate", 0, pn_status=bits))
+    fast = to_fast_axis(record("rotate", 1, pn_status=bits))
     assert fast.drvStat == DRV_STAT_FAULT != 0
     assert fast.pnStatus == bits
 
 
 def test_loop_cycle_overrides_record_cycle_and_wraps_at_32_bits() -> None:
-    assert to_fast_axis(record("rotate", 0, cycle=5), cycle=9).bus_cycle_num == 9
-    assert to_fast_axis(record("rotate", 0), cycle=2**32 + 3).bus_cycle_num == 3
+    assert to_fast_axis(record("rotate", 1, cycle=5), cycle=9).bus_cycle_num == 9
+    assert to_fast_axis(record("rotate", 1), cycle=2**32 + 3).bus_cycle_num == 3
 
 
-def test_reply_carries_header_and_axis_record_versions() -> None:
+def test_reply_carries_the_version_and_user_registers_of_full_length() -> None:
     reply = decode(build_reply(b"\x01\x01", AXES))
     assert reply.version == SERVERDATA_VERSION
-    assert reply.ints == (FAST_AXIS_DATA_VERSION, 2)
-    assert reply.doubles == ()
+    assert reply.ints == (0,) * USER_REGISTER_LENGTH
+    assert reply.doubles == (0.0,) * USER_REGISTER_LENGTH
+    regs = UserRegisters.of([7, -(2**31)], [1.5])
+    reply = decode(build_reply(b"\x01", AXES, registers=regs))
+    assert reply.ints == (7, -(2**31)) + (0,) * (USER_REGISTER_LENGTH - 2)
+    assert reply.doubles == (1.5,) + (0.0,) * (USER_REGISTER_LENGTH - 1)
+    assert [a.axisnumber for a in reply.axes] == [1]
 
 
 def test_axes_outside_the_mask_range_are_never_sent() -> None:
@@ -125,14 +135,14 @@ def test_axes_outside_the_mask_range_are_never_sent() -> None:
 @pytest.mark.parametrize(
     ("mask", "numbers"),
     [
-        (b"\x01", [0]),
-        (b"\x00\x01", [1]),
-        (b"\x00\xff", [1]),
-        (b"\x01\x01", [0, 1]),
-        (b"\x07\x00\x00", [0]),
+        (b"\x01", [1]),  # seed 002: cell i asks for axis number i + 1
+        (b"\x00\x01", [2]),
+        (b"\x00\xff", [2]),
+        (b"\x01\x01", [1, 2]),
+        (b"\x07\x00\x00", [1]),
         (b"\x00\x00\x00\x01", []),
         (b"\x00" * MAX_REQUEST_BYTES, []),
-        (b"\x01" * MAX_REQUEST_BYTES, [0, 1]),
+        (b"\x01" * MAX_REQUEST_BYTES, [1, 2]),
     ],
 )
 def test_axis_mask_selects_axes(
@@ -147,7 +157,7 @@ def test_one_axis_reply_holds_that_axis_values(
 ) -> None:
     (tilt,) = ask(client, server, b"\x00\x01").axes
     assert tilt == to_fast_axis(AXES["tilt"])
-    assert (tilt.pFb, tilt.vFb, tilt.bus_cycle_num) == (12.0, 14.0, 101)
+    assert (tilt.pFb, tilt.vFb, tilt.bus_cycle_num) == (13.0, 15.0, 102)
 
 
 @pytest.mark.parametrize(
@@ -162,7 +172,7 @@ def test_malformed_requests_are_ignored_and_server_keeps_answering(
     # Loopback keeps order and the server answers in order: had the bad request been answered,
     # that reply would be read here instead of the good one's.
     reply = ask(client, server, b"\x01\x01")
-    assert [a.axisnumber for a in reply.axes] == [0, 1]
+    assert [a.axisnumber for a in reply.axes] == [1, 2]
     server.close()  # joins the server thread: its counters are final
     assert server.stats.ignored == 1
     assert server.stats.replies == 1
@@ -178,7 +188,7 @@ def test_many_peers_and_a_burst_of_junk(server: FastDataServer) -> None:
                 p.sendto(b"" if n % 2 else b"\x01" * (MAX_REQUEST_BYTES + 1 + i), server.address)
         for i, p in enumerate(peers):
             assert [a.axisnumber for a in ask(p, server, bytes([0] * i + [1])).axes] == (
-                [i] if i < 2 else []
+                [i + 1] if i < 2 else []
             )
     finally:
         for p in peers:
@@ -200,7 +210,7 @@ def test_failing_snapshot_does_not_kill_the_server(client: socket.socket) -> Non
     with FastDataServer(flaky, port=0) as srv:
         client.sendto(b"\x01", srv.address)
         reply = ask(client, srv, b"\x01")
-        assert [a.axisnumber for a in reply.axes] == [0]
+        assert [a.axisnumber for a in reply.axes] == [1]
         assert srv.stats.errors == 1
 
 
@@ -263,7 +273,7 @@ def test_requests_beyond_the_rate_are_delayed_not_lost(client: socket.socket) ->
         for i in range(30):
             client.sendto(bytes([0] * (i % 2) + [1]), srv.address)
         got = [decode(client.recvfrom(65535)[0]) for _ in range(30)]
-    assert [r.axes[0].axisnumber for r in got] == [i % 2 for i in range(30)]
+    assert [r.axes[0].axisnumber for r in got] == [i % 2 + 1 for i in range(30)]
 
 
 # ------------------------------------------------------------------- beside the scan loop
