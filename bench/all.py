@@ -7,7 +7,7 @@ import sys
 import time
 from collections.abc import Callable
 
-from bench import cost, estop, loop_timing, roundtrip, status_latency
+from bench import cost, estop, events_cost, loop_timing, roundtrip, status_latency
 from bench.common import (
     Options,
     Section,
@@ -29,6 +29,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.estop", estop.run),
     ("bench.status_latency", status_latency.run),
     ("bench.cost", cost.run),
+    ("bench.events_cost", events_cost.run),
 ]
 
 
