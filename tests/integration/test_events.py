@@ -114,10 +114,13 @@ def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> Non
     daemon.stop(signal.SIGKILL)
     daemon = start_daemon(tmp_path, extra=extra)
     try:
-        events = cli_events(daemon, "--since", "1")
+        everything = cli_events(daemon, "--since", "1")
+        assert [e["seq"] for e in everything] == list(range(1, len(everything) + 1))
+        # A command retried after a reply timeout (a loaded host) is recorded again as a
+        # repeat: real, but not part of the ride's story.
+        events = [e for e in everything if not e["details"].get("repeat")]
         kinds = [e["kind"] for e in events]
         assert kinds == [*FIRST_RUN, "daemon_start", "daemon_start"], kinds
-        assert [e["seq"] for e in events] == list(range(1, len(events) + 1))
         starts = [e["details"] for e in events if e["kind"] == "daemon_start"]
         assert [s["previous_stop_clean"] for s in starts] == [None, True, False]
         stop = next(e["details"] for e in events if e["kind"] == "daemon_stop")
@@ -125,11 +128,12 @@ def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> Non
         _check_details(events)
 
         # The live follower saw the same events with the same seq numbers, up to the stop.
-        assert followed == events[: len(FIRST_RUN)]
+        assert followed == everything[: len(followed)]
+        assert followed[-1]["kind"] == "daemon_stop"
 
         # A raw Zenoh query returns the same events; a kind filter and paging work there too.
         page = raw_page(daemon, "machine/m1/events?since=1;format=json")
-        assert [e.model_dump(mode="json") for e in page.events] == events
+        assert [e.model_dump(mode="json") for e in page.events] == everything
         faults = raw_page(daemon, "machine/m1/events?kind=fault_raised;format=json").events
         assert [e.details.code for e in faults] == ["TILT_NOT_FOLLOWING"]  # type: ignore[union-attr]
         first = raw_page(daemon, "machine/m1/events?limit=5;format=json")
