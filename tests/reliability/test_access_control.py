@@ -29,6 +29,7 @@ from schema.codec import Format, decode, encode, pack
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.credentials import MACHINE, RIDER, env_name
 from schema.errors import ErrorCode
+from schema.events import EventQuery
 from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
 from schema.status import MachineState
@@ -340,3 +341,33 @@ def read_step(proc: subprocess.Popen[str], step: str) -> dict[str, Any]:
         if record["step"] == step:
             return record
     raise AssertionError(f"rider process ended (code {proc.wait(5)}) before step {step}")
+
+
+def test_monitor_reads_and_follows_the_event_history(machine: Daemon, ids: Identities) -> None:
+    with (
+        session_as(machine, ids.env(RIDER, "monitor")) as m,
+        session_as(machine, ids.env(RIDER, "rider")) as r,
+    ):
+        assert m.events(last=1)[0].machine_id == "m1"  # the query is allowed
+        live = m.follow_events(EventQuery(last=1), timeout=5.0)
+        next(live)  # the history's newest event
+        r.check_home()  # one `command` event, published on events/<seq>
+        event = next(e for e in live if e is None or e.kind == "command")
+        assert event is not None and event.details.command == "CheckHome"  # type: ignore[union-attr]
+        live.close()
+
+
+def test_no_identity_but_the_machine_may_put_or_delete_events() -> None:
+    """The ACL itself: events are read-only over the bus for riders and monitors (a router
+    with the same profile keeps a site's stored copy read-only too)."""
+    for profile in (ACL_PROFILE, TLS_PROFILE):
+        acl = json.loads(zenoh.Config.from_file(str(profile)).get_json("access_control"))
+        rules = {rule["id"]: rule for rule in acl["rules"]}
+        for policy in acl["policies"]:
+            if policy["subjects"] == ["machine"]:
+                continue
+            for rule_id in policy["rules"]:
+                rule = rules[rule_id]
+                writes = {"put", "delete"} & set(rule["messages"])
+                touches = any("events" in k or k.endswith("/**") for k in rule["key_exprs"])
+                assert not (writes and "ingress" in rule["flows"] and touches), (profile, rule_id)
