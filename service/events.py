@@ -242,7 +242,7 @@ class EventRecorder:
         if outcome is None:
             if control.state is S.FAULT_HW:
                 outcome = "FAULT"
-            elif reason.endswith("complete"):
+            elif "complete" in reason:  # also "calibration complete, NOT saved"
                 outcome = "DONE"
             else:
                 outcome = "STOPPED"

@@ -28,8 +28,9 @@ S = MachineState
 
 FIRST_RUN = [
     "daemon_start",
-    # CalibrateTilt, CalibrateRotate, Home
-    *["command", "state", "state", "completion", "calibration"] * 2,
+    # CalibrateTilt, CalibrateRotate: the new values are in use (and being written) while
+    # the state stays CALIBRATING until the write is done; then Home
+    *["command", "state", "calibration", "state", "completion"] * 2,
     *["command", "state", "state", "completion"],
     # the default session, to DONE
     *["command", "state", "session_started", "state", "session_ended", "completion"],
