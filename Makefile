@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test install browser lint bench clean
+.PHONY: run test install browser js schema lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,8 +26,18 @@ browser:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	  else echo "chromium not installed: the browser tests will be skipped"; fi; }
 
+## ajv for the JSON Schema check from Node (tests/js; pinned by its package-lock.json), when
+## node and npm are present; without them that test skips and says why.
+js:
+	@if command -v npm >/dev/null 2>&1; then npm ci --prefix tests/js --no-audit --no-fund --silent; \
+	else echo "npm not installed: the ajv schema check will be skipped"; fi
+
+## Regenerate the checked-in JSON Schema (schema/json/) from the models.
+schema: $(STAMP)
+	$(BIN)/machine schema schema/json
+
 ## Install, then lint, type-check and run the whole test suite.
-test: $(STAMP) browser
+test: $(STAMP) browser js
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
@@ -42,4 +52,4 @@ bench: $(STAMP)
 	$(BIN)/python -m bench.all
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache tests/js/node_modules

@@ -99,6 +99,15 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--format", choices=["csv", "jsonl"], default="jsonl")
     exp.add_argument("--output", "-o", type=Path, help="file to write (default: stdout)")
 
+    sch = sub.add_parser("schema", help="write the wire contract as JSON Schema (+ keys.json)")
+    sch.add_argument(
+        "directory",
+        nargs="?",
+        type=Path,
+        default=Path("schema/json"),
+        help="where to write it (default schema/json)",
+    )
+
     demo = sub.add_parser("demo", help="same as `run --sim --once-session`")
     _add_config_args(demo)
     demo.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
@@ -162,6 +171,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.cmd == "credentials":
         return credentials_init(args.directory, args.force)
+    if args.cmd == "schema":
+        from schema.jsonschema import write
+
+        paths = write(args.directory)
+        print(f"machine: wrote {len(paths)} files to {args.directory}")
+        return EXIT_OK
     setup_logging(args.log_level)
     if args.cmd == "validate":
         return _validate(args.config, args.hal, args.json)

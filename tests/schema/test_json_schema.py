@@ -1,0 +1,80 @@
+"""The checked-in JSON Schema (schema/json/) is what the models generate, and the key table is
+complete. (The Node/ajv check against a live daemon is tests/integration/test_schema_node.py.)"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+from schema.commands import Command
+from schema.jsonschema import documents, render
+from schema.keys import KEYS, Direction, markdown_table, match
+from tests.procs import REPO, machine_cmd
+
+CHECKED_IN = REPO / "schema" / "json"
+
+
+def test_checked_in_schema_matches_the_models() -> None:
+    docs = documents()
+    on_disk = {p.name for p in CHECKED_IN.glob("*.json")}
+    assert on_disk == set(docs), "run `machine schema` and commit schema/json/"
+    for name, doc in docs.items():
+        assert (CHECKED_IN / name).read_text() == render(doc), (
+            f"schema/json/{name} is stale: run `machine schema` and commit it"
+        )
+
+
+def test_machine_schema_writes_the_same_files(tmp_path: Path) -> None:
+    out = tmp_path / "json"
+    (tmp_path / "json").mkdir()
+    (out / "Gone.json").write_text("{}")  # a model that no longer exists is removed
+    done = subprocess.run(
+        machine_cmd("schema", str(out)),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=REPO,
+    )
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in CHECKED_IN.iterdir())
+    for path in out.iterdir():
+        assert path.read_text() == (CHECKED_IN / path.name).read_text()
+
+
+def test_key_table_names_every_command_and_its_models() -> None:
+    keys = json.loads((CHECKED_IN / "keys.json").read_text())
+    by_key = {k["key"]: k for k in keys["keys"]}
+    for command in Command:
+        entry = by_key[f"cmd/{command.key}"]
+        assert entry["direction"] == "request-reply"
+        assert entry["reply"] == "Reply"
+        assert (CHECKED_IN / f"{entry['request']}.json").exists()
+    assert by_key["cmd/start"]["request"] == "StartRequest"
+    assert keys["error_reply"] == "Reply"
+    for entry in keys["keys"]:
+        for model in (entry["request"], entry["reply"]):
+            assert model is None or (CHECKED_IN / f"{model}.json").exists(), entry
+
+
+def test_concrete_keys_match_their_pattern() -> None:
+    assert match("axis/rotate") is not None and match("axis/rotate").key == "axis/<name>"  # type: ignore[union-attr]
+    assert match("io/di/estop").key == "io/<kind>/<name>"  # type: ignore[union-attr]
+    assert match("cmd/home").key == "cmd/home"  # type: ignore[union-attr]
+    assert match("cmd/fly") is None and match("axis") is None
+    assert all(spec.direction in Direction for spec in KEYS)
+    assert len({spec.key for spec in KEYS}) == len(KEYS)
+
+
+def test_requests_are_strict_and_replies_are_open() -> None:
+    docs = documents()
+    assert docs["CommandRequest.json"]["additionalProperties"] is False
+    assert "additionalProperties" not in docs["Status.json"]  # old readers skip new fields
+
+
+def test_docs_hold_the_generated_key_table() -> None:
+    text = (REPO / "docs" / "schema.md").read_text()
+    start = text.index("-->\n", text.index("<!-- generated from schema/keys.py")) + 4
+    end = text.index("<!-- end of generated table -->")
+    assert text[start:end] == markdown_table(), "docs/schema.md: paste markdown_table() again"
