@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import tomllib
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
@@ -29,6 +30,7 @@ from rider.client import (
     Update,
     env_connect,
 )
+from rider.text import printable, shown
 from schema.axes import AxisRecord, PnStatus
 from schema.commands import CheckResult, Reply, Session
 from schema.diag import CycleDiag
@@ -64,6 +66,9 @@ TERMINAL_STATES = {
     MachineState.WARNING_NOT_HOME,
     MachineState.PAUSED,
 }
+
+
+T = TypeVar("T")
 
 
 class UsageError(Exception):
@@ -170,7 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # ------------------------------------------------------------------------------- printing
-def emit(obj: Any, as_json: bool, human: Callable[[], str]) -> None:
+def emit(obj: T, as_json: bool, human: Callable[[T], str]) -> None:
+    """JSON as the machine sent it, or `human(obj)` with every wire string made printable."""
     if as_json:
         if isinstance(obj, BaseModel):
             print(obj.model_dump_json())
@@ -183,7 +189,7 @@ def emit(obj: Any, as_json: bool, human: Callable[[], str]) -> None:
         else:
             print(json.dumps(obj))
     else:
-        print(human())
+        print(human(shown(obj)))
 
 
 def fmt_status(s: Status) -> str:
@@ -323,7 +329,7 @@ def run(args: argparse.Namespace, rider: Rider) -> int:
     cmd = args.cmd
     if cmd == "status":
         status = rider.status()
-        emit(status, args.json, lambda: fmt_status(status))
+        emit(status, args.json, fmt_status)
     elif cmd == "watch":
         return watch(args, rider)
     elif cmd in ("home", "pause", "resume", "stop", "calibrate", "start"):
@@ -335,21 +341,18 @@ def run(args: argparse.Namespace, rider: Rider) -> int:
         emit(
             result,
             args.json,
-            lambda: (
-                f"{args.what}: ok={_yn(result.ok)} tilt={_yn(result.tilt)}"
-                f" rotate={_yn(result.rotate)}"
-            ),
+            lambda r: f"{args.what}: ok={_yn(r.ok)} tilt={_yn(r.tilt)} rotate={_yn(r.rotate)}",
         )
         return EXIT_OK if result.ok else EXIT_REFUSED
     elif cmd == "io":
         points = rider.io()
-        emit(points, args.json, lambda: fmt_io(points))
+        emit(points, args.json, fmt_io)
     elif cmd == "axes":
         records = rider.axes()
-        emit(records, args.json, lambda: "\n".join(fmt_axis(a) for a in records))
+        emit(records, args.json, lambda rs: "\n".join(fmt_axis(a) for a in rs))
     elif cmd == "diag":
         d = rider.diag(reset=args.reset)
-        emit(d, args.json, lambda: fmt_diag(d))
+        emit(d, args.json, fmt_diag)
     elif cmd == "params":
         return params(args, rider)
     elif cmd == "validate":
@@ -360,7 +363,7 @@ def run(args: argparse.Namespace, rider: Rider) -> int:
             except OSError as exc:
                 raise UsageError(f"{args.config}: cannot read ({exc.strerror})") from exc
         findings = rider.validate(candidate)
-        emit(findings, args.json, lambda: fmt_findings(findings))
+        emit(findings, args.json, fmt_findings)
         return EXIT_OK if findings.ok else EXIT_REFUSED
     elif cmd == "machines":
         return machines(args, rider)
@@ -379,18 +382,18 @@ def motion(args: argparse.Namespace, rider: Rider) -> int:
         reply = rider.start(session)
     else:
         reply = getattr(rider, args.cmd)()
-    emit(reply, args.json, lambda: fmt_reply(reply))
+    emit(reply, args.json, fmt_reply)
     if getattr(args, "wait", False):
         ends = TERMINAL_STATES if args.cmd == "pause" else TERMINAL_STATES - {MachineState.PAUSED}
         final = rider.wait_for(ends, timeout=600, after=reply.timecode)
-        emit(final, args.json, lambda: fmt_status(final))
+        emit(final, args.json, fmt_status)
         if final.state in (MachineState.FAULT_HW, MachineState.FAULT_ESTOP):
             return EXIT_REFUSED
         unsaved = [w for w in final.warnings if w.startswith(STORAGE_FAILED)]
         if args.cmd == "calibrate" and unsaved:
             # Calibrated for now, but not saved: never report that as done.
             for warning in unsaved:
-                print(f"rider: {warning}", file=sys.stderr)
+                print(f"rider: {printable(warning)}", file=sys.stderr)
             return EXIT_REFUSED
     return EXIT_OK
 
@@ -399,16 +402,16 @@ def watch(args: argparse.Namespace, rider: Rider) -> int:
     keys = [k.strip() for k in args.keys.split(",") if k.strip()]
     until = {MachineState(s.upper()) for s in args.until} if args.until else None
     deadline = None if args.duration is None else time.monotonic() + args.duration
-    shown = -1  # seq of the last status printed
+    last_seq = -1  # seq of the last status printed
     # With a deadline, a quiet half second ends one `rider.watch` so the deadline is checked;
     # the next one starts with the current status again, skipped when it was already shown.
     while deadline is None or time.monotonic() < deadline:
         for update in rider.watch(keys, timeout=0.5 if deadline else None):
             if isinstance(update, Status):
-                if update.seq == shown:
+                if update.seq == last_seq:
                     continue
-                shown = update.seq
-            print(update.model_dump_json() if args.json else fmt_update(update), flush=True)
+                last_seq = update.seq
+            print(update.model_dump_json() if args.json else fmt_update(shown(update)), flush=True)
             if until and isinstance(update, Status) and update.state in until:
                 return EXIT_OK
             if deadline is not None and time.monotonic() > deadline:
@@ -420,7 +423,7 @@ def params(args: argparse.Namespace, rider: Rider) -> int:
     sub = args.params_cmd
     if sub == "list":
         values = rider.params()
-        emit(values, args.json, lambda: "\n".join(fmt_param(p) for p in values))
+        emit(values, args.json, lambda vs: "\n".join(fmt_param(p) for p in vs))
         return EXIT_OK
     if sub == "get":
         value = rider.param(args.name)
@@ -428,7 +431,7 @@ def params(args: argparse.Namespace, rider: Rider) -> int:
         value = rider.set_param(args.name, _parse_value(args.value), persist=args.persist)
     else:
         value = rider.reset_param(args.name)
-    emit(value, args.json, lambda: fmt_param(value))
+    emit(value, args.json, fmt_param)
     return EXIT_OK
 
 
@@ -439,8 +442,8 @@ def machines(args: argparse.Namespace, rider: Rider) -> int:
     lines = []
     for m in found:
         up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"
-        lines.append(f"{m.id:16} {m.state or '?':28} up {up}")
-    emit([m.__dict__ for m in found], args.json, lambda: "\n".join(lines) or "no machines alive")
+        lines.append(f"{printable(m.id):16} {printable(m.state or '?'):28} up {up}")
+    emit([m.__dict__ for m in found], args.json, lambda _: "\n".join(lines) or "no machines alive")
     if changes is None:
         return EXIT_OK
     sys.stdout.flush()
@@ -454,7 +457,7 @@ def machines(args: argparse.Namespace, rider: Rider) -> int:
             else:
                 alive.discard(mid)
             event = {"id": mid, "alive": up_now, "time": time.time()}
-            text = f"{'+' if up_now else '-'} {mid} {'arrived' if up_now else 'left'}"
+            text = f"{'+' if up_now else '-'} {printable(mid)} {'arrived' if up_now else 'left'}"
             print(json.dumps(event) if args.json else text, flush=True)
         if deadline is not None and time.monotonic() > deadline:
             break
@@ -481,7 +484,7 @@ def sim(args: argparse.Namespace, rider: Rider) -> int:
             world = rider.sim(f)
     except IndexError as exc:
         raise UsageError(f"sim {f}: missing argument") from exc
-    emit(world, args.json, lambda: world.model_dump_json(indent=2))
+    emit(world, args.json, lambda w: w.model_dump_json(indent=2))
     return EXIT_OK
 
 
@@ -546,16 +549,16 @@ def events(args: argparse.Namespace, rider: Rider) -> int:
     many = "*" in rider.machine_id
     if args.summary:
         summaries = rider.events_summary(query.since_time, query.until_time)
-        emit(summaries, args.json, lambda: "\n\n".join(fmt_summary(x) for x in summaries))
+        emit(summaries, args.json, lambda xs: "\n\n".join(fmt_summary(x) for x in xs))
         return EXIT_OK
     if not args.follow:
         for event in rider.events(query):
-            print(event.model_dump_json() if args.json else fmt_event(event, many))
+            print(event.model_dump_json() if args.json else fmt_event(shown(event), many))
         return EXIT_OK
     deadline = None if args.duration is None else time.monotonic() + args.duration
     for item in rider.follow_events(query, timeout=0.5):
         if item is not None:
-            print(item.model_dump_json() if args.json else fmt_event(item, many), flush=True)
+            print(item.model_dump_json() if args.json else fmt_event(shown(item), many), flush=True)
         if deadline is not None and time.monotonic() > deadline:
             break
     return EXIT_OK
@@ -601,7 +604,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CommandRefused as exc:
         if args.json:
             print(exc.reply.model_dump_json())
-        print(f"rider: refused: {exc}", file=sys.stderr)
+        print(f"rider: refused: {printable(str(exc))}", file=sys.stderr)
         return EXIT_REFUSED
     except AmbiguousMachine as exc:
         print(f"rider: {exc}", file=sys.stderr)
@@ -613,6 +616,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"rider: {exc}", file=sys.stderr)
         return EXIT_REFUSED
     except KeyboardInterrupt:
+        return EXIT_OK
+    except BrokenPipeError:
+        # `rider … | head`: the reader has gone; stop quietly, and keep the interpreter's own
+        # final flush of stdout from raising again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
 
 

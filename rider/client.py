@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import queue
+import socket
 import threading
 import time
 import uuid
@@ -152,6 +153,19 @@ def zenoh_config(
     return conf
 
 
+def _answers(endpoint: str, timeout: float = 0.5) -> bool:
+    """True if a TCP connection to a `tcp/` or `tls/` endpoint is accepted."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol not in ("tcp", "tls"):
+        return False
+    host, _, port = address.split("#", 1)[0].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
 class Rider:
     """A synchronous Rider session; use as a context manager so the session always closes."""
 
@@ -208,6 +222,27 @@ class Rider:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def no_link_hint(self) -> str:
+        """Why nothing answers, when this session has no link at all ("" when it has one).
+
+        A login the machine refuses looks like no machine to Zenoh: the handshake fails and the
+        session simply has no peer. Something listening at the endpoint tells the two apart.
+        """
+        info = self.session.info
+        if list(info.peers_zid()) or list(info.routers_zid()):
+            return ""
+        endpoints = json.loads(self._conf.get_json("connect/endpoints") or "[]")
+        if isinstance(endpoints, dict):
+            endpoints = [e for group in endpoints.values() for e in group]
+        listening = [e for e in endpoints if _answers(str(e))]
+        if listening:
+            return (
+                f"; {', '.join(listening)} answers but refused this session:"
+                " authentication refused? (check RIDER_ZENOH_USER and RIDER_ZENOH_PASSWORD_FILE,"
+                " and RIDER_ZENOH_TLS_ROOT_CA for tls/)"
+            )
+        return f"; nothing answers at {', '.join(map(str, endpoints))} (is the machine up?)"
+
     @property
     def session(self) -> zenoh.Session:
         if self._session is None:
@@ -220,7 +255,7 @@ class Rider:
         if self._machine_id is None:
             alive = self.machines(with_status=False)
             if not alive:
-                raise NoMachine("no machine is alive on the network")
+                raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
             if len(alive) > 1:
                 ids = ", ".join(m.id for m in alive)
                 raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
@@ -608,7 +643,8 @@ class Rider:
             if replies:
                 return self._decode(replies[0], model)
             if deadline - time.monotonic() < EMPTY_RETRY_S:
-                raise MachineTimeout(f"no reply from {key} within {limit:g} s (is the machine up?)")
+                hint = self.no_link_hint() or " (is the machine up?)"
+                raise MachineTimeout(f"no reply from {key} within {limit:g} s{hint}")
             time.sleep(EMPTY_RETRY_S)
 
     def _get_all(self, key: str, model: type[M]) -> list[M]:

@@ -48,6 +48,14 @@ def sniff_format(data: bytes, encoding: str | None) -> Format:
     head = data.lstrip()[:1]
     if head in (b"{", b"["):
         return Format.JSON
+    if head and head[0] < 0x80 and len(data) <= MAX_PAYLOAD_BYTES:
+        # ASCII first: no msgpack map (0x80 and up) starts so; a JSON scalar (`42`, `"x"`,
+        # `true`) is JSON text and its error must say "expected a JSON object".
+        try:
+            json.loads(data)
+        except (ValueError, RecursionError):
+            return Format.MSGPACK
+        return Format.JSON
     return Format.MSGPACK
 
 
@@ -93,7 +101,7 @@ def validate(model: type[M], raw: Any) -> M:
         raise DecodeError(
             Error(
                 code=ErrorCode.BAD_PAYLOAD,
-                message=f"payload must be a map/object, got {type(raw).__name__}",
+                message=f"expected a JSON object (or a msgpack map), got {_kind(raw)}",
             ),
             raw,
         )
@@ -128,6 +136,13 @@ def json_pointer(loc: tuple[int | str, ...] | list[int | str]) -> str:
             continue  # the discriminator tag pydantic inserts for a step, not a real field
         parts.append(text.replace("~", "~0").replace("/", "~1"))
     return "".join("/" + p for p in parts)
+
+
+def _kind(raw: Any) -> str:
+    """A JSON-ish name for what came instead of an object."""
+    names = {bool: "a boolean", int: "a number", float: "a number", str: "a string"}
+    names.update({list: "an array", type(None): "null", bytes: "bytes"})
+    return names.get(type(raw), type(raw).__name__)
 
 
 def _short(exc: BaseException) -> str:

@@ -114,6 +114,16 @@ class Session(WireModel):
     name: str = Field(default="default", min_length=1, max_length=64)
     steps: list[Step] = Field(min_length=1, max_length=100)
 
+    @field_validator("name")
+    @classmethod
+    def _printable(cls, name: str) -> str:
+        # It is shown on terminals, in the UI and in logs: a newline, ESC, NUL or a bidi
+        # override would let a session name print a fake line or hide what follows it.
+        if not name.isprintable():
+            bad = next(c for c in name if not c.isprintable())
+            raise ValueError(f"must be printable text; {bad!r} (U+{ord(bad):04X}) is not")
+        return name
+
 
 DEFAULT_SESSION = Session(
     name="default",

@@ -10,8 +10,9 @@ from typing import TextIO
 
 from schema.findings import Findings, Severity
 from service.config import HalBackend, MachineConfig
+from service.load import load, override_source
 from service.logfmt import setup_logging
-from service.validate import finding_line, findings_of, hardware_findings, validate_file
+from service.validate import finding_line, findings_of, hardware_findings
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -48,10 +49,49 @@ def _add_run_args(run: argparse.ArgumentParser) -> None:
         default=[],
         help="Zenoh connect endpoint (repeatable; replaces the config file's)",
     )
-    run.add_argument("--id", dest="machine_id", help="override machine.id")
-    run.add_argument("--period", type=float, help="override loop.period_s (seconds)")
+    _add_override_args(run)
     run.add_argument("--data-dir", type=Path, help="override data_dir")
     run.add_argument("--fastdata", action="store_true", help="serve the FastData UDP axis stream")
+
+
+def _add_override_args(p: argparse.ArgumentParser) -> None:
+    # Plain strings: a bad value is a finding of the one config check, like a bad file value.
+    p.add_argument("--id", dest="machine_id", help="override machine.id")
+    p.add_argument("--period", help="override loop.period_s (seconds)")
+
+
+OVERRIDE_OPTIONS = {
+    "/hal/backend": "--hal",
+    "/machine/id": "--id",
+    "/loop/period_s": "--period",
+    "/data_dir": "--data-dir",
+    "/fastdata/enabled": "--fastdata",
+}
+"""The config field each command-line override sets (findings name the option)."""
+
+
+def overrides_of(args: argparse.Namespace) -> dict[str, object]:
+    """The command-line overrides given, as config pointers (applied before validation)."""
+    out: dict[str, object] = {}
+    if getattr(args, "hal", None):
+        out["/hal/backend"] = args.hal
+    if getattr(args, "machine_id", None) is not None:
+        out["/machine/id"] = args.machine_id
+    if getattr(args, "period", None) is not None:
+        out["/loop/period_s"] = _number(args.period)
+    if getattr(args, "data_dir", None) is not None:
+        out["/data_dir"] = str(args.data_dir)
+    if getattr(args, "fastdata", False):
+        out["/fastdata/enabled"] = True
+    return out
+
+
+def _number(text: str) -> object:
+    """A float if it is one; else the text, for the config check to report as a wrong type."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,6 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     val = sub.add_parser("validate", help="check a machine config and print every finding")
     _add_config_args(val)
     _add_hal_args(val)
+    _add_override_args(val)
     val.add_argument("--json", action="store_true", help="print the findings as JSON")
 
     cred = sub.add_parser("credentials", help="make the Zenoh login files of the ACL profiles")
@@ -114,13 +155,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def load_config(path: Path | None, stream: TextIO = sys.stderr) -> MachineConfig | None:
-    """The config, or None after printing every finding (the caller exits with code 2)."""
-    if path is None:
-        return MachineConfig()
-    config, findings = validate_file(path)
+def load_config(
+    path: Path | None, overrides: dict[str, object] | None = None, stream: TextIO = sys.stderr
+) -> MachineConfig | None:
+    """The config with its overrides, or None after printing every finding (exit code 2).
+
+    Each finding is a line naming where the value came from: the file, or the option.
+    """
+    config, findings = load(path, overrides)
+    given = {k: v for k, v in OVERRIDE_OPTIONS.items() if k in (overrides or {})}
     for f in findings.findings:
-        print(finding_line(str(path), f), file=stream)
+        print(finding_line(override_source(f, given, str(path or "machine")), f), file=stream)
     return config
 
 
@@ -179,8 +224,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_OK
     setup_logging(args.log_level)
     if args.cmd == "validate":
-        return _validate(args.config, args.hal, args.json)
-    config = load_config(args.config)
+        return _validate(args.config, overrides_of(args), args.json)
+    config = load_config(args.config, overrides_of(args))
     if config is None:
         return EXIT_CONFIG
     if args.cmd == "events":
@@ -193,22 +238,6 @@ def main(argv: list[str] | None = None) -> int:
         return run_demo(config, speed=args.speed)
     from service.daemon import DaemonOptions, run_daemon
 
-    overrides: dict[str, dict[str, object]] = {}
-    if args.hal:
-        overrides["hal"] = {"backend": args.hal}
-    if args.machine_id:
-        overrides["machine"] = {"id": args.machine_id}
-    if args.period is not None:
-        overrides["loop"] = {"period_s": args.period}
-    if args.fastdata:
-        overrides["fastdata"] = {"enabled": True}
-    try:
-        config = config.with_overrides(**overrides)
-        if args.data_dir is not None:
-            config = config.model_copy(update={"data_dir": str(args.data_dir)})
-    except ValueError as exc:
-        print(f"machine: bad command-line override: {exc}", file=sys.stderr)
-        return EXIT_CONFIG
     # The backend's own check, on the config that will run: the same findings, the same way,
     # for `run` and `supervise`, before anything opens.
     if not check_hardware(config, str(args.config or "machine")):
@@ -229,16 +258,11 @@ def main(argv: list[str] | None = None) -> int:
     return run_daemon(config, options)
 
 
-def _validate(path: Path | None, hal: str | None, as_json: bool) -> int:
-    """`machine validate`: the file's findings and, for the backend that would run, the host's."""
-    if path is None:
-        config: MachineConfig | None = MachineConfig()
-        findings = Findings(ok=True, findings=[])
-    else:
-        config, findings = validate_file(path)
+def _validate(path: Path | None, overrides: dict[str, object], as_json: bool) -> int:
+    """`machine validate`: the findings `run` would print (file, overrides) and, for the
+    backend that would run, the host's."""
+    config, findings = load(path, overrides)
     if config is not None:
-        if hal:
-            config = config.with_overrides(hal={"backend": hal})
         findings = findings_of([*findings.findings, *hardware_findings(config)])
     print_findings(findings, path, as_json)
     return EXIT_OK if findings.ok else EXIT_CONFIG

@@ -24,6 +24,7 @@ from service.bus.exposure import warn_if_exposed
 from service.config import HalBackend, MachineConfig
 from service.eventlog import EVENTS_FILE, EventLog
 from service.fastdata import FastDataServer, user_registers
+from service.load import load_data
 from service.machine import Machine
 from service.params import ParamRegistry
 from service.persist import BackgroundWriter, CalibrationStore, ParamStore
@@ -280,5 +281,5 @@ def _check(config: MachineConfig, candidate: bytes | None) -> Findings:
             ],
         )
     if not isinstance(data, dict):
-        data = {"": data}
-    return validate_data(data)[1]
+        return validate_data(data)[1]  # one finding: "expected a table/object, got …"
+    return load_data(data)[1]

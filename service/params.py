@@ -199,11 +199,14 @@ SPECS: dict[str, ParamSpec] = {row[0]: _spec(*row) for row in _ONLINE} | {
 """Every online parameter by its dotted name, in a stable order."""
 
 
-def _errors(config: MachineConfig) -> set[tuple[str, str, str]]:
+def _errors(config: MachineConfig, own_path: str) -> set[tuple[int, str, str, str]]:
+    """The file check's errors, and its warnings about the written field itself (errors sort
+    first): an online write has nobody to read a warning, so a value the file check flags at
+    its own path (`bus.heartbeat_s` 1e-9: "cannot be held") is refused, not taken silently."""
     return {
-        (f.category, f.path, f.message)
+        (f.severity is not Severity.ERROR, f.category, f.path, f.message)
         for f in semantic_findings(config)
-        if f.severity is Severity.ERROR
+        if f.severity is Severity.ERROR or f.path == own_path
     }
 
 
@@ -336,9 +339,10 @@ class ParamRegistry:
             candidate = self._project.with_overrides(**sections)
         except ValidationError as exc:
             raise ParamOutOfRange(f"{shown}: {exc.errors()[0]['msg']}", "/value") from exc
-        new = sorted(_errors(candidate) - _errors(self._config))
+        own = f"/{spec.section}/{spec.field}"
+        new = sorted(_errors(candidate, own) - _errors(self._config, own))
         if new:
-            _, path, message = new[0]
+            _, _, path, message = new[0]
             raise ParamOutOfRange(f"{shown} conflicts with {path}: {message}", "/value")
         return candidate
 

@@ -388,10 +388,10 @@ def _drop(data: dict[str, Any], pointer: str) -> None:
         node.pop(parts[-1], None)
 
 
-def validate_file(path: Path) -> tuple[MachineConfig | None, Findings]:
-    """Load and check a TOML config file; a file that does not parse is one finding."""
+def read_file(path: Path) -> tuple[dict[str, Any] | None, Findings]:
+    """The raw TOML of a config file, or None and the one finding that says why not."""
     try:
-        data = read_toml(path)
+        return read_toml(path), findings_of([])
     except FileNotFoundError:
         return None, _one(Category.FILE, f"{path}: no such file")
     except IsADirectoryError:
@@ -400,7 +400,12 @@ def validate_file(path: Path) -> tuple[MachineConfig | None, Findings]:
         return None, _one(Category.FILE, f"{path}: cannot read ({exc.strerror})")
     except ValueError as exc:  # tomllib.TOMLDecodeError, UnicodeDecodeError
         return None, _one(Category.SYNTAX, f"{path}: not valid TOML: {exc}")
-    return validate_data(data)
+
+
+def validate_file(path: Path) -> tuple[MachineConfig | None, Findings]:
+    """Load and check a TOML config file; a file that does not parse is one finding."""
+    data, findings = read_file(path)
+    return validate_data(data) if data is not None else (None, findings)
 
 
 def _one(category: Category, message: str) -> Findings:

@@ -10,6 +10,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from rider.text import shown
 from schema.axes import AxisRecord, PnStatus
 from schema.diag import CycleDiag
 from schema.io import IoKind, IoValue
@@ -97,7 +98,7 @@ class LiveView:
             self.status = update
             self._status_at = now
             self._alive = True  # a fresh status proves the machine is there
-            events.append(Event("status", update.model_dump(mode="json")))
+            events.append(Event("status", shown(update).model_dump(mode="json")))
         elif isinstance(update, IoValue):
             self.io[update.name] = update
             if update.kind is IoKind.AI:
@@ -152,7 +153,7 @@ class LiveView:
         return {
             "now": wall,
             "link": self.link.as_json(self.machine_id),
-            "status": self.status.model_dump(mode="json") if self.status else None,
+            "status": shown(self.status).model_dump(mode="json") if self.status else None,
             "io": [p.model_dump(mode="json") for p in self.io.values()],
             "diag": self.diag.model_dump(mode="json") if self.diag else None,
             "sample": self.sample(wall) if self.status else None,

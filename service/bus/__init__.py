@@ -139,8 +139,9 @@ class ZenohBus:
         self._declared.append(s.declare_queryable(f"{b}/config/validate", self._on_validate))
         if self.params is not None:
             self._declared.append(s.declare_queryable(f"{b}/params/**", self._on_params))
-        if self.sim is not None:
-            self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        # Declared without a simulator too: `sim/*` on real hardware answers NOT_AVAILABLE
+        # at once instead of leaving the caller to time out.
+        self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
         if self.events is not None:
             self._declared.append(s.declare_queryable(f"{b}/events", self._on_events))
             self.events.subscribe(self._publish_events)
@@ -416,6 +417,8 @@ class ZenohBus:
         key = f"{self.base}/config/validate"
         data = _payload(query)
         fmt = reply_format(query)
+        if data.lstrip()[:1] == b"{" and query.parameters.get("format") is None:
+            fmt = Format.JSON  # a JSON candidate is answered in JSON (TOML keeps the default)
         if self.check_config is None:
             error = Error(code=ErrorCode.NOT_AVAILABLE, message="no config checker")
             self._reply_now(query, key, fmt, error, None, None)
@@ -515,7 +518,6 @@ class ZenohBus:
     # ------------------------------------------------------------------------------ sim
     def _on_sim(self, query: zenoh.Query) -> None:
         sim = self.sim
-        assert sim is not None
         key = str(query.key_expr)
         what = key[len(f"{self.base}/sim/") :]
         data = _payload(query)
@@ -523,6 +525,14 @@ class ZenohBus:
         if any(c in key for c in WILDCARD_CHARS):
             # Injection acts on the machine: `machine/*/sim/estop` must not press every E-stop.
             self._refuse_wildcard(query, key, fmt, "a simulator key", "sim/<fault>")
+            return
+        if sim is None:
+            backend = self.config.hal.backend
+            error = Error(
+                code=ErrorCode.NOT_AVAILABLE,
+                message=f"sim/{what}: this machine runs the {backend} HAL, not the simulator",
+            )
+            self._reply_now(query, key, fmt, error, None, transaction_id_of(_try_raw(query)))
             return
         if what == simfaults.WORLD:
             with query:

@@ -21,23 +21,27 @@ import zenoh
 from schema.codec import Format, encode
 from schema.commands import Reply, ReplyCode
 from schema.credentials import RIDER, zenoh_settings
-from schema.status import MachineState, Status
+from schema.status import MachineState, SessionProgress, Status
 
 FAKE_TX = "forged"
 FORGED_SEQ = 10**9
 """The sequence number of every forged status (a real one never gets there)."""
 
 
-def fake_status(machine_id: str) -> bytes:
-    return encode(
-        Status(
-            machine_id=machine_id,
-            state=MachineState.IDLE,
-            seq=FORGED_SEQ,
-            cycle=1,
-            time=time.time(),
-        )
+def fake_status(machine_id: str, session_name: str | None = None) -> bytes:
+    session = None
+    if session_name is not None:
+        session = SessionProgress(name=session_name, step_index=0, step_count=2)
+    status = Status(
+        machine_id=machine_id,
+        state=MachineState.IDLE,
+        session=session,
+        warnings=[session_name] if session_name is not None else [],
+        seq=FORGED_SEQ,
+        cycle=1,
+        time=time.time(),
     )
+    return encode(status)
 
 
 def fake_reply() -> bytes:
@@ -54,19 +58,24 @@ def fake_reply() -> bytes:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="forger")
-    p.add_argument("--connect", required=True)
+    p.add_argument("--connect", action="append", default=[])
     p.add_argument("--listen", default="tcp/127.0.0.1:0")
     p.add_argument("--token", action="append", default=[], help="liveliness token to hold")
     p.add_argument("--queryable", action="append", default=[], help="key to answer")
     p.add_argument("--put", action="append", default=[], help="status key to publish on")
     p.add_argument("--machine-id", default="m1")
+    p.add_argument(
+        "--session-name",
+        type=json.loads,
+        help="a session name (and warning) in the forged status, as a JSON string (NUL-safe)",
+    )
     p.add_argument("--duration", type=float, default=30.0)
     args = p.parse_args(argv)
 
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("listen/endpoints", json.dumps([args.listen]))
-    conf.insert_json5("connect/endpoints", json.dumps([args.connect]))
+    conf.insert_json5("connect/endpoints", json.dumps(args.connect))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "true")
     conf.insert_json5("transport/link/tx/lease", "1000")
@@ -78,7 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     reply = fake_reply()
 
     def answer(query: zenoh.Query) -> None:
-        query.reply(query.key_expr, reply, encoding=Format.MSGPACK.value)
+        # A status query gets the forged status, anything else a forged "accepted".
+        is_status = str(query.key_expr).endswith("/status")
+        body = fake_status(args.machine_id, args.session_name) if is_status else reply
+        query.reply(query.key_expr, body, encoding=Format.MSGPACK.value)
 
     with zenoh.open(conf) as session:
         held = [session.liveliness().declare_token(k) for k in args.token]
@@ -88,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
         deadline = time.monotonic() + args.duration
         while not stop.is_set() and time.monotonic() < deadline:
             for pub in pubs:
-                pub.put(fake_status(args.machine_id), encoding=Format.MSGPACK.value)
+                pub.put(
+                    fake_status(args.machine_id, args.session_name), encoding=Format.MSGPACK.value
+                )
             stop.wait(0.05)
         for h in held:
             h.undeclare()

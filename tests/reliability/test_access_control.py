@@ -371,3 +371,31 @@ def test_no_identity_but_the_machine_may_put_or_delete_events() -> None:
                 writes = {"put", "delete"} & set(rule["messages"])
                 touches = any("events" in k or k.endswith("/**") for k in rule["key_exprs"])
                 assert not (writes and "ingress" in rule["flows"] and touches), (profile, rule_id)
+
+
+@pytest.mark.parametrize("named", [True, False])
+def test_a_refused_login_says_authentication_refused(
+    machine: Daemon, ids: Identities, named: bool
+) -> None:
+    env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
+    env.update(ids.env(RIDER, "rider", ids.wrong_password))
+    args = ["--connect", machine.endpoint, "--zenoh-config", str(machine.zenoh_config)]
+    args += ["--machine", "m1"] if named else []
+    done = subprocess.run(
+        [sys.executable, "-m", "rider.cli", *args, "--timeout", "1", "status"],
+        check=False, capture_output=True, text=True, timeout=60, cwd=REPO, env=env,
+    )  # fmt: skip
+    assert done.returncode == 3, done.stderr
+    assert "authentication refused?" in done.stderr
+    assert "RIDER_ZENOH_PASSWORD_FILE" in done.stderr
+
+
+def test_nothing_listening_is_not_called_a_refused_login() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    done = subprocess.run(
+        [sys.executable, "-m", "rider.cli", "--connect", endpoint, "--timeout", "1", "status"],
+        check=False, capture_output=True, text=True, timeout=60, cwd=REPO,
+    )  # fmt: skip
+    assert done.returncode == 3, done.stderr
+    assert "authentication refused?" not in done.stderr
+    assert f"nothing answers at {endpoint}" in done.stderr

@@ -1,0 +1,56 @@
+"""The one way a machine config is loaded: file (or defaults), then overrides, then validation.
+
+`machine run`, `machine supervise`, `machine validate` and the `config/validate` key all come
+here, so a value given on the command line (`--period`, `--id`, …) meets exactly the checks a
+file value meets, and the config that runs is the one that was validated.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from schema.findings import Finding, Findings
+from service.config import MachineConfig
+from service.validate import read_file, validate_data
+
+Overrides = Mapping[str, Any]
+"""Config field (JSON pointer, e.g. `/loop/period_s`) → value that replaces the file's."""
+
+
+def load(
+    path: Path | None, overrides: Overrides | None = None
+) -> tuple[MachineConfig | None, Findings]:
+    """The validated config with `overrides` applied, or None; every finding either way."""
+    if path is None:
+        data: dict[str, Any] = {}
+    else:
+        raw, findings = read_file(path)
+        if raw is None:
+            return None, findings
+        data = raw
+    return load_data(data, overrides)
+
+
+def load_data(
+    data: dict[str, Any], overrides: Overrides | None = None
+) -> tuple[MachineConfig | None, Findings]:
+    """As `load`, for config data already parsed (a candidate sent on the bus)."""
+    merged = copy.deepcopy(data)
+    for pointer, value in (overrides or {}).items():
+        parts = pointer.strip("/").split("/")
+        node = merged
+        for part in parts[:-1]:
+            child = node.get(part)
+            if not isinstance(child, dict):
+                child = node[part] = {}
+            node = child
+        node[parts[-1]] = value
+    return validate_data(merged)
+
+
+def override_source(f: Finding, options: Mapping[str, str], default: str) -> str:
+    """Where a finding's value came from: the command-line option that set it, else `default`."""
+    return options.get(f.path, default)
