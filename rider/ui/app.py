@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -40,12 +41,13 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
 
 from rider.client import BadReply, MachineTimeout, Rider, RiderError
 from rider.ui.bridge import Bridge, NotReady
-from rider.ui.catalog import BY_KEY, ui_config
+from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, ui_config
 from rider.ui.hub import Hub
 from rider.ui.view import HISTORY_S, LOST_AFTER_S, SAMPLE_PERIOD_S, Event, LiveView, Update
 from schema.base import WireModel
 from schema.codec import DecodeError, Format, decode_raw, validate
 from schema.commands import Command, Reply, Session
+from schema.events import EventQuery, QueryError, describe
 
 log = logging.getLogger("rider.ui")
 
@@ -111,6 +113,7 @@ def create_app(rider: Rider, *, monitor: bool = False) -> Starlette:
             Route("/api/snapshot", snapshot),
             Route("/api/events", events),
             Route("/api/session", check_session, methods=["POST"]),
+            Route("/api/history", history),
             Route("/api/cmd/{key:path}", command, methods=["POST"]),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],
@@ -204,6 +207,40 @@ async def command(request: Request) -> Response:
     except (BadReply, RiderError) as exc:
         return _error(502, "BAD_REPLY", str(exc))
     return _reply(reply, info.label)
+
+
+async def history(request: Request) -> Response:
+    """The machine's event history for the Events panel: `?last=N&kind=K`, newest last."""
+    ui = _ui(request)
+    try:
+        query = EventQuery.from_params(
+            {k: v for k, v in request.query_params.items() if k in ("last", "kind")}
+        )
+    except QueryError as exc:
+        return _error(400, "BAD_PAYLOAD", str(exc), f"?{exc.param}")
+    query = dataclasses.replace(query, last=min(query.last or EVENTS_SHOWN, 500))
+    bridge = ui.bridge
+    if bridge is None:
+        return _error(503, "NOT_READY", "the UI server is starting")
+    try:
+        found = await asyncio.to_thread(bridge.events, query)
+    except NotReady as exc:
+        return _error(503, "NOT_READY", str(exc))
+    except MachineTimeout as exc:
+        return _error(504, "NO_REPLY", str(exc))
+    except (BadReply, RiderError) as exc:
+        return _error(502, "BAD_REPLY", str(exc))
+    rows = [
+        {
+            "seq": e.seq,
+            "time": e.time,
+            "kind": e.kind,
+            "machine_id": e.machine_id,
+            "text": describe(e.details),
+        }
+        for e in found
+    ]
+    return JSONResponse({"ok": True, "events": rows}, headers=NO_CACHE)
 
 
 async def check_session(request: Request) -> Response:

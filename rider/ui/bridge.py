@@ -27,6 +27,7 @@ from rider.ui.view import LOST_AFTER_S, MachineFound, Note, Presence, Update
 from schema.axes import AxisRecord
 from schema.commands import Command, Reply, Session
 from schema.diag import CycleDiag
+from schema.events import Event, EventQuery
 from schema.io import IoValue
 from schema.status import Status
 
@@ -80,6 +81,12 @@ class Bridge:
             return self.rider.command(command)
         except CommandRefused as exc:
             return exc.reply
+
+    def events(self, query: EventQuery) -> list[Event]:
+        """The machine's event history `query` selects (newest last)."""
+        if not self._opened or self.machine_id is None:
+            raise NotReady("not connected to a machine yet")
+        return self.rider.events(query)
 
     # ----------------------------------------------------------------------------- thread
     def _run(self) -> None:

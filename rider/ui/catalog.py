@@ -16,6 +16,7 @@ from schema.commands import (
     Session,
     TiltStep,
 )
+from schema.events import EventKind
 from schema.status import FAULT_STATES, MOTION_STATES, MachineState
 
 S = MachineState
@@ -108,6 +109,10 @@ SESSION_PRESETS: list[tuple[str, str, Session]] = [
 ]
 
 
+EVENTS_SHOWN = 50
+"""How many of the newest events the Events panel lists."""
+
+
 def ui_config(*, monitor: bool, lost_after_s: float, history_s: float) -> dict[str, Any]:
     """The `/api/config` document."""
     return {
@@ -128,6 +133,8 @@ def ui_config(*, monitor: bool, lost_after_s: float, history_s: float) -> dict[s
         "tones": {s.value: state_tone(s) for s in MachineState},
         "hints": {s.value: hint for s, hint in STATE_HINTS.items()},
         "estop_pressed": ESTOP_PRESSED_HINT,
+        "event_kinds": [k.value for k in EventKind],
+        "events_shown": EVENTS_SHOWN,
         "sessions": [
             {"id": sid, "label": label, "session": session.model_dump(mode="json")}
             for sid, label, session in SESSION_PRESETS

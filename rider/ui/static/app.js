@@ -49,6 +49,7 @@
     }
     applyConfig(cfg);
     buildGauges();
+    buildEvents();
     connect();
     setInterval(watchdog, 250);
     setInterval(drawPlot, 100);
@@ -659,6 +660,63 @@
       const label = s === 0 ? "now" : `−${s} s`;
       ctx.fillText(label, Math.min(w - right - 12, Math.max(left + 14, x(now - s))), h - axisH / 2);
     }
+  }
+
+  // --------------------------------------------------------------------------- events
+  // The machine's event history (docs/events.md): the newest first, re-read every 2 s and at
+  // once when the filter changes.
+  const FAULTY = new Set(["fault_raised", "estop_pressed", "estop_latched", "watchdog_trip",
+    "storage_failed", "events_dropped", "rider_lost"]);
+
+  function buildEvents() {
+    const select = $("events-kind");
+    for (const kind of (ui.cfg && ui.cfg.event_kinds) || []) {
+      const o = document.createElement("option");
+      o.value = kind;
+      o.textContent = kind.replace(/_/g, " ");
+      select.append(o);
+    }
+    select.addEventListener("change", loadEvents);
+    loadEvents();
+    setInterval(loadEvents, 2000);
+  }
+
+  async function loadEvents() {
+    const kind = $("events-kind").value;
+    const url = `/api/history?last=${(ui.cfg && ui.cfg.events_shown) || 50}` +
+      (kind ? `&kind=${encodeURIComponent(kind)}` : "");
+    let body;
+    try {
+      const r = await fetch(url, { cache: "no-store" });
+      body = await r.json();
+    } catch (err) {
+      $("events-note").textContent = "the UI server is not answering";
+      return;
+    }
+    if (kind !== $("events-kind").value) return; // the filter changed meanwhile
+    if (!body.ok) {
+      $("events-note").textContent = body.error ? body.error.message : "no history";
+      return;
+    }
+    const rows = body.events.slice().reverse();
+    $("events-note").textContent = rows.length ? "" : "no events";
+    sync($("events-rows"), rows, () => {
+      const tr = document.createElement("tr");
+      for (const cls of ["ev-time", "ev-seq", "ev-kind", "ev-text"]) {
+        const td = document.createElement("td");
+        td.className = cls;
+        tr.append(td);
+      }
+      return tr;
+    }, (tr, e) => {
+      const cells = tr.children;
+      cells[0].textContent = new Date(e.time * 1000).toLocaleString();
+      cells[1].textContent = `#${e.seq}`;
+      cells[2].textContent = e.kind;
+      cells[3].textContent = e.text;
+      tr.dataset.kind = e.kind;
+      tr.dataset.tone = FAULTY.has(e.kind) ? "fault" : "";
+    });
   }
 
   // -------------------------------------------------------------------------- helpers
