@@ -24,6 +24,7 @@ from schema.events import (
     SessionEndedEvent,
     SessionStartedEvent,
     StateEvent,
+    StorageEvent,
 )
 from schema.status import MOTION_STATES, Fault, MachineState
 from service.control import ControlAPI, Transition
@@ -94,6 +95,8 @@ class EventRecorder:
         self._calibration: Calibration | None = None
         self._motion: _Motion | None = None
         self._session: _Session | None = None
+        self._storage_version = 0
+        self._storage_seen: set[str] = set()
 
     # --------------------------------------------------------------------------- inputs
     def transition(self, t: Transition) -> None:
@@ -165,6 +168,7 @@ class EventRecorder:
         elif self._motion is not None and self._ended(control):
             self._complete(control, reason, wall, emit)
         self._calibrations(control, emit)
+        self._storage(control, emit)
 
     def _emitter(self, wall: float) -> Emit:
         sink, cycle = self.sink, self.cycle
@@ -269,6 +273,17 @@ class EventRecorder:
                 reason=reason,
             )
         )
+
+    def _storage(self, control: ControlAPI, emit: Emit) -> None:
+        """A calibration or parameter write to data_dir that failed (each problem once)."""
+        storage = control.storage
+        if storage is None or storage.version == self._storage_version:
+            return
+        self._storage_version = storage.version
+        now = set(storage.warnings())
+        for problem in sorted(now - self._storage_seen):
+            emit(StorageEvent(what="data_dir", error=problem))
+        self._storage_seen = now
 
     def _calibrations(self, control: ControlAPI, emit: Emit) -> None:
         cal = control.calibration

@@ -13,9 +13,11 @@ from schema.events import (
     SessionEndedEvent,
     SessionStartedEvent,
     StateEvent,
+    StorageEvent,
 )
 from schema.status import MachineState
 from service.events import ListEventSink
+from service.persist import StorageHealth
 from tests.rig import Rig, known_calibration
 
 S = MachineState
@@ -176,3 +178,19 @@ def test_an_idle_machine_records_nothing() -> None:
     mark = len(sink.events)
     rig.step(500)
     assert kinds(sink, mark) == []
+
+
+def test_a_failed_write_to_data_dir_is_recorded_once_per_problem() -> None:
+    rig, sink = ready_rig()
+    storage = StorageHealth()
+    rig.control.storage = storage  # what the daemon wires in (service/daemon.py)
+    mark = len(sink.events)
+    storage.failed(StorageHealth.CALIBRATION, "calibration.json: No space left on device")
+    rig.step(3)
+    [problem] = details(sink, mark)
+    assert isinstance(problem, StorageEvent) and "No space left" in problem.error
+    storage.recovered()
+    rig.step()
+    storage.failed(StorageHealth.PARAMS, "params.json: Read-only file system")
+    rig.step()
+    assert [d.kind for d in details(sink, mark)] == ["storage_failed", "storage_failed"]
