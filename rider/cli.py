@@ -248,17 +248,23 @@ def fmt_diag(d: CycleDiag) -> str:
     def us(x: float) -> str:
         return f"{x * 1e6:8.0f}"
 
-    return "\n".join(
-        [
-            f"period {d.period_s * 1000:g} ms, {d.cycles} cycles, overruns {d.overruns},"
-            f" missed {d.missed_cycles}, window {d.window}",
-            f"{'µs':10} {'last':>8} {'p50':>8} {'p99':>8} {'max':>8} {'mean':>8}",
-            f"{'execution':10} {us(d.execution.last)} {us(d.execution.p50)} {us(d.execution.p99)}"
-            f" {us(d.execution.max)} {us(d.execution.mean)}",
-            f"{'jitter':10} {us(d.jitter.last)} {us(d.jitter.p50)} {us(d.jitter.p99)}"
-            f" {us(d.jitter.max)} {us(d.jitter.mean)}",
-        ]
-    )
+    lines = [
+        f"period {d.period_s * 1000:g} ms, {d.cycles} cycles, overruns {d.overruns},"
+        f" missed {d.missed_cycles}, window {d.window}",
+        f"{'µs':10} {'last':>8} {'p50':>8} {'p99':>8} {'max':>8} {'mean':>8}",
+        f"{'execution':10} {us(d.execution.last)} {us(d.execution.p50)} {us(d.execution.p99)}"
+        f" {us(d.execution.max)} {us(d.execution.mean)}",
+        f"{'jitter':10} {us(d.jitter.last)} {us(d.jitter.p50)} {us(d.jitter.p99)}"
+        f" {us(d.jitter.max)} {us(d.jitter.mean)}",
+    ]
+    if d.events is not None:
+        e = d.events
+        lines.append(
+            f"events     written {e.written}, queued {e.queued}, dropped {e.dropped},"
+            f" lost {e.lost}, db {e.file_bytes / 1e6:.1f} MB"
+            + (f", last error: {e.last_error}" if e.last_error else "")
+        )
+    return "\n".join(lines)
 
 
 def fmt_param(p: ParamValue) -> str:
