@@ -145,6 +145,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         stats,
         config,
         sim=raw_hal if isinstance(raw_hal, SimHal) else None,
+        sim_elsewhere=bool(supervisor),
         params=registry,
         check_config=lambda candidate: _check(registry.config, candidate),
         events=events,

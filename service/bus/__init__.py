@@ -103,8 +103,11 @@ class ZenohBus:
         check_config: ConfigChecker | None = None,
         wall: Callable[[], float] = time.time,
         events: EventLog | None = None,
+        sim_elsewhere: bool = False,
     ) -> None:
+        """`sim_elsewhere`: another session (the supervisor) answers `sim/**` for this machine."""
         self.session = session
+        self.sim_elsewhere = sim_elsewhere
         self.loop = loop
         self.stats = stats
         self.config = config
@@ -140,8 +143,9 @@ class ZenohBus:
         if self.params is not None:
             self._declared.append(s.declare_queryable(f"{b}/params/**", self._on_params))
         # Declared without a simulator too: `sim/*` on real hardware answers NOT_AVAILABLE
-        # at once instead of leaving the caller to time out.
-        self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        # at once instead of leaving the caller to time out (a supervisor answers for its child).
+        if self.sim is not None or not self.sim_elsewhere:
+            self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
         if self.events is not None:
             self._declared.append(s.declare_queryable(f"{b}/events", self._on_events))
             self.events.subscribe(self._publish_events)

@@ -111,8 +111,8 @@ class SupervisorBus:
         self._declared.append(
             s.liveliness().declare_subscriber(f"{b}/alive", self._on_token, history=True)
         )
-        if self.world is not None:
-            self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        # Always: the daemon child leaves sim/** to its supervisor (one answer, never two).
+        self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
         log.info("event=supervisor_bus_started base=%s zid=%s", b, s.zid())
 
     def close(self) -> None:
@@ -233,12 +233,19 @@ class SupervisorBus:
 
     def _on_sim(self, query: zenoh.Query) -> None:
         world = self.world
-        assert world is not None
         key = str(query.key_expr)
         what = key[len(f"{self.base}/sim/") :]
         data = _payload(query)
         fmt = reply_format(query, data)
         with query:
+            if world is None:
+                error = Error(
+                    code=ErrorCode.NOT_AVAILABLE,
+                    message=f"sim/{what}: this machine runs real hardware, not the simulator",
+                )
+                reply = _failure(error, transaction_id_of(_try_raw(query)), self.wall())
+                query.reply(key, encode(reply, fmt), encoding=fmt.value)
+                return
             if what != simfaults.WORLD:
                 try:
                     req = simfaults.decode_request(what, data, _encoding(query))

@@ -294,14 +294,23 @@ def test_a_peer_with_valid_credentials_cannot_pose_as_the_machine(
     assert "forged" not in machine.log()
 
 
+@pytest.mark.parametrize("command", ["run", "supervise"])
 def test_a_monitor_cannot_keep_a_killed_rider_alive(
-    tmp_path_factory: pytest.TempPathFactory, ids: Identities
+    tmp_path_factory: pytest.TempPathFactory, ids: Identities, command: str
 ) -> None:
-    """Issue 15, point 3: the monitor holds `rider/<victim>/alive`; the victim is SIGKILLed."""
+    """Issue 15, point 3: the monitor holds `rider/<victim>/alive`; the victim is SIGKILLed.
+
+    Under `supervise` the Riders' tokens reach the daemon child through the supervisor's
+    router as the `machine` identity (which may watch rider/** but never declare there).
+    """
+    env = {env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)}
+    if command == "supervise":
+        env.update(ids.env(MACHINE, "machine"))
     daemon = start_machine(
         tmp_path_factory.mktemp("acl-loss"),
+        command=command,
         profile=ACL_PROFILE,
-        env={env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)},
+        env=env,
         rider_env=ids.env(RIDER, "rider"),
     )
     victim_env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
