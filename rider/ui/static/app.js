@@ -519,10 +519,14 @@
     el("circle", { class: "needle-hub", cx: ROT.cx, cy: ROT.cy, r: 8 }, r);
   }
 
+  // pnStatus bits (docs/fastdata.md): 1 settled, 2 moving, 4 drive enabled, 8 drive fault,
+  // 16 position unknown.
   function axisState(bits) {
     if (bits & 8) return ["fault", "fault"];
     if (bits & 2) return ["moving", "moving"];
-    if (bits & 4) return ["settled", "stopped"];
+    if (bits & 16) return ["off", "position unknown"];
+    if (bits & 1) return ["settled", bits & 4 ? "settled" : "settled, drive off"];
+    if (bits & 4) return ["off", "stopped short"];
     return ["off", "drive off"];
   }
 
