@@ -562,8 +562,8 @@ class ZenohBus:
     # ---------------------------------------------------------------------------- riders
     def _on_rider(self, sample: zenoh.Sample) -> None:
         parts = str(sample.key_expr).split("/")
-        if len(parts) != 3:
-            return
+        if len(parts) != 3 or not parts[1].isalnum():
+            return  # a Rider's id is its session id (hex): anything else is not a Rider's token
         rider = parts[1]
         alive = sample.kind == zenoh.SampleKind.PUT
         if alive:

@@ -331,3 +331,13 @@ def test_bad_persisted_entry_is_a_warning(tmp_path: Path, entry: dict[str, Any],
     [warning] = reg.warnings
     assert says in warning
     assert reg.config == MachineConfig()
+
+
+def test_an_online_write_the_file_check_warns_about_at_its_own_path_is_refused(
+    tmp_path: Path,
+) -> None:
+    """`bus.heartbeat_s` 1e-9 is only a warning in a file; online nobody would read it."""
+    reg = registry(tmp_path)
+    with pytest.raises(ParamOutOfRange, match="cannot be held"):
+        reg.set("bus.heartbeat_s", req(1e-9), moving=False, now=1.0)
+    assert reg.get("bus.heartbeat_s").value == 1.0
