@@ -449,7 +449,8 @@ def machines(args: argparse.Namespace, rider: Rider) -> int:
     for m in found:
         up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"
         lines.append(f"{printable(m.id):16} {printable(m.state or '?'):28} up {up}")
-    emit([m.__dict__ for m in found], args.json, lambda _: "\n".join(lines) or "no machines alive")
+    none = f"no machines alive{rider.no_link_hint() if not found else ''}"
+    emit([m.__dict__ for m in found], args.json, lambda _: "\n".join(lines) or none)
     if changes is None:
         return EXIT_OK
     sys.stdout.flush()

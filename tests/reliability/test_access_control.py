@@ -387,21 +387,25 @@ def test_no_identity_but_the_machine_may_put_or_delete_events() -> None:
                 assert not (writes and "ingress" in rule["flows"] and touches), (profile, rule_id)
 
 
-@pytest.mark.parametrize("named", [True, False])
+@pytest.mark.parametrize(
+    ("command", "code"),
+    [(["--machine", "m1", "status"], 3), (["status"], 3), (["machines"], 0)],
+    ids=["named", "unnamed", "machines"],
+)
 def test_a_refused_login_says_authentication_refused(
-    machine: Daemon, ids: Identities, named: bool
+    machine: Daemon, ids: Identities, command: list[str], code: int
 ) -> None:
     env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
     env.update(ids.env(RIDER, "rider", ids.wrong_password))
     args = ["--connect", machine.endpoint, "--zenoh-config", str(machine.zenoh_config)]
-    args += ["--machine", "m1"] if named else []
     done = subprocess.run(
-        [sys.executable, "-m", "rider.cli", *args, "--timeout", "1", "status"],
+        [sys.executable, "-m", "rider.cli", *args, "--timeout", "1", *command],
         check=False, capture_output=True, text=True, timeout=60, cwd=REPO, env=env,
     )  # fmt: skip
-    assert done.returncode == 3, done.stderr
-    assert "authentication refused?" in done.stderr
-    assert "RIDER_ZENOH_PASSWORD_FILE" in done.stderr
+    said = done.stderr + done.stdout
+    assert done.returncode == code, said
+    assert "authentication refused?" in said
+    assert "RIDER_ZENOH_PASSWORD_FILE" in said
 
 
 def test_nothing_listening_is_not_called_a_refused_login() -> None:
