@@ -33,8 +33,8 @@ from rider.client import (
 from rider.text import printable, shown
 from schema.axes import AxisRecord, PnStatus
 from schema.commands import CheckResult, Reply, Session
+from schema.completion import Completion, Outcome
 from schema.diag import CycleDiag
-from schema.errors import ErrorCode
 from schema.events import (
     Event,
     EventKind,
@@ -53,19 +53,6 @@ EXIT_REFUSED = 1
 EXIT_USAGE = 2
 EXIT_NO_REPLY = 3
 EXIT_AMBIGUOUS = 4
-
-STORAGE_FAILED = f"{ErrorCode.STORAGE_FAILED}:"
-"""How a status warning about a value the machine could not write starts."""
-
-TERMINAL_STATES = {
-    MachineState.DONE,
-    MachineState.IDLE,
-    MachineState.FAULT_HW,
-    MachineState.FAULT_ESTOP,
-    MachineState.WARNING_NEEDS_CALIBRATION,
-    MachineState.WARNING_NOT_HOME,
-    MachineState.PAUSED,
-}
 
 
 T = TypeVar("T")
@@ -107,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="STATE",
         help="stop when the machine reaches one of these states",
     )
+    wait_help = "wait for the completion notice of this command's motion (exit 1 unless DONE)"
     for name, text in (
         ("home", "home both axes (tilt, then rotate)"),
         ("pause", "pause motion, relays off"),
@@ -114,13 +102,17 @@ def build_parser() -> argparse.ArgumentParser:
         ("stop", "stop, clear the session, DONE"),
     ):
         c = sub.add_parser(name, help=text)
-        c.add_argument("--wait", action="store_true", help="wait until the motion ends")
+        _wait_options(c, wait_help)
     cal = sub.add_parser("calibrate", help="calibrate an axis")
     cal.add_argument("axis", choices=["tilt", "rotate"])
-    cal.add_argument("--wait", action="store_true", help="wait until calibration ends")
+    _wait_options(cal, wait_help)
     st = sub.add_parser("start", help="start a session (default: tilt 45°, rotate CW x3)")
     st.add_argument("--session", type=Path, help="session file (JSON or TOML)")
-    st.add_argument("--wait", action="store_true", help="wait until the session ends")
+    _wait_options(st, wait_help)
+    dn = sub.add_parser("done", help="how a motion ended (its completion notice)")
+    dn.add_argument(
+        "transaction_id", nargs="?", help="the command's transaction id (default: all recent)"
+    )
     chk = sub.add_parser("check", help="check calibration or home")
     chk.add_argument("what", choices=["calibration", "home"])
     sub.add_parser("io", help="all IO points")
@@ -172,6 +164,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("fastdata", help="read the FastData UDP axis stream", add_help=False)
     sub.add_parser("ui", help="serve the operator web UI", add_help=False)
     return p
+
+
+def _wait_options(p: argparse.ArgumentParser, text: str) -> None:
+    p.add_argument("--wait", action="store_true", help=text)
+    p.add_argument(
+        "--wait-timeout", type=float, default=600.0, help="give up waiting after this many s"
+    )
 
 
 # ------------------------------------------------------------------------------- printing
@@ -226,6 +225,13 @@ def fmt_reply(r: Reply) -> str:
     if r.result is not None:
         line += f" ok={_yn(r.result.ok)} tilt={_yn(r.result.tilt)} rotate={_yn(r.result.rotate)}"
     return line
+
+
+def fmt_completion(n: Completion) -> str:
+    code = f" {n.code}" if n.code else ""
+    return f"{n.command} {n.transaction_id}: {n.outcome}{code} -> state {n.state}" + (
+        f" ({n.reason})" if n.reason else ""
+    )
 
 
 def fmt_io(points: list[IoValue]) -> str:
@@ -301,6 +307,8 @@ def fmt_update(u: Update) -> str:
         return f"{stamp} status {u.state} tilt={tilt}{extra}"
     if isinstance(u, IoValue):
         return f"{stamp} io {u.kind}/{u.name} = {u.value}"
+    if isinstance(u, Completion):
+        return f"{stamp} done {fmt_completion(u)}"
     return f"{stamp} {fmt_axis(u)}"
 
 
@@ -373,6 +381,8 @@ def run(args: argparse.Namespace, rider: Rider) -> int:
         return EXIT_OK if findings.ok else EXIT_REFUSED
     elif cmd == "machines":
         return machines(args, rider)
+    elif cmd == "done":
+        return done(args, rider)
     elif cmd == "sim":
         return sim(args, rider)
     elif cmd == "events":
@@ -389,19 +399,66 @@ def motion(args: argparse.Namespace, rider: Rider) -> int:
     else:
         reply = getattr(rider, args.cmd)()
     emit(reply, args.json, fmt_reply)
-    if getattr(args, "wait", False):
-        ends = TERMINAL_STATES if args.cmd == "pause" else TERMINAL_STATES - {MachineState.PAUSED}
-        final = rider.wait_for(ends, timeout=600, after=reply.timecode)
+    if not getattr(args, "wait", False):
+        return EXIT_OK
+    if args.cmd in ("pause", "stop"):
+        # Their reply is their completion (Stop's ends the motion it stopped: STOPPED); show
+        # the first status of the cycle that answered, not one published before it.
+        final = rider.wait_for(set(MachineState), timeout=args.wait_timeout, after=reply.timecode)
         emit(final, args.json, fmt_status)
-        if final.state in (MachineState.FAULT_HW, MachineState.FAULT_ESTOP):
-            return EXIT_REFUSED
-        unsaved = [w for w in final.warnings if w.startswith(STORAGE_FAILED)]
-        if args.cmd == "calibrate" and unsaved:
-            # Calibrated for now, but not saved: never report that as done.
-            for warning in unsaved:
-                print(f"rider: {printable(warning)}", file=sys.stderr)
-            return EXIT_REFUSED
+        return EXIT_OK
+    tid = reply.transaction_id
+    if args.cmd == "resume":
+        motion_ref = rider.status().motion  # Resume continues a motion: wait for its notice
+        if motion_ref is None:
+            final = rider.status()
+            emit(final, args.json, fmt_status)
+            return EXIT_OK
+        tid = motion_ref.transaction_id
+    assert tid is not None
+    notice = rider.wait_done(tid, timeout=args.wait_timeout, on_status=_halted_notifier())
+    emit(notice, args.json, fmt_completion)
+    final = rider.status()
+    emit(final, args.json, fmt_status)
+    if notice.outcome != Outcome.DONE:
+        why = printable(f"{notice.command} {notice.outcome}: {notice.reason}")
+        print(f"rider: {why}", file=sys.stderr)
+        return EXIT_REFUSED
     return EXIT_OK
+
+
+def _halted_notifier() -> Callable[[Status], None]:
+    """Say once on stderr when the awaited motion is paused or E-stopped (it is not over)."""
+    said: list[MachineState] = []
+
+    def on_status(status: Status) -> None:
+        if status.state in (MachineState.PAUSED, MachineState.FAULT_ESTOP):
+            if not said or said[-1] is not status.state:
+                said.append(status.state)
+                print(
+                    f"rider: machine {status.state}; the motion continues after resume"
+                    " (stop ends it)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+        elif said:
+            said.clear()
+
+    return on_status
+
+
+def done(args: argparse.Namespace, rider: Rider) -> int:
+    """`rider done [TID]`: how a motion ended (late Riders), or every remembered notice."""
+    if args.transaction_id is None:
+        notices = rider.recent_completions()
+        emit(notices, args.json, lambda ns: "\n".join(fmt_completion(n) for n in ns))
+        return EXIT_OK
+    found = rider.done(args.transaction_id)
+    if found is None:
+        print(f"rider: {args.transaction_id} has not ended yet", file=sys.stderr)
+        return EXIT_REFUSED
+    emit(found, args.json, fmt_completion)
+    return EXIT_OK if found.outcome == Outcome.DONE else EXIT_REFUSED
 
 
 def watch(args: argparse.Namespace, rider: Rider) -> int:

@@ -36,6 +36,7 @@ from schema.commands import (
     Session,
     StartRequest,
 )
+from schema.completion import Completion
 from schema.credentials import RIDER, CredentialError, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
@@ -53,6 +54,8 @@ log = logging.getLogger(__name__)
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 2.0
 EMPTY_RETRY_S = 0.05
+DONE_RECHECK_S = 1.0
+"""`wait_done` asks for the notice this often besides listening for it."""
 
 
 class RiderError(Exception):
@@ -86,6 +89,11 @@ class BusError(RiderError):
     """Zenoh refused an operation (a query, a subscription): the session is broken or closed."""
 
 
+class UnknownTransaction(RiderError):
+    """The machine knows no motion with this transaction id (never accepted, forgotten, or
+    sent before it restarted): no notice will ever come."""
+
+
 class NoMachine(RiderError):
     """No machine is alive, or the one asked for is not."""
 
@@ -103,7 +111,7 @@ class MachineInfo:
     uptime_s: float | None
 
 
-Update = Status | IoValue | AxisRecord | CycleDiag
+Update = Status | IoValue | AxisRecord | CycleDiag | Completion
 
 
 class Subscription:
@@ -610,6 +618,76 @@ class Rider:
             raise
         return Subscription(entities)
 
+    def done(self, transaction: str | Reply, timeout: float | None = None) -> Completion | None:
+        """How the motion `transaction` (an id, or its command's reply) ended; None while it
+        is still under way. Raises `UnknownTransaction` if the machine knows no such motion."""
+        tid = transaction.transaction_id if isinstance(transaction, Reply) else transaction
+        if not tid:
+            raise UnknownTransaction("a reply without a transaction id has no notice")
+        try:
+            return self._get_one(f"{self.base}/done/{tid}", None, Completion, timeout)
+        except CommandRefused as exc:
+            if exc.error.code is ErrorCode.IN_PROGRESS:
+                return None
+            if exc.error.code is ErrorCode.UNKNOWN_TRANSACTION:
+                raise UnknownTransaction(str(exc)) from exc
+            raise
+
+    def recent_completions(self) -> list[Completion]:
+        """Every completion notice the machine remembers (`done/**`), oldest first."""
+        return sorted(self._get_all(f"{self.base}/done/**", Completion), key=lambda n: n.time)
+
+    def wait_done(
+        self,
+        transaction: str | Reply,
+        timeout: float = 600.0,
+        *,
+        on_status: Callable[[Status], None] | None = None,
+    ) -> Completion:
+        """Block until the completion notice of `transaction` (an id, or the reply of the
+        command that started it) and return it, whatever its outcome (DONE, STOPPED, FAULT_*…).
+
+        Subscribes to `done/<id>` first, then asks (a notice published before the subscription
+        is found), and asks again every `DONE_RECHECK_S` (a dropped publication, a machine that
+        restarted and forgot the motion: `UnknownTransaction`). `on_status` gets every status
+        meanwhile (e.g. to say the motion is paused or E-stopped). MachineTimeout after
+        `timeout` seconds.
+        """
+        tid = transaction.transaction_id if isinstance(transaction, Reply) else transaction
+        if not tid:
+            raise UnknownTransaction("a reply without a transaction id has no notice")
+        q: queue.Queue[Update] = queue.Queue()
+        keys = [f"done/{tid}"] + (["status"] if on_status is not None else [])
+        deadline = time.monotonic() + timeout
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            with contextlib.suppress(BadReply):
+                update = _decode_update(sample)
+                if update is not None:
+                    q.put(update)
+
+        with self._declare(keys, on_sample):
+            recheck = 0.0
+            while True:
+                now = time.monotonic()
+                if now >= recheck:
+                    recheck = now + DONE_RECHECK_S
+                    with contextlib.suppress(MachineTimeout):  # down for now: keep waiting
+                        notice = self.done(tid)
+                        if notice is not None:
+                            return notice
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise MachineTimeout(f"no completion notice for {tid} within {timeout:g} s")
+                try:
+                    update = q.get(timeout=min(remaining, max(recheck - time.monotonic(), 0)))
+                except queue.Empty:
+                    continue
+                if isinstance(update, Completion) and update.transaction_id == tid:
+                    return update
+                if isinstance(update, Status) and on_status is not None:
+                    on_status(update)
+
     def wait_for(
         self, states: Iterable[MachineState], timeout: float = 60.0, *, after: float = 0.0
     ) -> Status:
@@ -708,13 +786,15 @@ def _decode_update(sample: zenoh.Sample) -> Update | None:
         model = AxisRecord
     elif key.endswith("/diag/cycle"):
         model = CycleDiag
+    elif "/done/" in key:
+        model = Completion
     else:
         return None
     try:
         result = decode(model, sample.payload.to_bytes(), _format_of(sample.encoding))
     except DecodeError as exc:
         raise BadReply(f"{key}: {exc.error.message}") from exc
-    assert isinstance(result, Status | IoValue | AxisRecord | CycleDiag)
+    assert isinstance(result, Status | IoValue | AxisRecord | CycleDiag | Completion)
     return result
 
 

@@ -78,9 +78,13 @@ class Direction(StrEnum):
     CCW = "ccw"
 
 
+_CHUNK = r"[A-Za-z0-9._:+\-][A-Za-z0-9._:@+\-]*"
 TransactionId = Annotated[
-    str, StringConstraints(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9._:@/+\-]+$")
+    str,
+    StringConstraints(min_length=1, max_length=64, pattern=rf"^{_CHUNK}(?:/{_CHUNK})*$"),
 ]
+"""Letters, digits and `._:@+-`, in `/`-separated parts: it names a Zenoh key
+(`machine/<id>/done/<transaction_id>`), so no empty part and no part starting with `@`."""
 
 
 class TiltStep(WireModel):
@@ -140,6 +144,9 @@ class CommandRequest(WireModel):
 
     transaction_id: TransactionId
     timecode: float | None = None
+    """The sender's clock when it sent the request, in seconds since the Unix epoch (seed 000
+    uses integer milliseconds; here seconds, as every time on this wire). Echoed in the reply
+    as `request_timecode` and written to the daemon's log with the command."""
     rider: TransactionId | None = None
 
 
@@ -181,6 +188,9 @@ class Reply(OpenWireModel):
     transaction_id: str | None
     command: str | None
     timecode: float
+    """The machine's clock when it answered (seconds since the Unix epoch)."""
+    request_timecode: float | None = None
+    """The request's `timecode`, echoed (None if it carried none)."""
     success: bool
     code: ReplyCode
     state: MachineState | None = None
@@ -197,11 +207,13 @@ class Reply(OpenWireModel):
         command: str | None,
         timecode: float,
         state: MachineState | None = None,
+        request_timecode: float | None = None,
     ) -> Reply:
         return cls(
             transaction_id=transaction_id,
             command=command,
             timecode=timecode,
+            request_timecode=request_timecode,
             success=False,
             code=ReplyCode.RESP_ERROR,
             state=state,

@@ -27,6 +27,11 @@ class ErrorCode(StrEnum):
     PARAM_LOCKED = "PARAM_LOCKED"
     STORAGE_FAILED = "STORAGE_FAILED"
     NOT_AVAILABLE = "NOT_AVAILABLE"
+    IN_PROGRESS = "IN_PROGRESS"
+    """`done/<transaction_id>` of a motion that has not ended yet (its notice is still due)."""
+    UNKNOWN_TRANSACTION = "UNKNOWN_TRANSACTION"
+    """`done/<transaction_id>` of no motion this daemon remembers (never one, forgotten, or
+    sent before it started)."""
     INTERNAL = "INTERNAL"
 
 

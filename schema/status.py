@@ -82,6 +82,15 @@ class EstopInfo(OpenWireModel):
     latched: bool = False
 
 
+class MotionRef(OpenWireModel):
+    """The motion command in progress (running, paused or halted by an E-stop): the
+    transaction whose completion notice (`machine/<id>/done/<transaction_id>`) is still due."""
+
+    transaction_id: str
+    command: str
+    started_at: float
+
+
 class Status(OpenWireModel):
     """The machine's status, published on every change and as a heartbeat."""
 
@@ -98,6 +107,7 @@ class Status(OpenWireModel):
     tilt_deg: float | None = None
     rotate_deg: float | None = None
     rider_connected: bool = False
+    motion: MotionRef | None = None
     seq: int
     cycle: int
     time: float

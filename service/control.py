@@ -21,6 +21,9 @@ from schema.commands import (
     StartRequest,
     TiltStep,
 )
+from schema.completion import Completion
+from schema.completion import Outcome as End
+from schema.errors import ErrorCode
 from schema.status import (
     MOTION_STATES,
     AxesFlags,
@@ -28,6 +31,7 @@ from schema.status import (
     Fault,
     FaultCode,
     MachineState,
+    MotionRef,
     SessionProgress,
 )
 from service.config import MachineConfig, RiderLossPolicy
@@ -57,10 +61,16 @@ if TYPE_CHECKING:  # types only: the state machine does no IO
 S = MachineState
 _ALLOWED = ALLOWED_STATES
 READ_ONLY = READ_ONLY_COMMANDS
+_CALIBRATIONS = frozenset({Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE})
 MOVING_COMMANDS = frozenset(
     {Command.START, Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE, Command.RESUME}
 )
 """Commands that set the machine moving: their sender becomes the controlling Rider."""
+
+
+def _never(ctl: Controller, now: float) -> Ending | None:
+    """The `on_done` of a notice that ends a command before any motion began."""
+    raise AssertionError("no controller runs for a refused Start")
 
 
 def allowed_states(command: Command) -> frozenset[MachineState]:
@@ -76,6 +86,39 @@ class Transition:
     new: MachineState
     reason: str
     at: float
+
+
+@dataclass(frozen=True, slots=True)
+class Ending:
+    """How a motion ended, before it becomes a `Completion` notice."""
+
+    outcome: End
+    reason: str
+    code: str | None = None
+
+
+OnDone = Callable[["Controller", float], "Ending | None"]
+"""What to do when a motion's controller finishes: settle the state and say how it ended
+(None: not ended yet, e.g. a calibration whose save is still under way)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Motion:
+    """An accepted motion command, from `begin` until its one completion notice."""
+
+    command: Command
+    transaction_id: str
+    rider: str | None
+    started_at: float
+    """Wall-clock seconds."""
+    on_done: OnDone
+
+    def ref(self) -> MotionRef:
+        return MotionRef(
+            transaction_id=self.transaction_id,
+            command=self.command.value,
+            started_at=self.started_at,
+        )
 
 
 @dataclass
@@ -118,7 +161,10 @@ class ControlAPI:
         self.rider_warning: str | None = None
         self._resume_to: MachineState | None = None
         self._estop_from: MachineState | None = None
-        self._running: Command | None = None
+        self.motion: Motion | None = None
+        """The motion whose completion notice is still due (running, paused, E-stopped)."""
+        self.completions: list[Completion] = []
+        """Notices produced and not yet taken by the scan loop (`take_completions`)."""
         self._saving: SaveTicket | None = None
         self.devices.stop_all()
 
@@ -139,11 +185,13 @@ class ControlAPI:
                 command=command.value,
                 timecode=stamp,
                 state=self.state,
+                request_timecode=request.timecode,
             )
         return Reply(
             transaction_id=request.transaction_id,
             command=command.value,
             timecode=stamp,
+            request_timecode=request.timecode,
             success=True,
             code=code,
             state=self.state,
@@ -169,22 +217,15 @@ class ControlAPI:
             )
         if command is Command.START:
             session = request.session if isinstance(request, StartRequest) else None
-            self._start(session or DEFAULT_SESSION, now)
+            self._start(session or DEFAULT_SESSION, request, now)
             return ReplyCode.RESP_START_ACCEPTED, None
         if command is Command.HOME:
-            self._begin(
-                Command.HOME,
-                S.HOMING,
-                Chain([self._tilt_home, self._rotate_home]),
-                now,
-                "Home",
-            )
+            home = Chain([self._tilt_home, self._rotate_home])
+            self.begin(request, Command.HOME, S.HOMING, home, now, on_done=self._homed)
             return ReplyCode.RESP_HOME_ACCEPTED, None
         if command is Command.CALIBRATE_TILT:
-            tilt = self.devices.tilt
-            self._begin(
-                command, S.CALIBRATING, TiltCalibrate(tilt, self.config.tilt), now, "CalibrateTilt"
-            )
+            tilt = TiltCalibrate(self.devices.tilt, self.config.tilt)
+            self.begin(request, command, S.CALIBRATING, tilt, now, on_done=self._tilt_calibrated)
             return ReplyCode.RESP_CALIBRATION_ACCEPTED, None
         if command is Command.CALIBRATE_ROTATE:
             rotate = self.devices.rotate
@@ -192,9 +233,8 @@ class ControlAPI:
             def calibrate() -> Controller:
                 return RotateCalibrate(rotate, self.config.rotate)
 
-            self._begin(
-                command, S.CALIBRATING, Chain([self._tilt_home, calibrate]), now, "CalibrateRotate"
-            )
+            chain = Chain([self._tilt_home, calibrate])
+            self.begin(request, command, S.CALIBRATING, chain, now, on_done=self._rotate_calibrated)
             return ReplyCode.RESP_CALIBRATION_ACCEPTED, None
         if command is Command.PAUSE:
             self._pause(now, "Pause")
@@ -211,23 +251,34 @@ class ControlAPI:
     def _rotate_home(self) -> Controller:
         return RotateHome(self.devices.rotate, self.config.rotate)
 
-    def _start(self, session: Session, now: float) -> None:
+    def _start(self, session: Session, request: CommandRequest, now: float) -> None:
+        """The seed's Session(): CheckCalibrate, CheckHome, CheckSession, then run. A check
+        that fails sets its state, then ends this Start with a notice (the seed's "send
+        WARNING…, stop session, send DONE"), and the reply says why."""
         if not self.calibration.complete:
             missing = [a for a in ("tilt", "rotate") if getattr(self.calibration, a) is None]
             self._set_state(S.WARNING_NEEDS_CALIBRATION, now, "Start: not calibrated")
-            raise NotCalibrated(f"Start refused: {' and '.join(missing)} not calibrated")
+            error: MachineError = NotCalibrated(
+                f"Start refused: {' and '.join(missing)} not calibrated"
+            )
+            self._notice_refused(request, End.REFUSED, error, now)
+            raise error
         home = self.homed()
         if not (home.tilt and home.rotate):
             missing = [a for a in ("tilt", "rotate") if not getattr(home, a)]
             self._set_state(S.WARNING_NOT_HOME, now, "Start: not home")
-            raise NotHome(f"Start refused: {' and '.join(missing)} not home; send Home first")
+            error = NotHome(f"Start refused: {' and '.join(missing)} not home; send Home first")
+            self._notice_refused(request, End.REFUSED, error, now)
+            raise error
         problem = self._session_problem(session)
         if problem is not None:
             path, message = problem
             self._enter_fault(
                 Fault(code=FaultCode.INVALID_SESSION, message=message), now, "Start: bad session"
             )
-            raise InvalidSession(message, path)
+            error = InvalidSession(message, path)
+            self._notice_refused(request, End.FAULT_HW, error, now)
+            raise error
         assert self.calibration.rotate is not None  # checked complete above
         run = SessionRun(
             session,
@@ -238,7 +289,15 @@ class ControlAPI:
             self.calibration.rotate.home_arc_deg,
         )
         self.session_run = run
-        self._begin(Command.START, S.RUNNING, run, now, f"Start session {session.name!r}")
+        why = f"Start session {session.name!r}"
+        self.begin(request, Command.START, S.RUNNING, run, now, on_done=self._session_done, why=why)
+
+    def _notice_refused(
+        self, request: CommandRequest, outcome: End, error: MachineError, now: float
+    ) -> None:
+        wall = now + self.wall_offset
+        motion = Motion(Command.START, request.transaction_id, request.rider, wall, _never)
+        self._notify(motion, Ending(outcome, error.message, error.code.value), now)
 
     def _session_problem(self, session: Session) -> tuple[str, str] | None:
         """The first step this machine cannot do, as (JSON pointer, message)."""
@@ -254,19 +313,42 @@ class ControlAPI:
                 return (f"/session/steps/{i}/revolutions", f"step {i}: revolutions must be ≥ 1")
         return None
 
-    def _begin(
-        self, command: Command, state: MachineState, ctl: Controller, now: float, why: str
+    def begin(
+        self,
+        request: CommandRequest,
+        command: Command,
+        state: MachineState,
+        ctl: Controller,
+        now: float,
+        *,
+        on_done: OnDone,
+        why: str | None = None,
     ) -> None:
+        """Start a motion: `ctl` runs in `state`; when it finishes, `on_done` settles the
+        state and says how it ended, and that becomes the motion's one completion notice."""
+        if self.motion is not None:
+            # Only a motion halted by the E-stop can be replaced (Home, Calibrate*): it ended.
+            if self.state is S.FAULT_ESTOP:
+                ending = Ending(
+                    End.FAULT_ESTOP,
+                    f"halted by the E-stop and not resumed; replaced by {command.value}",
+                    FaultCode.ESTOP.value,
+                )
+            else:
+                ending = Ending(End.STOPPED, f"replaced by {command.value}")
+            self._end(ending, now)
         self._discard_controller()
         if command is not Command.START:
             self.session_run = None
         self.controller = ctl
-        self._running = command
+        self.motion = Motion(
+            command, request.transaction_id, request.rider, now + self.wall_offset, on_done
+        )
         self.fault = None
         self.rider_warning = None
         self.estop_latched = False
         self._resume_to = self._estop_from = None
-        self._set_state(state, now, why)
+        self._set_state(state, now, why or command.value)
 
     def _pause(self, now: float, why: str) -> None:
         if self.controller is not None:
@@ -292,20 +374,53 @@ class ControlAPI:
             target = self._rest_state()
         self._set_state(target, now, "Resume")
 
-    def _stop(self, now: float, why: str) -> None:
+    def _stop(self, now: float, why: str, code: str | None = None) -> None:
+        after_estop = self.state is S.FAULT_ESTOP
         self._discard_controller()
         self.session_run = None
         self.fault = None
         self.estop_latched = False
         self._resume_to = self._estop_from = None
         self._set_state(S.DONE, now, why)
+        self._end(Ending(End.STOPPED, why + (" after an E-stop" if after_estop else ""), code), now)
 
     def _discard_controller(self) -> None:
         if self.controller is not None:
             self.controller.abandon()
         self.controller = None
-        self._running = None
         self.devices.stop_all()
+
+    # ------------------------------------------------------------------------ completion
+    def _end(self, ending: Ending, now: float) -> None:
+        """The running motion has ended: its one notice (nothing if none is running)."""
+        motion, self.motion = self.motion, None
+        if motion is not None:
+            self._notify(motion, ending, now)
+
+    def _notify(self, motion: Motion, ending: Ending, now: float) -> None:
+        self.completions.append(
+            Completion(
+                machine_id=self.config.machine.id,
+                transaction_id=motion.transaction_id,
+                command=motion.command.value,
+                outcome=ending.outcome,
+                code=ending.code,
+                reason=ending.reason,
+                state=self.state,
+                rider=motion.rider,
+                started_at=motion.started_at,
+                time=now + self.wall_offset,
+            )
+        )
+
+    def take_completions(self) -> list[Completion]:
+        """The notices produced since the last call (the scan loop publishes them)."""
+        out, self.completions = self.completions, []
+        return out
+
+    def abort(self, now: float, why: str) -> None:
+        """The daemon stops: a motion still under way ends `ABORTED` (outputs are safe)."""
+        self._end(Ending(End.ABORTED, why), now)
 
     # ---------------------------------------------------------------------------- checks
     def _check_calibration(self, now: float) -> CheckResult:
@@ -361,7 +476,7 @@ class ControlAPI:
         if gone is not None and now - gone >= self.config.rider_loss.grace_s:
             self._apply_rider_loss(now)
         if self._saving is not None and self._saving.done:
-            self._saved(self._saving, now)
+            self._save_done(self._saving, now)
         ctl = self.controller
         if self.state not in MOTION_STATES or ctl is None:
             self.devices.stop_all()
@@ -371,52 +486,75 @@ class ControlAPI:
             return
         if outcome is Outcome.FAULT:
             assert ctl.fault is not None
-            self._enter_fault(ctl.fault, now, f"{self._running} failed")
+            command = self.motion.command.value if self.motion else "motion"
+            self._enter_fault(ctl.fault, now, f"{command} failed")
             return
         self._finish(ctl, now)
 
     def _finish(self, ctl: Controller, now: float) -> None:
-        command = self._running
-        self.controller, self._running = None, None
+        motion = self.motion
+        self.controller = None
         self.devices.stop_all()
-        if command is Command.START:
-            self._set_state(S.DONE, now, "session complete")
-            return
-        if command is Command.HOME:
-            self.refs.tilt = self.refs.rotate = True
-        elif command is Command.CALIBRATE_TILT:
-            assert isinstance(ctl, TiltCalibrate) and ctl.result is not None
-            self.refs.tilt = True
-            if self._store_calibration(
-                Calibration(tilt=ctl.result, rotate=self.calibration.rotate)
-            ):
-                return
-        elif command is Command.CALIBRATE_ROTATE:
-            assert isinstance(ctl, Chain)
-            cal = ctl.finished[-1]
-            assert isinstance(cal, RotateCalibrate) and cal.result is not None
-            self.refs.tilt = self.refs.rotate = True
-            if self._store_calibration(Calibration(tilt=self.calibration.tilt, rotate=cal.result)):
-                return
-        self._set_state(self._rest_state(), now, f"{command} complete")
+        assert motion is not None, "a controller runs only as part of a motion"
+        ending = motion.on_done(ctl, now)
+        if ending is not None:
+            self._end(ending, now)
 
-    def _store_calibration(self, cal: Calibration) -> bool:
-        """Use `cal` now and persist it; True while the write is still under way."""
+    # The `on_done` actions, bound when each motion begins.
+    def _session_done(self, ctl: Controller, now: float) -> Ending:
+        self._set_state(S.DONE, now, "session complete")
+        return Ending(End.DONE, "session complete")
+
+    def _homed(self, ctl: Controller, now: float) -> Ending:
+        self.refs.tilt = self.refs.rotate = True
+        self._set_state(self._rest_state(), now, "Home complete")
+        return Ending(End.DONE, "Home complete")
+
+    def _tilt_calibrated(self, ctl: Controller, now: float) -> Ending | None:
+        assert isinstance(ctl, TiltCalibrate) and ctl.result is not None
+        self.refs.tilt = True
+        return self._calibrated(Calibration(tilt=ctl.result, rotate=self.calibration.rotate), now)
+
+    def _rotate_calibrated(self, ctl: Controller, now: float) -> Ending | None:
+        assert isinstance(ctl, Chain)
+        cal = ctl.finished[-1]
+        assert isinstance(cal, RotateCalibrate) and cal.result is not None
+        self.refs.tilt = self.refs.rotate = True
+        return self._calibrated(Calibration(tilt=self.calibration.tilt, rotate=cal.result), now)
+
+    def _calibrated(self, cal: Calibration, now: float) -> Ending | None:
+        """Use `cal` now and persist it; it has ended once the write has (None until then)."""
         self.calibration = cal
         self.devices.tilt.calibration = cal.tilt
         ticket = self.on_calibrated(cal) if self.on_calibrated is not None else None
-        if ticket is None or ticket.done:
-            return False
+        if ticket is None:
+            self._set_state(self._rest_state(), now, "calibration complete")
+            return Ending(End.DONE, "calibration complete")
         # Still CALIBRATING (outputs off, no controller) until the disk answers: a Rider that
-        # waits for the calibration learns whether it was saved from the status that ends it.
+        # waits for the calibration learns whether it was saved from the notice that ends it.
         self._saving = ticket
-        return True
+        if ticket.done:
+            return self._saved(ticket, now)
+        return None
 
-    def _saved(self, ticket: SaveTicket, now: float) -> None:
+    def _saved(self, ticket: SaveTicket, now: float) -> Ending:
         self._saving = None
+        problem = ticket.problem
+        why = "calibration complete" + (", NOT saved" if problem else "")
+        if problem:
+            ending = Ending(End.STORAGE_FAILED, problem, ErrorCode.STORAGE_FAILED.value)
+        else:
+            ending = Ending(End.DONE, "calibration complete")
         if self.state is S.CALIBRATING and self.controller is None:
-            why = "calibration complete" + (", NOT saved" if ticket.problem else "")
             self._set_state(self._rest_state(), now, why)
+        return ending
+
+    def _save_done(self, ticket: SaveTicket, now: float) -> None:
+        """A background save finished: the calibration waiting for it (if any) has ended."""
+        ending = self._saved(ticket, now)
+        motion = self.motion
+        if motion is not None and self.controller is None and motion.command in _CALIBRATIONS:
+            self._end(ending, now)
 
     def _enter_fault(self, fault: Fault, now: float, why: str) -> None:
         self._discard_controller()
@@ -426,6 +564,7 @@ class ControlAPI:
         self._resume_to = self._estop_from = None
         self.estop_latched = False  # a still-pressed E-stop latches again next cycle
         self._set_state(S.FAULT_HW, now, f"{why}: {fault.message}")
+        self._end(Ending(End.FAULT_HW, fault.message, fault.code.value), now)
 
     def external_fault(self, fault: Fault, now: float) -> None:
         """A fault raised outside the controllers (watchdog, supervisor, loop exception)."""
@@ -463,7 +602,7 @@ class ControlAPI:
         if policy is RiderLossPolicy.PAUSE:
             self._pause(now, "Rider lost")
         else:
-            self._stop(now, "Rider lost")
+            self._stop(now, "Rider lost", "RIDER_LOST")
         return True
 
     def _set_state(self, new: MachineState, now: float, why: str) -> None:
@@ -500,4 +639,5 @@ class ControlAPI:
             self.rider_warning,
             self.rider_connected,
             self.storage.version if self.storage is not None else 0,
+            self.motion.transaction_id if self.motion is not None else None,
         )

@@ -200,6 +200,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         if fastdata is not None:
             fastdata.close()
         loop.reject_pending("machine daemon is shutting down")
+        loop.abort_motion(clock(), "machine daemon is shutting down")
         if events is not None:
             # Written and published while the bus is still up.
             events.emit_now(DaemonStopEvent(reason=reason[0], exit_code=code))

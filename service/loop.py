@@ -7,6 +7,7 @@ which alone owns machine state; other threads only put work into the `Inbox`.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -17,10 +18,12 @@ from typing import Protocol
 from hal.base import Hal
 from schema.axes import AxisRecord
 from schema.commands import Command, CommandRequest, Reply
+from schema.completion import Completion
 from schema.errors import Error, ErrorCode
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, Status
 from service.axes import AxisTracker
+from service.completions import CompletionLog
 from service.config import MachineConfig
 from service.control import ControlAPI
 from service.devices import Devices
@@ -28,6 +31,8 @@ from service.events import EventRecorder, NullEventSink
 from service.io import AI, IoPoints, ProcessImage
 from service.transactions import TransactionLog
 from service.watchdog import GuardedHal
+
+log = logging.getLogger("machine")
 
 
 class LoopSink(Protocol):
@@ -91,6 +96,7 @@ class PendingCommand:
                 transaction_id=self.request.transaction_id,
                 command=self.command.value,
                 timecode=time.time(),
+                request_timecode=self.request.timecode,
             )
         )
 
@@ -185,6 +191,13 @@ class ScanLoop:
         self.sink: LoopSink = sink or NullSink()
         self.inbox = inbox or Inbox(config.bus.inbox_capacity)
         self.transactions = TransactionLog(config.bus.transaction_window)
+        self.completions = CompletionLog(config.bus.transaction_window)
+        """Recent completion notices by transaction id (the bus answers `done/<id>` from it)."""
+        self.completion_listeners: list[Callable[[Completion], None]] = []
+        """Called on the scan thread with each notice, after the status it ends with is
+        published (the bus publishes it; the event history may record it). Never block."""
+        self._unpublished: list[Completion] = []
+        self._active_tid: str | None = None
         self.axes = AxisTracker(self.devices, config)
         self.published = Published()
         self.recorder = recorder or EventRecorder(NullEventSink(), wall_offset=control.wall_offset)
@@ -261,8 +274,52 @@ class ScanLoop:
             return repeat
         reply = self.control.handle(command, request, now)
         self.transactions.record(request.transaction_id, command.value, reply)
+        # Before the reply goes out: a Rider that asks for the notice at once finds the motion.
+        self._collect_completions()
+        log.info(
+            "event=command tx=%s command=%s rider=%s timecode=%s code=%s state=%s",
+            request.transaction_id,
+            command.value,
+            request.rider or sender,
+            request.timecode,
+            reply.error.code if reply.error is not None else reply.code,
+            reply.state,
+        )
         self.recorder.command(self.control, command, request, reply, now, sender=sender)
         return reply
+
+    def _collect_completions(self) -> None:
+        """Take the control's new notices into the log; they are published after the status."""
+        notices = self.control.take_completions()
+        for notice in notices:
+            self.completions.record(notice)
+        self._unpublished += notices
+        motion = self.control.motion
+        tid = motion.transaction_id if motion is not None else None
+        if tid != self._active_tid:
+            self._active_tid = tid
+            self.completions.set_active(motion.ref() if motion is not None else None)
+
+    def _publish_completions(self) -> None:
+        notices, self._unpublished = self._unpublished, []
+        for notice in notices:
+            log.info(
+                "event=completion tx=%s command=%s outcome=%s code=%s state=%s reason=%r",
+                notice.transaction_id,
+                notice.command,
+                notice.outcome,
+                notice.code,
+                notice.state,
+                notice.reason,
+            )
+            for listener in self.completion_listeners:
+                listener(notice)
+
+    def abort_motion(self, now: float, why: str) -> None:
+        """On shutdown (the runner has stopped): a motion still under way ends `ABORTED`."""
+        self.control.abort(now, why)
+        self._collect_completions()
+        self._publish_completions()
 
     def go_safe(self) -> None:
         """Outputs off in the image and at the HAL, whatever state the loop is in."""
@@ -290,6 +347,7 @@ class ScanLoop:
         if changed:
             self.published.io = {**self.published.io, **{p.name: p for p in changed}}
             self.sink.publish_io(changed)
+        self._collect_completions()
         key = control.status_key()
         if key != self._status_key or now >= self._status_due:
             self._status_key = key
@@ -297,6 +355,8 @@ class ScanLoop:
             status = self.build_status(now)
             self.published.status = status
             self.sink.publish_status(status)
+        if self._unpublished:
+            self._publish_completions()  # after the status: the seed's WARNING, then DONE
 
     def build_status(self, now: float) -> Status:
         control = self.control
@@ -323,6 +383,7 @@ class ScanLoop:
             tilt_deg=None if tilt is None else round(tilt, 2),
             rotate_deg=None if self.axes.rotate.angle is None else round(self.axes.rotate.angle, 1),
             rider_connected=control.rider_connected,
+            motion=control.motion.ref() if control.motion is not None else None,
             seq=self._seq,
             cycle=self.cycle,
             time=now + self.wall_offset,

@@ -26,6 +26,7 @@ from rider.client import (
 from rider.ui.view import LOST_AFTER_S, MachineFound, Note, Presence, Update
 from schema.axes import AxisRecord
 from schema.commands import Command, Reply, Session
+from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.events import Event, EventQuery
 from schema.io import IoValue
@@ -33,7 +34,7 @@ from schema.status import Status
 
 log = logging.getLogger("rider.ui")
 
-WATCHED = ("status", "io/**", "axis/**", "diag/cycle")
+WATCHED = ("status", "io/**", "axis/**", "diag/cycle", "done/**")
 POLL_S = 0.25
 
 
@@ -175,7 +176,7 @@ class Bridge:
                 log.info("event=ui_refresh_failed error=%r", str(exc))
                 continue
             for update in got if isinstance(got, list) else [got]:
-                if isinstance(update, Status | IoValue | AxisRecord | CycleDiag):
+                if isinstance(update, Status | IoValue | AxisRecord | CycleDiag | Completion):
                     self._emit(update)
                     got_status = got_status or isinstance(update, Status)
         return got_status

@@ -12,6 +12,7 @@ from typing import Any
 
 from rider.text import shown
 from schema.axes import AxisRecord, PnStatus
+from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.io import IoKind, IoValue
 from schema.status import Status
@@ -44,7 +45,7 @@ class MachineFound:
     machine_id: str
 
 
-Update = Status | IoValue | AxisRecord | CycleDiag | Presence | Note | MachineFound
+Update = Status | IoValue | AxisRecord | CycleDiag | Completion | Presence | Note | MachineFound
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,6 +111,9 @@ class LiveView:
         elif isinstance(update, CycleDiag):
             self.diag = update
             events.append(Event("diag", update.model_dump(mode="json")))
+        elif isinstance(update, Completion):
+            # The page that sent the command waits for its own transaction's notice.
+            events.append(Event("done", update.model_dump(mode="json")))
         elif isinstance(update, Presence):
             self._alive = update.alive
         elif isinstance(update, Note):

@@ -31,6 +31,7 @@ from schema.codec import (
     validate,
 )
 from schema.commands import REQUEST_MODELS, Command, Reply, transaction_id_of
+from schema.completion import Completion
 from schema.credentials import MACHINE, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
@@ -140,6 +141,8 @@ class ZenohBus:
         self._declared.append(s.declare_queryable(f"{b}/diag/cycle", self._on_diag))
         self._declared.append(s.declare_queryable(f"{b}/diag/reset", self._on_diag_reset))
         self._declared.append(s.declare_queryable(f"{b}/config/validate", self._on_validate))
+        self._declared.append(s.declare_queryable(f"{b}/done/**", self._on_done))
+        self.loop.completion_listeners.append(self.publish_completion)
         if self.params is not None:
             self._declared.append(s.declare_queryable(f"{b}/params/**", self._on_params))
         # Declared without a simulator too: `sim/*` on real hardware answers NOT_AVAILABLE
@@ -212,6 +215,16 @@ class ZenohBus:
     def publish_axes(self, records: list[AxisRecord]) -> None:
         for record in records:
             self._publisher(f"{self.base}/axis/{record.axis}").put(encode(record))
+
+    def publish_completion(self, notice: Completion) -> None:
+        """A motion ended: its notice on `done/<transaction_id>` (scan thread, after the status)."""
+        self.session.put(
+            f"{self.base}/done/{notice.transaction_id}",
+            encode(notice),
+            encoding=Format.MSGPACK.value,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_HIGH,
+        )
 
     def publish_watchdog_trip(self, stalled_s: float) -> None:
         """From the watchdog thread: tell everyone at once, the scan thread may be stuck."""
@@ -381,6 +394,37 @@ class ZenohBus:
                 key = f"{self.base}/{suffix}"
                 if query.key_expr.intersects(zenoh.KeyExpr(key)):
                     query.reply(key, encode(record, fmt), encoding=fmt.value)
+
+    def _on_done(self, query: zenoh.Query) -> None:
+        """How a motion ended: its notice, IN_PROGRESS while it runs, or UNKNOWN_TRANSACTION;
+        a wildcard (`done/**`) gets every notice the machine remembers."""
+        key = str(query.key_expr)
+        prefix = f"{self.base}/done/"
+        log_ = self.loop.completions
+        if any(c in key for c in WILDCARD_CHARS):
+            self._reply_matching(query, [(f"done/{n.transaction_id}", n) for n in log_.recent()])
+            return
+        tid = key[len(prefix) :]
+        fmt = reply_format(query)
+        found = log_.lookup(tid)
+        if isinstance(found, Completion):
+            with query:
+                query.reply(key, encode(found, fmt), encoding=fmt.value)
+            return
+        if found is not None:
+            error = Error(
+                code=ErrorCode.IN_PROGRESS,
+                message=f"{found.command} {tid} has not ended yet; its notice will be"
+                f" published on {key}",
+            )
+        else:
+            error = Error(
+                code=ErrorCode.UNKNOWN_TRANSACTION,
+                message=f"no motion {tid!r} is known here (never accepted, forgotten, or"
+                " before this daemon started)",
+                path="/transaction_id",
+            )
+        self._reply_now(query, key, fmt, error, None, tid)
 
     def _on_diag(self, query: zenoh.Query) -> None:
         fmt = reply_format(query)

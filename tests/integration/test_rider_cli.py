@@ -17,6 +17,7 @@ import zenoh
 
 from rider.client import Rider
 from schema.commands import Reply, ReplyCode
+from schema.completion import Completion, Outcome
 from schema.diag import CycleDiag
 from schema.errors import ErrorCode
 from schema.io import IoValue
@@ -96,12 +97,16 @@ def long_session(tmp_path: Path) -> Path:
 
 
 def test_a_whole_session_from_the_cli_with_json_output(machine: Daemon) -> None:
+    # `--wait` prints the reply, the completion notice of that transaction, the status after.
     for axis in ("tilt", "rotate"):
-        reply, status = ok_json(rider(machine, "--json", "calibrate", axis, "--wait"))
+        reply, notice, status = ok_json(rider(machine, "--json", "calibrate", axis, "--wait"))
         assert Reply.model_validate(reply).code is ReplyCode.RESP_CALIBRATION_ACCEPTED
+        assert Completion.model_validate(notice).outcome is Outcome.DONE
+        assert notice["transaction_id"] == reply["transaction_id"]
         assert getattr(Status.model_validate(status).calibrated, axis)
-    reply, status = ok_json(rider(machine, "--json", "home", "--wait"))
+    reply, notice, status = ok_json(rider(machine, "--json", "home", "--wait"))
     assert Reply.model_validate(reply).code is ReplyCode.RESP_HOME_ACCEPTED
+    assert (notice["command"], notice["outcome"]) == ("Home", "DONE")
     assert Status.model_validate(status).state is MachineState.IDLE
     check = ok_json(rider(machine, "--json", "check", "calibration"))[0]
     assert check == {"ok": True, "tilt": True, "rotate": True}
@@ -109,8 +114,11 @@ def test_a_whole_session_from_the_cli_with_json_output(machine: Daemon) -> None:
     watcher = background(machine, *WATCH_UNTIL, "DONE")
     assert watcher.stdout is not None
     Status.model_validate_json(watcher.stdout.readline())  # subscribed: it printed the current
-    reply, final = ok_json(rider(machine, "--json", "start", "--wait"))
+    reply, notice, final = ok_json(rider(machine, "--json", "start", "--wait"))
     assert Reply.model_validate(reply).code is ReplyCode.RESP_START_ACCEPTED
+    assert (notice["outcome"], notice["state"]) == ("DONE", "DONE")
+    late = ok_json(rider(machine, "--json", "done", reply["transaction_id"]))[0]
+    assert late == notice  # a late Rider learns how it ended
     done = Status.model_validate(final)
     assert done.state is MachineState.DONE
     assert done.session is not None and done.session.revolutions_done == 3
@@ -150,25 +158,29 @@ def test_pause_resume_stop_and_estop_from_the_cli(machine: Daemon, long_session:
         ok_json(rider(machine, "--json", "sim", "estop"))
         fault = wait_state(machine, MachineState.FAULT_ESTOP)
         assert fault.estop.latched
-        # `start --wait` ends with the machine's fault: exit 1, its last line the fault status.
+
+        refused = rider(machine, "--json", "start")
+        assert refused.returncode == REFUSED
+        error = Reply.model_validate_json(refused.stdout).error
+        assert error is not None and error.code is ErrorCode.ESTOP_ACTIVE
+        assert "refused" in refused.stderr
+
+        # An E-stopped session is not over: `start --wait` still waits for its notice.
+        assert running.poll() is None
+        ok_json(rider(machine, "--json", "sim", "release"))
+        reply, final = ok_json(rider(machine, "--json", "stop", "--wait"))
+        assert Reply.model_validate(reply).code is ReplyCode.RESP_DONE
+        assert Status.model_validate(final).state is MachineState.DONE
+        # The Stop ended it: exit 1 (not DONE), the notice says STOPPED after an E-stop.
         code, lines = finish(running)
         assert code == REFUSED
-        assert Status.model_validate(lines[-1]).state is MachineState.FAULT_ESTOP
+        notice = Completion.model_validate(lines[-2])
+        assert notice.outcome is Outcome.STOPPED and "after an E-stop" in notice.reason
+        assert Status.model_validate(lines[-1]).state is MachineState.DONE
     finally:
         if running.poll() is None:
             running.kill()
             running.wait(CLI_TIMEOUT_S)
-
-    refused = rider(machine, "--json", "start")
-    assert refused.returncode == REFUSED
-    error = Reply.model_validate_json(refused.stdout).error
-    assert error is not None and error.code is ErrorCode.ESTOP_ACTIVE
-    assert "refused" in refused.stderr
-
-    ok_json(rider(machine, "--json", "sim", "release"))
-    reply, final = ok_json(rider(machine, "--json", "stop", "--wait"))
-    assert Reply.model_validate(reply).code is ReplyCode.RESP_DONE
-    assert Status.model_validate(final).state is MachineState.DONE
     world = SimWorldState.model_validate(ok_json(rider(machine, "--json", "sim", "world"))[0])
     assert not world.estop_pressed and not any(world.relays.values())
 

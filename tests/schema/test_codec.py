@@ -39,6 +39,7 @@ from schema.commands import (
     TiltStep,
     transaction_id_of,
 )
+from schema.completion import Completion, Outcome
 from schema.diag import CycleDiag, TimingStats
 from schema.errors import Error, ErrorCode
 from schema.findings import Finding, Findings, Severity
@@ -60,6 +61,7 @@ from schema.status import (
     Fault,
     FaultCode,
     MachineState,
+    MotionRef,
     SessionProgress,
     Status,
 )
@@ -98,6 +100,19 @@ SAMPLES: list[BaseModel] = [
     StartRequest(transaction_id="s1"),
     StartRequest(transaction_id="s2", session=MIXED, timecode=3.0),
     CheckResult(ok=False, tilt=True, rotate=False),
+    MotionRef(transaction_id="h1", command="Home", started_at=5.0),
+    Completion(
+        machine_id="m1",
+        transaction_id="a.b/c",
+        command="Start",
+        outcome=Outcome.REFUSED,
+        code="NOT_HOME",
+        reason="Start refused: tilt not home",
+        state=MachineState.WARNING_NOT_HOME,
+        rider="r1",
+        started_at=5.0,
+        time=5.0,
+    ),
     Reply(
         transaction_id="t1",
         command="Start",

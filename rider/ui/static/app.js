@@ -16,6 +16,8 @@
     history: [],
     sample: null,
     busy: new Set(),
+    awaiting: new Map(), // transaction_id → label of a motion this page started
+    notices: new Map(), // transaction_id → completion notice seen (a notice may beat its reply)
     es: null,
     retry: null,
     uploaded: [],
@@ -92,6 +94,7 @@
       clock(d.t);
     },
     tick(d) { clock(d.now); },
+    done(d) { finished(d); },
   };
 
   function connect() {
@@ -417,6 +420,14 @@
           text = `${label}: tilt ${d.result.tilt ? "✔" : "✘"} · rotate ${d.result.rotate ? "✔" : "✘"}`;
         }
         result(true, text);
+        // A motion ends with the completion notice of its own transaction (Resume continues
+        // the motion in progress), never with a guess from the state.
+        const motion = c && c.name === "Resume" && ui.status ? ui.status.motion : null;
+        const tid = c && MOTIONS.has(c.name) ? d.transaction_id : motion && motion.transaction_id;
+        if (tid) {
+          ui.awaiting.set(tid, label);
+          if (ui.notices.has(tid)) finished(ui.notices.get(tid));
+        }
       } else {
         const e = d.error || { code: "ERROR", message: "refused" };
         result(false, `${label} refused — ${e.code}: ${e.message}`);
@@ -446,6 +457,18 @@
       const error = { code: "NO_SERVER", message: "the UI server did not answer" };
       return { status: 0, body: { ok: false, error } };
     }
+  }
+
+  const MOTIONS = new Set(["Home", "CalibrateTilt", "CalibrateRotate", "Start"]);
+
+  function finished(n) {
+    ui.notices.set(n.transaction_id, n);
+    while (ui.notices.size > 50) ui.notices.delete(ui.notices.keys().next().value);
+    const label = ui.awaiting.get(n.transaction_id);
+    if (label === undefined) return;
+    ui.awaiting.delete(n.transaction_id);
+    const why = n.reason ? ` (${n.reason})` : "";
+    result(n.outcome === "DONE", `${label} finished: ${n.outcome}${why}`);
   }
 
   function result(ok, text) {

@@ -1,0 +1,119 @@
+"""Completion notices through real Zenoh: a Rider waits on its own transaction, a late Rider
+asks how it ended, a raw subscriber sees exactly one notice, the seed's refused Start."""
+
+from __future__ import annotations
+
+import queue
+import threading
+
+import pytest
+import zenoh
+
+from rider.client import UnknownTransaction
+from schema.codec import Format, decode
+from schema.commands import Command, Session
+from schema.completion import Completion, Outcome
+from schema.status import MachineState, Status
+from tests.integration.support import STEP_TIMEOUT_S, module_machine, prepare
+from tests.procs import Daemon
+
+pytestmark = pytest.mark.integration
+
+machine = module_machine("completion")
+
+LONG = Session.model_validate(
+    {
+        "name": "long",
+        "steps": [{"kind": "tilt", "degrees": 20}, {"kind": "rotate", "revolutions": 40}],
+    }
+)
+
+
+def raw_notices(daemon: Daemon, key: str) -> tuple[zenoh.Session, queue.Queue[Completion]]:
+    """A plain zenoh-python subscriber (not the Rider library) on `key`."""
+    conf = zenoh.Config.from_file(str(daemon.zenoh_config))
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/endpoints", f'["{daemon.endpoint}"]')
+    session = zenoh.open(conf)
+    got: queue.Queue[Completion] = queue.Queue()
+    session.declare_subscriber(
+        key, lambda s: got.put(decode(Completion, s.payload.to_bytes(), Format.MSGPACK))
+    )
+    return session, got
+
+
+def test_home_notice_reaches_the_waiting_rider_a_raw_subscriber_and_a_late_rider(
+    machine: Daemon,
+) -> None:
+    with machine.rider() as r:
+        prepare(r)
+        session, heard = raw_notices(machine, f"{r.base}/done/**")
+        try:
+            reply = r.home()
+            notice = r.wait_done(reply, timeout=STEP_TIMEOUT_S)
+            assert notice.transaction_id == reply.transaction_id
+            assert (notice.command, notice.outcome, notice.state) == (
+                "Home",
+                Outcome.DONE,
+                MachineState.IDLE,
+            )
+            assert heard.get(timeout=5.0) == notice
+            assert r.status().motion is None
+        finally:
+            session.close()
+        assert heard.empty()  # exactly one notice for the transaction
+    with machine.rider() as late:
+        assert late.done(reply.transaction_id) == notice
+        assert notice in late.recent_completions()
+        with pytest.raises(UnknownTransaction):
+            late.done("never-sent-1")
+
+
+def test_a_session_is_in_progress_until_its_notice_and_stop_ends_it_stopped(
+    machine: Daemon,
+) -> None:
+    with machine.rider() as r:
+        prepare(r)
+        reply = r.start(LONG)
+        assert r.done(reply) is None  # in progress: no notice yet
+        motion = r.wait_for({MachineState.RUNNING}, STEP_TIMEOUT_S, after=reply.timecode).motion
+        assert motion is not None and motion.transaction_id == reply.transaction_id
+        got: list[Completion] = []
+        waiter = threading.Thread(
+            target=lambda: got.append(r.wait_done(reply, timeout=STEP_TIMEOUT_S))
+        )
+        waiter.start()
+        r.pause()
+        r.resume()
+        r.stop()
+        waiter.join(STEP_TIMEOUT_S)
+        assert got and got[0].outcome is Outcome.STOPPED
+        assert got[0].state is MachineState.DONE
+
+
+def test_a_start_refused_for_home_sends_the_warning_then_its_notice(machine: Daemon) -> None:
+    with machine.rider() as r:
+        prepare(r)
+        tilted = r.start(Session.model_validate({"steps": [{"kind": "tilt", "degrees": 10}]}))
+        assert r.wait_done(tilted, timeout=STEP_TIMEOUT_S).outcome is Outcome.DONE
+        seen: queue.Queue[Status | Completion] = queue.Queue()
+        with r.subscribe(["status", "done/**"], seen.put):
+            refused = r.command(Command.START, check=False)  # the tilt is not home
+            notice = r.wait_done(refused, timeout=STEP_TIMEOUT_S)
+            order: list[str] = []
+            while True:
+                item = seen.get(timeout=5.0)
+                if isinstance(item, Status):
+                    order.append(item.state.value)
+                elif item.transaction_id == refused.transaction_id:
+                    order.append("notice")
+                    break
+        assert not refused.success and refused.error is not None
+        assert refused.error.code == "NOT_HOME"
+        assert (notice.outcome, notice.code) == (Outcome.REFUSED, "NOT_HOME")
+        assert order[-2:] == [MachineState.WARNING_NOT_HOME.value, "notice"]
+
+
+def test_wait_done_on_an_unknown_transaction_raises_at_once(machine: Daemon) -> None:
+    with machine.rider() as r, pytest.raises(UnknownTransaction):
+        r.wait_done("nobody-sent-this", timeout=STEP_TIMEOUT_S)

@@ -1,0 +1,296 @@
+"""Completion notices on the fake clock: one per motion, how it ended, after its status."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from hal.physics import SwitchFault
+from schema.commands import Command
+from schema.completion import Completion, Outcome
+from schema.status import MachineState, MotionRef, Status
+from service.completions import CompletionLog
+from service.config import MachineConfig
+from service.devices import Calibration
+from service.persist import SaveTicket
+from tests.rig import BAD_SESSION, Rig, known_calibration
+
+S = MachineState
+C = Command
+
+
+@dataclass
+class Heard:
+    """Every notice, with the last status published before it (to pin the order)."""
+
+    rig: Rig
+    notices: list[tuple[Completion, Status | None]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.rig.loop.completion_listeners.append(self._heard)
+
+    def _heard(self, notice: Completion) -> None:
+        statuses = self.rig.sink.statuses
+        self.notices.append((notice, statuses[-1] if statuses else None))
+
+    def of(self, tid: str) -> list[Completion]:
+        return [n for n, _ in self.notices if n.transaction_id == tid]
+
+    def one(self, tid: str) -> Completion:
+        found = self.of(tid)
+        assert len(found) == 1, found
+        return found[0]
+
+    def wait(self, tid: str, max_s: float = 120.0) -> Completion:
+        self.rig.run_until(lambda: bool(self.of(tid)), max_s)
+        self.rig.step(50)  # nothing more may come for it
+        return self.one(tid)
+
+
+def ready() -> tuple[Rig, Heard]:
+    rig = Rig(calibration=known_calibration())
+    heard = Heard(rig)
+    rig.home()
+    return rig, heard
+
+
+def test_home_ends_with_one_done_notice_published_after_its_idle_status() -> None:
+    rig = Rig(calibration=known_calibration())
+    heard = Heard(rig)
+    assert rig.send(C.HOME, transaction_id="h1", rider="r1").success
+    rig.step()
+    motion = rig.sink.statuses[-1].motion
+    assert motion is not None and (motion.transaction_id, motion.command) == ("h1", "Home")
+    notice = heard.wait("h1")
+    assert (notice.command, notice.outcome, notice.state) == ("Home", Outcome.DONE, S.IDLE)
+    assert notice.code is None and notice.rider == "r1" and notice.machine_id == "m1"
+    assert notice.started_at < notice.time
+    before = heard.notices[-1][1]
+    assert before is not None and before.state is S.IDLE and before.motion is None
+
+
+def test_both_calibrations_end_done_and_the_session_ends_done_in_state_done() -> None:
+    rig = Rig()
+    heard = Heard(rig)
+    assert rig.send(C.CALIBRATE_TILT, transaction_id="ct").success
+    assert heard.wait("ct").outcome is Outcome.DONE
+    assert rig.send(C.CALIBRATE_ROTATE, transaction_id="cr").success
+    cr = heard.wait("cr")
+    assert (cr.command, cr.outcome) == ("CalibrateRotate", Outcome.DONE)
+    rig.home()
+    assert rig.send(C.START, transaction_id="s1").success
+    done = heard.wait("s1")
+    assert (done.command, done.outcome, done.state) == ("Start", Outcome.DONE, S.DONE)
+    assert heard.notices[-1][1] is not None and heard.notices[-1][1].state is S.DONE
+
+
+def test_a_start_refused_by_its_checks_sends_the_warning_then_its_notice() -> None:
+    rig = Rig()  # not calibrated
+    heard = Heard(rig)
+    reply = rig.send(C.START, transaction_id="s-nocal")
+    assert not reply.success
+    rig.step()
+    notice = heard.one("s-nocal")
+    assert (notice.outcome, notice.code) == (Outcome.REFUSED, "NOT_CALIBRATED")
+    assert notice.state is S.WARNING_NEEDS_CALIBRATION
+    before = heard.notices[-1][1]
+    assert before is not None and before.state is S.WARNING_NEEDS_CALIBRATION
+
+    rig = Rig(calibration=known_calibration())  # calibrated, not home
+    heard = Heard(rig)
+    assert not rig.send(C.START, transaction_id="s-nohome").success
+    rig.step()
+    notice = heard.one("s-nohome")
+    assert (notice.outcome, notice.code, notice.state) == (
+        Outcome.REFUSED,
+        "NOT_HOME",
+        S.WARNING_NOT_HOME,
+    )
+
+
+def test_an_invalid_session_ends_fault_hw() -> None:
+    rig, heard = ready()
+    assert not rig.send(C.START, transaction_id="bad", session=BAD_SESSION.model_dump()).success
+    rig.step()
+    notice = heard.one("bad")
+    assert (notice.outcome, notice.code, notice.state) == (
+        Outcome.FAULT_HW,
+        "INVALID_SESSION",
+        S.FAULT_HW,
+    )
+
+
+def test_pause_and_resume_do_not_end_a_motion_and_stop_ends_it_stopped() -> None:
+    rig, heard = ready()
+    assert rig.send(C.START, transaction_id="s1").success
+    rig.step(20)
+    assert rig.send(C.PAUSE).success
+    rig.step(100)
+    assert rig.sink.statuses[-1].motion == rig.control.motion.ref()  # type: ignore[union-attr]
+    assert rig.send(C.RESUME).success
+    rig.step(20)
+    assert heard.of("s1") == []
+    assert rig.send(C.STOP, transaction_id="stop1").success
+    rig.step()
+    notice = heard.one("s1")
+    assert (notice.outcome, notice.state, notice.reason) == (Outcome.STOPPED, S.DONE, "Stop")
+    assert heard.of("stop1") == []  # Stop's reply is its completion
+    assert rig.sink.statuses[-1].motion is None
+
+
+def test_an_estopped_motion_that_is_resumed_ends_done() -> None:
+    rig, heard = ready()
+    assert rig.send(C.START, transaction_id="s1").success
+    rig.step(30)
+    rig.hal.press_estop()
+    rig.step(50)
+    rig.hal.release_estop()
+    rig.step(5)
+    assert heard.of("s1") == []
+    assert rig.send(C.RESUME).success
+    assert heard.wait("s1").outcome is Outcome.DONE
+
+
+def test_home_replacing_an_estopped_session_ends_it_fault_estop() -> None:
+    rig, heard = ready()
+    assert rig.send(C.START, transaction_id="s1").success
+    rig.step(30)
+    rig.hal.press_estop()
+    rig.step(5)
+    rig.hal.release_estop()
+    rig.step(5)
+    assert rig.send(C.HOME, transaction_id="h2").success
+    rig.step()
+    old = heard.one("s1")
+    assert (old.outcome, old.code, old.state) == (Outcome.FAULT_ESTOP, "ESTOP", S.FAULT_ESTOP)
+    assert "replaced by Home" in old.reason
+    assert heard.wait("h2").outcome is Outcome.DONE
+
+
+def test_stop_after_an_estop_ends_the_motion_stopped() -> None:
+    rig, heard = ready()
+    assert rig.send(C.HOME, transaction_id="h2").success
+    rig.step(10)
+    rig.hal.press_estop()
+    rig.step(5)
+    rig.hal.release_estop()
+    rig.step()
+    assert rig.send(C.STOP).success
+    rig.step()
+    notice = heard.one("h2")
+    assert notice.outcome is Outcome.STOPPED and "after an E-stop" in notice.reason
+
+
+def test_a_hardware_fault_ends_fault_hw_with_its_code() -> None:
+    rig = Rig(calibration=known_calibration())
+    heard = Heard(rig)
+    rig.hal.stick_home("rotate", SwitchFault.STUCK_OPEN)
+    assert rig.send(C.HOME, transaction_id="h1").success
+    notice = heard.wait("h1")
+    assert (notice.outcome, notice.code, notice.state) == (
+        Outcome.FAULT_HW,
+        "ROTATE_HOME_TIMEOUT",
+        S.FAULT_HW,
+    )
+
+
+def test_a_repeated_transaction_id_acts_once_and_gets_one_notice() -> None:
+    rig = Rig(calibration=known_calibration())
+    heard = Heard(rig)
+    first = rig.send(C.HOME, transaction_id="h1")
+    assert rig.send(C.HOME, transaction_id="h1") == first
+    heard.wait("h1")
+
+
+def test_the_rider_loss_stop_policy_ends_the_motion_stopped() -> None:
+    config = MachineConfig().with_overrides(rider_loss={"policy": "stop", "grace_s": 0.0})
+    rig = Rig(config=config, calibration=known_calibration())
+    heard = Heard(rig)
+    rig.home()
+    assert rig.send(C.START, transaction_id="s1", rider="r1").success
+    rig.step(10)
+    assert rig.control.rider_lost(rig.clock())
+    rig.step()
+    notice = heard.one("s1")
+    assert (notice.outcome, notice.code) == (Outcome.STOPPED, "RIDER_LOST")
+
+
+def test_a_motion_still_running_at_shutdown_ends_aborted() -> None:
+    rig, heard = ready()
+    assert rig.send(C.START, transaction_id="s1").success
+    rig.step(10)
+    rig.loop.abort_motion(rig.clock(), "machine daemon is shutting down")
+    assert heard.one("s1").outcome is Outcome.ABORTED
+    rig.loop.abort_motion(rig.clock(), "again")
+    assert len(heard.of("s1")) == 1
+
+
+class FailingStore:
+    """A store whose disk is full: every save finishes with a problem, a few cycles later."""
+
+    def __init__(self) -> None:
+        self.tickets: list[SaveTicket] = []
+
+    def load(self) -> tuple[Calibration, str | None]:
+        return Calibration(), None
+
+    def save(self, cal: Calibration) -> SaveTicket:
+        self.tickets.append(SaveTicket())
+        return self.tickets[-1]
+
+
+def test_a_calibration_that_cannot_be_saved_ends_storage_failed() -> None:
+    rig = Rig()
+    store = FailingStore()
+    rig.control.on_calibrated = store.save
+    heard = Heard(rig)
+    assert rig.send(C.CALIBRATE_TILT, transaction_id="ct").success
+    rig.run_until(lambda: bool(store.tickets))
+    rig.step(20)
+    assert heard.of("ct") == [] and rig.state is S.CALIBRATING  # the disk has not answered
+    store.tickets[0].finish("calibration not saved to /x (No space left on device)")
+    rig.step()
+    notice = heard.one("ct")
+    assert (notice.outcome, notice.code) == (Outcome.STORAGE_FAILED, "STORAGE_FAILED")
+    assert "No space left" in notice.reason and notice.state is not S.CALIBRATING
+
+
+def test_the_log_knows_notices_the_motion_under_way_and_forgets_the_oldest() -> None:
+    log = CompletionLog(capacity=2)
+    ref = MotionRef(transaction_id="a", command="Home", started_at=1.0)
+    log.set_active(ref)
+    assert log.lookup("a") == ref and log.lookup("zz") is None
+
+    def notice(tid: str) -> Completion:
+        return Completion(
+            machine_id="m1",
+            transaction_id=tid,
+            command="Home",
+            outcome=Outcome.DONE,
+            state=S.IDLE,
+            started_at=1.0,
+            time=2.0,
+        )
+
+    for tid in ("a", "b", "c"):
+        log.record(notice(tid))
+    assert log.lookup("a") is None  # forgotten (and no longer under way)
+    assert [n.transaction_id for n in log.recent()] == ["b", "c"]
+
+
+def test_a_newer_outcome_is_kept_as_its_string() -> None:
+    raw = notice_json(outcome="PARTLY_DONE")
+    assert Completion.model_validate(raw).outcome == "PARTLY_DONE"
+    assert Completion.model_validate(notice_json(outcome="DONE")).outcome is Outcome.DONE
+
+
+def notice_json(**over: object) -> dict[str, object]:
+    base: dict[str, object] = {
+        "machine_id": "m1",
+        "transaction_id": "t",
+        "command": "Home",
+        "outcome": "DONE",
+        "state": "IDLE",
+        "started_at": 1.0,
+        "time": 2.0,
+    }
+    return {**base, **over}
