@@ -161,8 +161,9 @@ class ControlAPI:
         self.rider_warning: str | None = None
         self._resume_to: MachineState | None = None
         self._estop_from: MachineState | None = None
-        self.motion: Motion | None = None
-        """The motion whose completion notice is still due (running, paused, E-stopped)."""
+        self.action: Motion | None = None
+        """The motion command whose completion notice is still due (running, paused,
+        E-stopped), like a ROS 2 action goal; `motion()` is the controller driving it."""
         self.completions: list[Completion] = []
         """Notices produced and not yet taken by the scan loop (`take_completions`)."""
         self._saving: SaveTicket | None = None
@@ -326,7 +327,7 @@ class ControlAPI:
     ) -> None:
         """Start a motion: `ctl` runs in `state`; when it finishes, `on_done` settles the
         state and says how it ended, and that becomes the motion's one completion notice."""
-        if self.motion is not None:
+        if self.action is not None:
             # Only a motion halted by the E-stop can be replaced (Home, Calibrate*): it ended.
             if self.state is S.FAULT_ESTOP:
                 ending = Ending(
@@ -341,7 +342,7 @@ class ControlAPI:
         if command is not Command.START:
             self.session_run = None
         self.controller = ctl
-        self.motion = Motion(
+        self.action = Motion(
             command, request.transaction_id, request.rider, now + self.wall_offset, on_done
         )
         self.fault = None
@@ -393,7 +394,7 @@ class ControlAPI:
     # ------------------------------------------------------------------------ completion
     def _end(self, ending: Ending, now: float) -> None:
         """The running motion has ended: its one notice (nothing if none is running)."""
-        motion, self.motion = self.motion, None
+        motion, self.action = self.action, None
         if motion is not None:
             self._notify(motion, ending, now)
 
@@ -486,13 +487,13 @@ class ControlAPI:
             return
         if outcome is Outcome.FAULT:
             assert ctl.fault is not None
-            command = self.motion.command.value if self.motion else "motion"
+            command = self.action.command.value if self.action else "motion"
             self._enter_fault(ctl.fault, now, f"{command} failed")
             return
         self._finish(ctl, now)
 
     def _finish(self, ctl: Controller, now: float) -> None:
-        motion = self.motion
+        motion = self.action
         self.controller = None
         self.devices.stop_all()
         assert motion is not None, "a controller runs only as part of a motion"
@@ -552,7 +553,7 @@ class ControlAPI:
     def _save_done(self, ticket: SaveTicket, now: float) -> None:
         """A background save finished: the calibration waiting for it (if any) has ended."""
         ending = self._saved(ticket, now)
-        motion = self.motion
+        motion = self.action
         if motion is not None and self.controller is None and motion.command in _CALIBRATIONS:
             self._end(ending, now)
 
@@ -639,5 +640,5 @@ class ControlAPI:
             self.rider_warning,
             self.rider_connected,
             self.storage.version if self.storage is not None else 0,
-            self.motion.transaction_id if self.motion is not None else None,
+            self.action.transaction_id if self.action is not None else None,
         )

@@ -294,7 +294,7 @@ class ScanLoop:
         for notice in notices:
             self.completions.record(notice)
         self._unpublished += notices
-        motion = self.control.motion
+        motion = self.control.action
         tid = motion.transaction_id if motion is not None else None
         if tid != self._active_tid:
             self._active_tid = tid
@@ -383,7 +383,7 @@ class ScanLoop:
             tilt_deg=None if tilt is None else round(tilt, 2),
             rotate_deg=None if self.axes.rotate.angle is None else round(self.axes.rotate.angle, 1),
             rider_connected=control.rider_connected,
-            motion=control.motion.ref() if control.motion is not None else None,
+            motion=control.action.ref() if control.action is not None else None,
             seq=self._seq,
             cycle=self.cycle,
             time=now + self.wall_offset,

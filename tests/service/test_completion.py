@@ -125,7 +125,7 @@ def test_pause_and_resume_do_not_end_a_motion_and_stop_ends_it_stopped() -> None
     rig.step(20)
     assert rig.send(C.PAUSE).success
     rig.step(100)
-    assert rig.sink.statuses[-1].motion == rig.control.motion.ref()  # type: ignore[union-attr]
+    assert rig.sink.statuses[-1].motion == rig.control.action.ref()  # type: ignore[union-attr]
     assert rig.send(C.RESUME).success
     rig.step(20)
     assert heard.of("s1") == []
