@@ -16,6 +16,7 @@ from pydantic import BaseModel
 
 from schema.axes import AxisRecord
 from schema.commands import REQUEST_MODELS, Command, Reply
+from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.events import Event, EventPage
 from schema.findings import Findings
@@ -77,6 +78,13 @@ KEYS: tuple[KeySpec, ...] = (
     KeySpec("diag/reset", _R, None, CycleDiag, "reset the timing counters (reply: before)"),
     KeySpec("params/<name>", _R, ParamSet, ParamValue, "an online parameter: get, or set"),
     KeySpec("config/validate", _R, None, Findings, "validate the running or a candidate config"),
+    KeySpec(
+        "done/<transaction_id>",
+        _PQ,
+        None,
+        Completion,
+        "how a motion command ended: once per command; query: IN_PROGRESS / UNKNOWN_TRANSACTION",
+    ),
     KeySpec("events", _R, None, EventPage, "a page of the event history"),
     KeySpec("events/<seq>", _P, None, Event, "each new event, on its own key"),
     KeySpec("alive", Direction.LIVELINESS, None, None, "the machine's liveliness token"),
