@@ -40,6 +40,7 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
     ) from exc
 
 from rider.client import BadReply, MachineTimeout, Rider, RiderError
+from rider.text import printable, shown
 from rider.ui.bridge import Bridge, NotReady
 from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, ui_config
 from rider.ui.hub import Hub
@@ -235,8 +236,8 @@ async def history(request: Request) -> Response:
             "seq": e.seq,
             "time": e.time,
             "kind": e.kind,
-            "machine_id": e.machine_id,
-            "text": describe(e.details),
+            "machine_id": printable(e.machine_id),
+            "text": printable(describe(e.details)),  # shown as text: no bidi or control tricks
         }
         for e in found
     ]
@@ -265,7 +266,7 @@ def _error(status: int, code: str, message: str, path: str = "") -> JSONResponse
 
 
 def _reply(reply: Reply, label: str) -> JSONResponse:
-    body = reply.model_dump(mode="json")
+    body = shown(reply).model_dump(mode="json")
     body["ok"] = reply.success
     body["label"] = label
     return JSONResponse(body, status_code=200 if reply.success else 409)
