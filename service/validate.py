@@ -60,12 +60,33 @@ _RANGE_TYPES = {
 }
 
 
-def _error(category: Category, path: str, message: str) -> Finding:
-    return Finding(category=category.value, severity=Severity.ERROR, path=path, message=message)
+def _error(category: Category, path: str, message: str, **extra: Any) -> Finding:
+    return Finding(
+        category=category.value,
+        severity=Severity.ERROR,
+        path=path,
+        message=message,
+        extra={k: _scalar(v) for k, v in extra.items()},
+    )
 
 
-def _warning(category: Category, path: str, message: str) -> Finding:
-    return Finding(category=category.value, severity=Severity.WARNING, path=path, message=message)
+def _warning(category: Category, path: str, message: str, **extra: Any) -> Finding:
+    return Finding(
+        category=category.value,
+        severity=Severity.WARNING,
+        path=path,
+        message=message,
+        extra={k: _scalar(v) for k, v in extra.items()},
+    )
+
+
+def _scalar(value: Any) -> bool | int | float | str | None:
+    """A JSON-safe scalar for `Finding.extra` (other values as their short repr)."""
+    if value is None or isinstance(value, bool | int | str):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    return _show(value)
 
 
 def _schema_findings(exc: ValidationError) -> list[Finding]:
@@ -81,8 +102,21 @@ def _schema_findings(exc: ValidationError) -> list[Finding]:
         else:
             category, message = Category.WRONG_TYPE, err["msg"]
         path = json_pointer(err["loc"])
-        out.append(_error(category, path, f"{message}; got {_show(err.get('input'))}"))
+        limits = {k: v for k, v in (err.get("ctx") or {}).items() if k in _LIMIT_KEYS}
+        out.append(
+            _error(
+                category,
+                path,
+                f"{message}; got {_show(err.get('input'))}",
+                type=kind,
+                value=err.get("input"),
+                **limits,
+            )
+        )
     return out
+
+
+_LIMIT_KEYS = {"gt", "ge", "lt", "le", "min_length", "max_length", "pattern", "expected"}
 
 
 def _show(value: Any) -> str:
@@ -122,6 +156,8 @@ def _io_conflicts(iomap: IoMap) -> Iterator[Finding]:
                 Category.IO_CONFLICT,
                 f"/hal/iomap/{name}",
                 f"channel {channel!r} is already used by {seen[channel]!r}",
+                channel=channel,
+                used_by=f"/hal/iomap/{seen[channel]}",
             )
         else:
             seen[channel] = name
@@ -134,6 +170,9 @@ def _ranges(config: MachineConfig) -> Iterator[Finding]:
             Category.OUT_OF_RANGE,
             "/tilt/min_deg",
             f"tilt.min_deg {tilt.min_deg:g} must be below tilt.max_deg {tilt.max_deg:g}",
+            value=tilt.min_deg,
+            lt="/tilt/max_deg",
+            other=tilt.max_deg,
         )
     if tilt.gain_min_counts_per_deg >= tilt.gain_max_counts_per_deg:
         yield _error(

@@ -305,3 +305,24 @@ def test_machine_validate_checks_the_revpi_io_names(tmp_path: Path) -> None:
     assert done.returncode == 2
     paths = {(f["category"], f["path"]) for f in json.loads(done.stdout)["findings"]}
     assert ("io_missing", "/hal/iomap/tiltHome") in paths
+
+
+def test_findings_carry_seed_000s_structured_extra() -> None:
+    _, report = validate_data(
+        {
+            "loop": {"period_s": -1.0},
+            "hal": {"iomap": {"tiltDir": "O_1"}},
+            "tilt": {"min_deg": 70.0},
+        }
+    )
+    by_path = {f.path: f for f in report.findings}
+    period = by_path["/loop/period_s"]
+    assert period.extra["value"] == -1.0 and period.extra["type"] == "greater_than_equal"
+    assert isinstance(period.extra["ge"], float | int)  # the limit it broke
+    clash = by_path["/hal/iomap/tiltDir"]
+    assert clash.extra == {"channel": "O_1", "used_by": "/hal/iomap/rotateRelay"}
+    tilt = by_path["/tilt/min_deg"]
+    assert tilt.extra["value"] == 70.0 and tilt.extra["lt"] == "/tilt/max_deg"
+    # On the wire (JSON, as seed 000's validate_project answers) `extra` goes along.
+    wire = json.loads(report.model_dump_json())
+    assert wire["findings"][0]["extra"] == report.findings[0].extra
