@@ -4,6 +4,7 @@ complete. (The Node/ajv check against a live daemon is tests/integration/test_sc
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 
@@ -78,3 +79,25 @@ def test_docs_hold_the_generated_key_table() -> None:
     start = text.index("-->\n", text.index("<!-- generated from schema/keys.py")) + 4
     end = text.index("<!-- end of generated table -->")
     assert text[start:end] == markdown_table(), "docs/schema.md: paste markdown_table() again"
+
+
+def test_readme_key_table_covers_every_key_of_the_table() -> None:
+    readme = (REPO / "README.md").read_text()
+    section = readme[readme.index("### Key space") :]
+    section = section[: section.index("\n\n", section.index("| key |"))]
+    documented = [
+        ref
+        for row in section.splitlines()
+        if row.startswith("| `")
+        for ref in re.findall(r"`([^`]+)`", row.split(" | ")[0])
+    ]
+    # `<command>` stands for a command key, which may have two chunks (`calibrate/tilt`).
+    patterns = [re.sub(r"<[^>]+>", "[^/]+", ref.replace("<command>", ".+")) for ref in documented]
+
+    def example(key: str) -> str:
+        return re.sub(r"<[^>]+>", "rotate", key.replace("<kind>", "di"))
+
+    for spec in KEYS:
+        assert any(re.fullmatch(p, example(spec.key)) for p in patterns), (
+            f"README's key table has no row for {spec.key}"
+        )
