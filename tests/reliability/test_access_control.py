@@ -295,6 +295,23 @@ def test_a_peer_with_valid_credentials_cannot_pose_as_the_machine(
     assert "forged" not in machine.log()
 
 
+@pytest.mark.parametrize("who", ["rider", "monitor"])
+def test_rider_watch_sees_no_forged_status(machine: Daemon, ids: Identities, who: str) -> None:
+    """The real CLI, on Zenoh's defaults, while a forger publishes on machine/m1/status."""
+    env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
+    env.update(ids.env(RIDER, "rider"))
+    cmd = [sys.executable, "-m", "rider.cli", "--connect", machine.endpoint, "--machine", "m1"]
+    cmd += ["--json", "watch", "--keys", "status", "--for", "2"]
+    with forger(machine, ids.env(RIDER, who), *FORGED_MACHINE):
+        done = subprocess.run(
+            cmd, check=False, capture_output=True, text=True, timeout=60, cwd=REPO, env=env
+        )
+    assert done.returncode == 0, done.stderr
+    seqs = [json.loads(line)["seq"] for line in done.stdout.splitlines()]
+    assert len(seqs) >= 3, done.stdout  # heartbeats every 0.2 s came through
+    assert FORGED_SEQ not in seqs
+
+
 @pytest.mark.parametrize("command", ["run", "supervise"])
 def test_a_monitor_cannot_keep_a_killed_rider_alive(
     tmp_path_factory: pytest.TempPathFactory, ids: Identities, command: str
