@@ -210,14 +210,15 @@ def test_bad_overrides_are_findings_and_do_not_start(
     tmp_path: Path, args: list[str], line: str
 ) -> None:
     data = tmp_path / "data"
-    run = subprocess.run(
-        machine_cmd("run", "--sim", "--listen", f"tcp/127.0.0.1:{free_port()}",
-                    "--data-dir", str(data), *args),
-        check=False, capture_output=True, text=True, timeout=60, cwd=REPO,
-    )  # fmt: skip
-    assert run.returncode == 2, run.stderr
-    assert line in run.stderr and "Traceback" not in run.stderr
-    assert not data.exists()  # refused before anything opened
+    for command in ("run", "supervise"):
+        run = subprocess.run(
+            machine_cmd(command, "--sim", "--listen", f"tcp/127.0.0.1:{free_port()}",
+                        "--data-dir", str(data), *args),
+            check=False, capture_output=True, text=True, timeout=60, cwd=REPO,
+        )  # fmt: skip
+        assert run.returncode == 2, (command, run.stderr)
+        assert line in run.stderr and "Traceback" not in run.stderr
+        assert not data.exists()  # refused before anything opened
     validate = subprocess.run(
         machine_cmd("validate", *args),
         check=False,
