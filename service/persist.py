@@ -119,12 +119,12 @@ def load_json(path: Path) -> Loaded:
     return Loaded(data)
 
 
-def keep_aside(path: Path) -> Path:
-    """Rename a bad file out of the way without overwriting any earlier one."""
+def keep_aside(path: Path, tag: str = "corrupt") -> Path:
+    """Rename a file out of the way as `<name>.<tag>-<time>`, never over an earlier one."""
     stamp = time.strftime("%Y%m%dT%H%M%S")
     n = 0
     while True:
-        kept = path.with_name(f"{path.name}.corrupt-{stamp}" + (f"-{n}" if n else ""))
+        kept = path.with_name(f"{path.name}.{tag}-{stamp}" + (f"-{n}" if n else ""))
         if not kept.exists():
             break
         n += 1
@@ -378,14 +378,7 @@ def retire(path: Path) -> Path | None:
     """Move `path` aside as `<name>.stale-<time>` so it is never loaded again (None: no file)."""
     if not path.exists():
         return None
-    stamp = time.strftime("%Y%m%dT%H%M%S")
-    n = 0
-    while True:
-        stale = path.with_name(f"{path.name}.stale-{stamp}" + (f"-{n}" if n else ""))
-        if not stale.exists():
-            break
-        n += 1
-    os.replace(path, stale)  # a rename needs no data blocks: it works on a full disk
+    stale = keep_aside(path, "stale")  # a rename needs no data blocks: it works on a full disk
     with contextlib.suppress(OSError):
         _fsync_dir(path.parent)
     return stale

@@ -74,6 +74,14 @@ class Daemon:
             **kwargs,  # type: ignore[arg-type]
         )
 
+    def cli(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+        """`rider … ARGS` against this daemon (its endpoint, config and id), bounded."""
+        cmd = rider_cmd("--connect", self.endpoint, "--zenoh-config", str(self.zenoh_config))
+        cmd += ["--machine", self.machine_id, *args]
+        return subprocess.run(
+            cmd, check=False, capture_output=True, text=True, timeout=timeout, cwd=REPO
+        )
+
     def log(self) -> str:
         return self.log_path.read_text() if self.log_path.exists() else ""
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import queue
+import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -36,6 +37,18 @@ def command(endpoint: str, zenoh_config: Path, machine_id: str, *args: str) -> l
     """The command line that runs this module as its own process."""
     me = [sys.executable, "-m", "tests.integration.rider_proc", "--connect", endpoint]
     return [*me, "--zenoh-config", str(zenoh_config), "--machine", machine_id, *args]
+
+
+def read_step(proc: subprocess.Popen[str], step: str) -> dict[str, Any]:
+    """This module's report for `step`, read from a child running it (bounded by its own
+    step timeouts); an `error` report fails the caller."""
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        record: dict[str, Any] = json.loads(line)
+        assert "error" not in record, record["error"]
+        if record["step"] == step:
+            return record
+    raise AssertionError(f"rider process ended (code {proc.wait(5)}) before step {step}")
 
 
 def report(step: str, **fields: Any) -> None:

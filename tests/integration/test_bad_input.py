@@ -40,16 +40,6 @@ HOSTILE = "evil\nstate       IDLE\x1b[2J\x00\u202eenod"
 machine = module_machine("bad-input")
 
 
-def rider(daemon: Daemon, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    cmd = rider_cmd(
-        "--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config),
-        "--machine", daemon.machine_id, *args,
-    )  # fmt: skip
-    return subprocess.run(
-        cmd, check=False, capture_output=True, text=True, timeout=timeout, cwd=REPO
-    )
-
-
 def raw_get(daemon: Daemon, key: str, payload: str) -> zenoh.Sample | zenoh.ReplyError:
     """One query as the zenoh CLI sends it: text, no encoding."""
     conf = zenoh.Config.from_file(str(daemon.zenoh_config))
@@ -120,10 +110,10 @@ def test_the_machine_refuses_a_session_name_that_is_not_printable(machine: Daemo
 
 # ------------------------------------------------------------ online writes, JSON in and out
 def test_an_online_write_the_file_check_flags_is_refused(machine: Daemon) -> None:
-    done = rider(machine, "params", "set", "bus.heartbeat_s", "1e-9")
+    done = machine.cli("params", "set", "bus.heartbeat_s", "1e-9")
     assert done.returncode == 1, done.stdout
     assert "PARAM_OUT_OF_RANGE" in done.stderr and "cannot be held" in done.stderr
-    shown = rider(machine, "--json", "params", "get", "bus.heartbeat_s")
+    shown = machine.cli("--json", "params", "get", "bus.heartbeat_s")
     assert json.loads(shown.stdout)["value"] == 0.2  # the fast config's, unchanged
 
 
@@ -166,7 +156,7 @@ def test_sim_keys_on_a_non_simulator_daemon_answer_not_available(tmp_path: Path)
         daemon.stop()
         raise
     try:
-        done = rider(daemon, "--timeout", "10", "sim", "estop")
+        done = daemon.cli("--timeout", "10", "sim", "estop")
         with daemon.rider(timeout=10) as r, pytest.raises(CommandRefused) as refused:
             r.sim("world")
     finally:

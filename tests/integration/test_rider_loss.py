@@ -6,11 +6,9 @@ A child Python process starts the session as the supervising Rider and is SIGKIL
 
 from __future__ import annotations
 
-import json
 import signal
 import subprocess
 import time
-from typing import Any
 
 import pytest
 
@@ -42,23 +40,12 @@ def rider_process(daemon: Daemon, *steps: str) -> subprocess.Popen[str]:
     return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO)
 
 
-def read_step(proc: subprocess.Popen[str], step: str) -> dict[str, Any]:
-    """The child's report for `step`; the child is bounded by its own step timeouts."""
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        record: dict[str, Any] = json.loads(line)
-        assert "error" not in record, record["error"]
-        if record["step"] == step:
-            return record
-    raise AssertionError(f"rider process ended (code {proc.wait(5)}) before step {step}")
-
-
 def test_killing_the_rider_mid_session_pauses_with_relays_off(machine: Daemon) -> None:
     child = rider_process(machine, *LONG_SESSION)
     try:
-        started = read_step(child, "start")
+        started = rider_proc.read_step(child, "start")
         assert started["reply"]["code"] == ReplyCode.RESP_START_ACCEPTED
-        held = read_step(child, "hold")
+        held = rider_proc.read_step(child, "hold")
         with machine.rider() as observer:
             running = observer.status()
             assert running.state is MachineState.RUNNING
@@ -94,7 +81,7 @@ def test_killing_the_rider_mid_session_pauses_with_relays_off(machine: Daemon) -
 def test_a_reading_rider_that_leaves_changes_nothing(machine: Daemon) -> None:
     child = rider_process(machine, *LONG_SESSION)
     try:
-        read_step(child, "hold")
+        rider_proc.read_step(child, "hold")
         with machine.rider() as observer:
             # A one-shot reader (the CLI's `rider status`) supervises nothing: it comes and goes.
             with machine.rider(supervise=False) as reader:

@@ -19,7 +19,7 @@ from schema.status import MachineState, Status
 from service.devices import Calibration, RotateCalibration, TiltCalibration
 from service.persist import CALIBRATION_FILE, calibration_to_json
 from tests.integration.support import fast_args
-from tests.procs import REPO, Daemon, rider_cmd, start_daemon
+from tests.procs import Daemon, start_daemon
 
 pytestmark = pytest.mark.integration
 
@@ -60,16 +60,6 @@ def machine_on(tmp: Path, data: Path) -> Daemon:
     return start_daemon(tmp, extra=[*fast_args(tmp), "--data-dir", str(data)])
 
 
-def rider(daemon: Daemon, *args: str) -> subprocess.CompletedProcess[str]:
-    cmd = rider_cmd(
-        "--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config),
-        "--machine", daemon.machine_id, *args,
-    )  # fmt: skip
-    return subprocess.run(
-        cmd, capture_output=True, text=True, timeout=CLI_TIMEOUT_S, cwd=REPO, check=False
-    )
-
-
 def storage_warnings(status: Status) -> list[str]:
     return [w for w in status.warnings if w.startswith("STORAGE_FAILED: ")]
 
@@ -88,12 +78,12 @@ def test_full_disk_calibration_and_parameter_are_not_reported_saved(tmp_path: Pa
             assert "not writable (No space left on device)" in storage_warnings(first)[0]
             assert first.calibrated.tilt and first.calibrated.rotate
 
-            cal = rider(daemon, "calibrate", "tilt", "--wait")
+            cal = daemon.cli("calibrate", "tilt", "--wait")
             assert cal.returncode == 1, cal.stdout + cal.stderr
             assert "STORAGE_FAILED: calibration not saved" in cal.stderr
-            param = rider(daemon, "params", "set", "rider_loss.grace_s", "2", "--persist")
+            param = daemon.cli("params", "set", "rider_loss.grace_s", "2", "--persist")
             assert param.returncode == 1 and "STORAGE_FAILED" in param.stderr, param.stderr
-            shown = rider(daemon, "status")
+            shown = daemon.cli("status")
             assert "STORAGE_FAILED" in shown.stdout
 
             assert not (data / CALIBRATION_FILE).exists()  # the older file moved aside
@@ -128,7 +118,7 @@ def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: 
             assert "not trusted" in warning
             assert not first.calibrated.tilt and not first.calibrated.rotate
 
-            cal = rider(daemon, "calibrate", "tilt", "--wait")
+            cal = daemon.cli("calibrate", "tilt", "--wait")
             assert cal.returncode == 1, cal.stdout + cal.stderr
             assert "could not be moved aside" in cal.stderr
         finally:

@@ -339,7 +339,7 @@ def test_a_monitor_cannot_keep_a_killed_rider_alive(
         cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO, env=victim_env
     )
     try:
-        held = read_step(victim, "hold")
+        held = rider_proc.read_step(victim, "hold")
         token = f"rider/{held['rider']}/alive"
         with (
             forger(daemon, ids.env(RIDER, "monitor"), "--token", token),
@@ -361,17 +361,6 @@ def test_a_monitor_cannot_keep_a_killed_rider_alive(
             victim.kill()
         victim.wait(STEP_TIMEOUT_S)
         daemon.stop()
-
-
-def read_step(proc: subprocess.Popen[str], step: str) -> dict[str, Any]:
-    """The rider_proc child's report for `step` (the child bounds itself with step timeouts)."""
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        record: dict[str, Any] = json.loads(line)
-        assert "error" not in record, record["error"]
-        if record["step"] == step:
-            return record
-    raise AssertionError(f"rider process ended (code {proc.wait(5)}) before step {step}")
 
 
 def test_monitor_reads_and_follows_the_event_history(machine: Daemon, ids: Identities) -> None:
