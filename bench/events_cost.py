@@ -14,6 +14,7 @@ alternated in the same run so the host's load hits them alike:
 from __future__ import annotations
 
 import contextlib
+import gc
 import sqlite3
 import sys
 import tempfile
@@ -30,7 +31,7 @@ from service.config import EventsSection, MachineConfig
 from service.eventlog import EVENTS_FILE, EventLog
 from service.loop import LoopCall, PendingCommand, ScanLoop
 from service.machine import Machine
-from service.runner import RealtimeRunner
+from service.runner import RealtimeRunner, tune_thread
 from service.timing import CycleStats
 
 PERIOD_S = 0.010
@@ -106,7 +107,13 @@ def one_run(mode: str, seconds: float, directory: Path) -> Result:
     machine = Machine(config, hal, now=clock(), on_transition=None, events=events)
     stats = CycleStats(PERIOD_S, window=100_000, now=time.time())
     runner = RealtimeRunner(machine.loop, PERIOD_S, stats)
-    scan = threading.Thread(target=runner.run, name="scan")
+
+    def scan_thread() -> None:
+        # As `machine run` does (the [loop] defaults): timer slack, gc.freeze().
+        tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
+        runner.run()
+
+    scan = threading.Thread(target=scan_thread, name="scan")
     stop = threading.Event()
     storm = threading.Thread(target=_storm, args=(machine.loop, hal, stop), name="storm")
     t0 = time.monotonic()
@@ -125,6 +132,7 @@ def one_run(mode: str, seconds: float, directory: Path) -> Result:
         if events is not None:
             events.flush(10.0)
             events.close()
+        gc.unfreeze()  # the next run freezes its own start-up objects
     diag = stats.diag(time.time())
     return Result(
         mode=mode,

@@ -190,7 +190,7 @@ class EventLog:
         self.settings = settings
         self.wall = wall
         self.capacity = settings.queue_capacity
-        self._items: deque[tuple[KnownDetails, float, int | None]] = deque()
+        self._items: deque[_Row] = deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stopping = False
@@ -249,12 +249,16 @@ class EventLog:
 
     # ---------------------------------------------------------------------------- emit
     def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None:
-        """Queue one event; when the queue is full it is dropped and counted, never waited on."""
+        """Queue one event; when the queue is full it is dropped and counted, never waited on.
+
+        Queued as plain text and numbers, which the garbage collector never scans: a queue
+        filled by a stalled disk must not make the scan thread's collections longer."""
+        row = (details.kind, details.model_dump_json(), time, cycle)
         with self._lock:
             if len(self._items) >= self.capacity or self._stopping:
                 self.dropped += 1
                 return
-            self._items.append((details, time, cycle))
+            self._items.append(row)
         self._wake.set()
 
     def emit_now(self, details: KnownDetails) -> None:
@@ -278,7 +282,7 @@ class EventLog:
     # ---------------------------------------------------------------------------- thread
     _busy = False
 
-    def _take(self) -> list[tuple[KnownDetails, float, int | None]]:
+    def _take(self) -> list[_Row]:
         with self._lock:
             n = min(len(self._items), self.settings.batch_max)
             batch = [self._items.popleft() for _ in range(n)]
@@ -300,7 +304,7 @@ class EventLog:
                 if self._stopping and not self._items:
                     return
 
-    def _write(self, batch: list[tuple[KnownDetails, float, int | None]]) -> None:
+    def _write(self, batch: list[_Row]) -> None:
         now = self.wall()
         extra: list[KnownDetails] = []
         if self._failure is not None:
@@ -309,7 +313,7 @@ class EventLog:
         dropped = self.dropped - self._dropped_recorded
         if dropped:
             extra.append(DroppedEvent(count=dropped))
-        items = [(d, now, None) for d in extra] + batch
+        items = [(d.kind, d.model_dump_json(), now, None) for d in extra] + batch
         conn = self._conn
         if conn is None:
             conn = self._reopen()
@@ -319,23 +323,15 @@ class EventLog:
         written: list[Event] = []
         try:
             conn.execute("BEGIN")
-            for details, when, cycle in items:
+            for kind, details, when, cycle in items:
                 cur = conn.execute(
                     "INSERT INTO events (time, cycle, machine_id, kind, details)"
                     " VALUES (?, ?, ?, ?, ?)",
-                    (when, cycle, self.machine_id, details.kind, details.model_dump_json()),
+                    (when, cycle, self.machine_id, kind, details),
                 )
                 assert cur.lastrowid is not None
-                written.append(
-                    Event(
-                        seq=cur.lastrowid,
-                        time=when,
-                        cycle=cycle,
-                        machine_id=self.machine_id,
-                        kind=details.kind,
-                        details=details,
-                    )
-                )
+                row = (cur.lastrowid, when, cycle, self.machine_id, kind, details)
+                written.append(row_event(row))
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
             if conn.in_transaction:
@@ -476,5 +472,8 @@ class EventLog:
             file_bytes=self.file_bytes(),
         )
 
+
+_Row = tuple[str, str, float, int | None]
+"""A queued event: kind, details as JSON, wall time, scan cycle."""
 
 _ReadJob = Callable[[sqlite3.Connection | None, str | None], None]
