@@ -74,7 +74,9 @@ class CompletionEvent(OpenWireModel):
     command: str | None
     transaction_id: str | None = None
     outcome: str
-    """DONE (finished), STOPPED (Stop or rider loss), FAULT (FAULT_HW); see `reason`."""
+    """As the completion notice says (schema/completion.py): DONE, STOPPED, FAULT_HW,
+    FAULT_ESTOP, REFUSED, STORAGE_FAILED or ABORTED; see `code` and `reason`."""
+    code: str | None = None
     state: MachineState
     reason: str = ""
 
@@ -122,7 +124,7 @@ class SessionEndedEvent(OpenWireModel):
     revolutions_total: int
     duration_s: float
     outcome: str
-    """DONE, STOPPED or FAULT, as for completions."""
+    """As the Start's completion notice: DONE, STOPPED, FAULT_HW, FAULT_ESTOP, ABORTED."""
 
 
 class CalibrationEvent(OpenWireModel):
@@ -399,8 +401,8 @@ def summarize(
         events=n,
         sessions_started=kinds[EventKind.SESSION_STARTED],
         sessions_done=outcomes["DONE"],
-        sessions_stopped=outcomes["STOPPED"],
-        sessions_faulted=outcomes["FAULT"],
+        sessions_stopped=outcomes["STOPPED"] + outcomes["ABORTED"],
+        sessions_faulted=outcomes["FAULT_HW"] + outcomes["FAULT_ESTOP"],
         ride_time_s=round(ride, 3),
         estops=kinds[EventKind.ESTOP_PRESSED],
         faults_by_code=dict(sorted(faults.items())),

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from schema.commands import Command, CommandRequest, Reply
+from schema.completion import Completion
 from schema.events import (
     CalibrationEvent,
     CommandEvent,
@@ -26,16 +27,12 @@ from schema.events import (
     StateEvent,
     StorageEvent,
 )
-from schema.status import MOTION_STATES, Fault, MachineState
+from schema.status import Fault, MachineState
 from service.control import ControlAPI, Transition
 from service.controllers import SessionRun
 from service.devices import Calibration
 
 S = MachineState
-MOTION_COMMANDS = frozenset(
-    {Command.START, Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE}
-)
-"""Commands that begin a motion which later completes (Resume continues one)."""
 
 
 class EventSink(Protocol):
@@ -62,16 +59,11 @@ class ListEventSink:
 
 
 @dataclass
-class _Motion:
-    """The motion command in progress, for its completion event."""
-
-    command: Command
-    transaction_id: str | None
-
-
-@dataclass
 class _Session:
+    """The session under way, for its end event."""
+
     run: SessionRun
+    transaction_id: str | None
     started: float
 
 
@@ -93,7 +85,7 @@ class EventRecorder:
         self._latched = False
         self._fault: Fault | None = None
         self._calibration: Calibration | None = None
-        self._motion: _Motion | None = None
+        self._notices: list[Completion] = []
         self._session: _Session | None = None
         self._storage_version = 0
         self._storage_seen: set[str] = set()
@@ -126,10 +118,12 @@ class EventRecorder:
             state=reply.state,
             repeat=repeat,
         )
-        started = None
-        if reply.success and not repeat and command in MOTION_COMMANDS:
-            started = _Motion(command, request.transaction_id)
-        self.observe(control, now, cause=cause, started=started)
+        self.observe(control, now, cause=cause)
+
+    def completion(self, notice: Completion) -> None:
+        """A completion notice (service/completions.py): recorded at the next `observe`, after
+        the transitions that ended the motion."""
+        self._notices.append(notice)
 
     # -------------------------------------------------------------------------- compare
     def observe(
@@ -138,7 +132,6 @@ class EventRecorder:
         now: float,
         *,
         cause: CommandEvent | None = None,
-        started: _Motion | None = None,
     ) -> None:
         """Emit, in this order: E-stop input changes, the command, the transitions, then
         their consequences (latch, faults, sessions, completions, calibration)."""
@@ -163,10 +156,8 @@ class EventRecorder:
             kind = "estop_latched" if self._latched else "estop_reset"
             emit(EstopEvent(kind=kind, state=control.state, reason=reason))
         self._faults(control, emit)
-        if started is not None:
-            self._begin(control, started, wall, emit)
-        elif self._motion is not None and self._ended(control):
-            self._complete(control, reason, wall, emit)
+        self._session_started(control, wall, emit)
+        self._completions(wall, emit)
         self._calibrations(control, emit)
         self._storage(control, emit)
 
@@ -202,77 +193,51 @@ class EventRecorder:
                 )
             )
 
-    def _begin(
-        self,
-        control: ControlAPI,
-        started: _Motion,
-        wall: float,
-        emit: Emit,
-    ) -> None:
-        if self._motion is not None:
-            # A new motion replaced one that had not ended (e.g. Home after an E-stop).
-            self._complete(control, f"superseded by {started.command}", wall, emit, "STOPPED")
-        self._motion = started
+    def _session_started(self, control: ControlAPI, wall: float, emit: Emit) -> None:
         run = control.session_run
-        if started.command is Command.START and run is not None:
-            progress = run.progress()
-            self._session = _Session(run, wall)
-            emit(
-                SessionStartedEvent(
-                    name=progress.name,
-                    steps=progress.step_count,
-                    revolutions_total=progress.revolutions_total,
-                    transaction_id=started.transaction_id,
-                )
-            )
-
-    @staticmethod
-    def _ended(control: ControlAPI) -> bool:
-        """The motion is over: no controller, and not merely paused or halted by an E-stop."""
-        if control.controller is not None or control.state in MOTION_STATES:
-            return False
-        return control.state not in (S.PAUSED, S.FAULT_ESTOP)
-
-    def _complete(
-        self,
-        control: ControlAPI,
-        reason: str,
-        wall: float,
-        emit: Emit,
-        outcome: str | None = None,
-    ) -> None:
-        motion, self._motion = self._motion, None
-        assert motion is not None
-        if outcome is None:
-            if control.state is S.FAULT_HW:
-                outcome = "FAULT"
-            elif "complete" in reason:  # also "calibration complete, NOT saved"
-                outcome = "DONE"
-            else:
-                outcome = "STOPPED"
-        session, self._session = self._session, None
-        if session is not None:
-            p = session.run.progress()
-            emit(
-                SessionEndedEvent(
-                    name=p.name,
-                    steps=p.step_count,
-                    steps_done=min(p.step_index, p.step_count),
-                    revolutions_done=p.revolutions_done,
-                    revolutions_total=p.revolutions_total,
-                    duration_s=round(wall - session.started, 3),
-                    outcome=outcome,
-                )
-            )
+        if run is None or (self._session is not None and self._session.run is run):
+            return
+        action = control.action
+        tid = action.transaction_id if action is not None else None
+        self._session = _Session(run, tid, wall)
+        progress = run.progress()
         emit(
-            CompletionEvent(
-                command=motion.command.value,
-                transaction_id=motion.transaction_id,
-                outcome=outcome,
-                state=control.state,
-                reason=reason,
+            SessionStartedEvent(
+                name=progress.name,
+                steps=progress.step_count,
+                revolutions_total=progress.revolutions_total,
+                transaction_id=tid,
             )
         )
+
+    def _completions(self, wall: float, emit: Emit) -> None:
+        notices, self._notices = self._notices, []
+        for notice in notices:
+            session = self._session
+            if session is not None and notice.transaction_id == session.transaction_id:
+                p = session.run.progress()
+                emit(
+                    SessionEndedEvent(
+                        name=p.name,
+                        steps=p.step_count,
+                        steps_done=min(p.step_index, p.step_count),
+                        revolutions_done=p.revolutions_done,
+                        revolutions_total=p.revolutions_total,
+                        duration_s=round(wall - session.started, 3),
+                        outcome=str(notice.outcome),
+                    )
+                )
+                session.transaction_id = None  # ended; the run object stays for the status
+            emit(
+                CompletionEvent(
+                    command=notice.command,
+                    transaction_id=notice.transaction_id,
+                    outcome=str(notice.outcome),
+                    code=notice.code,
+                    state=notice.state,
+                    reason=notice.reason,
+                )
+            )
 
     def _storage(self, control: ControlAPI, emit: Emit) -> None:
         """A calibration or parameter write to data_dir that failed (each problem once)."""

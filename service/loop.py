@@ -235,6 +235,7 @@ class ScanLoop:
             self.control.on_estop(now)
             self.image.all_outputs_off()
             self.hal.force_all_outputs_safe()
+            self._collect_completions()
             self.recorder.observe(self.control, now)
             self.service_inbox(now)  # commands are refused with ESTOP_ACTIVE, checks answered
             self._publish(now)
@@ -242,6 +243,7 @@ class ScanLoop:
         self.service_inbox(now)
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
+        self._collect_completions()
         self.recorder.observe(self.control, now)
         self._publish(now)
 
@@ -293,6 +295,7 @@ class ScanLoop:
         notices = self.control.take_completions()
         for notice in notices:
             self.completions.record(notice)
+            self.recorder.completion(notice)
         self._unpublished += notices
         motion = self.control.action
         tid = motion.transaction_id if motion is not None else None
@@ -319,6 +322,7 @@ class ScanLoop:
         """On shutdown (the runner has stopped): a motion still under way ends `ABORTED`."""
         self.control.abort(now, why)
         self._collect_completions()
+        self.recorder.observe(self.control, now)
         self._publish_completions()
 
     def go_safe(self) -> None:

@@ -171,7 +171,7 @@ def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> Non
         )
         assert export.returncode == 0, export.stderr
         ended = [Event.model_validate_json(line) for line in export.stdout.splitlines()]
-        assert [e.details.outcome for e in ended] == ["DONE", "FAULT"]  # type: ignore[union-attr]
+        assert [e.details.outcome for e in ended] == ["DONE", "FAULT_HW"]  # type: ignore[union-attr]
         assert (daemon.data_dir / EVENTS_FILE).is_file()
     finally:
         daemon.stop()
@@ -196,7 +196,7 @@ def _check_details(events: list[dict[str, Any]]) -> None:
     completions = [e["details"] for e in events if e["kind"] == "completion"]
     tx = [c["transaction_id"] for c in commands if c["command"] != "Pause"]
     assert [c["transaction_id"] for c in completions] == tx
-    assert [c["outcome"] for c in completions] == ["DONE"] * 5 + ["FAULT"]
+    assert [c["outcome"] for c in completions] == ["DONE"] * 5 + ["FAULT_HW"]
     param = next(e["details"] for e in events if e["kind"] == "param_changed")
     assert (param["name"], param["old"], param["new"]) == ("tilt.tolerance_deg", 1.0, 1.5)
 

@@ -53,7 +53,7 @@ DETAILS: list[BaseModel] = [
         revolutions_done=1,
         revolutions_total=3,
         duration_s=4.5,
-        outcome="FAULT",
+        outcome="FAULT_HW",
     ),
     CalibrationEvent(
         axis="tilt",

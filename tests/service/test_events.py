@@ -121,8 +121,8 @@ def test_a_fault_records_raise_session_end_and_completion_then_clear_on_recovery
     raised, ended, done = details(sink, mark)[1:]
     assert isinstance(raised, FaultEvent) and raised.code == "TILT_NOT_FOLLOWING"
     assert raised.axis == "tilt"
-    assert isinstance(ended, SessionEndedEvent) and ended.outcome == "FAULT"
-    assert isinstance(done, CompletionEvent) and done.outcome == "FAULT"
+    assert isinstance(ended, SessionEndedEvent) and ended.outcome == "FAULT_HW"
+    assert isinstance(done, CompletionEvent) and done.outcome == "FAULT_HW"
     assert done.state is S.FAULT_HW
     rig.hal.clear_faults()
     mark = len(sink.events)
