@@ -7,9 +7,10 @@ One `<user>.password` file per identity (one line, a random password) and `zenoh
 
 from __future__ import annotations
 
-import os
 import secrets
 from pathlib import Path
+
+from service.persist import atomic_write
 
 IDENTITIES = ("machine", "rider", "monitor")
 """The ACL subjects of zenoh/acl.json5 and zenoh/tls.json5, by user name."""
@@ -46,12 +47,4 @@ def init_credentials(
 
 
 def _write_secret(path: Path, text: str) -> None:
-    """Created 0600 from the start (never readable by others, not even for a moment)."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.chmod(tmp, 0o600)  # O_CREAT keeps an existing tmp file's mode
-    os.replace(tmp, path)
+    atomic_write(path, text.encode(), mode=0o600)

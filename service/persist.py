@@ -25,14 +25,17 @@ log = logging.getLogger(__name__)
 CALIBRATION_FILE = "calibration.json"
 
 
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write temp file, fsync, rename over `path`, fsync the directory: never a torn file."""
+def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
+    """Write temp file, fsync, rename over `path`, fsync the directory: never a torn file.
+
+    The file is created with `mode` (less what the umask removes): 0o600 keeps a secret
+    unreadable to others from the first byte on."""
     if not path.parent.is_dir():
         path.parent.mkdir(parents=True, exist_ok=True)
         _fsync_dir(path.parent.parent)  # the new directory's own entry must survive too
     tmp = _temp_name(path, os.getpid(), threading.get_ident())
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)  # less under a umask
         try:
             view = memoryview(data)
             while view:
