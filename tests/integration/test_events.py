@@ -231,3 +231,25 @@ class Follower:
         stop_process(self.proc)
         self.thread.join(5.0)
         return list(self.lines)
+
+
+def test_a_lost_rider_is_recorded_with_what_the_policy_did(tmp_path: Path) -> None:
+    daemon = start_daemon(tmp_path, extra=fast_args(tmp_path))
+    try:
+        with daemon.rider() as supervising:  # names itself: it controls the motion
+            reply = supervising.calibrate_tilt()
+            assert reply.state is S.CALIBRATING
+            rider_id = supervising.rider_id
+        # Its session closed mid-motion: the machine pauses (rider_loss.policy = pause).
+        with daemon.rider(supervise=False) as r:
+            r.wait_for({S.PAUSED}, 10.0)
+            events = r.events(since=1)
+    finally:
+        daemon.stop()
+    kinds = [e.kind for e in events]
+    at = kinds.index("rider_lost")
+    lost = events[at].details
+    assert lost.rider == rider_id and lost.acted and lost.policy == "pause"  # type: ignore[union-attr]
+    state = events[at + 1].details
+    assert state.kind == "state" and (state.old, state.new) == (S.CALIBRATING, S.PAUSED)  # type: ignore[union-attr]
+    assert state.reason == "Rider lost"  # type: ignore[union-attr]
