@@ -32,6 +32,7 @@ from rider.client import (
 )
 from rider.text import printable, shown
 from schema.axes import AxisRecord, PnStatus
+from schema.calibration import CalibrationRecord, RotateCalibrationSet, TiltCalibrationSet
 from schema.commands import CheckResult, Reply, Session
 from schema.completion import Completion, Outcome
 from schema.diag import CycleDiag
@@ -109,6 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
     st = sub.add_parser("start", help="start a session (default: tilt 45°, rotate CW x3)")
     st.add_argument("--session", type=Path, help="session file (JSON or TOML)")
     _wait_options(st, wait_help)
+    cb = sub.add_parser("calibration", help="calibration values; `set` enters them by hand")
+    cbs = cb.add_subparsers(dest="calibration_cmd")
+    cs = cbs.add_parser("set", help="enter values by hand (recorded as manual)")
+    cs.add_argument("--tilt-offset", type=float, help="tilt offset in raw counts (at 0°)")
+    cs.add_argument("--tilt-gain", type=float, help="tilt gain in counts per degree")
+    cs.add_argument("--rotate-revolution-s", type=float, help="one revolution, seconds")
+    cs.add_argument("--rotate-home-arc", type=float, help="home-switch arc, degrees")
     dn = sub.add_parser("done", help="how a motion ended (its completion notice)")
     dn.add_argument(
         "transaction_id", nargs="?", help="the command's transaction id (default: all recent)"
@@ -227,6 +235,27 @@ def fmt_reply(r: Reply) -> str:
     return line
 
 
+def fmt_calibration(c: CalibrationRecord) -> str:
+    def how(source: str | None, at: float | None) -> str:
+        when = "?" if at is None else time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(at))
+        return f"({source or 'measured'}, {when})"
+
+    t, r = c.tilt, c.rotate
+    tilt = (
+        "not calibrated"
+        if t is None
+        else f"offset {t.offset_counts:.1f} counts, gain {t.gain_counts_per_deg:.3f} counts/°"
+        f" {how(t.source, t.at)}"
+    )
+    rotate = (
+        "not calibrated"
+        if r is None
+        else f"revolution {r.revolution_s:.3f} s ({r.speed_dps:.1f}°/s), home arc"
+        f" {r.home_arc_deg:.1f}° {how(r.source, r.at)}"
+    )
+    return f"tilt    {tilt}\nrotate  {rotate}"
+
+
 def fmt_completion(n: Completion) -> str:
     code = f" {n.code}" if n.code else ""
     return f"{n.command} {n.transaction_id}: {n.outcome}{code} -> state {n.state}" + (
@@ -309,6 +338,8 @@ def fmt_update(u: Update) -> str:
         return f"{stamp} io {u.kind}/{u.name} = {u.value}"
     if isinstance(u, Completion):
         return f"{stamp} done {fmt_completion(u)}"
+    if isinstance(u, CalibrationRecord):
+        return f"{stamp} calibration\n{fmt_calibration(u)}"
     return f"{stamp} {fmt_axis(u)}"
 
 
@@ -383,6 +414,8 @@ def run(args: argparse.Namespace, rider: Rider) -> int:
         return machines(args, rider)
     elif cmd == "done":
         return done(args, rider)
+    elif cmd == "calibration":
+        return calibration(args, rider)
     elif cmd == "sim":
         return sim(args, rider)
     elif cmd == "events":
@@ -425,6 +458,43 @@ def motion(args: argparse.Namespace, rider: Rider) -> int:
         print(f"rider: {why}", file=sys.stderr)
         return EXIT_REFUSED
     return EXIT_OK
+
+
+def calibration(args: argparse.Namespace, rider: Rider) -> int:
+    """`rider calibration [set …]`: show the values, or enter them by hand."""
+    if args.calibration_cmd != "set":
+        record = rider.calibration()
+        emit(record, args.json, fmt_calibration)
+        return EXIT_OK
+    try:
+        tilt, rotate = _calibration_values(args)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        raise UsageError(f"calibration value: {first['msg']}") from exc
+    record = rider.set_calibration(tilt=tilt, rotate=rotate)
+    emit(record, args.json, fmt_calibration)
+    return EXIT_OK
+
+
+def _calibration_values(
+    args: argparse.Namespace,
+) -> tuple[TiltCalibrationSet | None, RotateCalibrationSet | None]:
+    tilt = rotate = None
+    if args.tilt_offset is not None or args.tilt_gain is not None:
+        if args.tilt_offset is None or args.tilt_gain is None:
+            raise UsageError("give both --tilt-offset and --tilt-gain")
+        tilt = TiltCalibrationSet(
+            offset_counts=args.tilt_offset, gain_counts_per_deg=args.tilt_gain
+        )
+    if args.rotate_revolution_s is not None or args.rotate_home_arc is not None:
+        if args.rotate_revolution_s is None or args.rotate_home_arc is None:
+            raise UsageError("give both --rotate-revolution-s and --rotate-home-arc")
+        rotate = RotateCalibrationSet(
+            revolution_s=args.rotate_revolution_s, home_arc_deg=args.rotate_home_arc
+        )
+    if tilt is None and rotate is None:
+        raise UsageError("give the tilt values, the rotate values, or both")
+    return tilt, rotate
 
 
 def _halted_notifier() -> Callable[[Status], None]:

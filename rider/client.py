@@ -27,6 +27,12 @@ import zenoh
 from pydantic import BaseModel, ValidationError
 
 from schema.axes import AxisRecord
+from schema.calibration import (
+    CalibrationRecord,
+    CalibrationSet,
+    RotateCalibrationSet,
+    TiltCalibrationSet,
+)
 from schema.codec import DecodeError, Format, decode, encode, pack
 from schema.commands import (
     CheckResult,
@@ -111,7 +117,7 @@ class MachineInfo:
     uptime_s: float | None
 
 
-Update = Status | IoValue | AxisRecord | CycleDiag | Completion
+Update = Status | IoValue | AxisRecord | CycleDiag | Completion | CalibrationRecord
 
 
 class Subscription:
@@ -360,6 +366,27 @@ class Rider:
     def validate(self, candidate: bytes | None = None) -> Findings:
         """Findings for the running config, or for a candidate TOML/JSON config."""
         return self._get_one(f"{self.base}/config/validate", candidate, Findings, None)
+
+    def calibration(self) -> CalibrationRecord:
+        """The machine's calibration values: how and when each axis got them."""
+        return self._get_one(f"{self.base}/calibration", None, CalibrationRecord, None)
+
+    def set_calibration(
+        self,
+        *,
+        tilt: TiltCalibrationSet | None = None,
+        rotate: RotateCalibrationSet | None = None,
+    ) -> CalibrationRecord:
+        """Enter calibration values by hand (recorded as manual; refused while moving);
+        returns the record once the machine has saved them (`CommandRefused` otherwise)."""
+        req = CalibrationSet(
+            transaction_id=self.new_transaction_id(),
+            timecode=time.time(),
+            tilt=tilt,
+            rotate=rotate,
+        )
+        key = f"{self.base}/calibration/set"
+        return self._get_one(key, encode(req), CalibrationRecord, max(self.timeout, 6.0))
 
     def params(self) -> list[ParamValue]:
         return sorted(self._get_all(f"{self.base}/params/**", ParamValue), key=lambda p: p.name)
@@ -788,13 +815,17 @@ def _decode_update(sample: zenoh.Sample) -> Update | None:
         model = CycleDiag
     elif "/done/" in key:
         model = Completion
+    elif key.endswith("/calibration"):
+        model = CalibrationRecord
     else:
         return None
     try:
         result = decode(model, sample.payload.to_bytes(), _format_of(sample.encoding))
     except DecodeError as exc:
         raise BadReply(f"{key}: {exc.error.message}") from exc
-    assert isinstance(result, Status | IoValue | AxisRecord | CycleDiag | Completion)
+    assert isinstance(
+        result, Status | IoValue | AxisRecord | CycleDiag | Completion | CalibrationRecord
+    )
     return result
 
 

@@ -132,8 +132,9 @@ class CalibrationEvent(OpenWireModel):
 
     kind: Literal["calibration"] = "calibration"
     axis: str
-    old: dict[str, float] | None = None
-    new: dict[str, float] | None = None
+    old: dict[str, float | str | None] | None = None
+    new: dict[str, float | str | None] | None = None
+    """The axis's values, with `source` (measured / manual) and `at` (when)."""
     persisted: bool
 
 

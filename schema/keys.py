@@ -15,6 +15,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from schema.axes import AxisRecord
+from schema.calibration import CalibrationRecord, CalibrationSet
 from schema.commands import REQUEST_MODELS, Command, Reply
 from schema.completion import Completion
 from schema.diag import CycleDiag
@@ -84,6 +85,14 @@ KEYS: tuple[KeySpec, ...] = (
         None,
         Completion,
         "how a motion command ended: once per command; query: IN_PROGRESS / UNKNOWN_TRANSACTION",
+    ),
+    KeySpec("calibration", _PQ, None, CalibrationRecord, "calibration values, how and when"),
+    KeySpec(
+        "calibration/set",
+        _R,
+        CalibrationSet,
+        CalibrationRecord,
+        "enter calibration values by hand (manual; refused while moving)",
     ),
     KeySpec("events", _R, None, EventPage, "a page of the event history"),
     KeySpec("events/<seq>", _P, None, Event, "each new event, on its own key"),

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from schema.calibration import CalibrationSet, CalibrationSource
 from schema.commands import (
     ALLOWED_STATES,
     DEFAULT_SESSION,
@@ -45,13 +47,15 @@ from service.controllers import (
     TiltCalibrate,
     TiltHome,
 )
-from service.devices import Calibration, Devices
+from service.devices import Calibration, Devices, RotateCalibration, TiltCalibration
 from service.errors import (
+    BadRequest,
     EstopActive,
     InvalidSession,
     MachineError,
     NotCalibrated,
     NotHome,
+    ParamOutOfRange,
     WrongState,
 )
 
@@ -514,14 +518,61 @@ class ControlAPI:
     def _tilt_calibrated(self, ctl: Controller, now: float) -> Ending | None:
         assert isinstance(ctl, TiltCalibrate) and ctl.result is not None
         self.refs.tilt = True
-        return self._calibrated(Calibration(tilt=ctl.result, rotate=self.calibration.rotate), now)
+        tilt = dataclasses.replace(ctl.result, at=now + self.wall_offset)
+        return self._calibrated(Calibration(tilt=tilt, rotate=self.calibration.rotate), now)
 
     def _rotate_calibrated(self, ctl: Controller, now: float) -> Ending | None:
         assert isinstance(ctl, Chain)
         cal = ctl.finished[-1]
         assert isinstance(cal, RotateCalibrate) and cal.result is not None
         self.refs.tilt = self.refs.rotate = True
-        return self._calibrated(Calibration(tilt=self.calibration.tilt, rotate=cal.result), now)
+        rotate = dataclasses.replace(cal.result, at=now + self.wall_offset)
+        return self._calibrated(Calibration(tilt=self.calibration.tilt, rotate=rotate), now)
+
+    def enter_calibration(self, values: CalibrationSet, now: float) -> SaveTicket | None:
+        """A technician's values, recorded as manual: validated against the same plausible
+        ranges a measurement must meet, refused while a motion is under way, then used at
+        once and persisted (the ticket says when the write is done, and how)."""
+        if self.is_moving() or self.action is not None or self._saving is not None:
+            raise WrongState(
+                f"calibration values cannot be entered in state {self.state} while a motion"
+                " is under way (or its calibration is being saved); Stop it first"
+            )
+        if values.tilt is None and values.rotate is None:
+            raise BadRequest("give tilt values, rotate values or both", "/tilt")
+        wall = now + self.wall_offset
+        manual = CalibrationSource.MANUAL
+        tilt, rotate = self.calibration.tilt, self.calibration.rotate
+        if values.tilt is not None:
+            t = values.tilt
+            lo, hi = (
+                self.config.tilt.gain_min_counts_per_deg,
+                self.config.tilt.gain_max_counts_per_deg,
+            )
+            if not lo <= t.gain_counts_per_deg <= hi:
+                raise ParamOutOfRange(
+                    f"tilt gain {t.gain_counts_per_deg:g} counts/° is outside this machine's"
+                    f" plausible {lo:g}..{hi:g} (tilt.gain_min/max_counts_per_deg)",
+                    "/tilt/gain_counts_per_deg",
+                )
+            tilt = TiltCalibration(t.offset_counts, t.gain_counts_per_deg, manual, wall)
+        if values.rotate is not None:
+            r = values.rotate
+            nominal = 360.0 / self.config.rotate.nominal_speed_dps
+            tol = self.config.rotate.speed_tolerance
+            if not nominal * (1 - tol) <= r.revolution_s <= nominal * (1 + tol):
+                raise ParamOutOfRange(
+                    f"revolution time {r.revolution_s:g} s is outside {nominal:.3f} s ± {tol:.0%}"
+                    " (rotate.nominal_speed_dps, rotate.speed_tolerance)",
+                    "/rotate/revolution_s",
+                )
+            rotate = RotateCalibration(r.revolution_s, r.home_arc_deg, manual, wall)
+        cal = Calibration(tilt=tilt, rotate=rotate)
+        self.calibration = cal
+        self.devices.tilt.calibration = cal.tilt
+        if self.state in REST_STATES and self.state is not S.DONE:
+            self._set_state(self._rest_state(), now, "calibration entered by hand")
+        return self.on_calibrated(cal) if self.on_calibrated is not None else None
 
     def _calibrated(self, cal: Calibration, now: float) -> Ending | None:
         """Use `cal` now and persist it; it has ended once the write has (None until then)."""

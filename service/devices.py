@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
+from schema.calibration import CalibrationSource
 from schema.commands import Direction
 from service.io import AI, DI, RO, IoPoints
 
@@ -20,6 +21,9 @@ class TiltCalibration:
 
     offset_counts: float
     gain_counts_per_deg: float
+    source: CalibrationSource = CalibrationSource.MEASURED
+    at: float | None = None
+    """When it was measured or entered (wall-clock seconds)."""
 
     def degrees(self, raw: int) -> float:
         return (raw - self.offset_counts) / self.gain_counts_per_deg
@@ -31,6 +35,8 @@ class RotateCalibration:
 
     revolution_s: float
     home_arc_deg: float
+    source: CalibrationSource = CalibrationSource.MEASURED
+    at: float | None = None
 
     @property
     def speed_dps(self) -> float:

@@ -19,6 +19,12 @@ class MachineError(Exception):
         return Error(code=self.code, message=self.message, path=self.path)
 
 
+class BadRequest(MachineError):
+    """A request that is well-formed but says nothing to do, or contradicts itself."""
+
+    code = ErrorCode.BAD_PAYLOAD
+
+
 class WrongState(MachineError):
     code = ErrorCode.WRONG_STATE
 

@@ -17,6 +17,11 @@ from typing import Protocol
 
 from hal.base import Hal
 from schema.axes import AxisRecord
+from schema.calibration import (
+    CalibrationRecord,
+    RotateCalibrationValues,
+    TiltCalibrationValues,
+)
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
 from schema.errors import Error, ErrorCode
@@ -26,7 +31,7 @@ from service.axes import AxisTracker
 from service.completions import CompletionLog
 from service.config import MachineConfig
 from service.control import ControlAPI
-from service.devices import Devices
+from service.devices import Calibration, Devices
 from service.events import EventRecorder, NullEventSink
 from service.io import AI, IoPoints, ProcessImage
 from service.transactions import TransactionLog
@@ -160,6 +165,7 @@ class Published:
     """The latest records, readable from any thread (each is replaced, never mutated)."""
 
     status: Status | None = None
+    calibration: CalibrationRecord | None = None
     io: dict[str, IoValue] = field(default_factory=dict)
     axes: dict[str, AxisRecord] = field(default_factory=dict)
 
@@ -197,6 +203,9 @@ class ScanLoop:
         """Called on the scan thread with each notice, after the status it ends with is
         published (the bus publishes it; the event history may record it). Never block."""
         self._unpublished: list[Completion] = []
+        self.calibration_listeners: list[Callable[[CalibrationRecord], None]] = []
+        """Called on the scan thread with the calibration record whenever it changes."""
+        self._calibration_seen: object = None
         self._active_tid: str | None = None
         self.axes = AxisTracker(self.devices, config)
         self.published = Published()
@@ -352,6 +361,12 @@ class ScanLoop:
             self.published.io = {**self.published.io, **{p.name: p for p in changed}}
             self.sink.publish_io(changed)
         self._collect_completions()
+        if control.calibration is not self._calibration_seen:
+            self._calibration_seen = control.calibration
+            record = calibration_record(control.calibration, self.config.machine.id, wall)
+            self.published.calibration = record
+            for listener in self.calibration_listeners:
+                listener(record)
         key = control.status_key()
         if key != self._status_key or now >= self._status_due:
             self._status_key = key
@@ -419,3 +434,30 @@ class ScanLoop:
         """On shutdown: every queued command still gets its one reply."""
         for task in self.inbox.close():
             task.reject(Error(code=ErrorCode.NOT_AVAILABLE, message=why))
+
+
+def calibration_record(cal: Calibration, machine_id: str, wall: float) -> CalibrationRecord:
+    """The wire record of a calibration (values, how and when each axis got them)."""
+    t, r = cal.tilt, cal.rotate
+    return CalibrationRecord(
+        machine_id=machine_id,
+        tilt=None
+        if t is None
+        else TiltCalibrationValues(
+            offset_counts=t.offset_counts,
+            gain_counts_per_deg=t.gain_counts_per_deg,
+            source=t.source,
+            at=t.at,
+        ),
+        rotate=None
+        if r is None
+        else RotateCalibrationValues(
+            revolution_s=r.revolution_s,
+            home_arc_deg=r.home_arc_deg,
+            speed_dps=r.speed_dps,
+            source=r.source,
+            at=r.at,
+        ),
+        complete=cal.complete,
+        time=wall,
+    )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import json
 import logging
@@ -17,6 +18,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, FiniteFloat, ValidationError
 
+from schema.calibration import CalibrationSource
 from schema.errors import ErrorCode
 from service.devices import Calibration, RotateCalibration, TiltCalibration
 
@@ -135,29 +137,37 @@ def keep_aside(path: Path, tag: str = "corrupt") -> Path:
     return kept
 
 
+class _TiltEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    offset_counts: FiniteFloat  # NaN or infinity means a corrupt file
+    gain_counts_per_deg: FiniteFloat
+    source: CalibrationSource = CalibrationSource.MEASURED  # files from before: measured
+    at: FiniteFloat | None = None
+
+
+class _RotateEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    revolution_s: FiniteFloat
+    home_arc_deg: FiniteFloat
+    source: CalibrationSource = CalibrationSource.MEASURED
+    at: FiniteFloat | None = None
+
+
 class _CalibrationFile(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     version: int = 1
-    tilt: dict[str, FiniteFloat] | None = None  # NaN or infinity means a corrupt file
-    rotate: dict[str, FiniteFloat] | None = None
+    tilt: _TiltEntry | None = None
+    rotate: _RotateEntry | None = None
     saved_at: float | None = None
 
 
 def calibration_to_json(cal: Calibration, saved_at: float) -> bytes:
     doc = _CalibrationFile(
-        tilt=None
-        if cal.tilt is None
-        else {
-            "offset_counts": cal.tilt.offset_counts,
-            "gain_counts_per_deg": cal.tilt.gain_counts_per_deg,
-        },
-        rotate=None
-        if cal.rotate is None
-        else {
-            "revolution_s": cal.rotate.revolution_s,
-            "home_arc_deg": cal.rotate.home_arc_deg,
-        },
+        tilt=None if cal.tilt is None else _TiltEntry(**dataclasses.asdict(cal.tilt)),
+        rotate=None if cal.rotate is None else _RotateEntry(**dataclasses.asdict(cal.rotate)),
         saved_at=saved_at,
     )
     return doc.model_dump_json(indent=2).encode()
@@ -171,8 +181,8 @@ def load_calibration(data_dir: Path) -> tuple[Calibration, str | None]:
         return Calibration(), loaded.warning
     try:
         doc = _CalibrationFile.model_validate(loaded.data)
-        tilt = TiltCalibration(**doc.tilt) if doc.tilt else None
-        rotate = RotateCalibration(**doc.rotate) if doc.rotate else None
+        tilt = TiltCalibration(**doc.tilt.model_dump()) if doc.tilt else None
+        rotate = RotateCalibration(**doc.rotate.model_dump()) if doc.rotate else None
         if tilt is not None and not tilt.gain_counts_per_deg > 0:
             raise ValueError("tilt gain must be positive")
         if rotate is not None and rotate.revolution_s <= 0:
@@ -293,6 +303,10 @@ class SaveTicket:
     @property
     def done(self) -> bool:
         return self._done.is_set()
+
+    def wait(self, timeout: float) -> bool:
+        """Block (never on the scan thread) until the write is done; False after `timeout`."""
+        return self._done.wait(timeout)
 
     def finish(self, problem: str | None) -> None:
         self.problem = problem

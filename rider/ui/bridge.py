@@ -25,8 +25,8 @@ from rider.client import (
 )
 from rider.ui.view import LOST_AFTER_S, MachineFound, Note, Presence, Update
 from schema.axes import AxisRecord
+from schema.calibration import CalibrationRecord
 from schema.commands import Command, Reply, Session
-from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.events import Event, EventQuery
 from schema.io import IoValue
@@ -34,7 +34,7 @@ from schema.status import Status
 
 log = logging.getLogger("rider.ui")
 
-WATCHED = ("status", "io/**", "axis/**", "diag/cycle", "done/**")
+WATCHED = ("status", "io/**", "axis/**", "diag/cycle", "done/**", "calibration")
 POLL_S = 0.25
 
 
@@ -163,7 +163,13 @@ class Bridge:
         """Ask for the whole picture (IO, axes, diagnostics, then status); True if the
         machine answered with its status."""
         rider = self.rider
-        reads: list[Callable[[], object]] = [rider.io, rider.axes, rider.diag, rider.status]
+        reads: list[Callable[[], object]] = [
+            rider.io,
+            rider.axes,
+            rider.diag,
+            rider.calibration,
+            rider.status,
+        ]
         got_status = False
         for read in reads:
             if self._stop.is_set():
@@ -176,7 +182,9 @@ class Bridge:
                 log.info("event=ui_refresh_failed error=%r", str(exc))
                 continue
             for update in got if isinstance(got, list) else [got]:
-                if isinstance(update, Status | IoValue | AxisRecord | CycleDiag | Completion):
+                if isinstance(
+                    update, Status | IoValue | AxisRecord | CycleDiag | CalibrationRecord
+                ):
                     self._emit(update)
                     got_status = got_status or isinstance(update, Status)
         return got_status

@@ -12,6 +12,7 @@ from typing import Any
 
 from rider.text import shown
 from schema.axes import AxisRecord, PnStatus
+from schema.calibration import CalibrationRecord
 from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.io import IoKind, IoValue
@@ -45,7 +46,17 @@ class MachineFound:
     machine_id: str
 
 
-Update = Status | IoValue | AxisRecord | CycleDiag | Completion | Presence | Note | MachineFound
+Update = (
+    Status
+    | IoValue
+    | AxisRecord
+    | CycleDiag
+    | Completion
+    | CalibrationRecord
+    | Presence
+    | Note
+    | MachineFound
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,6 +90,7 @@ class LiveView:
     io: dict[str, IoValue] = field(default_factory=dict)
     axes: dict[str, AxisRecord] = field(default_factory=dict)
     diag: CycleDiag | None = None
+    calibration: CalibrationRecord | None = None
     link: Link = field(default_factory=Link)
 
     def __post_init__(self) -> None:
@@ -111,6 +123,9 @@ class LiveView:
         elif isinstance(update, CycleDiag):
             self.diag = update
             events.append(Event("diag", update.model_dump(mode="json")))
+        elif isinstance(update, CalibrationRecord):
+            self.calibration = update
+            events.append(Event("calibration", update.model_dump(mode="json")))
         elif isinstance(update, Completion):
             # The page that sent the command waits for its own transaction's notice.
             events.append(Event("done", update.model_dump(mode="json")))
@@ -160,6 +175,7 @@ class LiveView:
             "status": shown(self.status).model_dump(mode="json") if self.status else None,
             "io": [p.model_dump(mode="json") for p in self.io.values()],
             "diag": self.diag.model_dump(mode="json") if self.diag else None,
+            "calibration": self.calibration.model_dump(mode="json") if self.calibration else None,
             "sample": self.sample(wall) if self.status else None,
             "history": list(self.history),
         }

@@ -21,6 +21,7 @@ from pydantic import BaseModel
 
 from hal.sim import SimHal
 from schema.axes import AxisRecord
+from schema.calibration import CalibrationRecord, CalibrationSet
 from schema.codec import (
     MAX_PAYLOAD_BYTES,
     DecodeError,
@@ -44,12 +45,15 @@ from service import simfaults
 from service.config import MachineConfig
 from service.errors import MachineError
 from service.eventlog import EventLog
-from service.loop import LoopCall, PendingCommand, ScanLoop
+from service.loop import LoopCall, PendingCommand, ScanLoop, calibration_record
+from service.persist import SaveTicket
 from service.timing import CycleStats
 
 log = logging.getLogger(__name__)
 
 WILDCARD_CHARS = ("*", "$")
+SAVE_WAIT_S = 5.0
+"""How long a manual calibration write may take before its reply says it was not saved."""
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 """Without --listen or a config file: this host only (beyond it, use an authenticated profile)."""
 
@@ -143,6 +147,9 @@ class ZenohBus:
         self._declared.append(s.declare_queryable(f"{b}/config/validate", self._on_validate))
         self._declared.append(s.declare_queryable(f"{b}/done/**", self._on_done))
         self.loop.completion_listeners.append(self.publish_completion)
+        self._declared.append(s.declare_queryable(f"{b}/calibration", self._on_calibration))
+        self._declared.append(s.declare_queryable(f"{b}/calibration/set", self._on_calibration_set))
+        self.loop.calibration_listeners.append(self.publish_calibration)
         if self.params is not None:
             self._declared.append(s.declare_queryable(f"{b}/params/**", self._on_params))
         # Declared without a simulator too: `sim/*` on real hardware answers NOT_AVAILABLE
@@ -224,6 +231,15 @@ class ZenohBus:
             encoding=Format.MSGPACK.value,
             congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.DATA_HIGH,
+        )
+
+    def publish_calibration(self, record: CalibrationRecord) -> None:
+        """The calibration changed (measured, entered by hand, or at start-up): scan thread."""
+        self.session.put(
+            f"{self.base}/calibration",
+            encode(record),
+            encoding=Format.MSGPACK.value,
+            congestion_control=zenoh.CongestionControl.DROP,
         )
 
     def publish_watchdog_trip(self, stalled_s: float) -> None:
@@ -425,6 +441,88 @@ class ZenohBus:
                 path="/transaction_id",
             )
         self._reply_now(query, key, fmt, error, None, tid)
+
+    def _on_calibration(self, query: zenoh.Query) -> None:
+        with query:
+            record = self.loop.published.calibration
+            if record is not None:
+                fmt = reply_format(query)
+                query.reply(f"{self.base}/calibration", encode(record, fmt), encoding=fmt.value)
+
+    def _on_calibration_set(self, query: zenoh.Query) -> None:
+        """Values entered by hand: applied on the scan thread, answered once they are saved."""
+        key = f"{self.base}/calibration/set"
+        asked = str(query.key_expr)
+        data = _payload(query)
+        fmt = reply_format(query, data)
+        if asked != key:
+            if asked.endswith("/calibration/set"):
+                self._refuse_wildcard(query, asked, fmt, "a calibration write", "calibration/set")
+            else:
+                query.drop()  # a wildcard read that only happens to cover it
+            return
+        try:
+            if not data:
+                raise DecodeError(
+                    Error(
+                        code=ErrorCode.BAD_PAYLOAD,
+                        message='send {"transaction_id": "…", "tilt": {"offset_counts": …,'
+                        ' "gain_counts_per_deg": …}} and/or "rotate": {"revolution_s": …,'
+                        ' "home_arc_deg": …}',
+                        path="/transaction_id",
+                    )
+                )
+            req = validate(CalibrationSet, decode_raw(data, sniff_format(data, _encoding(query))))
+        except DecodeError as exc:
+            self._reply_now(query, key, fmt, exc.error, None, transaction_id_of(exc.raw))
+            return
+
+        def enter(loop: ScanLoop, now: float) -> None:
+            try:
+                ticket = loop.control.enter_calibration(req, now)
+            except MachineError as exc:
+                self._reply_now(query, key, fmt, exc.to_error(), None, req.transaction_id)
+                return
+            record = calibration_record(loop.control.calibration, self.config.machine.id, now)
+            record = record.model_copy(update={"time": self.wall()})
+            log.info(
+                "event=calibration_entered tx=%s timecode=%s tilt=%s rotate=%s",
+                req.transaction_id,
+                req.timecode,
+                req.tilt is not None,
+                req.rotate is not None,
+            )
+            # The scan thread never waits for the disk: a short-lived thread answers.
+            threading.Thread(
+                target=self._answer_saved,
+                args=(query, key, fmt, req.transaction_id, record, ticket),
+                name="calibration-saved",
+                daemon=True,
+            ).start()
+
+        self._to_loop(query, key, fmt, enter)
+
+    def _answer_saved(
+        self,
+        query: zenoh.Query,
+        key: str,
+        fmt: Format,
+        tid: str,
+        record: CalibrationRecord,
+        ticket: SaveTicket | None,
+    ) -> None:
+        problem = None
+        if ticket is not None:
+            problem = ticket.problem if ticket.wait(SAVE_WAIT_S) else "the write did not finish"
+        if problem is not None:
+            error = Error(
+                code=ErrorCode.STORAGE_FAILED,
+                message=f"calibration entered and in use now, but NOT saved: {problem}",
+            )
+            self._reply_now(query, key, fmt, error, None, tid)
+            return
+        with query:
+            query.reply(key, encode(record, fmt), encoding=fmt.value)
 
     def _on_diag(self, query: zenoh.Query) -> None:
         fmt = reply_format(query)

@@ -14,6 +14,15 @@ from pydantic import BaseModel
 import schema
 from schema.axes import AxisRecord, PnStatus
 from schema.base import OpenWireModel, WireModel
+from schema.calibration import (
+    CalibrationRecord,
+    CalibrationSet,
+    CalibrationSource,
+    RotateCalibrationSet,
+    RotateCalibrationValues,
+    TiltCalibrationSet,
+    TiltCalibrationValues,
+)
 from schema.codec import (
     MAX_PAYLOAD_BYTES,
     DecodeError,
@@ -101,6 +110,28 @@ SAMPLES: list[BaseModel] = [
     StartRequest(transaction_id="s2", session=MIXED, timecode=3.0),
     CheckResult(ok=False, tilt=True, rotate=False),
     MotionRef(transaction_id="h1", command="Home", started_at=5.0),
+    CalibrationRecord(
+        machine_id="m1",
+        tilt=TiltCalibrationValues(
+            offset_counts=1194.0,
+            gain_counts_per_deg=40.0,
+            source=CalibrationSource.MANUAL,
+            at=7.5,
+        ),
+        rotate=RotateCalibrationValues(revolution_s=4.0, home_arc_deg=9.9, speed_dps=90.0),
+        complete=True,
+        time=8.0,
+    ),
+    TiltCalibrationValues(offset_counts=1.0, gain_counts_per_deg=2.0),
+    RotateCalibrationValues(revolution_s=4.0, home_arc_deg=9.9, speed_dps=90.0, at=1.0),
+    TiltCalibrationSet(offset_counts=-3.5, gain_counts_per_deg=2.0),
+    RotateCalibrationSet(revolution_s=4.0, home_arc_deg=9.9),
+    CalibrationSet(
+        transaction_id="cal-1",
+        timecode=3.0,
+        tilt=TiltCalibrationSet(offset_counts=1194.0, gain_counts_per_deg=40.0),
+        rotate=RotateCalibrationSet(revolution_s=4.0, home_arc_deg=9.9),
+    ),
     Completion(
         machine_id="m1",
         transaction_id="a.b/c",

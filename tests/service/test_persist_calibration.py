@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from schema.calibration import CalibrationSource
 from schema.commands import Command
 from schema.status import MachineState
 from service.devices import Calibration, RotateCalibration, TiltCalibration
@@ -159,8 +160,9 @@ def test_saved_file_is_readable_json_with_every_value(tmp_path: Path) -> None:
     store = CalibrationStore(tmp_path, clock=lambda: 1234.5)
     store.save(CAL)
     doc = json.loads((tmp_path / CALIBRATION_FILE).read_text())
-    assert doc["tilt"] == {"offset_counts": 1194.0, "gain_counts_per_deg": 40.0}
-    assert doc["rotate"] == {"revolution_s": 4.0, "home_arc_deg": 9.9}
+    measured = {"source": "measured", "at": None}
+    assert doc["tilt"] == {"offset_counts": 1194.0, "gain_counts_per_deg": 40.0, **measured}
+    assert doc["rotate"] == {"revolution_s": 4.0, "home_arc_deg": 9.9, **measured}
     assert doc["saved_at"] == 1234.5
     assert load_calibration(tmp_path) == (CAL, None)
     assert calibration_to_json(Calibration(), 0.0).startswith(b"{")
@@ -186,3 +188,25 @@ def test_background_writer_saves_in_order_and_reports_failures(tmp_path: Path) -
         assert warning.startswith("STORAGE_FAILED: calibration not saved")
     finally:
         writer.close(timeout=10)
+
+
+def test_a_file_from_before_sources_loads_as_measured_and_manual_values_round_trip(
+    tmp_path: Path,
+) -> None:
+    old = {"version": 1, "tilt": {"offset_counts": 1194.0, "gain_counts_per_deg": 40.0}}
+    (tmp_path / CALIBRATION_FILE).write_text(json.dumps(old))
+    cal, warning = load_calibration(tmp_path)
+    assert warning is None and cal.tilt is not None
+    assert (cal.tilt.source, cal.tilt.at) == (CalibrationSource.MEASURED, None)
+    manual = Calibration(
+        tilt=TiltCalibration(1200.0, 41.0, CalibrationSource.MANUAL, 1764300000.0),
+        rotate=RotateCalibration(4.1, 10.0, CalibrationSource.MEASURED, 1764200000.0),
+    )
+    CalibrationStore(tmp_path).save(manual)
+    assert load_calibration(tmp_path) == (manual, None)
+    bad = {
+        "version": 1,
+        "tilt": {"offset_counts": 1.0, "gain_counts_per_deg": 40.0, "source": "guess"},
+    }
+    (tmp_path / CALIBRATION_FILE).write_text(json.dumps(bad))
+    assert load_calibration(tmp_path)[0] == Calibration()  # unknown source: not trusted

@@ -152,3 +152,20 @@ def test_snapshot_has_everything_a_new_page_needs() -> None:
     assert snap["io"][0]["name"] == "estop"
     assert snap["diag"]["period_s"] == 0.01
     assert len(snap["history"]) == 1
+
+
+def test_calibration_values_reach_the_page_and_its_snapshot() -> None:
+    from schema.calibration import CalibrationRecord, CalibrationSource
+
+    view = LiveView()
+    record = CalibrationRecord.model_validate(
+        {
+            "machine_id": "m1",
+            "tilt": {"offset_counts": 1194.0, "gain_counts_per_deg": 40.0, "source": "manual"},
+            "time": 5.0,
+        }
+    )
+    events = view.apply(record, 1.0)
+    assert [e.kind for e in events if e.kind == "calibration"] == ["calibration"]
+    snap = view.snapshot(6.0)["calibration"]
+    assert snap["tilt"]["source"] == CalibrationSource.MANUAL.value and snap["rotate"] is None

@@ -11,6 +11,7 @@
     status: null,
     io: new Map(),
     diag: null,
+    calibration: null,
     link: { up: false, reason: "connecting to the machine…", machine: null },
     server: { up: false, reason: "connecting to the UI server…", lastMsg: 0, time: 0, at: 0 },
     history: [],
@@ -65,6 +66,7 @@
       ui.status = d.status;
       ui.io = new Map((d.io || []).map((p) => [p.name, p]));
       ui.diag = d.diag;
+      ui.calibration = d.calibration || null;
       ui.link = d.link;
       ui.history = d.history || [];
       ui.sample = d.sample;
@@ -95,6 +97,7 @@
     },
     tick(d) { clock(d.now); },
     done(d) { finished(d); },
+    calibration(d) { ui.calibration = d; },
   };
 
   function connect() {
@@ -178,6 +181,19 @@
     $("uptime").textContent = st && live() ? `up ${duration(st.uptime_s)}` : "";
   }
 
+  // Calibration values (machine/<id>/calibration): shown as the "calibrated" flags' tooltip.
+  function calibrationText(c) {
+    if (!c) return "";
+    const how = (v) => ` (${v.source || "measured"}${v.at ? `, ${new Date(v.at * 1000).toLocaleString("en-GB")}` : ""})`;
+    const t = c.tilt
+      ? `tilt: offset ${c.tilt.offset_counts.toFixed(1)} counts, gain ${c.tilt.gain_counts_per_deg.toFixed(3)} counts/°${how(c.tilt)}`
+      : "tilt: not calibrated";
+    const r = c.rotate
+      ? `rotate: revolution ${c.rotate.revolution_s.toFixed(3)} s, home arc ${c.rotate.home_arc_deg.toFixed(1)}°${how(c.rotate)}`
+      : "rotate: not calibrated";
+    return `${t}\n${r}`;
+  }
+
   function renderState() {
     const st = ui.status;
     const card = $("state-card");
@@ -195,6 +211,7 @@
     }
     $("prev-state").textContent = st && st.previous_state ? words(st.previous_state) : "—";
     $("calibrated").textContent = st ? flags(st.calibrated) : "—";
+    $("calibrated").title = calibrationText(ui.calibration);
     $("homed").textContent = st ? flags(st.homed) : "—";
   }
 
