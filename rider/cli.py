@@ -42,7 +42,7 @@ from schema.events import (
     EventQuery,
     EventSummary,
     describe,
-    parse_point,
+    query_of,
 )
 from schema.findings import Findings
 from schema.io import IoValue
@@ -623,31 +623,13 @@ def sim(args: argparse.Namespace, rider: Rider) -> int:
 
 
 def event_query(args: argparse.Namespace, now: float) -> EventQuery:
-    since = until = None
-    since_time = until_time = None
-    try:
-        if args.since:
-            since, since_time = parse_point(args.since, now)
-        if args.until:
-            until, until_time = parse_point(args.until, now)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    kinds = tuple(k for arg in args.kind for k in arg.split(",") if k)
-    known = {k.value for k in EventKind}
-    for kind in kinds:
-        if kind not in known:
-            raise UsageError(f"unknown event kind {kind!r}; known: {', '.join(sorted(known))}")
     last = args.last
     if last is None and args.since is None and not args.summary:
         last = 20
-    return EventQuery(
-        since=since,
-        until=until,
-        since_time=since_time,
-        until_time=until_time,
-        kinds=kinds,
-        last=last,
-    )
+    try:
+        return query_of(args.since, args.until, args.kind, now, last)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def fmt_event(e: Event, with_machine: bool = False) -> str:

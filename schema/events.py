@@ -437,6 +437,27 @@ def parse_point(text: str, now: float) -> tuple[int | None, float | None]:
         ) from None
 
 
+def query_of(
+    since: str | None,
+    until: str | None,
+    kinds: Iterable[str],
+    now: float,
+    last: int | None = None,
+) -> EventQuery:
+    """A query from command-line words: `--since`/`--until` (see `parse_point`) and `--kind`
+    (repeatable, comma-separated); ValueError says what is wrong."""
+    s_seq, s_time = parse_point(since, now) if since else (None, None)
+    u_seq, u_time = parse_point(until, now) if until else (None, None)
+    wanted = tuple(k for arg in kinds for k in arg.split(",") if k)
+    known = {k.value for k in EventKind}
+    for kind in wanted:
+        if kind not in known:
+            raise ValueError(f"unknown event kind {kind!r}; known: {', '.join(sorted(known))}")
+    return EventQuery(
+        since=s_seq, until=u_seq, since_time=s_time, until_time=u_time, kinds=wanted, last=last
+    )
+
+
 def describe(details: Details) -> str:
     """One human line for the details of an event (the CLI's and the UI's text)."""
     d = details

@@ -16,7 +16,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import TextIO
 
-from schema.events import Event, EventKind, EventQuery, describe, parse_point
+from schema.events import Event, describe, query_of
 from service.eventlog import EVENTS_FILE, connect_readonly, iter_events
 
 EXIT_OK = 0
@@ -28,7 +28,7 @@ CSV_COLUMNS = ["seq", "time", "local_time", "cycle", "machine_id", "kind", "text
 
 def export_events(args: argparse.Namespace, data_dir: Path) -> int:
     try:
-        query = _query(args.since, args.until, args.kind)
+        query = query_of(args.since, args.until, args.kind, time.time())
     except ValueError as exc:
         print(f"machine: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -51,18 +51,6 @@ def export_events(args: argparse.Namespace, data_dir: Path) -> int:
     finally:
         conn.close()
     return EXIT_OK
-
-
-def _query(since: str | None, until: str | None, kinds: list[str]) -> EventQuery:
-    now = time.time()
-    s_seq, s_time = parse_point(since, now) if since else (None, None)
-    u_seq, u_time = parse_point(until, now) if until else (None, None)
-    wanted = tuple(k for arg in kinds for k in arg.split(",") if k)
-    known = {k.value for k in EventKind}
-    for kind in wanted:
-        if kind not in known:
-            raise ValueError(f"unknown event kind {kind!r}; known: {', '.join(sorted(known))}")
-    return EventQuery(since=s_seq, until=u_seq, since_time=s_time, until_time=u_time, kinds=wanted)
 
 
 def write(events: Iterable[Event], out: TextIO, fmt: str) -> None:

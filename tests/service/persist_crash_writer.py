@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import sys
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 from schema.params import ParamSet
@@ -59,7 +60,13 @@ def write_forever(data_dir: Path, first: int, parent: int) -> None:
         i += 1
 
 
-def serve(data_dir: Path) -> None:
+Writer = Callable[[Path, int, int], None]
+"""What a forked child runs: (data_dir, first round, parent pid); it only ends by a kill."""
+
+
+def serve(data_dir: Path, writer: Writer | None = None) -> None:
+    """Fork a `writer` (default `write_forever`) per `go <first>` line; report `reaped <pid>`."""
+    writer = writer or write_forever
     _say("ready")
     for line in sys.stdin:
         word, _, arg = line.strip().partition(" ")
@@ -69,7 +76,7 @@ def serve(data_dir: Path) -> None:
         pid = os.fork()
         if pid == 0:
             try:
-                write_forever(data_dir, int(arg), parent)
+                writer(data_dir, int(arg), parent)
             except BaseException:
                 traceback.print_exc()
                 raise

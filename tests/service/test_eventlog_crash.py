@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from service.eventlog import EVENTS_FILE
+from tests.procs import REPO
 from tests.service import eventlog_crash_writer as writer
 from tests.service.test_persist_crash import Lines
 
@@ -42,7 +43,8 @@ def test_sigkill_never_corrupts_the_event_log_and_loses_only_the_newest(tmp_path
     seed = int.from_bytes(os.urandom(4), "big")
     rng = random.Random(seed)
     proc = subprocess.Popen(
-        [sys.executable, writer.__file__, str(tmp_path)],
+        [sys.executable, "-m", writer.__name__, str(tmp_path)],
+        cwd=REPO,
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
     )
