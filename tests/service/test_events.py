@@ -18,6 +18,7 @@ from schema.events import (
 from schema.status import MachineState
 from service.events import ListEventSink
 from service.persist import StorageHealth
+from service.watchdog import GuardedHal
 from tests.rig import Rig, known_calibration
 
 S = MachineState
@@ -194,3 +195,20 @@ def test_a_failed_write_to_data_dir_is_recorded_once_per_problem() -> None:
     storage.failed(StorageHealth.PARAMS, "params.json: Read-only file system")
     rig.step()
     assert [d.kind for d in details(sink, mark)] == ["storage_failed", "storage_failed"]
+
+
+def test_a_watchdog_trip_ends_the_motion_with_a_recorded_fault() -> None:
+    rig, sink = ready_rig()
+    guard = GuardedHal(rig.hal)
+    rig.loop.hal = guard
+    rig.loop.guard = guard
+    reply = rig.send(Command.HOME)
+    rig.step(3)
+    mark = len(sink.events)
+    guard.latch_safe()  # what the watchdog thread does when the loop stalls
+    rig.step()
+    assert kinds(sink, mark) == ["state", "fault_raised", "completion"]
+    raised, done = details(sink, mark)[1:]
+    assert isinstance(raised, FaultEvent) and raised.code == "WATCHDOG"
+    assert isinstance(done, CompletionEvent) and done.transaction_id == reply.transaction_id
+    assert done.outcome == "FAULT_HW" and done.code == "WATCHDOG"
