@@ -50,6 +50,7 @@ from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
+from schema.rider import HEARTBEAT_INTERVAL_S, alive_key, heartbeat_key
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 
@@ -140,6 +141,40 @@ class Subscription:
         self.close()
 
 
+class Heartbeat:
+    """A supervising Rider's deadman signal: an empty sample on `rider/<zid>/heartbeat` every
+    `HEARTBEAT_INTERVAL_S`, from its own thread. It stops when the process freezes, dies or
+    loses its link, whatever the Zenoh lease says; the machine pauses within
+    `rider_loss.timeout_s`."""
+
+    def __init__(
+        self, session: zenoh.Session, rider_id: str, interval: float = HEARTBEAT_INTERVAL_S
+    ) -> None:
+        self.interval = interval
+        self._pub = session.declare_publisher(
+            heartbeat_key(rider_id),
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_HIGH,
+            express=True,
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rider-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            with contextlib.suppress(zenoh.ZError):  # a closing session: the loop ends next
+                self._pub.put(b"")
+            if self._stop.wait(self.interval):
+                return
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        with contextlib.suppress(zenoh.ZError):
+            self._pub.undeclare()
+
+
 def zenoh_config(
     path: Path | None, connect: Iterable[str] | None, listen: Iterable[str] | None = None
 ) -> zenoh.Config:
@@ -203,6 +238,7 @@ class Rider:
         self._conf = zenoh_config(zenoh_config_path, connect, listen)
         self._session: zenoh.Session | None = None
         self._token: zenoh.LivelinessToken | None = None
+        self._heartbeat: Heartbeat | None = None
         self._ids = itertools.count(1)
         self._tag = uuid.uuid4().hex[:8]
         self._machine_id = machine_id
@@ -218,11 +254,16 @@ class Rider:
             where = str(exc).split(" at /", 1)[0]
             raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
         self.rider_id = str(self._session.zid())
-        self._token = self._session.liveliness().declare_token(f"rider/{self.rider_id}/alive")
+        self._token = self._session.liveliness().declare_token(alive_key(self.rider_id))
+        if self.supervise:
+            self._heartbeat = Heartbeat(self._session, self.rider_id)
         return self
 
     def close(self) -> None:
-        """Undeclare the liveliness token and close the session (always do this)."""
+        """Stop the heartbeat, undeclare the liveliness token, close the session (always)."""
+        if self._heartbeat is not None:
+            self._heartbeat.close()
+            self._heartbeat = None
         if self._token is not None:
             self._token.undeclare()
             self._token = None

@@ -81,8 +81,12 @@ class RiderLossPolicy(StrEnum):
 
 
 class RiderLossSection(_Section):
+    """Supervision of the Rider that started a motion: its heartbeat, and what its loss does."""
+
     policy: RiderLossPolicy = RiderLossPolicy.PAUSE
     grace_s: float = Field(default=0.0, ge=0.0, le=60.0)
+    timeout_s: float = Field(default=0.5, gt=0.0, le=60.0)
+    """The controlling Rider is lost when its heartbeat has been silent this long."""
 
 
 class BusSection(_Section):

@@ -162,6 +162,7 @@ class ControlAPI:
         self.rider_connected = False
         self.controller_rider: str | None = None
         self._rider_gone_at: float | None = None
+        self._rider_heard_at = 0.0
         self.rider_warning: str | None = None
         self._resume_to: MachineState | None = None
         self._estop_from: MachineState | None = None
@@ -183,6 +184,7 @@ class ControlAPI:
                 self.controller_rider = request.rider
                 self.rider_connected = request.rider is not None
                 self._rider_gone_at = None
+                self._rider_heard_at = now  # the command itself is a sign of life
         except MachineError as exc:
             return Reply.failure(
                 exc.to_error(),
@@ -639,6 +641,21 @@ class ControlAPI:
             self._rider_gone_at = now
             return False
         return self._apply_rider_loss(now)
+
+    def rider_heartbeat(self, at: float | None, now: float) -> bool:
+        """Deadman check, once per cycle: `at` is when the controlling Rider's heartbeat last
+        arrived (None: never). Silent for `rider_loss.timeout_s` → lost; a heartbeat after a
+        loss → back. True if the Rider was judged lost now."""
+        if self.controller_rider is None:
+            return False
+        if at is not None and at > self._rider_heard_at:
+            self._rider_heard_at = at
+            if not self.rider_connected:
+                self.rider_back()  # nothing moves by itself: a paused ride stays paused
+        if self.rider_connected and now - self._rider_heard_at > self.config.rider_loss.timeout_s:
+            self.rider_lost(now)
+            return True
+        return False
 
     def rider_back(self) -> None:
         """The controlling Rider's token is back (within the grace period nothing happened)."""

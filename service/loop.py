@@ -25,6 +25,7 @@ from schema.calibration import (
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
 from schema.errors import Error, ErrorCode
+from schema.events import RiderEvent
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, Status
 from service.axes import AxisTracker
@@ -58,6 +59,12 @@ class LiveConfig(Protocol):
 
     @property
     def config(self) -> MachineConfig: ...
+
+
+class RiderBeats(Protocol):
+    """When each Rider's heartbeat last arrived, on the loop's clock (the bus records them)."""
+
+    def last_heartbeat(self, rider: str) -> float | None: ...
 
 
 class NullSink:
@@ -195,6 +202,8 @@ class ScanLoop:
         self.image: ProcessImage = self.points.image
         self.config = config
         self.sink: LoopSink = sink or NullSink()
+        self.beats: RiderBeats | None = None
+        """Set by the bus: without it (an in-process rig) only the Rider's token is watched."""
         self.inbox = inbox or Inbox(config.bus.inbox_capacity)
         self.transactions = TransactionLog(config.bus.transaction_window)
         self.completions = CompletionLog(config.bus.transaction_window)
@@ -250,11 +259,33 @@ class ScanLoop:
             self._publish(now)
             return
         self.service_inbox(now)
+        self._supervise(now)
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
         self._collect_completions()
         self.recorder.observe(self.control, now)
         self._publish(now)
+
+    def _supervise(self, now: float) -> None:
+        """Deadman: the controlling Rider's latest heartbeat (data from the bus) against `now`."""
+        rider = self.control.controller_rider
+        if self.beats is None or rider is None:
+            return
+        before = self.control.state
+        if self.control.rider_heartbeat(self.beats.last_heartbeat(rider), now):
+            policy = self.config.rider_loss.policy
+            log.warning(
+                "event=rider_lost rider=%s cause=heartbeat timeout_s=%g policy=%s",
+                rider,
+                self.config.rider_loss.timeout_s,
+                policy,
+            )
+            acted = self.control.state is not before
+            self.recorder.sink.emit(
+                RiderEvent(kind="rider_lost", rider=rider, policy=str(policy), acted=acted),
+                now + self.wall_offset,
+                self.cycle,
+            )
 
     def apply_config(self, config: MachineConfig) -> None:
         """Take new online parameter values; running controllers keep what they started with."""

@@ -48,6 +48,7 @@ _ONLINE: tuple[tuple[str, str, bool, str], ...] = (
     ("bus.heartbeat_s", "s", False, "status is republished at least this often"),
     ("rider_loss.policy", "", False, "what to do when the controlling Rider disappears"),
     ("rider_loss.grace_s", "s", False, "how long a lost Rider may take to come back"),
+    ("rider_loss.timeout_s", "s", False, "silence of the controlling Rider's heartbeat = lost"),
 )
 
 

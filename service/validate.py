@@ -17,6 +17,7 @@ from hal.iomap import IoMap
 from schema.codec import json_pointer
 from schema.commands import DEFAULT_SESSION, TiltStep
 from schema.findings import Finding, Findings, Severity
+from schema.rider import HEARTBEAT_INTERVAL_S
 from service.config import HalBackend, MachineConfig, read_toml
 
 # Below this the wake-up jitter of a Python thread on a general-purpose kernel is of the
@@ -344,6 +345,33 @@ def _bus(config: MachineConfig) -> Iterator[Finding]:
             )
 
 
+def _rider_loss(config: MachineConfig) -> Iterator[Finding]:
+    timeout, period = config.rider_loss.timeout_s, config.loop.period_s
+    path = "/rider_loss/timeout_s"
+    beat = HEARTBEAT_INTERVAL_S
+    if timeout < 2 * beat:
+        yield _error(
+            Category.SUPERVISION,
+            path,
+            f"{timeout:g} s is shorter than two Rider heartbeats ({2 * beat:g} s): a healthy"
+            " Rider would be judged lost",
+        )
+    elif timeout < 3 * beat:
+        yield _warning(
+            Category.SUPERVISION,
+            path,
+            f"{timeout:g} s leaves room for one late Rider heartbeat ({beat:g} s apart): a"
+            " loaded host may pause rides for nothing",
+        )
+    if timeout < 2 * period:
+        yield _error(
+            Category.SUPERVISION,
+            path,
+            f"{timeout:g} s is shorter than two scan periods ({2 * period:g} s): the loop cannot"
+            " judge it",
+        )
+
+
 def _events(config: MachineConfig) -> Iterator[Finding]:
     ev = config.events
     if ev.batch_max > ev.queue_capacity:
@@ -372,7 +400,7 @@ def semantic_findings(config: MachineConfig) -> list[Finding]:
     out: list[Finding] = []
     for check in (_io_conflicts(config.hal.iomap), _ranges(config), _scan_period(config)):
         out.extend(check)
-    for rule in (_timeouts, _calibration, _simulator, _session, _bus, _events):
+    for rule in (_timeouts, _calibration, _simulator, _session, _bus, _rider_loss, _events):
         out.extend(rule(config))
     return out
 

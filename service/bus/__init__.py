@@ -20,6 +20,7 @@ import zenoh
 from pydantic import BaseModel
 
 from hal.sim import SimHal
+from schema import rider as rider_keys
 from schema.axes import AxisRecord
 from schema.calibration import CalibrationRecord, CalibrationSet
 from schema.codec import (
@@ -54,6 +55,8 @@ log = logging.getLogger(__name__)
 WILDCARD_CHARS = ("*", "$")
 SAVE_WAIT_S = 5.0
 """How long a manual calibration write may take before its reply says it was not saved."""
+MAX_RIDERS = 1024
+"""Riders whose heartbeat the bus keeps track of at once."""
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 """Without --listen or a config file: this host only (beyond it, use an authenticated profile)."""
 
@@ -107,6 +110,7 @@ class ZenohBus:
         params: ParamService | None = None,
         check_config: ConfigChecker | None = None,
         wall: Callable[[], float] = time.time,
+        clock: Callable[[], float] = time.monotonic,
         events: EventLog | None = None,
         sim_elsewhere: bool = False,
     ) -> None:
@@ -121,6 +125,7 @@ class ZenohBus:
         self.check_config = check_config
         self.events = events
         self.wall = wall
+        self.clock = clock
         self.base = config.key_base
         self._declared: list[Any] = []
         self._data_pubs: dict[str, zenoh.Publisher] = {}
@@ -128,6 +133,7 @@ class ZenohBus:
         self._diag_thread: threading.Thread | None = None
         self._token: zenoh.LivelinessToken | None = None
         self.riders_alive: set[str] = set()
+        self._beats: dict[str, float] = {}
 
     # ---------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -176,8 +182,10 @@ class ZenohBus:
         for axis in ("rotate", "tilt"):
             self._publisher(f"{b}/axis/{axis}")
         self._declared.append(
-            s.liveliness().declare_subscriber("rider/*/alive", self._on_rider, history=True)
+            s.liveliness().declare_subscriber(rider_keys.ALIVE_KEYS, self._on_rider, history=True)
         )
+        self._declared.append(s.declare_subscriber(rider_keys.HEARTBEAT_KEYS, self._on_heartbeat))
+        self.loop.beats = self
         self._diag_thread = threading.Thread(target=self._diag_loop, name="diag", daemon=True)
         self._diag_thread.start()
         log.info("event=bus_started base=%s zid=%s", b, s.zid())
@@ -702,16 +710,27 @@ class ZenohBus:
         self._to_loop(query, key, fmt, inject)
 
     # ---------------------------------------------------------------------------- riders
+    def _on_heartbeat(self, sample: zenoh.Sample) -> None:
+        """Only the arrival time is kept (one dict write): the scan loop judges it."""
+        rider = rider_keys.rider_of(str(sample.key_expr))
+        # Bounded: a flood of made-up Rider ids cannot grow this without end.
+        if rider is not None and (rider in self._beats or len(self._beats) < MAX_RIDERS):
+            self._beats[rider] = self.clock()
+
+    def last_heartbeat(self, rider: str) -> float | None:
+        """`RiderBeats` for the scan loop: when `rider`'s heartbeat last arrived."""
+        return self._beats.get(rider)
+
     def _on_rider(self, sample: zenoh.Sample) -> None:
-        parts = str(sample.key_expr).split("/")
-        if len(parts) != 3 or not parts[1].isalnum():
+        rider = rider_keys.rider_of(str(sample.key_expr))
+        if rider is None:
             return  # a Rider's id is its session id (hex): anything else is not a Rider's token
-        rider = parts[1]
         alive = sample.kind == zenoh.SampleKind.PUT
         if alive:
             self.riders_alive.add(rider)
         else:
             self.riders_alive.discard(rider)
+            self._beats.pop(rider, None)
 
         def update(loop: ScanLoop, now: float) -> None:
             control = loop.control

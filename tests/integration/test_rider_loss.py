@@ -6,9 +6,11 @@ A child Python process starts the session as the supervising Rider and is SIGKIL
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
@@ -18,10 +20,11 @@ from tests.integration import rider_proc
 from tests.integration.support import (
     STEP_TIMEOUT_S,
     module_machine,
+    prepare,
     relays_off,
     wait_revolutions,
 )
-from tests.procs import REPO, Daemon
+from tests.procs import REPO, Daemon, rider_cmd
 
 pytestmark = pytest.mark.integration
 
@@ -29,7 +32,8 @@ LONG_SESSION = ("--revolutions", "40", "prepare", "start", "running", "hold")
 """20 s of motion at the fast config: still running whenever the test gets to act."""
 
 LOSS_BOUND_S = 5.0
-"""Upper bound the test waits for the pause; the lease in the test config is 1 s."""
+"""Upper bound the test waits for the pause: the lease in the test config is 1 s, Zenoh's
+default lease (a Rider without --zenoh-config) 10 s, the heartbeat timeout 0.5 s."""
 
 
 machine = module_machine("rider-loss")
@@ -100,3 +104,53 @@ def test_a_reading_rider_that_leaves_changes_nothing(machine: Daemon) -> None:
     finally:
         child.kill()
         child.wait(STEP_TIMEOUT_S)
+
+
+def test_a_frozen_cli_rider_on_zenoh_defaults_pauses_the_ride_by_its_heartbeat(
+    machine: Daemon, tmp_path: Path
+) -> None:
+    """Reproduction 2 of issue 15: `rider start --wait` as the README shows it (no
+    --zenoh-config, so Zenoh's 10 s lease), SIGSTOPped mid-session. Its liveliness token stays
+    alive for the lease; its heartbeat stops at once, and the machine pauses on that."""
+    session = tmp_path / "long.json"
+    session.write_text(
+        json.dumps(
+            {
+                "name": "long",
+                "steps": [{"kind": "tilt", "degrees": 45}, {"kind": "rotate", "revolutions": 40}],
+            }
+        )
+    )
+    with machine.rider() as observer:
+        prepare(observer)
+        observer.set_param("rider_loss.timeout_s", 0.5)  # the project default
+        cmd = rider_cmd("--connect", machine.endpoint, "--machine", machine.machine_id)
+        child = subprocess.Popen(
+            [*cmd, "start", "--session", str(session), "--wait"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+        )
+        try:
+            for update in observer.watch(("status",), timeout=STEP_TIMEOUT_S):
+                assert isinstance(update, Status)
+                if update.state is MachineState.RUNNING and update.rider_connected:
+                    break
+            stopped_at = time.monotonic()
+            child.send_signal(signal.SIGSTOP)
+            paused = observer.wait_for({MachineState.PAUSED}, LOSS_BOUND_S)
+            noticed_s = time.monotonic() - stopped_at
+            print(
+                f"rider loss: SIGSTOP -> PAUSED seen by another Rider in {noticed_s * 1000:.0f} ms"
+            )
+            assert paused.previous_state is MachineState.RUNNING
+            assert not paused.rider_connected  # the token is still alive: the heartbeat decided
+            assert relays_off(observer)
+            assert "cause=heartbeat" in machine.log()
+        finally:
+            child.send_signal(signal.SIGKILL)
+            child.wait(STEP_TIMEOUT_S)
+            observer.reset_param("rider_loss.timeout_s")
+            reply = observer.stop()
+            observer.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=reply.timecode)

@@ -67,3 +67,85 @@ def test_resume_by_another_rider_clears_the_rider_lost_warning() -> None:
     assert rig.send(Command.RESUME, rider="r2").success
     assert rig.control.rider_warning is None
     assert rig.control.controller_rider == "r2"
+
+
+class Beats:
+    """The bus's heartbeat record as data: arrival times on the rig's clock."""
+
+    def __init__(self) -> None:
+        self.at: dict[str, float] = {}
+
+    def last_heartbeat(self, rider: str) -> float | None:
+        return self.at.get(rider)
+
+
+def _supervised(timeout_s: float = 0.5, grace_s: float = 0.0) -> tuple[Rig, Beats]:
+    cfg = MachineConfig().with_overrides(rider_loss={"timeout_s": timeout_s, "grace_s": grace_s})
+    rig = Rig(cfg).ready()
+    beats = Beats()
+    rig.loop.beats = beats
+    assert rig.send(Command.START, rider="r1").success
+    return rig, beats
+
+
+def _beat_for(rig: Rig, beats: Beats, seconds: float, every: float = 0.1) -> None:
+    end = rig.clock() + seconds
+    while rig.clock() < end:
+        beats.at["r1"] = rig.clock()
+        rig.step(round(every / rig.period))
+
+
+def test_a_beating_rider_keeps_the_ride_running() -> None:
+    rig, beats = _supervised()
+    _beat_for(rig, beats, 3.0)
+    assert rig.state is S.RUNNING
+    assert rig.control.rider_connected
+
+
+def test_a_silent_heartbeat_pauses_within_the_timeout_and_two_cycles() -> None:
+    rig, beats = _supervised(timeout_s=0.5)
+    _beat_for(rig, beats, 1.0)
+    last = beats.at["r1"]
+    took = rig.run_to_state(S.PAUSED, max_s=2.0)
+    assert rig.clock() - last <= 0.5 + 2 * rig.period
+    assert took > 0
+    assert not rig.relays_on()
+    assert not rig.control.rider_connected
+    assert rig.control.rider_warning is not None
+
+
+def test_a_rider_that_never_beats_is_lost_after_the_timeout_from_its_command() -> None:
+    rig, _ = _supervised(timeout_s=0.3)
+    sent = rig.clock()
+    rig.run_to_state(S.PAUSED, max_s=1.0)
+    assert 0.3 < rig.clock() - sent <= 0.3 + 2 * rig.period
+
+
+def test_heartbeat_back_reconnects_but_moves_nothing() -> None:
+    rig, beats = _supervised(timeout_s=0.3)
+    rig.run_to_state(S.PAUSED, max_s=1.0)
+    _beat_for(rig, beats, 0.5)
+    assert rig.control.rider_connected
+    assert rig.state is S.PAUSED
+    assert not rig.relays_on()
+
+
+def test_heartbeat_back_within_grace_changes_nothing() -> None:
+    rig, beats = _supervised(timeout_s=0.3, grace_s=1.0)
+    rig.step(round(0.5 / rig.period))  # lost, grace running
+    assert not rig.control.rider_connected
+    _beat_for(rig, beats, 2.0)
+    assert rig.state is S.RUNNING
+    assert rig.control.rider_connected
+
+
+def test_timeout_is_an_online_parameter_checked_against_the_heartbeat() -> None:
+    from service.validate import semantic_findings
+
+    ok = MachineConfig()
+    assert not [f for f in semantic_findings(ok) if "rider_loss" in f.path]
+    bad = MachineConfig().with_overrides(rider_loss={"timeout_s": 0.15})
+    found = [f for f in semantic_findings(bad) if f.path == "/rider_loss/timeout_s"]
+    assert found and found[0].severity == "error", found
+    slow = MachineConfig().with_overrides(loop={"period_s": 0.2}, rider_loss={"timeout_s": 0.3})
+    assert any("scan periods" in f.message for f in semantic_findings(slow))
