@@ -14,6 +14,7 @@ import zenoh
 
 from schema.calibration import CalibrationRecord, CalibrationSource
 from schema.codec import Format, decode
+from schema.status import MachineState, Status
 from tests.integration.support import fast_args
 from tests.procs import REPO, Daemon, rider_cmd, running_daemon
 
@@ -73,10 +74,20 @@ def test_calibration_is_read_entered_refused_published_and_persisted(tmp_path: P
         assert implausible.returncode == 1 and "PARAM_OUT_OF_RANGE" in implausible.stderr
         unusable = rider(daemon, "calibration", "set", "--tilt-offset", "1", "--tilt-gain", "-3")
         assert unusable.returncode == 2  # refused before sending
-        assert rider(daemon, "home").returncode == 0
-        moving = rider(daemon, "calibration", "set", *MANUAL)
-        assert moving.returncode == 1 and "WRONG_STATE" in moving.stderr
-        assert rider(daemon, "stop").returncode == 0
+        with daemon.rider() as r:
+            # A Home held by the E-stop (the rotate stalled so it cannot finish first) is a
+            # motion under way: values cannot be entered until it is stopped.
+            r.sim("stall", axis="rotate", stalled=True)
+            r.home()
+            r.sim("estop", pressed=True)
+            moving = rider(daemon, "calibration", "set", *MANUAL)
+            assert moving.returncode == 1 and "WRONG_STATE" in moving.stderr, moving.stderr
+            r.sim("estop", pressed=False)
+            r.sim("clear")
+            for update in r.watch(("status",), timeout=5.0):  # the release is seen next cycle
+                if isinstance(update, Status) and not update.estop.active:
+                    break
+            assert r.stop().state is MachineState.DONE
 
     with running_daemon(tmp_path, extra=fast_args(tmp_path)) as again:
         shown = rider(again, "calibration")
