@@ -98,6 +98,8 @@ def test_a_start_refused_for_home_sends_the_warning_then_its_notice(machine: Dae
         assert r.wait_done(tilted, timeout=STEP_TIMEOUT_S).outcome is Outcome.DONE
         seen: queue.Queue[Status | Completion] = queue.Queue()
         with r.subscribe(["status", "done/**"], seen.put):
+            # Subscriptions reach the machine asynchronously: one heartbeat proves they have.
+            assert isinstance(seen.get(timeout=5.0), Status)
             refused = r.command(Command.START, check=False)  # the tilt is not home
             notice = r.wait_done(refused, timeout=STEP_TIMEOUT_S)
             order: list[str] = []
