@@ -7,6 +7,7 @@ Each stage leaves a screenshot in test-artifacts/ui/. Needs Debian's `chromium` 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,11 @@ def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(
 
     page.click("#cmd-calibrate-tilt")
     expect(page.locator("#calibrated")).to_have_text("tilt ✔ rotate ✘", timeout=RIDE_S)
+    # The page waits for the completion notice of its own transaction, not for a state.
+    expect(result).to_contain_text("finished: DONE", timeout=RIDE_S)
+    expect(page.locator("#calibrated")).to_have_attribute(
+        "title", re.compile(r"tilt: offset .* counts/° \(measured"), timeout=SHORT
+    )
     page.click("#cmd-calibrate-rotate")
     expect(page.locator("#calibrated")).to_have_text("tilt ✔ rotate ✔", timeout=RIDE_S)
     assert history_has(page, "s.state === 'CALIBRATING'")
@@ -99,6 +105,7 @@ def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(
 
     state_is(page, "DONE", RIDE_S)
     expect(page.locator("#revs")).to_have_text("3 / 3")
+    expect(result).to_have_text("Start finished: DONE (session complete)", timeout=SHORT)
     tilt = float(page.locator("#tilt-value").inner_text().rstrip("°"))
     assert abs(tilt - 45.0) <= 2.0
     assert history_has(page, "s.state === 'RUNNING' && (s.rotate_bits & 2)")  # moving, plotted

@@ -169,3 +169,21 @@ def test_calibration_values_reach_the_page_and_its_snapshot() -> None:
     assert [e.kind for e in events if e.kind == "calibration"] == ["calibration"]
     snap = view.snapshot(6.0)["calibration"]
     assert snap["tilt"]["source"] == CalibrationSource.MANUAL.value and snap["rotate"] is None
+
+
+def test_a_completion_notice_is_forwarded_to_the_page() -> None:
+    from schema.completion import Completion
+
+    notice = Completion.model_validate(
+        {
+            "machine_id": "m1",
+            "transaction_id": "ui-7",
+            "command": "Home",
+            "outcome": "DONE",
+            "state": "IDLE",
+            "started_at": 1.0,
+            "time": 2.0,
+        }
+    )
+    events = [e for e in LiveView().apply(notice, 1.0) if e.kind == "done"]
+    assert [e.data["transaction_id"] for e in events] == ["ui-7"]
