@@ -21,6 +21,7 @@ import zenoh
 
 from schema.codec import DecodeError, Format, decode, encode
 from schema.commands import Reply, transaction_id_of
+from schema.completion import Completion, Outcome
 from schema.errors import Error, ErrorCode
 from schema.status import Fault, FaultCode, MachineState, Status
 from service import simfaults
@@ -93,6 +94,9 @@ class SupervisorBus:
         self._last: tuple[bytes, str] | None = None
         self._down: Status | None = None
         self._down_entities: list[Any] = []
+        self._notice: Completion | None = None
+        """The notice of the motion the daemon left when it died (answered while down)."""
+        self._notified: str | None = None
         self._declared: list[Any] = []
 
     def start(self) -> None:
@@ -124,21 +128,66 @@ class SupervisorBus:
 
     # ------------------------------------------------------------------------ daemon down
     def daemon_down(self, reason: str) -> Status:
-        """Publish FAULT_HW (DAEMON_DIED); answer status and command queries until `daemon_up`."""
+        """Publish FAULT_HW (DAEMON_DIED); answer status and command queries until `daemon_up`.
+
+        A motion the daemon had under way (its last `Status.motion`) has ended with it: the
+        supervisor sends that transaction's one completion notice (FAULT_HW, DAEMON_DIED)."""
+        last = self._last_status()
         status = self._fault_status(reason)
+        notice = self._abandoned(last, status, reason)
         with self._lock:
             self._down = status
             declare = not self._down_entities
+            if notice is not None:
+                self._notice = notice
         if declare:
             s, b = self.session, self.base
             entities = [
                 s.declare_queryable(f"{b}/status", self._on_status),
                 s.declare_queryable(f"{b}/cmd/**", self._on_command),
+                s.declare_queryable(f"{b}/done/**", self._on_done),
             ]
             with self._lock:
                 self._down_entities = entities
         self._status_pub.put(encode(status))
+        if notice is not None:
+            self.session.put(
+                f"{self.base}/done/{notice.transaction_id}",
+                encode(notice),
+                encoding=Format.MSGPACK.value,
+                allowed_destination=zenoh.Locality.REMOTE,
+            )
         return status
+
+    def _abandoned(self, last: Status | None, down: Status, reason: str) -> Completion | None:
+        motion = last.motion if last is not None else None
+        with self._lock:
+            if motion is None or motion.transaction_id == self._notified:
+                return None
+            self._notified = motion.transaction_id
+        return Completion(
+            machine_id=self.config.machine.id,
+            transaction_id=motion.transaction_id,
+            command=motion.command,
+            outcome=Outcome.FAULT_HW,
+            code=FaultCode.DAEMON_DIED.value,
+            reason=f"{reason}; the machine daemon died during {motion.command}",
+            state=down.state,
+            started_at=motion.started_at,
+            time=down.time,
+        )
+
+    def _on_done(self, query: zenoh.Query) -> None:
+        """While the daemon is down: the notice of the motion it left (others: no answer)."""
+        with query:
+            with self._lock:
+                notice = self._notice
+            if notice is None:
+                return
+            key = f"{self.base}/done/{notice.transaction_id}"
+            if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                fmt = reply_format(query)
+                query.reply(key, encode(notice, fmt), encoding=fmt.value)
 
     def republish(self) -> None:
         """The heartbeat while the daemon is down (late joiners and lossy links)."""
@@ -177,6 +226,7 @@ class SupervisorBus:
                 "previous_state": last.state,
                 "session": None,
                 "fault": fault,
+                "motion": None,
                 "seq": last.seq + 1,
                 "time": now,
                 "uptime_s": 0.0,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,6 +20,7 @@ import pytest
 from rider.client import CommandRefused, Rider
 from schema.codec import Format, encode
 from schema.commands import REST_STATES, Reply, RotateStep, Session, TiltStep
+from schema.completion import Completion, Outcome
 from schema.credentials import MACHINE, RIDER, env_name
 from schema.errors import ErrorCode
 from schema.status import FAULT_STATES, FaultCode, MachineState, Status
@@ -55,7 +57,7 @@ def settle(feed: StatusFeed, reply: Reply) -> Status:
     return feed.until(lambda s: s.time >= reply.timecode and s.state in SETTLED)
 
 
-def ride_until_rotating(r: Rider, feed: StatusFeed) -> None:
+def ride_until_rotating(r: Rider, feed: StatusFeed) -> Reply:
     """Calibrate what is missing, home, start the long ride; return while the rotate relay is on."""
     status = r.status()
     if not status.calibrated.tilt:
@@ -70,6 +72,7 @@ def ride_until_rotating(r: Rider, feed: StatusFeed) -> None:
         )
     )
     assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
+    return reply
 
 
 def daemon_died(status: Status) -> bool:
@@ -97,7 +100,10 @@ def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
         try:
-            ride_until_rotating(r, feed)
+            ride = ride_until_rotating(r, feed)
+            ended: list[Completion] = []
+            waiter = threading.Thread(target=lambda: ended.append(r.wait_done(ride, 30.0)))
+            waiter.start()
             child = supervisor_child(supervised)
             t_kill = time.monotonic()
             os.kill(child, signal.SIGKILL)
@@ -113,6 +119,11 @@ def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(
             with pytest.raises(CommandRefused) as refused:
                 r.home()
             assert refused.value.error.code is ErrorCode.NOT_AVAILABLE
+            # The ride ended with the daemon: its one notice comes from the supervisor.
+            waiter.join(30.0)
+            assert ended and ended[0].outcome is Outcome.FAULT_HW, ended
+            assert ended[0].code == "DAEMON_DIED"
+            assert ended[0].transaction_id == ride.transaction_id
             back = feed.until(lambda s: not daemon_died(s))
             t_back = time.monotonic()
         finally:
