@@ -26,6 +26,7 @@ import pytest
 import zenoh
 
 from rider.client import Rider
+from schema.calibration import CalibrationSet, TiltCalibrationSet
 from schema.codec import Format, decode, encode, pack
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.credentials import MACHINE, RIDER, env_name
@@ -80,10 +81,15 @@ def forbidden_requests() -> list[tuple[str, bytes]]:
     ]
     out.append(("config/validate", b""))
     out.append(("diag/reset", b""))
+    cal = CalibrationSet(
+        transaction_id="intruder-cal",
+        tilt=TiltCalibrationSet(offset_counts=1194.0, gain_counts_per_deg=40.0),
+    )
+    out.append(("calibration/set", encode(cal)))
     return out
 
 
-READ_KEYS = ("status", "io/**", "axis/**", "diag/cycle")
+READ_KEYS = ("status", "io/**", "axis/**", "diag/cycle", "calibration")
 
 
 def fire(session: zenoh.Session, base: str, requests: list[tuple[str, bytes]]) -> dict[str, int]:
@@ -163,6 +169,7 @@ def test_rider_identity_commands_writes_params_and_reads(machine: Daemon, ids: I
         before_reset = r.diag(reset=True)
         assert r.diag().since >= before_reset.time  # reset after its reply was stamped
         assert r.validate().ok
+        assert r.calibration().complete is False
         assert r.sim("world").estop_pressed is False
 
 
@@ -202,6 +209,7 @@ def test_monitor_reads_status_io_axes_diag_and_subscribes(machine: Daemon, ids: 
         assert m.status().machine_id == "m1"
         assert {p.name for p in m.io()} >= {"estop"}
         assert m.diag().cycles > 0
+        assert m.calibration().machine_id == "m1"  # the values, read-only
         feed = StatusFeed(m)
         try:
             assert feed.next().machine_id == "m1"  # a heartbeat reaches a monitor
