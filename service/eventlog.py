@@ -320,7 +320,7 @@ class EventLog:
         if conn is None:
             self._fail(self.last_error or "event log unavailable", len(batch))
             return
-        written: list[Event] = []
+        rows: list[tuple[int, float, int | None, str, str, str]] = []
         try:
             conn.execute("BEGIN")
             for kind, details, when, cycle in items:
@@ -330,8 +330,7 @@ class EventLog:
                     (when, cycle, self.machine_id, kind, details),
                 )
                 assert cur.lastrowid is not None
-                row = (cur.lastrowid, when, cycle, self.machine_id, kind, details)
-                written.append(row_event(row))
+                rows.append((cur.lastrowid, when, cycle, self.machine_id, kind, details))
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
             if conn.in_transaction:
@@ -340,7 +339,10 @@ class EventLog:
             return
         self._failure = None
         self._dropped_recorded += dropped
-        self.written += len(written)
+        self.written += len(rows)
+        if not self._listeners:
+            return
+        written = [row_event(row) for row in rows]  # parsed only for someone to read them
         for listener in self._listeners:
             try:
                 listener(written)
