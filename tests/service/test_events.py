@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from schema.calibration import CalibrationSet
 from schema.commands import Command, RotateStep, Session, TiltStep
 from schema.events import (
     CalibrationEvent,
@@ -212,3 +213,19 @@ def test_a_watchdog_trip_ends_the_motion_with_a_recorded_fault() -> None:
     assert isinstance(raised, FaultEvent) and raised.code == "WATCHDOG"
     assert isinstance(done, CompletionEvent) and done.transaction_id == reply.transaction_id
     assert done.outcome == "FAULT_HW" and done.code == "WATCHDOG"
+
+
+def test_calibration_entered_by_hand_is_recorded_old_to_new() -> None:
+    rig, sink = ready_rig()
+    before = rig.control.calibration.tilt
+    assert before is not None
+    mark = len(sink.events)
+    values = {"offset_counts": before.offset_counts + 10, "gain_counts_per_deg": 41.0}
+    rig.control.enter_calibration(
+        CalibrationSet.model_validate({"transaction_id": "c1", "tilt": values}), rig.clock()
+    )
+    rig.step()
+    [cal] = [d for d in details(sink, mark) if isinstance(d, CalibrationEvent)]
+    assert cal.axis == "tilt" and cal.old is not None and cal.new is not None
+    assert cal.old["offset_counts"] == before.offset_counts
+    assert cal.new["offset_counts"] == before.offset_counts + 10
