@@ -94,6 +94,23 @@ def test_a_json_command_with_a_transaction_id_is_accepted_once(machine: Daemon) 
         assert MachineState.CALIBRATING not in states, "the repeat calibrated again"
 
 
+def test_the_notice_and_the_calibration_from_the_cli(machine: Daemon) -> None:
+    """docs/zenoh-cli.md: the timecode echo, `done/<id>` and `calibration` as JSON."""
+    with machine.rider() as rider:
+        request = '{"transaction_id":"cli-home-1","timecode":1795442745.5}'
+        (first,) = replies(zenoh_get(machine, f"{BASE}/cmd/home", request))
+        reply = Reply.model_validate(first)
+        assert reply.request_timecode == 1795442745.5 and reply.timecode != 1795442745.5
+        rider.wait_done(reply, STEP_TIMEOUT_S)
+    (notice,) = replies(zenoh_get(machine, f"{BASE}/done/cli-home-1?format=json"))
+    assert notice["transaction_id"] == "cli-home-1" and notice["command"] == "Home"
+    assert notice["outcome"] in {"DONE", "FAULT_HW"}  # this module's machine may be uncalibrated
+    (unknown,) = replies(zenoh_get(machine, f"{BASE}/done/never-1?format=json"))
+    assert unknown["error"]["code"] == "UNKNOWN_TRANSACTION"
+    (record,) = replies(zenoh_get(machine, f"{BASE}/calibration?format=json"))
+    assert record["machine_id"] == "m1" and "complete" in record
+
+
 def test_a_refused_command_replies_with_a_json_error(machine: Daemon) -> None:
     (unknown,) = replies(zenoh_get(machine, f"{BASE}/cmd/fly", '{"transaction_id":"cli-2"}'))
     error = Reply.model_validate(unknown).error
