@@ -81,6 +81,10 @@ def test_full_disk_calibration_and_parameter_are_not_reported_saved(tmp_path: Pa
             cal = daemon.cli("calibrate", "tilt", "--wait")
             assert cal.returncode == 1, cal.stdout + cal.stderr
             assert "STORAGE_FAILED: calibration not saved" in cal.stderr
+            # Values entered by hand are answered only after their write: here, refused.
+            manual = daemon.cli("calibration", "set", "--tilt-offset", "1194", "--tilt-gain", "40")
+            assert manual.returncode == 1, manual.stdout + manual.stderr
+            assert "STORAGE_FAILED" in manual.stderr and "NOT saved" in manual.stderr
             param = daemon.cli("params", "set", "rider_loss.grace_s", "2", "--persist")
             assert param.returncode == 1 and "STORAGE_FAILED" in param.stderr, param.stderr
             shown = daemon.cli("status")
