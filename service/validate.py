@@ -181,6 +181,9 @@ def _ranges(config: MachineConfig) -> Iterator[Finding]:
             "/tilt/gain_min_counts_per_deg",
             f"tilt.gain_min_counts_per_deg {tilt.gain_min_counts_per_deg:g} must be below"
             f" tilt.gain_max_counts_per_deg {tilt.gain_max_counts_per_deg:g}",
+            value=tilt.gain_min_counts_per_deg,
+            lt="/tilt/gain_max_counts_per_deg",
+            other=tilt.gain_max_counts_per_deg,
         )
 
 
@@ -193,6 +196,8 @@ def _scan_period(config: MachineConfig) -> Iterator[Finding]:
             "/loop/period_s",
             f"{period * 1000:g} ms is below the {MIN_RELIABLE_PERIOD_S * 1000:g} ms a Python"
             " scan loop holds reliably: expect overruns (see diag/cycle)",
+            value=period,
+            ge=MIN_RELIABLE_PERIOD_S,
         )
     # The home switch is only seen if at least one scan falls inside its arc, with margin.
     step = rotate.nominal_speed_dps * period
@@ -202,6 +207,10 @@ def _scan_period(config: MachineConfig) -> Iterator[Finding]:
             "/loop/period_s",
             f"the rotate axis moves {step:g}° per {period * 1000:g} ms scan, more than half the"
             f" {rotate.home_arc_deg:g}° home-switch arc: the switch can be missed",
+            value=period,
+            step_deg=step,
+            limit_deg=rotate.home_arc_deg / 2,
+            other="/rotate/home_arc_deg",
         )
     # The tilt stops on the first scan past its target; a step wider than the settle
     # window overshoots it every time.
@@ -212,6 +221,10 @@ def _scan_period(config: MachineConfig) -> Iterator[Finding]:
             "/loop/period_s",
             f"the tilt moves {tstep:g}° per scan, more than the ±{tilt.tolerance_deg:g}° settle"
             " window: it cannot settle on a target",
+            value=period,
+            step_deg=tstep,
+            limit_deg=2 * tilt.tolerance_deg,
+            other="/tilt/tolerance_deg",
         )
     elif tstep > tilt.tolerance_deg:
         yield _warning(
@@ -219,6 +232,10 @@ def _scan_period(config: MachineConfig) -> Iterator[Finding]:
             "/loop/period_s",
             f"the tilt moves {tstep:g}° per scan, more than tilt.tolerance_deg"
             f" {tilt.tolerance_deg:g}°: moves will often need corrections",
+            value=period,
+            step_deg=tstep,
+            limit_deg=tilt.tolerance_deg,
+            other="/tilt/tolerance_deg",
         )
 
 
@@ -232,6 +249,9 @@ def _timeouts(config: MachineConfig) -> Iterator[Finding]:
             "/rotate/revolution_timeout_s",
             f"{rotate.revolution_timeout_s:g} s is shorter than one revolution at"
             f" {rotate.nominal_speed_dps:g}°/s ({revolution_s:.3g} s)",
+            value=rotate.revolution_timeout_s,
+            ge=revolution_s,
+            other="/rotate/nominal_speed_dps",
         )
     elif rotate.revolution_timeout_s < slowest_s:
         yield _warning(
@@ -239,6 +259,9 @@ def _timeouts(config: MachineConfig) -> Iterator[Finding]:
             "/rotate/revolution_timeout_s",
             f"{rotate.revolution_timeout_s:g} s is shorter than the slowest revolution"
             f" rotate.speed_tolerance accepts ({slowest_s:.3g} s)",
+            value=rotate.revolution_timeout_s,
+            ge=slowest_s,
+            other="/rotate/speed_tolerance",
         )
     leave_s = rotate.home_arc_deg / rotate.nominal_speed_dps
     if rotate.backoff_timeout_s < leave_s:
@@ -248,6 +271,9 @@ def _timeouts(config: MachineConfig) -> Iterator[Finding]:
             f"{rotate.backoff_timeout_s:g} s is shorter than crossing the"
             f" {rotate.home_arc_deg:g}° home arc at {rotate.nominal_speed_dps:g}°/s"
             f" ({leave_s:.3g} s)",
+            value=rotate.backoff_timeout_s,
+            ge=leave_s,
+            other="/rotate/home_arc_deg",
         )
     travel_s = (tilt.max_deg - tilt.min_deg) / tilt.nominal_speed_dps
     if travel_s > 0 and tilt.home_timeout_s < travel_s:
@@ -257,6 +283,9 @@ def _timeouts(config: MachineConfig) -> Iterator[Finding]:
             f"{tilt.home_timeout_s:g} s is shorter than the full tilt travel"
             f" {tilt.min_deg:g}°..{tilt.max_deg:g}° at {tilt.nominal_speed_dps:g}°/s"
             f" ({travel_s:.3g} s)",
+            value=tilt.home_timeout_s,
+            ge=travel_s,
+            other="/tilt/nominal_speed_dps",
         )
     if tilt.follow_window_s < config.loop.period_s:
         yield _error(

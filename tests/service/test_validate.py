@@ -323,6 +323,10 @@ def test_findings_carry_seed_000s_structured_extra() -> None:
     assert clash.extra == {"channel": "O_1", "used_by": "/hal/iomap/rotateRelay"}
     tilt = by_path["/tilt/min_deg"]
     assert tilt.extra["value"] == 70.0 and tilt.extra["lt"] == "/tilt/max_deg"
+    _, slow = validate_data({"rotate": {"revolution_timeout_s": 1.0}})
+    timeout = next(f for f in slow.findings if f.path == "/rotate/revolution_timeout_s")
+    assert timeout.extra["value"] == 1.0 and timeout.extra["other"] == "/rotate/nominal_speed_dps"
+    assert isinstance(timeout.extra["ge"], float) and timeout.extra["ge"] > 1.0
     # On the wire (JSON, as seed 000's validate_project answers) `extra` goes along.
     wire = json.loads(report.model_dump_json())
     assert wire["findings"][0]["extra"] == report.findings[0].extra
