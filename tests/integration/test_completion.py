@@ -3,7 +3,9 @@ asks how it ended, a raw subscriber sees exactly one notice, the seed's refused 
 
 from __future__ import annotations
 
+import json
 import queue
+import subprocess
 import threading
 
 import pytest
@@ -15,7 +17,7 @@ from schema.commands import Command, Session
 from schema.completion import Completion, Outcome
 from schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, module_machine, prepare
-from tests.procs import Daemon
+from tests.procs import REPO, Daemon, rider_cmd
 
 pytestmark = pytest.mark.integration
 
@@ -119,3 +121,22 @@ def test_a_start_refused_for_home_sends_the_warning_then_its_notice(machine: Dae
 def test_wait_done_on_an_unknown_transaction_raises_at_once(machine: Daemon) -> None:
     with machine.rider() as r, pytest.raises(UnknownTransaction):
         r.wait_done("nobody-sent-this", timeout=STEP_TIMEOUT_S)
+
+
+def test_resume_wait_waits_for_the_notice_of_the_motion_it_resumes(machine: Daemon) -> None:
+    with machine.rider() as r:
+        prepare(r)
+        reply = r.start(Session.model_validate({"steps": [{"kind": "rotate", "revolutions": 2}]}))
+        r.pause()
+        done = subprocess.run(
+            rider_cmd(
+                "--connect", machine.endpoint, "--zenoh-config", str(machine.zenoh_config),
+                "--json", "resume", "--wait",
+            ),
+            capture_output=True, text=True, timeout=STEP_TIMEOUT_S + 10, cwd=REPO, check=False,
+        )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    resumed, notice, status = (json.loads(line) for line in done.stdout.splitlines())
+    assert resumed["code"] == "RESP_RESUMED"
+    assert notice["transaction_id"] == reply.transaction_id and notice["outcome"] == "DONE"
+    assert status["state"] == "DONE" and status["motion"] is None
