@@ -61,24 +61,24 @@ _RANGE_TYPES = {
 }
 
 
-def _error(category: Category, path: str, message: str, **extra: Any) -> Finding:
+def _finding(
+    severity: Severity, category: Category, path: str, message: str, extra: dict[str, Any]
+) -> Finding:
     return Finding(
         category=category.value,
-        severity=Severity.ERROR,
+        severity=severity,
         path=path,
         message=message,
         extra={k: _scalar(v) for k, v in extra.items()},
     )
+
+
+def _error(category: Category, path: str, message: str, **extra: Any) -> Finding:
+    return _finding(Severity.ERROR, category, path, message, extra)
 
 
 def _warning(category: Category, path: str, message: str, **extra: Any) -> Finding:
-    return Finding(
-        category=category.value,
-        severity=Severity.WARNING,
-        path=path,
-        message=message,
-        extra={k: _scalar(v) for k, v in extra.items()},
-    )
+    return _finding(Severity.WARNING, category, path, message, extra)
 
 
 def _scalar(value: Any) -> bool | int | float | str | None:

@@ -10,9 +10,8 @@ from schema.completion import Completion, Outcome
 from schema.status import MachineState, MotionRef, Status
 from service.completions import CompletionLog
 from service.config import MachineConfig
-from service.devices import Calibration
-from service.persist import SaveTicket
 from tests.rig import BAD_SESSION, Rig, known_calibration
+from tests.service.test_persist_failure import SlowStore
 
 S = MachineState
 C = Command
@@ -224,23 +223,9 @@ def test_a_motion_still_running_at_shutdown_ends_aborted() -> None:
     assert len(heard.of("s1")) == 1
 
 
-class FailingStore:
-    """A store whose disk is full: every save finishes with a problem, a few cycles later."""
-
-    def __init__(self) -> None:
-        self.tickets: list[SaveTicket] = []
-
-    def load(self) -> tuple[Calibration, str | None]:
-        return Calibration(), None
-
-    def save(self, cal: Calibration) -> SaveTicket:
-        self.tickets.append(SaveTicket())
-        return self.tickets[-1]
-
-
 def test_a_calibration_that_cannot_be_saved_ends_storage_failed() -> None:
     rig = Rig()
-    store = FailingStore()
+    store = SlowStore()  # the test finishes its write with a problem
     rig.control.on_calibrated = store.save
     heard = Heard(rig)
     assert rig.send(C.CALIBRATE_TILT, transaction_id="ct").success
