@@ -228,6 +228,9 @@ class ScanLoop:
         self._seq = 0
         self._io_last: dict[str, bool | int] = {}
         self._max_tasks = config.loop.max_commands_per_cycle
+        self.lock = threading.Lock()
+        """One writer at a time: held by the runner for a cycle (and for queued tasks between
+        cycles), and by a Zenoh callback thread running a command between cycles."""
 
     # ------------------------------------------------------------------------------ cycle
     def step(self, now: float) -> None:
@@ -301,6 +304,36 @@ class ScanLoop:
         for task in tasks:
             task.run(self, now)
         return len(tasks)
+
+    def execute_between_cycles(
+        self,
+        command: Command,
+        request: CommandRequest,
+        clock: Callable[[], float],
+        *,
+        sender: str | None = None,
+        timeout: float,
+    ) -> Reply | None:
+        """Run a command on the calling thread under the loop's lock, between two cycles.
+
+        The command sees the state the last cycle left, as a queued one would; its effect on
+        outputs comes with the next cycle, which reads inputs and handles E-stop first. None
+        before the first scan and after shutdown (queue it instead); a BUSY reply when the scan
+        thread holds the lock longer than `timeout` (stalled).
+        """
+        if not self.lock.acquire(timeout=timeout):
+            return Reply.failure(
+                Error(code=ErrorCode.BUSY, message="scan loop not responding; retry later"),
+                transaction_id=request.transaction_id,
+                command=command.value,
+                timecode=clock() + self.wall_offset,
+            )
+        try:
+            if self.cycle == 0 or self.inbox.closed:
+                return None
+            return self.execute(command, request, clock(), sender=sender)
+        finally:
+            self.lock.release()
 
     def execute(
         self, command: Command, request: CommandRequest, now: float, *, sender: str | None = None

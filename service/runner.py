@@ -76,6 +76,7 @@ class RealtimeRunner:
         clock, period, spin = self.clock, self.period, self.spin_s
         wake, stop = self.loop.inbox.wake, self.stop_event
         loop, stats = self.loop, self.stats
+        lock = loop.lock
         deadline = clock()  # first scan at once: commands need a real input image
         consecutive = 0
         while not stop.is_set():
@@ -86,17 +87,19 @@ class RealtimeRunner:
                 if wake.wait(remaining - spin):
                     if stop.is_set():
                         return
-                    loop.service_inbox(clock())
+                    with lock:
+                        loop.service_inbox(clock())
             while clock() < deadline:
                 pass
-            start = clock()
-            try:
-                loop.step(start)
-                consecutive = 0
-            except Exception as exc:  # noqa: BLE001 - any failure must end in safe outputs
-                consecutive += 1
-                self._on_error(exc, start, consecutive)
-            end = clock()
+            with lock:
+                start = clock()
+                try:
+                    loop.step(start)
+                    consecutive = 0
+                except Exception as exc:  # noqa: BLE001 - any failure must end in safe outputs
+                    consecutive += 1
+                    self._on_error(exc, start, consecutive)
+                end = clock()
             jitter = start - deadline
             deadline += period
             missed = 0

@@ -24,6 +24,7 @@ class EmptyScan:
     def __init__(self) -> None:
         self.inbox = Inbox()
         self.commands_handled = 0
+        self.lock = threading.Lock()
 
     def step(self, now: float) -> None:
         pass

@@ -1,7 +1,9 @@
 """The machine's Zenoh adapter; this package (with `bus.supervisor`) alone imports `zenoh`.
 
-Queryables decode requests on Zenoh's callback thread and hand them to the scan thread through
-the `Inbox`; the scan thread owns all machine state and sends each command's one reply.
+Queryables decode requests on Zenoh's callback thread. A command runs right there, between two
+scan cycles, under the loop's lock (one writer at a time; the next cycle still reads inputs and
+handles E-stop before any output changes) and is answered from the same thread: no hand-off.
+Other work for the machine goes to the scan thread through the `Inbox`.
 Read-only queries (status, IO, axes, diagnostics) are answered from the latest published
 records without touching state. Publishers drop rather than block under congestion.
 """
@@ -57,8 +59,14 @@ SAVE_WAIT_S = 5.0
 """How long a manual calibration write may take before its reply says it was not saved."""
 MAX_RIDERS = 1024
 """Riders whose heartbeat the bus keeps track of at once."""
+LOCK_TIMEOUT_S = 0.5
+"""How long a command waits for the scan thread to finish a cycle before BUSY (a stalled loop)."""
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 """Without --listen or a config file: this host only (beyond it, use an authenticated profile)."""
+
+
+ENCODINGS = {fmt: zenoh.Encoding(fmt.value) for fmt in Format}
+"""Prebuilt, so a reply does not parse its encoding string."""
 
 
 class ParamService(Protocol):
@@ -126,6 +134,7 @@ class ZenohBus:
         self.events = events
         self.wall = wall
         self.clock = clock
+        """The scan loop's clock (the runner's), for commands run between cycles."""
         self.base = config.key_base
         self._declared: list[Any] = []
         self._data_pubs: dict[str, zenoh.Publisher] = {}
@@ -134,17 +143,20 @@ class ZenohBus:
         self._token: zenoh.LivelinessToken | None = None
         self.riders_alive: set[str] = set()
         self._beats: dict[str, float] = {}
+        self._commands = {
+            f"{self.base}/cmd/{c.key}": (c, zenoh.KeyExpr(f"{self.base}/cmd/{c.key}"))
+            for c in Command
+        }
+        """Exact command key → (command, its prebuilt key expression: no parsing per reply)."""
 
     # ---------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
         """Declare queryables and publishers, start the diag publisher; the liveliness token
         follows with the first status (`publish_status`)."""
         s, b = self.session, self.base
-        for command in Command:
-            self._declared.append(
-                s.declare_queryable(f"{b}/cmd/{command.key}", self._command_handler(command))
-            )
-        self._declared.append(s.declare_queryable(f"{b}/cmd/**", self._on_cmd_other))
+        # One queryable for every command key: a query reaches one callback, where a queryable
+        # per command beside a `cmd/**` one made every command wait for two (bench/roundtrip).
+        self._declared.append(s.declare_queryable(f"{b}/cmd/**", self._on_cmd))
         self._declared.append(s.declare_queryable(f"{b}/status", self._on_status))
         self._declared.append(s.declare_queryable(f"{b}/io/**", self._on_io))
         self._declared.append(s.declare_queryable(f"{b}/axis/**", self._on_axis))
@@ -295,18 +307,16 @@ class ZenohBus:
             )
 
     # --------------------------------------------------------------------------- commands
-    def _command_handler(self, command: Command) -> Callable[[zenoh.Query], None]:
-        own_key = f"{self.base}/cmd/{command.key}"
+    def _on_cmd(self, query: zenoh.Query) -> None:
+        """Every `cmd/...` query: a known command key runs it; anything else is refused."""
+        target = self._commands.get(str(query.key_expr))
+        if target is None:
+            self._on_cmd_other(query)
+            return
+        self._on_command(target[0], target[1], query)
 
-        def handler(query: zenoh.Query) -> None:
-            if str(query.key_expr) != own_key:
-                query.drop()  # a wildcard query: the cmd/** queryable refuses it, once
-                return
-            self._on_command(command, own_key, query)
-
-        return handler
-
-    def _on_command(self, command: Command, key: str, query: zenoh.Query) -> None:
+    def _on_command(self, command: Command, key_expr: zenoh.KeyExpr, query: zenoh.Query) -> None:
+        key = str(key_expr)
         data = _payload(query)
         fmt = reply_format(query, data)
         raw: Any = None
@@ -328,9 +338,16 @@ class ZenohBus:
 
         def respond(reply: Reply) -> None:
             with query:
-                query.reply(key, encode(reply, fmt), encoding=fmt.value)
+                query.reply(key_expr, encode(reply, fmt), encoding=ENCODINGS[fmt])
 
         sender = _sender(query)
+        reply = self.loop.execute_between_cycles(
+            command, request, self.clock, sender=sender, timeout=LOCK_TIMEOUT_S
+        )
+        if reply is not None:
+            respond(reply)
+            return
+        # Before the first scan (no input image yet) or after shutdown: the scan thread decides.
         if not self.loop.inbox.put(PendingCommand(command, request, respond, sender)):
             self._reply_now(
                 query,
@@ -345,9 +362,6 @@ class ZenohBus:
         key = str(query.key_expr)
         prefix = f"{self.base}/cmd/"
         suffix = key[len(prefix) :] if key.startswith(prefix) else key
-        if Command.from_key(suffix) is not None:
-            query.drop()  # a concrete command key: its own queryable answers
-            return
         fmt = reply_format(query, _payload(query))
         if any(c in key for c in WILDCARD_CHARS):
             error = Error(
