@@ -327,6 +327,7 @@ class ScanLoop:
                 transaction_id=request.transaction_id,
                 command=command.value,
                 timecode=clock() + self.wall_offset,
+                request_timecode=request.timecode,
             )
         try:
             if self.cycle == 0 or self.inbox.closed:
