@@ -51,5 +51,17 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m bench.all
 
+## Refresh the lock files (requirements/README.md) after a range in pyproject.toml changed;
+## `make lock UPGRADE=1` also takes the newest releases within the ranges.
+LOCK = $(BIN)/pip-compile --quiet --generate-hashes --allow-unsafe --strip-extras \
+	--no-emit-index-url $(if $(UPGRADE),--upgrade)
+lock: $(STAMP)
+	$(BIN)/python -m pip install --quiet "pip-tools>=7.5,<8"
+	$(LOCK) --extra dev --extra revpi --extra ui --all-build-deps \
+	  -o requirements/dev.txt pyproject.toml
+	$(LOCK) --extra revpi --extra ui -c requirements/dev.txt -o requirements/runtime.txt pyproject.toml
+	$(LOCK) --all-build-deps --only-build-deps -c requirements/dev.txt \
+	  -o requirements/build.txt pyproject.toml
+
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache tests/js/node_modules

@@ -217,7 +217,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         writer.close()
         if events is not None:
             events.close()
-        log.info("event=stopped code=%d cycles=%d", code, stats.cycles)
+        # One line that says the outputs were forced safe (step 1 above), for logs and tests.
+        log.info("event=stopped code=%d outputs=safe cycles=%d", code, stats.cycles)
         if closed:
             exit_deadline.cancel()
     return code

@@ -30,7 +30,7 @@ REVPI_OVERRIDE = REPO / "docker" / "compose.revpi.yaml"
 DOCKERFILE = REPO / "Dockerfile"
 DOCKERIGNORE = REPO / ".dockerignore"
 
-_VAR = re.compile(r"\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:-|:\?)(?P<arg>[^}]*))?\}")
+_VAR = re.compile(r"\$\$|\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:-|:\?)(?P<arg>[^}]*))?\}")
 
 
 class SpecError(AssertionError):
@@ -39,9 +39,11 @@ class SpecError(AssertionError):
 
 # ----------------------------------------------------------------------------- compose
 def interpolate(text: str, env: Mapping[str, str]) -> str:
-    """Compose's `${NAME}`, `${NAME:-default}` and `${NAME:?error}` forms."""
+    """Compose's `${NAME}`, `${NAME:-default}`, `${NAME:?error}` and `$$` forms."""
 
     def one(m: re.Match[str]) -> str:
+        if m[0] == "$$":  # a literal `$` (e.g. for a shell in the container)
+            return "$"
         name, op, arg = m["name"], m["op"], m["arg"]
         value = env.get(name, "")
         if value:
@@ -352,6 +354,23 @@ def host_path(arg: str, paths: Mapping[str, Path]) -> str:
         if arg.startswith(target.rstrip("/") + "/"):
             return str(host / arg[len(target.rstrip("/")) + 1 :])
     return arg
+
+
+SECRETS_DIR = "/run/secrets"
+
+
+def secret_paths(
+    compose: Mapping[str, Any], svc: Mapping[str, Any], host_dir: Path
+) -> dict[str, Path]:
+    """Container path → host path of each secret a service gets (`/run/secrets/<name>`), the
+    host file named as in the top-level `secrets:` (`file: ./secrets/…`) but under `host_dir`."""
+    declared = compose.get("secrets") or {}
+    out = {}
+    for name in svc.get("secrets") or []:
+        if name not in declared:
+            raise SpecError(f"secret {name!r} is not declared at the top level")
+        out[f"{SECRETS_DIR}/{name}"] = host_dir / Path(declared[name]["file"]).name
+    return out
 
 
 def mount_paths(

@@ -31,6 +31,7 @@ import pytest
 
 from rider.cli import EXIT_NO_REPLY, EXIT_OK
 from schema.status import MachineState, Status
+from service.credentials import init_credentials
 from tests.deploy import spec
 from tests.integration.support import write_fast_config
 from tests.netns import NetnsUnavailable, NsPair, hosts_file, unavailable_reason, veth_pair
@@ -128,16 +129,29 @@ class Stack:
         fast = write_fast_config(self.tmp)
         return spec.mount_paths(self.svc(name), self.tmp / "volumes", {"./machine.toml": fast})
 
+    def secrets(self, name: str) -> dict[str, Path]:
+        """The service's /run/secrets files, made here as `machine credentials init` makes them."""
+        host_dir = self.tmp / "secrets"
+        if not host_dir.exists():
+            init_credentials(host_dir)
+        return spec.secret_paths(self.compose, self.svc(name), host_dir)
+
     def env(self, name: str) -> dict[str, str]:
-        return {**os.environ, "PYTHONUNBUFFERED": "1", **spec.environment(self.svc(name))}
+        svc_env = spec.environment(self.svc(name))
+        secrets = self.secrets(name)
+        svc_env = {k: str(secrets.get(v, v)) for k, v in svc_env.items()}
+        return {**os.environ, "PYTHONUNBUFFERED": "1", **svc_env}
 
     def up(self, name: str) -> Child:
-        argv = spec.command(self.svc(name))
-        if name == "router":  # the image's entrypoint is zenohd; compose gives its arguments
-            paths = self.paths(name)
-            host = [sys.executable, "-m", "tests.deploy.zenohd"]
-            host += [spec.host_path(a, paths) for a in argv]
+        if name == "router":  # a shell in the router image: /entrypoint.sh runs zenohd
+            shell, flag, script = self.svc(name)["entrypoint"]
+            zenohd = f"{sys.executable} -m tests.deploy.zenohd"
+            script = script.replace("/entrypoint.sh", zenohd)
+            for target, path in {**self.paths(name), **self.secrets(name)}.items():
+                script = script.replace(target, str(path))
+            host = [shell, flag, script]
         else:
+            argv = spec.command(self.svc(name))
             host = spec.host_argv(argv, self.paths(name))
         child = Child.start(name, self.net.cmd(self.ns(name), host), self.env(name))
         self.children[name] = child
@@ -239,7 +253,7 @@ def test_compose_stack_runs_a_session_to_done_and_stops_safely(stack: Stack) -> 
         raise AssertionError(f"still running after {grace:g} s: docker would SIGKILL it") from None
     assert code == 0, machine.log()
     machine.wait_line("event=signal signal=SIGTERM")
-    machine.wait_line("event=stopped code=0")
+    machine.wait_line("event=stopped code=0 outputs=safe")
     assert stack.healthcheck("machine") == EXIT_NO_REPLY
     assert ui.stop(grace) == 0, ui.log()
 
