@@ -60,18 +60,60 @@ CREATE INDEX IF NOT EXISTS events_kind ON events(kind, seq);
 """
 
 
+_TABLE_COLUMNS = ["seq", "time", "cycle", "machine_id", "kind", "details"]
+
+BUSY_TIMEOUT_S = 1.0
+"""How long a write or read waits for a database another process holds locked before it
+counts as failed: short, so a locked file can never hold up start-up or the shutdown deadline."""
+
+
+class ForeignDatabase(sqlite3.DatabaseError):
+    """A SQLite file whose `events` table is not ours (another program's, or an old layout)."""
+
+
 # ---------------------------------------------------------------------------------- reading
 def connect(path: Path) -> sqlite3.Connection:
     """A connection in WAL mode with the table in place (creating the file if needed)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    conn = sqlite3.connect(path, timeout=5.0, check_same_thread=False, isolation_level=None)
-    # auto_vacuum must be chosen before the first table exists; later it is a no-op.
-    conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
-    conn.execute("PRAGMA journal_mode=WAL")
-    conn.execute("PRAGMA synchronous=NORMAL")
-    conn.execute("PRAGMA journal_size_limit=4194304")
-    conn.executescript(_SCHEMA)
+    conn = sqlite3.connect(
+        path, timeout=BUSY_TIMEOUT_S, check_same_thread=False, isolation_level=None
+    )
+    try:
+        columns = [row[1] for row in conn.execute("PRAGMA table_info(events)").fetchall()]
+        if columns and columns != _TABLE_COLUMNS:
+            raise ForeignDatabase(f"its events table has the columns {columns}")
+        # auto_vacuum must be chosen before the first table exists; later it is a no-op.
+        conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
+        conn.execute("PRAGMA journal_mode=WAL")
+        conn.execute("PRAGMA synchronous=NORMAL")
+        conn.execute("PRAGMA journal_size_limit=4194304")
+        conn.executescript(_SCHEMA)
+    except BaseException:
+        conn.close()
+        raise
     return conn
+
+
+def unusable(exc: BaseException) -> bool:
+    """Whether `exc` says the file is not a usable event log at all (garbage, a damaged
+    image, another schema), as opposed to a passing problem (locked, disk full, read-only)."""
+    return isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, sqlite3.OperationalError)
+
+
+def set_aside(path: Path, stamp: float) -> Path:
+    """Rename an unusable log (with its WAL and shared-memory files) out of the way, kept for
+    whoever wants to look at it: `events.db.bad-<UTC time>`."""
+    suffix = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(stamp))
+    aside = path.with_name(f"{path.name}.bad-{suffix}")
+    n = 1
+    while aside.exists():
+        n += 1
+        aside = path.with_name(f"{path.name}.bad-{suffix}-{n}")
+    os.rename(path, aside)
+    for extra in ("-wal", "-shm"):
+        with contextlib.suppress(FileNotFoundError):
+            os.rename(f"{path}{extra}", f"{aside}{extra}")
+    return aside
 
 
 def connect_readonly(path: Path) -> sqlite3.Connection:
@@ -215,31 +257,56 @@ class EventLog:
         """Open the database and start the threads; a database that cannot be opened is
         reported (and its events counted as lost) but never stops the machine."""
         try:
-            self._conn = connect(self.path)
-            # fetchall: a cursor left open would hold a read transaction for good.
-            last = "SELECT kind FROM events ORDER BY seq DESC LIMIT 1"
-            rows = self._conn.execute(last).fetchall()
-            if rows:
-                self.previous_stop_clean = rows[0][0] == EventKind.DAEMON_STOP
+            self._open()
         except (sqlite3.Error, OSError) as exc:
-            self._fail(f"cannot open {self.path}: {exc}", 0)
             self._conn = None
+            if unusable(exc):
+                self._replace(exc)
+            else:
+                self._fail(f"cannot open {self.path}: {exc}", 0)
         self._writer = threading.Thread(target=self._run, name="eventlog", daemon=True)
         self._writer.start()
         self._reader = threading.Thread(target=self._serve_reads, name="eventlog-read", daemon=True)
         self._reader.start()
 
-    def close(self, timeout: float = 5.0) -> None:
-        """Write what is queued, then stop both threads."""
+    def _open(self) -> None:
+        self._conn = connect(self.path)
+        # fetchall: a cursor left open would hold a read transaction for good.
+        last = "SELECT kind FROM events ORDER BY seq DESC LIMIT 1"
+        rows = self._conn.execute(last).fetchall()
+        if rows:
+            self.previous_stop_clean = rows[0][0] == EventKind.DAEMON_STOP
+
+    def _replace(self, exc: BaseException) -> None:
+        """Keep an unusable file aside and start a new log, recorded as its first event."""
+        try:
+            aside = set_aside(self.path, self.wall())
+            self._open()
+        except (sqlite3.Error, OSError) as again:
+            self._conn = None
+            self._fail(f"cannot open {self.path}: {exc}; cannot replace it: {again}", 0)
+            return
+        error = f"{self.path} was not a usable event log ({exc}); kept as {aside.name}"
+        log.error("event=events_db_set_aside path=%s aside=%s error=%r", self.path, aside, str(exc))
+        self.failures += 1
+        self.last_error = error
+        self._failure = (error, 0)
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Write what is queued, then stop both threads; never longer than `timeout` (a
+        thread still waiting on a locked file is left behind, it is a daemon thread)."""
+        deadline = time.monotonic() + timeout
         with self._lock:
             self._stopping = True
         self._wake.set()
-        if self._writer is not None:
-            self._writer.join(timeout)
         if self._reader is not None:
-            self._reads.put(lambda conn, error: None)
-            self._reader.join(timeout)
-        if self._conn is not None:
+            with contextlib.suppress(queue.Full):
+                self._reads.put_nowait(lambda conn, error: None)
+        for thread in (self._writer, self._reader):
+            if thread is not None:
+                thread.join(max(0.0, deadline - time.monotonic()))
+        writer_done = self._writer is None or not self._writer.is_alive()
+        if self._conn is not None and writer_done:
             self._conn.close()
             self._conn = None
 

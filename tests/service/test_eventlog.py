@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -22,7 +23,14 @@ from schema.events import (
     WatchdogEvent,
 )
 from service.config import EventsSection
-from service.eventlog import EVENTS_FILE, EventLog, connect, iter_events, read_page
+from service.eventlog import (
+    BUSY_TIMEOUT_S,
+    EVENTS_FILE,
+    EventLog,
+    connect,
+    iter_events,
+    read_page,
+)
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""
@@ -258,3 +266,59 @@ def test_query_text_round_trips_with_either_separator() -> None:
     q = EventQuery(since=3, until=9, kinds=("command", "state"), limit=5)
     assert EventQuery.from_text(q.params()) == q
     assert EventQuery.from_text(q.params().replace(";", "&")) == q
+
+
+def _garbage(path: Path) -> None:
+    path.write_bytes(b"not a database, just bytes " * 300)
+
+
+def _foreign(path: Path) -> None:
+    with contextlib.closing(sqlite3.connect(path)) as other:
+        other.execute("CREATE TABLE events (id INTEGER PRIMARY KEY, what TEXT)")
+        other.execute("INSERT INTO events VALUES (1, 'theirs')")
+        other.commit()
+
+
+@pytest.mark.parametrize("spoil", [_garbage, _foreign], ids=["garbage", "foreign-schema"])
+def test_an_unusable_database_is_kept_aside_and_a_new_log_started(
+    tmp_path: Path, spoil: Callable[[Path], None]
+) -> None:
+    path = tmp_path / EVENTS_FILE
+    spoil(path)
+    before = path.read_bytes()
+    log = open_log(path)
+    try:
+        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        assert log.flush()
+        [aside] = tmp_path.glob(f"{EVENTS_FILE}.bad-*")
+        assert aside.read_bytes() == before  # kept as it was, for whoever wants to look
+        first, second = page(log).events
+        assert isinstance(first.details, StorageEvent)
+        assert aside.name in first.details.error and "not a usable event log" in first.details.error
+        assert second.details == WatchdogEvent(stalled_s=1.0)
+        assert log.diag().lost == 0
+    finally:
+        log.close()
+    again = open_log(path)  # the next start finds its own log: nothing more set aside
+    again.close()
+    assert len(list(tmp_path.glob(f"{EVENTS_FILE}.bad-*"))) == 1
+
+
+def test_a_database_locked_by_another_process_never_holds_up_start_or_close(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / EVENTS_FILE
+    open_log(path).close()
+    blocker = sqlite3.connect(path, timeout=0.1, isolation_level=None)
+    blocker.execute("BEGIN EXCLUSIVE")
+    try:
+        started = time.monotonic()
+        log = open_log(path)
+        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.close()
+        assert time.monotonic() - started < 2 * BUSY_TIMEOUT_S + 2.5
+        assert log.diag().last_error is not None and "locked" in log.diag().last_error
+        assert list(tmp_path.glob(f"{EVENTS_FILE}.bad-*")) == []  # locked is not broken
+    finally:
+        blocker.rollback()
+        blocker.close()
