@@ -1,7 +1,8 @@
 """The `rider` command: operate a machine from a terminal or a script.
 
 Exit codes: 0 done; 1 the machine refused (its error is printed); 2 bad usage or input;
-3 no reply (machine or network down); 4 several machines alive and none named.
+3 no reply (machine or network down); 4 several machines alive and none named; 5 more than
+one session answers for the machine id (two daemons share it: DUPLICATE_ID).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from rider.client import (
     AmbiguousMachine,
     BadCredentials,
     CommandRefused,
+    DuplicateMachine,
     MachineTimeout,
     NoMachine,
     Rider,
@@ -54,6 +56,7 @@ EXIT_REFUSED = 1
 EXIT_USAGE = 2
 EXIT_NO_REPLY = 3
 EXIT_AMBIGUOUS = 4
+EXIT_DUPLICATE = 5
 
 
 T = TypeVar("T")
@@ -575,11 +578,16 @@ def machines(args: argparse.Namespace, rider: Rider) -> int:
     lines = []
     for m in found:
         up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"
-        lines.append(f"{printable(m.id):16} {printable(m.state or '?'):28} up {up}")
+        line = f"{printable(m.id):16} {printable(m.state or '?'):28} up {up}"
+        if m.conflict:
+            line += f"  CONFLICT: {len(m.sessions)} sessions hold this id"
+            line += f" ({printable(', '.join(m.sessions))})"
+        lines.append(line)
     none = f"no machines alive{rider.no_link_hint() if not found else ''}"
     emit([m.__dict__ for m in found], args.json, lambda _: "\n".join(lines) or none)
+    conflict = any(m.conflict for m in found)
     if changes is None:
-        return EXIT_OK
+        return EXIT_DUPLICATE if conflict else EXIT_OK
     sys.stdout.flush()
     alive = {m.id for m in found}
     deadline = None if args.duration is None else time.monotonic() + args.duration
@@ -725,6 +733,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except AmbiguousMachine as exc:
         print(f"rider: {exc}", file=sys.stderr)
         return EXIT_AMBIGUOUS
+    except DuplicateMachine as exc:
+        print(f"rider: {printable(str(exc))}", file=sys.stderr)
+        return EXIT_DUPLICATE
     except (MachineTimeout, NoMachine) as exc:
         print(f"rider: {exc}", file=sys.stderr)
         return EXIT_NO_REPLY

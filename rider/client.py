@@ -101,6 +101,20 @@ class UnknownTransaction(RiderError):
     sent before it restarted): no notice will ever come."""
 
 
+class DuplicateMachine(RiderError):
+    """More than one Zenoh session answers for one machine id (two daemons share it), or one
+    other than the session this Rider pinned for it: no answer is "the" answer."""
+
+    def __init__(self, machine_id: str, sessions: Iterable[str], what: str) -> None:
+        self.machine_id = machine_id
+        self.sessions = tuple(sessions)
+        super().__init__(
+            f"machine id {machine_id} is answered by more than one session"
+            f" ({', '.join(self.sessions)}): {what}; stop one of the daemons or give it another"
+            " --id"
+        )
+
+
 class NoMachine(RiderError):
     """No machine is alive, or the one asked for is not."""
 
@@ -116,9 +130,39 @@ class MachineInfo:
     id: str
     state: MachineState | None
     uptime_s: float | None
+    sessions: tuple[str, ...] = ()
+    """The Zenoh sessions that hold or answer for this id; more than one is a conflict."""
+
+    @property
+    def conflict(self) -> bool:
+        return len(self.sessions) > 1
 
 
 Update = Status | IoValue | AxisRecord | CycleDiag | Completion | CalibrationRecord
+
+
+@dataclass
+class _Holders:
+    """Who may answer for one machine id: its holder (pinned at first contact) and the
+    supervisor that answers while the daemon is down."""
+
+    holders: set[str] = dataclasses.field(default_factory=set)
+    supervisors: set[str] = dataclasses.field(default_factory=set)
+    pinned: str | None = None
+
+    def update(self, kind: str, zid: str, present: bool) -> None:
+        group = self.holders if kind == "holder" else self.supervisors
+        if present:
+            group.add(zid)
+        else:
+            group.discard(zid)
+        if self.pinned not in self.holders and len(self.holders) == 1:
+            self.pinned = next(iter(self.holders))  # first contact, or the daemon restarted
+
+    def allows(self, zid: str) -> bool:
+        if len(self.holders) > 1:
+            return False
+        return zid == self.pinned or zid in self.supervisors or self.pinned is None
 
 
 class Subscription:
@@ -239,6 +283,7 @@ class Rider:
         self._session: zenoh.Session | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._heartbeat: Heartbeat | None = None
+        self._holders: dict[str, _Holders] = {}
         self._ids = itertools.count(1)
         self._tag = uuid.uuid4().hex[:8]
         self._machine_id = machine_id
@@ -550,21 +595,30 @@ class Rider:
         within the timeout is listed with `state=None`.
         """
         found: set[str] = set()
-        for reply in self.session.liveliness().get(
-            f"{self.key_prefix}/*/alive", timeout=self.timeout
-        ):
-            if reply.ok is not None:
-                found.add(str(reply.ok.key_expr).split("/")[-2])
+        sessions: dict[str, set[str]] = {}
+        prefix = f"{self.key_prefix}/"
+        # Two queries, not `<prefix>/**`: an ACL profile allows these keys, not everything.
+        for pattern in (f"{prefix}*/alive", f"{prefix}*/holder/*"):
+            for reply in self.session.liveliness().get(pattern, timeout=self.timeout):
+                if reply.ok is not None:
+                    mid, _, rest = str(reply.ok.key_expr)[len(prefix) :].partition("/")
+                    if rest == "alive":
+                        found.add(mid)
+                    elif rest.startswith("holder/"):
+                        sessions.setdefault(mid, set()).add(rest[len("holder/") :])
         statuses: dict[str, Status] = {}
         if with_status:
-            for reply in self._get(f"{self.key_prefix}/*/status", None, None):
+            for reply in self._get(f"{prefix}*/status", None, None):
                 if reply.ok is None:
                     continue
                 try:
                     status = self._decode(reply, Status)
                 except RiderError:
                     continue  # one bad reply must not hide the other machines
-                statuses[str(reply.ok.key_expr).split("/")[-2]] = status
+                mid = str(reply.ok.key_expr).split("/")[-2]
+                statuses[mid] = status
+                if reply.replier_id is not None:
+                    sessions.setdefault(mid, set()).add(str(reply.replier_id.zid))
         out = []
         # One that answers is alive too: a liveliness query racing a history subscription of
         # this session (`follow_machines`) can come back short.
@@ -575,6 +629,7 @@ class Rider:
                     id=mid,
                     state=st.state if st else None,
                     uptime_s=st.uptime_s if st else None,
+                    sessions=tuple(sorted(sessions.get(mid, ()))),
                 )
             )
         return out
@@ -671,10 +726,28 @@ class Rider:
         all or nothing."""
         base, session = self.base, self.session
         entities: list[Any] = []
+        known = self.holders(self.machine_id)
+
+        def on_member(sample: zenoh.Sample) -> None:
+            kind, _, zid = str(sample.key_expr)[len(base) + 1 :].partition("/")
+            known.update(kind, zid, sample.kind == zenoh.SampleKind.PUT)
+
+        def guarded(sample: zenoh.Sample) -> None:
+            if self._sample_ok(sample):
+                on_sample(sample)
+            else:
+                log.warning("event=foreign_sample key=%s source=%s", sample.key_expr, _src(sample))
+
         try:
             with _bus_errors(f"cannot subscribe under {base}"):
+                for kind in ("holder", "supervisor"):
+                    entities.append(
+                        session.liveliness().declare_subscriber(
+                            f"{base}/{kind}/*", on_member, history=True
+                        )
+                    )
                 for key in keys:
-                    entities.append(session.declare_subscriber(f"{base}/{key}", on_sample))
+                    entities.append(session.declare_subscriber(f"{base}/{key}", guarded))
                 if on_token is not None:
                     entities.append(
                         session.liveliness().declare_subscriber(
@@ -804,8 +877,79 @@ class Rider:
             # Who asked, for the machine's event history (the payload's `rider` field means
             # "watch me" and stays unset for one-shot commands).
             kwargs["attachment"] = f"rider={self.rider_id}".encode()
+        # Every reply, not one per key: two daemons with one id must both be seen.
+        kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
         with _bus_errors(f"cannot query {key}"):
-            return list(self.session.get(key, **kwargs))
+            replies = list(self.session.get(key, **kwargs))
+        self._check_repliers(key, replies)
+        return replies
+
+    # ----------------------------------------------------------------------------- pinning
+    def _machine_in(self, key: str) -> str | None:
+        """The one machine id `key` is under (None: a wildcard id, or not a machine key)."""
+        prefix = f"{self.key_prefix}/"
+        if not key.startswith(prefix):
+            return None
+        mid = key[len(prefix) :].split("/", 1)[0]
+        return None if any(c in mid for c in "*$") else mid
+
+    def holders(self, machine_id: str) -> _Holders:
+        """Ask who holds `machine_id` now (its `holder/<zid>` and `supervisor/<zid>` tokens)."""
+        known = self._holders.setdefault(machine_id, _Holders())
+        seen: dict[str, set[str]] = {"holder": set(), "supervisor": set()}
+        base = f"{self.key_prefix}/{machine_id}"
+        with _bus_errors(f"cannot query the liveliness of {base}"):
+            # One key per kind, not `*/*`: the ACL profiles allow exactly these.
+            for kind, group in seen.items():
+                for reply in self.session.liveliness().get(
+                    f"{base}/{kind}/*", timeout=self.timeout
+                ):
+                    if reply.ok is not None:
+                        group.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        for kind, group in (("holder", known.holders), ("supervisor", known.supervisors)):
+            for zid in group - seen[kind]:
+                known.update(kind, zid, False)
+            for zid in seen[kind]:
+                known.update(kind, zid, True)
+        return known
+
+    def _check_repliers(self, key: str, replies: list[zenoh.Reply]) -> None:
+        """One session answers for one machine, and it is the pinned one (or its supervisor)."""
+        mid = self._machine_in(key)
+        if mid is None:
+            return
+        repliers = sorted({str(r.replier_id.zid) for r in replies if r.replier_id is not None})
+        if len(repliers) > 1:
+            raise DuplicateMachine(mid, repliers, f"{len(repliers)} sessions replied to {key}")
+        if not repliers:
+            return
+        zid = repliers[0]
+        known = self._holders.get(mid)
+        if known is None or not known.allows(zid):
+            known = self.holders(mid)  # first contact, or the holder changed since
+        if len(known.holders) > 1:
+            raise DuplicateMachine(mid, sorted(known.holders), "each holds the machine's token")
+        if known.pinned is None and not known.holders:
+            known.pinned = zid  # a daemon that names no holder: its first reply pins it
+        if not known.allows(zid):
+            raise DuplicateMachine(
+                mid,
+                [str(known.pinned), zid],
+                f"{zid} replied to {key}, but this Rider talks to {known.pinned}",
+            )
+
+    def _sample_ok(self, sample: zenoh.Sample) -> bool:
+        """A publication under a machine from the pinned session (or its supervisor); a
+        status that names no source is not the machine's own (it always names itself)."""
+        key = str(sample.key_expr)
+        mid = self._machine_in(key)
+        known = self._holders.get(mid) if mid is not None else None
+        if known is None or known.pinned is None:
+            return True  # no contact yet: nothing to compare with
+        source = sample.source_info
+        if source is None:
+            return not key.endswith("/status")
+        return known.allows(str(source.source_id.zid))
 
     @staticmethod
     def _decode(reply: zenoh.Reply, model: type[M]) -> M:
@@ -834,6 +978,11 @@ class Rider:
             raise CommandRefused(refused) from exc
         except ValidationError as exc:  # pragma: no cover - decode wraps these
             raise BadReply(str(exc)) from exc
+
+
+def _src(sample: zenoh.Sample) -> str:
+    source = sample.source_info
+    return "none" if source is None else str(source.source_id.zid)
 
 
 def _format_of(encoding: zenoh.Encoding | None) -> Format:

@@ -32,6 +32,9 @@ class ErrorCode(StrEnum):
     UNKNOWN_TRANSACTION = "UNKNOWN_TRANSACTION"
     """`done/<transaction_id>` of no motion this daemon remembers (never one, forgotten, or
     sent before it started)."""
+    DUPLICATE_ID = "DUPLICATE_ID"
+    """Another session holds this machine's id: no command that moves or changes the machine
+    is taken until one of the two is alone again."""
     INTERNAL = "INTERNAL"
 
 

@@ -97,6 +97,20 @@ KEYS: tuple[KeySpec, ...] = (
     KeySpec("events", _R, None, EventPage, "a page of the event history"),
     KeySpec("events/<seq>", _P, None, Event, "each new event, on its own key"),
     KeySpec("alive", Direction.LIVELINESS, None, None, "the machine's liveliness token"),
+    KeySpec(
+        "holder/<zid>",
+        Direction.LIVELINESS,
+        None,
+        None,
+        "the session that holds this machine id; two = two daemons share it (DUPLICATE_ID)",
+    ),
+    KeySpec(
+        "supervisor/<zid>",
+        Direction.LIVELINESS,
+        None,
+        None,
+        "the `machine supervise` session that answers for the daemon while it is down",
+    ),
     *(
         KeySpec(f"sim/{name}", _R, model, SimWorldState, f"simulator: {name}", sim_only=True)
         for name, model in SIM_REQUESTS.items()
@@ -115,6 +129,15 @@ def models() -> dict[str, tuple[type[BaseModel], bool]]:
         if spec.reply is not None:
             out.setdefault(spec.reply.__name__, (spec.reply, False))
     return out
+
+
+def holder_key(base: str, zid: str) -> str:
+    """`machine/<id>/holder/<zid>`: the token naming the session that holds the id."""
+    return f"{base}/holder/{zid}"
+
+
+def supervisor_key(base: str, zid: str) -> str:
+    return f"{base}/supervisor/{zid}"
 
 
 def match(key: str) -> KeySpec | None:

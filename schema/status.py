@@ -46,6 +46,8 @@ class FaultCode(StrEnum):
     WATCHDOG = "WATCHDOG"
     DAEMON_DIED = "DAEMON_DIED"
     LOOP_EXCEPTION = "LOOP_EXCEPTION"
+    DUPLICATE_ID = "DUPLICATE_ID"
+    """Another session holds this machine's id (two daemons, one id): motion stopped."""
 
 
 class Fault(OpenWireModel):

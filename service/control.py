@@ -50,6 +50,7 @@ from service.controllers import (
 from service.devices import Calibration, Devices, RotateCalibration, TiltCalibration
 from service.errors import (
     BadRequest,
+    DuplicateId,
     EstopActive,
     InvalidSession,
     MachineError,
@@ -163,6 +164,8 @@ class ControlAPI:
         self.controller_rider: str | None = None
         self._rider_gone_at: float | None = None
         self._rider_heard_at = 0.0
+        self.duplicate_of: tuple[str, ...] = ()
+        """Other sessions holding this machine's id (the bus watches `holder/<zid>`)."""
         self.rider_warning: str | None = None
         self._resume_to: MachineState | None = None
         self._estop_from: MachineState | None = None
@@ -212,6 +215,12 @@ class ControlAPI:
             return ReplyCode.RESP_CHECK, self._check_calibration(now)
         if command is Command.CHECK_HOME:
             return ReplyCode.RESP_CHECK, self._check_home(now)
+        if self.duplicate_of:
+            raise DuplicateId(
+                f"{command.value} refused: machine id {self.config.machine.id} is also held by"
+                f" session {', '.join(self.duplicate_of)}; nothing is taken until one of the"
+                " two daemons is stopped or given another id"
+            )
         if self.devices.safety.is_estop_active():
             raise EstopActive(
                 f"{command.value} refused: the E-stop is active; release it, then Resume,"
@@ -619,6 +628,28 @@ class ControlAPI:
         self.estop_latched = False  # a still-pressed E-stop latches again next cycle
         self._set_state(S.FAULT_HW, now, f"{why}: {fault.message}")
         self._end(Ending(End.FAULT_HW, fault.message, fault.code.value), now)
+
+    def duplicate_id(self, others: tuple[str, ...], own: str, now: float) -> None:
+        """Other sessions hold this machine's id (`others`, empty: alone again). Met: motion
+        stops in this cycle (FAULT_HW, DUPLICATE_ID); alone again: the fault stays (it
+        latches like any fault) and commands are taken again; nothing moves by itself."""
+        was, self.duplicate_of = self.duplicate_of, others
+        mid = self.config.machine.id
+        if others:
+            self.external_fault(
+                Fault(
+                    code=FaultCode.DUPLICATE_ID,
+                    message=f"machine id {mid} is held by this session ({own}) and by"
+                    f" {', '.join(others)}: motion stopped, commands refused until one is alone",
+                ),
+                now,
+            )
+        elif was and self.fault is not None and self.fault.code is FaultCode.DUPLICATE_ID:
+            self.fault = Fault(
+                code=FaultCode.DUPLICATE_ID,
+                message=f"machine id {mid} was also held by {', '.join(was)}; alone again:"
+                " Home (or Calibrate) to go on",
+            )
 
     def external_fault(self, fault: Fault, now: float) -> None:
         """A fault raised outside the controllers (watchdog, supervisor, loop exception)."""

@@ -139,6 +139,21 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         writer.close()
         _close_event_log(events, f"zenoh session could not open: {exc}", EXIT_FAILED)
         return EXIT_FAILED
+    others = zbus.holders_of(session, config.key_base)
+    if others:
+        # One machine per id: a second daemon would take the first one's commands too.
+        log.error(
+            "event=duplicate_id id=%s other_session=%s action=refuse_start detail=%r",
+            config.machine.id,
+            ",".join(others),
+            f"machine id {config.machine.id} is already alive on the network (session"
+            f" {', '.join(others)}); stop that daemon or give this one another --id",
+        )
+        zbus.close_session(session)
+        hal.close()
+        writer.close()
+        _close_event_log(events, "machine id already alive on the network", EXIT_FAILED)
+        return EXIT_FAILED
     bus = zbus.ZenohBus(
         session,
         loop,

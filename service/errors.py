@@ -65,6 +65,10 @@ class StorageFailed(MachineError):
     code = ErrorCode.STORAGE_FAILED
 
 
+class DuplicateId(MachineError):
+    code = ErrorCode.DUPLICATE_ID
+
+
 class ConfigError(MachineError):
     """The machine config cannot be loaded; carries every finding."""
 

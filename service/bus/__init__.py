@@ -22,6 +22,7 @@ import zenoh
 from pydantic import BaseModel
 
 from hal.sim import SimHal
+from schema import keys as machine_keys
 from schema import rider as rider_keys
 from schema.axes import AxisRecord
 from schema.calibration import CalibrationRecord, CalibrationSet
@@ -141,6 +142,10 @@ class ZenohBus:
         self._stop = threading.Event()
         self._diag_thread: threading.Thread | None = None
         self._token: zenoh.LivelinessToken | None = None
+        self._holder: zenoh.LivelinessToken | None = None
+        self.zid = str(session.zid())
+        self.others: set[str] = set()
+        """Other sessions that hold this machine's id (its `holder/<zid>` token): duplicates."""
         self.riders_alive: set[str] = set()
         self._beats: dict[str, float] = {}
         self._commands = {
@@ -197,6 +202,10 @@ class ZenohBus:
             s.liveliness().declare_subscriber(rider_keys.ALIVE_KEYS, self._on_rider, history=True)
         )
         self._declared.append(s.declare_subscriber(rider_keys.HEARTBEAT_KEYS, self._on_heartbeat))
+        # Before our own token: any other holder of this id is a duplicate, now or later.
+        self._declared.append(
+            s.liveliness().declare_subscriber(f"{b}/holder/*", self._on_holder, history=True)
+        )
         self.loop.beats = self
         self._diag_thread = threading.Thread(target=self._diag_loop, name="diag", daemon=True)
         self._diag_thread.start()
@@ -207,8 +216,9 @@ class ZenohBus:
         self._stop.set()
         if self._diag_thread is not None:
             self._diag_thread.join(timeout=2.0)
-        if self._token is not None:
-            self._token.undeclare()
+        for token in (self._token, self._holder):
+            if token is not None:
+                token.undeclare()
         for entity in reversed(self._declared + list(self._data_pubs.values())):
             entity.undeclare()
         self._declared.clear()
@@ -216,11 +226,16 @@ class ZenohBus:
 
     # ----------------------------------------------------------------------- publications
     def publish_status(self, status: Status) -> None:
-        self._status_pub.put(encode(status))
+        # The source names this session: a Rider drops statuses of another holder of the id.
+        self._status_pub.put(
+            encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
+        )
         if self._token is None:
             # Alive once there is a status to answer with: a Rider that sees the token and
             # asks at once must get one (the loop sets `published.status` before this call).
-            self._token = self.session.liveliness().declare_token(f"{self.base}/alive")
+            live = self.session.liveliness()
+            self._holder = live.declare_token(machine_keys.holder_key(self.base, self.zid))
+            self._token = live.declare_token(f"{self.base}/alive")
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         """The publisher of a data key; declared up front in `start()`, so a first
@@ -280,7 +295,9 @@ class ZenohBus:
                 "time": self.wall(),
             }
         )
-        self._status_pub.put(encode(status))
+        self._status_pub.put(
+            encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
+        )
 
     def _diag(self) -> CycleDiag:
         diag = self.stats.diag(self.wall())
@@ -723,6 +740,26 @@ class ZenohBus:
 
         self._to_loop(query, key, fmt, inject)
 
+    # ------------------------------------------------------------------------- duplicates
+    def _on_holder(self, sample: zenoh.Sample) -> None:
+        """Another session declared (or dropped) this machine's id: both stop and refuse
+        motion until one of them is alone again; each judges for itself, so both do."""
+        zid = str(sample.key_expr).rsplit("/", 1)[-1]
+        if zid == self.zid:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.others.add(zid)
+            log.error("event=duplicate_id id=%s other_session=%s", self.config.machine.id, zid)
+        else:
+            self.others.discard(zid)
+            log.warning("event=duplicate_gone id=%s other_session=%s", self.config.machine.id, zid)
+        others = tuple(sorted(self.others))
+
+        def update(loop: ScanLoop, now: float) -> None:
+            loop.control.duplicate_id(others, self.zid, now)
+
+        self.loop.inbox.put(LoopCall(update))
+
     # ---------------------------------------------------------------------------- riders
     def _on_heartbeat(self, sample: zenoh.Sample) -> None:
         """Only the arrival time is kept (one dict write): the scan loop judges it."""
@@ -800,6 +837,32 @@ def _try_raw(query: zenoh.Query) -> Any:
         return decode_raw(data, sniff_format(data, _encoding(query))) if data else None
     except DecodeError:
         return None
+
+
+ID_PROBE_S = 1.0
+"""Bound of the start-up liveliness query for this machine's id. It returns as soon as every
+connected peer has answered (no wait at all for a lone daemon); the bound only matters on a
+slow link."""
+
+
+def holders_of(session: zenoh.Session, base: str, timeout: float = ID_PROBE_S) -> list[str]:
+    """The other sessions that hold `base` now (`?` for one that holds `alive` but names no
+    holder: an older daemon). Asked before this daemon declares its own tokens."""
+    own = str(session.zid())
+    found: set[str] = set()
+    alive = False
+    for reply in session.liveliness().get(f"{base}/**", timeout=timeout):
+        if reply.ok is None:
+            continue
+        rest = str(reply.ok.key_expr)[len(base) + 1 :]
+        if rest == "alive":
+            alive = True
+        elif rest.startswith("holder/"):
+            found.add(rest[len("holder/") :])
+    found.discard(own)
+    if alive and not found:
+        found.add("?")
+    return sorted(found)
 
 
 def file_config(path: Path | None) -> zenoh.Config:

@@ -19,6 +19,7 @@ from typing import Any
 
 import zenoh
 
+from schema import keys as machine_keys
 from schema.codec import DecodeError, Format, decode, encode
 from schema.commands import Reply, transaction_id_of
 from schema.completion import Completion, Outcome
@@ -117,7 +118,14 @@ class SupervisorBus:
         )
         # Always: the daemon child leaves sim/** to its supervisor (one answer, never two).
         self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        # Riders accept answers for this machine from its holder and from this session only.
+        self._declared.append(
+            s.liveliness().declare_token(machine_keys.supervisor_key(b, str(s.zid())))
+        )
         log.info("event=supervisor_bus_started base=%s zid=%s", b, s.zid())
+
+    def _source(self, sn: int) -> zenoh.SourceInfo:
+        return zenoh.SourceInfo(self._status_pub.id, sn)
 
     def close(self) -> None:
         with self._lock:
@@ -149,7 +157,7 @@ class SupervisorBus:
             ]
             with self._lock:
                 self._down_entities = entities
-        self._status_pub.put(encode(status))
+        self._status_pub.put(encode(status), source_info=self._source(status.seq))
         if notice is not None:
             self.session.put(
                 f"{self.base}/done/{notice.transaction_id}",
@@ -197,7 +205,7 @@ class SupervisorBus:
                 return
             down = down.model_copy(update={"seq": down.seq + 1, "time": self.wall()})
             self._down = down
-        self._status_pub.put(encode(down))
+        self._status_pub.put(encode(down), source_info=self._source(down.seq))
 
     def daemon_up(self) -> None:
         """The daemon answers for itself again."""

@@ -206,3 +206,20 @@ def test_async_watch_ends_cleanly_once_its_event_loop_is_gone(machine: Daemon) -
     finally:
         threading.excepthook = previous
     assert not errors, errors
+
+
+def test_the_pinned_holder_and_its_supervisor_may_answer_and_no_one_else() -> None:
+    from rider.client import _Holders
+
+    known = _Holders()
+    known.update("holder", "a", True)
+    assert known.pinned == "a"
+    known.update("supervisor", "s", True)
+    assert known.allows("a") and known.allows("s") and not known.allows("rogue")
+    known.update("holder", "b", True)  # a second daemon with the id: nobody is trusted
+    assert known.pinned == "a" and not known.allows("a") and not known.allows("b")
+    known.update("holder", "b", False)
+    assert known.allows("a")
+    known.update("holder", "a", False)  # the daemon restarts under a new session id
+    known.update("holder", "a2", True)
+    assert known.pinned == "a2" and not known.allows("a")
