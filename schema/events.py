@@ -7,6 +7,7 @@ instead of failing, so old Riders can read a newer machine's history.
 
 from __future__ import annotations
 
+import math
 import re
 from collections import Counter
 from collections.abc import Iterable, Mapping
@@ -314,6 +315,10 @@ class EventQuery:
         return ";".join(parts)
 
 
+MAX_INT = 2**63 - 1
+"""The largest seq, limit or count a query may name (SQLite's INTEGER)."""
+
+
 def _int(params: Mapping[str, str], name: str, minimum: int = 0) -> int | None:
     text = params.get(name)
     if text is None or text == "":
@@ -324,6 +329,8 @@ def _int(params: Mapping[str, str], name: str, minimum: int = 0) -> int | None:
         raise QueryError(name, f"{name} must be an integer, got {text!r}") from None
     if value < minimum:
         raise QueryError(name, f"{name} must be at least {minimum}, got {value}")
+    if value > MAX_INT:
+        raise QueryError(name, f"{name} must be at most {MAX_INT}, got {value}")
     return value
 
 
@@ -332,9 +339,12 @@ def _float(params: Mapping[str, str], name: str) -> float | None:
     if text is None or text == "":
         return None
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
         raise QueryError(name, f"{name} must be Unix seconds, got {text!r}") from None
+    if math.isnan(value):
+        raise QueryError(name, f"{name} must be Unix seconds, got {text!r}")
+    return value
 
 
 class EventPage(OpenWireModel):
@@ -421,7 +431,9 @@ AGE_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 7 * 86400.0}
 def parse_point(text: str, now: float) -> tuple[int | None, float | None]:
     """`--since`/`--until`: (seq, None) for a number, (None, Unix time) for an age or a time."""
     text = text.strip()
-    if text.isdigit():
+    if text.isascii() and text.isdigit():
+        if int(text) > MAX_INT:
+            raise ValueError(f"{text!r} is past the largest seq number ({MAX_INT})")
         return int(text), None
     unit = AGE_UNITS.get(text[-1:].lower())
     if unit is not None:

@@ -501,7 +501,7 @@ class EventLog:
                 return
             try:
                 page = read_page(conn, self.machine_id, q, self.settings.page_max)
-            except sqlite3.Error as exc:
+            except Exception as exc:  # noqa: BLE001 - the reader thread must answer the next query too
                 fail(f"event log read failed: {exc}")
                 return
             respond(page)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import queue
 import sqlite3
 import threading
 import time
@@ -254,6 +255,9 @@ def test_a_restart_knows_whether_the_last_run_stopped_cleanly(tmp_path: Path) ->
         ("kind=bogus", "kind"),
         ("color=red", "color"),
         ("since_time=yesterday", "since_time"),
+        ("since=99999999999999999999999", "since"),  # past SQLite's INTEGER
+        ("until=-3", "until"),
+        ("since_time=nan", "since_time"),
     ],
 )
 def test_bad_query_parameters_name_the_parameter(text: str, param: str) -> None:
@@ -322,3 +326,17 @@ def test_a_database_locked_by_another_process_never_holds_up_start_or_close(
     finally:
         blocker.rollback()
         blocker.close()
+
+
+def test_a_query_the_database_cannot_take_is_answered_and_the_reader_lives_on(
+    log: EventLog,
+) -> None:
+    log.emit_now(WatchdogEvent(stalled_s=1.0))
+    assert log.flush()
+    answers: queue.Queue[object] = queue.Queue()
+    too_big = EventQuery(since=2**70)  # built directly, past the selector's checks
+    assert log.read(too_big, answers.put, answers.put)
+    assert "event log read failed" in str(answers.get(timeout=5.0))
+    assert log.read(EventQuery(), answers.put, answers.put)
+    answer = answers.get(timeout=5.0)
+    assert isinstance(answer, EventPage) and len(answer.events) == 1

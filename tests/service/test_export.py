@@ -76,3 +76,7 @@ def test_points_in_the_history() -> None:
     assert seq is None and when is not None
     with pytest.raises(ValueError, match="neither"):
         parse_point("yesterday", now)
+    with pytest.raises(ValueError, match="largest seq"):
+        parse_point("99999999999999999999999", now)  # SQLite could not even compare it
+    with pytest.raises(ValueError, match="neither"):
+        parse_point("²", now)  # a digit to str.isdigit, not to int()
