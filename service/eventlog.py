@@ -67,6 +67,10 @@ BUSY_TIMEOUT_S = 1.0
 counts as failed: short, so a locked file can never hold up start-up or the shutdown deadline."""
 
 
+COALESCE_S = 0.02
+"""How long the writer gathers events after the first one before writing them in one batch."""
+
+
 class ForeignDatabase(sqlite3.DatabaseError):
     """A SQLite file whose `events` table is not ours (another program's, or an old layout)."""
 
@@ -235,6 +239,8 @@ class EventLog:
         self._items: deque[_Row] = deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
+        self._hurry = threading.Event()
+        """Set by a reader or `flush`: write what is queued now, without gathering more."""
         self._stopping = False
         self._listeners: list[Listener] = []
         self._conn: sqlite3.Connection | None = None
@@ -299,6 +305,7 @@ class EventLog:
         with self._lock:
             self._stopping = True
         self._wake.set()
+        self._hurry.set()
         if self._reader is not None:
             with contextlib.suppress(queue.Full):
                 self._reads.put_nowait(lambda conn, error: None)
@@ -335,6 +342,7 @@ class EventLog:
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until everything queued so far is written (tests and shutdown)."""
         deadline = time.monotonic() + timeout
+        self._hurry.set()
         while time.monotonic() < deadline:
             with self._lock:
                 if not self._items and not self._busy:
@@ -360,7 +368,11 @@ class EventLog:
 
     def _run(self) -> None:
         while True:
-            self._wake.wait(timeout=min(1.0, self.settings.prune_every_s))
+            if self._wake.wait(timeout=min(1.0, self.settings.prune_every_s)):
+                # Gather what follows for a moment: a write (and its publications) per event
+                # took the GIL from the Zenoh thread replying to the next command.
+                self._hurry.wait(COALESCE_S)
+            self._hurry.clear()
             batch = self._take()
             if batch or self.dropped > self._dropped_recorded:
                 self._write(batch)
@@ -519,6 +531,8 @@ class EventLog:
                 job = self._reads.get()
                 if self._stopping:
                     return
+                if self._items or self._busy:
+                    self.flush(BUSY_TIMEOUT_S)  # a reader sees every event emitted before it asked
                 error = None
                 if conn is None:
                     try:
