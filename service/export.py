@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import sqlite3
 import sys
 import time
@@ -47,6 +48,16 @@ def export_events(args: argparse.Namespace, data_dir: Path) -> int:
                 write(events, out, args.format)
     except sqlite3.Error as exc:
         print(f"machine: reading {path} failed: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    except BrokenPipeError:
+        # `machine events export | head`: the reader has gone; stop quietly, and keep the
+        # interpreter's final flush of stdout from raising again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
+    except OSError as exc:  # -o into a missing or read-only directory, a full disk
+        print(
+            f"machine: cannot write {exc.filename or args.output}: {exc.strerror}", file=sys.stderr
+        )
         return EXIT_FAILED
     finally:
         conn.close()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from service.cli import main
 from service.config import EventsSection
 from service.eventlog import EVENTS_FILE, EventLog
 from service.export import CSV_COLUMNS
+from tests.procs import REPO, machine_cmd
 
 
 @pytest.fixture
@@ -80,3 +82,38 @@ def test_points_in_the_history() -> None:
         parse_point("99999999999999999999999", now)  # SQLite could not even compare it
     with pytest.raises(ValueError, match="neither"):
         parse_point("²", now)  # a digit to str.isdigit, not to int()
+
+
+def test_an_output_that_cannot_be_written_is_a_clear_error(
+    data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "missing" / "events.csv"
+    assert main(["events", "export", "--data-dir", str(data_dir), "-o", str(out)]) == 1
+    assert capsys.readouterr().err == f"machine: cannot write {out}: No such file or directory\n"
+
+
+def test_a_corrupt_database_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / EVENTS_FILE).write_bytes(b"garbage " * 1000)
+    assert main(["events", "export", "--data-dir", str(tmp_path)]) == 1
+    assert "file is not a database" in capsys.readouterr().err
+
+
+def test_a_reader_that_goes_away_ends_the_export_quietly(tmp_path: Path) -> None:
+    log = EventLog(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=20_000))
+    log.start()
+    for i in range(5000):  # far more than a pipe buffer holds
+        log.emit(DaemonStopEvent(reason="x" * 40, exit_code=0), time.time(), i)
+    log.close(timeout=30.0)
+    export = subprocess.Popen(
+        [*machine_cmd("events", "export", "--data-dir", str(tmp_path))],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=REPO,
+    )
+    assert export.stdout is not None and export.stderr is not None
+    export.stdout.readline()
+    export.stdout.close()  # `| head -1`
+    assert export.wait(timeout=30) == 0
+    assert export.stderr.read() == b""
