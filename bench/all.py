@@ -7,7 +7,15 @@ import sys
 import time
 from collections.abc import Callable
 
-from bench import cost, estop, events_cost, loop_timing, roundtrip, status_latency
+from bench import (
+    cost,
+    estop,
+    events_cost,
+    loop_timing,
+    rider_loss,
+    roundtrip,
+    status_latency,
+)
 from bench.common import (
     Options,
     Section,
@@ -30,6 +38,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.status_latency", status_latency.run),
     ("bench.cost", cost.run),
     ("bench.events_cost", events_cost.run),
+    ("bench.rider_loss", rider_loss.run),
 ]
 
 

@@ -17,7 +17,15 @@ from bench import all as bench_all
 from bench.common import Dist, Options, Section, Table, Target, pct, write_section
 
 REPO = Path(__file__).resolve().parents[2]
-MODULES = ["roundtrip", "loop_timing", "estop", "status_latency", "cost", "events_cost"]
+MODULES = [
+    "roundtrip",
+    "loop_timing",
+    "estop",
+    "status_latency",
+    "cost",
+    "events_cost",
+    "rider_loss",
+]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0
 
