@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from schema.commands import Command
+from schema.params import ParamSet
 from schema.status import MachineState as S
 from service.config import MachineConfig
+from service.errors import ParamOutOfRange
+from service.params import ParamRegistry
+from service.persist import ParamStore
 from tests.rig import Rig
 
 
@@ -149,3 +155,16 @@ def test_timeout_is_an_online_parameter_checked_against_the_heartbeat() -> None:
     assert found and found[0].severity == "error", found
     slow = MachineConfig().with_overrides(loop={"period_s": 0.2}, rider_loss={"timeout_s": 0.3})
     assert any("scan periods" in f.message for f in semantic_findings(slow))
+
+
+def test_an_online_timeout_below_two_heartbeats_is_refused(tmp_path: Path) -> None:
+    registry = ParamRegistry(MachineConfig(), ParamStore(tmp_path))
+    with pytest.raises(ParamOutOfRange, match="heartbeat"):
+        registry.set(
+            "rider_loss.timeout_s", ParamSet(transaction_id="t1", value=0.15), moving=True, now=0
+        )
+    assert registry.config.rider_loss.timeout_s == 0.5
+    done = registry.set(
+        "rider_loss.timeout_s", ParamSet(transaction_id="t2", value=1.0), moving=True, now=0
+    )
+    assert done.value == 1.0 and registry.config.rider_loss.timeout_s == 1.0
