@@ -117,12 +117,16 @@ def test_a_session_runs_across_two_namespaces(site: Site) -> None:
         outsider.status()
 
 
-def test_a_pulled_cable_pauses_the_session_once_the_lease_expires(site: Site) -> None:
-    """No FIN, no RST: only Zenoh's lease (1 s in the test config) can notice the Rider is gone."""
+def test_a_pulled_cable_pauses_the_session_by_the_riders_heartbeat(site: Site) -> None:
+    """No FIN, no RST, and a Rider on Zenoh's default 10 s lease (no --zenoh-config): only its
+    deadman heartbeat (`rider_loss.timeout_s`, 1 s in the fast test config) can notice."""
+    d = site.daemon
+    steps = ("--revolutions", "40", "alive", "prepare", "start", "running", "hold")
+    driver_cmd = [*rider_proc.command(d.endpoint, d.zenoh_config, d.machine_id, *steps)]
+    at = driver_cmd.index("--zenoh-config")
+    del driver_cmd[at : at + 2]
     driver = subprocess.Popen(
-        site.in_b(
-            *site.rider_proc("--revolutions", "40", "alive", "prepare", "start", "running", "hold")
-        ),
+        site.in_b(*driver_cmd),
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
@@ -165,6 +169,7 @@ def test_a_pulled_cable_pauses_the_session_once_the_lease_expires(site: Site) ->
         print(f"pulled cable: link down -> PAUSED seen beside the machine in {noticed_s:.2f} s")
         assert paused is not None, site.daemon.log()
         assert any("Rider lost" in w for w in paused.warnings), paused.warnings
+        assert "cause=heartbeat" in site.daemon.log()  # not the 10 s lease
         world = subprocess.run(
             site.in_a(*site.rider_cli("--json", "sim", "world")),
             capture_output=True,
