@@ -499,9 +499,11 @@ class Rider:
     def event_pages(self, query: EventQuery | None = None) -> list[EventPage]:
         """Every page of the history `query` selects, from this machine, or from every machine
         that answers when the machine id is `*` (each machine's pages in order)."""
-        query = query or EventQuery()
+        return self._pages_from(self.base, query or EventQuery())
+
+    def _pages_from(self, base: str, query: EventQuery) -> list[EventPage]:
         pages: list[EventPage] = []
-        pending = [(self.base, query)]
+        pending = [(base, query)]
         while pending:
             base, q = pending.pop(0)
             for page in self._event_query(base, q):
@@ -538,7 +540,9 @@ class Rider:
         """The history `query` selects, then each new event as it is written; None after each
         quiet `timeout` (None: wait forever), so the caller can check its own deadline.
 
-        The subscription starts before the history is read, so nothing falls in between.
+        The subscription starts before the history is read, so nothing falls in between; a
+        gap in a machine's seq numbers (events published while the link was down, e.g. while
+        the daemon restarted) is read from its history before the event after it.
         """
         query = query or EventQuery()
         q: queue.Queue[zenoh.Sample] = queue.Queue(maxsize=65536)
@@ -548,9 +552,9 @@ class Rider:
                 q.put_nowait(sample)
 
         with self._declare(("events/*",), on_sample):
-            last: dict[str, int] = {}
+            seen: dict[str, int] = {}  # the newest seq received per machine, of any kind
             for event in self.events(query):
-                last[event.machine_id] = event.seq
+                seen[event.machine_id] = event.seq
                 yield event
             while True:
                 try:
@@ -563,10 +567,41 @@ class Rider:
                 except BadReply as exc:
                     log.warning("event=bad_event key=%s error=%r", sample.key_expr, str(exc))
                     continue
-                if event.seq <= last.get(event.machine_id, -1) or not query.matches(event):
+                newest = seen.get(event.machine_id)
+                if newest is not None and event.seq <= newest:
                     continue
-                last[event.machine_id] = event.seq
-                yield event
+                if newest is not None and event.seq > newest + 1:
+                    yield from self._missed_events(
+                        event.machine_id, newest + 1, event.seq - 1, query
+                    )
+                seen[event.machine_id] = event.seq
+                if query.matches(event):
+                    yield event
+
+    def _missed_events(
+        self, machine_id: str, first: int, last: int, query: EventQuery
+    ) -> list[Event]:
+        """The events `query` selects among seq `first`..`last` of one machine, read from its
+        history; none (with a warning) if it cannot be read."""
+        gap = dataclasses.replace(
+            query,
+            since=max(first, query.since or 0),
+            until=last if query.until is None else min(last, query.until),
+            limit=None,
+            last=None,
+        )
+        try:
+            pages = self._pages_from(f"{self.key_prefix}/{machine_id}", gap)
+        except RiderError as exc:
+            log.warning(
+                "event=events_gap_unread machine=%s first=%d last=%d error=%r",
+                machine_id,
+                first,
+                last,
+                str(exc),
+            )
+            return []
+        return [e for page in pages for e in page.events if e.machine_id == machine_id]
 
     def _event_query(self, base: str, q: EventQuery) -> list[EventPage]:
         key = f"{base}/events"
