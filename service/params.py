@@ -99,9 +99,11 @@ class ParamSpec:
         if self.kind is int and not isinstance(value, int):
             raise self._wrong(value, "an integer")
         number: float | int = float(value) if self.kind is float else value
-        if not math.isfinite(number) or not self._in_range(number):
+        if isinstance(number, float) and not math.isfinite(number):
+            raise ParamOutOfRange(f"{self.name} must be a finite number; got {number:g}", "/value")
+        if not self._in_range(number):
             raise ParamOutOfRange(
-                f"{self.name} must be {self.range_text()}; got {number:g}", "/value"
+                f"{self.name} must be {self.range_text()}; got {_num(number)}", "/value"
             )
         return number
 
@@ -128,7 +130,10 @@ class ParamSpec:
 
 
 def _num(v: float) -> str:
-    """`0.5`, `10`, and whole numbers in full (an int32 bound, not `2.14748e+09`)."""
+    """`0.5`, `10`, and whole numbers in full (an int32 bound, not `2.14748e+09`); an int too
+    long to be worth printing (or for `str`) by its size."""
+    if isinstance(v, int):
+        return str(v) if abs(v) < 10**30 else f"an integer of {len(hex(v)) * 4 - 8}+ bits"
     return str(int(v)) if v.is_integer() else f"{v:g}"
 
 

@@ -240,6 +240,13 @@ def test_reset_with_a_value_is_refused(tmp_path: Path) -> None:
         ("bus.heartbeat_s", math.inf, "got inf"),
         ("rotate.speed_tolerance", 1.0, "< 1"),
         ("rider_loss.policy", "halt", "one of pause, stop, ignore; got 'halt'"),
+        # FastData user registers: int32 and any finite double (an int past the bounds once
+        # crashed the message text and left the query unanswered)
+        ("fastdata.int.0", 2**31, "must be ≥ -2147483648 and ≤ 2147483647; got 2147483648"),
+        ("fastdata.int.7", -(2**31) - 1, "got -2147483649"),
+        ("fastdata.int.0", 10**400, "got an integer of"),
+        ("fastdata.double.0", math.inf, "must be a finite number; got inf"),
+        ("fastdata.double.3", math.nan, "must be a finite number; got nan"),
         # Cross-field: a valid number that breaks what the config check guarantees.
         ("rotate.nominal_speed_dps", 30.0, "/rotate/revolution_timeout_s"),
         ("tilt.max_deg", 10.0, "/tilt/calibration_stroke_s"),
