@@ -39,12 +39,23 @@ def render(doc: dict[str, Any]) -> str:
     return json.dumps(doc, indent=2, ensure_ascii=False) + "\n"
 
 
+def ours(path: Path) -> bool:
+    """Whether `path` is a document this module wrote (its `$schema` and `$id`), so that a
+    directory given by mistake loses none of its own `*.json` files."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("$schema") == DIALECT and doc.get("$id") == path.name
+
+
 def write(directory: Path) -> list[Path]:
-    """Write every document into `directory` (created if needed); stale `*.json` are removed."""
+    """Write every document into `directory` (created if needed); stale documents of ours
+    (a model that no longer exists) are removed, any other file is left alone."""
     directory.mkdir(parents=True, exist_ok=True)
     docs = documents()
     for old in directory.glob("*.json"):
-        if old.name not in docs:
+        if old.name not in docs and ours(old):
             old.unlink()
     paths = []
     for name, doc in docs.items():

@@ -219,7 +219,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.cmd == "schema":
         from schema.jsonschema import write
 
-        paths = write(args.directory)
+        try:
+            paths = write(args.directory)
+        except OSError as exc:  # a read-only or missing place, a file where the directory goes
+            where = exc.filename or args.directory
+            print(f"machine: cannot write the schema to {where}: {exc.strerror}", file=sys.stderr)
+            return EXIT_FAILED
         print(f"machine: wrote {len(paths)} files to {args.directory}")
         return EXIT_OK
     setup_logging(args.log_level)

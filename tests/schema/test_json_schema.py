@@ -9,7 +9,7 @@ import subprocess
 from pathlib import Path
 
 from schema.commands import Command
-from schema.jsonschema import documents, render
+from schema.jsonschema import DIALECT, documents, render
 from schema.keys import KEYS, Direction, markdown_table, match
 from tests.procs import REPO, machine_cmd
 
@@ -29,7 +29,8 @@ def test_checked_in_schema_matches_the_models() -> None:
 def test_machine_schema_writes_the_same_files(tmp_path: Path) -> None:
     out = tmp_path / "json"
     (tmp_path / "json").mkdir()
-    (out / "Gone.json").write_text("{}")  # a model that no longer exists is removed
+    gone = {"$schema": DIALECT, "$id": "Gone.json"}
+    (out / "Gone.json").write_text(json.dumps(gone))  # a model that no longer exists is removed
     done = subprocess.run(
         machine_cmd("schema", str(out)),
         capture_output=True,
@@ -101,3 +102,42 @@ def test_readme_key_table_covers_every_key_of_the_table() -> None:
         assert any(re.fullmatch(p, example(spec.key)) for p in patterns), (
             f"README's key table has no row for {spec.key}"
         )
+
+
+def test_machine_schema_into_a_directory_of_other_files_leaves_them_alone(tmp_path: Path) -> None:
+    theirs = {
+        "package.json": '{"name": "app"}',
+        "broken.json": "{not json",
+        "Other.json": json.dumps({"$schema": DIALECT, "$id": "Renamed.json"}),
+    }
+    for name, text in theirs.items():
+        (tmp_path / name).write_text(text)
+    done = subprocess.run(
+        machine_cmd("schema", str(tmp_path)),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=REPO,
+    )
+    assert done.returncode == 0, done.stderr
+    for name, text in theirs.items():
+        assert (tmp_path / name).read_text() == text
+    assert (tmp_path / "keys.json").exists()
+
+
+def test_machine_schema_where_it_cannot_write_is_a_clear_error(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    for target in (blocker, blocker / "json"):  # a file where the directory goes; below a file
+        done = subprocess.run(
+            machine_cmd("schema", str(target)),
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+            cwd=REPO,
+        )
+        assert done.returncode == 1
+        assert done.stderr.startswith(f"machine: cannot write the schema to {target}: ")
+        assert "Traceback" not in done.stderr
