@@ -143,8 +143,8 @@ def run(opts: Options) -> Section:
     section.tables.append(table)
     section.notes.append(
         "Baselines are bare echoes doing no work; the daemon decodes and validates the request,"
-        " hands it to the scan thread (which wakes early for it), runs the command and encodes"
-        " the reply."
+        " runs the command in the Zenoh callback between two scan cycles (under the loop's lock),"
+        " records it in the event history and encodes the reply."
     )
     client = dists[RIDER].p50 - dists[RAW].p50
     section.notes.append(
