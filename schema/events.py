@@ -268,6 +268,8 @@ class EventQuery:
         for name in params:
             if name not in known:
                 raise QueryError(name, f"unknown parameter {name!r}; known: {sorted(known)}")
+        if params.get("format", "json").lower() not in ("json", "msgpack"):
+            raise QueryError("format", f"format must be json or msgpack, got {params['format']!r}")
         kinds = tuple(k for k in params.get("kind", "").split(",") if k)
         valid = {k.value for k in EventKind}
         for kind in kinds:
@@ -286,12 +288,7 @@ class EventQuery:
     @classmethod
     def from_text(cls, text: str) -> EventQuery:
         """From a selector's parameter text; `;` (Zenoh's separator) and `&` both separate."""
-        params: dict[str, str] = {}
-        for pair in re.split("[;&]", text):
-            if pair:
-                name, _, value = pair.partition("=")
-                params[name] = value
-        return cls.from_params(params)
+        return cls.from_params(selector_params(text))
 
     def matches(self, event: Event) -> bool:
         """Whether `event` is one this query selects (ignoring `limit` and `last`)."""
@@ -313,6 +310,16 @@ class EventQuery:
         if self.kinds:
             parts.append("kind=" + ",".join(self.kinds))
         return ";".join(parts)
+
+
+def selector_params(text: str) -> dict[str, str]:
+    """A selector's parameters, split at `;` (Zenoh's separator) and at `&`."""
+    params: dict[str, str] = {}
+    for pair in re.split("[;&]", text):
+        if pair:
+            name, _, value = pair.partition("=")
+            params[name] = value
+    return params
 
 
 MAX_INT = 2**63 - 1

@@ -40,7 +40,15 @@ from schema.completion import Completion
 from schema.credentials import MACHINE, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
-from schema.events import Event, EventPage, EventQuery, ParamEvent, QueryError, RiderEvent
+from schema.events import (
+    Event,
+    EventPage,
+    EventQuery,
+    ParamEvent,
+    QueryError,
+    RiderEvent,
+    selector_params,
+)
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
@@ -681,6 +689,8 @@ class ZenohBus:
         assert events is not None
         key = f"{self.base}/events"
         fmt = reply_format(query)
+        if selector_params(str(query.parameters)).get("format", "").lower() == "json":
+            fmt = Format.JSON  # `?last=5&format=json`: `&` separates here too
         try:
             q = EventQuery.from_text(str(query.parameters))
         except QueryError as exc:
