@@ -539,6 +539,9 @@ class EventLog:
                         conn = connect(self.path)
                     except (sqlite3.Error, OSError) as exc:
                         error = f"cannot open {self.path}: {exc}"
+                        # A full disk or a read-only mount: the history is still readable.
+                        with contextlib.suppress(sqlite3.Error, OSError):
+                            conn = connect_readonly(self.path)
                 job(conn, error)
         finally:
             if conn is not None:

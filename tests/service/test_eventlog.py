@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import queue
 import sqlite3
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -340,3 +342,55 @@ def test_a_query_the_database_cannot_take_is_answered_and_the_reader_lives_on(
     assert log.read(EventQuery(), answers.put, answers.put)
     answer = answers.get(timeout=5.0)
     assert isinstance(answer, EventPage) and len(answer.events) == 1
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A 512 KiB tmpfs (we are root in the test environment; skipped where mount is refused)."""
+    where = tmp_path / "disk"
+    where.mkdir()
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=512k", "qa-small-disk", str(where)],
+        capture_output=True,
+        check=False,
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recovers(
+    small_disk: Path,
+) -> None:
+    log = open_log(small_disk / EVENTS_FILE)
+    try:
+        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        assert log.flush()
+        filler = small_disk / "filler"
+        fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
+        with contextlib.suppress(OSError):  # until ENOSPC
+            while True:
+                os.write(fd, b"x" * 4096)
+        os.close(fd)
+        for i in range(50):
+            log.emit_now(WatchdogEvent(stalled_s=2.0 + i))
+        assert log.flush()
+        assert log.lost > 0 and "full" in (log.diag().last_error or "")
+        # The history is still readable while nothing can be written.
+        answers: queue.Queue[object] = queue.Queue()
+        assert log.read(EventQuery(), answers.put, answers.put)
+        answer = answers.get(timeout=5.0)
+        assert isinstance(answer, EventPage), answer
+        assert answer.events[0].details == WatchdogEvent(stalled_s=1.0)
+        filler.unlink()
+        log.emit_now(WatchdogEvent(stalled_s=99.0))
+        assert log.flush()
+        kinds = [e.kind for e in page(log).events]
+        assert kinds[-2:] == ["storage_failed", "watchdog_trip"]
+        failed = page(log).events[-2].details
+        assert isinstance(failed, StorageEvent) and failed.lost == log.lost
+    finally:
+        log.close()
