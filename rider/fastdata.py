@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import socket
 import sys
 import time
@@ -214,7 +215,14 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     polls = args.count if args.watch else 1
     got = 0
     n = 0
-    with FastDataClient(args.host, args.port, args.timeout) as client:
+    try:
+        client = FastDataClient(args.host, args.port, args.timeout)
+    except OSError as exc:  # a host name that does not resolve, an address of no family
+        print(
+            f"rider fastdata: cannot reach {args.host}:{args.port}: {exc.strerror or exc}", file=err
+        )
+        return EXIT_NO_DATA
+    with client:
         try:
             while polls is None or n < polls:
                 if n and args.watch:
@@ -242,10 +250,10 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
 def _check(args: argparse.Namespace) -> str | None:
     if not 0 < args.port < 65536:
         return f"--port {args.port} outside 1..65535"
-    if args.timeout <= 0:
-        return "--timeout must be > 0"
-    if args.interval < 0:
-        return "--interval must be >= 0"
+    if not (0 < args.timeout < math.inf):  # NaN too
+        return "--timeout must be > 0 and finite"
+    if not (0 <= args.interval < math.inf):
+        return "--interval must be >= 0 and finite"
     if args.count is not None and args.count < 1:
         return "--count must be >= 1"
     if args.axes is not None:

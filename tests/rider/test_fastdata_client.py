@@ -276,6 +276,9 @@ def test_cli_watch_keeps_going_after_a_miss(
         (["--timeout", "0"], "--timeout"),
         (["--watch", "--count", "0"], "--count"),
         (["--interval", "-1"], "--interval"),
+        (["--watch", "--interval", "nan"], "--interval must be >= 0 and finite"),
+        (["--watch", "--interval", "inf"], "--interval must be >= 0 and finite"),
+        (["--timeout", "nan"], "--timeout must be > 0 and finite"),
     ],
 )
 def test_cli_bad_options_exit_2(
@@ -283,6 +286,14 @@ def test_cli_bad_options_exit_2(
 ) -> None:
     assert main(args) == EXIT_USAGE
     assert message in capsys.readouterr().err
+
+
+def test_cli_host_that_does_not_resolve_is_a_clear_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["--host", "no-such-host.invalid", "--timeout", "0.2"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("rider fastdata: cannot reach no-such-host.invalid:60000: ")
 
 
 # ------------------------------------------------------------------------------- docs
