@@ -432,9 +432,14 @@ class EventLog:
         self.failures += 1
         self.lost += lost
         self.last_error = error
+        ongoing = self._failure is not None and self._failure[0] == error
         total = lost + (self._failure[1] if self._failure is not None else 0)
         self._failure = (error, total)
-        log.error("event=events_write_failed error=%r lost=%d", error, lost)
+        # Once per problem, not once per batch: a full disk must not also fill the log.
+        # Every loss is counted in diag and recorded as `storage_failed` once writing works.
+        (log.debug if ongoing else log.error)(
+            "event=events_write_failed error=%r lost=%d", error, lost
+        )
 
     def _reopen(self) -> sqlite3.Connection | None:
         try:

@@ -143,17 +143,20 @@ def test_emit_never_blocks_while_the_writer_holds_the_database(tmp_path: Path) -
 
 
 def test_a_database_that_cannot_be_written_is_reported_and_lost_events_counted(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     path = tmp_path / EVENTS_FILE
     path.mkdir()  # a directory where the database belongs
     log = open_log(path)
     try:
-        log.emit_now(WatchdogEvent(stalled_s=1.0))
-        log.emit_now(WatchdogEvent(stalled_s=2.0))
-        assert log.flush()
+        for i in range(20):
+            log.emit_now(WatchdogEvent(stalled_s=float(i)))
+            assert log.flush()  # one batch each
+        # One error line for the problem, not one per batch (all twenty counted in diag).
+        errors = [r for r in caplog.records if "events_write_failed" in r.getMessage()]
+        assert [r.levelname for r in errors if r.levelname == "ERROR"] == ["ERROR"]
         diag = log.diag()
-        assert diag.failures >= 1 and diag.lost == 2
+        assert diag.failures >= 1 and diag.lost == 20
         assert diag.last_error is not None and "cannot open" in diag.last_error
     finally:
         log.close()
