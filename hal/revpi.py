@@ -109,7 +109,28 @@ def procimg_findings(procimg: str, need_bytes: int | None) -> list[Finding]:
         return bad("not readable and writable by this user")
     if need_bytes is not None and stat.S_ISREG(st.st_mode) and st.st_size < need_bytes:
         return bad(f"the file has {st.st_size} bytes; the piCtory config needs {need_bytes}")
+    if need_bytes and stat.S_ISCHR(st.st_mode) and not _device_reaches(procimg, need_bytes):
+        return bad(
+            f"this device gives no data at byte {need_bytes - 1}, which the piCtory config"
+            " needs: not the piControl device (e.g. /dev/null)?"
+        )
     return []
+
+
+def _device_reaches(procimg: str, need_bytes: int) -> bool:
+    """Whether reading the device's byte `need_bytes - 1` gives data (seek and read, as
+    revpimodio2 reads the image; nothing is written)."""
+    try:
+        fd = os.open(procimg, os.O_RDONLY)
+    except OSError:
+        return True  # permissions and the like are reported by the checks above, or at open
+    try:
+        os.lseek(fd, need_bytes - 1, os.SEEK_SET)
+        return len(os.read(fd, 1)) == 1
+    except OSError:
+        return True  # a device that cannot be read this way: the open will tell
+    finally:
+        os.close(fd)
 
 
 def import_revpimodio2() -> ModuleType:

@@ -510,6 +510,7 @@ def _short_image(directory: Path) -> str:
         (lambda d: str(d / "absent"), "no process image"),
         (str, "not a process image"),
         (_short_image, "needs 213"),
+        (lambda d: "/dev/null", "gives no data at byte 212"),  # validate once said it would run
     ],
 )
 def test_bad_process_image_is_a_finding(
