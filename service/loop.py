@@ -1,8 +1,9 @@
 """The scan loop: read inputs → E-stop → commands → update → write outputs → publish.
 
 `ScanLoop.step(now)` is a pure function of (inputs, queued commands, now); the real-time runner
-in `service/runner.py` calls it on absolute deadlines. Everything here runs on the scan thread,
-which alone owns machine state; other threads only put work into the `Inbox`.
+in `service/runner.py` calls it on absolute deadlines. Machine state has one writer at a time,
+`ScanLoop.lock`: the scan thread holds it for each cycle; a Zenoh callback thread holds it to run
+a command between cycles (`execute_between_cycles`); other threads put work into the `Inbox`.
 """
 
 from __future__ import annotations
