@@ -26,6 +26,8 @@ from typing import Any, TypeVar
 import zenoh
 from pydantic import BaseModel, ValidationError
 
+from rider.discovery import LIMIT_S as DISCOVERY_LIMIT_S
+from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Discovery, discover
 from schema.axes import AxisRecord
 from schema.calibration import (
     CalibrationRecord,
@@ -121,6 +123,10 @@ class NoMachine(RiderError):
 
 class AmbiguousMachine(RiderError):
     """Several machines are alive and none was named."""
+
+
+class UnsureMachine(AmbiguousMachine):
+    """None was named, and discovery never settled: the Rider cannot tell it heard of all."""
 
 
 @dataclass(frozen=True)
@@ -243,6 +249,8 @@ def zenoh_config(
         raise BadCredentials(str(exc)) from exc
     for setting, value in settings.items():
         conf.insert_json5(setting, value)
+    # The default-machine lookup reads this session's own link state (rider/discovery.py).
+    conf.insert_json5("adminspace", "{enabled: true, permissions: {read: true, write: false}}")
     return conf
 
 
@@ -287,6 +295,8 @@ class Rider:
         self._ids = itertools.count(1)
         self._tag = uuid.uuid4().hex[:8]
         self._machine_id = machine_id
+        self.discovery: Discovery | None = None
+        """What the default-machine lookup saw (None when a machine was named)."""
         self.supervise = supervise
         self.rider_id = ""
 
@@ -351,16 +361,38 @@ class Rider:
 
     @property
     def machine_id(self) -> str:
-        """The machine this Rider talks to: the one named, else the only one alive."""
+        """The machine this Rider talks to: the one named, else the only one alive once
+        discovery has settled (`resolve_machine`)."""
+        return self.pick_machine()
+
+    def pick_machine(self, *, motion: bool = False) -> str:
+        """The machine named, else the default one (looked up once, then kept)."""
         if self._machine_id is None:
-            alive = self.machines(with_status=False)
-            if not alive:
-                raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
-            if len(alive) > 1:
-                ids = ", ".join(m.id for m in alive)
-                raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
-            self._machine_id = alive[0].id
+            self._machine_id = self.resolve_machine(motion=motion)
         return self._machine_id
+
+    def resolve_machine(self, *, motion: bool = False) -> str:
+        """The only machine alive, after discovery settled (rider/discovery.py); raises
+        `NoMachine`, `AmbiguousMachine` (several), or `UnsureMachine` (never settled).
+        `motion` waits longer (`MOTION_SETTLE_S`) before a command may move a ride."""
+        seen = discover(
+            self.session,
+            self.key_prefix,
+            settle=MOTION_SETTLE_S if motion else SETTLE_S,
+            limit=max(DISCOVERY_LIMIT_S, self.timeout),
+        )
+        self.discovery = seen
+        if not seen.settled:
+            raise UnsureMachine(
+                f"discovery did not settle within {seen.waited_s:.1f} s, cannot tell which"
+                f" machine is the only one ({seen.describe()}); pass --machine ID"
+            )
+        if not seen.alive:
+            raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
+        if len(seen.alive) > 1:
+            ids = ", ".join(sorted(seen.alive))
+            raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
+        return next(iter(seen.alive))
 
     @property
     def base(self) -> str:
@@ -379,6 +411,8 @@ class Rider:
         timeout: float | None = None,
     ) -> Reply:
         """Send one command; raises `CommandRefused` on an error reply when `check`."""
+        # A command may move a ride: a default machine is looked up with more certainty.
+        self.pick_machine(motion=True)
         if request is None:
             request = CommandRequest.model_validate(self._req())
         payload = encode(request)

@@ -122,7 +122,8 @@ class Bridge:
     def _find_machine(self) -> bool:
         while not self._stop.is_set():
             try:
-                self.machine_id = self.rider.machine_id
+                # The UI sends commands: it binds only with a command's certainty.
+                self.machine_id = self.rider.pick_machine(motion=True)
             except NoMachine:
                 self._emit(Note("no machine is alive on the network yet; searching…"))
             except AmbiguousMachine as exc:

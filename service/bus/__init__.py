@@ -888,6 +888,8 @@ def zenoh_config(
     if path is None:
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("listen/endpoints", json.dumps([DEFAULT_LISTEN]))
+        # Read-only, as in zenoh.json5: Riders' default-machine lookup reads our tokens there.
+        conf.insert_json5("adminspace", "{enabled: true, permissions: {read: true, write: false}}")
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
