@@ -12,6 +12,7 @@ from bench import (
     estop,
     events_cost,
     loop_timing,
+    pick,
     rider_loss,
     roundtrip,
     status_latency,
@@ -39,6 +40,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.cost", cost.run),
     ("bench.events_cost", events_cost.run),
     ("bench.rider_loss", rider_loss.run),
+    ("bench.pick", pick.run),
 ]
 
 

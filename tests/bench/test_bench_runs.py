@@ -25,6 +25,7 @@ MODULES = [
     "cost",
     "events_cost",
     "rider_loss",
+    "pick",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0
