@@ -35,7 +35,7 @@ from schema.calibration import (
     RotateCalibrationSet,
     TiltCalibrationSet,
 )
-from schema.codec import DecodeError, Format, decode, encode, pack
+from schema.codec import MAX_REPLY_BYTES, DecodeError, Format, decode, encode, pack
 from schema.commands import (
     CheckResult,
     Command,
@@ -653,7 +653,9 @@ class Rider:
     @staticmethod
     def _decode_sample(sample: zenoh.Sample, model: type[M]) -> M:
         try:
-            return decode(model, sample.payload.to_bytes(), _format_of(sample.encoding))
+            return decode(
+                model, sample.payload.to_bytes(), _format_of(sample.encoding), MAX_REPLY_BYTES
+            )
         except DecodeError as exc:
             raise BadReply(f"{sample.key_expr}: {exc.error.message}") from exc
 
@@ -1035,7 +1037,7 @@ class Rider:
         data = sample.payload.to_bytes()
         fmt = _format_of(sample.encoding)
         try:
-            return decode(model, data, fmt)
+            return decode(model, data, fmt, MAX_REPLY_BYTES)
         except DecodeError as exc:
             # An error reply on a key that normally carries `model` (e.g. unknown parameter).
             try:

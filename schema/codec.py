@@ -14,6 +14,9 @@ from schema.errors import Error, ErrorCode
 MAX_PAYLOAD_BYTES = 64 * 1024
 """Larger requests are refused before any parsing."""
 
+MAX_REPLY_BYTES = 1024 * 1024
+"""Larger replies are refused by the Rider: a page of history (up to 256 KiB) must fit."""
+
 M = TypeVar("M", bound=BaseModel)
 
 
@@ -72,13 +75,13 @@ def pack(obj: Any) -> bytes:
     return data
 
 
-def decode_raw(data: bytes, fmt: Format) -> Any:
-    """Bytes to plain data, or `DecodeError` saying why."""
-    if len(data) > MAX_PAYLOAD_BYTES:
+def decode_raw(data: bytes, fmt: Format, limit: int = MAX_PAYLOAD_BYTES) -> Any:
+    """Bytes to plain data, or `DecodeError` saying why; `limit` bounds the size read."""
+    if len(data) > limit:
         raise DecodeError(
             Error(
                 code=ErrorCode.PAYLOAD_TOO_LARGE,
-                message=f"payload is {len(data)} bytes, the limit is {MAX_PAYLOAD_BYTES}",
+                message=f"payload is {len(data)} bytes, the limit is {limit}",
             )
         )
     try:
@@ -122,9 +125,9 @@ def validate(model: type[M], raw: Any) -> M:
         ) from exc
 
 
-def decode(model: type[M], data: bytes, fmt: Format) -> M:
-    """Bytes straight to a model."""
-    return validate(model, decode_raw(data, fmt))
+def decode(model: type[M], data: bytes, fmt: Format, limit: int = MAX_PAYLOAD_BYTES) -> M:
+    """Bytes straight to a model (requests: 64 KiB; the Rider reads replies up to 1 MiB)."""
+    return validate(model, decode_raw(data, fmt, limit))
 
 
 def json_pointer(loc: tuple[int | str, ...] | list[int | str]) -> str:

@@ -25,6 +25,7 @@ from schema.calibration import (
 )
 from schema.codec import (
     MAX_PAYLOAD_BYTES,
+    MAX_REPLY_BYTES,
     DecodeError,
     Format,
     decode,
@@ -51,6 +52,7 @@ from schema.commands import (
 from schema.completion import Completion, Outcome
 from schema.diag import CycleDiag, TimingStats
 from schema.errors import Error, ErrorCode
+from schema.events import EventPage
 from schema.findings import Finding, Findings, Severity
 from schema.io import IoKind, IoSnapshot, IoValue
 from schema.params import ParamList, ParamSet, ParamValue
@@ -538,3 +540,16 @@ def decode_raw_validate(model: type[CommandRequest], raw: dict[str, object]) -> 
 )
 def test_json_pointer(loc: tuple[int | str, ...], pointer: str) -> None:
     assert json_pointer(loc) == pointer
+
+
+@pytest.mark.parametrize("fmt", list(Format))
+def test_a_reply_larger_than_a_request_reads_within_the_reply_limit(fmt: Format) -> None:
+    """A page of history may be up to 256 KiB: the Rider reads replies with MAX_REPLY_BYTES,
+    while requests keep the 64 KiB bound."""
+    page = {"machine_id": "m1", "events": [], "more": False, "pad": "x" * (200 * 1024)}
+    data = json.dumps(page).encode() if fmt is Format.JSON else msgpack.packb(page)
+    assert MAX_PAYLOAD_BYTES < len(data) < MAX_REPLY_BYTES
+    assert decode_error(EventPage, data, fmt).code is ErrorCode.PAYLOAD_TOO_LARGE
+    assert decode(EventPage, data, fmt, MAX_REPLY_BYTES).machine_id == "m1"
+    with pytest.raises(DecodeError, match=f"the limit is {MAX_REPLY_BYTES}"):
+        decode(EventPage, data + b" " * MAX_REPLY_BYTES, fmt, MAX_REPLY_BYTES)
