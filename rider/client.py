@@ -1010,8 +1010,8 @@ class Rider:
             )
 
     def _sample_ok(self, sample: zenoh.Sample) -> bool:
-        """A publication under a machine from the pinned session (or its supervisor); a
-        status that names no source is not the machine's own (it always names itself)."""
+        """A publication under a machine from the pinned session (or its supervisor); one
+        that names no source is not the machine's own (every machine publication names it)."""
         key = str(sample.key_expr)
         mid = self._machine_in(key)
         known = self._holders.get(mid) if mid is not None else None
@@ -1019,7 +1019,7 @@ class Rider:
             return True  # no contact yet: nothing to compare with
         source = sample.source_info
         if source is None:
-            return not key.endswith("/status")
+            return False
         return known.allows(str(source.source_id.zid))
 
     @staticmethod

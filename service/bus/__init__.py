@@ -10,6 +10,7 @@ records without touching state. Publishers drop rather than block under congesti
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import threading
@@ -148,6 +149,7 @@ class ZenohBus:
         self._declared: list[Any] = []
         self._data_pubs: dict[str, zenoh.Publisher] = {}
         self._stop = threading.Event()
+        self._source_sn = itertools.count(1)
         self._diag_thread: threading.Thread | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._holder: zenoh.LivelinessToken | None = None
@@ -245,6 +247,11 @@ class ZenohBus:
             self._holder = live.declare_token(machine_keys.holder_key(self.base, self.zid))
             self._token = live.declare_token(f"{self.base}/alive")
 
+    def _source(self) -> zenoh.SourceInfo:
+        """Names this session on a publication: a Rider drops samples of any other session
+        that holds (or forges) this machine's keys. The sequence number only counts."""
+        return zenoh.SourceInfo(self._status_pub.id, next(self._source_sn) & 0xFFFFFFFF)
+
     def _publisher(self, key: str) -> zenoh.Publisher:
         """The publisher of a data key; declared up front in `start()`, so a first
         publication never pays for a declaration inside a scan cycle."""
@@ -260,11 +267,15 @@ class ZenohBus:
 
     def publish_io(self, points: list[IoValue]) -> None:
         for point in points:
-            self._publisher(f"{self.base}/io/{point.kind}/{point.name}").put(encode(point))
+            self._publisher(f"{self.base}/io/{point.kind}/{point.name}").put(
+                encode(point), source_info=self._source()
+            )
 
     def publish_axes(self, records: list[AxisRecord]) -> None:
         for record in records:
-            self._publisher(f"{self.base}/axis/{record.axis}").put(encode(record))
+            self._publisher(f"{self.base}/axis/{record.axis}").put(
+                encode(record), source_info=self._source()
+            )
 
     def publish_completion(self, notice: Completion) -> None:
         """A motion ended: its notice on `done/<transaction_id>` (scan thread, after the status)."""
@@ -274,6 +285,7 @@ class ZenohBus:
             encoding=Format.MSGPACK.value,
             congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.DATA_HIGH,
+            source_info=self._source(),
         )
 
     def publish_calibration(self, record: CalibrationRecord) -> None:
@@ -283,6 +295,7 @@ class ZenohBus:
             encode(record),
             encoding=Format.MSGPACK.value,
             congestion_control=zenoh.CongestionControl.DROP,
+            source_info=self._source(),
         )
 
     def publish_watchdog_trip(self, stalled_s: float) -> None:
@@ -316,7 +329,7 @@ class ZenohBus:
     def _diag_loop(self) -> None:
         period = self.config.bus.diag_period_s
         while not self._stop.wait(period):
-            self._diag_pub.put(encode(self._diag()))
+            self._diag_pub.put(encode(self._diag()), source_info=self._source())
 
     def _publish_events(self, events: list[Event]) -> None:
         """From the event log's writer thread: each event on its own key, `events/<seq>`, so a
@@ -329,6 +342,7 @@ class ZenohBus:
                 encode(event),
                 encoding=Format.MSGPACK.value,
                 congestion_control=zenoh.CongestionControl.DROP,
+                source_info=self._source(),
             )
 
     # --------------------------------------------------------------------------- commands

@@ -164,6 +164,7 @@ class SupervisorBus:
                 encode(notice),
                 encoding=Format.MSGPACK.value,
                 allowed_destination=zenoh.Locality.REMOTE,
+                source_info=self._source(status.seq),
             )
         return status
 

@@ -8,6 +8,7 @@ import threading
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from rider.client import (
     AmbiguousMachine,
@@ -20,6 +21,7 @@ from rider.client import (
     Update,
 )
 from schema.axes import AxisRecord
+from schema.codec import encode
 from schema.commands import Command, CommandRequest, ReplyCode
 from schema.diag import CycleDiag
 from schema.errors import ErrorCode
@@ -223,3 +225,34 @@ def test_the_pinned_holder_and_its_supervisor_may_answer_and_no_one_else() -> No
     known.update("holder", "a", False)  # the daemon restarts under a new session id
     known.update("holder", "a2", True)
     assert known.pinned == "a2" and not known.allows("a")
+
+
+def test_subscribe_drops_samples_of_any_session_but_the_machine(machine: Daemon) -> None:
+    """A peer that publishes under the machine's keys (with no source, or naming itself) is
+    not the machine: a pinned Rider drops its IO samples and still gets the machine's own."""
+    updates: queue.Queue[Update] = queue.Queue()
+    rogue_at = f"tcp/127.0.0.1:{free_port()}"
+    conf = zenoh.Config.from_file(str(machine.zenoh_config))
+    conf.insert_json5("listen/endpoints", f'["{rogue_at}"]')
+    conf.insert_json5("connect/endpoints", f'["{machine.endpoint}"]')
+    with (
+        zenoh.open(conf) as rogue,
+        Rider(
+            "m1", connect=[machine.endpoint, rogue_at], zenoh_config_path=machine.zenoh_config
+        ) as rider,
+    ):
+        point = rider.io()[0]
+        with rider.subscribe(("io/**", "diag/cycle"), updates.put):
+            first = updates.get(timeout=STEP_TIMEOUT_S)  # the machine's own (diag or IO)
+            assert rider.holders("m1").pinned is not None
+            fake = encode(point.model_copy(update={"time": 12345.0}))
+            key = f"machine/m1/io/{point.kind}/{point.name}"
+            pub = rogue.declare_publisher(key)
+            for _ in range(20):
+                rogue.put(key, fake)  # no source at all
+                pub.put(fake)  # its own session as the source
+            seen: list[Update] = [first]
+            while sum(isinstance(u, CycleDiag) for u in seen) < 2:  # diag every 0.5 s
+                seen.append(updates.get(timeout=STEP_TIMEOUT_S))
+            pub.undeclare()
+    assert not [u for u in seen if isinstance(u, IoValue) and u.time == 12345.0]
