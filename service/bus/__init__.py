@@ -902,6 +902,9 @@ def zenoh_config(
     if path is None:
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("listen/endpoints", json.dumps([DEFAULT_LISTEN]))
+        # As zenoh.json5: explicit endpoints only. Zenoh's own default (multicast scouting on)
+        # would join any peer on the LAN, and another machine with this id would refuse us.
+        conf.insert_json5("scouting/multicast/enabled", "false")
         # Read-only, as in zenoh.json5: Riders' default-machine lookup reads our tokens there.
         conf.insert_json5("adminspace", "{enabled: true, permissions: {read: true, write: false}}")
     if listen:

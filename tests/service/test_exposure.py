@@ -37,6 +37,12 @@ def test_the_default_is_loopback_and_not_exposed() -> None:
     assert unauthenticated_exposure(conf) == []
 
 
+def test_the_default_finds_no_peer_by_multicast() -> None:
+    """Without a config file the daemon joins only the endpoints it is given, like zenoh.json5:
+    Zenoh's own default (multicast scouting) would join any peer on the LAN."""
+    assert json.loads(zenoh_config(None).get_json("scouting/multicast/enabled")) is False
+
+
 def test_wide_listen_is_exposed_unless_a_dictionary_is_set() -> None:
     conf = zenoh_config(None, listen=["tcp/0.0.0.0:7447", "tcp/127.0.0.1:7448"])
     assert unauthenticated_exposure(conf) == ["tcp/0.0.0.0:7447"]
