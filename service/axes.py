@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
 from schema.commands import Direction
 from schema.status import MachineState
-from service.config import MachineConfig
+from service.config import LiveConfig, MachineConfig
 from service.controllers import Controller, RotateCalibrate, RotateHome, RotateRevolutions
 from service.devices import Devices, RotateCalibration, TiltDirection
 
@@ -86,9 +86,9 @@ class RotateEstimator:
 class AxisTracker:
     """Keeps both axes' samples up to date and says when a record is worth publishing."""
 
-    def __init__(self, devices: Devices, config: MachineConfig) -> None:
+    def __init__(self, devices: Devices, live: LiveConfig) -> None:
         self.devices = devices
-        self.config = config
+        self.live = live
         self.rotate = RotateEstimator()
         self._last_t: float | None = None
         self._tilt_prev: float | None = None
@@ -101,8 +101,8 @@ class AxisTracker:
         """Each axis' last move target (degrees), kept after the move ends or is stopped."""
 
     @property
-    def tilt_target(self) -> float | None:
-        return self.targets["tilt"]
+    def config(self) -> MachineConfig:
+        return self.live.current
 
     def update(
         self,

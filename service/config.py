@@ -171,3 +171,28 @@ def read_toml(path: Path) -> dict[str, Any]:
     """The raw TOML of a config file (no validation)."""
     with path.open("rb") as fh:
         return tomllib.load(fh)
+
+
+class LiveConfig:
+    """The config the machine runs with: one holder that every reader (control, axes, loop)
+    looks at, instead of each keeping its own copy.
+
+    Online parameter writes `offer` a new, validated config from any thread; the scan loop
+    `take`s the latest offer at a cycle boundary, so one cycle sees one config.
+    """
+
+    def __init__(self, config: MachineConfig) -> None:
+        self._current = config
+        self._offered = config
+
+    @property
+    def current(self) -> MachineConfig:
+        return self._current
+
+    def offer(self, config: MachineConfig) -> None:
+        """A new config for the next cycle (one reference swap: safe from any thread)."""
+        self._offered = config
+
+    def take(self) -> None:
+        """On the scan thread, between cycles: run with the latest offer from now on."""
+        self._current = self._offered

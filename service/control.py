@@ -36,7 +36,7 @@ from schema.status import (
     MotionRef,
     SessionProgress,
 )
-from service.config import MachineConfig, RiderLossPolicy
+from service.config import LiveConfig, MachineConfig, RiderLossPolicy
 from service.controllers import (
     Chain,
     Controller,
@@ -139,7 +139,8 @@ class ControlAPI:
     """Commands in, a state and desired outputs out; `update(now)` once per scan cycle."""
 
     devices: Devices
-    config: MachineConfig
+    live: LiveConfig
+    """The running config (online parameters change it between cycles): read, never kept."""
     calibration: Calibration = field(default_factory=Calibration)
     on_calibrated: Callable[[Calibration], SaveTicket | None] | None = None
     """Persist a new calibration; a ticket that is not done keeps CALIBRATING until it is."""
@@ -148,6 +149,10 @@ class ControlAPI:
     on_transition: Callable[[Transition], None] | None = None
     wall_offset: float = 0.0
     warnings: list[str] = field(default_factory=list)
+
+    @property
+    def config(self) -> MachineConfig:
+        return self.live.current
 
     def __post_init__(self) -> None:
         self.devices.tilt.calibration = self.calibration.tilt

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import signal
 import sys
 import threading
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -18,13 +16,13 @@ from types import FrameType
 from hal.base import Hal, HalConfigError, HalError
 from hal.sim import SimHal
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
-from schema.findings import Finding, Findings, Severity
+from schema.findings import Finding, Severity
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.config import HalBackend, MachineConfig
 from service.eventlog import EVENTS_FILE, EventLog
 from service.fastdata import FastDataServer, user_registers
-from service.load import load_data
+from service.load import check_candidate
 from service.machine import Machine
 from service.params import ParamRegistry
 from service.persist import BackgroundWriter, CalibrationStore, ParamStore
@@ -36,7 +34,7 @@ from service.runner import (
     tune_thread,
 )
 from service.timing import CycleStats
-from service.validate import finding_line, semantic_findings, validate_data
+from service.validate import finding_line
 from service.watchdog import GuardedHal, Watchdog
 
 log = logging.getLogger("machine")
@@ -109,11 +107,17 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     config = registry.config  # persisted online values survive a restart
     stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
     events = _event_log(config)
-    machine = Machine(config, hal, now=clock(), wall_offset=wall_offset, store=store, events=events)
+    machine = Machine(
+        registry.live,
+        hal,
+        now=clock(),
+        wall_offset=wall_offset,
+        store=store,
+        events=events,
+        guard=hal,
+        warnings=registry.warnings,
+    )
     loop = machine.loop
-    loop.guard = hal
-    loop.params = registry
-    machine.control.warnings.extend(registry.warnings)
     runner = RealtimeRunner(loop, config.loop.period_s, stats, spin_s=config.loop.spin_s)
 
     exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
@@ -162,7 +166,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         sim=raw_hal if isinstance(raw_hal, SimHal) else None,
         sim_elsewhere=bool(supervisor),
         params=registry,
-        check_config=lambda candidate: _check(registry.config, candidate),
+        check_config=lambda candidate: check_candidate(registry.config, candidate),
         events=events,
     )
     loop.sink = bus
@@ -274,30 +278,3 @@ def _exit_now(hal: Hal) -> None:
         log.error("event=shutdown_stuck deadline_s=%g action=exit", SHUTDOWN_DEADLINE_S)
         logging.shutdown()
         os._exit(EXIT_FAILED)
-
-
-def _check(config: MachineConfig, candidate: bytes | None) -> Findings:
-    """Findings for the running config, or for a candidate sent as TOML or JSON text."""
-    if candidate is None:
-        findings = semantic_findings(config)
-        return Findings(
-            ok=not any(f.severity is Severity.ERROR for f in findings), findings=findings
-        )
-    try:
-        text = candidate.decode()
-        data = json.loads(text) if text.lstrip().startswith("{") else tomllib.loads(text)
-    except (ValueError, RecursionError) as exc:  # JSON, TOML and UTF-8 errors
-        return Findings(
-            ok=False,
-            findings=[
-                Finding(
-                    category="syntax",
-                    severity=Severity.ERROR,
-                    path="",
-                    message=f"candidate config is neither TOML nor a JSON object: {exc}",
-                )
-            ],
-        )
-    if not isinstance(data, dict):
-        return validate_data(data)[1]  # one finding: "expected a table/object, got …"
-    return load_data(data)[1]

@@ -8,13 +8,15 @@ file value meets, and the config that runs is the one that was validated.
 from __future__ import annotations
 
 import copy
+import json
+import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from schema.findings import Finding, Findings
+from schema.findings import Finding, Findings, Severity
 from service.config import MachineConfig
-from service.validate import read_file, validate_data
+from service.validate import findings_of, read_file, semantic_findings, validate_data
 
 Overrides = Mapping[str, Any]
 """Config field (JSON pointer, e.g. `/loop/period_s`) → value that replaces the file's."""
@@ -54,3 +56,27 @@ def load_data(
 def override_source(f: Finding, options: Mapping[str, str], default: str) -> str:
     """Where a finding's value came from: the command-line option that set it, else `default`."""
     return options.get(f.path, default)
+
+
+def check_candidate(running: MachineConfig, candidate: bytes | None) -> Findings:
+    """Findings for the running config, or for a candidate sent as TOML or JSON text."""
+    if candidate is None:
+        return findings_of(semantic_findings(running))
+    try:
+        text = candidate.decode()
+        data = json.loads(text) if text.lstrip().startswith("{") else tomllib.loads(text)
+    except (ValueError, RecursionError) as exc:  # JSON, TOML and UTF-8 errors
+        return Findings(
+            ok=False,
+            findings=[
+                Finding(
+                    category="syntax",
+                    severity=Severity.ERROR,
+                    path="",
+                    message=f"candidate config is neither TOML nor a JSON object: {exc}",
+                )
+            ],
+        )
+    if not isinstance(data, dict):
+        return validate_data(data)[1]  # one finding: "expected a table/object, got …"
+    return load_data(data)[1]

@@ -52,16 +52,6 @@ class LoopSink(Protocol):
     def publish_axes(self, records: list[AxisRecord]) -> None: ...
 
 
-class LiveConfig(Protocol):
-    """Online parameters: a config that changes, and a counter that says when."""
-
-    @property
-    def generation(self) -> int: ...
-
-    @property
-    def config(self) -> MachineConfig: ...
-
-
 class RiderBeats(Protocol):
     """When each Rider's heartbeat last arrived, on the loop's clock (the bus records them)."""
 
@@ -79,6 +69,14 @@ class NullSink:
 
     def publish_axes(self, records: list[AxisRecord]) -> None:
         pass
+
+
+SinkFactory = Callable[["ScanLoop"], LoopSink]
+"""Makes the sink from the loop it serves (the Zenoh bus answers queries from the loop too)."""
+
+
+def _sink(given: LoopSink | SinkFactory, loop: ScanLoop) -> LoopSink:
+    return given(loop) if callable(given) else given
 
 
 class Task(Protocol):
@@ -185,24 +183,22 @@ class ScanLoop:
         self,
         hal: Hal,
         control: ControlAPI,
-        config: MachineConfig,
-        sink: LoopSink | None = None,
+        *,
+        sink: LoopSink | SinkFactory | None = None,
         inbox: Inbox | None = None,
         started_at: float = 0.0,
         guard: GuardedHal | None = None,
-        params: LiveConfig | None = None,
         recorder: EventRecorder | None = None,
     ) -> None:
+        """`guard`: the watchdog's HAL wrapper, whose latch this loop turns into a fault."""
         self.hal = hal
         self.guard = guard
-        self.params = params
-        self._params_generation = params.generation if params is not None else 0
         self.control = control
+        self.live = control.live
+        config = self.live.current
         self.devices: Devices = control.devices
         self.points: IoPoints = self.devices.points
         self.image: ProcessImage = self.points.image
-        self.config = config
-        self.sink: LoopSink = sink or NullSink()
         self.beats: RiderBeats | None = None
         """Set by the bus: without it (an in-process rig) only the Rider's token is watched."""
         self.inbox = inbox or Inbox(config.bus.inbox_capacity)
@@ -217,7 +213,7 @@ class ScanLoop:
         """Called on the scan thread with the calibration record whenever it changes."""
         self._calibration_seen: object = None
         self._active_tid: str | None = None
-        self.axes = AxisTracker(self.devices, config)
+        self.axes = AxisTracker(self.devices, self.live)
         self.published = Published()
         self.recorder = recorder or EventRecorder(NullEventSink(), wall_offset=control.wall_offset)
         self.cycle = 0
@@ -232,14 +228,19 @@ class ScanLoop:
         self.lock = threading.Lock()
         """One writer at a time: held by the runner for a cycle (and for queued tasks between
         cycles), and by a Zenoh callback thread running a command between cycles."""
+        self.sink: LoopSink = NullSink() if sink is None else _sink(sink, self)
+
+    @property
+    def config(self) -> MachineConfig:
+        """The running config (online parameters change it at a cycle boundary)."""
+        return self.live.current
 
     # ------------------------------------------------------------------------------ cycle
     def step(self, now: float) -> None:
         """One scan cycle, in the design's order."""
         self.cycle += 1
         self.recorder.cycle = self.cycle
-        if self.params is not None and self.params.generation != self._params_generation:
-            self.apply_config(self.params.config)
+        self.live.take()  # online parameter writes take effect here, between cycles
         self.image.inputs = self.hal.scan_inputs()
         if self.guard is not None and self.guard.latched:
             # The watchdog forced the outputs safe while this thread was stalled: make the
@@ -290,14 +291,6 @@ class ScanLoop:
                 now + self.wall_offset,
                 self.cycle,
             )
-
-    def apply_config(self, config: MachineConfig) -> None:
-        """Take new online parameter values; running controllers keep what they started with."""
-        if self.params is not None:
-            self._params_generation = self.params.generation
-        self.config = config
-        self.control.config = config
-        self.axes.config = config
 
     def service_inbox(self, now: float) -> int:
         """Run queued tasks (bounded per call so a storm cannot stretch a cycle unboundedly)."""

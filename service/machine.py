@@ -6,13 +6,14 @@ import logging
 from collections.abc import Callable
 
 from hal.base import Hal
-from service.config import MachineConfig
+from service.config import LiveConfig, MachineConfig
 from service.control import ControlAPI, Transition
 from service.devices import Calibration, Devices
 from service.events import EventRecorder, EventSink, NullEventSink
 from service.io import IoPoints, ProcessImage
-from service.loop import LoopSink, ScanLoop
+from service.loop import LoopSink, ScanLoop, SinkFactory
 from service.persist import CalibrationStore
+from service.watchdog import GuardedHal
 
 log = logging.getLogger("machine")
 
@@ -26,29 +27,32 @@ class Machine:
 
     def __init__(
         self,
-        config: MachineConfig,
+        config: MachineConfig | LiveConfig,
         hal: Hal,
         *,
         now: float,
         wall_offset: float = 0.0,
         store: CalibrationStore | None = None,
-        sink: LoopSink | None = None,
+        sink: LoopSink | SinkFactory | None = None,
         on_transition: Callable[[Transition], None] | None = log_transition,
         events: EventSink | None = None,
+        guard: GuardedHal | None = None,
+        warnings: list[str] | None = None,
     ) -> None:
-        """`events` receives the event history (`service/events.py`); it must never block."""
+        """`config`: fixed, or live (online parameters); `events` receives the event history
+        (`service/events.py`) and must never block; `warnings` start in the status."""
         hal.force_all_outputs_safe()
-        self.config = config
+        self.live = config if isinstance(config, LiveConfig) else LiveConfig(config)
         self.hal = hal
         self.store = store
-        self.image = ProcessImage(config.hal.iomap)
+        self.image = ProcessImage(self.live.current.hal.iomap)
         self.points = IoPoints(self.image)
         self.devices = Devices(self.points)
-        warnings: list[str] = []
+        found: list[str] = []
         if store is not None:
             calibration, warning = store.load()
             if warning:
-                warnings.append(warning)
+                found.append(warning)
                 log.warning("event=calibration_load_failed detail=%r", warning)
         else:
             calibration = Calibration()
@@ -57,16 +61,16 @@ class Machine:
         )
         self.control = ControlAPI(
             devices=self.devices,
-            config=config,
+            live=self.live,
             calibration=calibration,
             on_calibrated=store.save if store is not None else None,
             storage=store.health if isinstance(store, CalibrationStore) else None,
             on_transition=_both(on_transition, self.recorder.transition),
             wall_offset=wall_offset,
-            warnings=warnings,
+            warnings=[*found, *(warnings or [])],
         )
         self.loop = ScanLoop(
-            hal, self.control, config, sink=sink, started_at=now, recorder=self.recorder
+            hal, self.control, sink=sink, started_at=now, guard=guard, recorder=self.recorder
         )
 
 

@@ -17,7 +17,7 @@ from schema.errors import ErrorCode
 from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
 from schema.findings import Severity
 from schema.params import ParamSet, ParamValue
-from service.config import MachineConfig
+from service.config import LiveConfig, MachineConfig
 from service.errors import MachineError, ParamLocked, ParamOutOfRange, StorageFailed, UnknownParam
 from service.persist import ParamScalar, ParamStore, StorageHealth, StoredParam
 from service.validate import semantic_findings
@@ -220,7 +220,7 @@ class ParamRegistry:
     """The live parameters of one machine; thread-safe, so the bus may call it directly.
 
     The project config stays as loaded; `config` is it with the live values applied, and
-    `generation` counts changes so the scan loop can pick a new config at a cycle boundary.
+    `live` is the holder the machine reads it from (it takes a new one at a cycle boundary).
     """
 
     def __init__(
@@ -234,8 +234,9 @@ class ParamRegistry:
         self._changed_at: dict[str, float | None] = {}
         self._stored: dict[str, StoredParam] = {}
         self._config = config
-        self.generation = 0
         self.warnings: builtins.list[str] = self._load()
+        self.live = LiveConfig(self._config)
+        """What the machine runs with: each accepted write is offered to it."""
 
     @property
     def config(self) -> MachineConfig:
@@ -295,8 +296,8 @@ class ParamRegistry:
             if stored != self._stored:
                 self._save(stored, name)
             self._live, self._stored, self._config = live, stored, candidate
+            self.live.offer(candidate)
             self._changed_at[name] = None if req.reset else now
-            self.generation += 1
             log.info(
                 "event=param_set name=%s value=%r persist=%s reset=%s",
                 name,

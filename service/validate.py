@@ -498,12 +498,6 @@ def read_file(path: Path) -> tuple[dict[str, Any] | None, Findings]:
         return None, _one(Category.SYNTAX, f"{path}: not valid TOML: {exc}")
 
 
-def validate_file(path: Path) -> tuple[MachineConfig | None, Findings]:
-    """Load and check a TOML config file; a file that does not parse is one finding."""
-    data, findings = read_file(path)
-    return validate_data(data) if data is not None else (None, findings)
-
-
 def _one(category: Category, message: str) -> Findings:
     return findings_of([_error(category, "", message)])
 

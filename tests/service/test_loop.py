@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import pytest
 
@@ -11,10 +12,13 @@ from hal.iomap import RELAY_OUTPUTS, Signal
 from hal.sim import SimHal
 from schema.commands import REQUEST_MODELS, Command, Reply
 from schema.errors import Error, ErrorCode
+from schema.params import ParamSet
 from schema.status import MachineState
 from service.config import MachineConfig
 from service.loop import Inbox, LoopCall, PendingCommand, ScanLoop
 from service.machine import Machine
+from service.params import ParamRegistry
+from service.persist import ParamStore
 from tests.rig import FakeClock, Rig, known_calibration, rig_in
 
 S = MachineState
@@ -263,3 +267,21 @@ def test_estop_publishes_drive_disabled_for_a_standing_axis() -> None:
     records = {a.axis: a for a in rig.sink.axes}
     assert set(records) == {"rotate", "tilt"}
     assert all(not a.pn_status & 4 for a in records.values())  # DRIVE_ENABLED cleared
+
+
+def test_an_online_write_reaches_every_reader_at_the_next_cycle(tmp_path: Path) -> None:
+    registry = ParamRegistry(MachineConfig(), ParamStore(tmp_path))
+    clock = FakeClock()
+    machine = Machine(registry.live, SimHal(clock), now=clock(), on_transition=None)
+    loop = machine.loop
+    registry.set("bus.heartbeat_s", ParamSet(transaction_id="p1", value=7.0), moving=False, now=0.0)
+    registry.set(
+        "rider_loss.policy", ParamSet(transaction_id="p2", value="stop"), moving=False, now=0.0
+    )
+    # Offered from the writer's thread; the cycle under way keeps the config it started with.
+    assert loop.config.bus.heartbeat_s == machine.control.config.bus.heartbeat_s == 1.0
+    clock.advance(0.01)
+    loop.step(clock())
+    assert loop.config is machine.control.config is loop.axes.config is registry.config
+    assert loop.config.bus.heartbeat_s == 7.0
+    assert machine.control.config.rider_loss.policy == "stop"

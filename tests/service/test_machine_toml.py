@@ -8,7 +8,8 @@ from pathlib import Path
 from pydantic import BaseModel
 
 from service.config import HalBackend, MachineConfig
-from service.validate import Category, validate_file
+from service.load import load
+from service.validate import Category
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "machine.toml"
@@ -42,13 +43,13 @@ def sections(text: str) -> dict[str, str]:
 
 
 def test_example_validates_without_any_finding() -> None:
-    config, report = validate_file(EXAMPLE)
+    config, report = load(EXAMPLE)
     assert config is not None, report
     assert report.findings == []
 
 
 def test_example_runs_on_the_simulator_and_holds_the_project_defaults() -> None:
-    config, _ = validate_file(EXAMPLE)
+    config, _ = load(EXAMPLE)
     assert config is not None
     assert config.hal.backend is HalBackend.SIM
     # The header says a key left out takes the default "shown here": keep that true.

@@ -85,11 +85,12 @@ def test_records_carry_unit_range_and_lock(tmp_path: Path) -> None:
 # ---------------------------------------------------------------- set / persist / restart
 def test_set_without_persist_applies_now_and_is_gone_after_restart(tmp_path: Path) -> None:
     reg = registry(tmp_path)
-    before = reg.generation
     got = reg.set("tilt.tolerance_deg", req(2.0), moving=False, now=100.0)
     assert (got.value, got.default, got.persisted, got.changed_at) == (2.0, 1.0, False, 100.0)
     assert reg.config.tilt.tolerance_deg == 2.0
-    assert reg.generation == before + 1
+    assert reg.live.current.tilt.tolerance_deg == 1.0  # the machine takes it between cycles
+    reg.live.take()
+    assert reg.live.current.tilt.tolerance_deg == 2.0
     assert reg.project.tilt.tolerance_deg == 1.0
     assert not (tmp_path / PARAMS_FILE).exists()
     again = registry(tmp_path)
@@ -222,7 +223,8 @@ def test_wrong_type_is_refused(tmp_path: Path, name: str, value: Any, expects: s
     assert err.value.path == "/value"
     assert expects in err.value.message
     assert err.value.to_error().code is ErrorCode.BAD_PAYLOAD
-    assert reg.config == MachineConfig() and reg.generation == 0
+    reg.live.take()
+    assert reg.config == reg.live.current == MachineConfig()
 
 
 def test_reset_with_a_value_is_refused(tmp_path: Path) -> None:
@@ -283,7 +285,8 @@ def test_write_that_cannot_be_stored_changes_nothing(tmp_path: Path) -> None:
         reg.set("tilt.tolerance_deg", req(2.0, persist=True), moving=False, now=1.0)
     assert err.value.path == "/persist"
     assert reg.get("tilt.tolerance_deg").value == 1.0
-    assert reg.generation == 0
+    reg.live.take()
+    assert reg.live.current == MachineConfig()
     # Without persist nothing touches the disk, so the write works.
     assert reg.set("tilt.tolerance_deg", req(2.0), moving=False, now=1.0).value == 2.0
 

@@ -12,7 +12,8 @@ import pytest
 
 from schema.findings import Finding, Severity
 from service.config import MachineConfig
-from service.validate import semantic_findings, validate_data, validate_file
+from service.load import load
+from service.validate import semantic_findings, validate_data
 
 E, W = Severity.ERROR, Severity.WARNING
 
@@ -189,7 +190,7 @@ def test_semantic_findings_of_a_valid_model_are_the_same_as_of_its_data() -> Non
 
 # ------------------------------------------------------------------------------ files
 def test_missing_file_is_one_finding(tmp_path: Path) -> None:
-    config, report = validate_file(tmp_path / "nope.toml")
+    config, report = load(tmp_path / "nope.toml")
     assert config is None
     [finding] = report.findings
     assert (finding.category, finding.severity, finding.path) == ("file", E, "")
@@ -198,7 +199,7 @@ def test_missing_file_is_one_finding(tmp_path: Path) -> None:
 def test_toml_syntax_error_is_one_finding(tmp_path: Path) -> None:
     path = tmp_path / "bad.toml"
     path.write_text("[loop\nperiod_s = 0.01\n")
-    _, report = validate_file(path)
+    _, report = load(path)
     [finding] = report.findings
     assert finding.category == "syntax" and "not valid TOML" in finding.message
 
@@ -209,7 +210,7 @@ def test_toml_specific_values_are_caught(tmp_path: Path) -> None:
         "[machine]\nid = 1979-05-27\n[tilt]\ngain_max_counts_per_deg = inf\n"
         "[loop]\nperiod_s = nan\n"
     )
-    _, report = validate_file(path)
+    _, report = load(path)
     got = {(f.category, f.path) for f in report.findings}
     assert got == {
         ("wrong_type", "/machine/id"),

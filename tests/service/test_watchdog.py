@@ -60,9 +60,8 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     config = MachineConfig().with_overrides(loop={"period_s": 0.005})
     hal = SimHal(time.monotonic, config.hal.iomap, config.hal.sim)
     guard = GuardedHal(hal)
-    machine = Machine(config, guard, now=time.monotonic(), on_transition=None)
+    machine = Machine(config, guard, now=time.monotonic(), on_transition=None, guard=guard)
     loop: ScanLoop = machine.loop
-    loop.guard = guard
     stats = CycleStats(config.loop.period_s)
     runner = RealtimeRunner(loop, config.loop.period_s, stats)
     tripped = threading.Event()
