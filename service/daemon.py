@@ -33,6 +33,7 @@ from service.runner import (
     die_with_parent,
     tune_thread,
 )
+from service.simfaults import HalSim
 from service.timing import CycleStats
 from service.validate import finding_line
 from service.watchdog import GuardedHal, Watchdog
@@ -163,7 +164,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         loop,
         stats,
         config,
-        sim=raw_hal if isinstance(raw_hal, SimHal) else None,
+        sim=HalSim(raw_hal) if isinstance(raw_hal, SimHal) else None,
         sim_elsewhere=bool(supervisor),
         params=registry,
         check_config=lambda candidate: check_candidate(registry.config, candidate),

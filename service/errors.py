@@ -9,6 +9,8 @@ class MachineError(Exception):
     """Base of every exception the daemon raises on purpose."""
 
     code = ErrorCode.INTERNAL
+    error_reply = False
+    """True: answered as a Zenoh error reply rather than a `Reply` sample (one class only)."""
 
     def __init__(self, message: str, path: str = "") -> None:
         super().__init__(message)
@@ -17,6 +19,15 @@ class MachineError(Exception):
 
     def to_error(self) -> Error:
         return Error(code=self.code, message=self.message, path=self.path)
+
+
+class Rejected(MachineError):
+    """A refusal that arrives as a wire `Error` already: from the codec (a payload it cannot
+    read: `BAD_PAYLOAD`, `PAYLOAD_TOO_LARGE`, `UNSUPPORTED_ENCODING`) or the scan loop's inbox."""
+
+    def __init__(self, error: Error) -> None:
+        super().__init__(error.message, error.path)
+        self.code = error.code
 
 
 class BadRequest(MachineError):
@@ -49,6 +60,46 @@ class DuplicateTransaction(MachineError):
     code = ErrorCode.DUPLICATE_TRANSACTION
 
 
+class PayloadTooLarge(MachineError):
+    code = ErrorCode.PAYLOAD_TOO_LARGE
+
+
+class UnknownCommand(MachineError):
+    """A key under `cmd/` (or `sim/`) that names nothing this machine knows."""
+
+    code = ErrorCode.UNKNOWN_COMMAND
+
+
+class BadKey(MachineError):
+    """A key that may not be used that way (a wildcard on a key that acts, a reset as a
+    parameter)."""
+
+    code = ErrorCode.BAD_KEY
+
+
+class WildcardCommand(BadKey):
+    """A wildcard in a command key: refused as a Zenoh error reply (docs/zenoh-cli.md), so a
+    caller that reached many machines sees each refusal as an error."""
+
+    error_reply = True
+
+
+class Busy(MachineError):
+    code = ErrorCode.BUSY
+
+
+class NotAvailable(MachineError):
+    code = ErrorCode.NOT_AVAILABLE
+
+
+class InProgress(MachineError):
+    code = ErrorCode.IN_PROGRESS
+
+
+class UnknownTransaction(MachineError):
+    code = ErrorCode.UNKNOWN_TRANSACTION
+
+
 class UnknownParam(MachineError):
     code = ErrorCode.UNKNOWN_PARAM
 
@@ -67,9 +118,3 @@ class StorageFailed(MachineError):
 
 class DuplicateId(MachineError):
     code = ErrorCode.DUPLICATE_ID
-
-
-class ConfigError(MachineError):
-    """The machine config cannot be loaded; carries every finding."""
-
-    code = ErrorCode.BAD_PAYLOAD

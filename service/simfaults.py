@@ -11,7 +11,6 @@ from pydantic import BaseModel
 from hal.physics import SwitchFault
 from hal.sim import SimHal
 from schema.codec import DecodeError, decode_raw, sniff_format, validate
-from schema.errors import Error, ErrorCode
 from schema.sim import (
     SIM_REQUESTS,
     SimClear,
@@ -22,23 +21,39 @@ from schema.sim import (
     SimWorldState,
     SwitchState,
 )
+from service.errors import Rejected, UnknownCommand
 
 WORLD = "world"
 """`sim/world`: read the world, change nothing."""
 
 
 def decode_request(what: str, data: bytes, encoding: str | None) -> BaseModel:
-    """The fault request for `sim/<what>`; `DecodeError` for an unknown key or a bad payload."""
+    """The fault request for `sim/<what>`; `MachineError` for an unknown key or a bad payload."""
     model = SIM_REQUESTS.get(what)
     if model is None:
         known = ", ".join([*SIM_REQUESTS, WORLD])
-        raise DecodeError(
-            Error(
-                code=ErrorCode.UNKNOWN_COMMAND, message=f"unknown sim key {what!r}; known: {known}"
-            )
-        )
+        raise UnknownCommand(f"unknown sim key {what!r}; known: {known}")
     body = data or b"{}"  # every field of a fault request has a default but the few required
-    return validate(model, decode_raw(body, sniff_format(body, encoding)))
+    try:
+        return validate(model, decode_raw(body, sniff_format(body, encoding)))
+    except DecodeError as exc:
+        raise Rejected(exc.error) from None
+
+
+class HalSim:
+    """The simulator HAL as the bus's `SimPort` (applied on the scan thread, which owns it)."""
+
+    def __init__(self, sim: SimHal) -> None:
+        self.sim = sim
+
+    def decode(self, what: str, payload: bytes, encoding: str | None) -> BaseModel:
+        return decode_request(what, payload, encoding)
+
+    def apply(self, request: BaseModel) -> None:
+        apply_fault(self.sim, request)
+
+    def world(self, stamp: float) -> SimWorldState:
+        return world_state(self.sim, stamp)
 
 
 def apply_fault(sim: SimHal, req: BaseModel) -> None:

@@ -69,12 +69,15 @@ class SimWorld:
         with self._lock:
             self._step()
 
+    def decode(self, what: str, payload: bytes, encoding: str | None) -> BaseModel:
+        return simfaults.decode_request(what, payload, encoding)
+
     def apply(self, request: BaseModel) -> None:
         """Inject (or repair) a fault decoded from a `sim/<fault>` request."""
         with self._lock:
             simfaults.apply_fault(self._sim.ride, request)
 
-    def state(self, stamp: float) -> SimWorldState:
+    def world(self, stamp: float) -> SimWorldState:
         with self._lock:
             return simfaults.world_state(self._sim.ride, stamp)
 

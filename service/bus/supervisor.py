@@ -21,22 +21,16 @@ import zenoh
 
 from schema import keys as machine_keys
 from schema.codec import DecodeError, Format, decode, encode
-from schema.commands import Reply, transaction_id_of
 from schema.completion import Completion, Outcome
-from schema.errors import Error, ErrorCode
 from schema.status import Fault, FaultCode, MachineState, Status
-from service import simfaults
-from service.bus import (
-    _encoding,
-    _failure,
-    _payload,
-    _try_raw,
-    file_config,
-    reply_format,
-    zenoh_config,
-)
+from service.bus.commands import command_route
+from service.bus.injection import Injection, SimPort
+from service.bus.reads import latest, matching
+from service.bus.request import Request
+from service.bus.routes import Route, declare
+from service.bus.session import file_config, zenoh_config
 from service.config import MachineConfig
-from service.simworld import SimWorld
+from service.errors import NotAvailable
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +75,7 @@ class SupervisorBus:
         session: zenoh.Session,
         config: MachineConfig,
         *,
-        world: SimWorld | None = None,
+        world: SimPort | None = None,
         on_presence: Callable[[bool], None],
         wall: Callable[[], float] = time.time,
     ) -> None:
@@ -117,7 +111,9 @@ class SupervisorBus:
             s.liveliness().declare_subscriber(f"{b}/alive", self._on_token, history=True)
         )
         # Always: the daemon child leaves sim/** to its supervisor (one answer, never two).
-        self._declared.append(s.declare_queryable(f"{b}/sim/**", self._on_sim))
+        # The world applies a fault under its own lock: at once, on Zenoh's thread.
+        sim = Injection(b, self.world, self.config.hal.backend, _at_once, self.wall)
+        self._declared += declare(s, b, self, sim.routes())
         # Riders accept answers for this machine from its holder and from this session only.
         self._declared.append(
             s.liveliness().declare_token(machine_keys.supervisor_key(b, str(s.zid())))
@@ -145,16 +141,11 @@ class SupervisorBus:
         notice = self._abandoned(last, status, reason)
         with self._lock:
             self._down = status
-            declare = not self._down_entities
+            first = not self._down_entities
             if notice is not None:
                 self._notice = notice
-        if declare:
-            s, b = self.session, self.base
-            entities = [
-                s.declare_queryable(f"{b}/status", self._on_status),
-                s.declare_queryable(f"{b}/cmd/**", self._on_command),
-                s.declare_queryable(f"{b}/done/**", self._on_done),
-            ]
+        if first:
+            entities = declare(self.session, self.base, self, self._down_routes())
             with self._lock:
                 self._down_entities = entities
         self._status_pub.put(encode(status), source_info=self._source(status.seq))
@@ -186,17 +177,32 @@ class SupervisorBus:
             time=down.time,
         )
 
-    def _on_done(self, query: zenoh.Query) -> None:
+    def _down_routes(self) -> list[Route]:
+        """What the supervisor answers while the daemon is down."""
+        return [
+            Route("status", latest(f"{self.base}/status", lambda: self._down)),
+            command_route(self._refuse_command),
+            Route("done/**", self._on_done),
+        ]
+
+    def state(self) -> MachineState | None:
+        """`Host`: the state a refusal states (FAULT_HW while the daemon is down)."""
+        with self._lock:
+            down = self._down
+        return down.state if down is not None else None
+
+    def _on_done(self, request: Request) -> None:
         """While the daemon is down: the notice of the motion it left (others: no answer)."""
-        with query:
-            with self._lock:
-                notice = self._notice
-            if notice is None:
-                return
-            key = f"{self.base}/done/{notice.transaction_id}"
-            if query.key_expr.intersects(zenoh.KeyExpr(key)):
-                fmt = reply_format(query)
-                query.reply(key, encode(notice, fmt), encoding=fmt.value)
+        with self._lock:
+            notice = self._notice
+        found = [] if notice is None else [(f"done/{notice.transaction_id}", notice)]
+        matching(request, self.base, found)
+
+    def _refuse_command(self, request: Request) -> None:
+        raise NotAvailable(
+            "the machine daemon is down and being restarted by its supervisor; outputs are"
+            " safe; retry when machine/<id>/alive is back"
+        )
 
     def republish(self) -> None:
         """The heartbeat while the daemon is down (late joiners and lossy links)."""
@@ -264,53 +270,6 @@ class SupervisorBus:
     def _on_token(self, sample: zenoh.Sample) -> None:
         self.on_presence(sample.kind == zenoh.SampleKind.PUT)
 
-    def _on_status(self, query: zenoh.Query) -> None:
-        with query:
-            with self._lock:
-                down = self._down
-            if down is not None:
-                fmt = reply_format(query)
-                query.reply(f"{self.base}/status", encode(down, fmt), encoding=fmt.value)
 
-    def _on_command(self, query: zenoh.Query) -> None:
-        data = _payload(query)
-        fmt = reply_format(query, data)
-        error = Error(
-            code=ErrorCode.NOT_AVAILABLE,
-            message="the machine daemon is down and being restarted by its supervisor;"
-            " outputs are safe; retry when machine/<id>/alive is back",
-        )
-        reply = Reply.failure(
-            error,
-            transaction_id=transaction_id_of(_try_raw(query)),
-            command=None,
-            timecode=self.wall(),
-            state=MachineState.FAULT_HW,
-        )
-        with query:
-            query.reply(str(query.key_expr), encode(reply, fmt), encoding=fmt.value)
-
-    def _on_sim(self, query: zenoh.Query) -> None:
-        world = self.world
-        key = str(query.key_expr)
-        what = key[len(f"{self.base}/sim/") :]
-        data = _payload(query)
-        fmt = reply_format(query, data)
-        with query:
-            if world is None:
-                error = Error(
-                    code=ErrorCode.NOT_AVAILABLE,
-                    message=f"sim/{what}: this machine runs real hardware, not the simulator",
-                )
-                reply = _failure(error, transaction_id_of(_try_raw(query)), self.wall())
-                query.reply(key, encode(reply, fmt), encoding=fmt.value)
-                return
-            if what != simfaults.WORLD:
-                try:
-                    req = simfaults.decode_request(what, data, _encoding(query))
-                except DecodeError as exc:
-                    reply = _failure(exc.error, transaction_id_of(exc.raw), self.wall())
-                    query.reply(key, encode(reply, fmt), encoding=fmt.value)
-                    return
-                world.apply(req)
-            query.reply(key, encode(world.state(self.wall()), fmt), encoding=fmt.value)
+def _at_once(request: Request, fn: Callable[[], None]) -> None:
+    fn()

@@ -25,6 +25,7 @@ from schema.commands import REQUEST_MODELS, Command
 from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
 from service import simfaults
+from service.errors import MachineError
 
 
 class Expect(Enum):
@@ -180,7 +181,7 @@ def _decodes(model: Any, data: bytes, encoding: str | None) -> bool:
 def _sim_decodes(what: str, data: bytes, encoding: str | None) -> bool:
     try:
         simfaults.decode_request(what, data, encoding)
-    except DecodeError:
+    except MachineError:
         return False
     return True
 

@@ -1,0 +1,89 @@
+"""`sim/<fault>`: the simulator's fault injection, through a small protocol.
+
+The bus never imports the simulator: whoever assembles the daemon (or the supervisor) hands it
+a `SimPort` (the `sim` package implements one); without one every `sim/*` key answers
+NOT_AVAILABLE at once instead of leaving the caller to time out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+from pydantic import BaseModel
+
+from service.bus.request import Request
+from service.bus.routes import Route, Wildcard
+from service.errors import NotAvailable
+
+WORLD = "world"
+"""`sim/world`: read the world, change nothing."""
+
+
+class SimPort(Protocol):
+    """What the bus needs from a simulator."""
+
+    def decode(self, what: str, payload: bytes, encoding: str | None) -> BaseModel:
+        """The fault request for `sim/<what>`; raises `MachineError` (unknown key, bad payload)."""
+        ...
+
+    def apply(self, request: BaseModel) -> None:
+        """Inject (or repair) the fault a decoded request asks for."""
+        ...
+
+    def world(self, stamp: float) -> BaseModel:
+        """The simulated world as the `sim/world` reply reports it."""
+        ...
+
+
+Runner = Callable[[Request, Callable[[], None]], None]
+"""Runs work on the simulator's thread (the daemon's scan thread), or at once."""
+
+
+class Injection:
+    """The `sim/**` route: shared by the daemon's bus and the supervisor's."""
+
+    def __init__(
+        self,
+        base: str,
+        port: SimPort | None,
+        backend: str,
+        run: Runner,
+        wall: Callable[[], float],
+    ) -> None:
+        self.base = base
+        self.port = port
+        self.backend = backend
+        self.run = run
+        self.wall = wall
+
+    def routes(self) -> list[Route]:
+        # Injection acts on the machine: `machine/*/sim/estop` must not press every E-stop.
+        return [
+            Route(
+                "sim/**",
+                self.inject,
+                Wildcard.REFUSE,
+                sniff=True,
+                what="a simulator key",
+                example="sim/<fault>",
+            )
+        ]
+
+    def inject(self, request: Request) -> None:
+        what = request.key[len(f"{self.base}/sim/") :]
+        port = self.port
+        if port is None:
+            raise NotAvailable(
+                f"sim/{what}: this machine runs the {self.backend} HAL, not the simulator"
+            )
+        if what == WORLD:
+            request.reply(port.world(self.wall()))
+            return
+        fault = port.decode(what, request.payload, request.encoding)
+
+        def apply() -> None:
+            port.apply(fault)
+            request.reply(port.world(self.wall()))
+
+        self.run(request, apply)

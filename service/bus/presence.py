@@ -1,0 +1,140 @@
+"""Who else is on the bus: other holders of this machine's id, and the Riders' presence and
+heartbeats. Callbacks only record what they saw; the scan loop judges it."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from schema import rider as rider_keys
+from schema.events import RiderEvent
+from service.config import MachineConfig
+from service.eventlog import EventLog
+from service.loop import LoopCall, ScanLoop
+
+log = logging.getLogger(__name__)
+
+MAX_RIDERS = 1024
+"""Riders whose heartbeat the bus keeps track of at once."""
+ID_PROBE_S = 1.0
+"""Bound of the start-up liveliness query for this machine's id. It returns as soon as every
+connected peer has answered (no wait at all for a lone daemon); the bound only matters on a
+slow link."""
+
+
+def holders_of(session: zenoh.Session, base: str, timeout: float = ID_PROBE_S) -> list[str]:
+    """The other sessions that hold `base` now (`?` for one that holds `alive` but names no
+    holder: an older daemon). Asked before this daemon declares its own tokens."""
+    own = str(session.zid())
+    found: set[str] = set()
+    alive = False
+    for reply in session.liveliness().get(f"{base}/**", timeout=timeout):
+        if reply.ok is None:
+            continue
+        rest = str(reply.ok.key_expr)[len(base) + 1 :]
+        if rest == "alive":
+            alive = True
+        elif rest.startswith("holder/"):
+            found.add(rest[len("holder/") :])
+    found.discard(own)
+    if alive and not found:
+        found.add("?")
+    return sorted(found)
+
+
+class Presence:
+    """Duplicates of this machine's id, and the Riders alive; `RiderBeats` for the loop."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        loop: ScanLoop,
+        config: MachineConfig,
+        clock: Callable[[], float],
+        events: EventLog | None = None,
+    ) -> None:
+        self.session = session
+        self.loop = loop
+        self.config = config
+        self.clock = clock
+        self.events = events
+        self.base = config.key_base
+        self.zid = str(session.zid())
+        self.others: set[str] = set()
+        """Other sessions that hold this machine's id (its `holder/<zid>` token): duplicates."""
+        self.riders_alive: set[str] = set()
+        self._beats: dict[str, float] = {}
+
+    def declare(self) -> list[Any]:
+        """The subscribers; the caller undeclares them."""
+        s, live = self.session, self.session.liveliness()
+        return [
+            live.declare_subscriber(rider_keys.ALIVE_KEYS, self._on_rider, history=True),
+            s.declare_subscriber(rider_keys.HEARTBEAT_KEYS, self._on_heartbeat),
+            # Before our own token: any other holder of this id is a duplicate, now or later.
+            live.declare_subscriber(f"{self.base}/holder/*", self._on_holder, history=True),
+        ]
+
+    def _on_holder(self, sample: zenoh.Sample) -> None:
+        """Another session declared (or dropped) this machine's id: both stop and refuse
+        motion until one of them is alone again; each judges for itself, so both do."""
+        zid = str(sample.key_expr).rsplit("/", 1)[-1]
+        if zid == self.zid:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.others.add(zid)
+            log.error("event=duplicate_id id=%s other_session=%s", self.config.machine.id, zid)
+        else:
+            self.others.discard(zid)
+            log.warning("event=duplicate_gone id=%s other_session=%s", self.config.machine.id, zid)
+        others = tuple(sorted(self.others))
+
+        def update(loop: ScanLoop, now: float) -> None:
+            loop.control.duplicate_id(others, self.zid, now)
+
+        self.loop.inbox.put(LoopCall(update))
+
+    def _on_heartbeat(self, sample: zenoh.Sample) -> None:
+        """Only the arrival time is kept (one dict write): the scan loop judges it."""
+        rider = rider_keys.rider_of(str(sample.key_expr))
+        # Bounded: a flood of made-up Rider ids cannot grow this without end.
+        if rider is not None and (rider in self._beats or len(self._beats) < MAX_RIDERS):
+            self._beats[rider] = self.clock()
+
+    def last_heartbeat(self, rider: str) -> float | None:
+        """`RiderBeats` for the scan loop: when `rider`'s heartbeat last arrived."""
+        return self._beats.get(rider)
+
+    def _on_rider(self, sample: zenoh.Sample) -> None:
+        rider = rider_keys.rider_of(str(sample.key_expr))
+        if rider is None:
+            return  # a Rider's id is its session id (hex): anything else is not a Rider's token
+        alive = sample.kind == zenoh.SampleKind.PUT
+        if alive:
+            self.riders_alive.add(rider)
+        else:
+            self.riders_alive.discard(rider)
+            self._beats.pop(rider, None)
+
+        def update(loop: ScanLoop, now: float) -> None:
+            control = loop.control
+            if control.controller_rider != rider:
+                return
+            policy = self.config.rider_loss.policy
+            acted = False
+            if alive:
+                control.rider_back()
+            elif acted := control.rider_lost(now):
+                log.warning("event=rider_lost rider=%s policy=%s", rider, policy)
+            if self.events is not None:
+                kind = "rider_returned" if alive else "rider_lost"
+                self.events.emit(
+                    RiderEvent(kind=kind, rider=rider, policy=str(policy), acted=acted),
+                    now + loop.wall_offset,
+                    loop.cycle,
+                )
+
+        self.loop.inbox.put(LoopCall(update))

@@ -1,0 +1,198 @@
+"""What the machine publishes: status, IO, axes, completions, calibration, diagnostics, events.
+
+Every publication names this session (its source info), so a Rider drops samples of any other
+session that holds (or forges) this machine's keys. Publishers drop rather than block.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from schema import keys as machine_keys
+from schema.axes import AxisRecord
+from schema.calibration import CalibrationRecord
+from schema.codec import Format, encode
+from schema.completion import Completion
+from schema.diag import CycleDiag
+from schema.events import Event
+from schema.io import IoValue
+from schema.status import Fault, FaultCode, MachineState, Status
+from service.config import MachineConfig
+from service.eventlog import EventLog
+from service.loop import ScanLoop
+from service.timing import CycleStats
+
+
+class Publications:
+    """The machine's publishers; the loop's `LoopSink`."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        loop: ScanLoop,
+        stats: CycleStats,
+        config: MachineConfig,
+        *,
+        wall: Callable[[], float],
+        events: EventLog | None = None,
+    ) -> None:
+        self.session = session
+        self.loop = loop
+        self.stats = stats
+        self.config = config
+        self.wall = wall
+        self.events = events
+        self.base = config.key_base
+        self.zid = str(session.zid())
+        self._data_pubs: dict[str, zenoh.Publisher] = {}
+        self._source_sn = itertools.count(1)
+        self._stop = threading.Event()
+        self._diag_thread: threading.Thread | None = None
+        self._token: zenoh.LivelinessToken | None = None
+        self._holder: zenoh.LivelinessToken | None = None
+
+    def declare(self) -> list[Any]:
+        """Declare the publishers (data keys up front: a first publication never pays for a
+        declaration inside a scan cycle) and start the diag publisher; the caller undeclares."""
+        s, b = self.session, self.base
+        self.loop.completion_listeners.append(self.publish_completion)
+        self.loop.calibration_listeners.append(self.publish_calibration)
+        if self.events is not None:
+            self.events.subscribe(self._publish_events)
+        drop = zenoh.CongestionControl.DROP
+        self._status_pub = s.declare_publisher(
+            f"{b}/status",
+            encoding=Format.MSGPACK.value,
+            congestion_control=drop,
+            priority=zenoh.Priority.DATA_HIGH,
+            express=True,
+        )
+        self._diag_pub = s.declare_publisher(
+            f"{b}/diag/cycle", encoding=Format.MSGPACK.value, congestion_control=drop
+        )
+        for point in self.loop.points.all():
+            self._publisher(f"{b}/io/{point.kind}/{point.name}")
+        for axis in ("rotate", "tilt"):
+            self._publisher(f"{b}/axis/{axis}")
+        self._diag_thread = threading.Thread(target=self._diag_loop, name="diag", daemon=True)
+        self._diag_thread.start()
+        return [self._status_pub, self._diag_pub]
+
+    def undeclare(self) -> None:
+        """Stop the diag publisher; drop the tokens and the data publishers."""
+        self._stop.set()
+        if self._diag_thread is not None:
+            self._diag_thread.join(timeout=2.0)
+        for token in (self._token, self._holder):
+            if token is not None:
+                token.undeclare()
+        for pub in reversed(list(self._data_pubs.values())):
+            pub.undeclare()
+        self._data_pubs.clear()
+
+    def publish_status(self, status: Status) -> None:
+        # The source names this session: a Rider drops statuses of another holder of the id.
+        self._status_pub.put(
+            encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
+        )
+        if self._token is None:
+            # Alive once there is a status to answer with: a Rider that sees the token and
+            # asks at once must get one (the loop sets `published.status` before this call).
+            live = self.session.liveliness()
+            self._holder = live.declare_token(machine_keys.holder_key(self.base, self.zid))
+            self._token = live.declare_token(f"{self.base}/alive")
+
+    def _source(self) -> zenoh.SourceInfo:
+        """Names this session on a publication. The sequence number only counts."""
+        return zenoh.SourceInfo(self._status_pub.id, next(self._source_sn) & 0xFFFFFFFF)
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        """The publisher of a data key (declared up front by `declare`)."""
+        pub = self._data_pubs.get(key)
+        if pub is None:
+            pub = self.session.declare_publisher(
+                key,
+                encoding=Format.MSGPACK.value,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+            self._data_pubs[key] = pub
+        return pub
+
+    def publish_io(self, points: list[IoValue]) -> None:
+        for point in points:
+            self._publisher(f"{self.base}/io/{point.kind}/{point.name}").put(
+                encode(point), source_info=self._source()
+            )
+
+    def publish_axes(self, records: list[AxisRecord]) -> None:
+        for record in records:
+            self._publisher(f"{self.base}/axis/{record.axis}").put(
+                encode(record), source_info=self._source()
+            )
+
+    def _put(self, key: str, record: Any, **options: Any) -> None:
+        """A one-off publication on `key` (no declared publisher: keys vary)."""
+        self.session.put(
+            key,
+            encode(record),
+            encoding=Format.MSGPACK.value,
+            congestion_control=zenoh.CongestionControl.DROP,
+            source_info=self._source(),
+            **options,
+        )
+
+    def publish_completion(self, notice: Completion) -> None:
+        """A motion ended: its notice on `done/<transaction_id>` (scan thread, after the status)."""
+        self._put(
+            f"{self.base}/done/{notice.transaction_id}", notice, priority=zenoh.Priority.DATA_HIGH
+        )
+
+    def publish_calibration(self, record: CalibrationRecord) -> None:
+        """The calibration changed (measured, entered by hand, or at start-up): scan thread."""
+        self._put(f"{self.base}/calibration", record)
+
+    def publish_watchdog_trip(self, stalled_s: float) -> None:
+        """From the watchdog thread: tell everyone at once, the scan thread may be stuck."""
+        last = self.loop.published.status
+        if last is None:
+            return
+        status = last.model_copy(
+            update={
+                "state": MachineState.FAULT_HW,
+                "previous_state": last.state,
+                "fault": Fault(
+                    code=FaultCode.WATCHDOG,
+                    message=f"scan loop stalled for {stalled_s * 1000:.0f} ms;"
+                    " outputs forced safe by the watchdog",
+                ),
+                "seq": last.seq + 1,
+                "time": self.wall(),
+            }
+        )
+        self._status_pub.put(
+            encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
+        )
+
+    def diag(self) -> CycleDiag:
+        diag = self.stats.diag(self.wall())
+        if self.events is None:
+            return diag
+        return diag.model_copy(update={"events": self.events.diag()})
+
+    def _diag_loop(self) -> None:
+        period = self.config.bus.diag_period_s
+        while not self._stop.wait(period):
+            self._diag_pub.put(encode(self.diag()), source_info=self._source())
+
+    def _publish_events(self, events: list[Event]) -> None:
+        """From the event log's writer thread: each event on its own key, `events/<seq>`, so a
+        Zenoh storage keeps them all (it keeps the latest sample per key)."""
+        if self._stop.is_set():
+            return
+        for event in events:
+            self._put(f"{self.base}/events/{event.seq}", event)

@@ -1,0 +1,172 @@
+"""Queries that change nothing: the latest records, diagnostics, completion notices, history,
+and a config check. Answered on Zenoh's thread (or the event log's reader) without touching
+machine state; a read may use wildcards."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Protocol
+
+import zenoh
+from pydantic import BaseModel
+
+from schema.codec import MAX_PAYLOAD_BYTES, Format
+from schema.completion import Completion
+from schema.diag import CycleDiag
+from schema.events import EventPage, EventQuery, QueryError, selector_params
+from schema.findings import Findings
+from service.bus.request import Request, put
+from service.bus.routes import Handler, Route
+from service.errors import (
+    BadKey,
+    BadRequest,
+    Busy,
+    InProgress,
+    NotAvailable,
+    PayloadTooLarge,
+    StorageFailed,
+    UnknownTransaction,
+)
+from service.eventlog import EventLog
+from service.loop import ScanLoop
+
+
+class ConfigChecker(Protocol):
+    """Validates the running config, or a candidate one sent as a TOML/JSON payload."""
+
+    def __call__(self, candidate: bytes | None) -> Findings: ...
+
+
+def latest(key: str, get: Callable[[], BaseModel | None]) -> Handler:
+    """A handler that answers with the latest record on `key` (none yet: no answer)."""
+
+    def handler(request: Request) -> None:
+        record = get()
+        if record is None:
+            request.query.drop()
+        else:
+            request.reply(record, key)
+
+    return handler
+
+
+def matching(request: Request, base: str, items: Iterable[tuple[str, BaseModel]]) -> None:
+    """One reply per record whose key the (possibly wildcard) query selects."""
+    query = request.query
+    with query:
+        for suffix, record in items:
+            key = f"{base}/{suffix}"
+            if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                put(query, key, record, request.fmt)
+
+
+class Reads:
+    """The daemon's read-only routes."""
+
+    def __init__(
+        self,
+        base: str,
+        loop: ScanLoop,
+        diag: Callable[[], CycleDiag],
+        *,
+        check_config: ConfigChecker | None = None,
+        events: EventLog | None = None,
+    ) -> None:
+        self.base = base
+        self.loop = loop
+        self.diag = diag
+        self.check_config = check_config
+        self.events = events
+
+    def routes(self) -> list[Route]:
+        b, published = self.base, self.loop.published
+        routes = [
+            Route("status", latest(f"{b}/status", lambda: published.status)),
+            Route("io/**", self.io),
+            Route("axis/**", self.axes),
+            Route("diag/cycle", self.cycle),
+            Route("config/validate", self.validate),
+            Route("done/**", self.done),
+            Route("calibration", latest(f"{b}/calibration", lambda: published.calibration)),
+        ]
+        if self.events is not None:
+            routes.append(Route("events", self.history))
+        return routes
+
+    def io(self, request: Request) -> None:
+        points = self.loop.published.io.values()
+        matching(request, self.base, [(f"io/{p.kind}/{p.name}", p) for p in points])
+
+    def axes(self, request: Request) -> None:
+        records = self.loop.published.axes.values()
+        matching(request, self.base, [(f"axis/{r.axis}", r) for r in records])
+
+    def cycle(self, request: Request) -> None:
+        request.key = f"{self.base}/diag/cycle"
+        if "reset" in request.query.parameters:
+            # The old spelling of a reset: a write hidden in a parameter, which no ACL can see.
+            raise BadKey(
+                "diag/cycle is read-only; reset the counters with a query on"
+                f" {self.base}/diag/reset"
+            )
+        request.reply(self.diag())
+
+    def done(self, request: Request) -> None:
+        """How a motion ended: its notice, IN_PROGRESS while it runs, or UNKNOWN_TRANSACTION;
+        a wildcard (`done/**`) gets every notice the machine remembers."""
+        log = self.loop.completions
+        if request.wild:
+            matching(request, self.base, [(f"done/{n.transaction_id}", n) for n in log.recent()])
+            return
+        key = request.key
+        tid = key[len(f"{self.base}/done/") :]
+        request.transaction_id = tid
+        found = log.lookup(tid)
+        if isinstance(found, Completion):
+            request.reply(found)
+        elif found is not None:
+            raise InProgress(
+                f"{found.command} {tid} has not ended yet; its notice will be published on {key}"
+            )
+        else:
+            raise UnknownTransaction(
+                f"no motion {tid!r} is known here (never accepted, forgotten, or before this"
+                " daemon started)",
+                path="/transaction_id",
+            )
+
+    def validate(self, request: Request) -> None:
+        data = request.payload
+        request.key = f"{self.base}/config/validate"
+        if data.lstrip()[:1] == b"{" and request.query.parameters.get("format") is None:
+            request.fmt = Format.JSON  # a JSON candidate is answered in JSON (TOML keeps msgpack)
+        if self.check_config is None:
+            raise NotAvailable("no config checker")
+        if len(data) > MAX_PAYLOAD_BYTES:
+            # Parsing runs on Zenoh's thread and holds the GIL: a few MiB stall the scan loop.
+            raise PayloadTooLarge(
+                f"candidate config is {len(data)} bytes, the limit is {MAX_PAYLOAD_BYTES}"
+            )
+        request.reply(self.check_config(data or None))
+
+    def history(self, request: Request) -> None:
+        """A page of the history (`?since=&until=&since_time=&until_time=&kind=&limit=&last=`),
+        read on the event log's reader thread."""
+        events = self.events
+        assert events is not None
+        request.key = f"{self.base}/events"
+        if selector_params(str(request.query.parameters)).get("format", "").lower() == "json":
+            request.fmt = Format.JSON  # `?last=5&format=json`: `&` separates here too
+        try:
+            q = EventQuery.from_text(str(request.query.parameters))
+        except QueryError as exc:
+            raise BadRequest(str(exc), path=f"?{exc.param}") from None
+
+        def respond(page: EventPage) -> None:
+            request.reply(page)
+
+        def fail(message: str) -> None:
+            request.refuse(StorageFailed(message))
+
+        if not events.read(q, respond, fail):
+            raise Busy("event reader busy; retry later")

@@ -1,0 +1,149 @@
+"""One query as the bus sees it: key, format, payload, and the one way to answer or refuse it."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Protocol, TypeVar
+
+import zenoh
+from pydantic import BaseModel
+
+from schema.codec import DecodeError, Format, decode_raw, encode, sniff_format, validate
+from schema.commands import Reply, transaction_id_of
+from schema.status import MachineState
+from service.errors import MachineError, Rejected
+
+M = TypeVar("M", bound=BaseModel)
+
+ENCODINGS = {fmt: zenoh.Encoding(fmt.value) for fmt in Format}
+"""Prebuilt, so a reply does not parse its encoding string."""
+
+_UNREAD: Any = object()
+
+
+class Host(Protocol):
+    """Who answers (the daemon's bus or the supervisor's): the time and state a refusal states."""
+
+    def wall(self) -> float: ...
+
+    def state(self) -> MachineState | None: ...
+
+
+def reply_format(query: zenoh.Query, payload: bytes | None = None) -> Format:
+    """JSON when asked (`?format=json`, a JSON encoding, or JSON text sent); msgpack otherwise."""
+    fmt = query.parameters.get("format")
+    if fmt is not None:
+        return Format.JSON if fmt.lower() == "json" else Format.MSGPACK
+    encoding = str(query.encoding) if query.encoding is not None else None
+    if payload:
+        return sniff_format(payload, encoding)
+    return Format.JSON if encoding and encoding.startswith(Format.JSON) else Format.MSGPACK
+
+
+def send(query: zenoh.Query, key: str | zenoh.KeyExpr, model: BaseModel, fmt: Format) -> None:
+    """The one reply of a query, and its end (the caller's `get` returns without a timeout).
+
+    Every reply of the bus goes out here (or through `put`, for a query with several)."""
+    with query:
+        query.reply(key, encode(model, fmt), encoding=ENCODINGS[fmt])
+
+
+def put(query: zenoh.Query, key: str | zenoh.KeyExpr, model: BaseModel, fmt: Format) -> None:
+    """One of several replies to a query; the caller ends the query (`with query:`)."""
+    query.reply(key, encode(model, fmt), encoding=ENCODINGS[fmt])
+
+
+class Request:
+    """A query with its key, payload and reply format; answered once by `reply` or `refuse`."""
+
+    __slots__ = ("_raw", "command", "fmt", "host", "key", "payload", "query", "transaction_id")
+
+    def __init__(
+        self, query: zenoh.Query, key: str, payload: bytes, fmt: Format, host: Host
+    ) -> None:
+        self.query = query
+        self.key = key
+        self.payload = payload
+        self.fmt = fmt
+        self.host = host
+        self.command: str | None = None
+        """The command a refusal names (set once the key is known to be one)."""
+        self.transaction_id: str | None = None
+        """The id a refusal echoes; without one, whatever id the payload carries."""
+        self._raw: Any = _UNREAD
+
+    @property
+    def wild(self) -> bool:
+        """The key has a wildcard: it may reach many keys (and many machines)."""
+        key = self.key
+        return "*" in key or "$" in key
+
+    @property
+    def encoding(self) -> str | None:
+        encoding = self.query.encoding
+        return str(encoding) if encoding is not None else None
+
+    def raw(self) -> Any:
+        """The payload as plain data (None when empty); `Rejected` when it cannot be read."""
+        if self._raw is _UNREAD:
+            data = self.payload
+            self._raw = None
+            if data:
+                try:
+                    self._raw = decode_raw(data, sniff_format(data, self.encoding))
+                except DecodeError as exc:
+                    raise Rejected(exc.error) from None
+        return self._raw
+
+    def decode(self, model: type[M]) -> M:
+        """The payload as `model`; `Rejected` names the first bad field."""
+        try:
+            value = validate(model, self.raw())
+        except DecodeError as exc:
+            raise Rejected(exc.error) from None
+        self.transaction_id = getattr(value, "transaction_id", None)
+        return value
+
+    def reply(self, model: BaseModel, key: str | zenoh.KeyExpr | None = None) -> None:
+        send(self.query, self.key if key is None else key, model, self.fmt)
+
+    def refuse(self, error: MachineError) -> None:
+        """The one wire shape of a refusal: a `Reply` with `success: false` and the error."""
+        tid = self.transaction_id
+        if tid is None:
+            try:
+                tid = transaction_id_of(self.raw())
+            except Rejected:
+                tid = None
+        reply = Reply.failure(
+            error.to_error(),
+            transaction_id=tid,
+            command=self.command,
+            timecode=self.host.wall(),
+            state=self.host.state(),
+        )
+        query = self.query
+        with query:
+            if error.error_reply:
+                query.reply_err(encode(reply, self.fmt), encoding=ENCODINGS[self.fmt])
+            else:
+                query.reply(self.key, encode(reply, self.fmt), encoding=ENCODINGS[self.fmt])
+
+    def answer(self, fn: Callable[[], BaseModel]) -> None:
+        """Reply with what `fn` makes, or refuse with the `MachineError` it raises (for work
+        that runs away from the dispatcher: the scan thread, a reader thread)."""
+        try:
+            model = fn()
+        except MachineError as exc:
+            self.refuse(exc)
+            return
+        self.reply(model)
+
+
+def sender_of(query: zenoh.Query) -> str | None:
+    """The Rider's session id from the query's attachment (`rider=<zid>`), if it sent one."""
+    if query.attachment is None:
+        return None
+    text = query.attachment.to_bytes()[:128].decode(errors="replace")
+    name, _, value = text.partition("=")
+    return value[:64] if name == "rider" and value.isalnum() else None

@@ -1,0 +1,88 @@
+"""The bus as a table of routes: a key, its handler, and what a wildcard query on it means.
+
+Every queryable of the daemon and of the supervisor is declared here, through `dispatch`: it
+makes the `Request`, applies the one wildcard rule, runs the handler, and turns any
+`MachineError` the handler raises into the one refusal shape (`Request.refuse`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any
+
+import zenoh
+
+from service.bus.request import Host, Request, reply_format
+from service.errors import BadKey, MachineError
+
+Handler = Callable[[Request], None]
+
+
+class Wildcard(Enum):
+    """What a query with a wildcard (`*`, `**`, `$*`) in its key gets on a route."""
+
+    READ = "read"
+    """Answered: a read changes nothing (the handler replies for every key it covers)."""
+    REFUSE = "refuse"
+    """Refused with BAD_KEY: the key acts, and a wildcard may reach every machine."""
+    REFUSE_WRITES = "refuse_writes"
+    """Read without a payload; refused with one (a write must name one key of one machine)."""
+    REFUSE_NAMED = "refuse_named"
+    """Refused when it names this key (`machine/*/diag/reset`); a broader read that only
+    happens to cover it (`diag/**`) gets no answer from this route."""
+
+
+@dataclass(frozen=True)
+class Route:
+    """One queryable: `key` under the machine's base (as declared), and how it answers."""
+
+    key: str
+    handler: Handler
+    wildcard: Wildcard = Wildcard.READ
+    sniff: bool = False
+    """Reply in the payload's format (a write); a read ignores its payload."""
+    what: str = ""
+    """The refusal of a wildcard names it: `wildcards are not allowed in <what>`."""
+    example: str = ""
+    """... and shows one key to use instead: `e.g. <base>/<example>`."""
+    noun: str = "key"
+    refusal: type[BadKey] = BadKey
+    """`WildcardCommand` on `cmd/**`: that refusal is a Zenoh error reply, as documented."""
+
+    def refuse_wildcard(self, base: str, key: str) -> MachineError:
+        """The one wildcard refusal."""
+        return self.refusal(
+            f"wildcards are not allowed in {self.what}: {key!r}; name one {self.noun} of one"
+            f" machine, e.g. {base}/{self.example}"
+        )
+
+
+def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
+    """Answer one query on `route`: exactly one reply, or a refusal, or (a covered read) none."""
+    key = str(query.key_expr)
+    payload = query.payload.to_bytes() if query.payload is not None else b""
+    request = Request(
+        query, key, payload, reply_format(query, payload if route.sniff else None), host
+    )
+    try:
+        rule = route.wildcard
+        if rule is not Wildcard.READ and request.wild:
+            if rule is Wildcard.REFUSE_NAMED and not key.endswith("/" + route.key):
+                query.drop()
+                return
+            if rule is not Wildcard.REFUSE_WRITES or payload:
+                raise route.refuse_wildcard(base, key)
+        route.handler(request)
+    except MachineError as exc:
+        request.refuse(exc)
+
+
+def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Route]) -> list[Any]:
+    """One queryable per route on `<base>/<route.key>`; the caller undeclares them."""
+
+    def callback(route: Route) -> Callable[[zenoh.Query], None]:
+        return lambda query: dispatch(route, base, host, query)
+
+    return [session.declare_queryable(f"{base}/{r.key}", callback(r)) for r in routes]

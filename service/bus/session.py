@@ -1,0 +1,58 @@
+"""Opening and closing the Zenoh session: its config from zenoh.json5, endpoints, secrets."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import zenoh
+
+from schema.credentials import MACHINE, zenoh_settings
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+"""Without --listen or a config file: this host only (beyond it, use an authenticated profile)."""
+
+
+def file_config(path: Path | None) -> zenoh.Config:
+    """The zenoh.json5 at `path` as it is, or Zenoh's defaults without one."""
+    return zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+
+
+def zenoh_config(
+    path: Path | None, listen: list[str] | None = None, connect: list[str] | None = None
+) -> zenoh.Config:
+    """The session config: the shared zenoh.json5 (or Zenoh's defaults), endpoints replaced."""
+    conf = file_config(path)
+    if path is None:
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("listen/endpoints", json.dumps([DEFAULT_LISTEN]))
+        # As zenoh.json5: explicit endpoints only. Zenoh's own default (multicast scouting on)
+        # would join any peer on the LAN, and another machine with this id would refuse us.
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        # Read-only, as in zenoh.json5: Riders' default-machine lookup reads our tokens there.
+        conf.insert_json5("adminspace", "{enabled: true, permissions: {read: true, write: false}}")
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    # Secrets come from files named in the environment, never from the image or this file.
+    for setting, value in zenoh_settings(MACHINE).items():
+        conf.insert_json5(setting, value)
+    return conf
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    return zenoh.open(conf)
+
+
+def close_session(session: zenoh.Session, timeout: float = 3.0) -> bool:
+    """Close off the calling thread with a bound: a lossy link can make close() hang."""
+    done = threading.Event()
+
+    def closer() -> None:
+        session.close()
+        done.set()
+
+    threading.Thread(target=closer, name="zenoh-close", daemon=True).start()
+    return done.wait(timeout)

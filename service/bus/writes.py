@@ -1,0 +1,187 @@
+"""Queries that change the machine but are not commands: parameters, calibration entered by
+hand, and the diagnostics reset. A write names one key of one machine (no wildcards)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Protocol
+
+from schema.calibration import CalibrationRecord, CalibrationSet
+from schema.diag import CycleDiag
+from schema.errors import Error
+from schema.events import ParamEvent
+from schema.params import ParamSet, ParamValue
+from service.bus.reads import matching
+from service.bus.request import Request
+from service.bus.routes import Route, Wildcard
+from service.errors import BadRequest, Busy, MachineError, Rejected, StorageFailed
+from service.eventlog import EventLog
+from service.loop import LoopCall, ScanLoop, calibration_record
+from service.persist import SaveTicket
+from service.timing import CycleStats
+
+log = logging.getLogger(__name__)
+
+SAVE_WAIT_S = 5.0
+"""How long a manual calibration write may take before its reply says it was not saved."""
+
+
+class ParamService(Protocol):
+    """What the bus needs from the parameter registry (service/params.py)."""
+
+    def list(self) -> list[ParamValue]: ...
+
+    def get(self, name: str) -> ParamValue: ...
+
+    def set(self, name: str, req: ParamSet, *, moving: bool, now: float) -> ParamValue: ...
+
+
+def on_loop(loop: ScanLoop, request: Request, fn: Callable[[ScanLoop, float], None]) -> None:
+    """Run `fn` on the scan thread; it answers `request` there (or is refused if it never runs)."""
+
+    def rejected(error: Error) -> None:
+        request.refuse(Rejected(error))
+
+    if not loop.inbox.put(LoopCall(fn, rejected)):
+        raise Busy("command queue full; retry later")
+
+
+class Writes:
+    """The daemon's write routes other than commands."""
+
+    def __init__(
+        self,
+        base: str,
+        loop: ScanLoop,
+        stats: CycleStats,
+        diag: Callable[[], CycleDiag],
+        machine_id: str,
+        wall: Callable[[], float],
+        *,
+        params: ParamService | None = None,
+        events: EventLog | None = None,
+    ) -> None:
+        self.base = base
+        self.loop = loop
+        self.stats = stats
+        self.diag = diag
+        self.machine_id = machine_id
+        self.wall = wall
+        self.params = params
+        self.events = events
+
+    def routes(self) -> list[Route]:
+        named = Wildcard.REFUSE_NAMED
+        routes = [
+            Route(
+                "diag/reset", self.reset, named, what="a diagnostics reset", example="diag/reset"
+            ),
+            Route(
+                "calibration/set",
+                self.calibration,
+                named,
+                sniff=True,
+                what="a calibration write",
+                example="calibration/set",
+            ),
+        ]
+        if self.params is not None:
+            routes.append(
+                Route(
+                    "params/**",
+                    self.param,
+                    Wildcard.REFUSE_WRITES,
+                    sniff=True,
+                    what="a parameter write",
+                    example="params/<name>",
+                )
+            )
+        return routes
+
+    def reset(self, request: Request) -> None:
+        """Reply with the counters as they were, then reset them, on the scan thread."""
+
+        def reset(loop: ScanLoop, now: float) -> None:
+            request.reply(self.diag())
+            self.stats.reset(self.wall())
+
+        on_loop(self.loop, request, reset)
+
+    def param(self, request: Request) -> None:
+        params = self.params
+        assert params is not None
+        name = request.key[len(f"{self.base}/params/") :]
+        # Reads never touch the scan thread: the registry hands out immutable values.
+        if request.wild:  # a read: the route refused a wildcard write
+            matching(request, self.base, [(f"params/{p.name}", p) for p in params.list()])
+            return
+        if not request.payload:
+            request.reply(params.get(name))
+            return
+        req = request.decode(ParamSet)
+        # The registry is thread-safe and its write (with fsync) stays off the scan thread;
+        # the loop picks the new config up at the next cycle boundary.
+        old = params.get(name).value
+        value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
+        if self.events is not None:
+            self.events.emit_now(
+                ParamEvent(
+                    name=value.name,
+                    old=old,
+                    new=value.value,
+                    persisted=value.persisted,
+                    reset=req.reset,
+                    transaction_id=req.transaction_id,
+                )
+            )
+        request.reply(value)
+
+    def calibration(self, request: Request) -> None:
+        """Values entered by hand: applied on the scan thread, answered once they are saved."""
+        if not request.payload:
+            raise BadRequest(
+                'send {"transaction_id": "…", "tilt": {"offset_counts": …,'
+                ' "gain_counts_per_deg": …}} and/or "rotate": {"revolution_s": …,'
+                ' "home_arc_deg": …}',
+                path="/transaction_id",
+            )
+        req = request.decode(CalibrationSet)
+
+        def enter(loop: ScanLoop, now: float) -> None:
+            try:
+                ticket = loop.control.enter_calibration(req, now)
+            except MachineError as exc:
+                request.refuse(exc)
+                return
+            record = calibration_record(loop.control.calibration, self.machine_id, now)
+            record = record.model_copy(update={"time": self.wall()})
+            log.info(
+                "event=calibration_entered tx=%s timecode=%s tilt=%s rotate=%s",
+                req.transaction_id,
+                req.timecode,
+                req.tilt is not None,
+                req.rotate is not None,
+            )
+            # The scan thread never waits for the disk: a short-lived thread answers.
+            threading.Thread(
+                target=_answer_saved,
+                args=(request, record, ticket),
+                name="calibration-saved",
+                daemon=True,
+            ).start()
+
+        on_loop(self.loop, request, enter)
+
+
+def _answer_saved(request: Request, record: CalibrationRecord, ticket: SaveTicket | None) -> None:
+    problem = None
+    if ticket is not None:
+        problem = ticket.problem if ticket.wait(SAVE_WAIT_S) else "the write did not finish"
+    if problem is not None:
+        request.refuse(
+            StorageFailed(f"calibration entered and in use now, but NOT saved: {problem}")
+        )
+        return
+    request.reply(record)
