@@ -19,6 +19,12 @@ from service.controllers import Controller, RotateCalibrate, RotateHome, RotateR
 from service.devices import Devices, RotateCalibration, TiltDirection
 
 AXIS_NUMBERS = {"rotate": ROTATE_AXIS_NUMBER, "tilt": TILT_AXIS_NUMBER}
+# Plain ints: `IntFlag` arithmetic runs Python code in `enum`, several times a cycle.
+MOVING = int(PnStatus.MOVING)
+SETTLED = int(PnStatus.SETTLED)
+DRIVE_ENABLED = int(PnStatus.DRIVE_ENABLED)
+DRIVE_FAULT = int(PnStatus.DRIVE_FAULT)
+POSITION_UNKNOWN = int(PnStatus.POSITION_UNKNOWN)
 
 
 @dataclass
@@ -121,15 +127,17 @@ class AxisTracker:
         holding = motion.axis_name if motion is not None else None
         if motion is not None and motion.target_deg is not None:
             self.targets[motion.axis_name] = motion.target_deg
-        enabled = 0 if state is MachineState.FAULT_ESTOP else int(PnStatus.DRIVE_ENABLED)
+        enabled = 0 if state is MachineState.FAULT_ESTOP else DRIVE_ENABLED
         revs = motion if isinstance(motion, RotateRevolutions) else None
         homing = isinstance(motion, RotateHome | RotateCalibrate)
         self.samples["rotate"] = self._rotate(
             dt, rotate_cal, holding == "rotate", enabled, revs, homing
         )
-        self.samples["rotate"].status |= PnStatus.DRIVE_FAULT if fault_axis == "rotate" else 0
+        if fault_axis == "rotate":
+            self.samples["rotate"].status |= DRIVE_FAULT
         self.samples["tilt"] = self._tilt(dt, holding == "tilt", enabled)
-        self.samples["tilt"].status |= PnStatus.DRIVE_FAULT if fault_axis == "tilt" else 0
+        if fault_axis == "tilt":
+            self.samples["tilt"].status |= DRIVE_FAULT
 
     def _rotate(
         self,
@@ -208,13 +216,13 @@ class AxisTracker:
         out = []
         every = self.config.bus.axis_every_cycles
         for name, sample in self.samples.items():
-            moving = bool(sample.status & PnStatus.MOVING)
+            moving = bool(sample.status & MOVING)
             last = self._last_status[name]
             if (moving and cycle % every == 0) or sample.status != last or name in self._settling:
                 out.append(name)
             if name in self._settling:
                 self._settling.discard(name)
-            elif last is not None and last & PnStatus.MOVING and not moving:
+            elif last is not None and last & MOVING and not moving:
                 self._settling.add(name)
             self._last_status[name] = sample.status
         return out
@@ -240,12 +248,12 @@ class AxisTracker:
 def _bits(*, known: bool, moving: bool, enabled: int, settled: bool) -> int:
     bits = enabled
     if moving:
-        bits |= PnStatus.MOVING
+        bits |= MOVING
     if not known:
-        bits |= PnStatus.POSITION_UNKNOWN
+        bits |= POSITION_UNKNOWN
     elif settled and not moving:
-        bits |= PnStatus.SETTLED
-    return int(bits)
+        bits |= SETTLED
+    return bits
 
 
 def _end_turns(turns: float, revs: RotateRevolutions, arc: float) -> float:

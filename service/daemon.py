@@ -184,6 +184,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         config.loop.watchdog_periods,
         config.loop.watchdog_min_s,
         on_trip=on_trip,
+        beat_at=lambda: runner.beat_at,
     )
     fastdata: FastDataServer | None = None
     code = EXIT_OK

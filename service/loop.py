@@ -127,6 +127,42 @@ class LoopCall:
             self.on_reject(error)
 
 
+class Wake:
+    """`threading.Event`'s set/clear/wait on one raw lock, released while set.
+
+    The runner waits on it every cycle: a wait is one lock acquire, where `Event.wait` builds
+    a `Condition` waiter each time (~40 µs of a cold cycle on a 2-core host, bench.cost).
+    """
+
+    def __init__(self) -> None:
+        self._gate = threading.Lock()
+        self._gate.acquire()  # held while clear: a wait blocks on it
+        self._guard = threading.Lock()
+        self._set = False
+
+    def is_set(self) -> bool:
+        return self._set
+
+    def set(self) -> None:
+        with self._guard:
+            if not self._set:
+                self._set = True
+                self._gate.release()
+
+    def clear(self) -> None:
+        with self._guard:
+            if self._set:
+                self._set = False
+                self._gate.acquire()  # a waiter passing through releases it at once
+
+    def wait(self, timeout: float) -> bool:
+        """True once set (it stays set), False after `timeout` seconds."""
+        if not self._gate.acquire(True, timeout):
+            return False
+        self._gate.release()
+        return True
+
+
 class Inbox:
     """Thread-safe queue into the scan thread; `put` wakes the runner so replies are prompt."""
 
@@ -134,7 +170,7 @@ class Inbox:
         self.capacity = capacity
         self._items: deque[Task] = deque()
         self._lock = threading.Lock()
-        self.wake = threading.Event()
+        self.wake = Wake()
         self.closed = False
 
     def put(self, task: Task) -> bool:
@@ -147,6 +183,8 @@ class Inbox:
         return True
 
     def take(self, limit: int) -> list[Task]:
+        if not self._items and not self.wake.is_set():
+            return []  # the common case, every cycle: no lock
         with self._lock:
             n = min(limit, len(self._items))
             out = [self._items.popleft() for _ in range(n)]
@@ -224,6 +262,7 @@ class ScanLoop:
         self._status_due = 0.0
         self._seq = 0
         self._io_last: dict[str, bool | int] = {}
+        self._io_seen: tuple[int, dict[str, bool], dict[str, int], dict[str, bool]] | None = None
         self._max_tasks = config.loop.max_commands_per_cycle
         self.lock = threading.Lock()
         """One writer at a time: held by the runner for a cycle (and for queued tasks between
@@ -469,8 +508,13 @@ class ScanLoop:
         )
 
     def _io_changes(self, wall: float) -> list[IoValue]:
-        last = self._io_last
+        image = self.image
         deadband = self.config.bus.ai_deadband_counts
+        seen = (deadband, image.inputs.di, image.inputs.ai, image.outputs.ro)
+        if seen == self._io_seen:
+            return []  # image and deadband as last cycle's, which published what changed
+        self._io_seen = (deadband, dict(seen[1]), dict(seen[2]), dict(seen[3]))
+        last = self._io_last
         out: list[IoValue] = []
         for point in self.points.all():
             value = point.value

@@ -59,6 +59,8 @@ class RealtimeRunner:
         self.stop_event = threading.Event()
         self.heartbeat = 0
         """Incremented after every completed cycle; the watchdog reads it."""
+        self.beat_at = clock()
+        """The clock time the latest cycle ended (set just before `heartbeat` moves)."""
         self.errors = 0
 
     def stop(self) -> None:
@@ -108,6 +110,7 @@ class RealtimeRunner:
                 deadline += missed * period
             stats.record(jitter, end - start, missed)
             stats.commands = loop.commands_handled
+            self.beat_at = end
             self.heartbeat += 1
 
     def _on_error(self, exc: Exception, now: float, consecutive: int) -> None:

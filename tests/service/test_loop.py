@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import threading
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,7 @@ from schema.errors import Error, ErrorCode
 from schema.params import ParamSet
 from schema.status import MachineState
 from service.config import MachineConfig
-from service.loop import Inbox, LoopCall, PendingCommand, ScanLoop
+from service.loop import Inbox, LoopCall, PendingCommand, ScanLoop, Wake
 from service.machine import Machine
 from service.params import ParamRegistry
 from service.persist import ParamStore
@@ -136,6 +137,39 @@ def test_inbox_refuses_when_full_and_after_close() -> None:
     assert not inbox.put(call)
 
 
+def test_wake_is_an_event_that_stays_set_until_cleared() -> None:
+    wake = Wake()
+    assert not wake.is_set()
+    assert not wake.wait(0.001)
+    wake.set()
+    wake.set()  # twice is once
+    assert wake.is_set()
+    assert wake.wait(0.001)
+    assert wake.wait(0.001)  # a wait does not clear it
+    wake.clear()
+    wake.clear()
+    assert not wake.is_set()
+    assert not wake.wait(0.001)
+    woken = threading.Event()
+
+    def waiter() -> None:
+        if wake.wait(10.0):
+            woken.set()
+
+    thread = threading.Thread(target=waiter)
+    thread.start()
+    wake.set()  # from another thread, while it waits
+    thread.join(10.0)
+    assert woken.is_set()
+
+
+def test_an_empty_inbox_clears_a_stale_wake() -> None:
+    inbox = Inbox()
+    inbox.wake.set()  # e.g. a put whose task another take already ran
+    assert inbox.take(10) == []
+    assert not inbox.wake.is_set()  # or the runner would spin on it
+
+
 def test_pending_commands_are_answered_on_shutdown() -> None:
     rig = Rig()
     replies: list[Reply] = []
@@ -223,6 +257,20 @@ def test_io_is_published_on_change_only_with_an_analog_deadband() -> None:
     assert ai
     deadband = rig.config.bus.ai_deadband_counts
     assert all(abs(int(b) - int(a)) > deadband for a, b in itertools.pairwise(ai))
+
+
+def test_a_narrower_deadband_publishes_an_analog_change_it_held_back() -> None:
+    rig = Rig(calibration=known_calibration())
+    rig.sink.io.clear()
+    deadband = rig.config.bus.ai_deadband_counts
+    assert deadband >= 2
+    gain = rig.config.hal.sim.ai_gain_counts_per_deg
+    rig.hal.world.tilt_deg += deadband / gain  # within the deadband: held back
+    rig.step(5)
+    assert rig.sink.io == []
+    rig.control.live.offer(rig.config.with_overrides(bus={"ai_deadband_counts": 0}))
+    rig.step(5)  # the image has not changed since, yet the held-back value goes out once
+    assert [p.name for p in rig.sink.io] == [Signal.TILT_POSITION]
 
 
 def test_axis_records_while_moving_and_once_when_stopped() -> None:

@@ -71,7 +71,14 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
         stalled.append(stalled_s)
         tripped.set()
 
-    dog = Watchdog(lambda: runner.heartbeat, guard, config.loop.period_s, 3, on_trip=on_trip)
+    dog = Watchdog(
+        lambda: runner.heartbeat,
+        guard,
+        config.loop.period_s,
+        3,
+        on_trip=on_trip,
+        beat_at=lambda: runner.beat_at,  # as the daemon wires it
+    )
     replies: list[object] = []
     loop.inbox.put(
         PendingCommand(Command.HOME, CommandRequest(transaction_id="h1"), replies.append)
@@ -125,3 +132,11 @@ def test_watchdog_limit_is_periods_with_a_floor() -> None:
     assert Watchdog(lambda: 0, guard, 0.010, 3, 0.02).limit == pytest.approx(0.030)
     assert Watchdog(lambda: 0, guard, 0.001, 3, 0.02).limit == pytest.approx(0.020)
     assert Watchdog(lambda: 0, guard, 0.001, 3, 0.0).limit == pytest.approx(0.003)
+
+
+def test_a_healthy_loop_is_checked_when_its_latest_beat_would_be_limit_old() -> None:
+    guard = GuardedHal(Rig().hal)
+    dog = Watchdog(lambda: 0, guard, 0.010, 3, 0.02, beat_at=lambda: 0.0)
+    assert dog.next_check(beat_at=5.000, now=5.004) == pytest.approx(0.026)  # 5.030 - 5.004
+    # Never sooner than the plain check interval (limit / 3), even for an old beat.
+    assert dog.next_check(beat_at=5.000, now=5.025) == pytest.approx(0.010)
