@@ -333,7 +333,8 @@ class EventLog:
                 self.dropped += 1
                 return
             self._items.append(row)
-        self._wake.set()
+        if not self._wake.is_set():  # set() takes a Condition's lock: once per batch is enough
+            self._wake.set()
 
     def emit_now(self, details: KnownDetails) -> None:
         """An event from outside the scan loop, stamped with the wall clock."""
