@@ -1,17 +1,23 @@
-"""`ControlAPI`: the machine's state machine. Pure logic: no IO, no clock, time comes in."""
+"""`ControlAPI`: the machine's state machine. Pure logic: no IO, no clock, time comes in.
+
+Its behaviour is data: `TABLE` (at the end of this module) lists every `(trigger, states) →
+targets` row, for the commands (with the handler that acts and the reply it earns) and for the
+events (E-stop, a motion's end, a fault, a lost Rider). The command guard reads it, and the
+README's state table and docs/states.md are generated from it (`python -m service.control_doc`).
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import TYPE_CHECKING
 
 from schema.calibration import CalibrationSet, CalibrationSource
 from schema.commands import (
     ALLOWED_STATES,
     DEFAULT_SESSION,
-    READ_ONLY_COMMANDS,
     REST_STATES,
     CheckResult,
     Command,
@@ -64,23 +70,47 @@ if TYPE_CHECKING:  # types only: the state machine does no IO
     from service.persist import SaveTicket, StorageHealth
 
 S = MachineState
-_ALLOWED = ALLOWED_STATES
-READ_ONLY = READ_ONLY_COMMANDS
-_CALIBRATIONS = frozenset({Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE})
-MOVING_COMMANDS = frozenset(
-    {Command.START, Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE, Command.RESUME}
-)
-"""Commands that set the machine moving: their sender becomes the controlling Rider."""
-
-
-def _never(ctl: Controller, now: float) -> Ending | None:
-    """The `on_done` of a notice that ends a command before any motion began."""
-    raise AssertionError("no controller runs for a refused Start")
 
 
 def allowed_states(command: Command) -> frozenset[MachineState]:
-    """The states in which `command` is accepted (E-stop released)."""
-    return _ALLOWED[command]
+    """The states in which `command` is accepted (E-stop released), as the table says."""
+    return _ACCEPTED[command]
+
+
+class Event(StrEnum):
+    """What changes the state besides a command: the table's rows that no Rider sends."""
+
+    POWER_UP = "power-up"
+    ESTOP = "E-stop pressed"
+    MOTION_DONE = "motion done"
+    MOTION_FAULT = "motion fault"
+    SAVED = "calibration saved"
+    RIDER_LOST = "Rider lost"
+    FAULT = "fault"
+    CALIBRATION_ENTERED = "calibration entered"
+
+
+Handler = Callable[["ControlAPI", CommandRequest, float], "CheckResult | None"]
+"""A command's action: it changes the state (or raises a `MachineError`) and may return a
+check result for the reply."""
+
+
+@dataclass(frozen=True, slots=True)
+class Rule:
+    """One row of the machine's behaviour: `trigger` in any of `sources` leads to one of
+    `targets` (none: the state stays). Command rows name their handler and reply."""
+
+    trigger: Command | Event
+    sources: frozenset[MachineState]
+    targets: tuple[MachineState, ...]
+    does: str
+    """The action in the docs' words, and how the target is chosen when there are several."""
+    action: Handler | None = None
+    reply: ReplyCode | None = None
+    read_only: bool = False
+    """Answered in every state, even with the E-stop active or the machine id held twice."""
+    takes_control: bool = False
+    """Sets the machine moving: its sender becomes the controlling Rider."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,9 +132,14 @@ class Ending:
     code: str | None = None
 
 
-OnDone = Callable[["Controller", float], "Ending | None"]
-"""What to do when a motion's controller finishes: settle the state and say how it ended
-(None: not ended yet, e.g. a calibration whose save is still under way)."""
+OnDone = Callable[[float], "Ending | None"]
+"""What to do when a motion's controller finishes, bound when the motion begins: settle the
+state and say how it ended (None: not ended yet, e.g. a calibration still being saved)."""
+
+
+def _never(now: float) -> Ending | None:
+    """The `on_done` of a notice that ends a command before any motion began."""
+    raise AssertionError("no controller runs for a refused Start")
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,6 +159,42 @@ class Motion:
             command=self.command.value,
             started_at=self.started_at,
         )
+
+
+@dataclass(slots=True)
+class _Drive:
+    """What a motion leaves behind until `_clear_motion()` resets it in one go."""
+
+    controller: Controller | None = None
+    """Drives the axes: running, paused or held by an E-stop (None once finished)."""
+    session_run: SessionRun | None = None
+    """The session's progress; kept after it ends so the status shows how far it went."""
+    resume_to: MachineState | None = None
+    """The state Pause interrupted."""
+    estop_from: MachineState | None = None
+    """The state the E-stop interrupted."""
+    estop_latched: bool = False
+
+
+@dataclass(slots=True)
+class _RiderWatch:
+    """The controlling Rider (sender of the last moving command) as the deadman sees it."""
+
+    id: str | None = None
+    connected: bool = False
+    gone_at: float | None = None
+    """When its token went (the grace period runs from here); None: not gone."""
+    heard_at: float = 0.0
+    """Its last sign of life: the command itself, then each heartbeat."""
+    warning: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class _Saving:
+    """A calibration's write under way, and the motion whose notice waits for it."""
+
+    ticket: SaveTicket
+    motion: Motion | None
 
 
 @dataclass
@@ -157,42 +228,56 @@ class ControlAPI:
     def __post_init__(self) -> None:
         self.devices.tilt.calibration = self.calibration.tilt
         self.refs = _Refs()
-        self.state = (
-            S.WARNING_NEEDS_CALIBRATION if not self.calibration.complete else S.WARNING_NOT_HOME
-        )
+        self.state = self._rest_state()  # power-up: never assumed home
         self.previous_state: MachineState | None = None
         self.fault: Fault | None = None
-        self.controller: Controller | None = None
-        self.session_run: SessionRun | None = None
-        self.estop_latched = False
-        self.rider_connected = False
-        self.controller_rider: str | None = None
-        self._rider_gone_at: float | None = None
-        self._rider_heard_at = 0.0
+        self._drive = _Drive()
+        self._rider = _RiderWatch()
         self.duplicate_of: tuple[str, ...] = ()
         """Other sessions holding this machine's id (the bus watches `holder/<zid>`)."""
-        self.rider_warning: str | None = None
-        self._resume_to: MachineState | None = None
-        self._estop_from: MachineState | None = None
         self.action: Motion | None = None
         """The motion command whose completion notice is still due (running, paused,
         E-stopped), like a ROS 2 action goal; `motion()` is the controller driving it."""
         self.completions: list[Completion] = []
         """Notices produced and not yet taken by the scan loop (`take_completions`)."""
-        self._saving: SaveTicket | None = None
+        self._saving: _Saving | None = None
         self.devices.stop_all()
+
+    # The motion context and the controlling Rider, read-only from outside.
+    @property
+    def controller(self) -> Controller | None:
+        return self._drive.controller
+
+    @property
+    def session_run(self) -> SessionRun | None:
+        return self._drive.session_run
+
+    @property
+    def estop_latched(self) -> bool:
+        return self._drive.estop_latched
+
+    @property
+    def controller_rider(self) -> str | None:
+        return self._rider.id
+
+    @property
+    def rider_connected(self) -> bool:
+        return self._rider.connected
+
+    @property
+    def rider_warning(self) -> str | None:
+        return self._rider.warning
 
     # ------------------------------------------------------------------------- commands
     def handle(self, command: Command, request: CommandRequest, now: float) -> Reply:
         """Act on one command and say what happened; refusals change nothing but the reply."""
         stamp = now + self.wall_offset
+        rule = _COMMANDS[command]
         try:
-            code, result = self._dispatch(command, request, now)
-            if command in MOVING_COMMANDS:
-                self.controller_rider = request.rider
-                self.rider_connected = request.rider is not None
-                self._rider_gone_at = None
-                self._rider_heard_at = now  # the command itself is a sign of life
+            if not rule.read_only:
+                self._guard(command)
+            assert rule.action is not None and rule.reply is not None  # every command row has
+            result = rule.action(self, request, now)
         except MachineError as exc:
             return Reply.failure(
                 exc.to_error(),
@@ -202,24 +287,21 @@ class ControlAPI:
                 state=self.state,
                 request_timecode=request.timecode,
             )
+        if rule.takes_control:  # the command itself is a sign of life
+            self._rider = _RiderWatch(request.rider, request.rider is not None, heard_at=now)
         return Reply(
             transaction_id=request.transaction_id,
             command=command.value,
             timecode=stamp,
             request_timecode=request.timecode,
             success=True,
-            code=code,
+            code=rule.reply,
             state=self.state,
             result=result,
         )
 
-    def _dispatch(
-        self, command: Command, request: CommandRequest, now: float
-    ) -> tuple[ReplyCode, CheckResult | None]:
-        if command is Command.CHECK_CALIBRATION:
-            return ReplyCode.RESP_CHECK, self._check_calibration(now)
-        if command is Command.CHECK_HOME:
-            return ReplyCode.RESP_CHECK, self._check_home(now)
+    def _guard(self, command: Command) -> None:
+        """Refuse a command this machine cannot take now: id held twice, E-stop, state."""
         if self.duplicate_of:
             raise DuplicateId(
                 f"{command.value} refused: machine id {self.config.machine.id} is also held by"
@@ -231,40 +313,38 @@ class ControlAPI:
                 f"{command.value} refused: the E-stop is active; release it, then Resume,"
                 " Home or Stop"
             )
-        if self.state not in _ALLOWED[command]:
-            allowed = ", ".join(sorted(_ALLOWED[command]))
+        if self.state not in _ACCEPTED[command]:
+            allowed = ", ".join(sorted(_ACCEPTED[command]))
             raise WrongState(
                 f"{command.value} is not accepted in state {self.state}; accepted in: {allowed}"
             )
-        if command is Command.START:
-            session = request.session if isinstance(request, StartRequest) else None
-            self._start(session or DEFAULT_SESSION, request, now)
-            return ReplyCode.RESP_START_ACCEPTED, None
-        if command is Command.HOME:
-            home = Chain([self._tilt_home, self._rotate_home])
-            self.begin(request, Command.HOME, S.HOMING, home, now, on_done=self._homed)
-            return ReplyCode.RESP_HOME_ACCEPTED, None
-        if command is Command.CALIBRATE_TILT:
-            tilt = TiltCalibrate(self.devices.tilt, self.config.tilt)
-            self.begin(request, command, S.CALIBRATING, tilt, now, on_done=self._tilt_calibrated)
-            return ReplyCode.RESP_CALIBRATION_ACCEPTED, None
-        if command is Command.CALIBRATE_ROTATE:
-            rotate = self.devices.rotate
 
-            def calibrate() -> Controller:
-                return RotateCalibrate(rotate, self.config.rotate)
+    # One handler per command (the table's `action`).
+    def _calibrate_tilt(self, request: CommandRequest, now: float) -> None:
+        tilt = TiltCalibrate(self.devices.tilt, self.config.tilt)
+        self.begin(
+            request,
+            Command.CALIBRATE_TILT,
+            S.CALIBRATING,
+            tilt,
+            now,
+            on_done=lambda at: self._tilt_calibrated(tilt, at),
+        )
 
-            chain = Chain([self._tilt_home, calibrate])
-            self.begin(request, command, S.CALIBRATING, chain, now, on_done=self._rotate_calibrated)
-            return ReplyCode.RESP_CALIBRATION_ACCEPTED, None
-        if command is Command.PAUSE:
-            self._pause(now, "Pause")
-            return ReplyCode.RESP_PAUSED, None
-        if command is Command.RESUME:
-            self._resume(now)
-            return ReplyCode.RESP_RESUMED, None
-        self._stop(now, "Stop")
-        return ReplyCode.RESP_DONE, None
+    def _calibrate_rotate(self, request: CommandRequest, now: float) -> None:
+        rotate = RotateCalibrate(self.devices.rotate, self.config.rotate)
+        self.begin(
+            request,
+            Command.CALIBRATE_ROTATE,
+            S.CALIBRATING,
+            Chain([self._tilt_home, lambda: rotate]),
+            now,
+            on_done=lambda at: self._rotate_calibrated(rotate, at),
+        )
+
+    def _home(self, request: CommandRequest, now: float) -> None:
+        home = Chain([self._tilt_home, self._rotate_home])
+        self.begin(request, Command.HOME, S.HOMING, home, now, on_done=self._homed)
 
     def _tilt_home(self) -> Controller:
         return TiltHome(self.devices.tilt, self.config.tilt)
@@ -272,33 +352,18 @@ class ControlAPI:
     def _rotate_home(self) -> Controller:
         return RotateHome(self.devices.rotate, self.config.rotate)
 
-    def _start(self, session: Session, request: CommandRequest, now: float) -> None:
+    def _start(self, request: CommandRequest, now: float) -> None:
         """The seed's Session(): CheckCalibrate, CheckHome, CheckSession, then run. A check
         that fails sets its state, then ends this Start with a notice (the seed's "send
         WARNING…, stop session, send DONE"), and the reply says why."""
-        if not self.calibration.complete:
-            missing = [a for a in ("tilt", "rotate") if getattr(self.calibration, a) is None]
-            self._set_state(S.WARNING_NEEDS_CALIBRATION, now, "Start: not calibrated")
-            error: MachineError = NotCalibrated(
-                f"Start refused: {' and '.join(missing)} not calibrated"
-            )
-            self._notice_refused(request, End.REFUSED, error, now)
-            raise error
-        home = self.homed()
-        if not (home.tilt and home.rotate):
-            missing = [a for a in ("tilt", "rotate") if not getattr(home, a)]
-            self._set_state(S.WARNING_NOT_HOME, now, "Start: not home")
-            error = NotHome(f"Start refused: {' and '.join(missing)} not home; send Home first")
-            self._notice_refused(request, End.REFUSED, error, now)
-            raise error
-        problem = self._session_problem(session)
-        if problem is not None:
-            path, message = problem
-            self._enter_fault(
-                Fault(code=FaultCode.INVALID_SESSION, message=message), now, "Start: bad session"
-            )
-            error = InvalidSession(message, path)
-            self._notice_refused(request, End.FAULT_HW, error, now)
+        session = request.session if isinstance(request, StartRequest) else None
+        session = session or DEFAULT_SESSION
+        refusal = self._start_refusal(session, now)
+        if refusal is not None:
+            outcome, error = refusal
+            wall = now + self.wall_offset
+            motion = Motion(Command.START, request.transaction_id, request.rider, wall, _never)
+            self._notify(motion, Ending(outcome, error.message, error.code.value), now)
             raise error
         assert self.calibration.rotate is not None  # checked complete above
         run = SessionRun(
@@ -309,16 +374,40 @@ class ControlAPI:
             self.config.rotate,
             self.calibration.rotate.home_arc_deg,
         )
-        self.session_run = run
         why = f"Start session {session.name!r}"
-        self.begin(request, Command.START, S.RUNNING, run, now, on_done=self._session_done, why=why)
+        self.begin(
+            request,
+            Command.START,
+            S.RUNNING,
+            run,
+            now,
+            on_done=self._session_done,
+            why=why,
+            session=run,
+        )
 
-    def _notice_refused(
-        self, request: CommandRequest, outcome: End, error: MachineError, now: float
-    ) -> None:
-        wall = now + self.wall_offset
-        motion = Motion(Command.START, request.transaction_id, request.rider, wall, _never)
-        self._notify(motion, Ending(outcome, error.message, error.code.value), now)
+    def _start_refusal(self, session: Session, now: float) -> tuple[End, MachineError] | None:
+        """The first of Start's checks that fails, with the state it sets; None: all pass."""
+        if not self.calibration.complete:
+            missing = [a for a in ("tilt", "rotate") if getattr(self.calibration, a) is None]
+            self._set_state(S.WARNING_NEEDS_CALIBRATION, now, "Start: not calibrated")
+            return End.REFUSED, NotCalibrated(
+                f"Start refused: {' and '.join(missing)} not calibrated"
+            )
+        home = self.homed()
+        if not (home.tilt and home.rotate):
+            missing = [a for a in ("tilt", "rotate") if not getattr(home, a)]
+            self._set_state(S.WARNING_NOT_HOME, now, "Start: not home")
+            return End.REFUSED, NotHome(
+                f"Start refused: {' and '.join(missing)} not home; send Home first"
+            )
+        problem = self._session_problem(session)
+        if problem is None:
+            return None
+        path, message = problem
+        fault = Fault(code=FaultCode.INVALID_SESSION, message=message)
+        self._enter_fault(fault, now, "Start: bad session")
+        return End.FAULT_HW, InvalidSession(message, path)
 
     def _session_problem(self, session: Session) -> tuple[str, str] | None:
         """The first step this machine cannot do, as (JSON pointer, message)."""
@@ -334,6 +423,39 @@ class ControlAPI:
                 return (f"/session/steps/{i}/revolutions", f"step {i}: revolutions must be ≥ 1")
         return None
 
+    def _pause_command(self, request: CommandRequest, now: float) -> None:
+        self._pause(now, "Pause")
+
+    def _resume_command(self, request: CommandRequest, now: float) -> None:
+        self._resume(now)
+
+    def _stop_command(self, request: CommandRequest, now: float) -> None:
+        self._stop(now, "Stop")
+
+    def _check_calibration(self, request: CommandRequest, now: float) -> CheckResult:
+        cal = self.calibration
+        result = CheckResult(
+            ok=cal.complete, tilt=cal.tilt is not None, rotate=cal.rotate is not None
+        )
+        if self.state in REST_STATES:
+            if not result.ok:
+                self._set_state(S.WARNING_NEEDS_CALIBRATION, now, "CheckCalibration failed")
+            elif self.state is S.WARNING_NEEDS_CALIBRATION:
+                self._set_state(self._rest_state(), now, "CheckCalibration passed")
+        return result
+
+    def _check_home(self, request: CommandRequest, now: float) -> CheckResult:
+        home = self.homed()
+        result = CheckResult(ok=home.tilt and home.rotate, tilt=home.tilt, rotate=home.rotate)
+        if self.state in REST_STATES:
+            # Needing calibration is the bigger problem: that warning is not hidden.
+            if not result.ok and self.state is not S.WARNING_NEEDS_CALIBRATION:
+                self._set_state(S.WARNING_NOT_HOME, now, "CheckHome failed")
+            elif self.state is S.WARNING_NOT_HOME:
+                self._set_state(self._rest_state(), now, "CheckHome passed")
+        return result
+
+    # ------------------------------------------------------------------ motion context
     def begin(
         self,
         request: CommandRequest,
@@ -344,9 +466,11 @@ class ControlAPI:
         *,
         on_done: OnDone,
         why: str | None = None,
+        session: SessionRun | None = None,
     ) -> None:
         """Start a motion: `ctl` runs in `state`; when it finishes, `on_done` settles the
-        state and says how it ended, and that becomes the motion's one completion notice."""
+        state and says how it ended, and that becomes the motion's one completion notice
+        (`session`: the run whose progress the status shows)."""
         if self.action is not None:
             # Only a motion halted by the E-stop can be replaced (Home, Calibrate*): it ended.
             if self.state is S.FAULT_ESTOP:
@@ -358,58 +482,61 @@ class ControlAPI:
             else:
                 ending = Ending(End.STOPPED, f"replaced by {command.value}")
             self._end(ending, now)
-        self._discard_controller()
-        if command is not Command.START:
-            self.session_run = None
-        self.controller = ctl
+        self._clear_motion()
+        self._drive = _Drive(controller=ctl, session_run=session)
         self.action = Motion(
             command, request.transaction_id, request.rider, now + self.wall_offset, on_done
         )
         self.fault = None
-        self.rider_warning = None
-        self.estop_latched = False
-        self._resume_to = self._estop_from = None
+        self._rider.warning = None
         self._set_state(state, now, why or command.value)
 
+    def _clear_motion(self) -> None:
+        """Abandon the controller (outputs off) and forget the session, where Pause and the
+        E-stop came from, and the E-stop latch: a new motion, Stop or a fault starts clean."""
+        if self._drive.controller is not None:
+            self._drive.controller.abandon()
+        self._drive = _Drive()
+        self.devices.stop_all()
+
     def _pause(self, now: float, why: str) -> None:
-        if self.controller is not None:
-            self.controller.halt()
-        self._resume_to = self.state
+        if self._drive.controller is not None:
+            self._drive.controller.halt()
+        self._drive.resume_to = self.state
         self._set_state(S.PAUSED, now, why)
 
     def _resume(self, now: float) -> None:
-        self.rider_warning = None  # whoever resumes has taken over
+        self._rider.warning = None  # whoever resumes has taken over
+        drive = self._drive
         if self.state is S.FAULT_ESTOP:
-            target = self._estop_from or self._rest_state()
-            self.estop_latched = False
-            self._estop_from = None
+            target = drive.estop_from or self._rest_state()
+            drive.estop_latched = False
+            drive.estop_from = None
             if target is S.PAUSED:
                 self._set_state(S.PAUSED, now, "Resume after E-stop (still paused)")
                 return
         else:
-            target = self._resume_to or self._rest_state()
-            self._resume_to = None
-        if target in MOTION_STATES and self.controller is not None:
-            self.controller.resume(now)
+            target = drive.resume_to or self._rest_state()
+            drive.resume_to = None
+        if target in MOTION_STATES and drive.controller is not None:
+            drive.controller.resume(now)
         elif target in MOTION_STATES:
             target = self._rest_state()
         self._set_state(target, now, "Resume")
 
     def _stop(self, now: float, why: str, code: str | None = None) -> None:
         after_estop = self.state is S.FAULT_ESTOP
-        self._discard_controller()
-        self.session_run = None
+        self._clear_motion()
         self.fault = None
-        self.estop_latched = False
-        self._resume_to = self._estop_from = None
         self._set_state(S.DONE, now, why)
         self._end(Ending(End.STOPPED, why + (" after an E-stop" if after_estop else ""), code), now)
 
-    def _discard_controller(self) -> None:
-        if self.controller is not None:
-            self.controller.abandon()
-        self.controller = None
-        self.devices.stop_all()
+    def _enter_fault(self, fault: Fault, now: float, why: str) -> None:
+        self._clear_motion()  # a still-pressed E-stop latches again next cycle
+        self.fault = fault
+        self.refs.tilt = self.refs.rotate = False
+        self._set_state(S.FAULT_HW, now, f"{why}: {fault.message}")
+        self._end(Ending(End.FAULT_HW, fault.message, fault.code.value), now)
 
     # ------------------------------------------------------------------------ completion
     def _end(self, ending: Ending, now: float) -> None:
@@ -443,30 +570,6 @@ class ControlAPI:
         """The daemon stops: a motion still under way ends `ABORTED` (outputs are safe)."""
         self._end(Ending(End.ABORTED, why), now)
 
-    # ---------------------------------------------------------------------------- checks
-    def _check_calibration(self, now: float) -> CheckResult:
-        cal = self.calibration
-        result = CheckResult(
-            ok=cal.complete, tilt=cal.tilt is not None, rotate=cal.rotate is not None
-        )
-        if self.state in REST_STATES:
-            if not result.ok:
-                self._set_state(S.WARNING_NEEDS_CALIBRATION, now, "CheckCalibration failed")
-            elif self.state is S.WARNING_NEEDS_CALIBRATION:
-                self._set_state(self._rest_state(), now, "CheckCalibration passed")
-        return result
-
-    def _check_home(self, now: float) -> CheckResult:
-        home = self.homed()
-        result = CheckResult(ok=home.tilt and home.rotate, tilt=home.tilt, rotate=home.rotate)
-        if self.state in REST_STATES:
-            # Needing calibration is the bigger problem: that warning is not hidden.
-            if not result.ok and self.state is not S.WARNING_NEEDS_CALIBRATION:
-                self._set_state(S.WARNING_NOT_HOME, now, "CheckHome failed")
-            elif self.state is S.WARNING_NOT_HOME:
-                self._set_state(self._rest_state(), now, "CheckHome passed")
-        return result
-
     def homed(self) -> AxesFlags:
         """An axis is home when it has a reference and its home switch is closed now."""
         return AxesFlags(
@@ -483,22 +586,22 @@ class ControlAPI:
     # ----------------------------------------------------------------------------- cycle
     def on_estop(self, now: float) -> None:
         """Called in every cycle the E-stop is active: latch, halt, outputs off."""
-        if self.controller is not None:
-            self.controller.halt()
+        if self._drive.controller is not None:
+            self._drive.controller.halt()
         self.devices.stop_all()
         if self.state is not S.FAULT_ESTOP:
-            self._estop_from = self.state
-            self.estop_latched = True
+            self._drive.estop_from = self.state
+            self._drive.estop_latched = True
             self._set_state(S.FAULT_ESTOP, now, "E-stop pressed")
 
     def update(self, now: float) -> None:
         """Step the active controller; in every other state hold all outputs off."""
-        gone = self._rider_gone_at
+        gone = self._rider.gone_at
         if gone is not None and now - gone >= self.config.rider_loss.grace_s:
             self._apply_rider_loss(now)
-        if self._saving is not None and self._saving.done:
+        if self._saving is not None and self._saving.ticket.done:
             self._save_done(self._saving, now)
-        ctl = self.controller
+        ctl = self._drive.controller
         if self.state not in MOTION_STATES or ctl is None:
             self.devices.stop_all()
             return
@@ -510,39 +613,34 @@ class ControlAPI:
             command = self.action.command.value if self.action else "motion"
             self._enter_fault(ctl.fault, now, f"{command} failed")
             return
-        self._finish(ctl, now)
-
-    def _finish(self, ctl: Controller, now: float) -> None:
         motion = self.action
-        self.controller = None
+        self._drive.controller = None
         self.devices.stop_all()
         assert motion is not None, "a controller runs only as part of a motion"
-        ending = motion.on_done(ctl, now)
+        ending = motion.on_done(now)
         if ending is not None:
             self._end(ending, now)
 
     # The `on_done` actions, bound when each motion begins.
-    def _session_done(self, ctl: Controller, now: float) -> Ending:
+    def _session_done(self, now: float) -> Ending:
         self._set_state(S.DONE, now, "session complete")
         return Ending(End.DONE, "session complete")
 
-    def _homed(self, ctl: Controller, now: float) -> Ending:
+    def _homed(self, now: float) -> Ending:
         self.refs.tilt = self.refs.rotate = True
         self._set_state(self._rest_state(), now, "Home complete")
         return Ending(End.DONE, "Home complete")
 
-    def _tilt_calibrated(self, ctl: Controller, now: float) -> Ending | None:
-        assert isinstance(ctl, TiltCalibrate) and ctl.result is not None
+    def _tilt_calibrated(self, ctl: TiltCalibrate, now: float) -> Ending | None:
+        assert ctl.result is not None  # it finished DONE
         self.refs.tilt = True
         tilt = dataclasses.replace(ctl.result, at=now + self.wall_offset)
         return self._calibrated(Calibration(tilt=tilt, rotate=self.calibration.rotate), now)
 
-    def _rotate_calibrated(self, ctl: Controller, now: float) -> Ending | None:
-        assert isinstance(ctl, Chain)
-        cal = ctl.finished[-1]
-        assert isinstance(cal, RotateCalibrate) and cal.result is not None
+    def _rotate_calibrated(self, ctl: RotateCalibrate, now: float) -> Ending | None:
+        assert ctl.result is not None  # it finished DONE
         self.refs.tilt = self.refs.rotate = True
-        rotate = dataclasses.replace(cal.result, at=now + self.wall_offset)
+        rotate = dataclasses.replace(ctl.result, at=now + self.wall_offset)
         return self._calibrated(Calibration(tilt=self.calibration.tilt, rotate=rotate), now)
 
     def enter_calibration(self, values: CalibrationSet, now: float) -> SaveTicket | None:
@@ -600,7 +698,7 @@ class ControlAPI:
             return Ending(End.DONE, "calibration complete")
         # Still CALIBRATING (outputs off, no controller) until the disk answers: a Rider that
         # waits for the calibration learns whether it was saved from the notice that ends it.
-        self._saving = ticket
+        self._saving = _Saving(ticket, self.action)
         if ticket.done:
             return self._saved(ticket, now)
         return None
@@ -613,26 +711,15 @@ class ControlAPI:
             ending = Ending(End.STORAGE_FAILED, problem, ErrorCode.STORAGE_FAILED.value)
         else:
             ending = Ending(End.DONE, "calibration complete")
-        if self.state is S.CALIBRATING and self.controller is None:
+        if self.state is S.CALIBRATING and self._drive.controller is None:
             self._set_state(self._rest_state(), now, why)
         return ending
 
-    def _save_done(self, ticket: SaveTicket, now: float) -> None:
+    def _save_done(self, saving: _Saving, now: float) -> None:
         """A background save finished: the calibration waiting for it (if any) has ended."""
-        ending = self._saved(ticket, now)
-        motion = self.action
-        if motion is not None and self.controller is None and motion.command in _CALIBRATIONS:
+        ending = self._saved(saving.ticket, now)
+        if self.action is not None and self.action is saving.motion:
             self._end(ending, now)
-
-    def _enter_fault(self, fault: Fault, now: float, why: str) -> None:
-        self._discard_controller()
-        self.session_run = None
-        self.fault = fault
-        self.refs.tilt = self.refs.rotate = False
-        self._resume_to = self._estop_from = None
-        self.estop_latched = False  # a still-pressed E-stop latches again next cycle
-        self._set_state(S.FAULT_HW, now, f"{why}: {fault.message}")
-        self._end(Ending(End.FAULT_HW, fault.message, fault.code.value), now)
 
     def duplicate_id(self, others: tuple[str, ...], own: str, now: float) -> None:
         """Other sessions hold this machine's id (`others`, empty: alone again). Met: motion
@@ -662,19 +749,20 @@ class ControlAPI:
 
     def motion(self) -> Controller | None:
         """The controller that owns an axis now (running, paused or held by an E-stop)."""
-        ctl = self.controller
+        ctl = self._drive.controller
         return ctl.active() if isinstance(ctl, Chain) else ctl
 
     def is_moving(self) -> bool:
         """Motion is under way or can be resumed (paused, or halted by a released E-stop)."""
-        return self.state in MOTION_STATES or self.controller is not None
+        return self.state in MOTION_STATES or self._drive.controller is not None
 
+    # ------------------------------------------------------------------- the Rider deadman
     def rider_lost(self, now: float) -> bool:
         """The controlling Rider is gone: apply the rider-loss policy now, or after the
         configured grace period if it does not come back; True if it acted now."""
-        self.rider_connected = False
+        self._rider.connected = False
         if self.config.rider_loss.grace_s > 0:
-            self._rider_gone_at = now
+            self._rider.gone_at = now
             return False
         return self._apply_rider_loss(now)
 
@@ -682,28 +770,29 @@ class ControlAPI:
         """Deadman check, once per cycle: `at` is when the controlling Rider's heartbeat last
         arrived (None: never). Silent for `rider_loss.timeout_s` → lost; a heartbeat after a
         loss → back. True if the Rider was judged lost now."""
-        if self.controller_rider is None:
+        rider = self._rider
+        if rider.id is None:
             return False
-        if at is not None and at > self._rider_heard_at:
-            self._rider_heard_at = at
-            if not self.rider_connected:
+        if at is not None and at > rider.heard_at:
+            rider.heard_at = at
+            if not rider.connected:
                 self.rider_back()  # nothing moves by itself: a paused ride stays paused
-        if self.rider_connected and now - self._rider_heard_at > self.config.rider_loss.timeout_s:
+        if rider.connected and now - rider.heard_at > self.config.rider_loss.timeout_s:
             self.rider_lost(now)
             return True
         return False
 
     def rider_back(self) -> None:
         """The controlling Rider's token is back (within the grace period nothing happened)."""
-        self.rider_connected = True
-        self._rider_gone_at = None
+        self._rider.connected = True
+        self._rider.gone_at = None
 
     def _apply_rider_loss(self, now: float) -> bool:
-        self._rider_gone_at = None
+        self._rider.gone_at = None
         policy = self.config.rider_loss.policy
         if self.state not in MOTION_STATES or policy is RiderLossPolicy.IGNORE:
             return False
-        self.rider_warning = f"controlling Rider lost during {self.state}; policy {policy}"
+        self._rider.warning = f"controlling Rider lost during {self.state}; policy {policy}"
         if policy is RiderLossPolicy.PAUSE:
             self._pause(now, "Rider lost")
         else:
@@ -720,14 +809,15 @@ class ControlAPI:
 
     # ---------------------------------------------------------------------------- status
     def session_progress(self) -> SessionProgress | None:
-        return self.session_run.progress() if self.session_run is not None else None
+        run = self._drive.session_run
+        return run.progress() if run is not None else None
 
     def estop_info(self) -> EstopInfo:
         return EstopInfo(active=self.devices.safety.is_estop_active(), latched=self.estop_latched)
 
     def status_key(self) -> tuple[object, ...]:
         """Cheap fingerprint of everything in `Status` except positions and time."""
-        run = self.session_run
+        run = self._drive.session_run
         home = self.homed()
         return (
             self.state,
@@ -746,3 +836,194 @@ class ControlAPI:
             self.storage.version if self.storage is not None else 0,
             self.action.transaction_id if self.action is not None else None,
         )
+
+
+# --------------------------------------------------------------------------------- table
+_ANY = frozenset(S)
+_REST = (S.IDLE, S.WARNING_NOT_HOME, S.WARNING_NEEDS_CALIBRATION)
+"""The rest state, in the order it is chosen: IDLE when calibrated and home, else the warning."""
+_MOVING = (S.HOMING, S.CALIBRATING, S.RUNNING)
+_A = ControlAPI
+
+TABLE: tuple[Rule, ...] = (
+    # Commands, in the order of `Command`: accepted in `sources` (with the E-stop released),
+    # which is ALLOWED_STATES (schema/commands.py, also read by the Rider) where one row says it.
+    Rule(
+        Command.CALIBRATE_TILT,
+        ALLOWED_STATES[Command.CALIBRATE_TILT],
+        (S.CALIBRATING,),
+        "tilt home, a timed stroke up (offset and gain), home again",
+        _A._calibrate_tilt,
+        ReplyCode.RESP_CALIBRATION_ACCEPTED,
+        takes_control=True,
+    ),
+    Rule(
+        Command.CALIBRATE_ROTATE,
+        ALLOWED_STATES[Command.CALIBRATE_ROTATE],
+        (S.CALIBRATING,),
+        "tilt home, rotate home, then time one revolution",
+        _A._calibrate_rotate,
+        ReplyCode.RESP_CALIBRATION_ACCEPTED,
+        takes_control=True,
+    ),
+    Rule(
+        Command.HOME,
+        ALLOWED_STATES[Command.HOME],
+        (S.HOMING,),
+        "tilt home, then rotate home",
+        _A._home,
+        ReplyCode.RESP_HOME_ACCEPTED,
+        takes_control=True,
+    ),
+    Rule(
+        Command.START,
+        ALLOWED_STATES[Command.START],
+        (S.RUNNING, S.WARNING_NEEDS_CALIBRATION, S.WARNING_NOT_HOME, S.FAULT_HW),
+        "runs the session (default: tilt 45°, one CW revolution ×3); refused: not calibrated →"
+        " WARNING_NEEDS_CALIBRATION, not home → WARNING_NOT_HOME, invalid session → FAULT_HW",
+        _A._start,
+        ReplyCode.RESP_START_ACCEPTED,
+        takes_control=True,
+    ),
+    Rule(
+        Command.PAUSE,
+        ALLOWED_STATES[Command.PAUSE],
+        (S.PAUSED,),
+        "controller halted, relays off",
+        _A._pause_command,
+        ReplyCode.RESP_PAUSED,
+    ),
+    Rule(
+        Command.RESUME,
+        frozenset({S.PAUSED}),
+        (*_MOVING, *_REST),
+        "back to the state before Pause (the rest state if nothing is left to run)",
+        _A._resume_command,
+        ReplyCode.RESP_RESUMED,
+        takes_control=True,
+    ),
+    Rule(
+        Command.RESUME,
+        frozenset({S.FAULT_ESTOP}),
+        tuple(s for s in S if s is not S.FAULT_ESTOP),
+        "back to the state before the E-stop (a motion goes on)",
+        _A._resume_command,
+        ReplyCode.RESP_RESUMED,
+        takes_control=True,
+    ),
+    Rule(
+        Command.STOP,
+        ALLOWED_STATES[Command.STOP],
+        (S.DONE,),
+        "controllers stopped, session cleared",
+        _A._stop_command,
+        ReplyCode.RESP_DONE,
+    ),
+    Rule(
+        Command.CHECK_CALIBRATION,
+        REST_STATES,
+        _REST,
+        "not calibrated → WARNING_NEEDS_CALIBRATION; passed → the rest state",
+        _A._check_calibration,
+        ReplyCode.RESP_CHECK,
+        read_only=True,
+    ),
+    Rule(
+        Command.CHECK_CALIBRATION,
+        _ANY - REST_STATES,
+        (),
+        "answers; the state stays",
+        _A._check_calibration,
+        ReplyCode.RESP_CHECK,
+        read_only=True,
+    ),
+    Rule(
+        Command.CHECK_HOME,
+        REST_STATES,
+        _REST,
+        "not home → WARNING_NOT_HOME (unless calibration is missing); passed → the rest state",
+        _A._check_home,
+        ReplyCode.RESP_CHECK,
+        read_only=True,
+    ),
+    Rule(
+        Command.CHECK_HOME,
+        _ANY - REST_STATES,
+        (),
+        "answers; the state stays",
+        _A._check_home,
+        ReplyCode.RESP_CHECK,
+        read_only=True,
+    ),
+    # Events.
+    Rule(
+        Event.POWER_UP,
+        frozenset(),
+        (S.WARNING_NEEDS_CALIBRATION, S.WARNING_NOT_HOME),
+        "outputs safe; never assumed home",
+    ),
+    Rule(
+        Event.ESTOP,
+        _ANY - {S.FAULT_ESTOP},
+        (S.FAULT_ESTOP,),
+        "relays dropped in the same cycle, controller halted, latched",
+    ),
+    Rule(
+        Event.MOTION_DONE,
+        frozenset({S.HOMING}),
+        _REST,
+        "both axes referenced; the rest state",
+    ),
+    Rule(
+        Event.MOTION_DONE,
+        frozenset({S.CALIBRATING}),
+        _REST,
+        "calibration in use; the rest state once it is saved",
+    ),
+    Rule(Event.MOTION_DONE, frozenset({S.RUNNING}), (S.DONE,), "session complete"),
+    Rule(
+        Event.SAVED,
+        frozenset({S.CALIBRATING}),
+        _REST,
+        "the calibration's write ended (its notice says whether it was saved)",
+    ),
+    Rule(
+        Event.MOTION_FAULT,
+        MOTION_STATES,
+        (S.FAULT_HW,),
+        "sensor timeout, stuck switch, implausible measurement: outputs off, references lost",
+    ),
+    Rule(
+        Event.FAULT,
+        _ANY - {S.FAULT_HW},
+        (S.FAULT_HW,),
+        "watchdog, supervisor, loop exception, a second daemon with this id",
+    ),
+    Rule(
+        Event.RIDER_LOST,
+        MOTION_STATES,
+        (S.PAUSED, S.DONE),
+        "rider_loss.policy pause → PAUSED, stop → DONE (after rider_loss.grace_s)",
+    ),
+    Rule(
+        Event.CALIBRATION_ENTERED,
+        REST_STATES - {S.DONE},
+        _REST,
+        "a technician's values: the rest state",
+    ),
+)
+"""The machine's behaviour, row by row: the command guard and the docs read it; the tests
+check that what the machine does stays inside it."""
+
+_COMMANDS: dict[Command, Rule] = {}
+_ACCEPTED: dict[Command, frozenset[MachineState]] = {}
+for _rule in TABLE:
+    if isinstance(_rule.trigger, Command):
+        _COMMANDS.setdefault(_rule.trigger, _rule)
+        _ACCEPTED[_rule.trigger] = _ACCEPTED.get(_rule.trigger, frozenset()) | _rule.sources
+del _rule
+
+
+def edges() -> frozenset[tuple[MachineState, MachineState]]:
+    """Every (old, new) state change the table allows."""
+    return frozenset((s, t) for r in TABLE for s in r.sources for t in r.targets if s is not t)

@@ -6,11 +6,11 @@ from dataclasses import dataclass
 
 import pytest
 
-from schema.commands import CheckResult, Command, ReplyCode
+from schema.commands import ALLOWED_STATES, CheckResult, Command, ReplyCode
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
 from service.config import MachineConfig
-from service.control import allowed_states
+from service.control import TABLE, Event, allowed_states, edges
 from tests.rig import BAD_SESSION, Rig, known_calibration, rig_in
 
 S = MachineState
@@ -251,6 +251,7 @@ def test_command_in_state(situation: str, command: Command) -> None:
             assert str(before) in reply.error.message
         assert rig.state is (expected.state or before)
     assert reply.state is rig.state
+    assert rig.state is before or rig.state in table_targets(before, command)
     if command in (C.CHECK_CALIBRATION, C.CHECK_HOME):
         cal, home = CHECKS[situation]
         assert reply.result == (cal if command is C.CHECK_CALIBRATION else home)
@@ -261,6 +262,37 @@ def test_command_in_state(situation: str, command: Command) -> None:
     rig.step()
     if rig.state not in MOTION_STATES:
         assert not rig.relays_on()
+
+
+def table_targets(state: MachineState, trigger: Command | Event) -> set[MachineState]:
+    return {t for r in TABLE if r.trigger is trigger and state in r.sources for t in r.targets}
+
+
+def test_transition_table_agrees_with_allowed_states() -> None:
+    """The table's command rows accept exactly ALLOWED_STATES (the Rider's copy), and the
+    rows of one command share its handler, reply and flags."""
+    for command in Command:
+        rows = [r for r in TABLE if r.trigger is command]
+        assert rows, command
+        assert set().union(*(r.sources for r in rows)) == ALLOWED_STATES[command]
+        assert allowed_states(command) == ALLOWED_STATES[command]
+        assert len({(r.action, r.reply, r.read_only, r.takes_control) for r in rows}) == 1
+        assert all(r.action is not None and r.reply is not None for r in rows)
+    for row in TABLE:
+        if isinstance(row.trigger, Event):
+            assert row.action is None and row.reply is None
+    assert {r.trigger for r in TABLE if isinstance(r.trigger, Event)} == set(Event)
+
+
+def test_transitions_seen_on_a_whole_ride_are_in_the_table() -> None:
+    rig = Rig()
+    rig.calibrate()
+    rig.home()
+    rig.send(C.START)
+    rig.run_to_state(S.DONE)
+    seen = {(t.old, t.new) for t in rig.transitions}
+    assert (S.HOMING, S.IDLE) in seen and (S.RUNNING, S.DONE) in seen
+    assert seen <= edges()
 
 
 def test_start_refusals_name_the_missing_axes() -> None:

@@ -17,6 +17,7 @@ from hal.physics import SwitchFault
 from schema.commands import REQUEST_MODELS, Command, Direction, Reply, ReplyCode
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
+from service.control import edges
 from service.loop import PendingCommand
 from tests.rig import Rig, known_calibration
 
@@ -238,6 +239,9 @@ class RideMachine(RuleBasedStateMachine):
     @invariant()
     def state_is_valid(self) -> None:
         assert self.rig.state in set(MachineState)
+        # Every state change the machine made is a row of its transition table.
+        for change in self.rig.transitions:
+            assert (change.old, change.new) in edges(), change
         if self.rig.state in (S.FAULT_HW,):
             assert self.rig.control.fault is not None
 
