@@ -48,6 +48,7 @@ COPY pyproject.toml README.md ./
 COPY schema/ schema/
 COPY hal/ hal/
 COPY service/ service/
+COPY sim/ sim/
 COPY rider/ rider/
 # The package itself, offline: its dependencies are all in /opt/venv already.
 RUN pip wheel --no-deps --no-build-isolation --no-index --wheel-dir /tmp/wheel . \

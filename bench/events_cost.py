@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.common import Options, Section, Table, Target, main_for, ms
-from hal.sim import SimHal
 from schema.commands import Command, CommandRequest, Reply
 from service.config import EventsSection, MachineConfig
 from service.eventlog import EVENTS_FILE, EventLog
@@ -33,6 +32,7 @@ from service.loop import LoopCall, PendingCommand, ScanLoop
 from service.machine import Machine
 from service.runner import RealtimeRunner, tune_thread
 from service.timing import CycleStats
+from sim.hal import SimHal
 
 PERIOD_S = 0.010
 COMMAND_RATE = 500.0

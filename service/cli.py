@@ -238,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return export_events(args, args.data_dir or Path(config.data_dir))
     if args.cmd == "demo" or getattr(args, "once_session", False):
-        from service.demo import run_demo
+        from service.simwing import run_demo
 
         return run_demo(config, speed=args.speed)
     from service.daemon import DaemonOptions, run_daemon

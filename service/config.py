@@ -10,7 +10,6 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from hal.iomap import IoMap
-from hal.physics import PhysicsParams
 from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
 
 Int32 = Annotated[int, Field(ge=INT32_MIN, le=INT32_MAX)]
@@ -122,6 +121,23 @@ class RevPiSection(_Section):
 
     procimg: str = "/dev/piControl0"
     configrsc: str | None = None
+
+
+class PhysicsParams(_Section):
+    """`[hal.sim]`: the simulated machine's mechanics (read by the `sim` package; the controller
+    must not know the AI gain/offset)."""
+
+    rotate_speed_dps: float = Field(default=90.0, gt=0, le=3600)
+    home_arc_deg: float = Field(default=10.0, gt=0, lt=180)
+    tilt_speed_dps: float = Field(default=15.0, gt=0, le=360)
+    tilt_min_deg: float = -5.0
+    tilt_max_deg: float = 95.0
+    tilt_home_deg: float = Field(default=0.0, ge=-5, le=10)
+    ai_offset_counts: float = 1200.0
+    ai_gain_counts_per_deg: float = 40.0
+    start_rotate_deg: float = 137.0
+    start_tilt_deg: float = 12.0
+    seed: int = 1
 
 
 class HalSection(_Section):

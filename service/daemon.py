@@ -14,7 +14,6 @@ from pathlib import Path
 from types import FrameType
 
 from hal.base import Hal, HalConfigError, HalError
-from hal.sim import SimHal
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
 from schema.findings import Finding, Severity
 from service import bus as zbus
@@ -33,7 +32,7 @@ from service.runner import (
     die_with_parent,
     tune_thread,
 )
-from service.simfaults import HalSim
+from service.simwing import sim_hal, sim_port
 from service.timing import CycleStats
 from service.validate import finding_line
 from service.watchdog import GuardedHal, Watchdog
@@ -61,7 +60,7 @@ def make_hal(config: MachineConfig, clock: object) -> Hal:
 
         rp = config.hal.revpi
         return RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc)
-    return SimHal(time.monotonic, config.hal.iomap, config.hal.sim)
+    return sim_hal(config)
 
 
 def open_hal(config: MachineConfig, clock: object, source: str = "machine") -> Hal | None:
@@ -164,7 +163,7 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         loop,
         stats,
         config,
-        sim=HalSim(raw_hal) if isinstance(raw_hal, SimHal) else None,
+        sim=sim_port(raw_hal),
         sim_elsewhere=bool(supervisor),
         params=registry,
         check_config=lambda candidate: check_candidate(registry.config, candidate),

@@ -32,7 +32,6 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, Protocol
 
-import hal
 from hal.base import HalConfigError, HalError
 from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
@@ -46,7 +45,7 @@ from service.bus.supervisor import (
 from service.config import HalBackend, MachineConfig
 from service.daemon import DaemonOptions
 from service.runner import SUPERVISOR_PID_ENV
-from service.simworld import SimWorld, make_image
+from service.simwing import World, sim_world
 from service.validate import finding_line
 
 log = logging.getLogger("machine.supervisor")
@@ -55,8 +54,6 @@ EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_CONFIG = 2
 SUPERVISOR_DIR = "supervisor"
-SIM_CONFIG_RSC = "sim_config.rsc"
-"""The piCtory config (Core + DIO + AIO) the simulated world is wired by, shipped in `hal/`."""
 
 
 class SafeOutputs(Protocol):
@@ -148,7 +145,7 @@ class Supervisor:
         self.events: queue.SimpleQueue[Event] = queue.SimpleQueue()  # put() is signal-safe
         self.child: Child | None = None
         self.generation = 0
-        self.world: SimWorld | None = None
+        self.world: World | None = None
         self.safe: SafeOutputs | None = None
         self.backoff = Backoff(options.backoff_s, options.backoff_max_s)
         self.bus: SupervisorBus
@@ -225,10 +222,8 @@ class Supervisor:
         self.dir.mkdir(parents=True, exist_ok=True)
         config = self.config
         if config.hal.backend is HalBackend.SIM:
-            procimg = make_image(self.dir / "procimg")
-            configrsc = str(Path(hal.__file__).with_name(SIM_CONFIG_RSC))
-            self.world = SimWorld(
-                config.hal.iomap, procimg, configrsc, config.hal.sim, self.options.world_period_s
+            self.world, procimg, configrsc = sim_world(
+                config, self.dir, self.options.world_period_s
             )
             revpi = {"procimg": procimg, "configrsc": configrsc}
             config = config.with_overrides(hal={"backend": HalBackend.REVPI, "revpi": revpi})

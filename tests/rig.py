@@ -8,20 +8,19 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hal.physics import PhysicsParams
-from hal.sim import SimHal
 from schema.axes import AxisRecord
 from schema.commands import Command, Reply, Session, StartRequest, TiltStep
 from schema.commands import CommandRequest as Req
 from schema.io import IoValue
 from schema.status import MachineState, Status
-from service.config import MachineConfig
+from service.config import MachineConfig, PhysicsParams
 from service.control import Transition
 from service.devices import Calibration
 from service.events import EventSink
 from service.loop import PendingCommand
 from service.machine import Machine
 from service.persist import CalibrationStore
+from sim.hal import SimHal
 
 
 class FakeClock:

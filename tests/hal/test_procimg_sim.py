@@ -9,9 +9,10 @@ import pytest
 
 from hal.base import HalError, Outputs
 from hal.iomap import IoMap
-from hal.physics import PhysicsParams, SwitchFault
-from hal.procimg_sim import ProcImgSim
 from hal.revpi import RevPiConfigError, RevPiHal
+from service.config import PhysicsParams
+from sim.physics import SwitchFault
+from sim.procimg import ProcImgSim
 from tests.fixtures.revpi import (
     CONFIG_RSC,
     address,

@@ -14,7 +14,6 @@ import pytest
 
 from hal.base import Hal, HalError, Outputs
 from hal.iomap import DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
-from hal.procimg_sim import ProcImgSim
 from hal.revpi import RevPiConfigError, RevPiHal, check_revpi_io
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.findings import Finding, Severity
@@ -22,6 +21,7 @@ from schema.status import MachineState
 from service.config import MachineConfig
 from service.loop import PendingCommand
 from service.machine import Machine
+from sim.procimg import ProcImgSim
 from tests.fixtures.revpi import (
     CONFIG_RSC,
     address,
@@ -542,7 +542,7 @@ def test_findings_serialise_for_the_wire(image: str) -> None:
 def test_package_imports_without_revpimodio2() -> None:
     code = (
         "import sys; sys.modules['revpimodio2'] = None\n"
-        "import hal.revpi, hal.procimg_sim\n"
+        "import hal.revpi, sim.procimg\n"
         "from hal.iomap import IoMap\n"
         "f = hal.revpi.check_revpi_io(IoMap(), sys.argv[1], sys.argv[1])\n"
         "print(f[-1].category)\n"

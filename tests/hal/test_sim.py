@@ -8,8 +8,9 @@ import pytest
 
 from hal.base import Hal, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from hal.physics import PhysicsParams, SwitchFault, World
-from hal.sim import SimHal
+from service.config import PhysicsParams
+from sim.hal import SimHal
+from sim.physics import SwitchFault, World
 from tests.rig import FakeClock
 
 DT = 0.01

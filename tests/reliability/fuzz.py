@@ -24,8 +24,8 @@ from schema.codec import DecodeError, Format, decode_raw, sniff_format, validate
 from schema.commands import REQUEST_MODELS, Command
 from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
-from service import simfaults
 from service.errors import MachineError
+from sim import faults as simfaults
 
 
 class Expect(Enum):

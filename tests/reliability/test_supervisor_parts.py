@@ -13,7 +13,8 @@ from hal.revpi import check_revpi_io
 from schema.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
 from service.bus.supervisor import child_config, requires_credentials, router_config
 from service.config import HalBackend, MachineConfig
-from service.supervisor import SIM_CONFIG_RSC, Backoff, describe_exit, to_toml
+from service.supervisor import Backoff, describe_exit, to_toml
+from sim.world import CONFIG_RSC
 from tests.reliability.support import ACL_PROFILE
 
 PRIVATE = "unixsock-stream//tmp/machine-sup-x/zenoh.sock"
@@ -78,9 +79,7 @@ def test_router_keeps_the_profile_and_adds_the_private_endpoint(tmp_path: Path) 
 
 
 def test_the_packaged_picto_config_fits_the_default_io_map(tmp_path: Path) -> None:
-    import hal
-
-    rsc = Path(hal.__file__).with_name(SIM_CONFIG_RSC)
+    rsc = CONFIG_RSC
     image = tmp_path / "procimg"
     image.write_bytes(bytes(4096))
     findings = check_revpi_io(MachineConfig().hal.iomap, str(rsc), str(image))

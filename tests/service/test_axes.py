@@ -1,7 +1,7 @@
 """Axis positions and FastData status bits against the simulated world's truth (fake clock).
 
 The rotate axis has no encoder: its angle is dead-reckoned from the drive time and referenced
-at home-switch edges. These tests compare every record with `hal.physics.World.rotate_deg`.
+at home-switch edges. These tests compare every record with `sim.physics.World.rotate_deg`.
 """
 
 from __future__ import annotations

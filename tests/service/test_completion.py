@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from hal.physics import SwitchFault
 from schema.commands import Command
 from schema.completion import Completion, Outcome
 from schema.status import MachineState, MotionRef, Status
 from service.completions import CompletionLog
 from service.config import MachineConfig
+from sim.physics import SwitchFault
 from tests.rig import BAD_SESSION, Rig, known_calibration
 from tests.service.test_persist_failure import SlowStore
 

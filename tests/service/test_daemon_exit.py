@@ -9,7 +9,7 @@ from tests.procs import REPO
 
 SCRIPT = """
 import time
-from hal.sim import SimHal
+from sim.hal import SimHal
 from service.daemon import _exit_now
 
 hal = SimHal(time.monotonic)

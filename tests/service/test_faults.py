@@ -8,10 +8,10 @@ from dataclasses import dataclass
 import pytest
 
 from hal.iomap import Signal
-from hal.physics import SwitchFault
 from schema.commands import Command
 from schema.status import FaultCode, MachineState
 from service.config import MachineConfig
+from sim.physics import SwitchFault
 from tests.rig import Rig, known_calibration
 
 S = MachineState

@@ -10,7 +10,6 @@ import pytest
 
 from hal.base import Inputs, Outputs
 from hal.iomap import RELAY_OUTPUTS, Signal
-from hal.sim import SimHal
 from schema.commands import REQUEST_MODELS, Command, Reply
 from schema.errors import Error, ErrorCode
 from schema.params import ParamSet
@@ -20,6 +19,7 @@ from service.loop import Inbox, LoopCall, PendingCommand, ScanLoop, Wake
 from service.machine import Machine
 from service.params import ParamRegistry
 from service.persist import ParamStore
+from sim.hal import SimHal
 from tests.rig import FakeClock, Rig, known_calibration, rig_in
 
 S = MachineState

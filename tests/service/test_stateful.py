@@ -13,12 +13,12 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
-from hal.physics import SwitchFault
 from schema.commands import REQUEST_MODELS, Command, Direction, Reply, ReplyCode
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
 from service.control import edges
 from service.loop import PendingCommand
+from sim.physics import SwitchFault
 from tests.rig import Rig, known_calibration
 
 settings.register_profile(

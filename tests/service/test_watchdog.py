@@ -7,7 +7,6 @@ import time
 
 import pytest
 
-from hal.sim import SimHal
 from schema.commands import Command, CommandRequest
 from schema.status import FaultCode, MachineState
 from service.config import MachineConfig
@@ -16,6 +15,7 @@ from service.machine import Machine
 from service.runner import RealtimeRunner
 from service.timing import CycleStats
 from service.watchdog import ARM_AFTER_CYCLES, GuardedHal, Watchdog
+from sim.hal import SimHal
 from tests.rig import Rig
 
 WAIT_S = 10.0

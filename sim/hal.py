@@ -6,7 +6,8 @@ from collections.abc import Callable
 
 from hal.base import Inputs, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from hal.physics import PhysicsParams, SwitchFault, World
+from service.config import PhysicsParams
+from sim.physics import SwitchFault, World
 
 
 class SimHal:

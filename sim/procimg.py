@@ -12,10 +12,11 @@ from typing import Any
 
 from hal.base import HalError, Outputs
 from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap
-from hal.physics import PhysicsParams, World
 from hal.pictory import read_config
 from hal.revpi import bind_ios, open_modio, raise_for_errors
-from hal.sim import SimHal
+from service.config import PhysicsParams
+from sim.hal import SimHal
+from sim.physics import World
 
 
 class ProcImgSim:

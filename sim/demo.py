@@ -5,12 +5,12 @@ from __future__ import annotations
 import logging
 import time
 
-from hal.sim import SimHal
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.status import MachineState
 from service.config import MachineConfig
 from service.loop import PendingCommand
 from service.machine import Machine
+from sim.hal import SimHal
 
 log = logging.getLogger("demo")
 

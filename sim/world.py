@@ -16,13 +16,15 @@ from pydantic import BaseModel
 
 from hal.base import HalError
 from hal.iomap import IoMap
-from hal.physics import PhysicsParams
-from hal.procimg_sim import ProcImgSim
 from schema.sim import SimWorldState
-from service import simfaults
+from service.config import PhysicsParams
+from sim import faults as simfaults
+from sim.procimg import ProcImgSim
 
 log = logging.getLogger(__name__)
 
+CONFIG_RSC = Path(__file__).with_name("config.rsc")
+"""The piCtory config (Core + DIO + AIO) the simulated world is wired by."""
 IMAGE_BYTES = 4096
 """The size of piControl's process image."""
 

@@ -1,4 +1,5 @@
-"""The ride's physics, with fault injection: shared by the simulator HAL and the RevPi image sim."""
+"""The ride's physics, with fault injection: shared by the simulator HAL and the process-image
+world. Its parameters are the `[hal.sim]` section of machine.toml (`service.config`)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import random
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from pydantic import BaseModel, ConfigDict, Field
+from service.config import PhysicsParams
 
 INT16_MIN, INT16_MAX = -32768, 32767
 
@@ -16,24 +17,6 @@ class SwitchFault(StrEnum):
 
     STUCK_OPEN = "stuck_open"
     STUCK_CLOSED = "stuck_closed"
-
-
-class PhysicsParams(BaseModel):
-    """The simulated machine's mechanics; the controller must not know the AI gain/offset."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    rotate_speed_dps: float = Field(default=90.0, gt=0, le=3600)
-    home_arc_deg: float = Field(default=10.0, gt=0, lt=180)
-    tilt_speed_dps: float = Field(default=15.0, gt=0, le=360)
-    tilt_min_deg: float = -5.0
-    tilt_max_deg: float = 95.0
-    tilt_home_deg: float = Field(default=0.0, ge=-5, le=10)
-    ai_offset_counts: float = 1200.0
-    ai_gain_counts_per_deg: float = 40.0
-    start_rotate_deg: float = 137.0
-    start_tilt_deg: float = 12.0
-    seed: int = 1
 
 
 @dataclass

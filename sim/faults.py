@@ -8,8 +8,6 @@ from __future__ import annotations
 
 from pydantic import BaseModel
 
-from hal.physics import SwitchFault
-from hal.sim import SimHal
 from schema.codec import DecodeError, decode_raw, sniff_format, validate
 from schema.sim import (
     SIM_REQUESTS,
@@ -22,6 +20,8 @@ from schema.sim import (
     SwitchState,
 )
 from service.errors import Rejected, UnknownCommand
+from sim.hal import SimHal
+from sim.physics import SwitchFault
 
 WORLD = "world"
 """`sim/world`: read the world, change nothing."""
