@@ -16,6 +16,7 @@ from bench import (
     rider_loss,
     roundtrip,
     status_latency,
+    throughput,
 )
 from bench.common import (
     Options,
@@ -41,6 +42,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.events_cost", events_cost.run),
     ("bench.rider_loss", rider_loss.run),
     ("bench.pick", pick.run),
+    ("bench.throughput", throughput.run),
 ]
 
 

@@ -351,14 +351,27 @@ STOP_TIMEOUT_S = 10.0
 class Child:
     """A child process whose stdout the benchmark reads line by line (stderr goes to a log)."""
 
-    def __init__(self, args: list[str], log: Path) -> None:
+    def __init__(self, args: list[str], log: Path, *, stdin: bool = False) -> None:
+        """`stdin`: a pipe the benchmark writes to (`send`) instead of the inherited stdin."""
         self.args = args
         self.log_path = log
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         with log.open("w") as err:
             self.proc = subprocess.Popen(
-                args, stdout=subprocess.PIPE, stderr=err, text=True, cwd=REPO, env=env
+                args,
+                stdin=subprocess.PIPE if stdin else None,
+                stdout=subprocess.PIPE,
+                stderr=err,
+                text=True,
+                cwd=REPO,
+                env=env,
             )
+
+    def send(self, line: str) -> None:
+        """One line to the child's stdin (started with `stdin=True`)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
 
     @property
     def pid(self) -> int:
@@ -393,8 +406,10 @@ class Child:
     def stop(self, sig: int = signal.SIGTERM) -> int:
         """Signal, wait (bounded), then kill; returns the exit code."""
         stop_process(self.proc, sig)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
+        for pipe in (self.proc.stdin, self.proc.stdout):
+            if pipe is not None:
+                with contextlib.suppress(OSError):
+                    pipe.close()
         return self.proc.returncode
 
 

@@ -211,7 +211,7 @@ def run(opts: Options) -> Section:
     for i in idles:
         if i.label.startswith("daemon"):
             assert i.period_s is not None
-            limit = 3.0 if i.period_s >= 0.010 else 25.0
+            limit = 1.5 if i.period_s >= 0.010 else 8.0  # issue 18's targets
             section.targets.append(
                 Target.at_most(f"CPU idle, {i.label}", i.cpu, limit, lambda x: f"{x:.1f} %")
             )

@@ -26,6 +26,7 @@ MODULES = [
     "events_cost",
     "rider_loss",
     "pick",
+    "throughput",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0

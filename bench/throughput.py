@@ -1,0 +1,198 @@
+"""Throughput: sequential commands per second from 1 and from 4 concurrent Riders, beside a bare
+zenoh-python echo driven the same way, and the daemon's overruns meanwhile.
+
+Each Rider is a process of its own with its own Zenoh session (so the clients do not share one
+GIL), sending raw `check/home` gets back to back; the echo gets the same requests. Daemon and
+echo phases alternate in rounds, so both see the same host noise. The daemon's cycle counters
+are reset before and read after each of its phases (`diag/reset`, `diag/cycle`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import itertools
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import msgpack
+import zenoh
+
+from bench.common import Child, Options, Section, Table, Target, main_for, python_module
+from bench.daemon import bench_daemon
+from rider.client import zenoh_config as rider_zenoh_config
+from tests.procs import free_port
+
+PERIOD_S = 0.010
+ECHO_KEY = "bench/echo"
+GET_TIMEOUT_S = 2.0
+
+
+# ------------------------------------------------------------------------------ worker
+def _request(prefix: str, n: int) -> bytes:
+    body = {"transaction_id": f"{prefix}-{n}", "timecode": time.time(), "rider": None}
+    return bytes(msgpack.packb(body))
+
+
+def worker(connect: list[str], zenoh_config: Path, name: str) -> int:
+    """Reads `run <key> <seconds>` lines; answers each with `result {"count": n, "failed": f}`."""
+    ids = itertools.count()
+    with zenoh.open(rider_zenoh_config(zenoh_config, connect=connect)) as session:
+        print("ready", flush=True)
+        for line in sys.stdin:
+            parts = line.split()
+            if not parts or parts[0] != "run":
+                break
+            key, seconds = parts[1], float(parts[2])
+            count = failed = 0
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                payload = _request(name, next(ids))
+                replies = list(session.get(key, payload=payload, timeout=GET_TIMEOUT_S))
+                if len(replies) == 1 and replies[0].ok is not None:
+                    count += 1
+                else:
+                    failed += 1
+            print("result " + json.dumps({"count": count, "failed": failed}), flush=True)
+    return 0
+
+
+# ------------------------------------------------------------------------------- bench
+def _phase(workers: list[Child], key: str, seconds: float) -> tuple[int, int, float]:
+    """All workers run against `key` at once; (commands answered, failed, wall seconds)."""
+    t0 = time.monotonic()
+    for w in workers:
+        w.send(f"run {key} {seconds}")
+    count = failed = 0
+    for w in workers:
+        result = json.loads(w.expect("result", timeout=seconds + 3 * GET_TIMEOUT_S + 10))
+        count += result["count"]
+        failed += result["failed"]
+    return count, failed, time.monotonic() - t0
+
+
+def run(opts: Options) -> Section:
+    seconds = opts.pick(0.5, 3.0, 8.0)
+    rounds = opts.pick(1, 3, 3)
+    section = Section("throughput", "8. Throughput")
+    rows: dict[tuple[str, int], list[tuple[int, int, float]]] = {}
+    overruns: dict[int, int] = {}
+    with contextlib.ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-tp-")))
+        daemon = stack.enter_context(bench_daemon(PERIOD_S))
+        echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
+        echo = Child(
+            python_module(
+                "bench.baselines.zenoh_echo",
+                "--listen",
+                echo_endpoint,
+                "--zenoh-config",
+                daemon.zenoh_config,
+            ),
+            tmp / "echo.log",
+        )
+        stack.callback(echo.stop)
+        echo.expect("ready")
+        workers = []
+        for i in range(4):
+            w = Child(
+                python_module(
+                    "bench.throughput",
+                    "worker",
+                    "--connect",
+                    daemon.endpoint,
+                    "--connect",
+                    echo_endpoint,
+                    "--zenoh-config",
+                    daemon.zenoh_config,
+                    "--name",
+                    f"tp{i}",
+                ),
+                tmp / f"worker-{i}.log",
+                stdin=True,
+            )
+            stack.callback(w.stop)
+            workers.append(w)
+        for w in workers:
+            w.expect("ready")
+        rider = stack.enter_context(daemon.rider(supervise=False))
+        cmd_key = f"{rider.base}/cmd/check/home"
+        for w in workers:  # warm-up: every session has met both peers
+            _phase([w], cmd_key, 0.2)
+            _phase([w], ECHO_KEY, 0.2)
+        for r in range(rounds):
+            for riders in (1, 4):
+                order = [("daemon", cmd_key), ("echo", ECHO_KEY)]
+                for target, key in order if r % 2 == 0 else order[::-1]:
+                    if target == "daemon":
+                        rider.diag(reset=True)
+                    rows.setdefault((target, riders), []).append(
+                        _phase(workers[:riders], key, seconds)
+                    )
+                    if target == "daemon":
+                        overruns[riders] = overruns.get(riders, 0) + rider.diag().overruns
+    table = Table(
+        f"Sequential `check/home` gets back to back, {rounds} × {seconds:g} s per row"
+        f" (interleaved); daemon loop at {PERIOD_S * 1e3:g} ms, simulator",
+        ["path", "Riders", "commands/s", "per Rider /s", "failed", "overruns", "vs echo"],
+    )
+    rate: dict[tuple[str, int], float] = {}
+    for (target, riders), phases in rows.items():
+        rate[(target, riders)] = sum(p[0] for p in phases) / sum(p[2] for p in phases)
+    for riders in (1, 4):
+        for target in ("daemon", "echo"):
+            phases = rows[(target, riders)]
+            r_s = rate[(target, riders)]
+            table.add(
+                "daemon: raw zenoh get" if target == "daemon" else "bare zenoh echo queryable",
+                riders,
+                f"{r_s:,.0f}",
+                f"{r_s / riders:,.0f}",
+                sum(p[1] for p in phases),
+                overruns[riders] if target == "daemon" else "",
+                f"{r_s / rate[('echo', riders)]:.2f}×",
+            )
+    section.tables.append(table)
+    section.notes.append(
+        "Each Rider is its own process and Zenoh session on the same two cores as the daemon;"
+        " the echo replies with the request and does no work, so its row is what Zenoh and the"
+        " client processes allow on this host."
+    )
+    section.targets.append(
+        Target(
+            "1 Rider, sequential",
+            "≥ 3,000 /s",
+            f"{rate[('daemon', 1)]:,.0f} /s",
+            rate[("daemon", 1)] >= 3000,
+        )
+    )
+    section.targets.append(
+        Target(
+            "4 concurrent Riders",
+            "≥ 5,000 /s",
+            f"{rate[('daemon', 4)]:,.0f} /s",
+            rate[("daemon", 4)] >= 5000,
+        )
+    )
+    total = sum(overruns.values())
+    section.targets.append(Target("overruns at 10 ms meanwhile", "0", str(total), total == 0))
+    return section
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["worker"]:
+        parser = argparse.ArgumentParser(prog="bench.throughput worker")
+        parser.add_argument("--connect", action="append", required=True)
+        parser.add_argument("--zenoh-config", type=Path, required=True)
+        parser.add_argument("--name", required=True)
+        args = parser.parse_args(argv[1:])
+        return worker(args.connect, args.zenoh_config, args.name)
+    return main_for("bench.throughput", __doc__ or "", run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
