@@ -9,9 +9,12 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
+
+import zenoh
 
 from hal.base import Hal, HalConfigError, HalError
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
@@ -22,6 +25,7 @@ from service.config import HalBackend, MachineConfig
 from service.eventlog import EVENTS_FILE, EventLog
 from service.fastdata import FastDataServer, user_registers
 from service.load import check_candidate
+from service.loop import ScanLoop
 from service.machine import Machine
 from service.params import ParamRegistry
 from service.persist import BackgroundWriter, CalibrationStore, ParamStore
@@ -92,60 +96,130 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         # when this process dies.
         log.error("event=supervisor_gone pid=%s", supervisor)
         return EXIT_FAILED
-    clock = time.monotonic
-    wall_offset = time.time() - clock()
-    raw_hal = open_hal(config, clock)
-    if raw_hal is None:
-        return EXIT_CONFIG
-    raw_hal.force_all_outputs_safe()
-    hal = GuardedHal(raw_hal)
-    writer = BackgroundWriter()
-    store = CalibrationStore(Path(config.data_dir), writer)
-    registry = ParamRegistry(config, ParamStore(Path(config.data_dir)), store.health)
-    for warning in registry.warnings:
-        log.warning("event=params_load detail=%r", warning)
-    config = registry.config  # persisted online values survive a restart
-    stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
-    events = _event_log(config)
-    machine = Machine(
-        registry.live,
-        hal,
-        now=clock(),
-        wall_offset=wall_offset,
-        store=store,
-        events=events,
-        guard=hal,
-        warnings=registry.warnings,
-    )
-    loop = machine.loop
-    runner = RealtimeRunner(loop, config.loop.period_s, stats, spin_s=config.loop.spin_s)
+    return Daemon(config, options, supervised=bool(supervisor)).run()
 
-    exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
-    exit_deadline.daemon = True
-    reason = ["runner stopped"]
 
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        log.info("event=signal signal=%s", signal.Signals(signum).name)
-        reason[0] = f"signal {signal.Signals(signum).name}"
-        runner.stop()
-        with contextlib.suppress(RuntimeError):  # armed by an earlier signal already
-            exit_deadline.start()
+class StartRefused(Exception):
+    """A setup step found the daemon cannot run; what was set up so far is undone."""
 
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    try:
-        zconf = zbus.zenoh_config(options.zenoh_config, options.listen, options.connect)
-        warn_if_exposed(zconf, log)
-        session = zbus.open_session(zconf)
-    except Exception as exc:  # noqa: BLE001 - zenoh raises plain ZError; outputs already safe
-        log.error("event=zenoh_open_failed error=%r", str(exc))
-        hal.close()
-        writer.close()
-        _close_event_log(events, f"zenoh session could not open: {exc}", EXIT_FAILED)
-        return EXIT_FAILED
-    others = zbus.holders_of(session, config.key_base)
-    if others:
-        # One machine per id: a second daemon would take the first one's commands too.
+    def __init__(self, code: int, reason: str) -> None:
+        super().__init__(reason)
+        self.code = code
+        self.reason = reason
+
+
+class Daemon:
+    """`machine run` assembled step by step on one `ExitStack`: each step registers its own
+    undo, so teardown runs in reverse setup order, and the last step pushes "outputs safe",
+    which therefore runs first on any way out."""
+
+    def __init__(
+        self, config: MachineConfig, options: DaemonOptions, *, supervised: bool = False
+    ) -> None:
+        self.config = config
+        self.options = options
+        self.supervised = supervised
+        """A supervisor answers `sim/**` for this machine (it runs the simulated world)."""
+        self.clock = time.monotonic
+        self.code = EXIT_OK
+        self.reason = "runner stopped"
+        self.served = False
+        self.session_closed = True
+        self.events: EventLog | None = None
+        self.runner: RealtimeRunner | None = None
+        self.exit_deadline: threading.Timer | None = None
+        self._stop_asked = False
+        self._stop_recorded = False
+
+    def run(self) -> int:
+        """Set up, serve until stopped, undo; the exit code (the `EXIT_*` constants)."""
+        try:
+            with contextlib.ExitStack() as stack:
+                try:
+                    self._assemble(stack)
+                except StartRefused as exc:
+                    self.code, self.reason = exc.code, exc.reason
+                    return exc.code
+                except Exception as exc:  # recorded as the stop's reason, then raised on
+                    self.code, self.reason = EXIT_FAILED, f"start failed: {exc}"
+                    raise
+                self._serve()
+        finally:
+            if self.served:
+                # One line that says the outputs were forced safe (the first undo), for logs
+                # and tests.
+                log.info(
+                    "event=stopped code=%d outputs=safe cycles=%d", self.code, self.stats.cycles
+                )
+            if self.session_closed and self.exit_deadline is not None:
+                self.exit_deadline.cancel()
+        return self.code
+
+    # ------------------------------------------------------------------------------ setup
+    def _assemble(self, stack: contextlib.ExitStack) -> None:
+        """The setup steps in order; each registers its undo as soon as it has succeeded."""
+        hal = self._open_hal(stack)
+        store, registry = self._open_storage(stack)
+        self._open_event_log(stack)
+        signal.signal(signal.SIGTERM, self._on_signal)
+        signal.signal(signal.SIGINT, self._on_signal)
+        session = self._open_session(stack)
+        self._refuse_duplicate(session)
+        self._build_machine(hal, store, registry, session)
+        _on_exit(stack, "bus", self.bus.close)
+        self.bus.start()
+        _on_exit(stack, "wind_down", self._wind_down)  # while the bus is up: last answers
+        self._start_watchdog(stack, hal)
+        if self.config.fastdata.enabled:
+            self._start_fastdata(stack, registry)
+        _on_exit(stack, "outputs_safe", self.loop.go_safe)  # pushed last, so undone first
+
+    def _open_hal(self, stack: contextlib.ExitStack) -> GuardedHal:
+        """The backend, outputs safe, behind the watchdog's latch; armed exit deadline."""
+        raw_hal = open_hal(self.config, self.clock)
+        if raw_hal is None:
+            raise StartRefused(EXIT_CONFIG, "the HAL could not open")
+        raw_hal.force_all_outputs_safe()
+        self.raw_hal = raw_hal
+        self.exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
+        self.exit_deadline.daemon = True
+        hal = GuardedHal(raw_hal)
+        _on_exit(stack, "hal", hal.close)
+        return hal
+
+    def _open_storage(self, stack: contextlib.ExitStack) -> tuple[CalibrationStore, ParamRegistry]:
+        """Calibration and online parameters in the data dir; persisted values apply now."""
+        data_dir = Path(self.config.data_dir)
+        writer = BackgroundWriter()
+        _on_exit(stack, "storage", _flush_and_close, writer)
+        store = CalibrationStore(data_dir, writer)
+        registry = ParamRegistry(self.config, ParamStore(data_dir), store.health)
+        self.config = config = registry.config  # persisted online values survive a restart
+        self.stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
+        return store, registry
+
+    def _open_event_log(self, stack: contextlib.ExitStack) -> None:
+        self.events = _event_log(self.config)
+        _on_exit(stack, "event_log", self._close_events)
+
+    def _open_session(self, stack: contextlib.ExitStack) -> zenoh.Session:
+        options = self.options
+        try:
+            zconf = zbus.zenoh_config(options.zenoh_config, options.listen, options.connect)
+            warn_if_exposed(zconf, log)
+            session = zbus.open_session(zconf)
+        except Exception as exc:  # zenoh raises plain ZError; the outputs are safe already
+            log.error("event=zenoh_open_failed error=%r", str(exc))
+            raise StartRefused(EXIT_FAILED, f"zenoh session could not open: {exc}") from exc
+        _on_exit(stack, "session", self._close_session, session)
+        return session
+
+    def _refuse_duplicate(self, session: zenoh.Session) -> None:
+        """One machine per id: a second daemon would take the first one's commands too."""
+        config = self.config
+        others = zbus.holders_of(session, config.key_base)
+        if not others:
+            return
         log.error(
             "event=duplicate_id id=%s other_session=%s action=refuse_start detail=%r",
             config.machine.id,
@@ -153,53 +227,85 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
             f"machine id {config.machine.id} is already alive on the network (session"
             f" {', '.join(others)}); stop that daemon or give this one another --id",
         )
-        zbus.close_session(session)
-        hal.close()
-        writer.close()
-        _close_event_log(events, "machine id already alive on the network", EXIT_FAILED)
-        return EXIT_FAILED
-    bus = zbus.ZenohBus(
-        session,
-        loop,
-        stats,
-        config,
-        sim=sim_port(raw_hal),
-        sim_elsewhere=bool(supervisor),
-        params=registry,
-        check_config=lambda candidate: check_candidate(registry.config, candidate),
-        events=events,
-    )
-    loop.sink = bus
+        raise StartRefused(EXIT_FAILED, "machine id already alive on the network")
 
-    def on_trip(stalled_s: float) -> None:
-        bus.publish_watchdog_trip(stalled_s)
-        if events is not None:
-            events.emit_now(WatchdogEvent(stalled_s=stalled_s))
+    def _build_machine(
+        self,
+        hal: GuardedHal,
+        store: CalibrationStore,
+        registry: ParamRegistry,
+        session: zenoh.Session,
+    ) -> None:
+        """The machine, its runner, and the bus it publishes to, each given what it uses."""
+        config, clock = self.config, self.clock
+        machine = Machine(
+            registry.live,
+            hal,
+            now=clock(),
+            wall_offset=time.time() - clock(),
+            store=store,
+            events=self.events,
+            guard=hal,
+            warnings=registry.warnings,
+            sink=lambda loop: self._make_bus(session, loop, registry),
+        )
+        self.loop = machine.loop
+        self.runner = RealtimeRunner(
+            self.loop, config.loop.period_s, self.stats, spin_s=config.loop.spin_s
+        )
+        if self._stop_asked:  # a signal during setup: serve no cycle
+            self.runner.stop()
 
-    watchdog = Watchdog(
-        lambda: runner.heartbeat,
-        hal,
-        config.loop.period_s,
-        config.loop.watchdog_periods,
-        config.loop.watchdog_min_s,
-        on_trip=on_trip,
-        beat_at=lambda: runner.beat_at,
-    )
-    fastdata: FastDataServer | None = None
-    code = EXIT_OK
-    try:
-        bus.start()
+    def _make_bus(
+        self, session: zenoh.Session, loop: ScanLoop, registry: ParamRegistry
+    ) -> zbus.ZenohBus:
+        """The loop's sink: the Zenoh adapter, which answers queries from that loop."""
+        raw_hal = self.raw_hal
+        self.bus = zbus.ZenohBus(
+            session,
+            loop,
+            self.stats,
+            self.config,
+            sim=sim_port(raw_hal),
+            sim_elsewhere=self.supervised,
+            params=registry,
+            check_config=lambda candidate: check_candidate(registry.config, candidate),
+            events=self.events,
+        )
+        return self.bus
+
+    def _start_watchdog(self, stack: contextlib.ExitStack, hal: GuardedHal) -> None:
+        loop, runner = self.config.loop, self.runner
+        assert runner is not None
+        watchdog = Watchdog(
+            lambda: runner.heartbeat,
+            hal,
+            loop.period_s,
+            loop.watchdog_periods,
+            loop.watchdog_min_s,
+            on_trip=self._on_watchdog_trip,
+            beat_at=lambda: runner.beat_at,
+        )
+        _on_exit(stack, "watchdog", watchdog.stop)
         watchdog.start()
-        if config.fastdata.enabled:
-            fastdata = FastDataServer(
-                lambda: loop.published.axes,
-                config.fastdata.host,
-                config.fastdata.port,
-                cycle=lambda: loop.cycle,
-                registers=lambda: user_registers(registry.config),
-            )
-            fastdata.start()
-            log.info("event=fastdata_started address=%s:%d", *fastdata.address)
+
+    def _start_fastdata(self, stack: contextlib.ExitStack, registry: ParamRegistry) -> None:
+        loop, fd = self.loop, self.config.fastdata
+        server = FastDataServer(
+            lambda: loop.published.axes,
+            fd.host,
+            fd.port,
+            cycle=lambda: loop.cycle,
+            registers=lambda: user_registers(registry.config),
+        )
+        _on_exit(stack, "fastdata", server.close)
+        server.start()
+        log.info("event=fastdata_started address=%s:%d", *server.address)
+
+    # ------------------------------------------------------------------------------ serve
+    def _serve(self) -> None:
+        config = self.config
+        self.served = True
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
@@ -208,40 +314,78 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
             config.loop.period_s,
             ",".join(applied) or "none",
         )
-        runner.run()
-    except LoopFailed as exc:
-        log.error("event=loop_failed error=%r", str(exc))
-        code = EXIT_FAILED
-        reason[0] = f"loop failed: {exc}"
-    finally:
-        # Outputs first: nothing below may delay them.
-        loop.go_safe()
-        watchdog.stop()
-        if fastdata is not None:
-            fastdata.close()
-        loop.reject_pending("machine daemon is shutting down")
-        loop.abort_motion(clock(), "machine daemon is shutting down")
-        if events is not None:
-            # Written and published while the bus is still up.
-            events.emit_now(DaemonStopEvent(reason=reason[0], exit_code=code))
-            events.flush(timeout=1.0)
-        bus.close()
-        closed = zbus.close_session(session)
-        if not closed:
+        assert self.runner is not None
+        try:
+            self.runner.run()
+        except LoopFailed as exc:
+            log.error("event=loop_failed error=%r", str(exc))
+            self.code = EXIT_FAILED
+            self.reason = f"loop failed: {exc}"
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        name = signal.Signals(signum).name
+        log.info("event=signal signal=%s", name)
+        self.reason = f"signal {name}"
+        self._stop_asked = True
+        if self.runner is not None:
+            self.runner.stop()
+        self._arm_exit_deadline()
+
+    def _on_watchdog_trip(self, stalled_s: float) -> None:
+        self.bus.publish_watchdog_trip(stalled_s)
+        if self.events is not None:
+            self.events.emit_now(WatchdogEvent(stalled_s=stalled_s))
+
+    # --------------------------------------------------------------------------- teardown
+    def _wind_down(self) -> None:
+        """The runner has stopped: every queued command and the motion under way get their
+        answer, and the stop is recorded, while the bus can still carry them."""
+        now = self.clock()
+        self.loop.reject_pending("machine daemon is shutting down")
+        self.loop.abort_motion(now, "machine daemon is shutting down")
+        if self.events is not None:
+            self._record_stop(self.events)
+            self.events.flush(timeout=1.0)
+
+    def _record_stop(self, events: EventLog) -> None:
+        if not self._stop_recorded:
+            self._stop_recorded = True
+            events.emit_now(DaemonStopEvent(reason=self.reason, exit_code=self.code))
+
+    def _close_events(self) -> None:
+        if self.events is not None:
+            self._record_stop(self.events)
+            self.events.close()
+
+    def _close_session(self, session: zenoh.Session) -> None:
+        self.session_closed = zbus.close_session(session)
+        if not self.session_closed:
             # An open session can hang the interpreter's exit: keep the deadline armed.
             log.warning("event=zenoh_close_timeout")
-            with contextlib.suppress(RuntimeError):
-                exit_deadline.start()
-        hal.close()
-        writer.flush()
-        writer.close()
-        if events is not None:
-            events.close()
-        # One line that says the outputs were forced safe (step 1 above), for logs and tests.
-        log.info("event=stopped code=%d outputs=safe cycles=%d", code, stats.cycles)
-        if closed:
-            exit_deadline.cancel()
-    return code
+            self._arm_exit_deadline()
+
+    def _arm_exit_deadline(self) -> None:
+        if self.exit_deadline is not None:
+            with contextlib.suppress(RuntimeError):  # armed already
+                self.exit_deadline.start()
+
+
+def _on_exit(
+    stack: contextlib.ExitStack, step: str, undo: Callable[..., object], *args: object
+) -> None:
+    """Register the undo of a setup step; a debug line names each one as it runs, so a
+    shutdown that hangs shows where."""
+
+    def run() -> None:
+        log.debug("event=undo step=%s", step)
+        undo(*args)
+
+    stack.callback(run)
+
+
+def _flush_and_close(writer: BackgroundWriter) -> None:
+    writer.flush()
+    writer.close()
 
 
 def _event_log(config: MachineConfig) -> EventLog | None:
@@ -259,12 +403,6 @@ def _event_log(config: MachineConfig) -> EventLog | None:
         )
     )
     return events
-
-
-def _close_event_log(events: EventLog | None, reason: str, code: int) -> None:
-    if events is not None:
-        events.emit_now(DaemonStopEvent(reason=reason, exit_code=code))
-        events.close()
 
 
 SHUTDOWN_DEADLINE_S = 5.0
