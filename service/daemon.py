@@ -260,13 +260,12 @@ class Daemon:
         self, session: zenoh.Session, loop: ScanLoop, registry: ParamRegistry
     ) -> zbus.ZenohBus:
         """The loop's sink: the Zenoh adapter, which answers queries from that loop."""
-        raw_hal = self.raw_hal
         self.bus = zbus.ZenohBus(
             session,
             loop,
             self.stats,
             self.config,
-            sim=sim_port(raw_hal),
+            sim=sim_port(self.raw_hal),
             sim_elsewhere=self.supervised,
             params=registry,
             check_config=lambda candidate: check_candidate(registry.config, candidate),
