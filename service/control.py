@@ -750,7 +750,7 @@ class ControlAPI:
     def motion(self) -> Controller | None:
         """The controller that owns an axis now (running, paused or held by an E-stop)."""
         ctl = self._drive.controller
-        return ctl.active() if isinstance(ctl, Chain) else ctl
+        return ctl.active() if ctl is not None else None
 
     def is_moving(self) -> bool:
         """Motion is under way or can be resumed (paused, or halted by a released E-stop)."""

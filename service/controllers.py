@@ -3,6 +3,7 @@
 They read no clock (time comes in as `now`), touch no IO beyond the devices, and never block.
 A controller ends `DONE` or `FAULT` (with a `Fault` saying why); `halt()` drops its outputs for a
 pause or an E-stop and `resume(now)` restarts its timeout windows, so paused time never counts.
+Every window is a `Timeout`; phases are enums; single-axis controllers share `AxisController`.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Sequence
 from enum import Enum, auto
+from typing import Generic, TypeVar
 
 from schema.commands import Direction, RotateStep, Session, TiltStep
 from schema.status import Fault, FaultCode, SessionProgress
@@ -31,6 +33,45 @@ class Outcome(Enum):
 
 REVERSE_DWELL_S = 0.2
 """Relay off this long before a motor reverses, so a contactor never swaps direction under load."""
+
+
+class Timeout:
+    """A window timer in the manner of revpimodio2's Cycletools timers, on the time that comes
+    in: `start(now, limit_s)`, then `elapsed(now)`; `expired(now)` once past the limit (a
+    timeout), `done(now)` once the limit is reached (a dwell or a timed stroke is over).
+    `resume(now)` starts the window again after a pause or an E-stop: paused time never counts."""
+
+    __slots__ = ("_t0", "limit_s")
+
+    def __init__(self, limit_s: float = 0.0) -> None:
+        self.limit_s = limit_s
+        self._t0: float | None = None
+
+    @property
+    def started(self) -> bool:
+        return self._t0 is not None
+
+    def start(self, now: float, limit_s: float | None = None) -> None:
+        self._t0 = now
+        if limit_s is not None:
+            self.limit_s = limit_s
+
+    def resume(self, now: float) -> None:
+        self._t0 = now
+
+    def stop(self) -> None:
+        """Not running: the next `start` arms it afresh."""
+        self._t0 = None
+
+    def elapsed(self, now: float) -> float:
+        assert self._t0 is not None, "a timer is read only once started"
+        return now - self._t0
+
+    def expired(self, now: float) -> bool:
+        return self.elapsed(now) > self.limit_s
+
+    def done(self, now: float) -> bool:
+        return self.elapsed(now) >= self.limit_s
 
 
 class Controller:
@@ -56,50 +97,117 @@ class Controller:
         """Stopped for good (Stop, Home over it): outputs off, nothing half-done kept."""
         self.halt()
 
-    def _fail(self, code: FaultCode, message: str) -> Outcome:
+    def active(self) -> Controller | None:
+        """The controller doing the work now."""
+        return self
+
+    def _fault(self, fault: Fault) -> Outcome:
         self.halt()
-        self.fault = Fault(code=code, message=message, axis=self.axis_name or None)
+        self.fault = fault
         return Outcome.FAULT
+
+    def _fail(self, code: FaultCode, message: str) -> Outcome:
+        return self._fault(Fault(code=code, message=message, axis=self.axis_name or None))
+
+    def _step(self, sub: Controller, now: float) -> Outcome:
+        """Run a sub-controller for one cycle; its fault is this controller's."""
+        outcome = sub.update(now)
+        if outcome is Outcome.FAULT:
+            self.fault = sub.fault
+        return outcome
+
+
+AxisT = TypeVar("AxisT", RotateAxis, TiltAxis)
+CfgT = TypeVar("CfgT", RotateSection, TiltSection)
+
+
+class AxisController(Controller, Generic[AxisT, CfgT]):
+    """One axis and its config section, with one `Timeout`: `halt()` stops the axis and
+    `resume(now)` starts the window under way again."""
+
+    def __init__(self, axis: AxisT, cfg: CfgT) -> None:
+        super().__init__()
+        self.axis: AxisT = axis
+        self.cfg: CfgT = cfg
+        self.timer = Timeout()
+
+    def halt(self) -> None:
+        self.axis.stop()
+
+    def resume(self, now: float) -> None:
+        self.timer.resume(now)
+
+
+class Measurement(AxisController[AxisT, CfgT]):
+    """A calibration: homing steps around a measurement. A paused homing step goes on; a
+    paused measurement is worthless, so it re-homes and measures again."""
+
+    homing: Controller | None
+    """The homing step under way; None while measuring."""
+
+    def resume(self, now: float) -> None:
+        if self.homing is not None:
+            self.homing.resume(now)
+        else:
+            self._start_over()
+
+    def _start_over(self) -> None:
+        raise NotImplementedError
 
 
 # ---------------------------------------------------------------------------------- rotate
-class RotateHome(Controller):
+class HomePhase(Enum):
+    START = auto()
+    BACKOFF = auto()
+    """On the switch: turn CCW until it opens."""
+    DWELL = auto()
+    """Relay off before reversing."""
+    SEEK = auto()
+    """Turn CW to the switch's closing edge."""
+
+
+class RotateHome(AxisController[RotateAxis, RotateSection]):
     """Back off the switch if on it (CCW), dwell, then seek its closing edge CW."""
 
     axis_name = "rotate"
     target_deg = 0.0
 
     def __init__(self, axis: RotateAxis, cfg: RotateSection) -> None:
-        super().__init__()
-        self.axis, self.cfg = axis, cfg
-        self._phase = "start"
-        self._t0 = 0.0
+        super().__init__(axis, cfg)
+        self.phase = HomePhase.START
+
+    def _enter(self, phase: HomePhase, now: float, limit_s: float) -> None:
+        self.phase = phase
+        self.timer.start(now, limit_s)
 
     def update(self, now: float) -> Outcome:
         home = self.axis.is_home()
-        if self._phase == "start":
-            self._phase, self._t0 = ("backoff" if home else "seek"), now
-        if self._phase == "backoff":
+        if self.phase is HomePhase.START:
             if home:
-                if now - self._t0 > self.cfg.backoff_timeout_s:
-                    return self._fail(
-                        FaultCode.ROTATE_HOME_TIMEOUT,
-                        f"rotate home switch did not open within {self.cfg.backoff_timeout_s:g} s"
-                        " while backing off (stuck closed or drive not moving)",
-                    )
-                self.axis.rotate_one(Direction.CCW)
+                self._enter(HomePhase.BACKOFF, now, self.cfg.backoff_timeout_s)
+            else:
+                self._enter(HomePhase.SEEK, now, self.cfg.revolution_timeout_s)
+        if self.phase is HomePhase.BACKOFF:
+            if not home:
+                self.axis.stop()
+                self._enter(HomePhase.DWELL, now, REVERSE_DWELL_S)
                 return Outcome.BUSY
-            self.axis.stop()
-            self._phase, self._t0 = "dwell", now
+            if self.timer.expired(now):
+                return self._fail(
+                    FaultCode.ROTATE_HOME_TIMEOUT,
+                    f"rotate home switch did not open within {self.cfg.backoff_timeout_s:g} s"
+                    " while backing off (stuck closed or drive not moving)",
+                )
+            self.axis.rotate_one(Direction.CCW)
             return Outcome.BUSY
-        if self._phase == "dwell":
-            if now - self._t0 < REVERSE_DWELL_S:
+        if self.phase is HomePhase.DWELL:
+            if not self.timer.done(now):
                 return Outcome.BUSY
-            self._phase, self._t0 = "seek", now
+            self._enter(HomePhase.SEEK, now, self.cfg.revolution_timeout_s)
         if home:
             self.axis.stop()
             return Outcome.DONE
-        if now - self._t0 > self.cfg.revolution_timeout_s:
+        if self.timer.expired(now):
             return self._fail(
                 FaultCode.ROTATE_HOME_TIMEOUT,
                 f"rotate home switch not seen within {self.cfg.revolution_timeout_s:g} s"
@@ -108,14 +216,8 @@ class RotateHome(Controller):
         self.axis.rotate_one(Direction.CW)
         return Outcome.BUSY
 
-    def halt(self) -> None:
-        self.axis.stop()
 
-    def resume(self, now: float) -> None:
-        self._t0 = now
-
-
-class RotateRevolutions(Controller):
+class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
     """Turn N whole revolutions: each ends on the next closing edge of the home switch."""
 
     axis_name = "rotate"
@@ -128,30 +230,30 @@ class RotateRevolutions(Controller):
         revolutions: int,
         home_arc_deg: float = 0.0,
     ) -> None:
-        super().__init__()
-        self.axis, self.cfg = axis, cfg
+        super().__init__(axis, cfg)
         self.direction = direction
         # The switch closes at 0° turning CW and at the end of its arc turning CCW.
         self.target_deg = 0.0 if direction is Direction.CW else home_arc_deg
         self.total = revolutions
         self.done = 0
         self._left: bool | None = None
-        self._t0: float | None = None
+        self.timer.limit_s = cfg.revolution_timeout_s
 
     def update(self, now: float) -> Outcome:
         home = self.axis.is_home()
-        if self._t0 is None:
-            self._t0 = now
+        if not self.timer.started:
+            self.timer.start(now)
             self._left = not home
         if not self._left:
             self._left = not home
         elif home:
             self.done += 1
-            self._left, self._t0 = False, now
+            self._left = False
+            self.timer.start(now)
             if self.done >= self.total:
                 self.axis.stop()
                 return Outcome.DONE
-        if now - self._t0 > self.cfg.revolution_timeout_s:
+        if self.timer.expired(now):
             return self._fail(
                 FaultCode.ROTATE_HOME_TIMEOUT,
                 f"rotate home switch not seen within {self.cfg.revolution_timeout_s:g} s during"
@@ -160,47 +262,37 @@ class RotateRevolutions(Controller):
         self.axis.rotate_one(self.direction)
         return Outcome.BUSY
 
-    def halt(self) -> None:
-        self.axis.stop()
 
-    def resume(self, now: float) -> None:
-        if self._t0 is not None:
-            self._t0 = now
-
-
-class RotateCalibrate(Controller):
+class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
     """Home, then time one CW revolution edge to edge, and how long the switch stays closed."""
 
     axis_name = "rotate"
     target_deg = 0.0
 
     def __init__(self, axis: RotateAxis, cfg: RotateSection) -> None:
-        super().__init__()
-        self.axis, self.cfg = axis, cfg
-        self._home = RotateHome(axis, cfg)
-        self._phase = "home"
-        self._t_start = 0.0
-        self._t_leave: float | None = None
+        super().__init__(axis, cfg)
+        self.homing: RotateHome | None = RotateHome(axis, cfg)
+        self._leave_s: float | None = None
+        """When the switch opened, seconds into the measured revolution."""
         self.result: RotateCalibration | None = None
 
     def update(self, now: float) -> Outcome:
-        if self._phase == "home":
-            outcome = self._home.update(now)
-            if outcome is Outcome.FAULT:
-                self.fault = self._home.fault
+        if self.homing is not None:
+            outcome = self._step(self.homing, now)
+            if outcome is not Outcome.DONE:
                 return outcome
-            if outcome is Outcome.DONE:
-                self._phase, self._t_start = "measure", now
-                self.axis.rotate_one(Direction.CW)
+            self.homing = None
+            self.timer.start(now, self.cfg.revolution_timeout_s)
+            self.axis.rotate_one(Direction.CW)
             return Outcome.BUSY
         home = self.axis.is_home()
-        if self._t_leave is None:
+        if self._leave_s is None:
             if not home:
-                self._t_leave = now
+                self._leave_s = self.timer.elapsed(now)
         elif home:
             self.axis.stop()
             return self._finish(now)
-        if now - self._t_start > self.cfg.revolution_timeout_s:
+        if self.timer.expired(now):
             return self._fail(
                 FaultCode.ROTATE_HOME_TIMEOUT,
                 f"rotate home switch not seen within {self.cfg.revolution_timeout_s:g} s"
@@ -210,8 +302,8 @@ class RotateCalibrate(Controller):
         return Outcome.BUSY
 
     def _finish(self, now: float) -> Outcome:
-        assert self._t_leave is not None
-        revolution_s = now - self._t_start
+        assert self._leave_s is not None
+        revolution_s = self.timer.elapsed(now)
         nominal_s = 360.0 / self.cfg.nominal_speed_dps
         tol = self.cfg.speed_tolerance
         if not nominal_s * (1 - tol) <= revolution_s <= nominal_s * (1 + tol):
@@ -220,20 +312,12 @@ class RotateCalibrate(Controller):
                 f"one revolution took {revolution_s:.3f} s; expected {nominal_s:.3f} s"
                 f" ± {tol:.0%} from rotate.nominal_speed_dps",
             )
-        arc = (self._t_leave - self._t_start) / revolution_s * 360.0
+        arc = self._leave_s / revolution_s * 360.0
         self.result = RotateCalibration(revolution_s=revolution_s, home_arc_deg=arc)
         return Outcome.DONE
 
-    def halt(self) -> None:
-        self.axis.stop()
-
-    def resume(self, now: float) -> None:
-        if self._phase == "home":
-            self._home.resume(now)
-        else:
-            # A paused measurement is worthless: re-home and measure again.
-            self._home = RotateHome(self.axis, self.cfg)
-            self._phase, self._t_leave = "home", None
+    def _start_over(self) -> None:
+        self.homing, self._leave_s = RotateHome(self.axis, self.cfg), None
 
 
 # ------------------------------------------------------------------------------------ tilt
@@ -247,13 +331,13 @@ class TiltSupervisor:
 
     def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
         self.axis, self.cfg = axis, cfg
-        self._window_t: float | None = None
+        self._window = Timeout(cfg.follow_window_s)
         self._window_raw = 0
         self._last: tuple[float, int] | None = None
         self._jumps: deque[float] = deque()
 
     def reset(self) -> None:
-        self._window_t = None
+        self._window.stop()
         self._last = None
         self._jumps.clear()
 
@@ -262,10 +346,11 @@ class TiltSupervisor:
         fault = self._check_noise(now, raw)
         if fault is not None:
             return fault
-        if self._window_t is None:
-            self._window_t, self._window_raw = now, raw
+        if not self._window.started:
+            self._window.start(now)
+            self._window_raw = raw
             return None
-        if now - self._window_t < self.cfg.follow_window_s:
+        if not self._window.done(now):
             return None
         moved = raw - self._window_raw
         cal = self.axis.calibration
@@ -277,11 +362,12 @@ class TiltSupervisor:
         if not followed:
             return Fault(
                 code=FaultCode.TILT_NOT_FOLLOWING,
-                message=f"tilt position moved {moved:+d} counts in {now - self._window_t:.2f} s"
-                f" while driven {direction}; expected at least {self.cfg.follow_min_counts}",
+                message=f"tilt position moved {moved:+d} counts in {self._window.elapsed(now):.2f}"
+                f" s while driven {direction}; expected at least {self.cfg.follow_min_counts}",
                 axis="tilt",
             )
-        self._window_t, self._window_raw = now, raw
+        self._window.start(now)
+        self._window_raw = raw
         return None
 
     def _check_noise(self, now: float, raw: int) -> Fault | None:
@@ -307,58 +393,49 @@ class TiltSupervisor:
         return None
 
 
-class TiltHome(Controller):
+class TiltHome(AxisController[TiltAxis, TiltSection]):
     """Drive down until the tilt home switch closes."""
 
     axis_name = "tilt"
     target_deg = 0.0
 
     def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
-        super().__init__()
-        self.axis, self.cfg = axis, cfg
-        self._t0: float | None = None
+        super().__init__(axis, cfg)
+        self.timer.limit_s = cfg.home_timeout_s
         self._sup = TiltSupervisor(axis, cfg)
 
     def update(self, now: float) -> Outcome:
         if self.axis.is_home():
             self.axis.stop()
             return Outcome.DONE
-        if self._t0 is None:
-            self._t0 = now
-        if now - self._t0 > self.cfg.home_timeout_s:
+        if not self.timer.started:
+            self.timer.start(now)
+        if self.timer.expired(now):
             return self._fail(
                 FaultCode.TILT_HOME_TIMEOUT,
                 f"tilt home switch not seen within {self.cfg.home_timeout_s:g} s",
             )
         fault = self._sup.check(now, TiltDirection.DOWN)
         if fault is not None:
-            self.halt()
-            self.fault = fault
-            return Outcome.FAULT
+            return self._fault(fault)
         self.axis.tilt_one(TiltDirection.DOWN)
         return Outcome.BUSY
 
-    def halt(self) -> None:
-        self.axis.stop()
-
     def resume(self, now: float) -> None:
-        self._t0 = now
+        super().resume(now)
         self._sup.reset()
 
 
-class TiltMove(Controller):
+class TiltMove(AxisController[TiltAxis, TiltSection]):
     """Drive to an absolute angle (bang-bang on the relay), then check it settled in tolerance."""
 
     axis_name = "tilt"
     MAX_CORRECTIONS = 3
 
     def __init__(self, axis: TiltAxis, cfg: TiltSection, target_deg: float) -> None:
-        super().__init__()
-        self.axis, self.cfg = axis, cfg
+        super().__init__(axis, cfg)
         self.target = self.target_deg = target_deg
         self._sup = TiltSupervisor(axis, cfg)
-        self._t0: float | None = None
-        self._timeout = 0.0
         self._dir: TiltDirection | None = None
         self._corrections = 0
 
@@ -367,13 +444,14 @@ class TiltMove(Controller):
         if pos is None:
             return self._fail(FaultCode.TILT_TIMEOUT, "tilt is not calibrated")
         err = self.target - pos
-        if self._t0 is None:
-            self._arm(now, err)
-        assert self._t0 is not None
-        if now - self._t0 > self._timeout:
+        if not self.timer.started:  # armed from the distance left
+            travel_s = abs(err) / self.cfg.nominal_speed_dps
+            self.timer.start(now, 1.5 * travel_s + self.cfg.move_timeout_margin_s)
+        if self.timer.expired(now):
             return self._fail(
                 FaultCode.TILT_TIMEOUT,
-                f"tilt did not reach {self.target:g}° within {self._timeout:.1f} s (at {pos:.1f}°)",
+                f"tilt did not reach {self.target:g}° within {self.timer.limit_s:.1f} s"
+                f" (at {pos:.1f}°)",
             )
         if self.axis.is_home() and pos > self.cfg.tolerance_deg * 3:
             return self._fail(
@@ -401,85 +479,83 @@ class TiltMove(Controller):
             return Outcome.BUSY
         fault = self._sup.check(now, self._dir)
         if fault is not None:
-            self.halt()
-            self.fault = fault
-            return Outcome.FAULT
+            return self._fault(fault)
         self.axis.tilt_one(self._dir)
         return Outcome.BUSY
 
-    def _arm(self, now: float, err: float) -> None:
-        self._t0 = now
-        travel_s = abs(err) / self.cfg.nominal_speed_dps
-        self._timeout = 1.5 * travel_s + self.cfg.move_timeout_margin_s
-
     def halt(self) -> None:
-        self.axis.stop()
+        super().halt()
         self._dir = None
 
     def resume(self, now: float) -> None:
-        self._t0 = None
+        self.timer.stop()  # re-armed from the distance left at the next update
         self._corrections = 0
         self._sup.reset()
 
 
-class TiltCalibrate(Controller):
+class TiltCalPhase(Enum):
+    HOME = auto()
+    SAMPLE_HOME = auto()
+    """Average the raw value at 0° (the offset)."""
+    STROKE = auto()
+    """Drive up for `calibration_stroke_s` at the nominal speed."""
+    SAMPLE_TOP = auto()
+    """Average the raw value at the top (with the stroke: the gain)."""
+    RETURN = auto()
+
+
+class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
     """Home (offset at 0°), a timed stroke up at the nominal speed (gain), then home again."""
 
     axis_name = "tilt"
     target_deg = 0.0
 
     def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
-        super().__init__()
-        self.axis, self.cfg = axis, cfg
-        self._phase = "home"
-        self._sub: Controller = TiltHome(axis, cfg)
+        super().__init__(axis, cfg)
+        self.phase = TiltCalPhase.HOME
+        self.homing: TiltHome | None = TiltHome(axis, cfg)
         self._samples: list[int] = []
         self._raw0 = 0.0
-        self._t_on = 0.0
-        self._t_off = 0.0
+        self._stroke_s = 0.0
         self._sup = TiltSupervisor(axis, cfg)
         self.result: TiltCalibration | None = None
         # Measure uncalibrated; a failed calibration puts the previous one back.
         self._previous, axis.calibration = axis.calibration, None
 
     def update(self, now: float) -> Outcome:
-        outcome = self._step(now)
+        outcome = self._measure(now)
         if outcome is Outcome.FAULT and self.result is None:
             self.axis.calibration = self._previous
         return outcome
 
-    def _step(self, now: float) -> Outcome:
-        if self._phase in ("home", "return"):
-            outcome = self._sub.update(now)
-            if outcome is Outcome.FAULT:
-                self.fault = self._sub.fault
+    def _measure(self, now: float) -> Outcome:
+        if self.homing is not None:  # HOME or RETURN
+            outcome = self._step(self.homing, now)
+            if outcome is not Outcome.DONE:
                 return outcome
-            if outcome is Outcome.BUSY:
-                return outcome
-            if self._phase == "return":
+            if self.phase is TiltCalPhase.RETURN:
                 return Outcome.DONE
-            self._phase, self._samples = "sample0", []
-        if self._phase == "sample0":
+            self.phase, self.homing, self._samples = TiltCalPhase.SAMPLE_HOME, None, []
+        if self.phase is TiltCalPhase.SAMPLE_HOME:
             if self._sample():
                 self._raw0 = sum(self._samples) / len(self._samples)
-                self._phase, self._t_on = "stroke", now
+                self.phase = TiltCalPhase.STROKE
+                self.timer.start(now, self.cfg.calibration_stroke_s)
                 self._sup.reset()
                 self.axis.tilt_one(TiltDirection.UP)
             return Outcome.BUSY
-        if self._phase == "stroke":
-            if now - self._t_on >= self.cfg.calibration_stroke_s:
+        if self.phase is TiltCalPhase.STROKE:
+            if self.timer.done(now):
                 self.axis.stop()
-                self._phase, self._t_off, self._samples = "sample1", now, []
+                self._stroke_s = self.timer.elapsed(now)
+                self.phase, self._samples = TiltCalPhase.SAMPLE_TOP, []
                 return Outcome.BUSY
             fault = self._sup.check(now, TiltDirection.UP)
             if fault is not None:
-                self.halt()
-                self.fault = fault
-                return Outcome.FAULT
+                return self._fault(fault)
             self.axis.tilt_one(TiltDirection.UP)
             return Outcome.BUSY
-        # sample1
-        if not self._sample():
+        if not self._sample():  # SAMPLE_TOP
             return Outcome.BUSY
         return self._compute()
 
@@ -489,7 +565,7 @@ class TiltCalibrate(Controller):
 
     def _compute(self) -> Outcome:
         raw1 = sum(self._samples) / len(self._samples)
-        stroke_deg = self.cfg.nominal_speed_dps * (self._t_off - self._t_on)
+        stroke_deg = self.cfg.nominal_speed_dps * self._stroke_s
         gain = (raw1 - self._raw0) / stroke_deg
         lo, hi = self.cfg.gain_min_counts_per_deg, self.cfg.gain_max_counts_per_deg
         if not lo <= gain <= hi:
@@ -505,23 +581,17 @@ class TiltCalibrate(Controller):
             )
         self.result = TiltCalibration(offset_counts=self._raw0, gain_counts_per_deg=gain)
         self.axis.calibration = self.result
-        self._phase, self._sub = "return", TiltHome(self.axis, self.cfg)
+        self.phase, self.homing = TiltCalPhase.RETURN, TiltHome(self.axis, self.cfg)
         return Outcome.BUSY
-
-    def halt(self) -> None:
-        self.axis.stop()
 
     def abandon(self) -> None:
         self.halt()
         if self.result is None:
             self.axis.calibration = self._previous
 
-    def resume(self, now: float) -> None:
-        if self._phase in ("home", "return"):
-            self._sub.resume(now)
-            return
+    def _start_over(self) -> None:
         # An interrupted stroke measures nothing: start over from home.
-        self._phase, self._sub = "home", TiltHome(self.axis, self.cfg)
+        self.phase, self.homing = TiltCalPhase.HOME, TiltHome(self.axis, self.cfg)
 
 
 # ------------------------------------------------------------------------------- sequences
@@ -533,19 +603,14 @@ class Chain(Controller):
         self._factories = list(steps)
         self.index = 0
         self.current: Controller | None = None
-        self.finished: list[Controller] = []
 
     def update(self, now: float) -> Outcome:
         while self.index < len(self._factories):
             if self.current is None:
                 self.current = self._factories[self.index]()
-            outcome = self.current.update(now)
-            if outcome is Outcome.FAULT:
-                self.fault = self.current.fault
+            outcome = self._step(self.current, now)
+            if outcome is not Outcome.DONE:
                 return outcome
-            if outcome is Outcome.BUSY:
-                return outcome
-            self.finished.append(self.current)
             self.current = None
             self.index += 1
         return Outcome.DONE
@@ -564,8 +629,7 @@ class Chain(Controller):
 
     def active(self) -> Controller | None:
         """The controller doing the work now (through nested chains), if any."""
-        current = self.current
-        return current.active() if isinstance(current, Chain) else current
+        return self.current.active() if self.current is not None else None
 
 
 class SessionRun(Chain):
