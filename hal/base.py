@@ -23,10 +23,6 @@ class Outputs:
 
     ro: dict[str, bool] = field(default_factory=dict)
 
-    def safe_copy(self) -> Outputs:
-        """The same channels, all off: the safe state of every output."""
-        return Outputs(ro=dict.fromkeys(self.ro, False))
-
     def any_on(self) -> bool:
         return any(self.ro.values())
 

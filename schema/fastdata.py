@@ -15,9 +15,6 @@ from typing import Any, cast
 SERVERDATA_VERSION = 1
 """The `version` field of the header this code writes."""
 
-FAST_AXIS_DATA_VERSION = 1
-"""The axis record layout this code writes (its size is the header's `sizeOfAxesStruct`)."""
-
 USER_REGISTER_LENGTH = 8
 """Version 1's `int_array` and `double_array` each hold this many user registers."""
 

@@ -23,11 +23,3 @@ class IoValue(OpenWireModel):
     channel: str
     value: bool | int
     time: float
-
-
-class IoSnapshot(OpenWireModel):
-    """All IO points at once (answer to a query on `io/**` with `?all`)."""
-
-    points: list[IoValue]
-    cycle: int
-    time: float

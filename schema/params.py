@@ -28,9 +28,3 @@ class ParamSet(WireModel):
     value: float | int | bool | str | None = None
     persist: bool = False
     reset: bool = False
-
-
-class ParamList(OpenWireModel):
-    """Every parameter at once."""
-
-    params: list[ParamValue]

@@ -74,9 +74,6 @@ class _RelayAxis:
     def is_home(self) -> bool:
         return self.home.value
 
-    def is_driven(self) -> bool:
-        return self.relay.value
-
 
 class RotateAxis(_RelayAxis):
     """Relay + direction output and a home switch that closes once per revolution."""

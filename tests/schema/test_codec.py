@@ -54,8 +54,8 @@ from schema.diag import CycleDiag, TimingStats
 from schema.errors import Error, ErrorCode
 from schema.events import EventPage
 from schema.findings import Finding, Findings, Severity
-from schema.io import IoKind, IoSnapshot, IoValue
-from schema.params import ParamList, ParamSet, ParamValue
+from schema.io import IoKind, IoValue
+from schema.params import ParamSet, ParamValue
 from schema.sim import (
     SimAxis,
     SimClear,
@@ -202,7 +202,6 @@ SAMPLES: list[BaseModel] = [
     ),
     IO,
     IoValue(name="estop", kind=IoKind.DI, channel="I_3", value=True, time=1.0),
-    IoSnapshot(points=[IO], cycle=5, time=1.0),
     TIMING,
     CycleDiag(
         period_s=0.01,
@@ -220,7 +219,6 @@ SAMPLES: list[BaseModel] = [
     ParamValue(name="machine.mode", value="fast", default="slow", persisted=True, changed_at=5.0),
     ParamSet(transaction_id="p1", value=2.5, persist=True),
     ParamSet(transaction_id="p2", reset=True),
-    ParamList(params=[PARAM]),
     Finding(category="unknown_key", severity=Severity.ERROR, path="/loop/x", message="no"),
     Findings(
         ok=False,
