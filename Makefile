@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test install browser js schema lint bench clean
+.PHONY: run test install browser js schema states lint bench clean
 
 # The locked versions (requirements/dev.txt, hashes checked), then the project itself on top.
 $(STAMP): pyproject.toml requirements/dev.txt
@@ -37,6 +37,11 @@ js:
 ## Regenerate the checked-in JSON Schema (schema/json/) from the models.
 schema: $(STAMP)
 	$(BIN)/machine schema schema/json
+
+## Regenerate the README's state table and docs/states.md from the transition table
+## (service/control.py TABLE); tests/service/test_control_doc.py fails while they differ.
+states: $(STAMP)
+	$(BIN)/python -m service.control_doc
 
 ## Install, then lint, type-check and run the whole test suite.
 test: $(STAMP) browser js

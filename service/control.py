@@ -98,7 +98,8 @@ check result for the reply."""
 @dataclass(frozen=True, slots=True)
 class Rule:
     """One row of the machine's behaviour: `trigger` in any of `sources` leads to one of
-    `targets` (none: the state stays). Command rows name their handler and reply."""
+    `targets` or leaves the state as it is (a refused command always does). Command rows
+    name their handler and reply."""
 
     trigger: Command | Event
     sources: frozenset[MachineState]
@@ -921,9 +922,18 @@ TABLE: tuple[Rule, ...] = (
     ),
     Rule(
         Command.CHECK_CALIBRATION,
-        REST_STATES,
-        _REST,
-        "not calibrated → WARNING_NEEDS_CALIBRATION; passed → the rest state",
+        frozenset({S.IDLE, S.DONE, S.WARNING_NOT_HOME}),
+        (S.WARNING_NEEDS_CALIBRATION,),
+        "not calibrated → WARNING_NEEDS_CALIBRATION",
+        _A._check_calibration,
+        ReplyCode.RESP_CHECK,
+        read_only=True,
+    ),
+    Rule(
+        Command.CHECK_CALIBRATION,
+        frozenset({S.WARNING_NEEDS_CALIBRATION}),
+        (S.IDLE, S.WARNING_NOT_HOME),
+        "passed → the rest state",
         _A._check_calibration,
         ReplyCode.RESP_CHECK,
         read_only=True,
@@ -932,25 +942,34 @@ TABLE: tuple[Rule, ...] = (
         Command.CHECK_CALIBRATION,
         _ANY - REST_STATES,
         (),
-        "answers; the state stays",
+        "outside the rest states it only answers",
         _A._check_calibration,
         ReplyCode.RESP_CHECK,
         read_only=True,
     ),
     Rule(
         Command.CHECK_HOME,
-        REST_STATES,
-        _REST,
-        "not home → WARNING_NOT_HOME (unless calibration is missing); passed → the rest state",
+        frozenset({S.IDLE, S.DONE}),
+        (S.WARNING_NOT_HOME,),
+        "not home → WARNING_NOT_HOME",
         _A._check_home,
         ReplyCode.RESP_CHECK,
         read_only=True,
     ),
     Rule(
         Command.CHECK_HOME,
-        _ANY - REST_STATES,
+        frozenset({S.WARNING_NOT_HOME}),
+        (S.IDLE, S.WARNING_NEEDS_CALIBRATION),
+        "passed → the rest state",
+        _A._check_home,
+        ReplyCode.RESP_CHECK,
+        read_only=True,
+    ),
+    Rule(
+        Command.CHECK_HOME,
+        _ANY - {S.IDLE, S.DONE, S.WARNING_NOT_HOME},
         (),
-        "answers; the state stays",
+        "elsewhere it only answers (WARNING_NEEDS_CALIBRATION, the bigger problem, stays)",
         _A._check_home,
         ReplyCode.RESP_CHECK,
         read_only=True,
