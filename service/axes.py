@@ -105,6 +105,8 @@ class AxisTracker:
         self._settling: set[str] = set()
         self.targets: dict[str, float | None] = {"rotate": None, "tilt": None}
         """Each axis' last move target (degrees), kept after the move ends or is stopped."""
+        self._still: tuple[object, ...] | None = None
+        self._steady = False
 
     @property
     def config(self) -> MachineConfig:
@@ -121,6 +123,8 @@ class AxisTracker:
         """Sample both axes; `motion` is the controller owning an axis (running or held)."""
         dt = 0.0 if self._last_t is None else now - self._last_t
         self._last_t = now
+        if self._unchanged(state, fault_axis, rotate_cal, motion):
+            return
         if state is MachineState.FAULT_HW and self._state is not MachineState.FAULT_HW:
             self.rotate.forget()  # Home is required again; until then the angle is a guess
         self._state = state
@@ -138,6 +142,39 @@ class AxisTracker:
         self.samples["tilt"] = self._tilt(dt, holding == "tilt", enabled)
         if fault_axis == "tilt":
             self.samples["tilt"].status |= DRIVE_FAULT
+
+    def _unchanged(
+        self,
+        state: MachineState,
+        fault_axis: str | None,
+        rotate_cal: RotateCalibration | None,
+        motion: Controller | None,
+    ) -> bool:
+        """At rest (no motion, no drive), with every input to the samples as in the last two
+        cycles: the samples would come out as they are. Most idle cycles stop here."""
+        rotate, tilt = self.devices.rotate, self.devices.tilt
+        driven = rotate.driven_direction() is not None or tilt.driven_direction() is not None
+        if motion is not None or driven:
+            self._still = None
+            return False
+        still = (
+            state,
+            fault_axis,
+            rotate_cal,
+            tilt.calibration,
+            rotate.is_home(),
+            tilt.read_raw(),
+            self.live.current,
+            self.targets["rotate"],
+            self.targets["tilt"],
+        )
+        if still != self._still:
+            self._still, self._steady = still, False
+            return False
+        if self._steady:
+            return True
+        self._steady = True  # this cycle's samples, from the same inputs, are the steady ones
+        return False
 
     def _rotate(
         self,

@@ -819,16 +819,16 @@ class ControlAPI:
     def status_key(self) -> tuple[object, ...]:
         """Cheap fingerprint of everything in `Status` except positions and time."""
         run = self._drive.session_run
-        home = self.homed()
+        refs, devices = self.refs, self.devices  # as `homed()`, without a model every cycle
         return (
             self.state,
             self.previous_state,
             self.fault,
-            self.devices.safety.is_estop_active(),
+            devices.safety.is_estop_active(),
             self.estop_latched,
             self.calibration,
-            home.tilt,
-            home.rotate,
+            refs.tilt and devices.tilt.is_home(),
+            refs.rotate and devices.rotate.is_home(),
             run.index if run is not None else None,
             run.revolutions_done() if run is not None else None,
             len(self.warnings),

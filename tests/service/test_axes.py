@@ -202,3 +202,30 @@ def test_an_uncalibrated_tilt_is_unknown_not_settled_at_zero() -> None:
     assert rec.pn_status & PnStatus.POSITION_UNKNOWN
     assert not rec.pn_status & PnStatus.SETTLED
     assert rec.drive_fb == float(rig.hal.world.sense().tilt_raw)  # raw counts need no calibration
+
+
+def test_samples_at_rest_still_follow_the_world() -> None:
+    """Idle cycles reuse the samples while nothing they depend on changes; a tilt moved by
+    hand at rest is seen in the very next cycle, and both axes settle again after a move."""
+    rig = Rig(calibration=known_calibration())
+    rig.home()
+    rig.step(50)  # long at rest
+    before = rig.loop.axes.samples["tilt"].position_fb
+    rig.hal.world.tilt_deg += 3.0  # pushed by hand: no relay, no command
+    rig.step()
+    moved = rig.loop.axes.samples["tilt"]
+    assert abs(moved.position_fb - (before + 3.0)) < 0.05
+    assert moved.velocity_fb > 0  # it moved between two cycles
+    rig.step(5)
+    still = rig.loop.axes.samples["tilt"]
+    assert still.position_fb == moved.position_fb and still.velocity_fb == 0.0
+    rig.hal.world.tilt_deg -= 3.0  # back on its home switch
+    rig.step(2)
+    assert abs(rig.loop.axes.samples["tilt"].position_fb - before) < 0.05
+    assert rig.send(Command.START, session=Session(steps=[TiltStep(degrees=10.0)])).success
+    rig.run_until(lambda: rig.state is not S.RUNNING)
+    rig.step(50)
+    tilt, rotate = rig.loop.axes.samples["tilt"], rig.loop.axes.samples["rotate"]
+    assert tilt.velocity_fb == 0.0 and rotate.velocity_fb == 0.0
+    assert tilt.status & PnStatus.SETTLED
+    assert tilt.position_fb == rig.loop.devices.tilt.read_position_degrees()  # as read now
