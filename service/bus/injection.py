@@ -8,6 +8,7 @@ NOT_AVAILABLE at once instead of leaving the caller to time out.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Protocol
 
 from pydantic import BaseModel
@@ -40,22 +41,16 @@ Runner = Callable[[Request, Callable[[], None]], None]
 """Runs work on the simulator's thread (the daemon's scan thread), or at once."""
 
 
+@dataclass
 class Injection:
     """The `sim/**` route: shared by the daemon's bus and the supervisor's."""
 
-    def __init__(
-        self,
-        base: str,
-        port: SimPort | None,
-        backend: str,
-        run: Runner,
-        wall: Callable[[], float],
-    ) -> None:
-        self.base = base
-        self.port = port
-        self.backend = backend
-        self.run = run
-        self.wall = wall
+    base: str
+    port: SimPort | None
+    backend: str
+    """Named by the NOT_AVAILABLE answer when there is no simulator."""
+    run: Runner
+    wall: Callable[[], float]
 
     def routes(self) -> list[Route]:
         # Injection acts on the machine: `machine/*/sim/estop` must not press every E-stop.

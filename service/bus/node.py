@@ -45,7 +45,7 @@ class ZenohBus(Publications):
         sim_elsewhere: bool = False,
     ) -> None:
         """`sim_elsewhere`: another session (the supervisor) answers `sim/**` for this machine."""
-        super().__init__(session, loop, stats, config, wall=wall, events=events)
+        super().__init__(session, loop, stats, config, wall, events)
         self.clock = clock
         """The scan loop's clock (the runner's), for commands run between cycles."""
         self.presence = Presence(session, loop, config, clock, events)

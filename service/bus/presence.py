@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
@@ -45,28 +46,23 @@ def holders_of(session: zenoh.Session, base: str, timeout: float = ID_PROBE_S) -
     return sorted(found)
 
 
+@dataclass
 class Presence:
     """Duplicates of this machine's id, and the Riders alive; `RiderBeats` for the loop."""
 
-    def __init__(
-        self,
-        session: zenoh.Session,
-        loop: ScanLoop,
-        config: MachineConfig,
-        clock: Callable[[], float],
-        events: EventLog | None = None,
-    ) -> None:
-        self.session = session
-        self.loop = loop
-        self.config = config
-        self.clock = clock
-        self.events = events
-        self.base = config.key_base
-        self.zid = str(session.zid())
-        self.others: set[str] = set()
-        """Other sessions that hold this machine's id (its `holder/<zid>` token): duplicates."""
-        self.riders_alive: set[str] = set()
-        self._beats: dict[str, float] = {}
+    session: zenoh.Session
+    loop: ScanLoop
+    config: MachineConfig
+    clock: Callable[[], float]
+    events: EventLog | None = None
+    others: set[str] = field(default_factory=set)
+    """Other sessions that hold this machine's id (its `holder/<zid>` token): duplicates."""
+    riders_alive: set[str] = field(default_factory=set)
+    _beats: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.base = self.config.key_base
+        self.zid = str(self.session.zid())
 
     def declare(self) -> list[Any]:
         """The subscribers; the caller undeclares them."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -28,27 +29,20 @@ from service.loop import ScanLoop
 from service.timing import CycleStats
 
 
+@dataclass(eq=False)
 class Publications:
     """The machine's publishers; the loop's `LoopSink`."""
 
-    def __init__(
-        self,
-        session: zenoh.Session,
-        loop: ScanLoop,
-        stats: CycleStats,
-        config: MachineConfig,
-        *,
-        wall: Callable[[], float],
-        events: EventLog | None = None,
-    ) -> None:
-        self.session = session
-        self.loop = loop
-        self.stats = stats
-        self.config = config
-        self.wall = wall
-        self.events = events
-        self.base = config.key_base
-        self.zid = str(session.zid())
+    session: zenoh.Session
+    loop: ScanLoop
+    stats: CycleStats
+    config: MachineConfig
+    wall: Callable[[], float]
+    events: EventLog | None = None
+
+    def __post_init__(self) -> None:
+        self.base = self.config.key_base
+        self.zid = str(self.session.zid())
         self._data_pubs: dict[str, zenoh.Publisher] = {}
         self._source_sn = itertools.count(1)
         self._stop = threading.Event()

@@ -5,6 +5,7 @@ machine state; a read may use wildcards."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Protocol
 
 import zenoh
@@ -60,23 +61,15 @@ def matching(request: Request, base: str, items: Iterable[tuple[str, BaseModel]]
                 put(query, key, record, request.fmt)
 
 
+@dataclass
 class Reads:
     """The daemon's read-only routes."""
 
-    def __init__(
-        self,
-        base: str,
-        loop: ScanLoop,
-        diag: Callable[[], CycleDiag],
-        *,
-        check_config: ConfigChecker | None = None,
-        events: EventLog | None = None,
-    ) -> None:
-        self.base = base
-        self.loop = loop
-        self.diag = diag
-        self.check_config = check_config
-        self.events = events
+    base: str
+    loop: ScanLoop
+    diag: Callable[[], CycleDiag]
+    check_config: ConfigChecker | None = None
+    events: EventLog | None = None
 
     def routes(self) -> list[Route]:
         b, published = self.base, self.loop.published

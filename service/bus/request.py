@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 import zenoh
@@ -53,24 +54,20 @@ def put(query: zenoh.Query, key: str | zenoh.KeyExpr, model: BaseModel, fmt: For
     query.reply(key, encode(model, fmt), encoding=ENCODINGS[fmt])
 
 
+@dataclass(slots=True, eq=False)
 class Request:
     """A query with its key, payload and reply format; answered once by `reply` or `refuse`."""
 
-    __slots__ = ("_raw", "command", "fmt", "host", "key", "payload", "query", "transaction_id")
-
-    def __init__(
-        self, query: zenoh.Query, key: str, payload: bytes, fmt: Format, host: Host
-    ) -> None:
-        self.query = query
-        self.key = key
-        self.payload = payload
-        self.fmt = fmt
-        self.host = host
-        self.command: str | None = None
-        """The command a refusal names (set once the key is known to be one)."""
-        self.transaction_id: str | None = None
-        """The id a refusal echoes; without one, whatever id the payload carries."""
-        self._raw: Any = _UNREAD
+    query: zenoh.Query
+    key: str
+    payload: bytes
+    fmt: Format
+    host: Host
+    command: str | None = None
+    """The command a refusal names (set once the key is known to be one)."""
+    transaction_id: str | None = None
+    """The id a refusal echoes; without one, whatever id the payload carries."""
+    _raw: Any = _UNREAD
 
     @property
     def wild(self) -> bool:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Protocol
 
 from schema.calibration import CalibrationRecord, CalibrationSet
@@ -48,29 +49,18 @@ def on_loop(loop: ScanLoop, request: Request, fn: Callable[[ScanLoop, float], No
         raise Busy("command queue full; retry later")
 
 
+@dataclass
 class Writes:
     """The daemon's write routes other than commands."""
 
-    def __init__(
-        self,
-        base: str,
-        loop: ScanLoop,
-        stats: CycleStats,
-        diag: Callable[[], CycleDiag],
-        machine_id: str,
-        wall: Callable[[], float],
-        *,
-        params: ParamService | None = None,
-        events: EventLog | None = None,
-    ) -> None:
-        self.base = base
-        self.loop = loop
-        self.stats = stats
-        self.diag = diag
-        self.machine_id = machine_id
-        self.wall = wall
-        self.params = params
-        self.events = events
+    base: str
+    loop: ScanLoop
+    stats: CycleStats
+    diag: Callable[[], CycleDiag]
+    machine_id: str
+    wall: Callable[[], float]
+    params: ParamService | None = None
+    events: EventLog | None = None
 
     def routes(self) -> list[Route]:
         named = Wildcard.REFUSE_NAMED
