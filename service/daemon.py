@@ -14,8 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
-import zenoh
-
 from hal.base import Hal, HalConfigError, HalError
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
 from schema.findings import Finding, Severity
@@ -202,7 +200,7 @@ class Daemon:
         self.events = _event_log(self.config)
         _on_exit(stack, "event_log", self._close_events)
 
-    def _open_session(self, stack: contextlib.ExitStack) -> zenoh.Session:
+    def _open_session(self, stack: contextlib.ExitStack) -> zbus.Session:
         options = self.options
         try:
             zconf = zbus.zenoh_config(options.zenoh_config, options.listen, options.connect)
@@ -214,7 +212,7 @@ class Daemon:
         _on_exit(stack, "session", self._close_session, session)
         return session
 
-    def _refuse_duplicate(self, session: zenoh.Session) -> None:
+    def _refuse_duplicate(self, session: zbus.Session) -> None:
         """One machine per id: a second daemon would take the first one's commands too."""
         config = self.config
         others = zbus.holders_of(session, config.key_base)
@@ -234,7 +232,7 @@ class Daemon:
         hal: GuardedHal,
         store: CalibrationStore,
         registry: ParamRegistry,
-        session: zenoh.Session,
+        session: zbus.Session,
     ) -> None:
         """The machine, its runner, and the bus it publishes to, each given what it uses."""
         config, clock = self.config, self.clock
@@ -257,7 +255,7 @@ class Daemon:
             self.runner.stop()
 
     def _make_bus(
-        self, session: zenoh.Session, loop: ScanLoop, registry: ParamRegistry
+        self, session: zbus.Session, loop: ScanLoop, registry: ParamRegistry
     ) -> zbus.ZenohBus:
         """The loop's sink: the Zenoh adapter, which answers queries from that loop."""
         self.bus = zbus.ZenohBus(
@@ -356,7 +354,7 @@ class Daemon:
             self._record_stop(self.events)
             self.events.close()
 
-    def _close_session(self, session: zenoh.Session) -> None:
+    def _close_session(self, session: zbus.Session) -> None:
         self.session_closed = zbus.close_session(session)
         if not self.session_closed:
             # An open session can hang the interpreter's exit: keep the deadline armed.

@@ -23,6 +23,7 @@ from service.bus.reads import ConfigChecker
 from service.bus.request import ENCODINGS, Request, reply_format
 from service.bus.session import (
     DEFAULT_LISTEN,
+    Session,
     close_session,
     file_config,
     open_session,
@@ -37,6 +38,7 @@ __all__ = [
     "ConfigChecker",
     "ParamService",
     "Request",
+    "Session",
     "SimPort",
     "ZenohBus",
     "close_session",

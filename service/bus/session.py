@@ -10,6 +10,9 @@ import zenoh
 
 from schema.credentials import MACHINE, zenoh_settings
 
+Session = zenoh.Session
+"""The session type, for modules outside this package (they never import `zenoh` themselves)."""
+
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 """Without --listen or a config file: this host only (beyond it, use an authenticated profile)."""
 
