@@ -16,7 +16,6 @@ from types import FrameType
 
 from hal.base import Hal, HalConfigError, HalError
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
-from schema.findings import Finding, Severity
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.config import HalBackend, MachineConfig
@@ -36,7 +35,7 @@ from service.runner import (
 )
 from service.simwing import sim_hal, sim_port
 from service.timing import CycleStats
-from service.validate import finding_line
+from service.validate import Category, finding_line, one_error
 from service.watchdog import GuardedHal, Watchdog
 
 log = logging.getLogger("machine")
@@ -72,14 +71,8 @@ def open_hal(config: MachineConfig, clock: object, source: str = "machine") -> H
     except HalConfigError as exc:
         found = exc.findings
     except (HalError, OSError) as exc:  # anything else the backend meets while it opens
-        found = [
-            Finding(
-                category="hal",
-                severity=Severity.ERROR,
-                path="/hal/backend",
-                message=f"the {config.hal.backend} backend cannot open: {exc}",
-            )
-        ]
+        message = f"the {config.hal.backend} backend cannot open: {exc}"
+        found = one_error(Category.HAL, message, "/hal/backend").findings
     for f in found:
         print(finding_line(source, f), file=sys.stderr)
     log.error("event=hal_failed backend=%s findings=%d", config.hal.backend, len(found))

@@ -14,9 +14,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from schema.findings import Finding, Findings, Severity
+from schema.findings import Finding, Findings
 from service.config import MachineConfig
-from service.validate import findings_of, read_file, semantic_findings, validate_data
+from service.validate import (
+    Category,
+    findings_of,
+    one_error,
+    read_file,
+    semantic_findings,
+    validate_data,
+)
 
 Overrides = Mapping[str, Any]
 """Config field (JSON pointer, e.g. `/loop/period_s`) → value that replaces the file's."""
@@ -66,16 +73,8 @@ def check_candidate(running: MachineConfig, candidate: bytes | None) -> Findings
         text = candidate.decode()
         data = json.loads(text) if text.lstrip().startswith("{") else tomllib.loads(text)
     except (ValueError, RecursionError) as exc:  # JSON, TOML and UTF-8 errors
-        return Findings(
-            ok=False,
-            findings=[
-                Finding(
-                    category="syntax",
-                    severity=Severity.ERROR,
-                    path="",
-                    message=f"candidate config is neither TOML nor a JSON object: {exc}",
-                )
-            ],
+        return one_error(
+            Category.SYNTAX, f"candidate config is neither TOML nor a JSON object: {exc}"
         )
     if not isinstance(data, dict):
         return validate_data(data)[1]  # one finding: "expected a table/object, got …"

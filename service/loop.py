@@ -14,7 +14,9 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, TypeVar
+
+from pydantic import BaseModel
 
 from hal.base import Hal
 from schema.axes import AxisRecord
@@ -40,6 +42,8 @@ from service.transactions import TransactionLog
 from service.watchdog import GuardedHal
 
 log = logging.getLogger("machine")
+
+W = TypeVar("W", bound=BaseModel)
 
 
 class LoopSink(Protocol):
@@ -295,10 +299,8 @@ class ScanLoop:
         if self.devices.safety.is_estop_active():
             # Same cycle the input is seen: state, controllers and outputs, before anything else.
             self.control.on_estop(now)
-            self.image.all_outputs_off()
-            self.hal.force_all_outputs_safe()
-            self._collect_completions()
-            self.recorder.observe(self.control, now)
+            self.go_safe()
+            self._observe(now)
             self.service_inbox(now)  # commands are refused with ESTOP_ACTIVE, checks answered
             self._publish(now)
             return
@@ -306,8 +308,7 @@ class ScanLoop:
         self._supervise(now)
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
-        self._collect_completions()
-        self.recorder.observe(self.control, now)
+        self._observe(now)
         self._publish(now)
 
     def _supervise(self, now: float) -> None:
@@ -397,6 +398,11 @@ class ScanLoop:
         self.recorder.command(self.control, command, request, reply, now, sender=sender)
         return reply
 
+    def _observe(self, now: float) -> None:
+        """After the control acted: its notices into the log, its changes into the history."""
+        self._collect_completions()
+        self.recorder.observe(self.control, now)
+
     def _collect_completions(self) -> None:
         """Take the control's new notices into the log; they are published after the status."""
         notices = self.control.take_completions()
@@ -428,8 +434,7 @@ class ScanLoop:
     def abort_motion(self, now: float, why: str) -> None:
         """On shutdown (the runner has stopped): a motion still under way ends `ABORTED`."""
         self.control.abort(now, why)
-        self._collect_completions()
-        self.recorder.observe(self.control, now)
+        self._observe(now)
         self._publish_completions()
 
     def go_safe(self) -> None:
@@ -541,26 +546,15 @@ class ScanLoop:
 
 def calibration_record(cal: Calibration, machine_id: str, wall: float) -> CalibrationRecord:
     """The wire record of a calibration (values, how and when each axis got them)."""
-    t, r = cal.tilt, cal.rotate
     return CalibrationRecord(
         machine_id=machine_id,
-        tilt=None
-        if t is None
-        else TiltCalibrationValues(
-            offset_counts=t.offset_counts,
-            gain_counts_per_deg=t.gain_counts_per_deg,
-            source=t.source,
-            at=t.at,
-        ),
-        rotate=None
-        if r is None
-        else RotateCalibrationValues(
-            revolution_s=r.revolution_s,
-            home_arc_deg=r.home_arc_deg,
-            speed_dps=r.speed_dps,
-            source=r.source,
-            at=r.at,
-        ),
+        tilt=_wire(TiltCalibrationValues, cal.tilt),
+        rotate=_wire(RotateCalibrationValues, cal.rotate),
         complete=cal.complete,
         time=wall,
     )
+
+
+def _wire(model: type[W], values: object | None) -> W | None:
+    """One axis' calibration as its wire model (the same field names); None stays None."""
+    return None if values is None else model.model_validate(values, from_attributes=True)

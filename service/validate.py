@@ -43,6 +43,7 @@ class Category(StrEnum):
     SESSION = "session"
     BUS = "bus"
     EVENTS = "events"
+    HAL = "hal"
 
 
 _RANGE_TYPES = {
@@ -489,17 +490,18 @@ def read_file(path: Path) -> tuple[dict[str, Any] | None, Findings]:
     try:
         return read_toml(path), findings_of([])
     except FileNotFoundError:
-        return None, _one(Category.FILE, f"{path}: no such file")
+        return None, one_error(Category.FILE, f"{path}: no such file")
     except IsADirectoryError:
-        return None, _one(Category.FILE, f"{path}: is a directory")
+        return None, one_error(Category.FILE, f"{path}: is a directory")
     except OSError as exc:
-        return None, _one(Category.FILE, f"{path}: cannot read ({exc.strerror})")
+        return None, one_error(Category.FILE, f"{path}: cannot read ({exc.strerror})")
     except ValueError as exc:  # tomllib.TOMLDecodeError, UnicodeDecodeError
-        return None, _one(Category.SYNTAX, f"{path}: not valid TOML: {exc}")
+        return None, one_error(Category.SYNTAX, f"{path}: not valid TOML: {exc}")
 
 
-def _one(category: Category, message: str) -> Findings:
-    return findings_of([_error(category, "", message)])
+def one_error(category: Category, message: str, path: str = "") -> Findings:
+    """A report of one error (a file that cannot be read, a backend that cannot open)."""
+    return findings_of([_error(category, path, message)])
 
 
 def hardware_findings(config: MachineConfig) -> list[Finding]:

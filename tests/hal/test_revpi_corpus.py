@@ -18,7 +18,7 @@ from schema.findings import Finding, Severity
 from schema.status import MachineState
 from tests.fixtures.revpi import IMAGE_BYTES, address, load, make_image, write_config
 from tests.fixtures.revpi.corpus import LAYOUTS, path, render
-from tests.hal.test_revpi import RevPiRide
+from tests.hal.test_revpi import RevPiRide, errors
 
 pytest.importorskip("revpimodio2")
 
@@ -62,10 +62,6 @@ WORKING = {
     "shared_dio": IoMap(),
 }
 """The layouts a ride can run on, with the IO map that fits each."""
-
-
-def errors(findings: list[Finding]) -> list[tuple[str, str]]:
-    return [(f.category, f.path) for f in findings if f.severity is Severity.ERROR]
 
 
 def where(layout: str, channel: str) -> tuple[int, int | None]:
@@ -208,33 +204,23 @@ def test_a_compact_runs_a_whole_session_on_bits_of_its_bytes(tmp_path: Path) -> 
 
 
 # -- tiltPosition must be a 16-bit analog word; digital IOs are bits ------------------------
+def tilt(channel: str, words: str, layout: str = "aio_left") -> tuple[str, str, str, str]:
+    """A case of `tiltPosition` mapped to `channel`, whose refusal says `words`."""
+    return (layout, "tiltPosition", channel, words)
+
+
 @pytest.mark.parametrize(
     ("layout", "field", "channel", "words"),
     [
-        (
-            "aio_left",
-            "tiltPosition",
-            "RevPiStatus",
-            "an 8-bit input byte of module 'core' (RevPi Core)",
-        ),
-        ("aio_left", "tiltPosition", "Counter_1", "a 32-bit input value of module 'dio' (DIO)"),
-        ("gateway", "tiltPosition", "Input_1", "an 8-bit input byte of module 'pn' (gateway)"),
-        ("aio_left", "tiltPosition", "Status", "a status word of module 'dio' (DIO)"),
-        (
-            "aio_left",
-            "tiltPosition",
-            "RS485ErrorCnt",
-            "a status word of module 'core' (RevPi Core)",
-        ),
-        ("connect4_ro", "tiltPosition", "Status", "a status word of module 'di' (DI)"),
-        (
-            "aio_left",
-            "tiltPosition",
-            "InputStatus_1",
-            "an 8-bit input byte of module 'aio_left' (AIO)",
-        ),
-        ("aio_left", "tiltPosition", "OutputValue_1", "a 16-bit output word"),
-        ("aio_left", "tiltPosition", "InputValue_1.0", "one bit; an analog value is a whole word"),
+        tilt("RevPiStatus", "an 8-bit input byte of module 'core' (RevPi Core)"),
+        tilt("Counter_1", "a 32-bit input value of module 'dio' (DIO)"),
+        tilt("Input_1", "an 8-bit input byte of module 'pn' (gateway)", layout="gateway"),
+        tilt("Status", "a status word of module 'dio' (DIO)"),
+        tilt("RS485ErrorCnt", "a status word of module 'core' (RevPi Core)"),
+        tilt("Status", "a status word of module 'di' (DI)", layout="connect4_ro"),
+        tilt("InputStatus_1", "an 8-bit input byte of module 'aio_left' (AIO)"),
+        tilt("OutputValue_1", "a 16-bit output word"),
+        tilt("InputValue_1.0", "one bit; an analog value is a whole word"),
         ("compact", "estop", "DIn_i01.8", "has 8 bits (0..7), so it has no bit 8"),
         ("compact", "estop", "DOut.1", "output byte"),
         ("compact", "rotateRelay", "DIn_i01.3", "input byte"),

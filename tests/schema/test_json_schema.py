@@ -16,6 +16,18 @@ from tests.procs import REPO, machine_cmd
 CHECKED_IN = REPO / "schema" / "json"
 
 
+def machine_schema(directory: Path) -> subprocess.CompletedProcess[str]:
+    """`machine schema DIRECTORY`, as a user runs it."""
+    return subprocess.run(
+        machine_cmd("schema", str(directory)),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=REPO,
+    )
+
+
 def test_checked_in_schema_matches_the_models() -> None:
     docs = documents()
     on_disk = {p.name for p in CHECKED_IN.glob("*.json")}
@@ -31,14 +43,7 @@ def test_machine_schema_writes_the_same_files(tmp_path: Path) -> None:
     (tmp_path / "json").mkdir()
     gone = {"$schema": DIALECT, "$id": "Gone.json"}
     (out / "Gone.json").write_text(json.dumps(gone))  # a model that no longer exists is removed
-    done = subprocess.run(
-        machine_cmd("schema", str(out)),
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-        cwd=REPO,
-    )
+    done = machine_schema(out)
     assert done.returncode == 0, done.stderr
     assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in CHECKED_IN.iterdir())
     for path in out.iterdir():
@@ -112,14 +117,7 @@ def test_machine_schema_into_a_directory_of_other_files_leaves_them_alone(tmp_pa
     }
     for name, text in theirs.items():
         (tmp_path / name).write_text(text)
-    done = subprocess.run(
-        machine_cmd("schema", str(tmp_path)),
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-        cwd=REPO,
-    )
+    done = machine_schema(tmp_path)
     assert done.returncode == 0, done.stderr
     for name, text in theirs.items():
         assert (tmp_path / name).read_text() == text
@@ -130,14 +128,7 @@ def test_machine_schema_where_it_cannot_write_is_a_clear_error(tmp_path: Path) -
     blocker = tmp_path / "file"
     blocker.write_text("")
     for target in (blocker, blocker / "json"):  # a file where the directory goes; below a file
-        done = subprocess.run(
-            machine_cmd("schema", str(target)),
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=False,
-            cwd=REPO,
-        )
+        done = machine_schema(target)
         assert done.returncode == 1
         assert done.stderr.startswith(f"machine: cannot write the schema to {target}: ")
         assert "Traceback" not in done.stderr

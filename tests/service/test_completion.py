@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from schema.commands import Command
 from schema.completion import Completion, Outcome
@@ -39,10 +40,28 @@ class Heard:
         assert len(found) == 1, found
         return found[0]
 
+    def refused(self, command: Command, tid: str, **payload: Any) -> Completion:
+        """Send a command its checks refuse; its one notice, after the next cycle."""
+        assert not self.rig.send(command, transaction_id=tid, **payload).success
+        self.rig.step()
+        return self.one(tid)
+
     def wait(self, tid: str, max_s: float = 120.0) -> Completion:
         self.rig.run_until(lambda: bool(self.of(tid)), max_s)
         self.rig.step(50)  # nothing more may come for it
         return self.one(tid)
+
+
+def ending(notice: Completion) -> tuple[str, str | None, MachineState]:
+    return notice.outcome, notice.code, notice.state
+
+
+def estop_pulse(rig: Rig, held: int, after: int) -> None:
+    """Press the E-stop for `held` cycles, then release it for `after` cycles."""
+    rig.hal.press_estop()
+    rig.step(held)
+    rig.hal.release_estop()
+    rig.step(after)
 
 
 def ready() -> tuple[Rig, Heard]:
@@ -85,37 +104,21 @@ def test_both_calibrations_end_done_and_the_session_ends_done_in_state_done() ->
 def test_a_start_refused_by_its_checks_sends_the_warning_then_its_notice() -> None:
     rig = Rig()  # not calibrated
     heard = Heard(rig)
-    reply = rig.send(C.START, transaction_id="s-nocal")
-    assert not reply.success
-    rig.step()
-    notice = heard.one("s-nocal")
+    notice = heard.refused(C.START, "s-nocal")
     assert (notice.outcome, notice.code) == (Outcome.REFUSED, "NOT_CALIBRATED")
     assert notice.state is S.WARNING_NEEDS_CALIBRATION
     before = heard.notices[-1][1]
     assert before is not None and before.state is S.WARNING_NEEDS_CALIBRATION
 
     rig = Rig(calibration=known_calibration())  # calibrated, not home
-    heard = Heard(rig)
-    assert not rig.send(C.START, transaction_id="s-nohome").success
-    rig.step()
-    notice = heard.one("s-nohome")
-    assert (notice.outcome, notice.code, notice.state) == (
-        Outcome.REFUSED,
-        "NOT_HOME",
-        S.WARNING_NOT_HOME,
-    )
+    notice = Heard(rig).refused(C.START, "s-nohome")
+    assert ending(notice) == (Outcome.REFUSED, "NOT_HOME", S.WARNING_NOT_HOME)
 
 
 def test_an_invalid_session_ends_fault_hw() -> None:
-    rig, heard = ready()
-    assert not rig.send(C.START, transaction_id="bad", session=BAD_SESSION.model_dump()).success
-    rig.step()
-    notice = heard.one("bad")
-    assert (notice.outcome, notice.code, notice.state) == (
-        Outcome.FAULT_HW,
-        "INVALID_SESSION",
-        S.FAULT_HW,
-    )
+    _, heard = ready()
+    notice = heard.refused(C.START, "bad", session=BAD_SESSION.model_dump())
+    assert ending(notice) == (Outcome.FAULT_HW, "INVALID_SESSION", S.FAULT_HW)
 
 
 def test_pause_and_resume_do_not_end_a_motion_and_stop_ends_it_stopped() -> None:
@@ -140,10 +143,7 @@ def test_an_estopped_motion_that_is_resumed_ends_done() -> None:
     rig, heard = ready()
     assert rig.send(C.START, transaction_id="s1").success
     rig.step(30)
-    rig.hal.press_estop()
-    rig.step(50)
-    rig.hal.release_estop()
-    rig.step(5)
+    estop_pulse(rig, held=50, after=5)
     assert heard.of("s1") == []
     assert rig.send(C.RESUME).success
     assert heard.wait("s1").outcome is Outcome.DONE
@@ -153,14 +153,11 @@ def test_home_replacing_an_estopped_session_ends_it_fault_estop() -> None:
     rig, heard = ready()
     assert rig.send(C.START, transaction_id="s1").success
     rig.step(30)
-    rig.hal.press_estop()
-    rig.step(5)
-    rig.hal.release_estop()
-    rig.step(5)
+    estop_pulse(rig, held=5, after=5)
     assert rig.send(C.HOME, transaction_id="h2").success
     rig.step()
     old = heard.one("s1")
-    assert (old.outcome, old.code, old.state) == (Outcome.FAULT_ESTOP, "ESTOP", S.FAULT_ESTOP)
+    assert ending(old) == (Outcome.FAULT_ESTOP, "ESTOP", S.FAULT_ESTOP)
     assert "replaced by Home" in old.reason
     assert heard.wait("h2").outcome is Outcome.DONE
 
@@ -169,10 +166,7 @@ def test_stop_after_an_estop_ends_the_motion_stopped() -> None:
     rig, heard = ready()
     assert rig.send(C.HOME, transaction_id="h2").success
     rig.step(10)
-    rig.hal.press_estop()
-    rig.step(5)
-    rig.hal.release_estop()
-    rig.step()
+    estop_pulse(rig, held=5, after=1)
     assert rig.send(C.STOP).success
     rig.step()
     notice = heard.one("h2")
@@ -185,11 +179,7 @@ def test_a_hardware_fault_ends_fault_hw_with_its_code() -> None:
     rig.hal.stick_home("rotate", SwitchFault.STUCK_OPEN)
     assert rig.send(C.HOME, transaction_id="h1").success
     notice = heard.wait("h1")
-    assert (notice.outcome, notice.code, notice.state) == (
-        Outcome.FAULT_HW,
-        "ROTATE_HOME_TIMEOUT",
-        S.FAULT_HW,
-    )
+    assert ending(notice) == (Outcome.FAULT_HW, "ROTATE_HOME_TIMEOUT", S.FAULT_HW)
 
 
 def test_a_repeated_transaction_id_acts_once_and_gets_one_notice() -> None:

@@ -4,11 +4,8 @@ from __future__ import annotations
 
 import os
 import random
-import selectors
-import signal
 import subprocess
 import sys
-import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
@@ -32,39 +29,10 @@ from service.persist import (
 )
 from tests.rig import Rig
 from tests.service import persist_crash_writer as writer
+from tests.service.crash import CrashServer
 
 KILLS = 200
 BOUND_S = 120.0  # a bound so a hung child fails the test instead of hanging it, not a speed check
-
-
-class Lines:
-    """Lines from a child's stdout; every read is bounded by one overall deadline."""
-
-    def __init__(self, proc: subprocess.Popen[bytes], deadline: float) -> None:
-        assert proc.stdout is not None
-        self.fd = proc.stdout.fileno()
-        self.deadline = deadline
-        self.sel = selectors.DefaultSelector()
-        self.sel.register(self.fd, selectors.EVENT_READ)
-        self.buf = b""
-
-    def next(self) -> str:
-        while b"\n" not in self.buf:
-            left = self.deadline - time.monotonic()
-            assert left > 0, "the crash writer stopped answering"
-            if self.sel.select(left):
-                chunk = os.read(self.fd, 65536)
-                assert chunk, "the crash writer exited"
-                self.buf += chunk
-        line, self.buf = self.buf.split(b"\n", 1)
-        return line.decode()
-
-    def word(self, expected: str) -> int:
-        """The number after `expected` on the next line."""
-        line = self.next()
-        word, _, number = line.partition(" ")
-        assert word == expected, f"expected {expected!r}, got {line!r}"
-        return int(number) if number else 0
 
 
 def _index(value: object, r: int, of: Callable[[int], float]) -> int:
@@ -100,45 +68,17 @@ def _check(data_dir: Path, r: int) -> tuple[int, int, int]:
 def test_sigkill_at_random_moments_never_leaves_a_torn_file(tmp_path: Path) -> None:
     seed = int.from_bytes(os.urandom(4), "big")
     rng = random.Random(seed)
-    proc = subprocess.Popen(
-        [sys.executable, writer.__file__, str(tmp_path)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-    )
-    assert proc.stdin is not None
-    lines = Lines(proc, time.monotonic() + BOUND_S)
-    pid: int | None = None
     outcomes: Counter[tuple[int, int, int]] = Counter()
     mid_write = 0
-    try:
-        lines.word("ready")
+    with CrashServer([sys.executable, writer.__file__, str(tmp_path)], "w", BOUND_S) as server:
         start = 1
         for _ in range(KILLS):
-            proc.stdin.write(f"go {start}\n".encode())
-            proc.stdin.flush()
-            pid = lines.word("pid")
             # Kill after a random number of complete rounds, at a random point of the next.
-            last = start - 1
-            for _ in range(rng.randint(1, 4)):
-                last = lines.word("w")
-            time.sleep(rng.uniform(0.0, 0.002))  # picks the kill moment; waits for nothing
-            os.kill(pid, signal.SIGKILL)
-            while (line := lines.next()) != f"reaped {pid}":
-                last = int(line.removeprefix("w "))  # rounds finished before the kill landed
-            pid = None
+            last = server.kill_round(start, rng.randint(1, 4), rng.uniform(0.0, 0.002))
             mid_write += any(p.name.endswith(".tmp") for p in tmp_path.iterdir())
             outcome = _check(tmp_path, last)
             outcomes[outcome] += 1
             start = last + max(outcome) + 1
-    finally:
-        if pid is not None:
-            os.kill(pid, signal.SIGKILL)
-        proc.stdin.close()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
     print(f"seed={seed} kills={KILLS} mid_write={mid_write} outcomes={dict(outcomes)}")
     assert sum(outcomes.values()) == KILLS
     # The kills really landed inside writes and at different points of a round.
