@@ -20,6 +20,7 @@ from service.events import EventSink
 from service.loop import PendingCommand
 from service.machine import Machine
 from service.persist import CalibrationStore
+from service.watchdog import GuardedHal
 from sim.hal import SimHal
 
 
@@ -84,8 +85,11 @@ class Rig:
         calibration: Calibration | None = None,
         clock: FakeClock | None = None,
         events: EventSink | None = None,
+        *,
+        guarded: bool = False,
     ) -> None:
-        """`calibration` powers the machine up with that calibration already stored."""
+        """`calibration` powers the machine up with that calibration already stored;
+        `guarded` puts the watchdog's latch (`self.guard`) between the loop and the HAL."""
         if data_dir is not None and calibration is not None:
             raise ValueError("give data_dir or calibration, not both")
         self.config = config or MachineConfig()
@@ -96,14 +100,16 @@ class Rig:
         self.transitions: list[Transition] = []
         self.store = CalibrationStore(data_dir, clock=self.clock) if data_dir else None
         self.memory = MemoryStore(calibration) if calibration is not None else None
+        self.guard = GuardedHal(self.hal) if guarded else None
         self.machine = Machine(
             self.config,
-            self.hal,
+            self.guard or self.hal,
             now=self.clock(),
             store=self.store or self.memory,  # type: ignore[arg-type]
             sink=self.sink,
             on_transition=self.transitions.append,
             events=events,
+            guard=self.guard,
         )
         self.loop = self.machine.loop
         self.control = self.machine.control

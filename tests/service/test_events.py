@@ -19,7 +19,6 @@ from schema.events import (
 from schema.status import MachineState
 from service.events import ListEventSink
 from service.persist import StorageHealth
-from service.watchdog import GuardedHal
 from tests.rig import Rig, known_calibration
 
 S = MachineState
@@ -34,9 +33,9 @@ def details(sink: ListEventSink, start: int = 0) -> list[KnownDetails]:
     return [d for d, _, _ in sink.events[start:]]
 
 
-def ready_rig() -> tuple[Rig, ListEventSink]:
+def ready_rig(*, guarded: bool = False) -> tuple[Rig, ListEventSink]:
     sink = ListEventSink()
-    rig = Rig(calibration=known_calibration(), events=sink)
+    rig = Rig(calibration=known_calibration(), events=sink, guarded=guarded)
     rig.home()
     return rig, sink
 
@@ -199,10 +198,9 @@ def test_a_failed_write_to_data_dir_is_recorded_once_per_problem() -> None:
 
 
 def test_a_watchdog_trip_ends_the_motion_with_a_recorded_fault() -> None:
-    rig, sink = ready_rig()
-    guard = GuardedHal(rig.hal)
-    rig.loop.hal = guard
-    rig.loop.guard = guard
+    rig, sink = ready_rig(guarded=True)
+    guard = rig.guard
+    assert guard is not None
     reply = rig.send(Command.HOME)
     rig.step(3)
     mark = len(sink.events)

@@ -38,10 +38,9 @@ def test_latched_hal_writes_only_safe_outputs() -> None:
 
 
 def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
-    rig = Rig()
-    guard = GuardedHal(rig.hal)
-    rig.loop.hal = guard
-    rig.loop.guard = guard
+    rig = Rig(guarded=True)
+    guard = rig.guard
+    assert guard is not None
     assert rig.send(Command.HOME).success
     rig.step(3)
     assert rig.relays_on()
