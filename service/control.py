@@ -1,9 +1,10 @@
 """`ControlAPI`: the machine's state machine. Pure logic: no IO, no clock, time comes in.
 
-Its behaviour is data: `TABLE` (at the end of this module) lists every `(trigger, states) →
-targets` row, for the commands (with the handler that acts and the reply it earns) and for the
-events (E-stop, a motion's end, a fault, a lost Rider). The command guard reads it, and the
-README's state table and docs/states.md are generated from it (`python -m service.control_doc`).
+Its behaviour is data (at the end of this module): `TABLE` lists every `(trigger, states) →
+targets` row, for the commands and for the events (E-stop, a motion's end, a fault, a lost
+Rider); `HANDLING` gives each command its one handler and reply. The command guard reads them,
+and the README's state table and docs/states.md are generated from them
+(`python -m service.control_doc`).
 """
 
 from __future__ import annotations
@@ -98,19 +99,24 @@ check result for the reply."""
 @dataclass(frozen=True, slots=True)
 class Rule:
     """One row of the machine's behaviour: `trigger` in any of `sources` leads to one of
-    `targets` or leaves the state as it is (a refused command always does). Command rows
-    name their handler and reply."""
+    `targets` or leaves the state as it is (a refused command always does)."""
 
     trigger: Command | Event
     sources: frozenset[MachineState]
     targets: tuple[MachineState, ...]
     does: str
     """The action in the docs' words, and how the target is chosen when there are several."""
-    action: Handler | None = None
-    reply: ReplyCode | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Handling:
+    """How a command is acted on: its handler and the reply it earns."""
+
+    action: Handler
+    reply: ReplyCode
     read_only: bool = False
     """Answered in every state, even with the E-stop active or the machine id held twice."""
-    takes_control: bool = False
+    moves: bool = False
     """Sets the machine moving: its sender becomes the controlling Rider."""
 
 
@@ -188,6 +194,27 @@ class _RiderWatch:
     heard_at: float = 0.0
     """Its last sign of life: the command itself, then each heartbeat."""
     warning: str | None = None
+
+    def gone(self, now: float, grace_s: float) -> bool:
+        """Its token went: True if the rider-loss policy applies now (no grace period)."""
+        self.connected = False
+        if grace_s > 0:
+            self.gone_at = now
+            return False
+        return True
+
+    def back(self) -> None:
+        self.connected = True
+        self.gone_at = None
+
+    def silent(self, at: float | None, now: float, timeout_s: float) -> bool:
+        """A heartbeat last arrived at `at` (None: never); True once silent past `timeout_s`.
+        A heartbeat after a loss brings it back (nothing moves by itself)."""
+        if at is not None and at > self.heard_at:
+            self.heard_at = at
+            if not self.connected:
+                self.back()
+        return self.connected and now - self.heard_at > timeout_s
 
 
 @dataclass(frozen=True, slots=True)
@@ -273,12 +300,11 @@ class ControlAPI:
     def handle(self, command: Command, request: CommandRequest, now: float) -> Reply:
         """Act on one command and say what happened; refusals change nothing but the reply."""
         stamp = now + self.wall_offset
-        rule = _COMMANDS[command]
+        handling = HANDLING[command]
         try:
-            if not rule.read_only:
+            if not handling.read_only:
                 self._guard(command)
-            assert rule.action is not None and rule.reply is not None  # every command row has
-            result = rule.action(self, request, now)
+            result = handling.action(self, request, now)
         except MachineError as exc:
             return Reply.failure(
                 exc.to_error(),
@@ -288,7 +314,7 @@ class ControlAPI:
                 state=self.state,
                 request_timecode=request.timecode,
             )
-        if rule.takes_control:  # the command itself is a sign of life
+        if handling.moves:  # the command itself is a sign of life
             self._rider = _RiderWatch(request.rider, request.rider is not None, heard_at=now)
         return Reply(
             transaction_id=request.transaction_id,
@@ -296,7 +322,7 @@ class ControlAPI:
             timecode=stamp,
             request_timecode=request.timecode,
             success=True,
-            code=rule.reply,
+            code=handling.reply,
             state=self.state,
             result=result,
         )
@@ -653,47 +679,21 @@ class ControlAPI:
                 f"calibration values cannot be entered in state {self.state} while a motion"
                 " is under way (or its calibration is being saved); Stop it first"
             )
-        if values.tilt is None and values.rotate is None:
-            raise BadRequest("give tilt values, rotate values or both", "/tilt")
-        wall = now + self.wall_offset
-        manual = CalibrationSource.MANUAL
-        tilt, rotate = self.calibration.tilt, self.calibration.rotate
-        if values.tilt is not None:
-            t = values.tilt
-            lo, hi = (
-                self.config.tilt.gain_min_counts_per_deg,
-                self.config.tilt.gain_max_counts_per_deg,
-            )
-            if not lo <= t.gain_counts_per_deg <= hi:
-                raise ParamOutOfRange(
-                    f"tilt gain {t.gain_counts_per_deg:g} counts/° is outside this machine's"
-                    f" plausible {lo:g}..{hi:g} (tilt.gain_min/max_counts_per_deg)",
-                    "/tilt/gain_counts_per_deg",
-                )
-            tilt = TiltCalibration(t.offset_counts, t.gain_counts_per_deg, manual, wall)
-        if values.rotate is not None:
-            r = values.rotate
-            nominal = 360.0 / self.config.rotate.nominal_speed_dps
-            tol = self.config.rotate.speed_tolerance
-            if not nominal * (1 - tol) <= r.revolution_s <= nominal * (1 + tol):
-                raise ParamOutOfRange(
-                    f"revolution time {r.revolution_s:g} s is outside {nominal:.3f} s ± {tol:.0%}"
-                    " (rotate.nominal_speed_dps, rotate.speed_tolerance)",
-                    "/rotate/revolution_s",
-                )
-            rotate = RotateCalibration(r.revolution_s, r.home_arc_deg, manual, wall)
-        cal = Calibration(tilt=tilt, rotate=rotate)
-        self.calibration = cal
-        self.devices.tilt.calibration = cal.tilt
+        cal = manual_calibration(values, self.config, self.calibration, now + self.wall_offset)
+        ticket = self._use(cal)
         if self.state in REST_STATES and self.state is not S.DONE:
             self._set_state(self._rest_state(), now, "calibration entered by hand")
+        return ticket
+
+    def _use(self, cal: Calibration) -> SaveTicket | None:
+        """Use `cal` from now on and persist it (the ticket of the write, if any)."""
+        self.calibration = cal
+        self.devices.tilt.calibration = cal.tilt
         return self.on_calibrated(cal) if self.on_calibrated is not None else None
 
     def _calibrated(self, cal: Calibration, now: float) -> Ending | None:
         """Use `cal` now and persist it; it has ended once the write has (None until then)."""
-        self.calibration = cal
-        self.devices.tilt.calibration = cal.tilt
-        ticket = self.on_calibrated(cal) if self.on_calibrated is not None else None
+        ticket = self._use(cal)
         if ticket is None:
             self._set_state(self._rest_state(), now, "calibration complete")
             return Ending(End.DONE, "calibration complete")
@@ -761,32 +761,24 @@ class ControlAPI:
     def rider_lost(self, now: float) -> bool:
         """The controlling Rider is gone: apply the rider-loss policy now, or after the
         configured grace period if it does not come back; True if it acted now."""
-        self._rider.connected = False
-        if self.config.rider_loss.grace_s > 0:
-            self._rider.gone_at = now
-            return False
-        return self._apply_rider_loss(now)
+        if self._rider.gone(now, self.config.rider_loss.grace_s):
+            return self._apply_rider_loss(now)
+        return False
 
     def rider_heartbeat(self, at: float | None, now: float) -> bool:
         """Deadman check, once per cycle: `at` is when the controlling Rider's heartbeat last
         arrived (None: never). Silent for `rider_loss.timeout_s` → lost; a heartbeat after a
-        loss → back. True if the Rider was judged lost now."""
-        rider = self._rider
-        if rider.id is None:
+        loss → back (a paused ride stays paused). True if the Rider was judged lost now."""
+        if self._rider.id is None:
             return False
-        if at is not None and at > rider.heard_at:
-            rider.heard_at = at
-            if not rider.connected:
-                self.rider_back()  # nothing moves by itself: a paused ride stays paused
-        if rider.connected and now - rider.heard_at > self.config.rider_loss.timeout_s:
+        if self._rider.silent(at, now, self.config.rider_loss.timeout_s):
             self.rider_lost(now)
             return True
         return False
 
     def rider_back(self) -> None:
         """The controlling Rider's token is back (within the grace period nothing happened)."""
-        self._rider.connected = True
-        self._rider.gone_at = None
+        self._rider.back()
 
     def _apply_rider_loss(self, now: float) -> bool:
         self._rider.gone_at = None
@@ -839,193 +831,178 @@ class ControlAPI:
         )
 
 
+def manual_calibration(
+    values: CalibrationSet, config: MachineConfig, current: Calibration, wall: float
+) -> Calibration:
+    """`current` with a technician's values (source manual, entered at `wall`), checked
+    against the same plausible ranges a measurement must meet."""
+    if values.tilt is None and values.rotate is None:
+        raise BadRequest("give tilt values, rotate values or both", "/tilt")
+    manual = CalibrationSource.MANUAL
+    tilt, rotate = current.tilt, current.rotate
+    if values.tilt is not None:
+        t = values.tilt
+        lo, hi = config.tilt.gain_min_counts_per_deg, config.tilt.gain_max_counts_per_deg
+        if not lo <= t.gain_counts_per_deg <= hi:
+            raise ParamOutOfRange(
+                f"tilt gain {t.gain_counts_per_deg:g} counts/° is outside this machine's"
+                f" plausible {lo:g}..{hi:g} (tilt.gain_min/max_counts_per_deg)",
+                "/tilt/gain_counts_per_deg",
+            )
+        tilt = TiltCalibration(t.offset_counts, t.gain_counts_per_deg, manual, wall)
+    if values.rotate is not None:
+        r = values.rotate
+        nominal = 360.0 / config.rotate.nominal_speed_dps
+        tol = config.rotate.speed_tolerance
+        if not nominal * (1 - tol) <= r.revolution_s <= nominal * (1 + tol):
+            raise ParamOutOfRange(
+                f"revolution time {r.revolution_s:g} s is outside {nominal:.3f} s ± {tol:.0%}"
+                " (rotate.nominal_speed_dps, rotate.speed_tolerance)",
+                "/rotate/revolution_s",
+            )
+        rotate = RotateCalibration(r.revolution_s, r.home_arc_deg, manual, wall)
+    return Calibration(tilt=tilt, rotate=rotate)
+
+
 # --------------------------------------------------------------------------------- table
 _ANY = frozenset(S)
 _REST = (S.IDLE, S.WARNING_NOT_HOME, S.WARNING_NEEDS_CALIBRATION)
 """The rest state, in the order it is chosen: IDLE when calibrated and home, else the warning."""
-_MOVING = (S.HOMING, S.CALIBRATING, S.RUNNING)
-_A = ControlAPI
+_A, _C, _R, _E = ControlAPI, Command, ReplyCode, Event
+
+HANDLING: dict[Command, Handling] = {
+    _C.CALIBRATE_TILT: Handling(_A._calibrate_tilt, _R.RESP_CALIBRATION_ACCEPTED, moves=True),
+    _C.CALIBRATE_ROTATE: Handling(_A._calibrate_rotate, _R.RESP_CALIBRATION_ACCEPTED, moves=True),
+    _C.HOME: Handling(_A._home, _R.RESP_HOME_ACCEPTED, moves=True),
+    _C.START: Handling(_A._start, _R.RESP_START_ACCEPTED, moves=True),
+    _C.PAUSE: Handling(_A._pause_command, _R.RESP_PAUSED),
+    _C.RESUME: Handling(_A._resume_command, _R.RESP_RESUMED, moves=True),
+    _C.STOP: Handling(_A._stop_command, _R.RESP_DONE),
+    _C.CHECK_CALIBRATION: Handling(_A._check_calibration, _R.RESP_CHECK, read_only=True),
+    _C.CHECK_HOME: Handling(_A._check_home, _R.RESP_CHECK, read_only=True),
+}
+"""One handler per command, with the reply it earns."""
 
 TABLE: tuple[Rule, ...] = (
-    # Commands, in the order of `Command`: accepted in `sources` (with the E-stop released),
-    # which is ALLOWED_STATES (schema/commands.py, also read by the Rider) where one row says it.
+    # Commands, in the order of `Command`: accepted in `sources` (E-stop released); where one
+    # row says it, that is ALLOWED_STATES (schema/commands.py, which the Rider reads too).
     Rule(
-        Command.CALIBRATE_TILT,
-        ALLOWED_STATES[Command.CALIBRATE_TILT],
+        _C.CALIBRATE_TILT,
+        ALLOWED_STATES[_C.CALIBRATE_TILT],
         (S.CALIBRATING,),
         "tilt home, a timed stroke up (offset and gain), home again",
-        _A._calibrate_tilt,
-        ReplyCode.RESP_CALIBRATION_ACCEPTED,
-        takes_control=True,
     ),
     Rule(
-        Command.CALIBRATE_ROTATE,
-        ALLOWED_STATES[Command.CALIBRATE_ROTATE],
+        _C.CALIBRATE_ROTATE,
+        ALLOWED_STATES[_C.CALIBRATE_ROTATE],
         (S.CALIBRATING,),
         "tilt home, rotate home, then time one revolution",
-        _A._calibrate_rotate,
-        ReplyCode.RESP_CALIBRATION_ACCEPTED,
-        takes_control=True,
     ),
+    Rule(_C.HOME, ALLOWED_STATES[_C.HOME], (S.HOMING,), "tilt home, then rotate home"),
     Rule(
-        Command.HOME,
-        ALLOWED_STATES[Command.HOME],
-        (S.HOMING,),
-        "tilt home, then rotate home",
-        _A._home,
-        ReplyCode.RESP_HOME_ACCEPTED,
-        takes_control=True,
-    ),
-    Rule(
-        Command.START,
-        ALLOWED_STATES[Command.START],
+        _C.START,
+        ALLOWED_STATES[_C.START],
         (S.RUNNING, S.WARNING_NEEDS_CALIBRATION, S.WARNING_NOT_HOME, S.FAULT_HW),
         "runs the session (default: tilt 45°, one CW revolution ×3); refused: not calibrated →"
         " WARNING_NEEDS_CALIBRATION, not home → WARNING_NOT_HOME, invalid session → FAULT_HW",
-        _A._start,
-        ReplyCode.RESP_START_ACCEPTED,
-        takes_control=True,
     ),
+    Rule(_C.PAUSE, ALLOWED_STATES[_C.PAUSE], (S.PAUSED,), "controller halted, relays off"),
     Rule(
-        Command.PAUSE,
-        ALLOWED_STATES[Command.PAUSE],
-        (S.PAUSED,),
-        "controller halted, relays off",
-        _A._pause_command,
-        ReplyCode.RESP_PAUSED,
-    ),
-    Rule(
-        Command.RESUME,
+        _C.RESUME,
         frozenset({S.PAUSED}),
-        (*_MOVING, *_REST),
+        (S.HOMING, S.CALIBRATING, S.RUNNING, *_REST),
         "back to the state before Pause (the rest state if nothing is left to run)",
-        _A._resume_command,
-        ReplyCode.RESP_RESUMED,
-        takes_control=True,
     ),
     Rule(
-        Command.RESUME,
+        _C.RESUME,
         frozenset({S.FAULT_ESTOP}),
         tuple(s for s in S if s is not S.FAULT_ESTOP),
         "back to the state before the E-stop (a motion goes on)",
-        _A._resume_command,
-        ReplyCode.RESP_RESUMED,
-        takes_control=True,
     ),
+    Rule(_C.STOP, ALLOWED_STATES[_C.STOP], (S.DONE,), "controllers stopped, session cleared"),
     Rule(
-        Command.STOP,
-        ALLOWED_STATES[Command.STOP],
-        (S.DONE,),
-        "controllers stopped, session cleared",
-        _A._stop_command,
-        ReplyCode.RESP_DONE,
-    ),
-    Rule(
-        Command.CHECK_CALIBRATION,
+        _C.CHECK_CALIBRATION,
         frozenset({S.IDLE, S.DONE, S.WARNING_NOT_HOME}),
         (S.WARNING_NEEDS_CALIBRATION,),
         "not calibrated → WARNING_NEEDS_CALIBRATION",
-        _A._check_calibration,
-        ReplyCode.RESP_CHECK,
-        read_only=True,
     ),
     Rule(
-        Command.CHECK_CALIBRATION,
+        _C.CHECK_CALIBRATION,
         frozenset({S.WARNING_NEEDS_CALIBRATION}),
         (S.IDLE, S.WARNING_NOT_HOME),
         "passed → the rest state",
-        _A._check_calibration,
-        ReplyCode.RESP_CHECK,
-        read_only=True,
     ),
     Rule(
-        Command.CHECK_CALIBRATION,
+        _C.CHECK_CALIBRATION,
         _ANY - REST_STATES,
         (),
         "outside the rest states it only answers",
-        _A._check_calibration,
-        ReplyCode.RESP_CHECK,
-        read_only=True,
     ),
     Rule(
-        Command.CHECK_HOME,
+        _C.CHECK_HOME,
         frozenset({S.IDLE, S.DONE}),
         (S.WARNING_NOT_HOME,),
         "not home → WARNING_NOT_HOME",
-        _A._check_home,
-        ReplyCode.RESP_CHECK,
-        read_only=True,
     ),
     Rule(
-        Command.CHECK_HOME,
+        _C.CHECK_HOME,
         frozenset({S.WARNING_NOT_HOME}),
         (S.IDLE, S.WARNING_NEEDS_CALIBRATION),
         "passed → the rest state",
-        _A._check_home,
-        ReplyCode.RESP_CHECK,
-        read_only=True,
     ),
     Rule(
-        Command.CHECK_HOME,
+        _C.CHECK_HOME,
         _ANY - {S.IDLE, S.DONE, S.WARNING_NOT_HOME},
         (),
         "elsewhere it only answers (WARNING_NEEDS_CALIBRATION, the bigger problem, stays)",
-        _A._check_home,
-        ReplyCode.RESP_CHECK,
-        read_only=True,
     ),
     # Events.
     Rule(
-        Event.POWER_UP,
+        _E.POWER_UP,
         frozenset(),
         (S.WARNING_NEEDS_CALIBRATION, S.WARNING_NOT_HOME),
         "outputs safe; never assumed home",
     ),
     Rule(
-        Event.ESTOP,
+        _E.ESTOP,
         _ANY - {S.FAULT_ESTOP},
         (S.FAULT_ESTOP,),
         "relays dropped in the same cycle, controller halted, latched",
     ),
+    Rule(_E.MOTION_DONE, frozenset({S.HOMING}), _REST, "both axes referenced; the rest state"),
     Rule(
-        Event.MOTION_DONE,
-        frozenset({S.HOMING}),
-        _REST,
-        "both axes referenced; the rest state",
-    ),
-    Rule(
-        Event.MOTION_DONE,
+        _E.MOTION_DONE,
         frozenset({S.CALIBRATING}),
         _REST,
         "calibration in use; the rest state once it is saved",
     ),
-    Rule(Event.MOTION_DONE, frozenset({S.RUNNING}), (S.DONE,), "session complete"),
+    Rule(_E.MOTION_DONE, frozenset({S.RUNNING}), (S.DONE,), "session complete"),
     Rule(
-        Event.SAVED,
+        _E.SAVED,
         frozenset({S.CALIBRATING}),
         _REST,
         "the calibration's write ended (its notice says whether it was saved)",
     ),
     Rule(
-        Event.MOTION_FAULT,
+        _E.MOTION_FAULT,
         MOTION_STATES,
         (S.FAULT_HW,),
         "sensor timeout, stuck switch, implausible measurement: outputs off, references lost",
     ),
     Rule(
-        Event.FAULT,
+        _E.FAULT,
         _ANY - {S.FAULT_HW},
         (S.FAULT_HW,),
         "watchdog, supervisor, loop exception, a second daemon with this id",
     ),
     Rule(
-        Event.RIDER_LOST,
+        _E.RIDER_LOST,
         MOTION_STATES,
         (S.PAUSED, S.DONE),
         "rider_loss.policy pause → PAUSED, stop → DONE (after rider_loss.grace_s)",
     ),
     Rule(
-        Event.CALIBRATION_ENTERED,
+        _E.CALIBRATION_ENTERED,
         REST_STATES - {S.DONE},
         _REST,
         "a technician's values: the rest state",
@@ -1034,13 +1011,10 @@ TABLE: tuple[Rule, ...] = (
 """The machine's behaviour, row by row: the command guard and the docs read it; the tests
 check that what the machine does stays inside it."""
 
-_COMMANDS: dict[Command, Rule] = {}
-_ACCEPTED: dict[Command, frozenset[MachineState]] = {}
-for _rule in TABLE:
-    if isinstance(_rule.trigger, Command):
-        _COMMANDS.setdefault(_rule.trigger, _rule)
-        _ACCEPTED[_rule.trigger] = _ACCEPTED.get(_rule.trigger, frozenset()) | _rule.sources
-del _rule
+_ACCEPTED: dict[Command, frozenset[MachineState]] = {
+    command: frozenset().union(*(r.sources for r in TABLE if r.trigger is command))
+    for command in Command
+}
 
 
 def edges() -> frozenset[tuple[MachineState, MachineState]]:

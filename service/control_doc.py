@@ -13,7 +13,7 @@ from pathlib import Path
 
 from schema.commands import REST_STATES, Command
 from schema.status import MachineState
-from service.control import TABLE, Event, Rule
+from service.control import HANDLING, TABLE, Event, Rule
 
 S = MachineState
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").exists())
@@ -68,13 +68,15 @@ def command_table(*, per_row: bool = False) -> str:
         "|---|---|---|---|---|",
     ]
     for rows in groups:
-        first = rows[0]
-        assert isinstance(first.trigger, Command)
-        where = states(frozenset().union(*(r.sources for r in rows)), released=not first.read_only)
+        command = rows[0].trigger
+        assert isinstance(command, Command)
+        handling = HANDLING[command]
+        sources = frozenset().union(*(r.sources for r in rows))
+        where = states(sources, released=not handling.read_only)
         targets = frozenset().union(*(r.targets for r in rows))
         to = states(targets) if targets else "unchanged"
         does = "; ".join(r.does for r in rows)
-        lines.append(f"| `{first.trigger.key}` | {where} | `{first.reply}` | {to} | {does} |")
+        lines.append(f"| `{command.key}` | {where} | `{handling.reply}` | {to} | {does} |")
     return "\n".join(lines) + "\n"
 
 
