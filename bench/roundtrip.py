@@ -58,7 +58,7 @@ def _get_one(session: zenoh.Session, key: str, payload: bytes) -> bytes:
     return replies[0].ok.payload.to_bytes()
 
 
-def run(opts: Options) -> Section:
+def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark script: setup, measure, report, in order
     count = opts.pick(300, 5000, 20000)
     warmup = opts.pick(50, 500, 1000)
     rounds = opts.pick(2, 10, 20)

@@ -477,7 +477,7 @@ def query_of(
     )
 
 
-def describe(details: Details) -> str:
+def describe(details: Details) -> str:  # noqa: C901, PLR0911, PLR0912 - one branch per event kind
     """One human line for the details of an event (the CLI's and the UI's text)."""
     d = details
     if isinstance(d, dict):

@@ -25,7 +25,7 @@ def log_transition(t: Transition) -> None:
 class Machine:
     """Everything below the bus, wired together; outputs are made safe before anything else."""
 
-    def __init__(
+    def __init__(  # noqa: PLR0913 - keyword-only wiring of the assembled core
         self,
         config: MachineConfig | LiveConfig,
         hal: Hal,

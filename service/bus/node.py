@@ -29,7 +29,7 @@ log = logging.getLogger("service.bus")
 class ZenohBus(Publications):
     """Puts one machine on Zenoh under `<key_prefix>/<id>`; implements the loop's `LoopSink`."""
 
-    def __init__(
+    def __init__(  # noqa: PLR0913 - four parts, then keyword-only options
         self,
         session: zenoh.Session,
         loop: ScanLoop,

@@ -92,7 +92,7 @@ def drive_first_run(r: Rider) -> None:
     r.sim("clear")
 
 
-def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> None:
+def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> None:  # noqa: PLR0915 - one end-to-end story across restarts
     extra = fast_args(tmp_path)
     daemon = start_daemon(tmp_path, extra=extra)
     follow = Follower(daemon)

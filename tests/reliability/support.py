@@ -136,7 +136,7 @@ def rider_as(daemon: Daemon, env: Mapping[str, str], **kwargs: object) -> Rider:
         return daemon.rider(**kwargs)
 
 
-def start_machine(
+def start_machine(  # noqa: PLR0913 - keyword-only test knobs
     tmp: Path,
     *,
     command: str = "run",

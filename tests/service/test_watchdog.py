@@ -54,7 +54,7 @@ def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
     assert not rig.relays_on()
 
 
-def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
+def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:  # noqa: PLR0915 - a real runner thread: start, stall, trip, recover
     """A real runner thread blocked inside a cycle: the watchdog trips and outputs drop."""
     config = MachineConfig().with_overrides(loop={"period_s": 0.005})
     hal = SimHal(time.monotonic, config.hal.iomap, config.hal.sim)

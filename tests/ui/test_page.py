@@ -49,7 +49,7 @@ def history_has(page: Any, predicate: str) -> bool:
     return bool(page.evaluate(f"riderUI.ui.history.some(s => {predicate})"))
 
 
-def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(
+def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(  # noqa: PLR0915 - one browser session walks the whole page
     page: Any, ui: UiServer, fast_daemon: Daemon
 ) -> None:
     open_page(page, ui)
