@@ -67,11 +67,17 @@ class Presence:
     def declare(self) -> list[Any]:
         """The subscribers; the caller undeclares them."""
         s, live = self.session, self.session.liveliness()
+        # Each callback only notes what arrived (a set, a dict, the inbox): run on Zenoh's own
+        # thread, without a Python thread each, and in arrival order.
+        rider, beat, holder = (
+            zenoh.handlers.Callback(fn, indirect=False)
+            for fn in (self._on_rider, self._on_heartbeat, self._on_holder)
+        )
         return [
-            live.declare_subscriber(rider_keys.ALIVE_KEYS, self._on_rider, history=True),
-            s.declare_subscriber(rider_keys.HEARTBEAT_KEYS, self._on_heartbeat),
+            live.declare_subscriber(rider_keys.ALIVE_KEYS, rider, history=True),
+            s.declare_subscriber(rider_keys.HEARTBEAT_KEYS, beat),
             # Before our own token: any other holder of this id is a duplicate, now or later.
-            live.declare_subscriber(f"{self.base}/holder/*", self._on_holder, history=True),
+            live.declare_subscriber(f"{self.base}/holder/*", holder, history=True),
         ]
 
     def _on_holder(self, sample: zenoh.Sample) -> None:

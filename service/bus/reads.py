@@ -74,13 +74,17 @@ class Reads:
     def routes(self) -> list[Route]:
         b, published = self.base, self.loop.published
         routes = [
-            Route("status", latest(f"{b}/status", lambda: published.status)),
-            Route("io/**", self.io),
-            Route("axis/**", self.axes),
-            Route("diag/cycle", self.cycle),
+            Route("status", latest(f"{b}/status", lambda: published.status), direct=True),
+            Route("io/**", self.io, direct=True),
+            Route("axis/**", self.axes, direct=True),
+            Route("diag/cycle", self.cycle, direct=True),
             Route("config/validate", self.validate),
-            Route("done/**", self.done),
-            Route("calibration", latest(f"{b}/calibration", lambda: published.calibration)),
+            Route("done/**", self.done, direct=True),
+            Route(
+                "calibration",
+                latest(f"{b}/calibration", lambda: published.calibration),
+                direct=True,
+            ),
         ]
         if self.events is not None:
             routes.append(Route("events", self.history))

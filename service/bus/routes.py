@@ -50,6 +50,10 @@ class Route:
     noun: str = "key"
     refusal: type[BadKey] = BadKey
     """`WildcardCommand` on `cmd/**`: that refusal is a Zenoh error reply, as documented."""
+    direct: bool = False
+    """Run the handler on Zenoh's receive thread instead of a Python thread of its own (one
+    fewer thread and hop): only for handlers that never block, i.e. replies from published
+    records. Not `cmd/**`: measured slower that way (BENCHMARKS.md, section 1)."""
 
     def refuse_wildcard(self, base: str, key: str) -> MachineError:
         """The one wildcard refusal."""
@@ -82,7 +86,10 @@ def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
 def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Route]) -> list[Any]:
     """One queryable per route on `<base>/<route.key>`; the caller undeclares them."""
 
-    def callback(route: Route) -> Callable[[zenoh.Query], None]:
-        return lambda query: dispatch(route, base, host, query)
+    def callback(route: Route) -> Callable[[zenoh.Query], None] | zenoh.handlers.Callback[Any]:
+        def fn(query: zenoh.Query) -> None:
+            dispatch(route, base, host, query)
+
+        return zenoh.handlers.Callback(fn, indirect=False) if route.direct else fn
 
     return [session.declare_queryable(f"{base}/{r.key}", callback(r)) for r in routes]
