@@ -9,7 +9,6 @@ import math
 import os
 import platform
 import re
-import selectors
 import signal
 import subprocess
 import sys
@@ -20,7 +19,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TextIO, TypeVar
 
-from tests.procs import stop_process
+from tests.procs import LineReader, stop_process
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "BENCHMARKS.md"
@@ -366,6 +365,7 @@ class Child:
                 cwd=REPO,
                 env=env,
             )
+        self._lines: LineReader | None = None
 
     def send(self, line: str) -> None:
         """One line to the child's stdin (started with `stdin=True`)."""
@@ -380,17 +380,18 @@ class Child:
     def line(self, timeout: float) -> str:
         """The next stdout line; raises TimeoutError or RuntimeError if the child died."""
         assert self.proc.stdout is not None
-        with selectors.DefaultSelector() as sel:
-            sel.register(self.proc.stdout, selectors.EVENT_READ)
-            if not sel.select(timeout):
-                raise TimeoutError(f"no output from {self.args[2:4]} in {timeout:g} s")
-        text = self.proc.stdout.readline()
-        if not text:
+        if self._lines is None:
+            self._lines = LineReader(self.proc.stdout)
+        try:
+            text = self._lines.line(timeout)
+        except TimeoutError:
+            raise TimeoutError(f"no output from {self.args[2:4]} in {timeout:g} s") from None
+        if text is None:
             self.proc.wait(STOP_TIMEOUT_S)
             raise RuntimeError(
                 f"{self.args[2:4]} exited with {self.proc.returncode}: {self.log()[-2000:]}"
             )
-        return text.rstrip("\n")
+        return text
 
     def expect(self, prefix: str, timeout: float = 20.0) -> str:
         """Skip lines until one starts with `prefix`; returns the rest of it."""

@@ -30,7 +30,7 @@ from bench.daemon import bench_daemon, calibration_file
 from service.persist import CALIBRATION_FILE
 from tests.integration.support import write_fast_config
 from tests.netns import NetnsUnavailable, NsPair, veth_pair
-from tests.procs import REPO, Daemon, free_port, start_daemon, stop_process
+from tests.procs import REPO, Daemon, LineReader, free_port, start_daemon, stop_process
 
 TIMEOUT_S = 0.5
 PERIOD_S = 0.010
@@ -92,17 +92,12 @@ class Proc:
         self.proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO
         )
+        assert self.proc.stdout is not None
+        self.lines = LineReader(self.proc.stdout)
 
     def line(self, timeout: float = 30.0) -> str:
-        import selectors
-
-        assert self.proc.stdout is not None
-        with selectors.DefaultSelector() as sel:
-            sel.register(self.proc.stdout, selectors.EVENT_READ)
-            if not sel.select(timeout):
-                raise TimeoutError("child said nothing")
-        text = self.proc.stdout.readline()
-        if not text:
+        text = self.lines.line(timeout)
+        if text is None:
             raise RuntimeError(f"child exited with {self.proc.wait(5)}")
         return text.strip()
 

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from rider.client import Rider
 
@@ -39,6 +41,37 @@ def stop_process(
             proc.kill()
             proc.wait(timeout)
     return proc.returncode
+
+
+class LineReader:
+    """A child's output line by line, every read bounded.
+
+    It reads the pipe itself: a `select()` on the pipe followed by a buffered `readline()`
+    misses a line when two came in one read (the second waits in Python's buffer while the
+    pipe looks empty), which stalled a benchmark for its whole timeout on a loaded host.
+    """
+
+    def __init__(self, stream: IO[Any]) -> None:
+        self.fd = stream.fileno()
+        self.buf = b""
+        self.eof = False
+
+    def line(self, timeout: float) -> str | None:
+        """The next line without its newline; None once the child closed its end; raises
+        TimeoutError when no whole line came within `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        while b"\n" not in self.buf:
+            if self.eof:
+                rest, self.buf = self.buf, b""
+                return rest.decode() if rest else None
+            ready, _, _ = select.select([self.fd], [], [], max(0.0, deadline - time.monotonic()))
+            if not ready:
+                raise TimeoutError(f"no whole line within {timeout:g} s (have {self.buf[-200:]!r})")
+            chunk = os.read(self.fd, 65536)
+            self.eof = not chunk
+            self.buf += chunk
+        text, self.buf = self.buf.split(b"\n", 1)
+        return text.decode()
 
 
 def free_port() -> int:

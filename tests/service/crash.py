@@ -4,12 +4,11 @@ it report progress, SIGKILL it at a random moment and say how far it got."""
 from __future__ import annotations
 
 import os
-import selectors
 import signal
 import subprocess
 import time
 
-from tests.procs import REPO
+from tests.procs import REPO, LineReader
 
 
 class Lines:
@@ -17,22 +16,15 @@ class Lines:
 
     def __init__(self, proc: subprocess.Popen[bytes], deadline: float) -> None:
         assert proc.stdout is not None
-        self.fd = proc.stdout.fileno()
+        self.reader = LineReader(proc.stdout)
         self.deadline = deadline
-        self.sel = selectors.DefaultSelector()
-        self.sel.register(self.fd, selectors.EVENT_READ)
-        self.buf = b""
 
     def next(self) -> str:
-        while b"\n" not in self.buf:
-            left = self.deadline - time.monotonic()
-            assert left > 0, "the crash writer stopped answering"
-            if self.sel.select(left):
-                chunk = os.read(self.fd, 65536)
-                assert chunk, "the crash writer exited"
-                self.buf += chunk
-        line, self.buf = self.buf.split(b"\n", 1)
-        return line.decode()
+        left = self.deadline - time.monotonic()
+        assert left > 0, "the crash writer stopped answering"
+        line = self.reader.line(left)
+        assert line is not None, "the crash writer exited"
+        return line
 
     def word(self, expected: str) -> int:
         """The number after `expected` on the next line."""
