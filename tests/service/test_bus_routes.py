@@ -1,0 +1,272 @@
+"""The bus's route table: one Request per query, the one wildcard rule, the one refusal shape.
+
+A real Zenoh session (no network: it queries its own queryables) answers through `declare`, so
+these tests pin what a caller receives, without a daemon.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import pytest
+import zenoh
+from pydantic import BaseModel
+
+from schema.codec import Format, decode
+from schema.commands import Reply
+from schema.errors import ErrorCode
+from schema.sim import SimEstop, SimWorldState
+from schema.status import MachineState
+from service.bus.commands import command_route
+from service.bus.injection import Injection
+from service.bus.request import Request
+from service.bus.routes import Route, Wildcard, declare
+from service.bus.supervisor import SupervisorBus
+from service.config import MachineConfig
+from service.errors import Busy, MachineError, UnknownCommand
+
+BASE = "machine/t1"
+WALL = 1234.5
+
+
+class Host:
+    def wall(self) -> float:
+        return WALL
+
+    def state(self) -> MachineState | None:
+        return MachineState.IDLE
+
+
+@pytest.fixture(scope="module")
+def session() -> Iterator[zenoh.Session]:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    s = zenoh.open(conf)
+    yield s
+    s.close()
+
+
+@dataclass
+class Answer:
+    ok: bool
+    key: str
+    data: bytes
+
+    def reply(self) -> Reply:
+        return decode(Reply, self.data, Format.JSON)
+
+
+def ask(session: zenoh.Session, key: str, payload: bytes | None = None) -> list[Answer]:
+    answers = []
+    selector = f"{key}?format=json"
+    for r in session.get(selector, payload=payload, timeout=2.0):
+        sample = r.ok if r.ok is not None else r.err
+        assert sample is not None
+        key_of = str(r.ok.key_expr) if r.ok is not None else ""
+        answers.append(Answer(r.ok is not None, key_of, sample.payload.to_bytes()))
+    return answers
+
+
+class Echo(BaseModel):
+    key: str
+
+
+@dataclass
+class Calls:
+    seen: list[str] = field(default_factory=list)
+
+    def ok(self, request: Request) -> None:
+        self.seen.append(request.key)
+        request.reply(Echo(key=request.key))
+
+    def busy(self, request: Request) -> None:
+        self.seen.append(request.key)
+        raise Busy("queue full")
+
+
+@pytest.fixture
+def routes(session: zenoh.Session) -> Iterator[Calls]:
+    calls = Calls()
+    table = [
+        Route("read/**", calls.ok),
+        Route("act/**", calls.ok, Wildcard.REFUSE, what="an act", example="act/x"),
+        Route("busy", calls.busy, Wildcard.REFUSE, sniff=True, what="busy", example="busy"),
+        Route("params/**", calls.ok, Wildcard.REFUSE_WRITES, what="a write", example="params/x"),
+        command_route(calls.ok),
+    ]
+    entities = declare(session, BASE, Host(), table)
+    yield calls
+    for entity in entities:
+        entity.undeclare()
+
+
+def test_a_raised_machine_error_is_one_reply_in_the_refusal_shape(
+    session: zenoh.Session, routes: Calls
+) -> None:
+    (answer,) = ask(session, f"{BASE}/busy", b'{"transaction_id": "t-1"}')
+    assert answer.ok and answer.key == f"{BASE}/busy"
+    reply = answer.reply()
+    assert not reply.success and reply.error is not None
+    assert (reply.error.code, reply.error.message) == (ErrorCode.BUSY, "queue full")
+    assert (reply.transaction_id, reply.state, reply.timecode) == ("t-1", MachineState.IDLE, WALL)
+    assert reply.error_message == "queue full"
+
+
+def test_a_wildcard_on_a_key_that_acts_is_refused_before_its_handler(
+    session: zenoh.Session, routes: Calls
+) -> None:
+    (answer,) = ask(session, f"{BASE}/act/*", b'{"transaction_id": "t-2"}')
+    reply = answer.reply()
+    assert answer.ok and reply.error is not None and reply.error.code is ErrorCode.BAD_KEY
+    assert reply.error.message == (
+        f"wildcards are not allowed in an act: '{BASE}/act/*'; name one key of one machine,"
+        f" e.g. {BASE}/act/x"
+    )
+    assert reply.transaction_id == "t-2"
+    assert routes.seen == []
+    assert [a.key for a in ask(session, f"{BASE}/act/x")] == [f"{BASE}/act/x"]
+
+
+def test_a_wildcard_command_is_refused_as_a_zenoh_error_reply(
+    session: zenoh.Session, routes: Calls
+) -> None:
+    (answer,) = ask(session, f"{BASE}/cmd/*", b'{"transaction_id": "t-3"}')
+    assert not answer.ok  # the documented shape (docs/zenoh-cli.md)
+    reply = answer.reply()
+    assert reply.error is not None and reply.error.code is ErrorCode.BAD_KEY
+    assert f"a command key: '{BASE}/cmd/*'; name one command of one machine" in reply.error.message
+    assert reply.transaction_id == "t-3" and routes.seen == []
+
+
+def test_a_named_wildcard_is_refused_and_a_broad_read_gets_nothing(
+    session: zenoh.Session,
+) -> None:
+    calls = Calls()
+    base = "machine/t3"
+    route = Route("diag/reset", calls.ok, Wildcard.REFUSE_NAMED, what="a reset", example="x")
+    (entity,) = declare(session, base, Host(), [route])
+    try:
+        (refused,) = ask(session, "machine/*/diag/reset")
+        error = refused.reply().error
+        assert refused.ok and error is not None and error.code is ErrorCode.BAD_KEY
+        assert ask(session, f"{base}/diag/**") == []  # covers the key, does not name it
+        assert calls.seen == []
+        assert [a.key for a in ask(session, f"{base}/diag/reset")] == [f"{base}/diag/reset"]
+    finally:
+        entity.undeclare()
+
+
+def test_a_wildcard_read_is_answered_and_a_wildcard_write_refused(
+    session: zenoh.Session, routes: Calls
+) -> None:
+    (read,) = ask(session, f"{BASE}/params/**")
+    assert read.ok and json.loads(read.data) == {"key": f"{BASE}/params/**"}
+    (write,) = ask(session, f"{BASE}/params/*", b'{"transaction_id": "w", "value": 1}')
+    assert write.reply().error is not None
+    assert write.reply().error.code is ErrorCode.BAD_KEY  # type: ignore[union-attr]
+    assert routes.seen == [f"{BASE}/params/**"]
+
+
+def test_an_unreadable_payload_names_its_problem(session: zenoh.Session) -> None:
+    def decodes(request: Request) -> None:
+        request.decode(SimEstop)
+        raise UnknownCommand("not reached")
+
+    (entity,) = declare(session, BASE, Host(), [Route("decode", decodes, sniff=True)])
+    try:
+        (answer,) = ask(session, f"{BASE}/decode", b'{"pressed": "maybe"}')
+    finally:
+        entity.undeclare()
+    reply = answer.reply()
+    assert reply.error is not None and reply.error.code is ErrorCode.BAD_PAYLOAD
+    assert reply.error.path == "/pressed"
+
+
+@dataclass
+class FakeWorld:
+    """A `SimPort` that records what it was asked to inject."""
+
+    applied: list[BaseModel] = field(default_factory=list)
+
+    def decode(self, what: str, payload: bytes, encoding: str | None) -> BaseModel:
+        if what != "estop":
+            raise UnknownCommand(f"unknown sim key {what!r}")
+        return SimEstop.model_validate_json(payload or b"{}")
+
+    def apply(self, request: BaseModel) -> None:
+        self.applied.append(request)
+
+    def world(self, stamp: float) -> SimWorldState:
+        pressed = bool(self.applied) and getattr(self.applied[-1], "pressed", False)
+        return SimWorldState(
+            time=stamp,
+            tilt_deg=0.0,
+            rotate_deg=0.0,
+            revolutions=0.0,
+            estop_pressed=pressed,
+            relays={},
+            faults={},
+        )
+
+
+def test_the_sim_route_injects_reads_and_refuses_without_a_simulator(
+    session: zenoh.Session,
+) -> None:
+    world = FakeWorld()
+    ran: list[str] = []
+
+    def run(request: Request, fn: object) -> None:
+        ran.append(request.key)
+        fn()  # type: ignore[operator]
+
+    with_sim = Injection(BASE, world, "sim", run, lambda: WALL)
+    without = Injection("machine/t2", None, "revpi", run, lambda: WALL)
+    entities = declare(session, BASE, Host(), with_sim.routes())
+    entities += declare(session, "machine/t2", Host(), without.routes())
+    try:
+        (pressed,) = ask(session, f"{BASE}/sim/estop", b'{"pressed": true}')
+        assert decode(SimWorldState, pressed.data, Format.JSON).estop_pressed
+        assert ran == [f"{BASE}/sim/estop"]  # the fault went through the runner
+        (state,) = ask(session, f"{BASE}/sim/world")
+        assert decode(SimWorldState, state.data, Format.JSON).time == WALL
+        (unknown,) = ask(session, f"{BASE}/sim/fly")
+        assert unknown.reply().error.code is ErrorCode.UNKNOWN_COMMAND  # type: ignore[union-attr]
+        (none,) = ask(session, "machine/t2/sim/estop", b'{"pressed": true}')
+        error = none.reply().error
+        assert error is not None and error.code is ErrorCode.NOT_AVAILABLE
+        assert "runs the revpi HAL, not the simulator" in error.message
+    finally:
+        for entity in entities:
+            entity.undeclare()
+    assert len(world.applied) == 1
+
+
+def test_the_supervisor_refuses_a_wildcard_injection(session: zenoh.Session) -> None:
+    world = FakeWorld()
+    config = MachineConfig.model_validate({"machine": {"id": "sup1"}})
+    bus = SupervisorBus(session, config, world=world, on_presence=lambda up: None)
+    bus.start()
+    try:
+        answers = ask(session, "machine/*/sim/estop", b'{"pressed": true}')
+        assert answers and all(not a.reply().success for a in answers)
+        assert {a.reply().error.code for a in answers} == {ErrorCode.BAD_KEY}  # type: ignore[union-attr]
+        (pressed,) = ask(session, "machine/sup1/sim/estop", b'{"pressed": true}')
+        assert decode(SimWorldState, pressed.data, Format.JSON).estop_pressed
+    finally:
+        bus.close()
+    assert len(world.applied) == 1  # the wildcard pressed nothing
+
+
+def test_every_refusal_is_a_machine_error_with_a_wire_code() -> None:
+    from service import errors
+
+    classes = [
+        c
+        for c in vars(errors).values()
+        if isinstance(c, type) and issubclass(c, MachineError) and c is not MachineError
+    ]
+    assert classes and all(isinstance(c.code, ErrorCode) for c in classes)
