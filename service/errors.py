@@ -108,6 +108,12 @@ class ParamOutOfRange(MachineError):
     code = ErrorCode.PARAM_OUT_OF_RANGE
 
 
+class ParamWrongType(MachineError):
+    """A parameter write whose value has the wrong type (or is missing)."""
+
+    code = ErrorCode.BAD_PAYLOAD
+
+
 class ParamLocked(MachineError):
     code = ErrorCode.PARAM_LOCKED
 

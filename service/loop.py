@@ -27,7 +27,7 @@ from schema.calibration import (
 )
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
-from schema.errors import Error, ErrorCode
+from schema.errors import Error
 from schema.events import RiderEvent
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, Status
@@ -36,6 +36,7 @@ from service.completions import CompletionLog
 from service.config import MachineConfig
 from service.control import ControlAPI
 from service.devices import Calibration, Devices
+from service.errors import Busy, NotAvailable
 from service.events import EventRecorder, NullEventSink
 from service.io import AI, IoPoints, ProcessImage
 from service.transactions import TransactionLog
@@ -357,7 +358,7 @@ class ScanLoop:
         """
         if not self.lock.acquire(timeout=timeout):
             return Reply.failure(
-                Error(code=ErrorCode.BUSY, message="scan loop not responding; retry later"),
+                Busy("scan loop not responding; retry later").to_error(),
                 transaction_id=request.transaction_id,
                 command=command.value,
                 timecode=clock() + self.wall_offset,
@@ -541,7 +542,7 @@ class ScanLoop:
     def reject_pending(self, why: str) -> None:
         """On shutdown: every queued command still gets its one reply."""
         for task in self.inbox.close():
-            task.reject(Error(code=ErrorCode.NOT_AVAILABLE, message=why))
+            task.reject(NotAvailable(why).to_error())
 
 
 def calibration_record(cal: Calibration, machine_id: str, wall: float) -> CalibrationRecord:

@@ -13,22 +13,21 @@ from typing import Any
 import annotated_types as at
 from pydantic import BaseModel, ValidationError
 
-from schema.errors import ErrorCode
 from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
 from schema.findings import Severity
 from schema.params import ParamSet, ParamValue
 from service.config import LiveConfig, MachineConfig
-from service.errors import MachineError, ParamLocked, ParamOutOfRange, StorageFailed, UnknownParam
+from service.errors import (
+    ParamLocked,
+    ParamOutOfRange,
+    ParamWrongType,
+    StorageFailed,
+    UnknownParam,
+)
 from service.persist import ParamScalar, ParamStore, StorageHealth, StoredParam
 from service.validate import semantic_findings
 
 log = logging.getLogger(__name__)
-
-
-class ParamWrongType(MachineError):
-    """A parameter write whose value has the wrong type (or is missing)."""
-
-    code = ErrorCode.BAD_PAYLOAD
 
 
 # (name, unit, locked while moving, description). Type, bounds and default come from the

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections import OrderedDict
 
 from schema.commands import Reply
-from schema.errors import Error, ErrorCode
+from service.errors import DuplicateTransaction
 
 
 class TransactionLog:
@@ -26,11 +26,10 @@ class TransactionLog:
         if first_command == command:
             return reply
         return Reply.failure(
-            Error(
-                code=ErrorCode.DUPLICATE_TRANSACTION,
-                message=f"transaction_id {transaction_id!r} was already used for {first_command}",
+            DuplicateTransaction(
+                f"transaction_id {transaction_id!r} was already used for {first_command}",
                 path="/transaction_id",
-            ),
+            ).to_error(),
             transaction_id=transaction_id,
             command=command,
             timecode=timecode,
