@@ -119,12 +119,11 @@ class Request:
             timecode=self.host.wall(),
             state=self.host.state(),
         )
-        query = self.query
-        with query:
-            if error.error_reply:
-                query.reply_err(encode(reply, self.fmt), encoding=ENCODINGS[self.fmt])
-            else:
-                query.reply(self.key, encode(reply, self.fmt), encoding=ENCODINGS[self.fmt])
+        if not error.error_reply:
+            send(self.query, self.key, reply, self.fmt)
+            return
+        with self.query as query:
+            query.reply_err(encode(reply, self.fmt), encoding=ENCODINGS[self.fmt])
 
     def answer(self, fn: Callable[[], BaseModel]) -> None:
         """Reply with what `fn` makes, or refuse with the `MachineError` it raises (for work
