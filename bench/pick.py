@@ -3,17 +3,23 @@
 One daemon; each sample opens a fresh Rider session (not timed) and times its first `status()`:
 with the machine named (the baseline: no lookup), without it (the read lookup, 0.15 s settle),
 and a command-grade lookup (`resolve_machine(motion=True)`, 0.3 s settle) — rider/discovery.py.
+Then a site (tests/site: the router stand-in, daemon `a` a peer linked to it): the lookup from a
+Rider on a's own port, which must also ask the router behind `a` (a short client session), and
+from a client of the router.
 """
 
 from __future__ import annotations
 
 import sys
+import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from bench.common import Dist, Options, Section, Table, Target, main_for, ms
 from bench.daemon import bench_daemon
 from rider.client import Rider
+from tests.site.stand import PEER_CONFIG, site
 
 
 def _timed(make: Callable[[], Rider], act: Callable[[Rider], object], n: int) -> Dist:
@@ -45,6 +51,7 @@ def run(opts: Options) -> Section:
                 _timed(default, lambda r: r.resolve_machine(motion=True), n),
             ),
         ]
+    rows += _site_rows(n)
     table = Table(
         "First call of a fresh Rider session, one daemon on tcp/127.0.0.1",
         ["what", "n", "p50 ms", "p90 ms", "max ms"],
@@ -59,6 +66,33 @@ def run(opts: Options) -> Section:
         )
     )
     return section
+
+
+def _site_rows(n: int) -> list[tuple[str, Dist]]:
+    """The lookup on a site: through a peer daemon's port (asks the router behind it) and as a
+    client of the router."""
+    with tempfile.TemporaryDirectory(prefix="bench-pick-") as tmp, site(Path(tmp)) as stand:
+        stand.start_daemons({"a": "peer"})
+        a = stand.daemons["a"]
+
+        def on_a() -> Rider:
+            return Rider(None, connect=[a.endpoint], zenoh_config_path=PEER_CONFIG)
+
+        def on_router() -> Rider:
+            return stand.rider(None)
+
+        def read(r: Rider) -> object:
+            return r.resolve_machine()
+
+        def command(r: Rider) -> object:
+            return r.resolve_machine(motion=True)
+
+        return [
+            ("site: peer on a's port, read lookup (asks the router)", _timed(on_a, read, n)),
+            ("site: peer on a's port, command-grade lookup", _timed(on_a, command, n)),
+            ("site: client of the router, read lookup", _timed(on_router, read, n)),
+            ("site: client of the router, command-grade lookup", _timed(on_router, command, n)),
+        ]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -27,7 +27,7 @@ import zenoh
 from pydantic import BaseModel, ValidationError
 
 from rider.discovery import LIMIT_S as DISCOVERY_LIMIT_S
-from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Discovery, discover
+from rider.discovery import MOTION_SETTLE_S, PROBE_TIMEOUT_S, SETTLE_S, Discovery, discover
 from schema.axes import AxisRecord
 from schema.calibration import (
     CalibrationRecord,
@@ -249,8 +249,9 @@ def zenoh_config(
         raise BadCredentials(str(exc)) from exc
     for setting, value in settings.items():
         conf.insert_json5(setting, value)
-    # The default-machine lookup reads this session's own link state (rider/discovery.py).
-    conf.insert_json5("adminspace", "{enabled: true, permissions: {read: true, write: false}}")
+    # A Rider's own admin space stays off: the default-machine lookup reads other nodes' (and
+    # zenoh 1.10's token/link-state handlers can wedge a session, rider/discovery.py).
+    conf.insert_json5("adminspace/enabled", "false")
     return conf
 
 
@@ -288,6 +289,7 @@ class Rider:
         self.timeout = timeout
         self.retries = retries
         self._conf = zenoh_config(zenoh_config_path, connect, listen)
+        self._conf_path = zenoh_config_path
         self._session: zenoh.Session | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._heartbeat: Heartbeat | None = None
@@ -380,6 +382,7 @@ class Rider:
             self.key_prefix,
             settle=MOTION_SETTLE_S if motion else SETTLE_S,
             limit=max(DISCOVERY_LIMIT_S, self.timeout),
+            probe=self._probe,
         )
         self.discovery = seen
         if not seen.settled:
@@ -387,12 +390,26 @@ class Rider:
                 f"discovery did not settle within {seen.waited_s:.1f} s, cannot tell which"
                 f" machine is the only one ({seen.describe()}); pass --machine ID"
             )
+        if seen.unseen and len(seen.alive) <= 1:
+            raise UnsureMachine(
+                "part of the network is out of sight, cannot tell which machine is the only"
+                f" one ({seen.describe()}); connect to that router, or pass --machine ID"
+            )
         if not seen.alive:
             raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
         if len(seen.alive) > 1:
             ids = ", ".join(sorted(seen.alive))
             raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
         return next(iter(seen.alive))
+
+    def _probe(self, endpoint: str) -> zenoh.Session:
+        """A short client session to one router (this Rider's config and credentials), for
+        the default-machine lookup to ask a router out of its sight (rider/discovery.py)."""
+        conf = zenoh_config(self._conf_path, [endpoint])
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/timeout_ms", str(int(PROBE_TIMEOUT_S * 1000)))
+        conf.insert_json5("connect/exit_on_failure", "true")
+        return zenoh.open(conf)
 
     @property
     def base(self) -> str:

@@ -6,21 +6,31 @@ peers by gossip and connects to them one by one, and their liveliness tokens arr
 (issue 22: a Rider connected to `fb` picked `fb` while `fa` was alive). So the lookup
 
 1. follows `<prefix>/*/alive` (with history) and this session's links (`session.info`);
-2. waits until nothing new has come for `settle` seconds (a new token, a new link, a peer
-   named by gossip that this session is not linked to yet all restart the wait);
-3. then asks every node it is linked to (its own admin space too) which machine tokens *they*
-   know (`@/<zid>/<whatami>/token/<prefix>/*/alive`): a router knows every machine on the site,
-   a peer daemon knows the peers it is linked to, so a machine this session has not reached
-   yet is still counted;
-4. gives up after `limit` seconds if it never settles: the caller refuses (exit 4).
+2. waits until nothing new has come for `settle` seconds (a new token or a new link restarts
+   the wait);
+3. reads who every node its queries reach is linked to (`@/<zid>/<whatami>`, the read-only
+   admin space): a peer that such a node dialed (so it listens) but this session is not linked
+   to yet means gossip has not finished: the wait goes on (step 2), up to `limit`;
+4. looks past the edge of what it reached: a router that one of those nodes dialed, that this
+   session is not linked to (a peer does not forward our queries or its router's tokens to us,
+   so the router's clients are out of sight) is asked directly, through a short client session
+   (`probe`) to that address: which machine tokens it knows (a router knows every machine of
+   its site). A router it cannot ask makes the lookup unsure (`Discovery.unseen`);
+5. never settled within `limit` seconds: unsure too. The caller refuses (exit 4) when unsure.
+
+Only `@/<zid>/<whatami>` is read from other nodes. zenoh 1.10's admin handlers for tokens,
+link state and routes reply while holding the routing tables' lock and wedge the node when a
+declaration comes in at that moment (eclipse-zenoh/zenoh#2619); this one does not.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import queue
-import re
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,9 +43,13 @@ MOTION_SETTLE_S = 0.3
 LIMIT_S = 2.0
 """Discovery that has not settled after this long (two 1 s leases) is refused, not guessed."""
 ADMIN_TIMEOUT_S = 0.5
+PROBE_TIMEOUT_S = 0.5
+"""Bound on asking a router out of sight (open a client session, read its tokens)."""
 POLL_S = 0.02
-"""How often the links and the gossip graph are looked at while waiting."""
-_NODE = re.compile(r'label = "([0-9a-f]+)"')
+"""How often the links are looked at while waiting."""
+
+Probe = Callable[[str], zenoh.Session]
+"""Opens a short client session to one endpoint (the Rider's own config and credentials)."""
 
 
 @dataclass
@@ -45,11 +59,20 @@ class Discovery:
     alive: set[str] = field(default_factory=set)
     links: set[str] = field(default_factory=set)
     unlinked: set[str] = field(default_factory=set)
-    """Peers named by gossip that this session never linked to."""
-    neighbours_asked: int = 0
-    """Nodes (this session included) whose admin space named a machine token in step 3."""
+    """Listening peers a reached node is linked to that this session never linked to."""
+    nodes_read: int = 0
+    """Nodes whose links were read in step 3 (their admin space answered)."""
+    probed: set[str] = field(default_factory=set)
+    """Routers out of sight that were asked directly (their endpoints)."""
+    unseen: list[str] = field(default_factory=list)
+    """Routers out of sight that could not be asked: why, one line each."""
     settled: bool = False
     waited_s: float = 0.0
+
+    @property
+    def sure(self) -> bool:
+        """Settled, and nothing on the network was out of sight."""
+        return self.settled and not self.unseen
 
     def describe(self) -> str:
         """One line for an error message: what was seen."""
@@ -57,7 +80,20 @@ class Discovery:
         text = f"machines seen: {ids}; links: {len(self.links)}"
         if self.unlinked:
             text += f"; peers not reached yet: {', '.join(sorted(self.unlinked))}"
+        if self.unseen:
+            text += f"; out of sight: {'; '.join(self.unseen)}"
         return text
+
+
+@dataclass(frozen=True)
+class _Neighbour:
+    """A session some reached node has: who, what it is, and where that node dialed it."""
+
+    zid: str
+    whatami: str
+    dialed: str | None
+    """The endpoint the node connected to (the neighbour listens there); None if it was the
+    neighbour that connected."""
 
 
 def discover(
@@ -66,8 +102,10 @@ def discover(
     *,
     settle: float = SETTLE_S,
     limit: float = LIMIT_S,
+    probe: Probe | None = None,
 ) -> Discovery:
-    """The machines alive on the network `session` is connected to, after discovery settled."""
+    """The machines alive on the network `session` is connected to, after discovery settled.
+    `probe` asks routers out of sight (step 4); without it they make the lookup unsure."""
     changes: queue.Queue[tuple[str, bool]] = queue.Queue()
 
     def on_token(sample: zenoh.Sample) -> None:
@@ -75,44 +113,65 @@ def discover(
 
     seen = Discovery()
     start = time.monotonic()
-    last_change = start
+    own = str(session.zid())
+    neighbours: list[_Neighbour] = []
+    reached: set[str] = set()
     sub: Any = session.liveliness().declare_subscriber(f"{prefix}/*/alive", on_token, history=True)
     try:
-        while True:
-            now = time.monotonic()
-            links = _links(session)
-            unlinked = _gossiped(session) - links - {str(session.zid())}
-            if links - seen.links or unlinked:
-                last_change = now
-            seen.links |= links
-            seen.unlinked = unlinked
-            if now - last_change >= settle:
+        while _quiet(session, changes, seen, settle, start + limit):
+            neighbours, answered = _neighbours(session)
+            seen.nodes_read = len(answered)
+            reached = seen.links | answered | {own}
+            seen.unlinked = {
+                n.zid
+                for n in neighbours
+                if n.whatami == "peer" and n.dialed and n.zid not in reached
+            }
+            if not seen.unlinked:
                 seen.settled = True
                 break
-            if now - start >= limit:
-                break
-            try:
-                mid, up = changes.get(timeout=min(POLL_S, settle))
-            except queue.Empty:
-                continue
-            while True:  # a burst of tokens is one change
-                if up:
-                    seen.alive.add(mid)
-                else:
-                    seen.alive.discard(mid)
-                try:
-                    mid, up = changes.get_nowait()
-                except queue.Empty:
-                    break
-            last_change = time.monotonic()
     finally:
         sub.undeclare()
     if seen.settled:
-        asked, known = _neighbour_tokens(session, prefix)
-        seen.neighbours_asked = asked
-        seen.alive |= known
+        _probe_routers(neighbours, reached, seen, prefix, probe)
     seen.waited_s = time.monotonic() - start
     return seen
+
+
+def _quiet(
+    session: zenoh.Session,
+    changes: queue.Queue[tuple[str, bool]],
+    seen: Discovery,
+    settle: float,
+    deadline: float,
+) -> bool:
+    """Take tokens and links in until nothing new came for `settle` s (True) or the deadline
+    passed (False)."""
+    last_change = time.monotonic()
+    while True:
+        now = time.monotonic()
+        links = _links(session)
+        if links - seen.links:
+            last_change = now
+        seen.links |= links
+        if now - last_change >= settle:
+            return True
+        if now >= deadline:
+            return False
+        try:
+            mid, up = changes.get(timeout=min(POLL_S, settle))
+        except queue.Empty:
+            continue
+        while True:  # a burst of tokens is one change
+            if up:
+                seen.alive.add(mid)
+            else:
+                seen.alive.discard(mid)
+            try:
+                mid, up = changes.get_nowait()
+            except queue.Empty:
+                break
+        last_change = time.monotonic()
 
 
 def _links(session: zenoh.Session) -> set[str]:
@@ -138,20 +197,78 @@ def _admin(session: zenoh.Session, key: str) -> list[zenoh.Sample]:
     return list(got)
 
 
-def _gossiped(session: zenoh.Session) -> set[str]:
-    """Nodes this session's own link-state graph names (peers gossip told it about)."""
-    nodes: set[str] = set()
-    for sample in _admin(session, f"@/{session.zid()}/*/linkstate/**"):
-        nodes |= set(_NODE.findall(sample.payload.to_string()))
-    return nodes
+def _neighbours(session: zenoh.Session) -> tuple[list[_Neighbour], set[str]]:
+    """The sessions of every node this session's queries reach (`@/*/*`: each node's own
+    summary), and the nodes that answered (queries and tokens are routed between us)."""
+    found: list[_Neighbour] = []
+    answered: set[str] = set()
+    for sample in _admin(session, "@/*/*"):
+        with contextlib.suppress(ValueError, UnicodeDecodeError):
+            info = json.loads(sample.payload.to_string())
+            if isinstance(info, dict) and isinstance(info.get("sessions"), list):
+                answered.add(str(sample.key_expr).split("/")[1])
+                found += _sessions(info)
+    return found, answered
 
 
-def _neighbour_tokens(session: zenoh.Session, prefix: str) -> tuple[int, set[str]]:
-    """Machine tokens known to this session and to every node it is linked to."""
+def _sessions(info: dict[str, Any]) -> list[_Neighbour]:
+    """One node's sessions. The node dialed a session when its own end of the link is not on
+    a port it listens on (it is an ephemeral one)."""
+    ports = {str(loc).rsplit(":", 1)[-1] for loc in info.get("locators") or []}
+    out: list[_Neighbour] = []
+    for s in info["sessions"]:
+        if not isinstance(s, dict):
+            continue
+        dialed = [
+            str(link.get("dst"))
+            for link in s.get("links") or []
+            if str(link.get("src")).rsplit(":", 1)[-1] not in ports
+        ]
+        out.append(
+            _Neighbour(str(s.get("peer")), str(s.get("whatami")), dialed[0] if dialed else None)
+        )
+    return out
+
+
+def _probe_routers(
+    neighbours: list[_Neighbour],
+    reached: set[str],
+    seen: Discovery,
+    prefix: str,
+    probe: Probe | None,
+) -> None:
+    """Step 4: ask each router a reached node is linked to, that this session did not reach."""
+    routers: dict[str, str | None] = {}
+    for n in neighbours:
+        if n.whatami == "router" and n.zid not in reached:
+            routers[n.zid] = routers.get(n.zid) or n.dialed
+    for zid, endpoint in sorted(routers.items()):
+        if endpoint is None:
+            seen.unseen.append(f"router {zid} (it connected to a node this Rider reached)")
+        elif probe is None:
+            seen.unseen.append(f"router {zid} at {endpoint}")
+        elif (ids := _probe_tokens(probe, endpoint, prefix)) is None:
+            seen.unseen.append(f"router {zid} at {endpoint} (did not answer)")
+        else:
+            seen.probed.add(endpoint)
+            seen.alive |= ids
+
+
+def _probe_tokens(probe: Probe, endpoint: str, prefix: str) -> set[str] | None:
+    """The machine tokens a router knows, asked through a short client session; None if it
+    could not be asked."""
     ids: set[str] = set()
-    asked: set[str] = set()
-    for sample in _admin(session, f"@/*/*/token/{prefix}/*/alive"):
-        parts = str(sample.key_expr).split("/")
-        asked.add(parts[1])
-        ids.add(parts[-2])
-    return len(asked), ids
+    done = threading.Event()
+
+    def on_reply(reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            ids.add(str(reply.ok.key_expr).split("/")[-2])
+
+    try:
+        with probe(endpoint) as session:
+            handler = zenoh.handlers.Callback(on_reply, done.set)
+            session.liveliness().get(f"{prefix}/*/alive", handler, timeout=PROBE_TIMEOUT_S)
+            answered = done.wait(PROBE_TIMEOUT_S + 0.1)
+    except zenoh.ZError:
+        return None
+    return set(ids) if answered else None
