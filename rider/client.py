@@ -385,6 +385,8 @@ class Rider:
             probe=self._probe,
         )
         self.discovery = seen
+        if not seen.links:
+            raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
         if not seen.settled:
             raise UnsureMachine(
                 f"discovery did not settle within {seen.waited_s:.1f} s, cannot tell which"

@@ -5,9 +5,10 @@ has heard of them all. Just after a session opens it has not: a peer Rider learn
 peers by gossip and connects to them one by one, and their liveliness tokens arrive only then
 (issue 22: a Rider connected to `fb` picked `fb` while `fa` was alive). So the lookup
 
-1. follows `<prefix>/*/alive` (with history) and this session's links (`session.info`);
-2. waits until nothing new has come for `settle` seconds (a new token or a new link restarts
-   the wait);
+1. follows `<prefix>/*/alive` (with history) and this session's links (`session.info`), and
+   asks its neighbours for the tokens they hold (a liveliness query) whenever a link appears;
+2. waits until it has a link, every such query has been answered, and nothing new has come
+   for `settle` seconds (a new token or a new link restarts the wait);
 3. reads who every node its queries reach is linked to (`@/<zid>/<whatami>`, the read-only
    admin space): a peer that such a node dialed (so it listens) but this session is not linked
    to yet means gossip has not finished: the wait goes on (step 2), up to `limit`;
@@ -106,10 +107,11 @@ def discover(
 ) -> Discovery:
     """The machines alive on the network `session` is connected to, after discovery settled.
     `probe` asks routers out of sight (step 4); without it they make the lookup unsure."""
-    changes: queue.Queue[tuple[str, bool]] = queue.Queue()
+    changes: queue.Queue[_Change] = queue.Queue()
 
     def on_token(sample: zenoh.Sample) -> None:
-        changes.put((str(sample.key_expr).split("/")[-2], sample.kind == zenoh.SampleKind.PUT))
+        up = sample.kind == zenoh.SampleKind.PUT
+        changes.put(_Change(str(sample.key_expr).split("/")[-2], up, asked=False))
 
     seen = Discovery()
     start = time.monotonic()
@@ -118,7 +120,7 @@ def discover(
     reached: set[str] = set()
     sub: Any = session.liveliness().declare_subscriber(f"{prefix}/*/alive", on_token, history=True)
     try:
-        while _quiet(session, changes, seen, settle, start + limit):
+        while _quiet(session, prefix, changes, seen, settle, start + limit):
             neighbours, answered = _neighbours(session)
             seen.nodes_read = len(answered)
             reached = seen.links | answered | {own}
@@ -138,40 +140,83 @@ def discover(
     return seen
 
 
+@dataclass(frozen=True)
+class _Change:
+    machine_id: str
+    up: bool
+    asked: bool
+    """From a liveliness query (a snapshot) rather than the subscriber (live changes)."""
+
+
 def _quiet(
     session: zenoh.Session,
-    changes: queue.Queue[tuple[str, bool]],
+    prefix: str,
+    changes: queue.Queue[_Change],
     seen: Discovery,
     settle: float,
     deadline: float,
 ) -> bool:
-    """Take tokens and links in until nothing new came for `settle` s (True) or the deadline
-    passed (False)."""
+    """Take tokens and links in until the session has a link, its liveliness queries are
+    answered and nothing new came for `settle` s (True), or the deadline passed (False).
+    Under load a peer's link can come after `zenoh.open` returned, and a neighbour's tokens
+    later than `settle` after it: the query's end, not a quiet spell, says they are in."""
     last_change = time.monotonic()
+    asking: list[threading.Event] = []
+    gone: set[str] = set()
     while True:
         now = time.monotonic()
         links = _links(session)
         if links - seen.links:
             last_change = now
+            asking.append(_ask_tokens(session, prefix, changes))
         seen.links |= links
-        if now - last_change >= settle:
+        answered = all(done.is_set() for done in asking)
+        if links and answered and now - last_change >= settle:
             return True
         if now >= deadline:
             return False
         try:
-            mid, up = changes.get(timeout=min(POLL_S, settle))
+            change = changes.get(timeout=min(POLL_S, settle))
         except queue.Empty:
             continue
         while True:  # a burst of tokens is one change
-            if up:
-                seen.alive.add(mid)
-            else:
-                seen.alive.discard(mid)
+            _apply(change, seen.alive, gone)
             try:
-                mid, up = changes.get_nowait()
+                change = changes.get_nowait()
             except queue.Empty:
                 break
         last_change = time.monotonic()
+
+
+def _apply(change: _Change, alive: set[str], gone: set[str]) -> None:
+    """A snapshot's token never revives one the subscriber saw go away."""
+    if change.asked:
+        if change.machine_id not in gone:
+            alive.add(change.machine_id)
+    elif change.up:
+        alive.add(change.machine_id)
+        gone.discard(change.machine_id)
+    else:
+        alive.discard(change.machine_id)
+        gone.add(change.machine_id)
+
+
+def _ask_tokens(
+    session: zenoh.Session, prefix: str, changes: queue.Queue[_Change]
+) -> threading.Event:
+    """A liveliness query to the neighbours; the event is set once it is answered."""
+    done = threading.Event()
+
+    def on_reply(reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            changes.put(_Change(str(reply.ok.key_expr).split("/")[-2], up=True, asked=True))
+
+    try:
+        handler = zenoh.handlers.Callback(on_reply, done.set)
+        session.liveliness().get(f"{prefix}/*/alive", handler, timeout=ADMIN_TIMEOUT_S)
+    except zenoh.ZError:
+        done.set()
+    return done
 
 
 def _links(session: zenoh.Session) -> set[str]:
