@@ -33,7 +33,7 @@ def zenoh_config(
         # As zenoh.json5: explicit endpoints only. Zenoh's own default (multicast scouting on)
         # would join any peer on the LAN, and another machine with this id would refuse us.
         conf.insert_json5("scouting/multicast/enabled", "false")
-        # Read-only, as in zenoh.json5: Riders' default-machine lookup reads our tokens there.
+        # Read-only, as in zenoh.json5: Riders' default-machine lookup reads our summary there.
         conf.insert_json5("adminspace", "{enabled: true, permissions: {read: true, write: false}}")
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
