@@ -1,6 +1,7 @@
 """A test stand-in for `zenohd`: one Python Zenoh session opened in `router` mode.
 
-    python -m tests.site.router --config router.json5 --listen tcp/127.0.0.1:17447
+    python -m tests.site.router --config router.json5 --listen tcp/127.0.0.1:17447 \
+        [--connect tcp/127.0.0.1:7447]
 
 zenohd is not installable here, and the router is Zenoh's own code either way: this process
 only opens the session with the site's router config (docs/site.md) and holds it. It prints
@@ -22,12 +23,15 @@ from types import FrameType
 import zenoh
 
 
-def router_config(path: Path, listen: list[str]) -> zenoh.Config:
-    """The router's config file with its listen endpoints replaced; always `router` mode."""
+def router_config(path: Path, listen: list[str], connect: list[str] | None = None) -> zenoh.Config:
+    """The router's config file with its listen (and connect) endpoints replaced; always
+    `router` mode."""
     conf = zenoh.Config.from_file(str(path))
     conf.insert_json5("mode", '"router"')
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
     return conf
 
 
@@ -35,6 +39,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="router", description=__doc__)
     p.add_argument("--config", type=Path, required=True, help="the router's json5 config")
     p.add_argument("--listen", action="append", default=[], help="listen endpoint")
+    p.add_argument("--connect", action="append", default=[], help="endpoint it dials itself")
     args = p.parse_args(argv)
     stop = threading.Event()
 
@@ -43,7 +48,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    conf = router_config(args.config, args.listen)
+    conf = router_config(args.config, args.listen, args.connect)
     with zenoh.open(conf) as session:
         listen = json.loads(conf.get_json("listen/endpoints"))
         print(json.dumps({"ready": str(session.zid()), "listen": listen}), flush=True)

@@ -90,6 +90,8 @@ class Router:
     config: Path
     log_dir: Path
     port: int = field(default_factory=free_port)
+    connect: list[str] = field(default_factory=list)
+    """Endpoints the router dials itself (a router that connects to a machine)."""
     proc: subprocess.Popen[str] | None = None
     starts: int = 0
 
@@ -105,6 +107,7 @@ class Router:
             [
                 *[sys.executable, "-m", "tests.site.router", "--config", str(self.config)],
                 *["--listen", self.endpoint],
+                *[arg for endpoint in self.connect for arg in ("--connect", endpoint)],
             ],
             stdout=subprocess.PIPE,
             stderr=log,

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -27,8 +28,17 @@ from pathlib import Path
 import pytest
 
 from rider.client import AmbiguousMachine, MachineTimeout, NoMachine, Rider, UnsureMachine
-from tests.procs import REPO, free_port, start_daemon, stop_process
-from tests.site.stand import PEER_CONFIG, Lines, Site, site
+from tests.procs import REPO, START_TIMEOUT_S, free_port, start_daemon, stop_process
+from tests.site.stand import (
+    PEER_CONFIG,
+    Lines,
+    Router,
+    Site,
+    run_cli,
+    site,
+    wait_tokens,
+    write_doc_config,
+)
 
 TRIALS = int(os.environ.get("PICK_TRIALS", "1000"))
 WORKERS = int(os.environ.get("PICK_WORKERS", "12"))
@@ -227,3 +237,58 @@ def test_issue_22_two_peer_daemons_the_rider_never_picks_the_one_it_connected_to
     finally:
         fa.stop()
     assert outcomes == ["several"] * ISSUE_TRIES, outcomes
+
+
+def rider_cli(endpoint: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """`rider --connect ENDPOINT --zenoh-config zenoh.json5 ARGS` (a peer Rider), bounded."""
+    cmd = [sys.executable, "-m", "rider.cli", "--connect", endpoint]
+    return run_cli([*cmd, "--zenoh-config", str(PEER_CONFIG), *args])
+
+
+@pytest.mark.integration
+def test_through_a_peer_daemons_port_a_client_of_its_router_is_seen(tmp_path: Path) -> None:
+    """The last wrong pick of the first lookup: `a` a peer linked to the router, `b` a client
+    of the router, a Rider on a's port. `a` passes on neither b's token nor our queries; the
+    lookup reads a's summary and asks the router behind it, so every lookup sees both."""
+    with site(tmp_path) as stand:
+        stand.start_daemons({"a": "peer", "b": "client"})
+        a = stand.daemons["a"]
+        outcomes = [
+            look_up("peer@a", a.endpoint, PEER_CONFIG, motion=bool(n % 2)).outcome
+            for n in range(ISSUE_TRIES // 4)
+        ]
+        cli = rider_cli(a.endpoint, "status")
+    assert outcomes == ["several"] * (ISSUE_TRIES // 4), outcomes
+    assert cli.returncode == 4, cli
+    assert "several machines are alive (a, b)" in cli.stderr
+
+
+@pytest.mark.integration
+def test_a_router_that_dialed_the_machine_is_out_of_sight_so_the_pick_is_unsure(
+    tmp_path: Path,
+) -> None:
+    """A router that connected to `a` itself (as the compose router profile does) left no
+    address this Rider could ask it at: without `--machine` it refuses (exit 4) and says what is
+    out of sight; with `--machine a` it answers."""
+    a = start_daemon(tmp_path, "a", extra=["--zenoh-config", str(PEER_CONFIG)])
+    router = Router(write_doc_config(tmp_path, "router"), tmp_path, connect=[a.endpoint])
+    client = write_doc_config(tmp_path, "client")
+    try:
+        router.start()
+        # the router has dialed a once a's token is seen through it
+        with Rider(None, connect=[router.endpoint], zenoh_config_path=client) as through:
+            wait_tokens(through.follow_machines(timeout=0.2), {"a": True}, START_TIMEOUT_S)
+        with (
+            Rider(None, connect=[a.endpoint], zenoh_config_path=PEER_CONFIG) as r,
+            pytest.raises(UnsureMachine, match="out of sight: router") as refused,
+        ):
+            r.resolve_machine()
+        unsure = rider_cli(a.endpoint, "status")
+        named = rider_cli(a.endpoint, "--machine", "a", "status")
+    finally:
+        router.kill(signal.SIGTERM)
+        a.stop()
+    assert "connect to that router, or pass --machine ID" in str(refused.value)
+    assert unsure.returncode == 4, unsure
+    assert "part of the network is out of sight" in unsure.stderr
+    assert named.returncode == 0, named

@@ -1,0 +1,90 @@
+"""The default-machine lookup's pure parts (rider/discovery.py): who dialed whom in a node's
+summary, which routers are out of sight, and tokens from a snapshot versus live changes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+import zenoh
+
+from rider.discovery import Discovery, _apply, _Change, _Neighbour, _probe_routers, _sessions
+
+A_SUMMARY: dict[str, Any] = {
+    "zid": "aa",
+    "locators": ["tcp/10.0.0.5:7447"],
+    "sessions": [
+        # a dialed the router: a's end is an ephemeral port
+        {
+            "peer": "rr",
+            "whatami": "router",
+            "links": [{"src": "tcp/10.0.0.5:51234", "dst": "tcp/10.0.0.1:7447"}],
+        },
+        # a Rider dialed a: a's end is its listening port
+        {
+            "peer": "rd",
+            "whatami": "peer",
+            "links": [{"src": "tcp/10.0.0.5:7447", "dst": "tcp/10.0.0.9:40000"}],
+        },
+        {"peer": "cc", "whatami": "client", "links": []},
+    ],
+}
+
+
+def test_a_summary_says_which_sessions_the_node_dialed_and_where() -> None:
+    assert _sessions(A_SUMMARY) == [
+        _Neighbour("rr", "router", "tcp/10.0.0.1:7447"),
+        _Neighbour("rd", "peer", None),
+        _Neighbour("cc", "client", None),
+    ]
+
+
+def test_a_router_behind_a_node_is_asked_where_the_node_dialed_it() -> None:
+    asked: list[str] = []
+
+    def probe(endpoint: str) -> Any:
+        asked.append(endpoint)
+        raise zenoh.ZError("no answer")
+
+    seen = Discovery(settled=True)
+    _probe_routers(_sessions(A_SUMMARY), {"aa", "me"}, seen, "machine", probe)
+    assert asked == ["tcp/10.0.0.1:7447"]
+    assert not seen.sure
+    assert seen.unseen == ["router rr at tcp/10.0.0.1:7447 (did not answer)"]
+
+
+def test_a_router_this_session_reached_is_not_asked_again() -> None:
+    def probe(endpoint: str) -> Any:
+        raise AssertionError("asked a router already reached")
+
+    seen = Discovery(settled=True)
+    _probe_routers(_sessions(A_SUMMARY), {"aa", "rr", "me"}, seen, "machine", probe)
+    assert seen.sure
+
+
+def test_a_router_that_dialed_the_node_has_no_known_address_so_the_lookup_is_unsure() -> None:
+    summary = {**A_SUMMARY, "sessions": [{**A_SUMMARY["sessions"][0], "links": []}]}
+    seen = Discovery(settled=True)
+    _probe_routers(_sessions(summary), {"aa"}, seen, "machine", None)
+    assert seen.unseen == ["router rr (it connected to a node this Rider reached)"]
+    assert "out of sight: router rr" in seen.describe()
+
+
+@pytest.mark.parametrize(
+    ("changes", "alive"),
+    [
+        ([_Change("b", True, asked=True)], {"b"}),
+        # the subscriber saw b go; a snapshot answered before that must not bring it back
+        ([_Change("b", True, False), _Change("b", False, False), _Change("b", True, True)], set()),
+        # ... but b coming back live does
+        ([_Change("b", False, False), _Change("b", True, False)], {"b"}),
+    ],
+)
+def test_a_snapshot_never_revives_a_machine_seen_going(
+    changes: list[_Change], alive: set[str]
+) -> None:
+    got: set[str] = set()
+    gone: set[str] = set()
+    for change in changes:
+        _apply(change, got, gone)
+    assert got == alive
