@@ -63,8 +63,9 @@ class Watchdog:
     """Trips when `heartbeat()` has not moved for `periods` periods (but never less than
     `min_s`: at very short periods a fixed floor keeps ordinary OS hiccups from tripping it).
     It checks three times per limit, so a stall is caught between 1 and 4/3 limits. Given
-    `beat_at` (the clock time of the latest beat), a healthy loop is checked only when its
-    latest beat would be `limit` old: one wake-up per limit instead of three, same bound."""
+    `beat_at` (the clock time of the latest beat), a healthy loop is checked once, a third of
+    a limit after its latest beat would be `limit` old: one wake-up per limit instead of
+    three, and a stall is still tripped when it has lasted between 1 and 4/3 limits."""
 
     def __init__(
         self,
@@ -125,8 +126,9 @@ class Watchdog:
 
     def next_check(self, beat_at: float, now: float) -> float:
         """Seconds to sleep after a beat at `beat_at`: nothing can trip before it is `limit`
-        old (never less than the plain check interval)."""
-        return max(self.period, beat_at + self.limit - now)
+        old; checking a plain interval later keeps the old 1–4/3 limits bound (a stall of just
+        over one limit that ends by itself is not tripped, as before)."""
+        return max(self.period, beat_at + self.limit + self.period - now)
 
     def check(self, now: float, stalled_s: float) -> None:
         """Trip: latch outputs safe and report (also callable directly, e.g. from tests)."""

@@ -133,9 +133,10 @@ def test_watchdog_limit_is_periods_with_a_floor() -> None:
     assert Watchdog(lambda: 0, guard, 0.001, 3, 0.0).limit == pytest.approx(0.003)
 
 
-def test_a_healthy_loop_is_checked_when_its_latest_beat_would_be_limit_old() -> None:
+def test_a_healthy_loop_is_checked_once_per_limit_after_its_latest_beat() -> None:
     guard = GuardedHal(Rig().hal)
     dog = Watchdog(lambda: 0, guard, 0.010, 3, 0.02, beat_at=lambda: 0.0)
-    assert dog.next_check(beat_at=5.000, now=5.004) == pytest.approx(0.026)  # 5.030 - 5.004
+    # Limit 30 ms, checks every 10 ms: the next check 40 ms after the beat (one wake-up).
+    assert dog.next_check(beat_at=5.000, now=5.004) == pytest.approx(0.036)  # 5.040 - 5.004
     # Never sooner than the plain check interval (limit / 3), even for an old beat.
-    assert dog.next_check(beat_at=5.000, now=5.025) == pytest.approx(0.010)
+    assert dog.next_check(beat_at=5.000, now=5.035) == pytest.approx(0.010)
