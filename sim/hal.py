@@ -89,12 +89,7 @@ class SimHal:
 
     def stick_home(self, axis: str, fault: SwitchFault | None) -> None:
         """Stick the `rotate` or `tilt` home switch open or closed (None clears it)."""
-        if axis == "rotate":
-            self.world.faults.rotate_home = fault
-        elif axis == "tilt":
-            self.world.faults.tilt_home = fault
-        else:
-            raise ValueError(f"unknown axis {axis!r}; expected 'rotate' or 'tilt'")
+        setattr(self.world.faults, f"{_axis(axis)}_home", fault)
 
     def freeze_tilt_ai(self, frozen: bool = True) -> None:
         self.world.faults.tilt_ai_frozen = frozen
@@ -106,12 +101,7 @@ class SimHal:
 
     def stall(self, axis: str, stalled: bool = True) -> None:
         """A drive that gets power but does not move (a seized gearbox, a blown fuse)."""
-        if axis == "rotate":
-            self.world.faults.rotate_stalled = stalled
-        elif axis == "tilt":
-            self.world.faults.tilt_stalled = stalled
-        else:
-            raise ValueError(f"unknown axis {axis!r}; expected 'rotate' or 'tilt'")
+        setattr(self.world.faults, f"{_axis(axis)}_stalled", stalled)
 
     def clear_faults(self) -> None:
         f = self.world.faults
@@ -133,3 +123,9 @@ class SimHal:
         d.rotate_ccw = outputs.ro[m.rotate_dir]
         d.tilt_on = outputs.ro[m.tilt_relay]
         d.tilt_up = outputs.ro[m.tilt_dir]
+
+
+def _axis(axis: str) -> str:
+    if axis not in ("rotate", "tilt"):
+        raise ValueError(f"unknown axis {axis!r}; expected 'rotate' or 'tilt'")
+    return axis
