@@ -9,7 +9,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from rider.client import Rider
+from rider.client import CommandRefused, Rider
 from schema.status import MachineState
 from service.persist import CALIBRATION_FILE
 from tests.procs import Daemon, start_daemon
@@ -111,7 +111,15 @@ def home_and_start(rider: Rider, timeout: float = 30.0) -> list[str]:
     """
     faults: list[str] = []
     for _ in range(HOME_TRIES):
-        reply = rider.home()
+        try:
+            reply = rider.home()
+        except CommandRefused as exc:
+            # The watchdog publishes its FAULT_HW at once, from its own thread; a Home sent on
+            # that status can reach the loop before its next cycle takes the fault (still
+            # HOMING). Wait for the fault (or the end of homing) and try again.
+            faults.append(str(exc.error.code))
+            rider.wait_for([MachineState.IDLE, MachineState.FAULT_HW], timeout=timeout)
+            continue
         status = rider.wait_for(
             [MachineState.IDLE, MachineState.FAULT_HW], timeout=timeout, after=reply.timecode
         )
