@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from hal.base import Inputs, Outputs
 from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
-from schema.io import IoKind
+from schema.io import IoKind, IoValue
 
 
 class ProcessImage:
@@ -96,3 +96,38 @@ class IoPoints:
             self.tilt_relay,
             self.tilt_dir,
         )
+
+
+class IoChanges:
+    """The IO points worth publishing: each one that changed since it was last published, an
+    analog one only past the deadband; every point the first time."""
+
+    def __init__(self, points: IoPoints) -> None:
+        self.points = points
+        self._last: dict[str, bool | int] = {}
+        self._seen: tuple[int, dict[str, bool], dict[str, int], dict[str, bool]] | None = None
+
+    def since_last(self, deadband: int, wall: float) -> list[IoValue]:
+        image = self.points.image
+        seen = (deadband, image.inputs.di, image.inputs.ai, image.outputs.ro)
+        if seen == self._seen:
+            return []  # image and deadband as last cycle's, which published what changed
+        self._seen = (deadband, dict(seen[1]), dict(seen[2]), dict(seen[3]))
+        last = self._last
+        out: list[IoValue] = []
+        for point in self.points.all():
+            value = point.value
+            prev = last.get(point.name)
+            if prev is not None:
+                if isinstance(point, AI):
+                    if abs(int(value) - int(prev)) <= deadband:
+                        continue
+                elif value == prev:
+                    continue
+            last[point.name] = value
+            out.append(
+                IoValue(
+                    name=point.name, kind=point.kind, channel=point.channel, value=value, time=wall
+                )
+            )
+        return out

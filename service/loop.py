@@ -38,7 +38,7 @@ from service.control import ControlAPI
 from service.devices import Calibration, Devices
 from service.errors import Busy, NotAvailable
 from service.events import EventRecorder, NullEventSink
-from service.io import AI, IoPoints, ProcessImage
+from service.io import IoChanges, IoPoints, ProcessImage
 from service.transactions import TransactionLog
 from service.watchdog import GuardedHal
 
@@ -266,8 +266,7 @@ class ScanLoop:
         self._status_key: tuple[object, ...] | None = None
         self._status_due = 0.0
         self._seq = 0
-        self._io_last: dict[str, bool | int] = {}
-        self._io_seen: tuple[int, dict[str, bool], dict[str, int], dict[str, bool]] | None = None
+        self.io_changes = IoChanges(self.points)
         self._max_tasks = config.loop.max_commands_per_cycle
         self.lock = threading.Lock()
         """One writer at a time: held by the runner for a cycle (and for queued tasks between
@@ -460,7 +459,7 @@ class ScanLoop:
             records = [self.axes.record(name, self.cycle, wall) for name in due]
             self.published.axes = {**self.published.axes, **{r.axis: r for r in records}}
             self.sink.publish_axes(records)
-        changed = self._io_changes(wall)
+        changed = self.io_changes.since_last(self.config.bus.ai_deadband_counts, wall)
         if changed:
             self.published.io = {**self.published.io, **{p.name: p for p in changed}}
             self.sink.publish_io(changed)
@@ -512,32 +511,6 @@ class ScanLoop:
             time=now + self.wall_offset,
             uptime_s=round(now - self.started_at, 3),
         )
-
-    def _io_changes(self, wall: float) -> list[IoValue]:
-        image = self.image
-        deadband = self.config.bus.ai_deadband_counts
-        seen = (deadband, image.inputs.di, image.inputs.ai, image.outputs.ro)
-        if seen == self._io_seen:
-            return []  # image and deadband as last cycle's, which published what changed
-        self._io_seen = (deadband, dict(seen[1]), dict(seen[2]), dict(seen[3]))
-        last = self._io_last
-        out: list[IoValue] = []
-        for point in self.points.all():
-            value = point.value
-            prev = last.get(point.name)
-            if prev is not None:
-                if isinstance(point, AI):
-                    if abs(int(value) - int(prev)) <= deadband:
-                        continue
-                elif value == prev:
-                    continue
-            last[point.name] = value
-            out.append(
-                IoValue(
-                    name=point.name, kind=point.kind, channel=point.channel, value=value, time=wall
-                )
-            )
-        return out
 
     def reject_pending(self, why: str) -> None:
         """On shutdown: every queued command still gets its one reply."""
