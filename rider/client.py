@@ -383,6 +383,7 @@ class Rider:
             settle=MOTION_SETTLE_S if motion else SETTLE_S,
             limit=max(DISCOVERY_LIMIT_S, self.timeout),
             probe=self._probe,
+            links_peers=self._links_peers(),
         )
         self.discovery = seen
         if not seen.links:
@@ -395,7 +396,7 @@ class Rider:
         if seen.unseen and len(seen.alive) <= 1:
             raise UnsureMachine(
                 "part of the network is out of sight, cannot tell which machine is the only"
-                f" one ({seen.describe()}); connect to that router, or pass --machine ID"
+                f" one ({seen.describe()}); connect where it can be seen, or pass --machine ID"
             )
         if not seen.alive:
             raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
@@ -403,6 +404,12 @@ class Rider:
             ids = ", ".join(sorted(seen.alive))
             raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
         return next(iter(seen.alive))
+
+    def _links_peers(self) -> bool:
+        """A peer with gossip on links to the peers gossip names; a client never does."""
+        mode = json.loads(self._conf.get_json("mode") or '"peer"')
+        gossip = json.loads(self._conf.get_json("scouting/gossip/enabled") or "true")
+        return bool(mode == "peer" and gossip is not False)
 
     def _probe(self, endpoint: str) -> zenoh.Session:
         """A short client session to one router (this Rider's config and credentials), for

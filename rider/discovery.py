@@ -12,11 +12,12 @@ peers by gossip and connects to them one by one, and their liveliness tokens arr
 3. reads who every node its queries reach is linked to (`@/<zid>/<whatami>`, the read-only
    admin space): a peer that such a node dialed (so it listens) but this session is not linked
    to yet means gossip has not finished: the wait goes on (step 2), up to `limit`;
-4. looks past the edge of what it reached: a router that one of those nodes dialed, that this
-   session is not linked to (a peer does not forward our queries or its router's tokens to us,
-   so the router's clients are out of sight) is asked directly, through a short client session
-   (`probe`) to that address: which machine tokens it knows (a router knows every machine of
-   its site). A router it cannot ask makes the lookup unsure (`Discovery.unseen`);
+4. looks past the edge of what it reached: a router that one of those nodes is linked to and
+   this session did not reach (a peer does not forward our queries or its router's tokens to
+   us, so the router's clients are out of sight) — and, for a client Rider, which gossip never
+   links to peers, such a peer too — is asked directly, through a short client session
+   (`probe`) to the address the node dialed it at: which machine tokens it knows (a router knows
+   every machine of its site). One it cannot ask makes the lookup unsure (`Discovery.unseen`);
 5. never settled within `limit` seconds: unsure too. The caller refuses (exit 4) when unsure.
 
 Only `@/<zid>/<whatami>` is read from other nodes. zenoh 1.10's admin handlers for tokens,
@@ -104,9 +105,12 @@ def discover(
     settle: float = SETTLE_S,
     limit: float = LIMIT_S,
     probe: Probe | None = None,
+    links_peers: bool = True,
 ) -> Discovery:
     """The machines alive on the network `session` is connected to, after discovery settled.
-    `probe` asks routers out of sight (step 4); without it they make the lookup unsure."""
+    `probe` asks nodes out of sight (step 4); without it they make the lookup unsure.
+    `links_peers`: this session links to the peers gossip names (a peer with gossip on); a
+    client does not, so a peer behind a node it reached is out of sight too."""
     changes: queue.Queue[_Change] = queue.Queue()
 
     def on_token(sample: zenoh.Sample) -> None:
@@ -127,7 +131,7 @@ def discover(
             seen.unlinked = {
                 n.zid
                 for n in neighbours
-                if n.whatami == "peer" and n.dialed and n.zid not in reached
+                if links_peers and n.whatami == "peer" and n.dialed and n.zid not in reached
             }
             if not seen.unlinked:
                 seen.settled = True
@@ -135,7 +139,8 @@ def discover(
     finally:
         sub.undeclare()
     if seen.settled:
-        _probe_routers(neighbours, reached, seen, prefix, probe)
+        kinds = {"router"} if links_peers else {"router", "peer"}
+        _probe_hidden(neighbours, kinds, reached, seen, prefix, probe)
     seen.waited_s = time.monotonic() - start
     return seen
 
@@ -243,16 +248,19 @@ def _admin(session: zenoh.Session, key: str) -> list[zenoh.Sample]:
 
 
 def _neighbours(session: zenoh.Session) -> tuple[list[_Neighbour], set[str]]:
-    """The sessions of every node this session's queries reach (`@/*/*`: each node's own
-    summary), and the nodes that answered (queries and tokens are routed between us)."""
+    """The sessions of every peer or client node this session's queries reach (`@/*/*`: each
+    node's own summary), and the nodes that answered (queries and tokens are routed between
+    us). A reached router's sessions are left out: it routes their tokens to us itself."""
     found: list[_Neighbour] = []
     answered: set[str] = set()
     for sample in _admin(session, "@/*/*"):
         with contextlib.suppress(ValueError, UnicodeDecodeError):
             info = json.loads(sample.payload.to_string())
             if isinstance(info, dict) and isinstance(info.get("sessions"), list):
-                answered.add(str(sample.key_expr).split("/")[1])
-                found += _sessions(info)
+                _, zid, whatami = str(sample.key_expr).split("/")[:3]
+                answered.add(zid)
+                if whatami != "router":
+                    found += _sessions(info)
     return found, answered
 
 
@@ -275,25 +283,27 @@ def _sessions(info: dict[str, Any]) -> list[_Neighbour]:
     return out
 
 
-def _probe_routers(
+def _probe_hidden(
     neighbours: list[_Neighbour],
+    kinds: set[str],
     reached: set[str],
     seen: Discovery,
     prefix: str,
     probe: Probe | None,
 ) -> None:
-    """Step 4: ask each router a reached node is linked to, that this session did not reach."""
-    routers: dict[str, str | None] = {}
+    """Step 4: ask each node a reached node is linked to, that this session did not reach."""
+    hidden: dict[str, _Neighbour] = {}
     for n in neighbours:
-        if n.whatami == "router" and n.zid not in reached:
-            routers[n.zid] = routers.get(n.zid) or n.dialed
-    for zid, endpoint in sorted(routers.items()):
+        if n.whatami in kinds and n.zid not in reached and (n.zid not in hidden or n.dialed):
+            hidden[n.zid] = n
+    for zid, n in sorted(hidden.items()):
+        endpoint = n.dialed
         if endpoint is None:
-            seen.unseen.append(f"router {zid} (it connected to a node this Rider reached)")
+            seen.unseen.append(f"{n.whatami} {zid} (it connected to a node this Rider reached)")
         elif probe is None:
-            seen.unseen.append(f"router {zid} at {endpoint}")
+            seen.unseen.append(f"{n.whatami} {zid} at {endpoint}")
         elif (ids := _probe_tokens(probe, endpoint, prefix)) is None:
-            seen.unseen.append(f"router {zid} at {endpoint} (did not answer)")
+            seen.unseen.append(f"{n.whatami} {zid} at {endpoint} (did not answer)")
         else:
             seen.probed.add(endpoint)
             seen.alive |= ids

@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 import zenoh
 
-from rider.discovery import Discovery, _apply, _Change, _Neighbour, _probe_routers, _sessions
+from rider.discovery import Discovery, _apply, _Change, _Neighbour, _probe_hidden, _sessions
 
 A_SUMMARY: dict[str, Any] = {
     "zid": "aa",
@@ -47,7 +47,7 @@ def test_a_router_behind_a_node_is_asked_where_the_node_dialed_it() -> None:
         raise zenoh.ZError("no answer")
 
     seen = Discovery(settled=True)
-    _probe_routers(_sessions(A_SUMMARY), {"aa", "me"}, seen, "machine", probe)
+    _probe_hidden(_sessions(A_SUMMARY), {"router"}, {"aa", "me"}, seen, "machine", probe)
     assert asked == ["tcp/10.0.0.1:7447"]
     assert not seen.sure
     assert seen.unseen == ["router rr at tcp/10.0.0.1:7447 (did not answer)"]
@@ -58,14 +58,14 @@ def test_a_router_this_session_reached_is_not_asked_again() -> None:
         raise AssertionError("asked a router already reached")
 
     seen = Discovery(settled=True)
-    _probe_routers(_sessions(A_SUMMARY), {"aa", "rr", "me"}, seen, "machine", probe)
+    _probe_hidden(_sessions(A_SUMMARY), {"router"}, {"aa", "rr", "me"}, seen, "machine", probe)
     assert seen.sure
 
 
 def test_a_router_that_dialed_the_node_has_no_known_address_so_the_lookup_is_unsure() -> None:
     summary = {**A_SUMMARY, "sessions": [{**A_SUMMARY["sessions"][0], "links": []}]}
     seen = Discovery(settled=True)
-    _probe_routers(_sessions(summary), {"aa"}, seen, "machine", None)
+    _probe_hidden(_sessions(summary), {"router"}, {"aa"}, seen, "machine", None)
     assert seen.unseen == ["router rr (it connected to a node this Rider reached)"]
     assert "out of sight: router rr" in seen.describe()
 
@@ -88,3 +88,11 @@ def test_a_snapshot_never_revives_a_machine_seen_going(
     for change in changes:
         _apply(change, got, gone)
     assert got == alive
+
+
+def test_a_client_rider_counts_a_peer_behind_a_node_it_reached_as_out_of_sight() -> None:
+    """Gossip never links a client to peers: a peer that dialed a reached node (a Rider, or a
+    machine linked only to that node) cannot be asked, so the lookup is unsure."""
+    seen = Discovery(settled=True)
+    _probe_hidden(_sessions(A_SUMMARY), {"router", "peer"}, {"aa", "rr"}, seen, "machine", None)
+    assert seen.unseen == ["peer rd (it connected to a node this Rider reached)"]
