@@ -295,3 +295,24 @@ def test_a_router_that_dialed_the_machine_is_out_of_sight_so_the_pick_is_unsure(
     assert unsure.returncode == 4, unsure
     assert "part of the network is out of sight" in unsure.stderr
     assert named.returncode == 0, named
+
+
+@pytest.mark.integration
+def test_a_client_rider_cannot_see_a_machine_linked_only_to_a_peer_daemon(tmp_path: Path) -> None:
+    """`b` a peer linked only to `a` (a peer linked to the router): the router never hears of
+    b, so a client of the router refuses as unsure (it picked `a` before); a peer Rider on the
+    router is linked to both by gossip and sees several."""
+    with site(tmp_path) as stand:
+        stand.start_daemons({"a": "peer"})
+        a = stand.daemons["a"]
+        b = start_daemon(
+            tmp_path, "b", extra=["--zenoh-config", str(PEER_CONFIG), "--connect", a.endpoint]
+        )
+        try:
+            client = look_up("client@router", stand.router.endpoint, stand.client_config).outcome
+            peer = look_up("peer@router", stand.router.endpoint, PEER_CONFIG).outcome
+        finally:
+            b.stop()
+    assert client.startswith("unsure part of the network is out of sight"), client
+    assert "out of sight: peer" in client
+    assert peer == "several", peer
