@@ -150,6 +150,21 @@ def _never(now: float) -> Ending | None:
 
 
 @dataclass(frozen=True, slots=True)
+class Plan:
+    """What a motion command begins: its controller runs in `state`, and `on_done` (bound
+    now) settles the state when it finishes and says how the motion ended."""
+
+    command: Command
+    state: MachineState
+    controller: Controller
+    on_done: OnDone
+    why: str | None = None
+    """The transition's reason (default: the command)."""
+    session: SessionRun | None = None
+    """The run whose progress the status shows (Start)."""
+
+
+@dataclass(frozen=True, slots=True)
 class Motion:
     """An accepted motion command, from `begin` until its one completion notice."""
 
@@ -349,29 +364,19 @@ class ControlAPI:
     # One handler per command (the table's `action`).
     def _calibrate_tilt(self, request: CommandRequest, now: float) -> None:
         tilt = TiltCalibrate(self.devices.tilt, self.config.tilt)
-        self.begin(
-            request,
-            Command.CALIBRATE_TILT,
-            S.CALIBRATING,
-            tilt,
-            now,
-            on_done=lambda at: self._tilt_calibrated(tilt, at),
-        )
+        done = self._tilt_calibrated
+        plan = Plan(Command.CALIBRATE_TILT, S.CALIBRATING, tilt, lambda at: done(tilt, at))
+        self.begin(request, plan, now)
 
     def _calibrate_rotate(self, request: CommandRequest, now: float) -> None:
         rotate = RotateCalibrate(self.devices.rotate, self.config.rotate)
-        self.begin(
-            request,
-            Command.CALIBRATE_ROTATE,
-            S.CALIBRATING,
-            Chain([self._tilt_home, lambda: rotate]),
-            now,
-            on_done=lambda at: self._rotate_calibrated(rotate, at),
-        )
+        chain, done = Chain([self._tilt_home, lambda: rotate]), self._rotate_calibrated
+        plan = Plan(Command.CALIBRATE_ROTATE, S.CALIBRATING, chain, lambda at: done(rotate, at))
+        self.begin(request, plan, now)
 
     def _home(self, request: CommandRequest, now: float) -> None:
         home = Chain([self._tilt_home, self._rotate_home])
-        self.begin(request, Command.HOME, S.HOMING, home, now, on_done=self._homed)
+        self.begin(request, Plan(Command.HOME, S.HOMING, home, self._homed), now)
 
     def _tilt_home(self) -> Controller:
         return TiltHome(self.devices.tilt, self.config.tilt)
@@ -393,25 +398,9 @@ class ControlAPI:
             self._notify(motion, Ending(outcome, error.message, error.code.value), now)
             raise error
         assert self.calibration.rotate is not None  # checked complete above
-        run = SessionRun(
-            session,
-            self.devices.tilt,
-            self.devices.rotate,
-            self.config.tilt,
-            self.config.rotate,
-            self.calibration.rotate.home_arc_deg,
-        )
+        run = SessionRun(session, self.devices, self.config, self.calibration.rotate.home_arc_deg)
         why = f"Start session {session.name!r}"
-        self.begin(
-            request,
-            Command.START,
-            S.RUNNING,
-            run,
-            now,
-            on_done=self._session_done,
-            why=why,
-            session=run,
-        )
+        self.begin(request, Plan(Command.START, S.RUNNING, run, self._session_done, why, run), now)
 
     def _start_refusal(self, session: Session, now: float) -> tuple[End, MachineError] | None:
         """The first of Start's checks that fails, with the state it sets; None: all pass."""
@@ -483,21 +472,10 @@ class ControlAPI:
         return result
 
     # ------------------------------------------------------------------ motion context
-    def begin(
-        self,
-        request: CommandRequest,
-        command: Command,
-        state: MachineState,
-        ctl: Controller,
-        now: float,
-        *,
-        on_done: OnDone,
-        why: str | None = None,
-        session: SessionRun | None = None,
-    ) -> None:
-        """Start a motion: `ctl` runs in `state`; when it finishes, `on_done` settles the
-        state and says how it ended, and that becomes the motion's one completion notice
-        (`session`: the run whose progress the status shows)."""
+    def begin(self, request: CommandRequest, plan: Plan, now: float) -> None:
+        """Start a motion: its controller runs in its state; when it finishes, its `on_done`
+        settles the state and says how it ended: the motion's one completion notice."""
+        command = plan.command
         if self.action is not None:
             # Only a motion halted by the E-stop can be replaced (Home, Calibrate*): it ended.
             if self.state is S.FAULT_ESTOP:
@@ -510,13 +488,12 @@ class ControlAPI:
                 ending = Ending(End.STOPPED, f"replaced by {command.value}")
             self._end(ending, now)
         self._clear_motion()
-        self._drive = _Drive(controller=ctl, session_run=session)
-        self.action = Motion(
-            command, request.transaction_id, request.rider, now + self.wall_offset, on_done
-        )
+        self._drive = _Drive(controller=plan.controller, session_run=plan.session)
+        wall = now + self.wall_offset
+        self.action = Motion(command, request.transaction_id, request.rider, wall, plan.on_done)
         self.fault = None
         self._rider.warning = None
-        self._set_state(state, now, why or command.value)
+        self._set_state(plan.state, now, plan.why or command.value)
 
     def _clear_motion(self) -> None:
         """Abandon the controller (outputs off) and forget the session, where Pause and the

@@ -15,8 +15,9 @@ from typing import Generic, TypeVar
 
 from schema.commands import Direction, RotateStep, Session, TiltStep
 from schema.status import Fault, FaultCode, SessionProgress
-from service.config import RotateSection, TiltSection
+from service.config import MachineConfig, RotateSection, TiltSection
 from service.devices import (
+    Devices,
     RotateAxis,
     RotateCalibration,
     TiltAxis,
@@ -175,35 +176,43 @@ class RotateHome(AxisController[RotateAxis, RotateSection]):
     def __init__(self, axis: RotateAxis, cfg: RotateSection) -> None:
         super().__init__(axis, cfg)
         self.phase = HomePhase.START
+        self._limits = {
+            HomePhase.BACKOFF: cfg.backoff_timeout_s,
+            HomePhase.DWELL: REVERSE_DWELL_S,
+            HomePhase.SEEK: cfg.revolution_timeout_s,
+        }
 
-    def _enter(self, phase: HomePhase, now: float, limit_s: float) -> None:
+    def _enter(self, phase: HomePhase, now: float) -> None:
         self.phase = phase
-        self.timer.start(now, limit_s)
+        self.timer.start(now, self._limits[phase])
 
     def update(self, now: float) -> Outcome:
         home = self.axis.is_home()
         if self.phase is HomePhase.START:
-            if home:
-                self._enter(HomePhase.BACKOFF, now, self.cfg.backoff_timeout_s)
-            else:
-                self._enter(HomePhase.SEEK, now, self.cfg.revolution_timeout_s)
+            self._enter(HomePhase.BACKOFF if home else HomePhase.SEEK, now)
         if self.phase is HomePhase.BACKOFF:
-            if not home:
-                self.axis.stop()
-                self._enter(HomePhase.DWELL, now, REVERSE_DWELL_S)
-                return Outcome.BUSY
-            if self.timer.expired(now):
-                return self._fail(
-                    FaultCode.ROTATE_HOME_TIMEOUT,
-                    f"rotate home switch did not open within {self.cfg.backoff_timeout_s:g} s"
-                    " while backing off (stuck closed or drive not moving)",
-                )
-            self.axis.rotate_one(Direction.CCW)
-            return Outcome.BUSY
+            return self._back_off(now, home)
         if self.phase is HomePhase.DWELL:
             if not self.timer.done(now):
                 return Outcome.BUSY
-            self._enter(HomePhase.SEEK, now, self.cfg.revolution_timeout_s)
+            self._enter(HomePhase.SEEK, now)
+        return self._seek(now, home)
+
+    def _back_off(self, now: float, home: bool) -> Outcome:
+        if not home:
+            self.axis.stop()
+            self._enter(HomePhase.DWELL, now)
+            return Outcome.BUSY
+        if self.timer.expired(now):
+            return self._fail(
+                FaultCode.ROTATE_HOME_TIMEOUT,
+                f"rotate home switch did not open within {self.cfg.backoff_timeout_s:g} s"
+                " while backing off (stuck closed or drive not moving)",
+            )
+        self.axis.rotate_one(Direction.CCW)
+        return Outcome.BUSY
+
+    def _seek(self, now: float, home: bool) -> Outcome:
         if home:
             self.axis.stop()
             return Outcome.DONE
@@ -447,6 +456,17 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
         if not self.timer.started:  # armed from the distance left
             travel_s = abs(err) / self.cfg.nominal_speed_dps
             self.timer.start(now, 1.5 * travel_s + self.cfg.move_timeout_margin_s)
+        failed = self._stuck(now, pos)
+        if failed is not None:
+            return failed
+        if self._dir is None:  # stopped: settled, or correct an overshoot
+            settled = self._settle(err)
+            if settled is not None:
+                return settled
+        return self._drive(now, err)
+
+    def _stuck(self, now: float, pos: float) -> Outcome | None:
+        """Too slow, or the home switch still closed well above home: FAULT."""
         if self.timer.expired(now):
             return self._fail(
                 FaultCode.TILT_TIMEOUT,
@@ -458,18 +478,25 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
                 FaultCode.TILT_HOME_STUCK,
                 f"tilt home switch still closed at {pos:.1f}° (stuck closed)",
             )
-        if self._dir is None:  # stopped: settled, or correct an overshoot
-            if abs(err) <= self.cfg.tolerance_deg:
-                return Outcome.DONE
-            self._corrections += 1
-            if self._corrections > self.MAX_CORRECTIONS:
-                return self._fail(
-                    FaultCode.TILT_TIMEOUT,
-                    f"tilt could not settle within ±{self.cfg.tolerance_deg:g}°"
-                    f" of {self.target:g}°",
-                )
-            self._dir = TiltDirection.UP if err > 0 else TiltDirection.DOWN
-            self._sup.reset()
+        return None
+
+    def _settle(self, err: float) -> Outcome | None:
+        """Stopped: DONE within tolerance, else the way to correct (None), or FAULT after
+        too many corrections."""
+        if abs(err) <= self.cfg.tolerance_deg:
+            return Outcome.DONE
+        self._corrections += 1
+        if self._corrections > self.MAX_CORRECTIONS:
+            return self._fail(
+                FaultCode.TILT_TIMEOUT,
+                f"tilt could not settle within ±{self.cfg.tolerance_deg:g}° of {self.target:g}°",
+            )
+        self._dir = TiltDirection.UP if err > 0 else TiltDirection.DOWN
+        self._sup.reset()
+        return None
+
+    def _drive(self, now: float, err: float) -> Outcome:
+        assert self._dir is not None
         reached = abs(err) <= self.cfg.tolerance_deg / 2 or (
             err <= 0 if self._dir is TiltDirection.UP else err >= 0
         )
@@ -537,27 +564,31 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
                 return Outcome.DONE
             self.phase, self.homing, self._samples = TiltCalPhase.SAMPLE_HOME, None, []
         if self.phase is TiltCalPhase.SAMPLE_HOME:
-            if self._sample():
-                self._raw0 = sum(self._samples) / len(self._samples)
-                self.phase = TiltCalPhase.STROKE
-                self.timer.start(now, self.cfg.calibration_stroke_s)
-                self._sup.reset()
-                self.axis.tilt_one(TiltDirection.UP)
-            return Outcome.BUSY
+            return self._sample_home(now)
         if self.phase is TiltCalPhase.STROKE:
-            if self.timer.done(now):
-                self.axis.stop()
-                self._stroke_s = self.timer.elapsed(now)
-                self.phase, self._samples = TiltCalPhase.SAMPLE_TOP, []
-                return Outcome.BUSY
-            fault = self._sup.check(now, TiltDirection.UP)
-            if fault is not None:
-                return self._fault(fault)
+            return self._stroke(now)
+        return self._compute() if self._sample() else Outcome.BUSY  # SAMPLE_TOP
+
+    def _sample_home(self, now: float) -> Outcome:
+        if self._sample():
+            self._raw0 = sum(self._samples) / len(self._samples)
+            self.phase = TiltCalPhase.STROKE
+            self.timer.start(now, self.cfg.calibration_stroke_s)
+            self._sup.reset()
             self.axis.tilt_one(TiltDirection.UP)
+        return Outcome.BUSY
+
+    def _stroke(self, now: float) -> Outcome:
+        if self.timer.done(now):
+            self.axis.stop()
+            self._stroke_s = self.timer.elapsed(now)
+            self.phase, self._samples = TiltCalPhase.SAMPLE_TOP, []
             return Outcome.BUSY
-        if not self._sample():  # SAMPLE_TOP
-            return Outcome.BUSY
-        return self._compute()
+        fault = self._sup.check(now, TiltDirection.UP)
+        if fault is not None:
+            return self._fault(fault)
+        self.axis.tilt_one(TiltDirection.UP)
+        return Outcome.BUSY
 
     def _sample(self) -> bool:
         self._samples.append(self.axis.read_raw())
@@ -636,19 +667,15 @@ class SessionRun(Chain):
     """A session's steps as a chain, with progress for the status record."""
 
     def __init__(
-        self,
-        session: Session,
-        tilt: TiltAxis,
-        rotate: RotateAxis,
-        tilt_cfg: TiltSection,
-        rotate_cfg: RotateSection,
-        home_arc_deg: float = 0.0,
+        self, session: Session, devices: Devices, config: MachineConfig, home_arc_deg: float = 0.0
     ) -> None:
+        tilt, rotate = devices.tilt, devices.rotate
+
         def make(step: TiltStep | RotateStep) -> Callable[[], Controller]:
             if isinstance(step, TiltStep):
-                return lambda: TiltMove(tilt, tilt_cfg, step.degrees)
+                return lambda: TiltMove(tilt, config.tilt, step.degrees)
             return lambda: RotateRevolutions(
-                rotate, rotate_cfg, step.direction, step.revolutions, home_arc_deg
+                rotate, config.rotate, step.direction, step.revolutions, home_arc_deg
             )
 
         super().__init__([make(s) for s in session.steps])
