@@ -25,6 +25,7 @@ TIMER_SLACK_NS = 1_000
 """The scan thread's timer slack. Linux lets a timed wait end up to 50 µs late by default,
 which was half of the median wake-up jitter measured at 1 ms (bench/loop_timing.py)."""
 PR_SET_TIMERSLACK = 29
+PR_GET_TIMERSLACK = 30
 PR_SET_PDEATHSIG = 1
 SUPERVISOR_PID_ENV = "MACHINE_SUPERVISOR_PID"
 """Set by `machine supervise` for its child: the daemon stops when the supervisor dies."""
@@ -174,6 +175,14 @@ def die_with_parent(parent_pid: int) -> bool:
     is already gone or the OS cannot do it."""
     ok = _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     return ok and os.getppid() == parent_pid
+
+
+def timer_slack() -> int | None:
+    """The calling thread's timer slack in ns (Linux); None where it cannot be read."""
+    if not sys.platform.startswith("linux"):
+        return None
+    value = int(ctypes.CDLL(None, use_errno=True).prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0))
+    return value if value >= 0 else None
 
 
 def set_timer_slack(ns: int) -> bool:

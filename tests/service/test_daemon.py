@@ -16,6 +16,7 @@ from schema.events import DaemonStopEvent, EventQuery
 from service.config import MachineConfig
 from service.daemon import EXIT_FAILED, EXIT_OK, Daemon, DaemonOptions
 from service.eventlog import EVENTS_FILE, connect_readonly, iter_events
+from service.runner import set_timer_slack, timer_slack
 from tests.procs import free_port, write_zenoh_config
 
 # Setup order reversed: the outputs first, the HAL last.
@@ -33,12 +34,16 @@ UNDO_ORDER = [
 
 
 @pytest.fixture(autouse=True)
-def keep_signal_handlers() -> Iterator[None]:
-    """The daemon traps SIGTERM/SIGINT in this process: give pytest its own back."""
+def keep_process_state() -> Iterator[None]:
+    """The daemon runs on this (pytest's main) thread: it traps SIGTERM/SIGINT and tunes the
+    thread's timer slack. Give pytest its own back, or later tests inherit the daemon's."""
     saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    slack = timer_slack()
     yield
     for s, handler in saved.items():
         signal.signal(s, handler)
+    if slack is not None:
+        set_timer_slack(slack)
 
 
 def daemon_in(tmp_path: Path, fastdata_port: int) -> Daemon:

@@ -2,22 +2,22 @@
 
 from __future__ import annotations
 
-import ctypes
 import sys
 import threading
 from collections.abc import Callable
 
 import pytest
 
-from service.runner import TIMER_SLACK_NS, tune_thread
+from service.runner import TIMER_SLACK_NS, timer_slack, tune_thread
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux")
-PR_GET_TIMERSLACK = 30
 
 
 def _slack() -> int:
     """The calling thread's timer slack in ns, as the kernel reports it."""
-    return int(ctypes.CDLL(None).prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0))
+    slack = timer_slack()
+    assert slack is not None
+    return slack
 
 
 def _in_thread(fn: Callable[[], list[str]]) -> tuple[list[str], int]:
