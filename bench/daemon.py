@@ -107,7 +107,8 @@ def home_and_start(rider: Rider, timeout: float = 30.0) -> list[str]:
     """Home a calibrated machine, then start the default session (relays on, axes moving).
 
     On a busy host a stalled scan can trip the watchdog or make homing miss the switch
-    (FAULT_HW): home again, a few times; returns the faults seen on the way.
+    (FAULT_HW), also between homing and the start: home again, a few times; returns the
+    faults seen on the way.
     """
     faults: list[str] = []
     for _ in range(HOME_TRIES):
@@ -124,7 +125,11 @@ def home_and_start(rider: Rider, timeout: float = 30.0) -> list[str]:
             [MachineState.IDLE, MachineState.FAULT_HW], timeout=timeout, after=reply.timecode
         )
         if status.state is MachineState.IDLE:
-            rider.start()
+            try:
+                rider.start()
+            except CommandRefused as exc:  # a stall tripped the watchdog after homing
+                faults.append(str(exc.error.code))
+                continue
             return faults
         faults.append(str(status.fault.code if status.fault else status.state))
     raise HomingFailed(faults)
