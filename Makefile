@@ -39,9 +39,9 @@ schema: $(STAMP)
 	$(BIN)/machine schema schema/json
 
 ## Regenerate the README's state table and docs/states.md from the transition table
-## (service/control.py TABLE); tests/service/test_control_doc.py fails while they differ.
+## (service/core/control.py TABLE); tests/service/test_control_doc.py fails while they differ.
 states: $(STAMP)
-	$(BIN)/python -m service.control_doc
+	$(BIN)/python -m service.core.control_doc
 
 ## Install, then lint, type-check and run the whole test suite.
 test: $(STAMP) browser js

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from rider.client import CommandRefused, Rider
 from schema.status import MachineState
-from service.persist import CALIBRATION_FILE
+from service.core.persist import CALIBRATION_FILE
 from tests.procs import Daemon, start_daemon
 
 STATS_WINDOW = 100_000

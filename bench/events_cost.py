@@ -26,12 +26,12 @@ from pathlib import Path
 
 from bench.common import Options, Section, Table, Target, main_for, ms
 from schema.commands import Command, CommandRequest, Reply
-from service.config import EventsSection, MachineConfig
-from service.eventlog import EVENTS_FILE, EventLog
-from service.loop import LoopCall, PendingCommand, ScanLoop
-from service.machine import Machine
-from service.runner import RealtimeRunner, tune_thread
-from service.timing import CycleStats
+from service.adapters.eventlog import EVENTS_FILE, EventLog
+from service.config.model import EventsSection, MachineConfig
+from service.core.loop import LoopCall, PendingCommand, ScanLoop
+from service.core.machine import Machine
+from service.core.runner import RealtimeRunner, tune_thread
+from service.core.timing import CycleStats
 from sim.hal import SimHal
 
 PERIOD_S = 0.010

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from bench.common import CpuMeter, Dist, Options, Section, Table, Target, main_for, ms
 from bench.daemon import bench_daemon, calibration_file
-from service.persist import CALIBRATION_FILE
+from service.core.persist import CALIBRATION_FILE
 from tests.integration.support import write_fast_config
 from tests.netns import NetnsUnavailable, NsPair, veth_pair
 from tests.procs import REPO, Daemon, LineReader, free_port, start_daemon, stop_process

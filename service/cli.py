@@ -9,10 +9,10 @@ from pathlib import Path
 from typing import TextIO
 
 from schema.findings import Findings, Severity
-from service.config import HalBackend, MachineConfig
-from service.load import load, override_source
+from service.config.load import load, override_source
+from service.config.model import HalBackend, MachineConfig
+from service.config.validate import finding_line, findings_of, hardware_findings
 from service.logfmt import setup_logging
-from service.validate import finding_line, findings_of, hardware_findings
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -193,7 +193,12 @@ def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None
 
 
 def credentials_init(directory: Path, force: bool) -> int:
-    from service.credentials import DICTIONARY, CredentialsExist, init_credentials, password_file
+    from service.adapters.credentials import (
+        DICTIONARY,
+        CredentialsExist,
+        init_credentials,
+        password_file,
+    )
 
     try:
         written = init_credentials(directory, force=force)
@@ -234,14 +239,14 @@ def main(argv: list[str] | None = None) -> int:
     if config is None:
         return EXIT_CONFIG
     if args.cmd == "events":
-        from service.export import export_events
+        from service.adapters.export import export_events
 
         return export_events(args, args.data_dir or Path(config.data_dir))
     if args.cmd == "demo" or getattr(args, "once_session", False):
         from service.simwing import run_demo
 
         return run_demo(config, speed=args.speed)
-    from service.daemon import DaemonOptions, run_daemon
+    from service.supervision.daemon import DaemonOptions, run_daemon
 
     # The backend's own check, on the config that will run: the same findings, the same way,
     # for `run` and `supervise`, before anything opens.
@@ -251,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect
     )
     if args.cmd == "supervise":
-        from service.supervisor import SupervisorOptions, run_supervisor
+        from service.supervision.supervisor import SupervisorOptions, run_supervisor
 
         if not 0 < args.backoff <= args.backoff_max:
             print("machine: need 0 < --backoff <= --backoff-max", file=sys.stderr)

@@ -14,7 +14,7 @@ from typing import Protocol
 
 from hal.base import Hal
 from service.bus.injection import SimPort
-from service.config import MachineConfig
+from service.config.model import MachineConfig
 
 
 class World(SimPort, Protocol):

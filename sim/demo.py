@@ -7,9 +7,9 @@ import time
 
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.status import MachineState
-from service.config import MachineConfig
-from service.loop import PendingCommand
-from service.machine import Machine
+from service.config.model import MachineConfig
+from service.core.loop import PendingCommand
+from service.core.machine import Machine
 from sim.hal import SimHal
 
 log = logging.getLogger("demo")

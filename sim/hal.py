@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 from hal.base import Inputs, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from service.config import PhysicsParams
+from service.config.model import PhysicsParams
 from sim.physics import SwitchFault, World
 
 

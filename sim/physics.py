@@ -1,5 +1,5 @@
 """The ride's physics, with fault injection: shared by the simulator HAL and the process-image
-world. Its parameters are the `[hal.sim]` section of machine.toml (`service.config`)."""
+world. Its parameters are the `[hal.sim]` section of machine.toml (`service.config.model`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import random
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from service.config import PhysicsParams
+from service.config.model import PhysicsParams
 
 INT16_MIN, INT16_MAX = -32768, 32767
 

@@ -17,7 +17,7 @@ from pydantic import BaseModel
 from hal.base import HalError
 from hal.iomap import IoMap
 from schema.sim import SimWorldState
-from service.config import PhysicsParams
+from service.config.model import PhysicsParams
 from sim import faults as simfaults
 from sim.procimg import ProcImgSim
 

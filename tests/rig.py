@@ -13,14 +13,14 @@ from schema.commands import Command, Reply, Session, StartRequest, TiltStep
 from schema.commands import CommandRequest as Req
 from schema.io import IoValue
 from schema.status import MachineState, Status
-from service.config import MachineConfig, PhysicsParams
-from service.control import Transition
-from service.devices import Calibration
-from service.events import EventSink
-from service.loop import PendingCommand
-from service.machine import Machine
-from service.persist import CalibrationStore
-from service.watchdog import GuardedHal
+from service.config.model import MachineConfig, PhysicsParams
+from service.core.control import Transition
+from service.core.devices import Calibration
+from service.core.events import EventSink
+from service.core.loop import PendingCommand
+from service.core.machine import Machine
+from service.core.persist import CalibrationStore
+from service.core.watchdog import GuardedHal
 from sim.hal import SimHal
 
 

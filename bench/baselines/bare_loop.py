@@ -13,9 +13,9 @@ import threading
 import time
 from typing import Any, cast
 
-from service.loop import Inbox, ScanLoop
-from service.runner import TIMER_SLACK_NS, RealtimeRunner, tune_thread
-from service.timing import CycleStats
+from service.core.loop import Inbox, ScanLoop
+from service.core.runner import TIMER_SLACK_NS, RealtimeRunner, tune_thread
+from service.core.timing import CycleStats
 
 
 class EmptyScan:

@@ -13,8 +13,8 @@ import zenoh
 from schema.commands import REQUEST_MODELS, Command, Reply
 from service.bus.request import Request, sender_of
 from service.bus.routes import Handler, Route, Wildcard
+from service.core.loop import PendingCommand, ScanLoop
 from service.errors import BadRequest, Busy, UnknownCommand, WildcardCommand
-from service.loop import PendingCommand, ScanLoop
 
 LOCK_TIMEOUT_S = 0.5
 """How long a command waits for the scan thread to finish a cycle before BUSY (a stalled loop)."""

@@ -10,6 +10,7 @@ from typing import Any
 import zenoh
 
 from schema.status import MachineState
+from service.adapters.eventlog import EventLog
 from service.bus.commands import Commands
 from service.bus.injection import Injection, SimPort
 from service.bus.presence import Presence
@@ -18,10 +19,9 @@ from service.bus.reads import ConfigChecker, Reads
 from service.bus.request import Request
 from service.bus.routes import Route, declare
 from service.bus.writes import ParamService, Writes, on_loop
-from service.config import MachineConfig
-from service.eventlog import EventLog
-from service.loop import ScanLoop
-from service.timing import CycleStats
+from service.config.model import MachineConfig
+from service.core.loop import ScanLoop
+from service.core.timing import CycleStats
 
 log = logging.getLogger("service.bus")
 

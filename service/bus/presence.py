@@ -12,9 +12,9 @@ import zenoh
 
 from schema import rider as rider_keys
 from schema.events import RiderEvent
-from service.config import MachineConfig
-from service.eventlog import EventLog
-from service.loop import LoopCall, ScanLoop
+from service.adapters.eventlog import EventLog
+from service.config.model import MachineConfig
+from service.core.loop import LoopCall, ScanLoop
 
 log = logging.getLogger(__name__)
 

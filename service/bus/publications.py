@@ -23,10 +23,10 @@ from schema.diag import CycleDiag
 from schema.events import Event
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, MachineState, Status
-from service.config import MachineConfig
-from service.eventlog import EventLog
-from service.loop import ScanLoop
-from service.timing import CycleStats
+from service.adapters.eventlog import EventLog
+from service.config.model import MachineConfig
+from service.core.loop import ScanLoop
+from service.core.timing import CycleStats
 
 
 @dataclass(eq=False)

@@ -16,8 +16,10 @@ from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.events import EventPage, EventQuery, QueryError, selector_params
 from schema.findings import Findings
+from service.adapters.eventlog import EventLog
 from service.bus.request import Request, put
 from service.bus.routes import Handler, Route
+from service.core.loop import ScanLoop
 from service.errors import (
     BadKey,
     BadRequest,
@@ -28,8 +30,6 @@ from service.errors import (
     StorageFailed,
     UnknownTransaction,
 )
-from service.eventlog import EventLog
-from service.loop import ScanLoop
 
 
 class ConfigChecker(Protocol):

@@ -29,7 +29,7 @@ from service.bus.reads import latest, matching
 from service.bus.request import Request
 from service.bus.routes import Route, declare
 from service.bus.session import file_config, zenoh_config
-from service.config import MachineConfig
+from service.config.model import MachineConfig
 from service.errors import NotAvailable
 
 log = logging.getLogger(__name__)

@@ -14,14 +14,14 @@ from schema.diag import CycleDiag
 from schema.errors import Error
 from schema.events import ParamEvent
 from schema.params import ParamSet, ParamValue
+from service.adapters.eventlog import EventLog
 from service.bus.reads import matching
 from service.bus.request import Request
 from service.bus.routes import Route, Wildcard
+from service.core.loop import LoopCall, ScanLoop, calibration_record
+from service.core.persist import SaveTicket
+from service.core.timing import CycleStats
 from service.errors import BadRequest, Busy, MachineError, Rejected, StorageFailed
-from service.eventlog import EventLog
-from service.loop import LoopCall, ScanLoop, calibration_record
-from service.persist import SaveTicket
-from service.timing import CycleStats
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,7 @@ SAVE_WAIT_S = 5.0
 
 
 class ParamService(Protocol):
-    """What the bus needs from the parameter registry (service/params.py)."""
+    """What the bus needs from the parameter registry (service/core/params.py)."""
 
     def list(self) -> list[ParamValue]: ...
 

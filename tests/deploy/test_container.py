@@ -21,7 +21,7 @@ import pytest
 import yaml
 
 from schema.status import MachineState, Status
-from service.credentials import init_credentials
+from service.adapters.credentials import init_credentials
 from tests.deploy import spec
 from tests.integration.support import write_fast_config
 from tests.procs import REPO, free_port, rider_cmd

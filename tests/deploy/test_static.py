@@ -24,9 +24,9 @@ from urllib.parse import urlsplit
 import pytest
 import zenoh
 
+from service.adapters.credentials import DICTIONARY, IDENTITIES, password_file
 from service.bus import close_session
-from service.config import MachineConfig
-from service.credentials import DICTIONARY, IDENTITIES, password_file
+from service.config.model import MachineConfig
 from tests.deploy import spec
 from tests.procs import REPO
 

@@ -31,7 +31,7 @@ import pytest
 
 from rider.cli import EXIT_NO_REPLY, EXIT_OK
 from schema.status import MachineState, Status
-from service.credentials import init_credentials
+from service.adapters.credentials import init_credentials
 from tests.deploy import spec
 from tests.integration.support import write_fast_config
 from tests.netns import NetnsUnavailable, NsPair, hosts_file, unavailable_reason, veth_pair

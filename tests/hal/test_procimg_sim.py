@@ -10,7 +10,7 @@ import pytest
 from hal.base import HalError, Outputs
 from hal.iomap import IoMap
 from hal.revpi import RevPiConfigError, RevPiHal
-from service.config import PhysicsParams
+from service.config.model import PhysicsParams
 from sim.physics import SwitchFault
 from sim.procimg import ProcImgSim
 from tests.fixtures.revpi import (

@@ -18,9 +18,9 @@ from hal.revpi import RevPiConfigError, RevPiHal, check_revpi_io
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.findings import Finding, Severity
 from schema.status import MachineState
-from service.config import MachineConfig
-from service.loop import PendingCommand
-from service.machine import Machine
+from service.config.model import MachineConfig
+from service.core.loop import PendingCommand
+from service.core.machine import Machine
 from sim.procimg import ProcImgSim
 from tests.fixtures.revpi import (
     CONFIG_RSC,

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from hal.iomap import IoMap
-from service.config import MachineConfig
-from service.daemon import DaemonOptions, open_hal
-from service.supervisor import Supervisor, SupervisorOptions
+from service.config.model import MachineConfig
+from service.supervision.daemon import DaemonOptions, open_hal
+from service.supervision.supervisor import Supervisor, SupervisorOptions
 from tests.fixtures.revpi import CONFIG_RSC, make_image
 from tests.fixtures.revpi.corpus import path
 from tests.procs import machine_cmd

@@ -8,7 +8,7 @@ import pytest
 
 from hal.base import Hal, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from service.config import PhysicsParams
+from service.config.model import PhysicsParams
 from sim.hal import SimHal
 from sim.physics import SwitchFault, World
 from tests.rig import FakeClock

@@ -17,7 +17,7 @@ import zenoh
 from rider.client import Rider
 from schema.events import Event, EventPage
 from schema.status import MachineState, Status
-from service.eventlog import EVENTS_FILE
+from service.adapters.eventlog import EVENTS_FILE
 from tests.integration.support import fast_args, prepare, settle
 from tests.procs import REPO, Daemon, machine_cmd, rider_cmd, start_daemon, stop_process
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from schema.credentials import RIDER, zenoh_settings
-from service.credentials import DICTIONARY, IDENTITIES, password_file
+from service.adapters.credentials import DICTIONARY, IDENTITIES, password_file
 from tests.netns import NetnsUnavailable, veth_pair
 from tests.procs import REPO, START_TIMEOUT_S, free_port, machine_cmd, stop_process
 from tests.reliability.support import ACL_PROFILE

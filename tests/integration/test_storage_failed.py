@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from schema.status import MachineState, Status
-from service.devices import Calibration, RotateCalibration, TiltCalibration
-from service.persist import CALIBRATION_FILE, calibration_to_json
+from service.core.devices import Calibration, RotateCalibration, TiltCalibration
+from service.core.persist import CALIBRATION_FILE, calibration_to_json
 from tests.integration.support import fast_args
 from tests.procs import Daemon, start_daemon
 

@@ -20,7 +20,7 @@ from rider.client import Rider
 from schema.codec import Format, decode
 from schema.credentials import MACHINE, RIDER, env_name
 from schema.status import Status
-from service.credentials import DICTIONARY, IDENTITIES, init_credentials, password_file
+from service.adapters.credentials import DICTIONARY, IDENTITIES, init_credentials, password_file
 from tests.integration.support import STEP_TIMEOUT_S, write_fast_config
 from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, machine_cmd, write_zenoh_config
 

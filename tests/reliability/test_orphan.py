@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from service.runner import SUPERVISOR_PID_ENV, die_with_parent
+from service.core.runner import SUPERVISOR_PID_ENV, die_with_parent
 from tests.procs import REPO, free_port, machine_cmd, write_zenoh_config
 
 TIMEOUT_S = 30.0

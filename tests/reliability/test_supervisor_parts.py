@@ -12,8 +12,8 @@ import pytest
 from hal.revpi import check_revpi_io
 from schema.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
 from service.bus.supervisor import child_config, requires_credentials, router_config
-from service.config import HalBackend, MachineConfig
-from service.supervisor import Backoff, describe_exit, to_toml
+from service.config.model import HalBackend, MachineConfig
+from service.supervision.supervisor import Backoff, describe_exit, to_toml
 from sim.world import CONFIG_RSC
 from tests.reliability.support import ACL_PROFILE
 

@@ -34,7 +34,7 @@ from schema.fastdata import (
     encode,
     pack_reply,
 )
-from service.fastdata import FastDataServer, to_fast_axis
+from service.adapters.fastdata import FastDataServer, to_fast_axis
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "fastdata.md"
 

@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 
 from schema.events import DaemonStopEvent
-from service.config import EventsSection
-from service.eventlog import EVENTS_FILE, EventLog
+from service.adapters.eventlog import EVENTS_FILE, EventLog
+from service.config.model import EventsSection
 from tests.service.persist_crash_writer import _say, serve
 
 PACE_S = 0.0002

@@ -16,10 +16,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from schema.params import ParamSet
-from service.config import MachineConfig
-from service.devices import Calibration, RotateCalibration, TiltCalibration
-from service.params import ParamRegistry
-from service.persist import CalibrationStore, ParamStore
+from service.config.model import MachineConfig
+from service.core.devices import Calibration, RotateCalibration, TiltCalibration
+from service.core.params import ParamRegistry
+from service.core.persist import CalibrationStore, ParamStore
 
 FIRST, SECOND = "tilt.home_timeout_s", "bus.heartbeat_s"
 

@@ -24,7 +24,7 @@ from service.bus.injection import Injection
 from service.bus.request import Request
 from service.bus.routes import Route, Wildcard, declare
 from service.bus.supervisor import SupervisorBus
-from service.config import MachineConfig
+from service.config.model import MachineConfig
 from service.errors import Busy, MachineError, UnknownCommand
 
 BASE = "machine/t1"

@@ -14,7 +14,7 @@ from schema.calibration import (
 from schema.commands import Command
 from schema.errors import ErrorCode
 from schema.status import MachineState
-from service.devices import Calibration
+from service.core.devices import Calibration
 from service.errors import MachineError
 from tests.rig import Rig
 

@@ -8,8 +8,8 @@ from typing import Any
 from schema.commands import Command
 from schema.completion import Completion, Outcome
 from schema.status import MachineState, MotionRef, Status
-from service.completions import CompletionLog
-from service.config import MachineConfig
+from service.config.model import MachineConfig
+from service.core.completions import CompletionLog
 from sim.physics import SwitchFault
 from tests.rig import BAD_SESSION, Rig, known_calibration
 from tests.service.test_persist_failure import SlowStore

@@ -8,14 +8,14 @@ import pytest
 
 from schema.commands import Command
 from schema.status import MachineState
-from service import control_doc
-from service.control import Event
+from service.core import control_doc
+from service.core.control import Event
 
 
 def test_readme_and_states_page_match_the_transition_table() -> None:
     for path, text in control_doc.outputs().items():
         assert path.read_text() == text, (
-            f"{path.name} is stale: run `python -m service.control_doc`"
+            f"{path.name} is stale: run `python -m service.core.control_doc`"
         )
 
 

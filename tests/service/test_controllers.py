@@ -6,7 +6,7 @@ import pytest
 
 from schema.commands import Command
 from schema.status import MachineState
-from service.controllers import (
+from service.core.controllers import (
     Chain,
     HomePhase,
     RotateCalibrate,

@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 
 from schema.events import DaemonStopEvent, EventQuery
-from service.config import MachineConfig
-from service.daemon import EXIT_FAILED, EXIT_OK, Daemon, DaemonOptions
-from service.eventlog import EVENTS_FILE, connect_readonly, iter_events
-from service.runner import set_timer_slack, timer_slack
+from service.adapters.eventlog import EVENTS_FILE, connect_readonly, iter_events
+from service.config.model import MachineConfig
+from service.core.runner import set_timer_slack, timer_slack
+from service.supervision.daemon import EXIT_FAILED, EXIT_OK, Daemon, DaemonOptions
 from tests.procs import free_port, write_zenoh_config
 
 # Setup order reversed: the outputs first, the HAL last.

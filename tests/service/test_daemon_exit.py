@@ -10,7 +10,7 @@ from tests.procs import REPO
 SCRIPT = """
 import time
 from sim.hal import SimHal
-from service.daemon import _exit_now
+from service.supervision.daemon import _exit_now
 
 hal = SimHal(time.monotonic)
 hal.scan_outputs(hal.outputs.__class__(ro=dict.fromkeys(hal.outputs.ro, True)))

@@ -10,8 +10,8 @@ from hal.iomap import IoMap
 from schema.commands import Command, CommandRequest, Reply
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
-from service.config import MachineConfig
-from service.loop import PendingCommand
+from service.config.model import MachineConfig
+from service.core.loop import PendingCommand
 from tests.rig import Rig, known_calibration, rig_in
 
 S = MachineState

@@ -25,8 +25,7 @@ from schema.events import (
     StorageEvent,
     WatchdogEvent,
 )
-from service.config import EventsSection
-from service.eventlog import (
+from service.adapters.eventlog import (
     BUSY_TIMEOUT_S,
     EVENTS_FILE,
     EventLog,
@@ -34,6 +33,7 @@ from service.eventlog import (
     iter_events,
     read_page,
 )
+from service.config.model import EventsSection
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""

@@ -17,8 +17,8 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import MachineState
-from service.events import ListEventSink
-from service.persist import StorageHealth
+from service.core.events import ListEventSink
+from service.core.persist import StorageHealth
 from tests.rig import Rig, known_calibration
 
 S = MachineState
@@ -184,7 +184,7 @@ def test_an_idle_machine_records_nothing() -> None:
 def test_a_failed_write_to_data_dir_is_recorded_once_per_problem() -> None:
     rig, sink = ready_rig()
     storage = StorageHealth()
-    rig.control.storage = storage  # what the daemon wires in (service/daemon.py)
+    rig.control.storage = storage  # what the daemon wires in (service/supervision/daemon.py)
     mark = len(sink.events)
     storage.failed(StorageHealth.CALIBRATION, "calibration.json: No space left on device")
     rig.step(3)

@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from schema.events import CommandEvent, DaemonStopEvent, Event, parse_point
+from service.adapters.eventlog import EVENTS_FILE, EventLog
+from service.adapters.export import CSV_COLUMNS
 from service.cli import main
-from service.config import EventsSection
-from service.eventlog import EVENTS_FILE, EventLog
-from service.export import CSV_COLUMNS
+from service.config.model import EventsSection
 from tests.procs import REPO, machine_cmd
 
 

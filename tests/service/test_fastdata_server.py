@@ -18,7 +18,7 @@ from schema.fastdata import (
     decode,
 )
 from schema.status import MachineState
-from service.fastdata import (
+from service.adapters.fastdata import (
     DRV_STAT_FAULT,
     FastDataServer,
     RequestBudget,

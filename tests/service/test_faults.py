@@ -10,7 +10,7 @@ import pytest
 from hal.iomap import Signal
 from schema.commands import Command
 from schema.status import FaultCode, MachineState
-from service.config import MachineConfig
+from service.config.model import MachineConfig
 from sim.physics import SwitchFault
 from tests.rig import Rig, known_calibration
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from service.cli import load_config, main
-from service.config import MachineConfig
-from service.load import check_candidate, load, load_data
+from service.config.load import check_candidate, load, load_data
+from service.config.model import MachineConfig
 
 # Each bad value fails the same check whether the file or the command line gives it.
 BAD = [

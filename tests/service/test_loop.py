@@ -14,11 +14,11 @@ from schema.commands import REQUEST_MODELS, Command, Reply
 from schema.errors import Error, ErrorCode
 from schema.params import ParamSet
 from schema.status import MachineState
-from service.config import MachineConfig
-from service.loop import Inbox, LoopCall, PendingCommand, ScanLoop, Wake
-from service.machine import Machine
-from service.params import ParamRegistry
-from service.persist import ParamStore
+from service.config.model import MachineConfig
+from service.core.loop import Inbox, LoopCall, PendingCommand, ScanLoop, Wake
+from service.core.machine import Machine
+from service.core.params import ParamRegistry
+from service.core.persist import ParamStore
 from sim.hal import SimHal
 from tests.rig import FakeClock, Rig, known_calibration, rig_in
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from service.config import HalBackend, MachineConfig
-from service.load import load
-from service.validate import Category
+from service.config.load import load
+from service.config.model import HalBackend, MachineConfig
+from service.config.validate import Category
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "machine.toml"

@@ -11,11 +11,11 @@ import pytest
 
 from schema.errors import ErrorCode
 from schema.params import ParamSet
-from service.config import MachineConfig, RiderLossPolicy
+from service.config.model import MachineConfig, RiderLossPolicy
+from service.config.validate import validate_data
+from service.core.params import SPECS, ParamRegistry, ParamWrongType
+from service.core.persist import PARAMS_FILE, ParamStore
 from service.errors import ParamLocked, ParamOutOfRange, StorageFailed, UnknownParam
-from service.params import SPECS, ParamRegistry, ParamWrongType
-from service.persist import PARAMS_FILE, ParamStore
-from service.validate import validate_data
 
 REQUIRED = {
     "tilt.tolerance_deg",

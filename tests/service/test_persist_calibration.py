@@ -10,8 +10,8 @@ import pytest
 from schema.calibration import CalibrationSource
 from schema.commands import Command
 from schema.status import MachineState
-from service.devices import Calibration, RotateCalibration, TiltCalibration
-from service.persist import (
+from service.core.devices import Calibration, RotateCalibration, TiltCalibration
+from service.core.persist import (
     CALIBRATION_FILE,
     BackgroundWriter,
     CalibrationStore,

@@ -14,10 +14,10 @@ import pytest
 
 from schema.params import ParamSet
 from schema.status import MachineState
-from service.config import MachineConfig
-from service.devices import Calibration
-from service.params import ParamRegistry
-from service.persist import (
+from service.config.model import MachineConfig
+from service.core.devices import Calibration
+from service.core.params import ParamRegistry
+from service.core.persist import (
     CALIBRATION_FILE,
     PARAMS_FILE,
     CalibrationStore,

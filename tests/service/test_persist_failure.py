@@ -13,17 +13,17 @@ import pytest
 from schema.commands import Command
 from schema.params import ParamSet
 from schema.status import MachineState
-from service.config import MachineConfig
-from service.devices import Calibration, RotateCalibration, TiltCalibration
-from service.errors import StorageFailed
-from service.params import ParamRegistry
-from service.persist import (
+from service.config.model import MachineConfig
+from service.core.devices import Calibration, RotateCalibration, TiltCalibration
+from service.core.params import ParamRegistry
+from service.core.persist import (
     CALIBRATION_FILE,
     ParamStore,
     SaveTicket,
     StorageHealth,
     calibration_to_json,
 )
+from service.errors import StorageFailed
 from tests.rig import Rig
 
 S = MachineState
@@ -43,7 +43,7 @@ def test_a_failed_calibration_save_is_a_warning_and_the_older_file_goes(
     (tmp_path / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
     rig = Rig(data_dir=tmp_path)
     assert rig.control.calibration == OLD
-    monkeypatch.setattr("service.persist.atomic_write", disk_full)
+    monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
 
     assert rig.send(Command.CALIBRATE_TILT).success
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
@@ -66,7 +66,7 @@ def test_a_later_good_save_clears_the_warning(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     rig = Rig(data_dir=tmp_path)
-    monkeypatch.setattr("service.persist.atomic_write", disk_full)
+    monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
     assert rig.send(Command.CALIBRATE_TILT).success
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
     assert rig.loop.build_status(rig.clock()).warnings
@@ -123,7 +123,7 @@ def test_a_failed_parameter_write_changes_nothing_and_is_a_warning(
     registry = ParamRegistry(MachineConfig(), store, health)
     name = "rider_loss.grace_s"
     registry.set(name, ParamSet(transaction_id="p1", value=2.0, persist=True), moving=False, now=1)
-    monkeypatch.setattr("service.persist.atomic_write", disk_full)
+    monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
     with pytest.raises(StorageFailed, match="No space left"):
         req = ParamSet(transaction_id="p2", value=3.0, persist=True)
         registry.set(name, req, moving=False, now=2)

@@ -9,10 +9,10 @@ import pytest
 from schema.commands import Command
 from schema.params import ParamSet
 from schema.status import MachineState as S
-from service.config import MachineConfig
+from service.config.model import MachineConfig
+from service.core.params import ParamRegistry
+from service.core.persist import ParamStore
 from service.errors import ParamOutOfRange
-from service.params import ParamRegistry
-from service.persist import ParamStore
 from tests.rig import Rig
 
 
@@ -146,7 +146,7 @@ def test_heartbeat_back_within_grace_changes_nothing() -> None:
 
 
 def test_timeout_is_an_online_parameter_checked_against_the_heartbeat() -> None:
-    from service.validate import semantic_findings
+    from service.config.validate import semantic_findings
 
     ok = MachineConfig()
     assert not [f for f in semantic_findings(ok) if "rider_loss" in f.path]

@@ -10,9 +10,9 @@ import pytest
 
 from schema.commands import Command, Reply, StartRequest
 from schema.status import FaultCode, MachineState
-from service.loop import PendingCommand
-from service.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
-from service.timing import CycleStats
+from service.core.loop import PendingCommand
+from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
+from service.core.timing import CycleStats
 from tests.rig import FakeClock, Rig, known_calibration
 
 S = MachineState
@@ -275,7 +275,7 @@ def test_exception_in_a_cycle_forces_outputs_safe_and_faults(
     after_step: bool, caplog: pytest.LogCaptureFixture
 ) -> None:
     h = Harness(30, running=True, fail=lambda i: i == 10, fail_after_step=after_step)
-    with caplog.at_level(logging.ERROR, logger="service.runner"):
+    with caplog.at_level(logging.ERROR, logger="service.core.runner"):
         h.run()
 
     assert h.seen[10] == (S.RUNNING, True)

@@ -7,7 +7,7 @@ import pytest
 from hal.iomap import Signal
 from schema.commands import Command, Direction, RotateStep, Session, TiltStep
 from schema.status import MachineState
-from service.config import MachineConfig
+from service.config.model import MachineConfig
 from tests.rig import Rig, known_calibration, rig_in
 
 S = MachineState

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import pytest
 
-from service.runner import TIMER_SLACK_NS, timer_slack, tune_thread
+from service.core.runner import TIMER_SLACK_NS, timer_slack, tune_thread
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux")
 

@@ -11,9 +11,9 @@ from typing import Any
 import pytest
 
 from schema.findings import Finding, Severity
-from service.config import MachineConfig
-from service.load import load
-from service.validate import semantic_findings, validate_data
+from service.config.load import load
+from service.config.model import MachineConfig
+from service.config.validate import semantic_findings, validate_data
 
 E, W = Severity.ERROR, Severity.WARNING
 

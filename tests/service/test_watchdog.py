@@ -9,12 +9,12 @@ import pytest
 
 from schema.commands import Command, CommandRequest
 from schema.status import FaultCode, MachineState
-from service.config import MachineConfig
-from service.loop import LoopCall, PendingCommand, ScanLoop
-from service.machine import Machine
-from service.runner import RealtimeRunner
-from service.timing import CycleStats
-from service.watchdog import ARM_AFTER_CYCLES, GuardedHal, Watchdog
+from service.config.model import MachineConfig
+from service.core.loop import LoopCall, PendingCommand, ScanLoop
+from service.core.machine import Machine
+from service.core.runner import RealtimeRunner
+from service.core.timing import CycleStats
+from service.core.watchdog import ARM_AFTER_CYCLES, GuardedHal, Watchdog
 from sim.hal import SimHal
 from tests.rig import Rig
 

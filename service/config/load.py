@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from schema.findings import Finding, Findings
-from service.config import MachineConfig
-from service.validate import (
+from service.config.model import MachineConfig
+from service.config.validate import (
     Category,
     findings_of,
     one_error,

@@ -36,7 +36,7 @@ from schema.events import (
     KnownDetails,
     StorageEvent,
 )
-from service.config import EventsSection
+from service.config.model import EventsSection
 
 log = logging.getLogger(__name__)
 

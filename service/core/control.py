@@ -4,7 +4,7 @@ Its behaviour is data (at the end of this module): `TABLE` lists every `(trigger
 targets` row, for the commands and for the events (E-stop, a motion's end, a fault, a lost
 Rider); `HANDLING` gives each command its one handler and reply. The command guard reads them,
 and the README's state table and docs/states.md are generated from them
-(`python -m service.control_doc`).
+(`python -m service.core.control_doc`).
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ from schema.status import (
     MotionRef,
     SessionProgress,
 )
-from service.config import LiveConfig, MachineConfig, RiderLossPolicy
-from service.controllers import (
+from service.config.model import LiveConfig, MachineConfig, RiderLossPolicy
+from service.core.controllers import (
     Chain,
     Controller,
     Outcome,
@@ -54,7 +54,7 @@ from service.controllers import (
     TiltCalibrate,
     TiltHome,
 )
-from service.devices import Calibration, Devices, RotateCalibration, TiltCalibration
+from service.core.devices import Calibration, Devices, RotateCalibration, TiltCalibration
 from service.errors import (
     BadRequest,
     DuplicateId,
@@ -68,7 +68,7 @@ from service.errors import (
 )
 
 if TYPE_CHECKING:  # types only: the state machine does no IO
-    from service.persist import SaveTicket, StorageHealth
+    from service.core.persist import SaveTicket, StorageHealth
 
 S = MachineState
 

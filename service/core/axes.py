@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
 from schema.commands import Direction
 from schema.status import MachineState
-from service.config import LiveConfig, MachineConfig
-from service.controllers import Controller, RotateCalibrate, RotateHome, RotateRevolutions
-from service.devices import Devices, RotateCalibration, TiltDirection
+from service.config.model import LiveConfig, MachineConfig
+from service.core.controllers import Controller, RotateCalibrate, RotateHome, RotateRevolutions
+from service.core.devices import Devices, RotateCalibration, TiltDirection
 
 AXIS_NUMBERS = {"rotate": ROTATE_AXIS_NUMBER, "tilt": TILT_AXIS_NUMBER}
 # Plain ints: `IntFlag` arithmetic runs Python code in `enum`, several times a cycle.

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, FiniteFloat, ValidationError
 
 from schema.calibration import CalibrationSource
 from schema.errors import ErrorCode
-from service.devices import Calibration, RotateCalibration, TiltCalibration
+from service.core.devices import Calibration, RotateCalibration, TiltCalibration
 
 log = logging.getLogger(__name__)
 

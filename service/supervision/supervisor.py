@@ -42,11 +42,11 @@ from service.bus.supervisor import (
     requires_credentials,
     router_config,
 )
-from service.config import HalBackend, MachineConfig
-from service.daemon import DaemonOptions
-from service.runner import SUPERVISOR_PID_ENV
+from service.config.model import HalBackend, MachineConfig
+from service.config.validate import finding_line
+from service.core.runner import SUPERVISOR_PID_ENV
 from service.simwing import World, sim_world
-from service.validate import finding_line
+from service.supervision.daemon import DaemonOptions
 
 log = logging.getLogger("machine.supervisor")
 

@@ -6,14 +6,14 @@ import logging
 from collections.abc import Callable
 
 from hal.base import Hal
-from service.config import LiveConfig, MachineConfig
-from service.control import ControlAPI, Transition
-from service.devices import Calibration, Devices
-from service.events import EventRecorder, EventSink, NullEventSink
-from service.io import IoPoints, ProcessImage
-from service.loop import LoopSink, ScanLoop, SinkFactory
-from service.persist import CalibrationStore
-from service.watchdog import GuardedHal
+from service.config.model import LiveConfig, MachineConfig
+from service.core.control import ControlAPI, Transition
+from service.core.devices import Calibration, Devices
+from service.core.events import EventRecorder, EventSink, NullEventSink
+from service.core.io import IoPoints, ProcessImage
+from service.core.loop import LoopSink, ScanLoop, SinkFactory
+from service.core.persist import CalibrationStore
+from service.core.watchdog import GuardedHal
 
 log = logging.getLogger("machine")
 
@@ -40,7 +40,7 @@ class Machine:
         warnings: list[str] | None = None,
     ) -> None:
         """`config`: fixed, or live (online parameters); `events` receives the event history
-        (`service/events.py`) and must never block; `warnings` start in the status."""
+        (`service/core/events.py`) and must never block; `warnings` start in the status."""
         hal.force_all_outputs_safe()
         self.live = config if isinstance(config, LiveConfig) else LiveConfig(config)
         self.hal = hal

@@ -15,8 +15,8 @@ from typing import Generic, TypeVar
 
 from schema.commands import Direction, RotateStep, Session, TiltStep
 from schema.status import Fault, FaultCode, SessionProgress
-from service.config import MachineConfig, RotateSection, TiltSection
-from service.devices import (
+from service.config.model import MachineConfig, RotateSection, TiltSection
+from service.core.devices import (
     Devices,
     RotateAxis,
     RotateCalibration,

@@ -1,8 +1,9 @@
 """What the scan loop records: `EventRecorder` turns changes of the machine into event values.
 
-Pure like the loop: no IO, no clock. It hands each event to an `EventSink` (the SQLite writer
-in `service/eventlog.py`, or a list in tests) that must never block. Transitions arrive as they
-happen; everything else is seen by comparing a small snapshot after each command and cycle.
+Pure like the loop: no IO, no clock. It hands each event to an `EventSink` (the SQLite
+writer in `service/adapters/eventlog.py`, or a list in tests) that must never block.
+Transitions arrive as they happen; everything else is seen by comparing a small snapshot
+after each command and cycle.
 """
 
 from __future__ import annotations
@@ -28,9 +29,9 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import Fault, MachineState
-from service.control import ControlAPI, Transition
-from service.controllers import SessionRun
-from service.devices import Calibration
+from service.core.control import ControlAPI, Transition
+from service.core.controllers import SessionRun
+from service.core.devices import Calibration
 
 S = MachineState
 
@@ -121,7 +122,7 @@ class EventRecorder:
         self.observe(control, now, cause=cause)
 
     def completion(self, notice: Completion) -> None:
-        """A completion notice (service/completions.py): recorded at the next `observe`, after
+        """A completion notice (service/core/completions.py): recorded at the next `observe`, after
         the transitions that ended the motion."""
         self._notices.append(notice)
 

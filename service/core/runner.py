@@ -13,8 +13,8 @@ import time
 from collections.abc import Callable
 
 from schema.status import Fault, FaultCode
-from service.loop import ScanLoop
-from service.timing import CycleStats
+from service.core.loop import ScanLoop
+from service.core.timing import CycleStats
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import secrets
 from pathlib import Path
 
-from service.persist import atomic_write
+from service.core.persist import atomic_write
 
 IDENTITIES = ("machine", "rider", "monitor")
 """The ACL subjects of zenoh/acl.json5 and zenoh/tls.json5, by user name."""

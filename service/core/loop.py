@@ -1,7 +1,7 @@
 """The scan loop: read inputs → E-stop → commands → update → write outputs → publish.
 
 `ScanLoop.step(now)` is a pure function of (inputs, queued commands, now); the real-time runner
-in `service/runner.py` calls it on absolute deadlines. Machine state has one writer at a time,
+in `service/core/runner.py` calls it on absolute deadlines. Machine state has one writer at a time,
 `ScanLoop.lock`: the scan thread holds it for each cycle; a Zenoh callback thread holds it to run
 a command between cycles (`execute_between_cycles`); other threads put work into the `Inbox`.
 """
@@ -31,16 +31,16 @@ from schema.errors import Error
 from schema.events import RiderEvent
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, Status
-from service.axes import AxisTracker
-from service.completions import CompletionLog
-from service.config import MachineConfig
-from service.control import ControlAPI
-from service.devices import Calibration, Devices
+from service.config.model import MachineConfig
+from service.core.axes import AxisTracker
+from service.core.completions import CompletionLog
+from service.core.control import ControlAPI
+from service.core.devices import Calibration, Devices
+from service.core.events import EventRecorder, NullEventSink
+from service.core.io import IoChanges, IoPoints, ProcessImage
+from service.core.transactions import TransactionLog
+from service.core.watchdog import GuardedHal
 from service.errors import Busy, NotAvailable
-from service.events import EventRecorder, NullEventSink
-from service.io import IoChanges, IoPoints, ProcessImage
-from service.transactions import TransactionLog
-from service.watchdog import GuardedHal
 
 log = logging.getLogger("machine")
 

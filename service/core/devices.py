@@ -7,7 +7,7 @@ from enum import StrEnum
 
 from schema.calibration import CalibrationSource
 from schema.commands import Direction
-from service.io import AI, DI, RO, IoPoints
+from service.core.io import AI, DI, RO, IoPoints
 
 
 class TiltDirection(StrEnum):

@@ -18,7 +18,7 @@ from schema.codec import json_pointer
 from schema.commands import DEFAULT_SESSION, TiltStep
 from schema.findings import Finding, Findings, Severity
 from schema.rider import HEARTBEAT_INTERVAL_S
-from service.config import HalBackend, MachineConfig, read_toml
+from service.config.model import HalBackend, MachineConfig, read_toml
 
 # Below this the wake-up jitter of a Python thread on a general-purpose kernel is of the
 # same order as the period itself: the loop runs, but overruns become routine.

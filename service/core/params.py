@@ -16,7 +16,9 @@ from pydantic import BaseModel, ValidationError
 from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
 from schema.findings import Severity
 from schema.params import ParamSet, ParamValue
-from service.config import LiveConfig, MachineConfig
+from service.config.model import LiveConfig, MachineConfig
+from service.config.validate import semantic_findings
+from service.core.persist import ParamScalar, ParamStore, StorageHealth, StoredParam
 from service.errors import (
     ParamLocked,
     ParamOutOfRange,
@@ -24,8 +26,6 @@ from service.errors import (
     StorageFailed,
     UnknownParam,
 )
-from service.persist import ParamScalar, ParamStore, StorageHealth, StoredParam
-from service.validate import semantic_findings
 
 log = logging.getLogger(__name__)
 

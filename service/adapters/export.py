@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import TextIO
 
 from schema.events import Event, describe, query_of
-from service.eventlog import EVENTS_FILE, connect_readonly, iter_events
+from service.adapters.eventlog import EVENTS_FILE, connect_readonly, iter_events
 
 EXIT_OK = 0
 EXIT_FAILED = 1

@@ -24,7 +24,7 @@ from schema.fastdata import (
     FastAxisData,
     encode,
 )
-from service.config import MachineConfig
+from service.config.model import MachineConfig
 
 log = logging.getLogger(__name__)
 

@@ -17,26 +17,26 @@ from types import FrameType
 from hal.base import Hal, HalConfigError, HalError
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
 from service import bus as zbus
+from service.adapters.eventlog import EVENTS_FILE, EventLog
+from service.adapters.fastdata import FastDataServer, user_registers
 from service.bus.exposure import warn_if_exposed
-from service.config import HalBackend, MachineConfig
-from service.eventlog import EVENTS_FILE, EventLog
-from service.fastdata import FastDataServer, user_registers
-from service.load import check_candidate
-from service.loop import ScanLoop
-from service.machine import Machine
-from service.params import ParamRegistry
-from service.persist import BackgroundWriter, CalibrationStore, ParamStore
-from service.runner import (
+from service.config.load import check_candidate
+from service.config.model import HalBackend, MachineConfig
+from service.config.validate import Category, finding_line, one_error
+from service.core.loop import ScanLoop
+from service.core.machine import Machine
+from service.core.params import ParamRegistry
+from service.core.persist import BackgroundWriter, CalibrationStore, ParamStore
+from service.core.runner import (
     SUPERVISOR_PID_ENV,
     LoopFailed,
     RealtimeRunner,
     die_with_parent,
     tune_thread,
 )
+from service.core.timing import CycleStats
+from service.core.watchdog import GuardedHal, Watchdog
 from service.simwing import sim_hal, sim_port
-from service.timing import CycleStats
-from service.validate import Category, finding_line, one_error
-from service.watchdog import GuardedHal, Watchdog
 
 log = logging.getLogger("machine")
 
