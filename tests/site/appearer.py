@@ -76,7 +76,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         with session:
             status = session.declare_queryable(f"{key}/status", lambda q: q.drop())
             token = session.liveliness().declare_token(f"{key}/alive")
-            print(json.dumps({"up": time.time(), "mode": n % len(configs)}), flush=True)
+            up = {"up": time.time(), "mode": n % len(configs), "zid": str(session.zid())}
+            print(json.dumps(up), flush=True)
             stop.wait(rng.uniform(*args.up))
             print(json.dumps({"down": time.time()}), flush=True)
             token.undeclare()

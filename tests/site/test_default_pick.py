@@ -57,6 +57,8 @@ class Trial:
     end: float
     lookup_s: float
     outcome: str  # a machine id, "several", "unsure", "none", "unreachable" or "error …"
+    zid: str = ""
+    """The Rider session's id (names it in another lookup's "out of sight" list)."""
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +91,7 @@ def look_up(kind: str, endpoint: str, config: Path, motion: bool = False) -> Tri
         outcome = f"error {exc!r}"
     finally:
         r.close()
-    return Trial(kind, motion, start, time.time(), lookup_s, outcome)
+    return Trial(kind, motion, start, time.time(), lookup_s, outcome, r.rider_id)
 
 
 def listening(endpoint: str) -> bool:
@@ -176,7 +178,8 @@ def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Si
         took = time.monotonic() - began
     finally:
         stop_process(appearer)
-    timeline = b_intervals([*lines.seen, *lines.rest()])
+    appearances = [*lines.seen, *lines.rest()]
+    timeline = b_intervals(appearances)
 
     def b_alive_throughout(t: Trial) -> bool:
         return any(up <= t.start and t.end <= down for up, down in timeline)
@@ -215,7 +218,12 @@ def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Si
         }
     print(f"\ndefault-pick {json.dumps(summary)}")
     if os.environ.get("PICK_DUMP"):
-        dump = {"summary": summary, "timeline": timeline, "trials": [t.__dict__ for t in trials]}
+        dump = {
+            "summary": summary,
+            "timeline": timeline,
+            "appearer": appearances,
+            "trials": [t.__dict__ for t in trials],
+        }
         Path(os.environ["PICK_DUMP"]).write_text(json.dumps(dump, default=str))
     assert len(trials) == TRIALS, f"only {len(trials)} trials in {TRIALS_MAX_S:g} s"
     assert len(timeline) >= TRIALS // 100, "b hardly appeared: the trials raced nothing"
