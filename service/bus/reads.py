@@ -77,7 +77,7 @@ class Reads:
             Route("status", latest(f"{b}/status", lambda: published.status), direct=True),
             Route("io/**", self.io, direct=True),
             Route("axis/**", self.axes, direct=True),
-            Route("diag/cycle", self.cycle, direct=True),
+            Route("diag/cycle", self.cycle),  # sorts the stats window: not on Zenoh's thread
             Route("config/validate", self.validate),
             Route("done/**", self.done, direct=True),
             Route(
