@@ -13,6 +13,7 @@ it; on a Revolution Pi the supervisor writes the safe image to the real process 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -46,7 +47,7 @@ from service.config.model import HalBackend, MachineConfig
 from service.config.validate import finding_line
 from service.core.runner import SUPERVISOR_PID_ENV
 from service.simwing import World, sim_world
-from service.supervision.daemon import DaemonOptions
+from service.supervision.daemon import DaemonOptions, StartRefused
 
 log = logging.getLogger("machine.supervisor")
 
@@ -154,21 +155,61 @@ class Supervisor:
 
     # ------------------------------------------------------------------------- lifecycle
     def run(self) -> int:
-        """Until SIGTERM/SIGINT (0), a config problem (2) or a bus that cannot open (1)."""
+        """Until SIGTERM/SIGINT (0), a config problem (2) or a bus that cannot open (1).
+
+        Each step registers its undo on one `ExitStack`, so they run in reverse: the child
+        stopped, the outputs forced safe, the bus and session closed, the files cleaned up."""
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_signal)
+        code = EXIT_OK
+        started = False
         try:
-            child_cfg = self._prepare_hal()
+            with contextlib.ExitStack() as stack:
+                stack.callback(self._cleanup)
+                try:
+                    child_cfg = self._open_hal()
+                    session = self._open_session()
+                except StartRefused as exc:
+                    return exc.code
+                stack.callback(self._close_session, session)
+                self.bus = SupervisorBus(
+                    session, self.config, world=self.world, on_presence=self._on_presence
+                )
+                stack.callback(self.bus.close)
+                stack.callback(self._force_safe)
+                stack.callback(self._stop_child)
+                started = True
+                zenoh_json = child_config(self.zenoh.zenoh_config, self.private)
+                self._write_child_files(child_cfg, zenoh_json)
+                self.bus.start()
+                log.info(
+                    "event=supervisor_started id=%s hal=%s private=%s",
+                    self.config.machine.id,
+                    self.config.hal.backend,
+                    self.private,
+                )
+                code = self._loop()
+        finally:
+            if started:
+                log.info("event=supervisor_stopped code=%d restarts=%d", code, self.generation - 1)
+        return code
+
+    def _open_hal(self) -> MachineConfig:
+        """`_prepare_hal`, its failures said as `run` says them (a refused start, code 2)."""
+        try:
+            return self._prepare_hal()
         except HalConfigError as exc:  # the IO map, image or config: fatal, said as `run` says it
             for f in exc.findings:
                 print(finding_line("machine", f), file=sys.stderr)
             log.error("event=supervisor_hal_failed error=%r", str(exc))
-            self._cleanup()
-            return EXIT_CONFIG
+            raise StartRefused(EXIT_CONFIG, str(exc)) from exc
         except (HalError, OSError, ValueError) as exc:
             log.error("event=supervisor_hal_failed error=%r", str(exc))
-            self._cleanup()
-            return EXIT_CONFIG
+            raise StartRefused(EXIT_CONFIG, str(exc)) from exc
+
+    def _open_session(self) -> zbus.Session:
+        """The router session; refused (2) without the credentials its profile needs, (1)
+        when Zenoh cannot open it."""
         try:
             conf = router_config(
                 self.zenoh.zenoh_config, self.zenoh.listen, self.zenoh.connect, self.private
@@ -179,41 +220,22 @@ class Supervisor:
                     "the router checks user/password: give the daemon its identity with"
                     f" {env_name(MACHINE, 'USER')} and {env_name(MACHINE, 'PASSWORD_FILE')}",
                 )
-                self._cleanup()
-                return EXIT_CONFIG
+                raise StartRefused(EXIT_CONFIG, "no credentials")
             warn_if_exposed(conf, log)
-            session = zbus.open_session(conf)
+            return zbus.open_session(conf)
         except CredentialError as exc:
             log.error("event=supervisor_bad_credentials error=%r", str(exc))
-            self._cleanup()
-            return EXIT_CONFIG
-        except Exception as exc:  # noqa: BLE001 - zenoh raises plain ZError; outputs already safe
+            raise StartRefused(EXIT_CONFIG, str(exc)) from exc
+        except StartRefused:
+            raise
+        except Exception as exc:  # zenoh raises plain ZError; the outputs are safe already
             log.error("event=zenoh_open_failed error=%r", str(exc))
-            self._cleanup()
-            return EXIT_FAILED
-        self.bus = SupervisorBus(
-            session, self.config, world=self.world, on_presence=self._on_presence
-        )
-        code = EXIT_OK
-        try:
-            self._write_child_files(child_cfg, child_config(self.zenoh.zenoh_config, self.private))
-            self.bus.start()
-            log.info(
-                "event=supervisor_started id=%s hal=%s private=%s",
-                self.config.machine.id,
-                self.config.hal.backend,
-                self.private,
-            )
-            code = self._loop()
-        finally:
-            self._stop_child()
-            self._force_safe()
-            self.bus.close()
-            if not zbus.close_session(session):
-                log.warning("event=zenoh_close_timeout")
-            self._cleanup()
-            log.info("event=supervisor_stopped code=%d restarts=%d", code, self.generation - 1)
-        return code
+            raise StartRefused(EXIT_FAILED, f"zenoh session could not open: {exc}") from exc
+
+    @staticmethod
+    def _close_session(session: zbus.Session) -> None:
+        if not zbus.close_session(session):
+            log.warning("event=zenoh_close_timeout")
 
     def _prepare_hal(self) -> MachineConfig:
         """The safe-output path (and, with the simulator, the world); the child's config."""
