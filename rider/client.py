@@ -956,7 +956,7 @@ class Rider:
         deadline = time.monotonic() + limit
         while True:
             remaining = deadline - time.monotonic()
-            replies = self._get(key, payload, max(remaining, 0.05))
+            replies = self._answered(key, self._get(key, payload, max(remaining, 0.05)), limit)
             if replies:
                 return self._decode(replies[0], model)
             if deadline - time.monotonic() < EMPTY_RETRY_S:
@@ -965,7 +965,21 @@ class Rider:
             time.sleep(EMPTY_RETRY_S)
 
     def _get_all(self, key: str, model: type[M]) -> list[M]:
-        return [self._decode(r, model) for r in self._get(key, None, None)]
+        replies = self._answered(key, self._get(key, None, None), self.timeout)
+        return [self._decode(r, model) for r in replies]
+
+    @staticmethod
+    def _answered(key: str, replies: list[zenoh.Reply], limit: float) -> list[zenoh.Reply]:
+        """The replies a queryable sent. A query that reached one (a frozen or stalled daemon,
+        a router forwarding to it) but got no answer in time ends with Zenoh's own error reply
+        `Timeout`: that is no reply, never the machine's refusal."""
+        answered = [r for r in replies if not _zenoh_timeout(r)]
+        if replies and not answered:
+            raise MachineTimeout(
+                f"no reply from {key} within {limit:g} s: the machine was reached but did not"
+                " answer (frozen or overloaded?)"
+            )
+        return answered
 
     def _get(self, key: str, payload: bytes | None, timeout: float | None) -> list[zenoh.Reply]:
         kwargs: dict[str, Any] = {"timeout": timeout or self.timeout}
@@ -1083,6 +1097,11 @@ def _direct(callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback
     callback on a thread of its own, so samples of two subscribers (e.g. `status` and `done/*`)
     reach the caller out of the order the machine published them in (~20 % under load)."""
     return zenoh.handlers.Callback(callback, indirect=False)
+
+
+def _zenoh_timeout(reply: zenoh.Reply) -> bool:
+    """Zenoh's own end of a query nobody answered in time (not a reply from a machine)."""
+    return reply.ok is None and reply.err is not None and reply.err.payload.to_bytes() == b"Timeout"
 
 
 def _src(sample: zenoh.Sample) -> str:
