@@ -63,6 +63,8 @@ class RealtimeRunner:
         self.beat_at = clock()
         """The clock time the latest cycle ended (set just before `heartbeat` moves)."""
         self.errors = 0
+        self.finished = False
+        """Set once the cycling has ended (stopped or failed), just before the outputs go safe."""
 
     def stop(self) -> None:
         self.stop_event.set()
@@ -73,6 +75,7 @@ class RealtimeRunner:
         try:
             self._run()
         finally:
+            self.finished = True  # no cycle runs any more: nothing for the watchdog to watch
             self.loop.go_safe()
 
     def _run(self) -> None:

@@ -67,7 +67,7 @@ class Watchdog:
     a limit after its latest beat would be `limit` old: one wake-up per limit instead of
     three, and a stall is still tripped when it has lasted between 1 and 4/3 limits."""
 
-    def __init__(
+    def __init__(  # noqa: PLR0913, PLR0917 - the runner's three read-outs (heartbeat, beat_at, finished), the HAL and the limits
         self,
         heartbeat: Callable[[], int],
         hal: GuardedHal,
@@ -77,8 +77,13 @@ class Watchdog:
         on_trip: Callable[[float], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
         beat_at: Callable[[], float] | None = None,
+        finished: Callable[[], bool] | None = None,
     ) -> None:
         self.heartbeat = heartbeat
+        self.finished = finished
+        """True once the loop has left its cycle for good (a stop, a failure): beats end on
+        purpose, the outputs go safe on the loop's own way out, and the watchdog stands down
+        (a slow teardown is no stall)."""
         self.beat_at = beat_at
         self.hal = hal
         self.limit = max(period_s * periods, min_s)
@@ -108,6 +113,8 @@ class Watchdog:
         wait = self.period
         while not self._stop.wait(wait):
             wait = self.period
+            if self.finished is not None and self.finished():
+                return
             beat = self.heartbeat()
             now = self.clock()
             if not armed:

@@ -275,6 +275,7 @@ class Daemon:
             loop.watchdog_min_s,
             on_trip=self._on_watchdog_trip,
             beat_at=lambda: runner.beat_at,
+            finished=lambda: runner.finished,
         )
         _on_exit(stack, "watchdog", watchdog.stop)
         watchdog.start()

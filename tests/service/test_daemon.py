@@ -15,6 +15,7 @@ import pytest
 from schema.events import DaemonStopEvent, EventQuery
 from service.adapters.eventlog import EVENTS_FILE, connect_readonly, iter_events
 from service.config.model import MachineConfig
+from service.core.loop import ScanLoop
 from service.core.runner import set_timer_slack, timer_slack
 from service.supervision.daemon import EXIT_FAILED, EXIT_OK, Daemon, DaemonOptions
 from tests.procs import free_port, write_zenoh_config
@@ -128,3 +129,31 @@ def free_udp_port() -> int:
         s.bind(("127.0.0.1", 0))
         port: int = s.getsockname()[1]
         return port
+
+
+def test_a_slow_teardown_is_not_a_watchdog_trip(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The loop stopped on purpose beats no more: a teardown step that takes longer than the
+    watchdog's limit (a loaded host; here `go_safe` held up 10 limits) must not be reported
+    as a stalled loop (a FAULT_HW status and a `watchdog_trip` in the history at every such
+    stop, seen under `machine supervise` on a loaded host)."""
+    caplog.set_level(logging.DEBUG, logger="machine")
+    go_safe = ScanLoop.go_safe
+    limit = MachineConfig().loop.period_s * MachineConfig().loop.watchdog_periods
+    held_s = 10 * limit
+    stalled = threading.Event()
+
+    def slow_go_safe(loop: ScanLoop) -> None:
+        go_safe(loop)
+        if daemon.runner is not None and daemon.runner.stop_event.is_set():
+            stalled.wait(held_s)  # never set: a teardown step held up
+
+    monkeypatch.setattr(ScanLoop, "go_safe", slow_go_safe)
+    daemon = daemon_in(tmp_path, free_udp_port())
+    watcher = stop_after_cycles(daemon, 20)
+    assert daemon.run() == EXIT_OK
+    watcher.join(timeout=10)
+    assert not any("event=watchdog_trip" in r.getMessage() for r in caplog.records)
+    with contextlib.closing(connect_readonly(tmp_path / "data" / EVENTS_FILE)) as conn:
+        assert list(iter_events(conn, EventQuery(kinds=("watchdog_trip",)))) == []
