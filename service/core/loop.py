@@ -285,17 +285,7 @@ class ScanLoop:
         self.recorder.cycle = self.cycle
         self.live.take()  # online parameter writes take effect here, between cycles
         self.image.inputs = self.hal.scan_inputs()
-        if self.guard is not None and self.guard.latched:
-            # The watchdog forced the outputs safe while this thread was stalled: make the
-            # machine state say so before the latch lets any output through again.
-            self.control.external_fault(
-                Fault(
-                    code=FaultCode.WATCHDOG,
-                    message="scan loop stalled; the watchdog forced the outputs safe",
-                ),
-                now,
-            )
-            self.guard.unlatch()
+        self._take_watchdog_trip(now)
         if self.devices.safety.is_estop_active():
             # Same cycle the input is seen: state, controllers and outputs, before anything else.
             self.control.on_estop(now)
@@ -310,6 +300,22 @@ class ScanLoop:
         self.hal.scan_outputs(self.image.outputs)
         self._observe(now)
         self._publish(now)
+
+    def _take_watchdog_trip(self, now: float) -> bool:
+        """The watchdog forced the outputs safe while the scan thread was stalled (and has
+        published FAULT_HW already): make the machine state say so before the latch lets any
+        output through again, and before any command is judged against the old state."""
+        if self.guard is None or not self.guard.latched:
+            return False
+        self.control.external_fault(
+            Fault(
+                code=FaultCode.WATCHDOG,
+                message="scan loop stalled; the watchdog forced the outputs safe",
+            ),
+            now,
+        )
+        self.guard.unlatch()
+        return True
 
     def _supervise(self, now: float) -> None:
         """Deadman: the controlling Rider's latest heartbeat (data from the bus) against `now`."""
@@ -366,7 +372,12 @@ class ScanLoop:
         try:
             if self.cycle == 0 or self.inbox.closed:
                 return None
-            return self.execute(command, request, clock(), sender=sender)
+            now = clock()
+            # A Rider that saw the watchdog's FAULT_HW and sent Home at once must find the
+            # machine in that fault, not in the motion the stall interrupted.
+            if self._take_watchdog_trip(now):
+                self._observe(now)  # the fault and its notice, before the command's own
+            return self.execute(command, request, now, sender=sender)
         finally:
             self.lock.release()
 

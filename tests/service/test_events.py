@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from schema.calibration import CalibrationSet
-from schema.commands import Command, RotateStep, Session, TiltStep
+from schema.commands import Command, CommandRequest, RotateStep, Session, TiltStep
 from schema.events import (
     CalibrationEvent,
     CommandEvent,
@@ -211,6 +211,26 @@ def test_a_watchdog_trip_ends_the_motion_with_a_recorded_fault() -> None:
     assert isinstance(raised, FaultEvent) and raised.code == "WATCHDOG"
     assert isinstance(done, CompletionEvent) and done.transaction_id == reply.transaction_id
     assert done.outcome == "FAULT_HW" and done.code == "WATCHDOG"
+
+
+def test_a_command_right_after_a_watchdog_trip_is_recorded_after_the_fault() -> None:
+    """Home sent on the watchdog's FAULT_HW before the next cycle: the history says fault,
+    then the old motion's end, then the command (accepted against the fault)."""
+    rig, sink = ready_rig(guarded=True)
+    guard = rig.guard
+    assert guard is not None
+    first = rig.send(Command.HOME)
+    rig.step(3)
+    mark = len(sink.events)
+    guard.latch_safe()
+    request = CommandRequest.model_validate({"transaction_id": "home-after-trip"})
+    reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
+    assert reply is not None and reply.success
+    assert kinds(sink, mark)[:4] == ["state", "fault_raised", "completion", "command"]
+    raised, done, cmd = details(sink, mark)[1:4]
+    assert isinstance(raised, FaultEvent) and raised.code == "WATCHDOG"
+    assert isinstance(done, CompletionEvent) and done.transaction_id == first.transaction_id
+    assert isinstance(cmd, CommandEvent) and cmd.transaction_id == "home-after-trip"
 
 
 def test_calibration_entered_by_hand_is_recorded_old_to_new() -> None:

@@ -54,6 +54,25 @@ def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
     assert not rig.relays_on()
 
 
+def test_a_command_between_cycles_finds_the_watchdog_fault_first() -> None:
+    """The watchdog publishes FAULT_HW from its own thread; a Home sent on that status before
+    the next cycle is judged against the fault (accepted), not the interrupted homing."""
+    rig = Rig(guarded=True)
+    guard = rig.guard
+    assert guard is not None
+    assert rig.send(Command.HOME).success
+    rig.step(3)
+    assert rig.state is MachineState.HOMING
+    guard.latch_safe()
+    request = CommandRequest.model_validate({"transaction_id": "after-trip"})
+    reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
+    assert reply is not None and reply.success, reply
+    assert rig.control.fault is None and rig.state is MachineState.HOMING
+    assert not guard.latched
+    faults = [t for t in rig.transitions if t.new is MachineState.FAULT_HW]
+    assert len(faults) == 1 and "watchdog" in faults[0].reason
+
+
 def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:  # noqa: PLR0915 - a real runner thread: start, stall, trip, recover
     """A real runner thread blocked inside a cycle: the watchdog trips and outputs drop."""
     config = MachineConfig().with_overrides(loop={"period_s": 0.005})
