@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -66,6 +67,23 @@ class UsageError(Exception):
     """Bad arguments or an unreadable input file."""
 
 
+def _machine_id(text: str) -> str:
+    """One key chunk (`*` allowed: reads across machines); checked before any Zenoh call."""
+    if not text or "/" in text:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a machine id (one key part, no '/')")
+    return text
+
+
+def _positive_s(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 - argparse declarations, one statement per option
     p = argparse.ArgumentParser(
         prog="rider", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -78,10 +96,14 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 - argparse decla
     )
     p.add_argument("--zenoh-config", type=Path, help="zenoh.json5 (shared with the daemon)")
     p.add_argument(
-        "--machine", "-m", default=None, help="machine id (default: the only machine alive)"
+        "--machine",
+        "-m",
+        type=_machine_id,
+        default=None,
+        help="machine id (default: the only machine alive)",
     )
     p.add_argument("--prefix", default="machine", help="key prefix (default: machine)")
-    p.add_argument("--timeout", type=float, default=2.0, help="reply timeout in seconds")
+    p.add_argument("--timeout", type=_positive_s, default=2.0, help="reply timeout in seconds")
     p.add_argument("--json", action="store_true", help="print JSON instead of tables")
     sub = p.add_subparsers(dest="cmd", required=True)
 

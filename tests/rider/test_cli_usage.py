@@ -1,0 +1,33 @@
+"""Bad global options of the `rider` CLI are bad usage (exit 2, one line on stderr), caught
+before any Zenoh call: an empty or multi-part machine id, a timeout that is not a positive
+finite number. No machine is needed (nothing listens at the endpoint)."""
+
+from __future__ import annotations
+
+import pytest
+
+from rider import cli
+from tests.procs import free_port
+
+
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [
+        ("--machine", ""),
+        ("--machine", "m1/cmd"),
+        ("--machine", "/m1"),
+        ("--timeout", "-1"),
+        ("--timeout", "0"),
+        ("--timeout", "nan"),
+        ("--timeout", "inf"),
+    ],
+)
+def test_bad_global_option_is_usage_error(
+    option: str, value: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["--connect", endpoint, option, value, "status"])
+    assert stopped.value.code == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"argument {option}" in err and "Traceback" not in err, err
