@@ -255,14 +255,24 @@ def zenoh_config(
     return conf
 
 
-def _answers(endpoint: str, timeout: float = 0.5) -> bool:
-    """True if a TCP connection to a `tcp/` or `tls/` endpoint is accepted."""
+def _answers(endpoint: str, timeout: float = 0.5) -> bool | None:
+    """Whether a process serves a `tcp/` or `tls/` endpoint: True if it reacts to a bad frame
+    (a live Zenoh or TLS listener answers or closes at once), None if the connection is
+    accepted but nothing comes back (the kernel accepted it for a frozen or stalled process),
+    False if nothing accepts it."""
     protocol, _, address = endpoint.partition("/")
     if protocol not in ("tcp", "tls"):
         return False
     host, _, port = address.split("#", 1)[0].rpartition(":")
     try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as sock:
+            try:
+                sock.sendall(b"\x00\x00")  # an empty Zenoh frame: no handshake starts so
+                sock.recv(16)
+            except TimeoutError:
+                return None
+            except OSError:
+                return True  # reset: someone is there and refused it
             return True
     except (OSError, ValueError):
         return False
@@ -346,12 +356,19 @@ class Rider:
         endpoints = json.loads(self._conf.get_json("connect/endpoints") or "[]")
         if isinstance(endpoints, dict):
             endpoints = [e for group in endpoints.values() for e in group]
-        listening = [e for e in endpoints if _answers(str(e))]
+        answers = {str(e): _answers(str(e)) for e in endpoints}
+        listening = [e for e, live in answers.items() if live]
         if listening:
             return (
                 f"; {', '.join(listening)} answers but refused this session:"
                 " authentication refused? (check RIDER_ZENOH_USER and RIDER_ZENOH_PASSWORD_FILE,"
                 " and RIDER_ZENOH_TLS_ROOT_CA for tls/)"
+            )
+        silent = [e for e, live in answers.items() if live is None]
+        if silent:
+            return (
+                f"; {', '.join(silent)} accepts connections but never answers"
+                " (the machine's process frozen or overloaded?)"
             )
         return f"; nothing answers at {', '.join(map(str, endpoints))} (is the machine up?)"
 

@@ -9,6 +9,7 @@ machine that is down, never a refusal (exit 1) or an unreadable reply. A real Ze
 from __future__ import annotations
 
 import json
+import socket
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -71,3 +72,29 @@ def test_cli_exits_3_when_the_machine_never_answers(
         err = capsys.readouterr().err
         assert code == cli.EXIT_NO_REPLY, err
         assert "no reply" in err and "Timeout" not in err, err
+
+
+FROZEN_PEER_CONFIG = """{
+  mode: "peer",
+  scouting: { multicast: { enabled: false }, gossip: { enabled: false } },
+  transport: { unicast: { open_timeout: 1000 } },
+}
+"""
+"""The test config with a 1 s handshake bound (Zenoh's default is 10 s), to keep this fast."""
+
+
+def test_a_frozen_peer_is_not_blamed_on_the_login(tmp_path: Path) -> None:
+    """A frozen daemon's port still accepts TCP (the kernel does it) but its Zenoh never
+    answers the handshake: the hint says so, instead of "authentication refused?" (which is
+    for a live listener that rejects the session)."""
+    conf = tmp_path / "zenoh.json5"
+    conf.write_text(FROZEN_PEER_CONFIG)
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(8)  # accepted by the kernel, never read: a stopped process
+        endpoint = f"tcp/127.0.0.1:{listener.getsockname()[1]}"
+        rider = Rider("m1", connect=[endpoint], zenoh_config_path=conf, timeout=TIMEOUT_S)
+        with rider, pytest.raises(MachineTimeout) as stopped:
+            rider.status()
+    message = str(stopped.value)
+    assert "never answers" in message and "authentication" not in message, message
