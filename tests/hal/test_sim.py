@@ -150,12 +150,12 @@ def test_motion_is_integrated_under_the_outputs_that_were_on() -> None:
     """A write first accounts for the time the old outputs were on, then applies the new ones."""
     sim = Sim()
     sim.set(rotate=True)
-    sim.clock.advance(1.0)
+    sim.clock.advance(0.05)  # within `max_step_s`: a stall longer than that pauses the world
     sim.set(rotate=False)
-    assert sim.world.rotate_travel_deg == pytest.approx(PARAMS.rotate_speed_dps)
+    assert sim.world.rotate_travel_deg == pytest.approx(0.05 * PARAMS.rotate_speed_dps)
     sim.clock.advance(1.0)
     sim.run(DT)
-    assert sim.world.rotate_travel_deg == pytest.approx(PARAMS.rotate_speed_dps)
+    assert sim.world.rotate_travel_deg == pytest.approx(0.05 * PARAMS.rotate_speed_dps)
 
 
 def test_estop_cuts_all_motion_and_reads_as_an_open_safety_circuit() -> None:
@@ -335,3 +335,37 @@ def test_world_ignores_non_positive_time_steps() -> None:
     world.step(-1.0)
     assert world.rotate_travel_deg == 0.0
     assert world.time == 0.0
+
+
+def test_a_stalled_scan_never_lets_the_world_jump_past_the_home_switch() -> None:
+    sim = Sim(PhysicsParams(start_rotate_deg=350.0, home_arc_deg=10.0))
+    sim.set(rotate=True)
+    sim.clock.advance(1.0)  # the host stalled the scan thread for 1 s: 90° at 90°/s
+    sim.hal.scan_inputs()
+    assert sim.world.revolutions * 360.0 == pytest.approx(5.0)  # half the arc's time, no more
+    seen = [s["rotate_home"] for s in sim.run(20.0 / PARAMS.rotate_speed_dps)]
+    assert rising_edges([False, *seen]) == 1  # the switch is seen closing, not jumped over
+
+
+def test_a_session_on_a_stalling_host_turns_exactly_its_revolutions() -> None:
+    """Once per revolution, just before the switch, the scan comes 300 ms late (27° at 90°/s,
+    past the whole 10° home arc): the session still ends on its third closing edge, three
+    revolutions on, not four or more."""
+    from schema.commands import Command
+    from schema.status import MachineState
+    from tests.rig import Rig
+
+    rig = Rig().ready()
+    start = rig.hal.world.revolutions
+    assert rig.send(Command.START).success
+    stalls = 0
+    for _ in range(20_000):
+        if rig.state is MachineState.DONE:
+            break
+        approaching = rig.hal.world.rotate_deg > 358.0 and rig.hal.world.drive.rotate_on
+        stalls += approaching
+        rig.clock.advance(0.3 if approaching else rig.period)
+        rig.loop.step(rig.clock())
+    assert stalls >= 3
+    assert rig.state is MachineState.DONE
+    assert rig.hal.world.revolutions - start == pytest.approx(3.0, abs=0.02)
