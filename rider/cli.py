@@ -628,8 +628,32 @@ def machines(args: argparse.Namespace, rider: Rider) -> int:
     return EXIT_OK
 
 
+SIM_MAX_ARGS = {"home": 2, "tilt_ai": 2, "stall": 2}
+"""Words each `rider sim` fault takes (none for the others)."""
+
+
+def _tilt_ai_args(words: list[str]) -> tuple[bool, float]:
+    """`frozen` and/or a noise amplitude in counts; anything else is a typo, not "no fault"."""
+    frozen, noise = False, 0.0
+    for word in words:
+        if word == "frozen":
+            frozen = True
+            continue
+        try:
+            noise = float(word)
+        except ValueError:
+            noise = math.nan
+        if not (math.isfinite(noise) and noise >= 0):
+            raise UsageError(f"sim tilt_ai: {word!r} is neither `frozen` nor a noise in counts")
+    return frozen, noise
+
+
 def sim(args: argparse.Namespace, rider: Rider) -> int:
     f, a = args.fault, args.args
+    if len(a) > SIM_MAX_ARGS.get(f, 0):
+        raise UsageError(f"sim {f}: unexpected {' '.join(a[SIM_MAX_ARGS.get(f, 0) :])!r}")
+    if f == "stall" and len(a) > 1 and a[1] not in ("on", "off"):
+        raise UsageError(f"sim stall: {a[1]!r} is neither `on` nor `off`")
     try:
         if f == "estop":
             world = rider.sim("estop", pressed=True)
@@ -639,8 +663,7 @@ def sim(args: argparse.Namespace, rider: Rider) -> int:
             stuck = a[1] if len(a) > 1 and a[1] != "none" else None
             world = rider.sim("home", axis=a[0], stuck=stuck)
         elif f == "tilt_ai":
-            frozen = "frozen" in a
-            noise = next((float(x) for x in a if x.replace(".", "", 1).isdigit()), 0.0)
+            frozen, noise = _tilt_ai_args(a)
             world = rider.sim("tilt_ai", frozen=frozen, noise_counts=noise)
         elif f == "stall":
             world = rider.sim("stall", axis=a[0], stalled=not (len(a) > 1 and a[1] == "off"))

@@ -31,3 +31,23 @@ def test_bad_global_option_is_usage_error(
     assert stopped.value.code == cli.EXIT_USAGE
     err = capsys.readouterr().err
     assert f"argument {option}" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize(
+    "words",
+    [
+        ["tilt_ai", "forzen"],  # a typo: sent as "no fault", it cleared the tilt signal faults
+        ["tilt_ai", "frozen", "-3"],
+        ["stall", "tilt", "of"],  # a typo of `off`: it stalled the axis
+        ["estop", "now"],
+        ["home", "rotate", "open", "extra"],
+    ],
+)
+def test_a_sim_argument_the_cli_does_not_know_is_usage_error(
+    words: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    code = cli.main(["--connect", endpoint, "--machine", "m1", "--timeout", "0.3", "sim", *words])
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_USAGE, err
+    assert f"sim {words[0]}" in err, err
