@@ -63,9 +63,11 @@ def test_no_machine_alive_raises_no_machine_when_none_is_named(tmp_path: Path) -
             rider.status()
 
 
-def test_a_refusal_raises_command_refused_with_the_error_code(machine: Daemon) -> None:
-    with machine.rider() as rider:
-        assert not rider.status().calibrated.rotate, "runs first, on the fresh module daemon"
+def test_a_refusal_raises_command_refused_with_the_error_code(tmp_path: Path) -> None:
+    # A daemon of its own: the module's daemon is calibrated by whichever test ran before, and
+    # this one needs a never calibrated machine in any test order.
+    with fast_daemon(tmp_path) as daemon, daemon.rider() as rider:
+        assert not rider.status().calibrated.rotate
         with pytest.raises(CommandRefused) as refused:
             rider.start()
         assert refused.value.error.code is ErrorCode.NOT_CALIBRATED
