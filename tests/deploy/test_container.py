@@ -144,7 +144,13 @@ def test_container_runs_a_session_from_the_host_and_stops_safely(
         rider(endpoint, "calibrate", "tilt", "--wait")
         rider(endpoint, "calibrate", "rotate", "--wait")
         rider(endpoint, "home", "--wait")
-        rider(endpoint, "start")
+        # Long enough (about 20 s) to be still under way when the next Rider process has
+        # started on a loaded host and when SIGTERM comes: the default session (about 2 s at
+        # the fast config) was DONE before `watch` attached, which then never saw RUNNING.
+        session = tmp_path / "long.json"
+        steps = [{"kind": "tilt", "degrees": 30}, {"kind": "rotate", "revolutions": 40}]
+        session.write_text(json.dumps({"name": "long", "steps": steps}))
+        rider(endpoint, "start", "--session", str(session))
         running = Status.model_validate_json(
             rider(
                 endpoint, "--json", "watch", "--keys", "status", "--until", "RUNNING", "--for", "30"
