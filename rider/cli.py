@@ -19,7 +19,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from rider.client import (
     AmbiguousMachine,
@@ -36,7 +36,7 @@ from rider.client import (
 from rider.text import printable, shown
 from schema.axes import AxisRecord, PnStatus
 from schema.calibration import CalibrationRecord, RotateCalibrationSet, TiltCalibrationSet
-from schema.commands import CheckResult, Reply, Session
+from schema.commands import CheckResult, Reply, Session, TransactionId
 from schema.completion import Completion, Outcome
 from schema.diag import CycleDiag
 from schema.events import (
@@ -72,6 +72,16 @@ def _machine_id(text: str) -> str:
     if not text or "/" in text:
         raise argparse.ArgumentTypeError(f"{text!r} is not a machine id (one key part, no '/')")
     return text
+
+
+def _transaction_id(text: str) -> str:
+    """An id a machine can have (it names the key `done/<id>`: no wildcard, no empty part)."""
+    try:
+        return TypeAdapter(TransactionId).validate_python(text)
+    except ValidationError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a transaction_id (1-64 letters, digits and ._:@+- in /-parts)"
+        ) from None
 
 
 def _positive_s(text: str) -> float:
@@ -144,7 +154,10 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 - argparse decla
     cs.add_argument("--rotate-home-arc", type=float, help="home-switch arc, degrees")
     dn = sub.add_parser("done", help="how a motion ended (its completion notice)")
     dn.add_argument(
-        "transaction_id", nargs="?", help="the command's transaction id (default: all recent)"
+        "transaction_id",
+        nargs="?",
+        type=_transaction_id,
+        help="the command's transaction id (default: all recent)",
     )
     chk = sub.add_parser("check", help="check calibration or home")
     chk.add_argument("what", choices=["calibration", "home"])

@@ -51,3 +51,16 @@ def test_a_sim_argument_the_cli_does_not_know_is_usage_error(
     err = capsys.readouterr().err
     assert code == cli.EXIT_USAGE, err
     assert f"sim {words[0]}" in err, err
+
+
+@pytest.mark.parametrize("tid", ["a*", "**", "a//b", "@x", "x" * 65, "a b"])
+def test_a_transaction_id_no_machine_can_have_is_usage_error(
+    tid: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`rider done TID` with an id the wire format forbids (a wildcard, an empty part…) was a
+    Zenoh key error (exit 1) or a wildcard query; it is bad input, caught before the query."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["--connect", endpoint, "--machine", "m1", "done", tid])
+    assert stopped.value.code == cli.EXIT_USAGE
+    assert "transaction_id" in capsys.readouterr().err
