@@ -62,6 +62,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 2.0
+VALID_FOR_MAX_S = 3600.0  # the wire's bound on `CommandRequest.valid_for`
 EMPTY_RETRY_S = 0.05
 DONE_RECHECK_S = 1.0
 """`wait_done` asks for the notice this often besides listening for it."""
@@ -458,6 +459,11 @@ class Rider:
         self.pick_machine(motion=True)
         if request is None:
             request = CommandRequest.model_validate(self._req())
+        if request.valid_for is None:
+            # How long this Rider waits in all: a motion command that reaches the machine
+            # later (a frozen daemon resuming) is refused there instead of acting unseen.
+            wait = (timeout if timeout is not None else self.timeout) * (self.retries + 1)
+            request = request.model_copy(update={"valid_for": min(wait, VALID_FOR_MAX_S)})
         payload = encode(request)
         key = f"{self.base}/cmd/{command.key}"
         last: RiderError | None = None

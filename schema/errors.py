@@ -32,6 +32,9 @@ class ErrorCode(StrEnum):
     UNKNOWN_TRANSACTION = "UNKNOWN_TRANSACTION"
     """`done/<transaction_id>` of no motion this daemon remembers (never one, forgotten, or
     sent before it started)."""
+    STALE_REQUEST = "STALE_REQUEST"
+    """A command that would move the machine reached it after its sender had stopped waiting
+    (`timecode` + `valid_for`, plus the machine's clock margin): it is not acted on."""
     DUPLICATE_ID = "DUPLICATE_ID"
     """Another session holds this machine's id: no command that moves or changes the machine
     is taken until one of the two is alone again."""

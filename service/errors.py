@@ -84,6 +84,10 @@ class WildcardCommand(BadKey):
     error_reply = True
 
 
+class StaleRequest(MachineError):
+    code = ErrorCode.STALE_REQUEST
+
+
 class Busy(MachineError):
     code = ErrorCode.BUSY
 

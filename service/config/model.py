@@ -97,6 +97,9 @@ class BusSection(_Section):
     ai_deadband_counts: int = Field(default=2, ge=0, le=65_535)
     transaction_window: int = Field(default=4096, ge=1, le=1_000_000)
     inbox_capacity: int = Field(default=1024, ge=1, le=1_000_000)
+    clock_margin_s: float = Field(default=1.0, ge=0, le=86_400)
+    """How far a sender's clock may be behind this machine's before its motion commands look
+    older than their `valid_for` and are refused `STALE_REQUEST`."""
 
 
 class EventsSection(_Section):

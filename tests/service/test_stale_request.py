@@ -1,0 +1,66 @@
+"""A motion command that reaches the machine after its sender stopped waiting is not acted on.
+
+The sender says how long it waits (`valid_for`, from its `timecode`); a daemon that was frozen or
+cut off and resumes must not home, start or resume on a command its operator was told had
+timed out."""
+
+from __future__ import annotations
+
+import pytest
+
+from schema.commands import Command
+from schema.errors import ErrorCode
+from schema.status import MachineState
+from service.config.model import MachineConfig
+from tests.rig import Rig
+
+MOTION = [Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE]
+
+
+def wall(rig: Rig) -> float:
+    return rig.clock() + rig.control.wall_offset
+
+
+@pytest.mark.parametrize("command", MOTION)
+def test_a_motion_command_older_than_its_wait_is_refused_and_nothing_moves(
+    command: Command,
+) -> None:
+    rig = Rig()
+    before = rig.state
+    reply = rig.send(command, timecode=wall(rig) - 5.0, valid_for=2.0)
+    assert not reply.success and reply.error is not None
+    assert reply.error.code is ErrorCode.STALE_REQUEST
+    assert "sent 5.0 s ago" in reply.error.message and "after 2 s" in reply.error.message
+    rig.step(20)
+    assert rig.state is before and not rig.relays_on()
+
+
+def test_within_its_wait_and_the_clock_margin_it_is_taken() -> None:
+    rig = Rig()
+    margin = rig.config.bus.clock_margin_s
+    assert rig.send(Command.HOME, timecode=wall(rig) - 2.0 - margin + 0.1, valid_for=2.0).success
+    assert rig.state is MachineState.HOMING
+
+
+def test_without_a_time_or_a_wait_no_age_is_judged() -> None:
+    rig = Rig()
+    assert rig.send(Command.HOME, timecode=wall(rig) - 600.0).success  # no valid_for
+    rig = Rig()
+    assert rig.send(Command.HOME, valid_for=0.5).success  # no timecode
+
+
+def test_stop_pause_and_checks_are_never_refused_for_age() -> None:
+    rig = Rig(calibration=None).ready()
+    assert rig.send(Command.START, timecode=wall(rig), valid_for=2.0).success
+    rig.step(5)
+    old = {"timecode": wall(rig) - 60.0, "valid_for": 1.0}
+    assert rig.send(Command.PAUSE, **old).success
+    assert rig.send(Command.CHECK_HOME, **old).success
+    assert rig.send(Command.STOP, **old).success
+    assert rig.state is MachineState.DONE
+
+
+def test_the_margin_is_a_setting() -> None:
+    config = MachineConfig().with_overrides(bus={"clock_margin_s": 120.0})
+    rig = Rig(config)
+    assert rig.send(Command.HOME, timecode=wall(rig) - 60.0, valid_for=2.0).success
