@@ -460,10 +460,13 @@ class Rider:
         if request is None:
             request = CommandRequest.model_validate(self._req())
         if request.valid_for is None:
-            # How long this Rider waits in all: a motion command that reaches the machine
-            # later (a frozen daemon resuming) is refused there instead of acting unseen.
+            # Until when this call waits, counted from the request's timecode (a request sent
+            # again later, same transaction, waits anew): a motion command that reaches the
+            # machine after that (a frozen daemon resuming) is refused there, not acted unseen.
             wait = (timeout if timeout is not None else self.timeout) * (self.retries + 1)
-            request = request.model_copy(update={"valid_for": min(wait, VALID_FOR_MAX_S)})
+            sent = request.timecode if request.timecode is not None else time.time()
+            valid = max(time.time() - sent + wait, wait)
+            request = request.model_copy(update={"valid_for": min(valid, VALID_FOR_MAX_S)})
         payload = encode(request)
         key = f"{self.base}/cmd/{command.key}"
         last: RiderError | None = None
