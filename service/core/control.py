@@ -373,9 +373,9 @@ class ControlAPI:
                 " Home or Stop"
             )
         if self.state not in _ACCEPTED[command]:
-            allowed = ", ".join(sorted(_ACCEPTED[command]))
             raise WrongState(
-                f"{command.value} is not accepted in state {self.state}; accepted in: {allowed}"
+                f"{command.value} is not accepted in state {self.state};"
+                f" accepted in: {_ACCEPTED_TEXT[command]}"
             )
 
     # One handler per command (the table's `action`).
@@ -1009,6 +1009,8 @@ _ACCEPTED: dict[Command, frozenset[MachineState]] = {
     command: frozenset().union(*(r.sources for r in TABLE if r.trigger is command))
     for command in Command
 }
+_ACCEPTED_TEXT = {command: ", ".join(sorted(states)) for command, states in _ACCEPTED.items()}
+"""The states a WRONG_STATE refusal names, sorted once (a refusal per command under a storm)."""
 
 
 def edges() -> frozenset[tuple[MachineState, MachineState]]:
