@@ -197,39 +197,41 @@ def test_a_failed_write_to_data_dir_is_recorded_once_per_problem() -> None:
     assert [d.kind for d in details(sink, mark)] == ["storage_failed", "storage_failed"]
 
 
-def test_a_watchdog_trip_ends_the_motion_with_a_recorded_fault() -> None:
+def tripped_while_homing() -> tuple[Rig, ListEventSink, str, int]:
+    """A homing machine whose watchdog has just latched the outputs safe (what its thread does
+    when the loop stalls); returns the rig, its events, the Home's transaction and the mark."""
     rig, sink = ready_rig(guarded=True)
-    guard = rig.guard
-    assert guard is not None
-    reply = rig.send(Command.HOME)
+    assert rig.guard is not None
+    home = rig.send(Command.HOME)
     rig.step(3)
     mark = len(sink.events)
-    guard.latch_safe()  # what the watchdog thread does when the loop stalls
+    rig.guard.latch_safe()
+    return rig, sink, home.transaction_id or "", mark
+
+
+def assert_watchdog_ended(raised: object, done: object, transaction_id: str) -> None:
+    assert isinstance(raised, FaultEvent) and raised.code == "WATCHDOG"
+    assert isinstance(done, CompletionEvent) and done.transaction_id == transaction_id
+    assert done.outcome == "FAULT_HW" and done.code == "WATCHDOG"
+
+
+def test_a_watchdog_trip_ends_the_motion_with_a_recorded_fault() -> None:
+    rig, sink, home, mark = tripped_while_homing()
     rig.step()
     assert kinds(sink, mark) == ["state", "fault_raised", "completion"]
-    raised, done = details(sink, mark)[1:]
-    assert isinstance(raised, FaultEvent) and raised.code == "WATCHDOG"
-    assert isinstance(done, CompletionEvent) and done.transaction_id == reply.transaction_id
-    assert done.outcome == "FAULT_HW" and done.code == "WATCHDOG"
+    assert_watchdog_ended(*details(sink, mark)[1:], home)
 
 
 def test_a_command_right_after_a_watchdog_trip_is_recorded_after_the_fault() -> None:
     """Home sent on the watchdog's FAULT_HW before the next cycle: the history says fault,
     then the old motion's end, then the command (accepted against the fault)."""
-    rig, sink = ready_rig(guarded=True)
-    guard = rig.guard
-    assert guard is not None
-    first = rig.send(Command.HOME)
-    rig.step(3)
-    mark = len(sink.events)
-    guard.latch_safe()
+    rig, sink, home, mark = tripped_while_homing()
     request = CommandRequest.model_validate({"transaction_id": "home-after-trip"})
     reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
     assert reply is not None and reply.success
     assert kinds(sink, mark)[:4] == ["state", "fault_raised", "completion", "command"]
     raised, done, cmd = details(sink, mark)[1:4]
-    assert isinstance(raised, FaultEvent) and raised.code == "WATCHDOG"
-    assert isinstance(done, CompletionEvent) and done.transaction_id == first.transaction_id
+    assert_watchdog_ended(raised, done, home)
     assert isinstance(cmd, CommandEvent) and cmd.transaction_id == "home-after-trip"
 
 
