@@ -150,10 +150,11 @@ class CommandRequest(WireModel):
     rider: TransactionId | None = None
     valid_for: float | None = Field(default=None, gt=0, le=3600)
     """Seconds after `timecode` that the sender still waits for the answer (the Rider sends the
-    end of this call's wait: timeout × tries, counted from `timecode`). A command that would move the machine and reaches it later
-    than that (a frozen or unreachable daemon that resumes) is refused `STALE_REQUEST`, so
-    nothing moves on a command its operator was told had timed out. Without `timecode` and
-    `valid_for` (e.g. a hand-written zenoh CLI request) no age is checked."""
+    end of this call's wait: timeout × tries, counted from `timecode`). A command that would
+    move the machine and reaches it later than that (a frozen or unreachable daemon that
+    resumes) is refused `STALE_REQUEST`, so nothing moves on a command its operator was told
+    had timed out. Without `timecode` and `valid_for` (e.g. a hand-written zenoh CLI request)
+    no age is checked."""
 
 
 class StartRequest(CommandRequest):
