@@ -372,12 +372,7 @@ class ScanLoop:
         try:
             if self.cycle == 0 or self.inbox.closed:
                 return None
-            now = clock()
-            # A Rider that saw the watchdog's FAULT_HW and sent Home at once must find the
-            # machine in that fault, not in the motion the stall interrupted.
-            if self._take_watchdog_trip(now):
-                self._observe(now)  # the fault and its notice, before the command's own
-            return self.execute(command, request, now, sender=sender)
+            return self.execute(command, request, clock(), sender=sender)
         finally:
             self.lock.release()
 
@@ -385,6 +380,11 @@ class ScanLoop:
         self, command: Command, request: CommandRequest, now: float, *, sender: str | None = None
     ) -> Reply:
         """One command with at-most-once semantics by transaction id."""
+        # Between cycles (from a Zenoh callback or the runner's queue) a Rider that saw the
+        # watchdog's FAULT_HW and sent Home at once must find the machine in that fault, not
+        # in the motion the stall interrupted; within a cycle `step` has taken it already.
+        if self._take_watchdog_trip(now):
+            self._observe(now)  # the fault and its notice, before the command's own
         self.commands_handled += 1
         stamp = now + self.wall_offset
         repeat = self.transactions.lookup(request.transaction_id, command.value, stamp)

@@ -54,9 +54,11 @@ def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
     assert not rig.relays_on()
 
 
-def test_a_command_between_cycles_finds_the_watchdog_fault_first() -> None:
+@pytest.mark.parametrize("path", ["callback", "queue"])
+def test_a_command_between_cycles_finds_the_watchdog_fault_first(path: str) -> None:
     """The watchdog publishes FAULT_HW from its own thread; a Home sent on that status before
-    the next cycle is judged against the fault (accepted), not the interrupted homing."""
+    the next cycle — run from a Zenoh callback or from the runner's queue — is judged against
+    the fault (accepted), not the interrupted homing."""
     rig = Rig(guarded=True)
     guard = rig.guard
     assert guard is not None
@@ -64,8 +66,11 @@ def test_a_command_between_cycles_finds_the_watchdog_fault_first() -> None:
     rig.step(3)
     assert rig.state is MachineState.HOMING
     guard.latch_safe()
-    request = CommandRequest.model_validate({"transaction_id": "after-trip"})
-    reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
+    if path == "callback":
+        request = CommandRequest.model_validate({"transaction_id": "after-trip"})
+        reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
+    else:
+        reply = rig.send(Command.HOME)
     assert reply is not None and reply.success, reply
     assert rig.control.fault is None and rig.state is MachineState.HOMING
     assert not guard.latched
