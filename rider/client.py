@@ -37,6 +37,7 @@ from schema.calibration import (
 )
 from schema.codec import MAX_REPLY_BYTES, DecodeError, Format, decode, encode, pack
 from schema.commands import (
+    VALID_FOR_MAX_S,
     CheckResult,
     Command,
     CommandRequest,
@@ -62,7 +63,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 2.0
-VALID_FOR_MAX_S = 3600.0  # the wire's bound on `CommandRequest.valid_for`
 EMPTY_RETRY_S = 0.05
 DONE_RECHECK_S = 1.0
 """`wait_done` asks for the notice this often besides listening for it."""
@@ -464,8 +464,9 @@ class Rider:
             # again later, same transaction, waits anew): a motion command that reaches the
             # machine after that (a frozen daemon resuming) is refused there, not acted unseen.
             wait = (timeout if timeout is not None else self.timeout) * (self.retries + 1)
-            sent = request.timecode if request.timecode is not None else time.time()
-            valid = max(time.time() - sent + wait, wait)
+            now = time.time()
+            sent = request.timecode if request.timecode is not None else now
+            valid = max(now - sent, 0.0) + wait
             request = request.model_copy(update={"valid_for": min(valid, VALID_FOR_MAX_S)})
         payload = encode(request)
         key = f"{self.base}/cmd/{command.key}"

@@ -135,6 +135,10 @@ DEFAULT_SESSION = Session(
 )
 
 
+VALID_FOR_MAX_S = 3600
+"""The longest `CommandRequest.valid_for` a request may state (an hour)."""
+
+
 class CommandRequest(WireModel):
     """The envelope of every command: an id that makes a retry safe, and the sender's time.
 
@@ -148,7 +152,7 @@ class CommandRequest(WireModel):
     uses integer milliseconds; here seconds, as every time on this wire). Echoed in the reply
     as `request_timecode` and written to the daemon's log with the command."""
     rider: TransactionId | None = None
-    valid_for: float | None = Field(default=None, gt=0, le=3600)
+    valid_for: float | None = Field(default=None, gt=0, le=VALID_FOR_MAX_S)
     """Seconds after `timecode` that the sender still waits for the answer (the Rider sends the
     end of this call's wait: timeout × tries, counted from `timecode`). A command that would
     move the machine and reaches it later than that (a frozen or unreachable daemon that
