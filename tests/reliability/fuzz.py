@@ -42,7 +42,7 @@ class Case:
 
 
 VALID: dict[str, dict[str, Any]] = {
-    "command": {"transaction_id": "fz-1", "timecode": 1.5, "rider": None},
+    "command": {"transaction_id": "fz-1", "timecode": 1.5, "valid_for": 2.0, "rider": None},
     "start": {
         "transaction_id": "fz-2",
         "session": {
