@@ -20,6 +20,7 @@ from rider.client import Rider
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT_S = 20.0
 STOP_TIMEOUT_S = 10.0
+LOG_WAIT_S = 5.0
 
 HOST_CONFIG = """\
 # `machine run` in a test that gives no --config: the project defaults, but for the watchdog.
@@ -128,6 +129,16 @@ class Daemon:
     def log(self) -> str:
         return self.log_path.read_text() if self.log_path.exists() else ""
 
+    def has_logged(self, text: str, timeout: float = LOG_WAIT_S) -> bool:
+        """Whether a line with `text` reaches the log within `timeout`: lines are written by the
+        daemon's log writer thread, a moment after what they tell (service/logfmt.py)."""
+        deadline = time.monotonic() + timeout
+        while text not in self.log():
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
     def stop(self, sig: int = signal.SIGTERM) -> int:
         return stop_process(self.proc, sig)
 
@@ -149,11 +160,13 @@ def start_daemon(
     netns: str | None = None,
     listen_host: str = "127.0.0.1",
     wait: bool = True,
+    pipe: bool = False,
 ) -> Daemon:
     """Start `machine run --sim` and wait until its liveliness token is seen.
 
     Without a `--config` in `extra` the daemon runs on `HOST_CONFIG` (the defaults, a watchdog
-    that tolerates a loaded host)."""
+    that tolerates a loaded host). `pipe`: its output goes to a pipe (`proc.stdout`) the caller
+    reads, or leaves unread, instead of to its log file."""
     port = port or free_port()
     endpoint = f"tcp/{listen_host}:{port}"
     data_dir = tmp / f"data-{machine_id}"
@@ -181,7 +194,12 @@ def start_daemon(
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     with log_path.open("w") as log:
         proc = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env
+            cmd,
+            stdout=subprocess.PIPE if pipe else log,
+            stderr=subprocess.STDOUT,
+            text=True,
+            cwd=REPO,
+            env=env,
         )
     daemon = Daemon(proc, endpoint, machine_id, data_dir, zconf, log_path, extra or [])
     if wait:

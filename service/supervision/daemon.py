@@ -36,6 +36,7 @@ from service.core.runner import (
 )
 from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
+from service.logfmt import flush_logs
 from service.simwing import sim_hal, sim_port
 
 log = logging.getLogger("machine")
@@ -406,5 +407,5 @@ def _exit_now(hal: Hal) -> None:
         hal.force_all_outputs_safe()
     finally:
         log.error("event=shutdown_stuck deadline_s=%g action=exit", SHUTDOWN_DEADLINE_S)
-        logging.shutdown()
+        flush_logs()
         os._exit(EXIT_FAILED)

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import io
 import logging
+import threading
+import time
+from logging.handlers import QueueListener
 
-from service.logfmt import KeyValueFormatter
+from service import logfmt
+from service.logfmt import KeyValueFormatter, LineHandler, LineQueue
 
 
 def _record(created: float) -> logging.LogRecord:
@@ -22,3 +27,84 @@ def test_each_line_has_its_own_second_and_millisecond() -> None:
         "ts=2025-11-28T03:20:00.990Z level=info logger=machine event=x a=1",
         "ts=2025-11-28T03:20:01.002Z level=info logger=machine event=x a=1",
     ]
+
+
+class _Stalled(io.StringIO):
+    """A stream whose writes block until `go` is set (a log reader that stopped reading)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.go = threading.Event()
+
+    def write(self, text: str) -> int:
+        assert self.go.wait(10.0), "never released"
+        return super().write(text)
+
+
+def _logger(lines: LineQueue, stream: io.StringIO) -> tuple[logging.Logger, QueueListener]:
+    out = logging.StreamHandler(stream)
+    out.setFormatter(KeyValueFormatter())
+    writer = QueueListener(lines, out)  # type: ignore[arg-type]
+    writer.start()
+    logger = logging.getLogger(f"test-logfmt-{id(lines)}")
+    logger.propagate = False
+    logger.handlers[:] = [LineHandler(lines)]  # type: ignore[arg-type]
+    logger.setLevel(logging.INFO)
+    return logger, writer
+
+
+def test_a_line_says_what_its_arguments_were_when_it_was_logged() -> None:
+    lines, stream = LineQueue(), io.StringIO()
+    logger, writer = _logger(lines, stream)
+    state = ["IDLE"]
+    logger.info("event=x state=%s", state)
+    state[0] = "HOMING"  # changed before the writer formats the line
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        logger.exception("event=failed")
+    writer.stop()
+    text = stream.getvalue().splitlines()
+    assert text[0].endswith("event=x state=['IDLE']")
+    assert "event=failed traceback='Traceback" in text[1] and "ValueError: boom" in text[1]
+
+
+def test_a_stalled_reader_never_blocks_the_logger_and_the_lost_lines_are_counted() -> None:
+    lines, stream = LineQueue(capacity=100), _Stalled()
+    logger, writer = _logger(lines, stream)
+    started = time.monotonic()
+    for i in range(1000):
+        logger.info("event=n i=%d", i)
+    assert time.monotonic() - started < 5.0  # each call returned although nothing was written
+    assert lines.dropped >= 1000 - 100 - 1  # the writer holds at most one line in its write
+    dropped = lines.dropped
+    stream.go.set()
+    deadline = time.monotonic() + 5.0
+    while lines.queued and time.monotonic() < deadline:  # the writer catches up
+        time.sleep(0.001)
+    logger.info("event=n i=%d", 1000)  # the first line queued after the loss
+    writer.stop()
+    text = stream.getvalue().splitlines()
+    kept = [int(line.rsplit("i=", 1)[1]) for line in text if "event=n" in line]
+    assert kept == [*range(1000 - dropped), 1000]
+    # The count stands where the lines went missing: after those kept, before the next one.
+    assert "event=log_lines_dropped" in text[-2] and f"count={dropped} " in text[-2]
+
+
+def test_the_exit_flush_writes_every_queued_line_and_never_hangs_on_a_stalled_reader() -> None:
+    lines, stream = LineQueue(), io.StringIO()
+    logger, writer = _logger(lines, stream)
+    for i in range(500):
+        logger.info("event=n i=%d", i)
+    writer.stop()  # what flush_logs does at exit: the sentinel goes after every queued line
+    assert len(stream.getvalue().splitlines()) == 500
+
+    stalled = _Stalled()
+    logger, writer = _logger(LineQueue(), stalled)
+    logger.info("event=stuck")
+    logfmt._writer = writer
+    started = time.monotonic()
+    logfmt.flush_logs(timeout=0.2)
+    assert time.monotonic() - started < 2.0
+    assert logfmt._writer is None
+    stalled.go.set()
