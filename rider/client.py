@@ -62,6 +62,8 @@ M = TypeVar("M", bound=BaseModel)
 log = logging.getLogger(__name__)
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+_MSGPACK = zenoh.Encoding(Format.MSGPACK.value)
+"""Prebuilt: a request does not parse its encoding string."""
 DEFAULT_TIMEOUT_S = 2.0
 EMPTY_RETRY_S = 0.05
 DONE_RECHECK_S = 1.0
@@ -312,6 +314,10 @@ class Rider:
         """What the default-machine lookup saw (None when a machine was named)."""
         self.supervise = supervise
         self.rider_id = ""
+        self._attachment = b""
+        self._keys: dict[str, zenoh.KeyExpr] = {}
+        """Command keys declared to the session: a query on a declared key expression is
+        routed without matching its string again (BENCHMARKS.md, section 1)."""
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
@@ -322,6 +328,9 @@ class Rider:
             where = str(exc).split(" at /", 1)[0]
             raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
         self.rider_id = str(self._session.zid())
+        # Who asked, for the machine's event history (the payload's `rider` field means
+        # "watch me" and stays unset for one-shot commands).
+        self._attachment = f"rider={self.rider_id}".encode()
         self._token = self._session.liveliness().declare_token(alive_key(self.rider_id))
         if self.supervise:
             self._heartbeat = Heartbeat(self._session, self.rider_id)
@@ -336,6 +345,10 @@ class Rider:
             self._token.undeclare()
             self._token = None
         if self._session is not None:
+            for key_expr in self._keys.values():
+                with contextlib.suppress(zenoh.ZError):
+                    self._session.undeclare(key_expr)
+            self._keys.clear()
             self._session.close()
             self._session = None
 
@@ -457,13 +470,13 @@ class Rider:
         """Send one command; raises `CommandRefused` on an error reply when `check`."""
         # A command may move a ride: a default machine is looked up with more certainty.
         self.pick_machine(motion=True)
+        # Until when this call waits, counted from the request's timecode (a request sent
+        # again later, same transaction, waits anew): a motion command that reaches the
+        # machine after that (a frozen daemon resuming) is refused there, not acted unseen.
+        wait = (timeout if timeout is not None else self.timeout) * (self.retries + 1)
         if request is None:
-            request = CommandRequest.model_validate(self._req())
-        if request.valid_for is None:
-            # Until when this call waits, counted from the request's timecode (a request sent
-            # again later, same transaction, waits anew): a motion command that reaches the
-            # machine after that (a frozen daemon resuming) is refused there, not acted unseen.
-            wait = (timeout if timeout is not None else self.timeout) * (self.retries + 1)
+            request = CommandRequest.model_validate(self._req(valid_for=min(wait, VALID_FOR_MAX_S)))
+        elif request.valid_for is None:
             now = time.time()
             sent = request.timecode if request.timecode is not None else now
             valid = max(now - sent, 0.0) + wait
@@ -473,7 +486,7 @@ class Rider:
         last: RiderError | None = None
         for _ in range(self.retries + 1):
             try:
-                reply = self._get_one(key, payload, Reply, timeout)
+                reply = self._get_one(key, payload, Reply, timeout, self._declared(key))
             except MachineTimeout as exc:
                 last = exc  # same transaction id again: at most once on the machine
                 continue
@@ -482,6 +495,14 @@ class Rider:
             return reply
         assert last is not None
         raise last
+
+    def _declared(self, key: str) -> zenoh.KeyExpr:
+        """`key` as a key expression declared to this session (once per key)."""
+        key_expr = self._keys.get(key)
+        if key_expr is None:
+            with _bus_errors(f"cannot declare {key}"):
+                key_expr = self._keys[key] = self.session.declare_keyexpr(key)
+        return key_expr
 
     def _req(self, **extra: Any) -> dict[str, Any]:
         return {
@@ -975,7 +996,14 @@ class Rider:
         raise MachineTimeout(f"machine still {last.state} after {timeout:g} s")
 
     # ---------------------------------------------------------------------------- plumbing
-    def _get_one(self, key: str, payload: bytes | None, model: type[M], timeout: float | None) -> M:
+    def _get_one(
+        self,
+        key: str,
+        payload: bytes | None,
+        model: type[M],
+        timeout: float | None,
+        key_expr: zenoh.KeyExpr | None = None,
+    ) -> M:
         """The first reply. An empty answer that comes back early means no queryable was
         matched yet (a peer's declarations still on their way just after open): ask again
         until the timeout. Safe for commands too: the transaction id makes them at-most-once."""
@@ -983,7 +1011,8 @@ class Rider:
         deadline = time.monotonic() + limit
         while True:
             remaining = deadline - time.monotonic()
-            replies = self._answered(key, self._get(key, payload, max(remaining, 0.05)), limit)
+            got = self._get(key, payload, max(remaining, 0.05), key_expr)
+            replies = self._answered(key, got, limit)
             if replies:
                 return self._decode(replies[0], model)
             if deadline - time.monotonic() < EMPTY_RETRY_S:
@@ -1008,18 +1037,23 @@ class Rider:
             )
         return answered
 
-    def _get(self, key: str, payload: bytes | None, timeout: float | None) -> list[zenoh.Reply]:
+    def _get(
+        self,
+        key: str,
+        payload: bytes | None,
+        timeout: float | None,
+        key_expr: zenoh.KeyExpr | None = None,
+    ) -> list[zenoh.Reply]:
+        """All replies to `key` (asked as `key_expr` when it is declared)."""
         kwargs: dict[str, Any] = {"timeout": timeout or self.timeout}
         if payload is not None:
             kwargs["payload"] = payload
-            kwargs["encoding"] = Format.MSGPACK.value
-            # Who asked, for the machine's event history (the payload's `rider` field means
-            # "watch me" and stays unset for one-shot commands).
-            kwargs["attachment"] = f"rider={self.rider_id}".encode()
+            kwargs["encoding"] = _MSGPACK
+            kwargs["attachment"] = self._attachment
         # Every reply, not one per key: two daemons with one id must both be seen.
         kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
         with _bus_errors(f"cannot query {key}"):
-            replies = list(self.session.get(key, **kwargs))
+            replies = list(self.session.get(key if key_expr is None else key_expr, **kwargs))
         self._check_repliers(key, replies)
         return replies
 

@@ -20,7 +20,7 @@ LOCK_TIMEOUT_S = 0.5
 """How long a command waits for the scan thread to finish a cycle before BUSY (a stalled loop)."""
 
 
-def command_route(handler: Handler) -> Route:
+def command_route(handler: Handler, keys: tuple[str, ...] = ()) -> Route:
     """`cmd/**`, one queryable for every command key: a query reaches one callback, where a
     queryable per command beside a `cmd/**` one made every command wait for two
     (bench/roundtrip). Any wildcard is refused, as a Zenoh error reply."""
@@ -33,6 +33,7 @@ def command_route(handler: Handler) -> Route:
         example="cmd/home",
         noun="command",
         refusal=WildcardCommand,
+        keys=keys,
     )
 
 
@@ -50,7 +51,7 @@ class Commands:
         """Exact command key → (command, its prebuilt key expression: no parsing per reply)."""
 
     def routes(self) -> list[Route]:
-        return [command_route(self.command)]
+        return [command_route(self.command, tuple(f"cmd/{c.key}" for c in Command))]
 
     def command(self, request: Request) -> None:
         """A known command key runs its command; any other key is refused."""

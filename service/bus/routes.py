@@ -50,6 +50,10 @@ class Route:
     noun: str = "key"
     refusal: type[BadKey] = BadKey
     """`WildcardCommand` on `cmd/**`: that refusal is a Zenoh error reply, as documented."""
+    keys: tuple[str, ...] = ()
+    """Exact keys under `key` (under the machine's base) declared to the session as key
+    expressions: a query on one of them is matched against a declared resource instead of
+    the wildcard, on the hot path of every command (BENCHMARKS.md, section 1)."""
     direct: bool = False
     """Run the handler on Zenoh's receive thread instead of a Python thread of its own (one
     fewer thread and hop): only for handlers that never block, i.e. replies from published
@@ -84,7 +88,8 @@ def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
 
 
 def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Route]) -> list[Any]:
-    """One queryable per route on `<base>/<route.key>`; the caller undeclares them."""
+    """One queryable per route on `<base>/<route.key>` (and its exact `keys` declared as key
+    expressions); the caller undeclares them."""
 
     def callback(route: Route) -> Callable[[zenoh.Query], None] | zenoh.handlers.Callback[Any]:
         def fn(query: zenoh.Query) -> None:
@@ -92,4 +97,19 @@ def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Rout
 
         return zenoh.handlers.Callback(fn, indirect=False) if route.direct else fn
 
-    return [session.declare_queryable(f"{base}/{r.key}", callback(r)) for r in routes]
+    declared: list[Any] = []
+    for r in routes:
+        declared += [DeclaredKey(session, f"{base}/{k}") for k in r.keys]
+        declared.append(session.declare_queryable(f"{base}/{r.key}", callback(r)))
+    return declared
+
+
+class DeclaredKey:
+    """A key expression declared to a session, undeclared like the queryables beside it."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.session = session
+        self.key_expr = session.declare_keyexpr(key)
+
+    def undeclare(self) -> None:
+        self.session.undeclare(self.key_expr)
