@@ -12,7 +12,7 @@ from schema.findings import Findings, Severity
 from service.config.load import load, override_source
 from service.config.model import HalBackend, MachineConfig
 from service.config.validate import finding_line, findings_of, hardware_findings
-from service.logfmt import setup_logging
+from service.logfmt import flush_logs, setup_logging
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -218,6 +218,13 @@ def credentials_init(directory: Path, force: bool) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    finally:
+        flush_logs()  # every line written before `machine …` returns (also in-process)
+
+
+def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     if args.cmd == "credentials":
         return credentials_init(args.directory, args.force)

@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 from collections import deque
+from typing import Any
 
 
 class KeyValueFormatter(logging.Formatter):
@@ -120,6 +121,23 @@ class LineHandler(logging.handlers.QueueHandler):
         return record
 
 
+class Stderr(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to whatever `sys.stderr` is when a line is written (as logging's own last-resort
+    handler does), formatted as `key=value`."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.setFormatter(KeyValueFormatter())
+
+    @property
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: Any) -> None:
+        """`StreamHandler.__init__` sets it; the line goes to the current stderr anyway."""
+
+
 _writer: logging.handlers.QueueListener | None = None
 
 
@@ -128,12 +146,14 @@ FLUSH_TIMEOUT_S = 2.0
 
 
 def flush_logs(timeout: float = FLUSH_TIMEOUT_S) -> None:
-    """Write every queued line and stop the writer, waiting at most `timeout` (at exit; before
-    `os._exit`)."""
+    """Write every queued line and stop the writer, waiting at most `timeout` (at exit, before
+    `os._exit`, when `machine …` returns); lines logged after it are written at once."""
     global _writer
     writer, _writer = _writer, None
     if writer is None:
         return
+    root = logging.getLogger()
+    root.handlers[:] = [Stderr() if isinstance(h, LineHandler) else h for h in root.handlers]
     writer.enqueue_sentinel()
     thread = writer._thread
     if thread is not None:
@@ -150,10 +170,8 @@ def setup_logging(level: str = "info") -> LineQueue:
     logging.logMultiprocessing = False
     logging._srcfile = None
     flush_logs()
-    out = logging.StreamHandler(sys.stderr)
-    out.setFormatter(KeyValueFormatter())
     lines = LineQueue()
-    _writer = logging.handlers.QueueListener(lines, out)
+    _writer = logging.handlers.QueueListener(lines, Stderr())
     _writer.start()
     root = logging.getLogger()
     root.handlers[:] = [LineHandler(lines)]
