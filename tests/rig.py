@@ -87,9 +87,11 @@ class Rig:
         events: EventSink | None = None,
         *,
         guarded: bool = False,
+        quiet_cycles: bool = True,
     ) -> None:
         """`calibration` powers the machine up with that calibration already stored;
-        `guarded` puts the watchdog's latch (`self.guard`) between the loop and the HAL."""
+        `guarded` puts the watchdog's latch (`self.guard`) between the loop and the HAL;
+        `quiet_cycles=False` runs every cycle in full (`ScanLoop.quiet_cycles`)."""
         if data_dir is not None and calibration is not None:
             raise ValueError("give data_dir or calibration, not both")
         self.config = config or MachineConfig()
@@ -112,6 +114,7 @@ class Rig:
             guard=self.guard,
         )
         self.loop = self.machine.loop
+        self.loop.quiet_cycles = quiet_cycles
         self.control = self.machine.control
         self.replies: list[Reply] = []
         self.step()

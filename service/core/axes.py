@@ -143,6 +143,20 @@ class AxisTracker:
         if fault_axis == "tilt":
             self.samples["tilt"].status |= DRIVE_FAULT
 
+    def at_rest(self) -> bool:
+        """The next `update` with the same inputs returns at once and `due` is empty: both
+        samples are steady (`_unchanged`), nothing moves and no axis owes a settled record."""
+        return (
+            self._steady
+            and self._still is not None
+            and not self._settling
+            and not any(s.status & MOVING for s in self.samples.values())
+        )
+
+    def tick(self, now: float) -> None:
+        """A quiet cycle (`at_rest` and every input as before): what `update` would do."""
+        self._last_t = now
+
     def _unchanged(
         self,
         state: MachineState,

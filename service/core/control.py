@@ -802,6 +802,45 @@ class ControlAPI:
     def estop_info(self) -> EstopInfo:
         return EstopInfo(active=self.devices.safety.is_estop_active(), latched=self.estop_latched)
 
+    def rest_key(self) -> tuple[object, ...] | None:
+        """None while anything is pending that `update` acts on by itself as time passes (a
+        controller, a calibration being saved, a lost Rider's grace period) or that the loop
+        still has to take (a completion notice). Otherwise a fingerprint of everything
+        `update`, the status and the event history read of this object: while it, the
+        inputs and the clock's timers stay as they were, a cycle would change nothing
+        (`ScanLoop`'s quiet cycles). Plain attribute reads: it is taken every idle cycle."""
+        drive, rider = self._drive, self._rider
+        if (
+            drive.controller is not None
+            or self._saving is not None
+            or rider.gone_at is not None
+            or self.completions
+        ):
+            return None
+        storage = self.storage
+        return (
+            self.live.current,
+            self.state,
+            self.previous_state,
+            self.fault,
+            self.calibration,
+            self.devices.tilt.calibration,
+            self.refs.tilt,
+            self.refs.rotate,
+            drive.session_run,
+            drive.resume_to,
+            drive.estop_from,
+            drive.estop_latched,
+            self.action,
+            rider,
+            rider.id,
+            rider.connected,
+            rider.warning,
+            self.duplicate_of,
+            len(self.warnings),
+            storage.version if storage is not None else 0,
+        )
+
     def status_key(self) -> tuple[object, ...]:
         """Cheap fingerprint of everything in `Status` except positions and time."""
         run = self._drive.session_run

@@ -162,6 +162,23 @@ class EventRecorder:
         self._calibrations(control, emit)
         self._storage(control, emit)
 
+    def settled(self, control: ControlAPI) -> bool:
+        """Another `observe` of `control` as it is now would emit nothing: no transition or
+        notice is waiting and the snapshot matches it (`ScanLoop`'s quiet cycles)."""
+        storage = control.storage
+        run = control.session_run
+        return (
+            self._seen
+            and not self._transitions
+            and not self._notices
+            and self._estop == control.devices.safety.is_estop_active()
+            and self._latched == control.estop_latched
+            and self._fault == control.fault
+            and self._calibration is control.calibration
+            and (storage is None or storage.version == self._storage_version)
+            and (run is None or (self._session is not None and self._session.run is run))
+        )
+
     def _emitter(self, wall: float) -> Emit:
         sink, cycle = self.sink, self.cycle
 

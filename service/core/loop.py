@@ -18,7 +18,7 @@ from typing import Protocol, TypeVar
 
 from pydantic import BaseModel
 
-from hal.base import Hal
+from hal.base import Hal, Inputs
 from schema.axes import AxisRecord
 from schema.calibration import (
     CalibrationRecord,
@@ -219,6 +219,17 @@ class Published:
     axes: dict[str, AxisRecord] = field(default_factory=dict)
 
 
+@dataclass(frozen=True, slots=True)
+class _Rest:
+    """What a full cycle that left the machine at rest depended on (`ScanLoop._at_rest`)."""
+
+    key: tuple[object, ...]
+    di: dict[str, bool]
+    ai: dict[str, int]
+    commands: int
+    tasks: int
+
+
 class ScanLoop:
     """One scan cycle per `step(now)`; commands between cycles with `service_inbox(now)`."""
 
@@ -271,6 +282,14 @@ class ScanLoop:
         self.lock = threading.Lock()
         """One writer at a time: held by the runner for a cycle (and for queued tasks between
         cycles), and by a Zenoh callback thread running a command between cycles."""
+        self.tasks_run = 0
+        """Inbox tasks run (between cycles and within them)."""
+        self.quiet_cycles = True
+        """Skip the work of a cycle that would change nothing (see `_at_rest`); False runs
+        every cycle in full (the tests compare the two)."""
+        self.quiet = 0
+        """Quiet cycles run."""
+        self._rest: _Rest | None = None
         self.sink: LoopSink = NullSink() if sink is None else _sink(sink, self)
 
     @property
@@ -284,7 +303,17 @@ class ScanLoop:
         self.cycle += 1
         self.recorder.cycle = self.cycle
         self.live.take()  # online parameter writes take effect here, between cycles
-        self.image.inputs = self.hal.scan_inputs()
+        inputs = self.image.inputs = self.hal.scan_inputs()
+        rest, self._rest = self._rest, None
+        if rest is not None and self._still_at_rest(rest, inputs, now):
+            # No watchdog latch, no E-stop, nothing queued: the cycle goes on at the deadman.
+            self._supervise(now)
+            if self.control.rest_key() == rest.key:
+                self._rest = rest
+                self._quiet_cycle(now)
+            else:
+                self._rest_of_cycle(now)
+            return
         self._take_watchdog_trip(now)
         if self.devices.safety.is_estop_active():
             # Same cycle the input is seen: state, controllers and outputs, before anything else.
@@ -296,10 +325,64 @@ class ScanLoop:
             return
         self.service_inbox(now)
         self._supervise(now)
+        self._rest_of_cycle(now)
+
+    def _rest_of_cycle(self, now: float) -> None:
+        """After the deadman: the control acts, outputs are written, changes recorded and
+        published; then whether the next cycles may be quiet ones."""
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
         self._observe(now)
         self._publish(now)
+        self._rest = self._at_rest() if self.quiet_cycles else None
+
+    # ----------------------------------------------------------------------- quiet cycles
+    # An idle machine's cycle changes nothing: the same inputs, no controller, nothing queued.
+    # After a full cycle that leaves the machine at such a rest, `_at_rest` notes what it
+    # depended on; a later cycle whose inputs, commands, queued tasks, timers and control
+    # state (`ControlAPI.rest_key`) all match it is quiet: it still scans the inputs, runs
+    # the deadman and writes the outputs, and skips `update`, the event history's compare
+    # and the publication work, whose results it knows (nothing). Anything else runs the
+    # full cycle, which is the one definition of what a cycle does.
+
+    def _at_rest(self) -> _Rest | None:
+        """After a full cycle: what the next cycles must find to be quiet, or None when a
+        repeat of this cycle could still do something (it would publish, record, move)."""
+        control = self.control
+        key = control.rest_key()
+        if (
+            key is None
+            or self._unpublished
+            or any(self.image.outputs.ro.values())  # `update` would switch them off
+            or (self.guard is not None and self.guard.latched)
+            or self.devices.safety.is_estop_active()
+            or not self.axes.at_rest()
+            or not self.recorder.settled(control)
+        ):
+            return None
+        inputs = self.image.inputs
+        return _Rest(key, dict(inputs.di), dict(inputs.ai), self.commands_handled, self.tasks_run)
+
+    def _still_at_rest(self, rest: _Rest, inputs: Inputs, now: float) -> bool:
+        """Everything but the control state (taken after the deadman) is as at `rest`."""
+        guard = self.guard
+        return (
+            inputs.di == rest.di
+            and inputs.ai == rest.ai
+            and now < self._status_due  # the status heartbeat is a full cycle
+            and self.commands_handled == rest.commands
+            and self.tasks_run == rest.tasks
+            and not self.inbox.wake.is_set()  # set whenever something is queued
+            and not self.inbox
+            and not any(self.image.outputs.ro.values())
+            and (guard is None or not guard.latched)
+        )
+
+    def _quiet_cycle(self, now: float) -> None:
+        """What a full cycle does at rest, without the work that finds nothing to do."""
+        self.hal.scan_outputs(self.image.outputs)
+        self.axes.tick(now)
+        self.quiet += 1
 
     def _take_watchdog_trip(self, now: float) -> bool:
         """The watchdog forced the outputs safe while the scan thread was stalled (and has
@@ -341,8 +424,10 @@ class ScanLoop:
     def service_inbox(self, now: float) -> int:
         """Run queued tasks (bounded per call so a storm cannot stretch a cycle unboundedly)."""
         tasks = self.inbox.take(self._max_tasks)
-        for task in tasks:
-            task.run(self, now)
+        if tasks:
+            self.tasks_run += len(tasks)  # before they run: one that raises counts too
+            for task in tasks:
+                task.run(self, now)
         return len(tasks)
 
     def execute_between_cycles(
