@@ -7,7 +7,7 @@ from collections.abc import Callable
 from hal.base import Inputs, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
 from service.config.model import PhysicsParams
-from sim.physics import SwitchFault, World
+from sim.physics import SwitchFault, World, WorldInputs
 
 
 class SimHal:
@@ -35,6 +35,8 @@ class SimHal:
         self._last = clock()
         self._relays = self.iomap.channels(RELAY_OUTPUTS)
         self._written = Outputs(ro=dict.fromkeys(self._relays, False))
+        self._sensed: WorldInputs | None = None
+        self._inputs = Inputs(di={}, ai={})
         self.scans = 0
         self.writes = 0
         self.closed = False
@@ -45,9 +47,12 @@ class SimHal:
         self._advance()
         self.scans += 1
         sensed = self.world.sense()
+        if sensed == self._sensed:
+            return self._inputs  # an image is never changed in place: the same one again
+        self._sensed = sensed
         m = self.iomap
         estop_level = (not sensed.estop_pressed) if m.estop_active_low else sensed.estop_pressed
-        return Inputs(
+        self._inputs = Inputs(
             di={
                 m.rotate_home: sensed.rotate_home,
                 m.tilt_home: sensed.tilt_home,
@@ -55,6 +60,7 @@ class SimHal:
             },
             ai={m.tilt_position: sensed.tilt_raw},
         )
+        return self._inputs
 
     def scan_outputs(self, outputs: Outputs) -> None:
         self._advance()

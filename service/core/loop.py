@@ -373,7 +373,6 @@ class ScanLoop:
             and self.commands_handled == rest.commands
             and self.tasks_run == rest.tasks
             and not self.inbox.wake.is_set()  # set whenever something is queued
-            and not self.inbox
             and not any(self.image.outputs.ro.values())
             and (guard is None or not guard.latched)
         )

@@ -58,6 +58,8 @@ class RealtimeRunner:
         self.spin_s = spin_s
         self.clock = clock
         self.stop_event = threading.Event()
+        self._stopping = False
+        """`stop_event` as a plain bool, read every cycle (an `Event` read is a Python call)."""
         self.heartbeat = 0
         """Incremented after every completed cycle; the watchdog reads it."""
         self.beat_at = clock()
@@ -67,6 +69,7 @@ class RealtimeRunner:
         """Set once the cycling has ended (stopped or failed), just before the outputs go safe."""
 
     def stop(self) -> None:
+        self._stopping = True
         self.stop_event.set()
         self.loop.inbox.wake.set()
 
@@ -80,23 +83,24 @@ class RealtimeRunner:
 
     def _run(self) -> None:
         clock, period, spin = self.clock, self.period, self.spin_s
-        wake, stop = self.loop.inbox.wake, self.stop_event
+        wake = self.loop.inbox.wake
         loop, stats = self.loop, self.stats
         lock = loop.lock
         deadline = clock()  # first scan at once: commands need a real input image
         consecutive = 0
-        while not stop.is_set():
+        while not self._stopping:
             while True:
                 remaining = deadline - clock()
                 if remaining <= spin:
                     break
                 if wake.wait(remaining - spin):
-                    if stop.is_set():
+                    if self._stopping:
                         return
                     with lock:
                         loop.service_inbox(clock())
-            while clock() < deadline:
-                pass
+            if spin:
+                while clock() < deadline:
+                    pass
             with lock:
                 start = clock()
                 try:
