@@ -135,6 +135,7 @@ class Rig:
         got: list[Reply] = []
         self.loop.inbox.put(PendingCommand(command, model.model_validate(payload), got.append))
         self.loop.service_inbox(self.clock())
+        self.loop.recorder.release()  # as the cycle that serviced it does, outputs written
         assert len(got) == 1, f"{command} got {len(got)} replies"
         self.replies.append(got[0])
         return got[0]

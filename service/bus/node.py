@@ -48,7 +48,7 @@ class ZenohBus(Publications):
         super().__init__(session, loop, stats, config, wall, events)
         self.clock = clock
         """The scan loop's clock (the runner's), for commands run between cycles."""
-        self.presence = Presence(session, loop, config, clock, events)
+        self.presence = Presence(session, loop, config, clock)
         b = self.base
         routes: list[Route] = [
             *Commands(b, loop, clock).routes(),

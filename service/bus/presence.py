@@ -12,7 +12,6 @@ import zenoh
 
 from schema import rider as rider_keys
 from schema.events import RiderEvent
-from service.adapters.eventlog import EventLog
 from service.config.model import MachineConfig
 from service.core.loop import LoopCall, ScanLoop
 
@@ -54,7 +53,6 @@ class Presence:
     loop: ScanLoop
     config: MachineConfig
     clock: Callable[[], float]
-    events: EventLog | None = None
     others: set[str] = field(default_factory=set)
     """Other sessions that hold this machine's id (its `holder/<zid>` token): duplicates."""
     riders_alive: set[str] = field(default_factory=set)
@@ -131,12 +129,11 @@ class Presence:
                 control.rider_back()
             elif acted := control.rider_lost(now):
                 log.warning("event=rider_lost rider=%s policy=%s", rider, policy)
-            if self.events is not None:
-                kind = "rider_returned" if alive else "rider_lost"
-                self.events.emit(
-                    RiderEvent(kind=kind, rider=rider, policy=str(policy), acted=acted),
-                    now + loop.wall_offset,
-                    loop.cycle,
-                )
+            # Through the recorder: after what it holds (the events of commands answered
+            # since the last cycle), before the state change this causes.
+            kind = "rider_returned" if alive else "rider_lost"
+            loop.recorder.emit(
+                RiderEvent(kind=kind, rider=rider, policy=str(policy), acted=acted), now
+            )
 
         self.loop.inbox.put(LoopCall(update))

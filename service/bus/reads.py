@@ -61,6 +61,10 @@ def matching(request: Request, base: str, items: Iterable[tuple[str, BaseModel]]
                 put(query, key, record, request.fmt)
 
 
+HISTORY_LOCK_TIMEOUT_S = 0.5
+"""How long a history read waits for a cycle in progress (a stalled loop: read without it)."""
+
+
 @dataclass
 class Reads:
     """The daemon's read-only routes."""
@@ -165,5 +169,8 @@ class Reads:
         def fail(message: str) -> None:
             request.refuse(StorageFailed(message))
 
+        # The events of commands answered since the last cycle are written with the next one:
+        # hand them over first, so the page has every command answered before it was asked.
+        self.loop.release_records(HISTORY_LOCK_TIMEOUT_S)
         if not events.read(q, respond, fail):
             raise Busy("event reader busy; retry later")

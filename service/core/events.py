@@ -68,7 +68,13 @@ class _Session:
     started: float
 
 
-Emit = Callable[[KnownDetails], None]
+Lazy = KnownDetails | Callable[[], KnownDetails]
+"""An event, or what makes it when it is written (a command's own event: off its reply's path)."""
+Emit = Callable[[Lazy], None]
+
+HOLD_MAX = 128
+"""Hand-overs that may wait for the next cycle (two per command: its events, its log line);
+one more writes them at once, so a command storm cannot pile up work for the next cycle."""
 
 
 class EventRecorder:
@@ -90,6 +96,7 @@ class EventRecorder:
         self._session: _Session | None = None
         self._storage_version = 0
         self._storage_seen: set[str] = set()
+        self._held: list[Callable[[], None]] = []
 
     # --------------------------------------------------------------------------- inputs
     def transition(self, t: Transition) -> None:
@@ -107,19 +114,57 @@ class EventRecorder:
         sender: str | None = None,
         repeat: bool = False,
     ) -> None:
-        """A command was answered: the command event, then what it changed."""
-        code = reply.error.code.value if reply.error is not None else reply.code.value
-        cause = CommandEvent(
-            command=command.value,
-            transaction_id=request.transaction_id,
-            rider=request.rider or sender,
-            accepted=reply.success,
-            code=code,
-            message=reply.error.message if reply.error is not None else "",
-            state=reply.state,
-            repeat=repeat,
-        )
-        self.observe(control, now, cause=cause)
+        """A command was answered: the command event, then what it changed. What changed is
+        compared now (the state is the command's); the events are made and handed to the sink
+        at the next `release`, off the path of the command's reply."""
+
+        def cause() -> CommandEvent:
+            return CommandEvent(
+                command=command.value,
+                transaction_id=request.transaction_id,
+                rider=request.rider or sender,
+                accepted=reply.success,
+                code=reply.error.code.value if reply.error is not None else reply.code.value,
+                message=reply.error.message if reply.error is not None else "",
+                state=reply.state,
+                repeat=repeat,
+            )
+
+        rows: list[Lazy] = []
+        self._compare(control, now + self.wall_offset, rows.append, cause)
+        self.hold(self._writer(rows, now + self.wall_offset))
+
+    def hold(self, fn: Callable[[], None]) -> None:
+        """Run `fn` (a command's events, its log line) at the next `release`, in order."""
+        if len(self._held) >= HOLD_MAX:
+            self.release()
+        self._held.append(fn)
+
+    @property
+    def holding(self) -> bool:
+        return bool(self._held)
+
+    def release(self) -> None:
+        """Hand over what `hold` kept, in order. The scan thread does it every cycle once the
+        outputs are written; any later event, a history read and the shutdown do it first."""
+        if self._held:
+            held, self._held = self._held, []
+            for fn in held:
+                fn()
+
+    def _writer(self, rows: list[Lazy], wall: float) -> Callable[[], None]:
+        sink, cycle = self.sink, self.cycle
+
+        def write() -> None:
+            for row in rows:
+                sink.emit(row() if callable(row) else row, wall, cycle)
+
+        return write
+
+    def emit(self, details: KnownDetails, now: float) -> None:
+        """One event from the scan loop itself (after what is held)."""
+        self.release()
+        self.sink.emit(details, now + self.wall_offset, self.cycle)
 
     def completion(self, notice: Completion) -> None:
         """A completion notice (service/core/completions.py): recorded at the next `observe`, after
@@ -127,17 +172,15 @@ class EventRecorder:
         self._notices.append(notice)
 
     # -------------------------------------------------------------------------- compare
-    def observe(
-        self,
-        control: ControlAPI,
-        now: float,
-        *,
-        cause: CommandEvent | None = None,
-    ) -> None:
+    def observe(self, control: ControlAPI, now: float) -> None:
+        """Emit what changed since the last look (after what is held)."""
+        self.release()
+        wall = now + self.wall_offset
+        self._compare(control, wall, self._emitter(wall), None)
+
+    def _compare(self, control: ControlAPI, wall: float, emit: Emit, cause: Lazy | None) -> None:
         """Emit, in this order: E-stop input changes, the command, the transitions, then
         their consequences (latch, faults, sessions, completions, calibration)."""
-        wall = now + self.wall_offset
-        emit = self._emitter(wall)
         if not self._seen:
             self._baseline(control)
         estop = control.devices.safety.is_estop_active()
@@ -182,8 +225,8 @@ class EventRecorder:
     def _emitter(self, wall: float) -> Emit:
         sink, cycle = self.sink, self.cycle
 
-        def emit(details: KnownDetails) -> None:
-            sink.emit(details, wall, cycle)
+        def emit(details: Lazy) -> None:
+            sink.emit(details() if callable(details) else details, wall, cycle)
 
         return emit
 

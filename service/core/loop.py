@@ -332,6 +332,8 @@ class ScanLoop:
         published; then whether the next cycles may be quiet ones."""
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
+        # The events and log lines of commands answered since the last cycle, outputs written.
+        self.recorder.release()
         self._observe(now)
         self._publish(now)
         self._rest = self._at_rest() if self.quiet_cycles else None
@@ -414,10 +416,8 @@ class ScanLoop:
                 policy,
             )
             acted = self.control.state is not before
-            self.recorder.sink.emit(
-                RiderEvent(kind="rider_lost", rider=rider, policy=str(policy), acted=acted),
-                now + self.wall_offset,
-                self.cycle,
+            self.recorder.emit(
+                RiderEvent(kind="rider_lost", rider=rider, policy=str(policy), acted=acted), now
             )
 
     def service_inbox(self, now: float) -> int:
@@ -481,17 +481,18 @@ class ScanLoop:
         self.transactions.record(request.transaction_id, command.value, reply)
         # Before the reply goes out: a Rider that asks for the notice at once finds the motion.
         self._collect_completions()
-        log.info(
-            "event=command tx=%s command=%s rider=%s timecode=%s code=%s state=%s",
-            request.transaction_id,
-            command.value,
-            request.rider or sender,
-            request.timecode,
-            reply.error.code if reply.error is not None else reply.code,
-            reply.state,
-        )
         self.recorder.command(self.control, command, request, reply, now, sender=sender)
+        self.recorder.hold(lambda: _log_command(command, request, reply, sender))
         return reply
+
+    def release_records(self, timeout: float) -> None:
+        """What the recorder holds for the next cycle, handed over now (a history read sees
+        every command answered before it); skipped if the loop holds its lock past `timeout`."""
+        if self.recorder.holding and self.lock.acquire(timeout=timeout):
+            try:
+                self.recorder.release()
+            finally:
+                self.lock.release()
 
     def _observe(self, now: float) -> None:
         """After the control acted: its notices into the log, its changes into the history."""
@@ -627,3 +628,18 @@ def calibration_record(cal: Calibration, machine_id: str, wall: float) -> Calibr
 def _wire(model: type[W], values: object | None) -> W | None:
     """One axis' calibration as its wire model (the same field names); None stays None."""
     return None if values is None else model.model_validate(values, from_attributes=True)
+
+
+def _log_command(
+    command: Command, request: CommandRequest, reply: Reply, sender: str | None
+) -> None:
+    """A command's one log line (written with its events, after its reply)."""
+    log.info(
+        "event=command tx=%s command=%s rider=%s timecode=%s code=%s state=%s",
+        request.transaction_id,
+        command.value,
+        request.rider or sender,
+        request.timecode,
+        reply.error.code if reply.error is not None else reply.code,
+        reply.state,
+    )

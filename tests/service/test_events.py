@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import logging
+import threading
+
+import pytest
+
 from schema.calibration import CalibrationSet
 from schema.commands import Command, CommandRequest, RotateStep, Session, TiltStep
 from schema.events import (
@@ -17,7 +22,7 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import MachineState
-from service.core.events import ListEventSink
+from service.core.events import HOLD_MAX, ListEventSink
 from service.core.persist import StorageHealth
 from tests.rig import Rig, known_calibration
 
@@ -229,6 +234,7 @@ def test_a_command_right_after_a_watchdog_trip_is_recorded_after_the_fault() -> 
     request = CommandRequest.model_validate({"transaction_id": "home-after-trip"})
     reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
     assert reply is not None and reply.success
+    rig.step()  # a command answered between cycles is written with the next one
     assert kinds(sink, mark)[:4] == ["state", "fault_raised", "completion", "command"]
     raised, done, cmd = details(sink, mark)[1:4]
     assert_watchdog_ended(raised, done, home)
@@ -249,3 +255,67 @@ def test_calibration_entered_by_hand_is_recorded_old_to_new() -> None:
     assert cal.axis == "tilt" and cal.old is not None and cal.new is not None
     assert cal.old["offset_counts"] == before.offset_counts
     assert cal.new["offset_counts"] == before.offset_counts + 10
+
+
+def between_cycles(rig: Rig, command: Command, tid: str) -> None:
+    """A command the way the bus runs it: in a Zenoh callback, between two cycles."""
+    request = CommandRequest.model_validate({"transaction_id": tid})
+    reply = rig.loop.execute_between_cycles(command, request, rig.clock, timeout=1.0)
+    assert reply is not None
+
+
+def test_a_command_between_cycles_is_written_with_the_next_cycle_and_before_it(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Its reply goes out first; its events and log line follow at the next cycle, once the
+    outputs are written, and before anything that cycle records."""
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    caplog.set_level(logging.INFO, logger="machine")
+    caplog.clear()
+    between_cycles(rig, Command.START, "ride")
+    assert kinds(sink, mark) == []
+    assert "event=command" not in caplog.text
+    rig.step()
+    assert kinds(sink, mark)[:3] == ["command", "state", "session_started"]
+    assert "event=command tx=ride command=Start" in caplog.text
+
+
+def test_held_records_keep_their_order_with_any_later_event() -> None:
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    between_cycles(rig, Command.CHECK_HOME, "first")
+    between_cycles(rig, Command.START, "second")  # its transition follows the first command
+    rig.loop.recorder.emit(StorageEvent(what="data_dir", error="x"), rig.clock())
+    assert kinds(sink, mark) == ["command", "command", "state", "session_started", "storage_failed"]
+    assert [getattr(d, "transaction_id", None) for d in details(sink, mark)[:2]] == [
+        "first",
+        "second",
+    ]
+
+
+def test_a_command_storm_between_cycles_holds_a_bounded_number_of_commands() -> None:
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    held = HOLD_MAX // 2  # a command holds two hand-overs: its events, its log line
+    for i in range(held):
+        between_cycles(rig, Command.CHECK_HOME, f"c{i}")
+    assert kinds(sink, mark) == []
+    between_cycles(rig, Command.CHECK_HOME, "one-more")
+    assert [d.transaction_id for d in details(sink, mark)] == [f"c{i}" for i in range(held)]
+    rig.step()
+    assert len(kinds(sink, mark)) == held + 1
+
+
+def test_a_history_read_hands_over_held_records_unless_the_loop_is_stalled() -> None:
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    between_cycles(rig, Command.CHECK_HOME, "asked-before")
+    with rig.loop.lock:  # a cycle in progress that outlasts the read's patience
+        done = threading.Thread(target=rig.loop.release_records, args=(0.05,))
+        done.start()
+        done.join(5.0)
+        assert not done.is_alive()
+    assert kinds(sink, mark) == []  # nothing written behind the scan thread's back
+    rig.loop.release_records(0.05)
+    assert kinds(sink, mark) == ["command"]
