@@ -146,12 +146,9 @@ class AxisTracker:
     def at_rest(self) -> bool:
         """The next `update` with the same inputs returns at once and `due` is empty: both
         samples are steady (`_unchanged`), nothing moves and no axis owes a settled record."""
-        return (
-            self._steady
-            and self._still is not None
-            and not self._settling
-            and not any(s.status & MOVING for s in self.samples.values())
-        )
+        if not self._steady or self._still is None or self._settling:
+            return False
+        return all(not s.status & MOVING for s in self.samples.values())
 
     def tick(self, now: float) -> None:
         """A quiet cycle (`at_rest` and every input as before): what `update` would do."""

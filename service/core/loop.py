@@ -290,6 +290,7 @@ class ScanLoop:
         self.quiet = 0
         """Quiet cycles run."""
         self._rest: _Rest | None = None
+        self._commands_seen = self._tasks_seen = 0
         self.sink: LoopSink = NullSink() if sink is None else _sink(sink, self)
 
     @property
@@ -336,7 +337,12 @@ class ScanLoop:
         self.recorder.release()
         self._observe(now)
         self._publish(now)
-        self._rest = self._at_rest() if self.quiet_cycles else None
+        commands, tasks = self.commands_handled, self.tasks_run
+        if self.quiet_cycles and commands == self._commands_seen and tasks == self._tasks_seen:
+            self._rest = self._at_rest()
+        # else: commands or tasks came since the last full cycle, and more may follow (a
+        # stream makes every cycle a full one): the next cycle without any looks again.
+        self._commands_seen, self._tasks_seen = commands, tasks
 
     # ----------------------------------------------------------------------- quiet cycles
     # An idle machine's cycle changes nothing: the same inputs, no controller, nothing queued.
