@@ -206,12 +206,14 @@ class EventRecorder:
         self._storage(control, emit)
 
     def settled(self, control: ControlAPI) -> bool:
-        """Another `observe` of `control` as it is now would emit nothing: no transition or
-        notice is waiting and the snapshot matches it (`ScanLoop`'s quiet cycles)."""
+        """Another `release` and `observe` of `control` as it is now would emit nothing:
+        nothing held, no transition or notice waiting, and the snapshot matches it
+        (`ScanLoop`'s quiet cycles)."""
         storage = control.storage
         run = control.session_run
         return (
             self._seen
+            and not self._held
             and not self._transitions
             and not self._notices
             and self._estop == control.devices.safety.is_estop_active()
