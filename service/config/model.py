@@ -33,6 +33,9 @@ class LoopSection(_Section):
     period_s: float = Field(default=0.010, ge=0.001, le=1.0)
     spin_s: float = Field(default=0.0, ge=0.0, le=0.005)
     gc_freeze: bool = True
+    switch_interval_s: float = Field(default=0.0005, ge=0.0001, le=0.1)
+    """How long another Python thread (a command's callback under a storm) may keep the GIL
+    once the scan thread wants it (`sys.setswitchinterval`; Python's default is 5 ms)."""
     cpu: int | None = Field(default=None, ge=0)
     rt_priority: int | None = Field(default=None, ge=1, le=99)
     watchdog_periods: int = Field(default=3, ge=2, le=1000)

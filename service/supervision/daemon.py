@@ -32,6 +32,7 @@ from service.core.runner import (
     LoopFailed,
     RealtimeRunner,
     die_with_parent,
+    switch_interval,
     tune_thread,
 )
 from service.core.timing import CycleStats
@@ -299,6 +300,7 @@ class Daemon:
         config = self.config
         self.served = True
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
+        applied.append(switch_interval(config.loop.switch_interval_s))
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
             config.machine.id,

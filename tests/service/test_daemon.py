@@ -6,6 +6,7 @@ import contextlib
 import logging
 import signal
 import socket
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -37,14 +38,17 @@ UNDO_ORDER = [
 @pytest.fixture(autouse=True)
 def keep_process_state() -> Iterator[None]:
     """The daemon runs on this (pytest's main) thread: it traps SIGTERM/SIGINT and tunes the
-    thread's timer slack. Give pytest its own back, or later tests inherit the daemon's."""
+    thread's timer slack and the process's GIL switch interval. Give pytest its own back, or
+    later tests inherit the daemon's."""
     saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     slack = timer_slack()
+    interval = sys.getswitchinterval()
     yield
     for s, handler in saved.items():
         signal.signal(s, handler)
     if slack is not None:
         set_timer_slack(slack)
+    sys.setswitchinterval(interval)
 
 
 def daemon_in(tmp_path: Path, fastdata_port: int) -> Daemon:

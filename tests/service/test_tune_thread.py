@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import pytest
 
-from service.core.runner import TIMER_SLACK_NS, timer_slack, tune_thread
+from service.core.runner import TIMER_SLACK_NS, switch_interval, timer_slack, tune_thread
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux")
 
@@ -53,3 +53,12 @@ def test_timer_slack_can_be_left_to_the_kernel() -> None:
     applied, slack = _in_thread(lambda: tune_thread(False, None, None, timer_slack_ns=None))
     assert not any(a.startswith("timer_slack") for a in applied)
     assert slack != TIMER_SLACK_NS
+
+
+def test_the_switch_interval_is_set_for_the_process() -> None:
+    before = sys.getswitchinterval()
+    try:
+        assert switch_interval(0.0005) == "switch_interval=0.0005s"
+        assert sys.getswitchinterval() == pytest.approx(0.0005)
+    finally:
+        sys.setswitchinterval(before)
