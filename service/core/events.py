@@ -9,6 +9,7 @@ after each command and cycle.
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -72,9 +73,14 @@ Lazy = KnownDetails | Callable[[], KnownDetails]
 """An event, or what makes it when it is written (a command's own event: off its reply's path)."""
 Emit = Callable[[Lazy], None]
 
-HOLD_MAX = 128
-"""Hand-overs that may wait for the next cycle (two per command: its events, its log line);
-one more writes them at once, so a command storm cannot pile up work for the next cycle."""
+HOLD_PER_MS = 1
+"""Commands whose events a cycle hands over, per millisecond of its period (10 at 10 ms, 1 at
+1 ms): a command beyond that hands over the oldest one held itself, on its own thread, so a
+command storm does not lengthen the scan cycle (bench.throughput, section 8)."""
+
+
+def hold_limit(period_s: float) -> int:
+    return max(1, round(period_s * 1000 * HOLD_PER_MS))
 
 
 class EventRecorder:
@@ -96,7 +102,9 @@ class EventRecorder:
         self._session: _Session | None = None
         self._storage_version = 0
         self._storage_seen: set[str] = set()
-        self._held: list[Callable[[], None]] = []
+        self._held: deque[Callable[[], None]] = deque()
+        self.hold_limit = hold_limit(0.010)
+        """Commands held for the next cycle at most (the loop sets it from its period)."""
 
     # --------------------------------------------------------------------------- inputs
     def transition(self, t: Transition) -> None:
@@ -113,10 +121,11 @@ class EventRecorder:
         *,
         sender: str | None = None,
         repeat: bool = False,
+        then: Callable[[], None] | None = None,
     ) -> None:
         """A command was answered: the command event, then what it changed. What changed is
-        compared now (the state is the command's); the events are made and handed to the sink
-        at the next `release`, off the path of the command's reply."""
+        compared now (the state is the command's); the events are made and handed to the sink,
+        and `then` run (its log line), at the next `release`: off the path of its reply."""
 
         def cause() -> CommandEvent:
             return CommandEvent(
@@ -132,13 +141,10 @@ class EventRecorder:
 
         rows: list[Lazy] = []
         self._compare(control, now + self.wall_offset, rows.append, cause)
-        self.hold(self._writer(rows, now + self.wall_offset))
-
-    def hold(self, fn: Callable[[], None]) -> None:
-        """Run `fn` (a command's events, its log line) at the next `release`, in order."""
-        if len(self._held) >= HOLD_MAX:
-            self.release()
-        self._held.append(fn)
+        held = self._held
+        if len(held) >= self.hold_limit:
+            held.popleft()()  # the oldest first: the order stays
+        held.append(self._writer(rows, now + self.wall_offset, then))
 
     @property
     def holding(self) -> bool:
@@ -147,17 +153,20 @@ class EventRecorder:
     def release(self) -> None:
         """Hand over what `hold` kept, in order. The scan thread does it every cycle once the
         outputs are written; any later event, a history read and the shutdown do it first."""
-        if self._held:
-            held, self._held = self._held, []
-            for fn in held:
-                fn()
+        held = self._held
+        while held:
+            held.popleft()()
 
-    def _writer(self, rows: list[Lazy], wall: float) -> Callable[[], None]:
+    def _writer(
+        self, rows: list[Lazy], wall: float, then: Callable[[], None] | None
+    ) -> Callable[[], None]:
         sink, cycle = self.sink, self.cycle
 
         def write() -> None:
             for row in rows:
                 sink.emit(row() if callable(row) else row, wall, cycle)
+            if then is not None:
+                then()
 
         return write
 

@@ -36,7 +36,7 @@ from service.core.axes import AxisTracker
 from service.core.completions import CompletionLog
 from service.core.control import ControlAPI
 from service.core.devices import Calibration, Devices
-from service.core.events import EventRecorder, NullEventSink
+from service.core.events import EventRecorder, NullEventSink, hold_limit
 from service.core.io import IoChanges, IoPoints, ProcessImage
 from service.core.transactions import TransactionLog
 from service.core.watchdog import GuardedHal
@@ -270,6 +270,7 @@ class ScanLoop:
         self.axes = AxisTracker(self.devices, self.live)
         self.published = Published()
         self.recorder = recorder or EventRecorder(NullEventSink(), wall_offset=control.wall_offset)
+        self.recorder.hold_limit = hold_limit(config.loop.period_s)
         self.cycle = 0
         self.commands_handled = 0
         self.started_at = started_at
@@ -487,8 +488,15 @@ class ScanLoop:
         self.transactions.record(request.transaction_id, command.value, reply)
         # Before the reply goes out: a Rider that asks for the notice at once finds the motion.
         self._collect_completions()
-        self.recorder.command(self.control, command, request, reply, now, sender=sender)
-        self.recorder.hold(lambda: _log_command(command, request, reply, sender))
+        self.recorder.command(
+            self.control,
+            command,
+            request,
+            reply,
+            now,
+            sender=sender,
+            then=lambda: _log_command(command, request, reply, sender),
+        )
         return reply
 
     def release_records(self, timeout: float) -> None:

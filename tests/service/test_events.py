@@ -22,7 +22,7 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import MachineState
-from service.core.events import HOLD_MAX, ListEventSink
+from service.core.events import ListEventSink, hold_limit
 from service.core.persist import StorageHealth
 from tests.rig import Rig, known_calibration
 
@@ -294,17 +294,22 @@ def test_held_records_keep_their_order_with_any_later_event() -> None:
     ]
 
 
-def test_a_command_storm_between_cycles_holds_a_bounded_number_of_commands() -> None:
+def test_a_command_storm_between_cycles_leaves_the_cycle_a_bounded_share() -> None:
+    """Beyond the period's share (10 commands at 10 ms) each command hands over the oldest one
+    held itself: the order stays, and the next cycle has at most its share to do."""
     rig, sink = ready_rig()
+    limit = rig.loop.recorder.hold_limit
+    assert limit == hold_limit(rig.config.loop.period_s) == 10
     mark = len(sink.events)
-    held = HOLD_MAX // 2  # a command holds two hand-overs: its events, its log line
-    for i in range(held):
+    for i in range(limit):
         between_cycles(rig, Command.CHECK_HOME, f"c{i}")
     assert kinds(sink, mark) == []
-    between_cycles(rig, Command.CHECK_HOME, "one-more")
-    assert [d.transaction_id for d in details(sink, mark)] == [f"c{i}" for i in range(held)]
+    for i in range(limit, limit + 5):
+        between_cycles(rig, Command.CHECK_HOME, f"c{i}")
+    assert [d.transaction_id for d in details(sink, mark)] == [f"c{i}" for i in range(5)]
     rig.step()
-    assert len(kinds(sink, mark)) == held + 1
+    assert [d.transaction_id for d in details(sink, mark)] == [f"c{i}" for i in range(15)]
+    assert hold_limit(0.001) == 1 and hold_limit(0.05) == 50
 
 
 def test_a_history_read_hands_over_held_records_unless_the_loop_is_stalled() -> None:
