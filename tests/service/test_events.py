@@ -324,3 +324,16 @@ def test_a_history_read_hands_over_held_records_unless_the_loop_is_stalled() -> 
     assert kinds(sink, mark) == []  # nothing written behind the scan thread's back
     rig.loop.release_records(0.05)
     assert kinds(sink, mark) == ["command"]
+
+
+def test_the_shutdown_hands_over_what_is_held_before_the_motion_it_ends() -> None:
+    """`machine run` winds down with `abort_motion`: a command answered after the last cycle
+    is still in the history, before the aborted motion's end."""
+    rig, sink = ready_rig()
+    mark = len(sink.events)
+    between_cycles(rig, Command.START, "last")
+    rig.loop.abort_motion(rig.clock(), "machine daemon is shutting down")
+    got = details(sink, mark)
+    assert got[0].kind == "command" and getattr(got[0], "transaction_id", None) == "last"
+    assert "completion" in kinds(sink, mark)
+    assert kinds(sink, mark).index("completion") > 0
