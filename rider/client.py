@@ -316,8 +316,8 @@ class Rider:
         self.rider_id = ""
         self._attachment = b""
         self._keys: dict[str, zenoh.KeyExpr] = {}
-        """Command keys declared to the session: a query on a declared key expression is
-        routed without matching its string again (BENCHMARKS.md, section 1)."""
+        """Command keys declared to the session (`_declare_key`): a query on a declared key
+        expression is routed without matching its string again (BENCHMARKS.md, section 1)."""
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
@@ -483,10 +483,11 @@ class Rider:
             request = request.model_copy(update={"valid_for": min(valid, VALID_FOR_MAX_S)})
         payload = encode(request)
         key = f"{self.base}/cmd/{command.key}"
+        self._declare_key(key)
         last: RiderError | None = None
         for _ in range(self.retries + 1):
             try:
-                reply = self._get_one(key, payload, Reply, timeout, self._declared(key))
+                reply = self._get_one(key, payload, Reply, timeout)
             except MachineTimeout as exc:
                 last = exc  # same transaction id again: at most once on the machine
                 continue
@@ -496,13 +497,11 @@ class Rider:
         assert last is not None
         raise last
 
-    def _declared(self, key: str) -> zenoh.KeyExpr:
-        """`key` as a key expression declared to this session (once per key)."""
-        key_expr = self._keys.get(key)
-        if key_expr is None:
+    def _declare_key(self, key: str) -> None:
+        """Declare `key` to this session as a key expression (once); `_get` asks by it."""
+        if key not in self._keys:
             with _bus_errors(f"cannot declare {key}"):
-                key_expr = self._keys[key] = self.session.declare_keyexpr(key)
-        return key_expr
+                self._keys[key] = self.session.declare_keyexpr(key)
 
     def _req(self, **extra: Any) -> dict[str, Any]:
         return {
@@ -996,14 +995,7 @@ class Rider:
         raise MachineTimeout(f"machine still {last.state} after {timeout:g} s")
 
     # ---------------------------------------------------------------------------- plumbing
-    def _get_one(
-        self,
-        key: str,
-        payload: bytes | None,
-        model: type[M],
-        timeout: float | None,
-        key_expr: zenoh.KeyExpr | None = None,
-    ) -> M:
+    def _get_one(self, key: str, payload: bytes | None, model: type[M], timeout: float | None) -> M:
         """The first reply. An empty answer that comes back early means no queryable was
         matched yet (a peer's declarations still on their way just after open): ask again
         until the timeout. Safe for commands too: the transaction id makes them at-most-once."""
@@ -1011,8 +1003,7 @@ class Rider:
         deadline = time.monotonic() + limit
         while True:
             remaining = deadline - time.monotonic()
-            got = self._get(key, payload, max(remaining, 0.05), key_expr)
-            replies = self._answered(key, got, limit)
+            replies = self._answered(key, self._get(key, payload, max(remaining, 0.05)), limit)
             if replies:
                 return self._decode(replies[0], model)
             if deadline - time.monotonic() < EMPTY_RETRY_S:
@@ -1037,14 +1028,8 @@ class Rider:
             )
         return answered
 
-    def _get(
-        self,
-        key: str,
-        payload: bytes | None,
-        timeout: float | None,
-        key_expr: zenoh.KeyExpr | None = None,
-    ) -> list[zenoh.Reply]:
-        """All replies to `key` (asked as `key_expr` when it is declared)."""
+    def _get(self, key: str, payload: bytes | None, timeout: float | None) -> list[zenoh.Reply]:
+        """All replies to `key` (asked by its key expression when it is declared)."""
         kwargs: dict[str, Any] = {"timeout": timeout or self.timeout}
         if payload is not None:
             kwargs["payload"] = payload
@@ -1053,7 +1038,7 @@ class Rider:
         # Every reply, not one per key: two daemons with one id must both be seen.
         kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
         with _bus_errors(f"cannot query {key}"):
-            replies = list(self.session.get(key if key_expr is None else key_expr, **kwargs))
+            replies = list(self.session.get(self._keys.get(key, key), **kwargs))
         self._check_repliers(key, replies)
         return replies
 

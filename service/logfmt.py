@@ -3,9 +3,9 @@
 A line is queued by the thread that logs it (the scan thread, a command's Zenoh callback) and
 written by the log writer: a reader of stderr that stalls (a frozen log collector, a full pipe)
 never stalls the scan loop or a command's reply. Lines beyond `LOG_QUEUE_LINES` are dropped,
-counted, and the count is written as soon as the writer moves again. Every line queued before
-the process exits normally is written (`atexit`); a process killed outright loses at most the
-last `COALESCE_S` of lines.
+and the next line queued is preceded by one that says how many went missing. Every line queued
+before the process exits normally is written (`atexit`); a process killed outright loses at
+most the last `COALESCE_S` of lines.
 """
 
 from __future__ import annotations
@@ -160,7 +160,7 @@ def flush_logs(timeout: float = FLUSH_TIMEOUT_S) -> None:
         thread.join(timeout)
 
 
-def setup_logging(level: str = "info") -> LineQueue:
+def setup_logging(level: str = "info") -> None:
     """Log lines as `key=value` text to stderr, through the writer thread."""
     global _writer  # noqa: PLW0603 - one writer per process
     # The format names neither thread, process nor source line: don't look them up for every
@@ -176,7 +176,6 @@ def setup_logging(level: str = "info") -> LineQueue:
     root = logging.getLogger()
     root.handlers[:] = [LineHandler(lines)]
     root.setLevel(level.upper())
-    return lines
 
 
 atexit.register(flush_logs)

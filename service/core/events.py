@@ -144,27 +144,26 @@ class EventRecorder:
         held = self._held
         if len(held) >= self.hold_limit:
             held.popleft()()  # the oldest first: the order stays
-        held.append(self._writer(rows, now + self.wall_offset, then))
+        held.append(self._writer(rows, self._emitter(now + self.wall_offset), then))
 
     @property
     def holding(self) -> bool:
         return bool(self._held)
 
     def release(self) -> None:
-        """Hand over what `hold` kept, in order. The scan thread does it every cycle once the
-        outputs are written; any later event, a history read and the shutdown do it first."""
+        """Hand over what `command` held, in order. The scan thread does it every cycle once
+        the outputs are written; any later event, a history read and the shutdown do it first."""
         held = self._held
         while held:
             held.popleft()()
 
+    @staticmethod
     def _writer(
-        self, rows: list[Lazy], wall: float, then: Callable[[], None] | None
+        rows: list[Lazy], emit: Emit, then: Callable[[], None] | None
     ) -> Callable[[], None]:
-        sink, cycle = self.sink, self.cycle
-
         def write() -> None:
             for row in rows:
-                sink.emit(row() if callable(row) else row, wall, cycle)
+                emit(row)
             if then is not None:
                 then()
 
