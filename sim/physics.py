@@ -96,6 +96,23 @@ class World:
             delta = p.tilt_speed_dps * dt * (1.0 if self.drive.tilt_up else -1.0)
             self.tilt_deg = min(p.tilt_max_deg, max(p.tilt_min_deg, self.tilt_deg + delta))
 
+    def still(self) -> tuple[object, ...] | None:
+        """Everything `sense` reads, while nothing changes by itself: no relay on (so `step`
+        moves nothing) and no noise (so `sense` draws nothing). None otherwise. Two equal
+        results mean `sense` reads exactly the same twice, so a scan may reuse its image."""
+        d, f = self.drive, self.faults
+        if d.rotate_on or d.tilt_on or f.tilt_ai_noise_counts:
+            return None
+        return (
+            self.rotate_deg,
+            self.tilt_deg,
+            f.estop_pressed,
+            f.rotate_home,
+            f.tilt_home,
+            f.tilt_ai_frozen,
+            self.params,
+        )
+
     def sense(self) -> WorldInputs:
         """Read every sensor, faults applied."""
         p, f = self.params, self.faults

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 
 import pytest
 
@@ -369,3 +370,112 @@ def test_a_session_on_a_stalling_host_turns_exactly_its_revolutions() -> None:
     assert stalls >= 3
     assert rig.state is MachineState.DONE
     assert rig.hal.world.revolutions - start == pytest.approx(3.0, abs=0.02)
+
+
+def world_state(world: World) -> tuple[object, ...]:
+    """Everything about a simulated world, the noise generator's state included."""
+    return (
+        world.time,
+        world.rotate_deg,
+        world.rotate_travel_deg,
+        world.tilt_deg,
+        world.faults,
+        world.drive,
+        world.params,
+        world._frozen_raw,
+        world._rng.getstate(),
+    )
+
+
+class StillTwins:
+    """Two simulators in lockstep: `fast` reuses its image while the world is still, `full`
+    senses every scan. Every scan's image and the whole world must be the same in both."""
+
+    def __init__(self) -> None:
+        self.full, self.fast = Sim(), Sim()
+        self.full.hal.still_scans = False
+        self.sims = (self.full, self.fast)
+
+    def both(self, act: Callable[[Sim], object]) -> None:
+        for sim in self.sims:
+            act(sim)
+
+    def run(self, seconds: float) -> int:
+        """Scan both for `seconds`, comparing after each scan; the scans `fast` reused."""
+        before = self.fast.hal.reused
+        full, fast = self.full.run(seconds), self.fast.run(seconds)
+        assert fast == full
+        assert world_state(self.fast.world) == world_state(self.full.world)
+        assert self.full.hal.reused == 0
+        return self.fast.hal.reused - before
+
+
+STILL_SCANS = round(0.5 / DT)
+
+
+def push_tilt(sim: Sim) -> None:
+    sim.world.tilt_deg += 3.0  # by hand: no relay, no noise
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        lambda sim: sim.set(rotate=True),
+        lambda sim: sim.set(tilt=True, tilt_up=True),
+        push_tilt,
+        lambda sim: setattr(sim.world, "rotate_deg", 5.0),  # onto the home switch
+        lambda sim: sim.hal.press_estop(),
+        lambda sim: sim.hal.stick_home("rotate", SwitchFault.STUCK_CLOSED),
+        lambda sim: sim.hal.stick_home("tilt", SwitchFault.STUCK_CLOSED),
+        lambda sim: sim.hal.set_tilt_noise(40.0),
+        lambda sim: setattr(
+            sim.world, "params", PhysicsParams(ai_offset_counts=PARAMS.ai_offset_counts + 100)
+        ),
+    ],
+    ids=[
+        "rotate",
+        "tilt",
+        "tilt-by-hand",
+        "rotate-by-hand",
+        "estop",
+        "rotate-stuck",
+        "tilt-stuck",
+        "noise",
+        "params",
+    ],
+)
+def test_a_still_world_reuses_its_image_and_a_change_is_sensed(
+    change: Callable[[Sim], None],
+) -> None:
+    twins = StillTwins()
+    assert twins.run(0.5) >= STILL_SCANS - 1
+    twins.both(change)
+    moving = twins.fast.world.still() is None  # a relay on or noise: sensed every scan
+    reused = twins.run(1.0)
+    assert reused == 0 if moving else reused >= round(1.0 / DT) - 1
+    twins.both(lambda sim: sim.set(rotate=False, tilt=False))
+    twins.both(lambda sim: sim.hal.clear_faults())
+    twins.both(lambda sim: sim.hal.release_estop())
+    assert twins.run(0.5) >= STILL_SCANS - 1
+
+
+def test_a_frozen_input_reads_the_tilt_again_once_thawed() -> None:
+    twins = StillTwins()
+    twins.both(lambda sim: sim.hal.freeze_tilt_ai())
+    twins.run(0.2)
+    twins.both(push_tilt)  # frozen: the image keeps the old value
+    twins.run(0.2)
+    held = twins.fast.run(DT)[-1]["tilt_raw"]
+    twins.full.run(DT)
+    twins.both(lambda sim: sim.hal.freeze_tilt_ai(False))
+    twins.run(0.2)
+    assert twins.fast.run(DT)[-1]["tilt_raw"] > held
+    twins.full.run(DT)
+    twins.run(0.2)
+
+
+def test_a_still_world_still_counts_its_time() -> None:
+    twins = StillTwins()
+    start = twins.fast.world.time
+    assert twins.run(1.0) >= round(1.0 / DT) - 1
+    assert twins.fast.world.time == pytest.approx(start + 1.0)

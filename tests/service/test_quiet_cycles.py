@@ -2,10 +2,11 @@
 it does differs from the full cycle.
 
 Each test runs two rigs in lockstep, one with quiet cycles and one running every cycle in full
-(`ScanLoop.quiet_cycles = False`), applies the same things to both between the same cycles, and
-after every cycle compares all they did: status, IO and axis publications, events, state
-transitions, HAL writes and outputs, replies. A test also checks that the machine was in a
-quiet streak when the thing happened, so a fast path that never runs cannot pass it.
+(`ScanLoop.quiet_cycles = False`, its simulator sensing every scan: `SimHal.still_scans`),
+applies the same things to both between the same cycles, and after every cycle compares all
+they did: status, IO and axis publications, events, state transitions, HAL writes and
+outputs, the input image and the simulated world, replies. A test also checks that the machine
+was in a quiet streak when the thing happened, so a fast path that never runs cannot pass it.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ class Twins:
                 d.mkdir()
         self.full = Rig(events=self.sinks[0], quiet_cycles=False, data_dir=dirs[0], **options)
         self.fast = Rig(events=self.sinks[1], data_dir=dirs[1], **options)
+        self.full.hal.still_scans = False  # senses the simulated world every scan
         self.beats = (Beats(), Beats())
         self.full.loop.beats, self.fast.loop.beats = self.beats
         self.rigs = (self.full, self.fast)
@@ -105,6 +107,8 @@ class Twins:
         assert (fast.hal.scans, fast.hal.writes) == (full.hal.scans, full.hal.writes)
         a, b = fast.hal.world, full.hal.world
         assert (a.time, a.rotate_deg, a.tilt_deg) == (b.time, b.rotate_deg, b.tilt_deg)
+        assert (a._frozen_raw, a._rng.getstate()) == (b._frozen_raw, b._rng.getstate())
+        assert fast.loop.image.inputs == full.loop.image.inputs
         assert fast.loop.axes.samples == full.loop.axes.samples
         assert fast.loop.published == full.loop.published
         assert self.notices[1] == self.notices[0]
@@ -134,9 +138,10 @@ def quiet_streak(twins: Twins, cycles: int = 50) -> None:
     """Idle `cycles` cycles; the last ones must have been quiet."""
     twins.step(cycles)
     loop = twins.fast.loop
-    quiet = loop.quiet
+    quiet, reused = loop.quiet, twins.fast.hal.reused
     twins.step()
     assert loop.quiet == quiet + 1, "the machine was not in a quiet streak"
+    assert twins.fast.hal.reused == reused + 1, "the simulator sensed a still world"
 
 
 def test_a_long_idle_run_is_quiet_and_publishes_the_same() -> None:
