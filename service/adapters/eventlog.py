@@ -26,7 +26,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from schema.codec import dump_json
+from schema.codec import dump_json, pack
 from schema.diag import EventsDiag
 from schema.events import (
     DroppedEvent,
@@ -128,9 +128,30 @@ def connect_readonly(path: Path) -> sqlite3.Connection:
     return sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0, check_same_thread=False)
 
 
-def row_event(row: tuple[int, float, int | None, str, str, str]) -> Event:
+StoredRow = tuple[int, float, int | None, str, str, str]
+"""An event as stored: seq, time, cycle, machine_id, kind, and its details as JSON text."""
+
+
+def row_event(row: StoredRow) -> Event:
     seq, when, cycle, machine_id, kind, details = row
     return Event.model_validate(
+        {
+            "seq": seq,
+            "time": when,
+            "cycle": cycle,
+            "machine_id": machine_id,
+            "kind": kind,
+            "details": json.loads(details),
+        }
+    )
+
+
+def row_payload(row: StoredRow) -> bytes:
+    """The msgpack bytes of `row_event(row)` (`encode`'s), made from the stored row without
+    building the model: the writer publishes every event it commits, one per command under a
+    command stream, and the model's validation and serialisation were most of that work."""
+    seq, when, cycle, machine_id, kind, details = row
+    return pack(
         {
             "seq": seq,
             "time": when,
@@ -218,7 +239,9 @@ def iter_events(conn: sqlite3.Connection, q: EventQuery, chunk: int = 1000) -> I
 
 
 # ---------------------------------------------------------------------------------- writing
-Listener = Callable[[list[Event]], None]
+Listener = Callable[[list[StoredRow]], None]
+"""Called with each committed batch, as stored (`row_event` makes a row an `Event`, `row_payload`
+its wire bytes)."""
 
 
 class EventLog:
@@ -401,7 +424,7 @@ class EventLog:
         if conn is None:
             self._fail(self.last_error or "event log unavailable", len(batch))
             return
-        rows: list[tuple[int, float, int | None, str, str, str]] = []
+        rows: list[StoredRow] = []
         try:
             conn.execute("BEGIN")
             for kind, details, when, cycle in items:
@@ -423,10 +446,9 @@ class EventLog:
         self.written += len(rows)
         if not self._listeners:
             return
-        written = [row_event(row) for row in rows]  # parsed only for someone to read them
         for listener in self._listeners:
             try:
-                listener(written)
+                listener(rows)
             except Exception as exc:  # noqa: BLE001 - a publishing failure loses no stored event
                 log.warning("event=events_publish_failed error=%r", str(exc))
 

@@ -20,13 +20,15 @@ from schema.calibration import CalibrationRecord
 from schema.codec import Format, encode
 from schema.completion import Completion
 from schema.diag import CycleDiag
-from schema.events import Event
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, MachineState, Status
-from service.adapters.eventlog import EventLog
+from service.adapters.eventlog import EventLog, StoredRow, row_payload
 from service.config.model import MachineConfig
 from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
+
+MSGPACK = zenoh.Encoding(Format.MSGPACK.value)
+"""Prebuilt for one-off publications (no encoding string parsed per put)."""
 
 
 @dataclass(eq=False)
@@ -134,7 +136,7 @@ class Publications:
         self.session.put(
             key,
             encode(record),
-            encoding=Format.MSGPACK.value,
+            encoding=MSGPACK,
             congestion_control=zenoh.CongestionControl.DROP,
             source_info=self._source(),
             **options,
@@ -183,10 +185,16 @@ class Publications:
         while not self._stop.wait(period):
             self._diag_pub.put(encode(self.diag()), source_info=self._source())
 
-    def _publish_events(self, events: list[Event]) -> None:
+    def _publish_events(self, rows: list[StoredRow]) -> None:
         """From the event log's writer thread: each event on its own key, `events/<seq>`, so a
         Zenoh storage keeps them all (it keeps the latest sample per key)."""
         if self._stop.is_set():
             return
-        for event in events:
-            self._put(f"{self.base}/events/{event.seq}", event)
+        for row in rows:
+            self.session.put(
+                f"{self.base}/events/{row[0]}",
+                row_payload(row),
+                encoding=MSGPACK,
+                congestion_control=zenoh.CongestionControl.DROP,
+                source_info=self._source(),
+            )

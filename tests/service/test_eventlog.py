@@ -14,13 +14,14 @@ from pathlib import Path
 
 import pytest
 
+from schema.codec import dump_json, encode
 from schema.events import (
     DaemonStartEvent,
     DaemonStopEvent,
     DroppedEvent,
-    Event,
     EventPage,
     EventQuery,
+    KnownDetails,
     QueryError,
     StorageEvent,
     WatchdogEvent,
@@ -29,11 +30,15 @@ from service.adapters.eventlog import (
     BUSY_TIMEOUT_S,
     EVENTS_FILE,
     EventLog,
+    StoredRow,
     connect,
     iter_events,
     read_page,
+    row_event,
+    row_payload,
 )
 from service.config.model import EventsSection
+from tests.schema.event_samples import DETAILS
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""
@@ -70,11 +75,27 @@ def test_written_events_read_back_in_order_with_seq_time_and_cycle(log: EventLog
 
 
 def test_listeners_get_each_committed_batch_with_its_seq(log: EventLog) -> None:
-    seen: list[Event] = []
+    seen: list[StoredRow] = []
     log.subscribe(seen.extend)
     log.emit_now(DaemonStopEvent(reason="test", exit_code=0))
+    log.emit(WatchdogEvent(stalled_s=0.5), T0, 7)
     assert log.flush()
-    assert [(e.seq, e.kind) for e in seen] == [(1, "daemon_stop")]
+    events = [row_event(row) for row in seen]
+    assert [(e.seq, e.kind, e.cycle) for e in events] == [
+        (1, "daemon_stop", None),
+        (2, "watchdog_trip", 7),
+    ]
+    assert events == page(log).events  # what listeners get is what is stored
+
+
+@pytest.mark.parametrize("details", DETAILS, ids=lambda d: type(d).__name__)
+def test_a_rows_wire_bytes_are_its_events_encoding(details: KnownDetails) -> None:
+    """The bus publishes `row_payload(row)`, made without the model: the same bytes as the
+    `Event`'s own encoding, for every kind, including times and cycles of every shape."""
+    for seq, when, cycle in [(1, T0, None), (2**40, 1.0000000000000002, 2**31), (3, 0.0, 0)]:
+        row = (seq, when, cycle, "machine-7", details.kind, dump_json(details))
+        assert row_payload(row) == encode(row_event(row))
+        assert row_event(row).details == details
 
 
 def test_pages_are_bounded_and_continue_from_next_since(tmp_path: Path) -> None:
