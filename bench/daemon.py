@@ -45,6 +45,7 @@ def config_toml(
     tuning: Tuning,
     heartbeat_s: float | None = None,
     watchdog_periods: int | None = None,
+    events: bool = True,
 ) -> str:
     lines = [
         "[loop]",
@@ -61,6 +62,8 @@ def config_toml(
         lines.append(f"watchdog_periods = {watchdog_periods}")
     if heartbeat_s is not None:
         lines += ["", "[bus]", f"heartbeat_s = {heartbeat_s!r}"]
+    if not events:
+        lines += ["", "[events]", "enabled = false"]
     return "\n".join(lines) + "\n"
 
 
@@ -83,17 +86,20 @@ def bench_daemon(
     calibrated: bool = False,
     heartbeat_s: float | None = None,
     watchdog_periods: int | None = None,
+    events: bool = True,
+    machine_id: str = "m1",
 ) -> Iterator[Daemon]:
-    """A daemon on a free loopback port in its own temp dir; stopped (bounded) on exit."""
+    """A daemon on a free loopback port in its own temp dir; stopped (bounded) on exit.
+    `events=False`: without the event history (`[events] enabled = false`)."""
     with tempfile.TemporaryDirectory(prefix="bench-") as tmp_name:
         tmp = Path(tmp_name)
         config = tmp / "machine.toml"
-        config.write_text(config_toml(period_s, tuning, heartbeat_s, watchdog_periods))
+        config.write_text(config_toml(period_s, tuning, heartbeat_s, watchdog_periods, events))
         if calibrated:
-            data = tmp / "data-m1"
+            data = tmp / f"data-{machine_id}"
             data.mkdir()
             (data / CALIBRATION_FILE).write_bytes(calibration_file())
-        daemon = start_daemon(tmp, "m1", extra=["--config", str(config)])
+        daemon = start_daemon(tmp, machine_id, extra=["--config", str(config)])
         try:
             yield daemon
         finally:
