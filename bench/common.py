@@ -57,6 +57,18 @@ class Dist:
         return cls(len(s), sum(s) / len(s), s[0], pct(s, 0.5), pct(s, 0.9), pct(s, 0.99), s[-1])
 
 
+def growth_per_hour(ts: list[float], values: list[int]) -> float:
+    """Least-squares slope of `values` over `ts` (seconds), per hour."""
+    if len(ts) < 2:
+        return float("nan")
+    ys = [float(v) for v in values]
+    mt, my = sum(ts) / len(ts), sum(ys) / len(ys)
+    var = sum((t - mt) ** 2 for t in ts)
+    if var == 0:
+        return float("nan")
+    return 3600.0 * sum((t - mt) * (y - my) for t, y in zip(ts, ys, strict=True)) / var
+
+
 def ms(seconds: float, digits: int = 3) -> str:
     """Seconds as milliseconds for a table cell."""
     return "—" if math.isnan(seconds) else f"{seconds * 1e3:.{digits}f}"

@@ -34,6 +34,7 @@ from bench.common import (
     Dist,
     Section,
     Table,
+    growth_per_hour,
     interrupts_as_exceptions,
     measure,
     mib,
@@ -255,18 +256,6 @@ class Sample:
     t: float
     daemon_rss: int
     supervisor_rss: int
-
-
-def growth_per_hour(ts: list[float], values: list[int]) -> float:
-    """Least-squares slope of `values` over `ts` (seconds), per hour."""
-    if len(ts) < 2:
-        return float("nan")
-    ys = [float(v) for v in values]
-    mt, my = sum(ts) / len(ts), sum(ys) / len(ys)
-    var = sum((t - mt) ** 2 for t in ts)
-    if var == 0:
-        return float("nan")
-    return 3600.0 * sum((t - mt) * (y - my) for t, y in zip(ts, ys, strict=True)) / var
 
 
 # --------------------------------------------------------------------------------- kills

@@ -233,3 +233,32 @@ def running_daemon(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Itera
         yield daemon
     finally:
         daemon.stop()
+
+
+GLIBC_HEAP_BYTES = 64 << 20
+"""glibc reserves each thread arena's heap as one block of this size, aligned to it (64-bit)."""
+
+
+def malloc_arenas(pid: int) -> int:
+    """glibc malloc arenas of a process, the main one included, read from /proc/<pid>/maps.
+
+    A thread arena's heap is an anonymous mapping at an address aligned to 64 MiB, its used
+    part read-write and the rest reserved (`---p`) up to 64 MiB: counted from outside, so a
+    test or a benchmark can check any process."""
+    maps: list[tuple[int, int, str, bool]] = []
+    with open(f"/proc/{pid}/maps") as fh:
+        for line in fh:
+            parts = line.split()
+            lo, hi = (int(x, 16) for x in parts[0].split("-"))
+            maps.append((lo, hi, parts[1], len(parts) > 5))
+    heaps = 0
+    for i, (lo, hi, perms, named) in enumerate(maps):
+        if named or not perms.startswith("rw") or lo % GLIBC_HEAP_BYTES:
+            continue
+        end = hi
+        if i + 1 < len(maps):
+            nlo, nhi, nperms, nnamed = maps[i + 1]
+            if nlo == hi and nperms.startswith("---") and not nnamed:
+                end = nhi
+        heaps += end - lo == GLIBC_HEAP_BYTES
+    return 1 + heaps

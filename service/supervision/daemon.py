@@ -39,6 +39,7 @@ from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
 from service.simwing import sim_hal, sim_port
+from service.supervision.malloc import MALLOC_ARENAS, bound_malloc_arenas
 
 log = logging.getLogger("machine")
 
@@ -89,7 +90,9 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         # when this process dies.
         log.error("event=supervisor_gone pid=%s", supervisor)
         return EXIT_FAILED
-    return Daemon(config, options, supervised=bool(supervisor)).run()
+    daemon = Daemon(config, options, supervised=bool(supervisor))
+    daemon.malloc_bounded = bound_malloc_arenas()  # before Zenoh's threads start
+    return daemon.run()
 
 
 class StartRefused(Exception):
@@ -123,6 +126,8 @@ class Daemon:
         self.exit_deadline: threading.Timer | None = None
         self._stop_asked = False
         self._stop_recorded = False
+        self.malloc_bounded = False
+        """`run_daemon` capped glibc's malloc arenas (reported in the start line's tuning)."""
 
     def run(self) -> int:
         """Set up, serve until stopped, undo; the exit code (the `EXIT_*` constants)."""
@@ -301,6 +306,8 @@ class Daemon:
         self.served = True
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
         applied.append(switch_interval(config.loop.switch_interval_s))
+        if self.malloc_bounded:
+            applied.append(f"malloc_arenas={MALLOC_ARENAS}")
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
             config.machine.id,

@@ -1,0 +1,319 @@
+"""RSS soak: does the daemon's resident memory stay flat, idle and with Riders coming and going?
+
+`python -m bench.rss_soak [--minutes 30] [--every 0.2]` runs side by side, for the whole time:
+- a daemon at 10 ms with no Rider (its defaults);
+- a daemon at 10 ms with Rider churn: a Rider connects, reads the status and disconnects,
+  waits `--every` seconds, and again;
+- the same with glibc's default malloc arenas (`MALLOC_ARENA_MAX` = 8 per core): the daemon as
+  it was before it bounded its arenas (service/supervision/malloc.py);
+- a bare zenoh-python echo under the same churn (a session, a liveliness token, one get): the
+  floor of what Zenoh itself keeps per connect.
+RSS (/proc/<pid>/status) and the malloc arenas (from /proc/<pid>/maps) of each process are
+sampled every few seconds; growth is taken after the warm-up (the first third of the run, at
+most 5 minutes). Results are printed and written to the `rss_soak` section of BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from bench.common import (
+    RESULTS,
+    Child,
+    Section,
+    Table,
+    Target,
+    growth_per_hour,
+    interrupts_as_exceptions,
+    measure,
+    python_module,
+    rss_bytes,
+    save,
+)
+from bench.common import Options as BenchOptions
+from rider.client import RiderError
+from rider.client import zenoh_config as rider_zenoh_config
+from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS
+from tests.procs import Daemon, free_port, malloc_arenas, start_daemon, write_zenoh_config
+
+SAMPLE_EVERY_S = 10.0
+WARMUP_MAX_S = 300.0
+REPLY_TIMEOUT_S = 2.0
+FLAT_MIB_PER_H = 1.0
+"""The issue's "flat": at most this slope over the second half (0.5 MiB in a 30-minute run's)."""
+JUDGED_MINUTES = 10
+"""Shorter runs report the slopes but judge nothing (a slope over seconds is start-up)."""
+ECHO_KEY = "bench/echo"
+
+
+@dataclass(frozen=True)
+class RssOptions:
+    minutes: float = 30.0
+    every_s: float = 0.2
+    out: Path | None = RESULTS
+
+
+@dataclass
+class Proc:
+    """One process sampled through the soak, and its churn counter (None: not churned)."""
+
+    label: str
+    pid: int
+    connect: Callable[[], None] | None = None
+    connects: int = 0
+    failures: int = 0
+    rss: list[int] = field(default_factory=list)
+    seen: list[int] = field(default_factory=list)
+    """`connects` at each sample."""
+    arenas: int = 0
+
+
+def _rider_churn(daemon: Daemon) -> Callable[[], None]:
+    def connect() -> None:
+        with daemon.rider(timeout=REPLY_TIMEOUT_S, retries=0) as rider:
+            rider.status()
+
+    return connect
+
+
+def _echo_churn(endpoint: str, zenoh_config: Path) -> Callable[[], None]:
+    def connect() -> None:
+        conf = rider_zenoh_config(zenoh_config, connect=[endpoint])
+        with zenoh.open(conf) as session:
+            token = session.liveliness().declare_token(f"rider/alive/{session.zid()}")
+            if not list(session.get(ECHO_KEY, payload=b"x", timeout=REPLY_TIMEOUT_S)):
+                raise RiderError("no reply from the echo")
+            token.undeclare()  # type: ignore[no-untyped-call]
+
+    return connect
+
+
+def churn(proc: Proc, every_s: float, stop: threading.Event) -> None:
+    assert proc.connect is not None
+    while not stop.wait(every_s):
+        try:
+            proc.connect()
+            proc.connects += 1
+        except (RiderError, zenoh.ZError):
+            proc.failures += 1
+
+
+@contextlib.contextmanager
+def _env(**values: str) -> Iterator[None]:
+    """Environment variables for the children started inside (restored after)."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def start_procs(stack: contextlib.ExitStack, tmp: Path, lifetime_s: float) -> list[Proc]:
+    def daemon(name: str) -> Daemon:
+        d = start_daemon(tmp / name, "m1")
+        stack.callback(d.stop)
+        return d
+
+    for name in ("idle", "churn", "churn-arenas", "echo"):
+        (tmp / name).mkdir()
+    idle, churned = daemon("idle"), daemon("churn")
+    with _env(**{ARENA_ENV: str(8 * (os.cpu_count() or 1))}):  # glibc's own default cap
+        unbounded = daemon("churn-arenas")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    zconf = write_zenoh_config(tmp / "echo")
+    echo = Child(
+        python_module(
+            "bench.baselines.zenoh_echo",
+            "--listen",
+            endpoint,
+            "--zenoh-config",
+            zconf,
+            "--lifetime",
+            lifetime_s,
+        ),
+        tmp / "echo" / "echo.log",
+    )
+    stack.callback(echo.stop)
+    echo.expect("ready")
+    return [
+        Proc("daemon, no Rider", idle.proc.pid),
+        Proc("daemon, Rider churn", churned.proc.pid, _rider_churn(churned)),
+        Proc(
+            "daemon, Rider churn, glibc's default arenas",
+            unbounded.proc.pid,
+            _rider_churn(unbounded),
+        ),
+        Proc("bare Zenoh echo, same churn", echo.pid, _echo_churn(endpoint, zconf)),
+    ]
+
+
+def soak(opts: RssOptions) -> Section:
+    section = Section("rss_soak", "RSS soak (bench/rss_soak.py)")
+    duration = 60.0 * opts.minutes
+    sample_every = min(SAMPLE_EVERY_S, duration / 10)
+    stop = threading.Event()
+    times: list[float] = []
+    with contextlib.ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="rss-soak-")))
+        procs = start_procs(stack, tmp, duration + 120.0)
+        workers = [
+            threading.Thread(target=churn, args=(p, opts.every_s, stop), name=f"churn-{i}")
+            for i, p in enumerate(procs)
+            if p.connect is not None
+        ]
+        t0 = time.monotonic()
+        for w in workers:
+            w.start()
+        try:
+            while True:
+                t = time.monotonic() - t0
+                times.append(t)
+                for p in procs:
+                    p.rss.append(rss_bytes(p.pid))
+                    p.seen.append(p.connects)
+                if t >= duration:
+                    break
+                stop.wait(min(sample_every, duration - t))
+        finally:
+            stop.set()
+            for w in workers:
+                w.join(timeout=REPLY_TIMEOUT_S * 5)
+        for p in procs:
+            p.arenas = malloc_arenas(p.pid)
+    warmup = min(WARMUP_MAX_S, duration / 3)
+    section.tables += [curve_table(times, procs), growth_table(times, procs, warmup)]
+    section.targets += flat_targets(times, procs, opts.minutes)
+    section.notes.append(
+        f"{opts.minutes:g} min; each churned process: connect, read, disconnect, then"
+        f" {opts.every_s:g} s pause; RSS sampled every {sample_every:g} s. Warm-up left out of"
+        f" the growth: the first {warmup / 60:.1f} min. Daemons: `machine run --sim` at 10 ms,"
+        f" the defaults (malloc arenas bounded to {MALLOC_ARENAS}, unless the environment sets"
+        f" `{ARENA_ENV}`)."
+    )
+    return section
+
+
+def curve_table(times: list[float], procs: list[Proc], rows: int = 10) -> Table:
+    """RSS over time, a row per tenth of the run (and the last sample)."""
+    churned = next(p for p in procs if p.connect is not None)
+    t = Table(
+        "RSS over time (MiB)",
+        ["minute", f"connects ({churned.label})", *(p.label for p in procs)],
+    )
+    step = max(1, len(times) // rows)
+    picked = list(range(0, len(times), step))
+    if picked[-1] != len(times) - 1:
+        picked.append(len(times) - 1)
+    for i in picked:
+        t.add(
+            f"{times[i] / 60:.1f}",
+            f"{churned.seen[i]:,}",
+            *(f"{p.rss[i] / 2**20:.2f}" for p in procs),
+        )
+    return t
+
+
+def _after(times: list[float], since: float) -> list[int]:
+    return [i for i, t in enumerate(times) if t >= since] or [len(times) - 1]
+
+
+def growth_table(times: list[float], procs: list[Proc], warmup: float) -> Table:
+    half = (warmup + times[-1]) / 2
+    steady, late = _after(times, warmup), _after(times, half)
+    t = Table(
+        "RSS growth after the warm-up",
+        [
+            "process",
+            "connects",
+            "after warm-up MiB",
+            "end MiB",
+            "growth MiB",
+            "MiB/h, 2nd half",
+            "KiB per connect, 2nd half",
+            "malloc arenas",
+        ],
+    )
+    for p in procs:
+        first, last = steady[0], len(times) - 1
+        slope = growth_per_hour([times[i] for i in late], [p.rss[i] for i in late])
+        n = p.seen[last] - p.seen[late[0]]
+        per = (p.rss[last] - p.rss[late[0]]) / 1024 / n if n else None
+        t.add(
+            p.label,
+            f"{p.connects:,}" + (f" ({p.failures} failed)" if p.failures else ""),
+            f"{p.rss[first] / 2**20:.2f}",
+            f"{p.rss[last] / 2**20:.2f}",
+            f"{(p.rss[last] - p.rss[first]) / 2**20:+.2f}",
+            f"{slope / 2**20:+.2f}",
+            "—" if per is None else f"{per:+.2f}",
+            p.arenas,
+        )
+    t.note = (
+        "MiB/h: least-squares slope of the samples in the second half after the warm-up;"
+        " KiB per connect: RSS change over the connects in that half; malloc arenas at the"
+        " end (glibc heaps in /proc/<pid>/maps, the main one included)"
+    )
+    return t
+
+
+def flat_targets(times: list[float], procs: list[Proc], minutes: float) -> list[Target]:
+    warmup = min(WARMUP_MAX_S, 60.0 * minutes / 3)
+    late = _after(times, (warmup + times[-1]) / 2)
+    targets = []
+    for p in procs[:2]:
+        what = f"RSS slope, {p.label} (2nd half)"
+        if minutes < JUDGED_MINUTES:
+            goal = f"≤ {FLAT_MIB_PER_H:.2f} MiB/h"
+            targets.append(Target(what, goal, "—", None, f"judged on ≥ {JUDGED_MINUTES} min"))
+            continue
+        slope = growth_per_hour([times[i] for i in late], [p.rss[i] for i in late]) / 2**20
+        targets.append(Target.at_most(what, slope, FLAT_MIB_PER_H, lambda v: f"{v:.2f} MiB/h"))
+    return targets
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m bench.rss_soak", description=__doc__)
+    p.add_argument("--minutes", type=float, default=30.0, help="soak duration (default 30)")
+    p.add_argument("--every", type=float, default=0.2, help="pause between Rider connects, s")
+    p.add_argument("--out", type=Path, default=RESULTS, help="Markdown file to update")
+    p.add_argument("--no-write", action="store_true", help="print the tables only")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
+    if not 0 < args.minutes <= 24 * 60 or args.every < 0:
+        print("bench.rss_soak: need 0 < --minutes <= 1440, --every >= 0", file=sys.stderr)
+        return 2
+    opts = RssOptions(
+        minutes=args.minutes, every_s=args.every, out=None if args.no_write else args.out
+    )
+    with interrupts_as_exceptions():
+        section = measure(
+            lambda _: soak(opts),
+            BenchOptions(out=opts.out),
+            " ".join(["python -m bench.rss_soak", *argv]),
+        )
+        save(section, BenchOptions(out=opts.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
