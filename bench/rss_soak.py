@@ -48,6 +48,8 @@ from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS
 from tests.procs import Daemon, free_port, malloc_arenas, start_daemon, write_zenoh_config
 
 SAMPLE_EVERY_S = 10.0
+PROGRESS_EVERY = 30
+"""Samples between progress lines on stdout (5 minutes)."""
 WARMUP_MAX_S = 300.0
 REPLY_TIMEOUT_S = 2.0
 FLAT_MIB_PER_H = 1.0
@@ -189,6 +191,8 @@ def soak(opts: RssOptions) -> Section:
                     p.seen.append(p.connects)
                 if t >= duration:
                     break
+                if len(times) % PROGRESS_EVERY == 0:
+                    print(progress(t, procs), flush=True)
                 stop.wait(min(sample_every, duration - t))
         finally:
             stop.set()
@@ -207,6 +211,11 @@ def soak(opts: RssOptions) -> Section:
         f" `{ARENA_ENV}`)."
     )
     return section
+
+
+def progress(t: float, procs: list[Proc]) -> str:
+    cells = ", ".join(f"{p.label} {p.rss[-1] / 2**20:.2f} MiB ({p.connects:,})" for p in procs)
+    return f"minute {t / 60:.1f}: {cells}"
 
 
 def curve_table(times: list[float], procs: list[Proc], rows: int = 10) -> Table:

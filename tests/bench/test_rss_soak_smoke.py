@@ -1,0 +1,43 @@
+"""The RSS soak runs: a few seconds of it finish, churn without a failed connect, count the
+daemons' malloc arenas and write its section. No memory figure is asserted: that is what it
+reports."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from service.supervision.malloc import MALLOC_ARENAS
+from tests.procs import REPO
+
+pytestmark = pytest.mark.integration
+
+BOUND_S = 120.0
+
+
+def test_short_rss_soak_churns_and_writes_its_section(tmp_path: Path) -> None:
+    out = tmp_path / "B.md"
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench.rss_soak", "--minutes", "0.1", "--out", out],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=BOUND_S,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    text = proc.stdout
+    # Each churned process connected at least once, none failed (a failure shows its count).
+    for label in ("daemon, Rider churn", "bare Zenoh echo, same churn"):
+        row = re.search(rf"^{re.escape(label)}\s+([\d,]+)\s+(\S+)", text, re.MULTILINE)
+        assert row is not None, text
+        assert int(row.group(1).replace(",", "")) > 0 and not row.group(2).startswith("("), text
+    bounded = re.search(r"^daemon, Rider churn\s.*\s(\d+)\s*$", text, re.MULTILINE)
+    assert bounded is not None and int(bounded.group(1)) <= MALLOC_ARENAS, text
+    written = out.read_text()
+    assert "<!-- bench:rss_soak -->" in written and "<!-- /bench:rss_soak -->" in written
+    assert "RSS growth after the warm-up" in written
