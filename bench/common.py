@@ -341,6 +341,13 @@ def main_for(
     return 0
 
 
+def measure_and_save(run: Callable[[], Section], out: Path | None, command: str) -> None:
+    """`measure` and `save` for a benchmark with its own options (the soaks: no `--quick`)."""
+    opts = Options(out=out)
+    with interrupts_as_exceptions():
+        save(measure(lambda _: run(), opts, command), opts)
+
+
 @contextlib.contextmanager
 def interrupts_as_exceptions() -> Iterator[None]:
     """SIGTERM raises KeyboardInterrupt like Ctrl-C does, so `finally` blocks stop children."""

@@ -22,7 +22,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,17 +35,15 @@ from bench.common import (
     Table,
     Target,
     growth_per_hour,
-    interrupts_as_exceptions,
-    measure,
+    measure_and_save,
     python_module,
     rss_bytes,
-    save,
 )
-from bench.common import Options as BenchOptions
 from rider.client import RiderError
 from rider.client import zenoh_config as rider_zenoh_config
 from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS
 from tests.procs import Daemon, free_port, malloc_arenas, start_daemon, write_zenoh_config
+from tests.reliability.support import environ
 
 SAMPLE_EVERY_S = 10.0
 PROGRESS_EVERY = 30
@@ -111,21 +109,6 @@ def churn(proc: Proc, every_s: float, stop: threading.Event) -> None:
             proc.failures += 1
 
 
-@contextlib.contextmanager
-def _env(**values: str) -> Iterator[None]:
-    """Environment variables for the children started inside (restored after)."""
-    saved = {k: os.environ.get(k) for k in values}
-    os.environ.update(values)
-    try:
-        yield
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-
-
 def start_procs(stack: contextlib.ExitStack, tmp: Path, lifetime_s: float) -> list[Proc]:
     def daemon(name: str) -> Daemon:
         d = start_daemon(tmp / name, "m1")
@@ -135,7 +118,7 @@ def start_procs(stack: contextlib.ExitStack, tmp: Path, lifetime_s: float) -> li
     for name in ("idle", "churn", "churn-arenas", "echo"):
         (tmp / name).mkdir()
     idle, churned = daemon("idle"), daemon("churn")
-    with _env(**{ARENA_ENV: str(8 * (os.cpu_count() or 1))}):  # glibc's own default cap
+    with environ({ARENA_ENV: str(8 * (os.cpu_count() or 1))}):  # glibc's own default cap
         unbounded = daemon("churn-arenas")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     zconf = write_zenoh_config(tmp / "echo")
@@ -314,13 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     opts = RssOptions(
         minutes=args.minutes, every_s=args.every, out=None if args.no_write else args.out
     )
-    with interrupts_as_exceptions():
-        section = measure(
-            lambda _: soak(opts),
-            BenchOptions(out=opts.out),
-            " ".join(["python -m bench.rss_soak", *argv]),
-        )
-        save(section, BenchOptions(out=opts.out))
+    measure_and_save(lambda: soak(opts), opts.out, " ".join(["python -m bench.rss_soak", *argv]))
     return 0
 
 

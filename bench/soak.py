@@ -35,14 +35,11 @@ from bench.common import (
     Section,
     Table,
     growth_per_hour,
-    interrupts_as_exceptions,
-    measure,
+    measure_and_save,
     mib,
     ms,
     rss_bytes,
-    save,
 )
-from bench.common import Options as BenchOptions
 from rider.client import CommandRefused, MachineTimeout, Rider, RiderError
 from schema.codec import Format, decode, pack
 from schema.commands import REST_STATES, Command, Reply, RotateStep, Session, TiltStep
@@ -482,13 +479,7 @@ def main(argv: list[str] | None = None) -> int:
         kills=args.kills,
         out=None if args.no_write else args.out,
     )
-    with interrupts_as_exceptions():
-        section = measure(
-            lambda _: soak(opts),
-            BenchOptions(out=opts.out),
-            " ".join(["python -m bench.soak", *argv]),
-        )
-        save(section, BenchOptions(out=opts.out))
+    measure_and_save(lambda: soak(opts), opts.out, " ".join(["python -m bench.soak", *argv]))
     return 0
 
 
