@@ -138,7 +138,8 @@ class SimHal:
     def _advance(self) -> None:
         """Integrate up to now under the old outputs before they change."""
         now = self._clock()
-        self.world.step(min(now - self._last, self.max_step_s))
+        dt = now - self._last
+        self.world.step(dt if dt < self.max_step_s else self.max_step_s)
         self._last = now
 
     def _apply(self, outputs: Outputs) -> None:

@@ -204,12 +204,10 @@ class LiveConfig:
     """
 
     def __init__(self, config: MachineConfig) -> None:
-        self._current = config
+        self.current = config
+        """The config the machine runs with now; only `take` sets it (a plain attribute: the
+        loop reads it every cycle)."""
         self._offered = config
-
-    @property
-    def current(self) -> MachineConfig:
-        return self._current
 
     def offer(self, config: MachineConfig) -> None:
         """A new config for the next cycle (one reference swap: safe from any thread)."""
@@ -217,4 +215,4 @@ class LiveConfig:
 
     def take(self) -> None:
         """On the scan thread, between cycles: run with the latest offer from now on."""
-        self._current = self._offered
+        self.current = self._offered

@@ -18,7 +18,7 @@ from typing import Protocol, TypeVar
 
 from pydantic import BaseModel
 
-from hal.base import Hal, Inputs
+from hal.base import Hal
 from schema.axes import AxisRecord
 from schema.calibration import (
     CalibrationRecord,
@@ -143,21 +143,22 @@ class Wake:
         self._gate = threading.Lock()
         self._gate.acquire()  # held while clear: a wait blocks on it
         self._guard = threading.Lock()
-        self._set = False
+        self.flag = False
+        """`is_set()` as a plain attribute, for the scan loop's every cycle (no call)."""
 
     def is_set(self) -> bool:
-        return self._set
+        return self.flag
 
     def set(self) -> None:
         with self._guard:
-            if not self._set:
-                self._set = True
+            if not self.flag:
+                self.flag = True
                 self._gate.release()
 
     def clear(self) -> None:
         with self._guard:
-            if self._set:
-                self._set = False
+            if self.flag:
+                self.flag = False
                 self._gate.acquire()  # a waiter passing through releases it at once
 
     def wait(self, timeout: float) -> bool:
@@ -188,7 +189,7 @@ class Inbox:
         return True
 
     def take(self, limit: int) -> list[Task]:
-        if not self._items and not self.wake.is_set():
+        if not self._items and not self.wake.flag:
             return []  # the common case, every cycle: no lock
         with self._lock:
             n = min(limit, len(self._items))
@@ -307,12 +308,29 @@ class ScanLoop:
         self.live.take()  # online parameter writes take effect here, between cycles
         inputs = self.image.inputs = self.hal.scan_inputs()
         rest, self._rest = self._rest, None
-        if rest is not None and self._still_at_rest(rest, inputs, now):
+        guard = self.guard
+        # Everything but the control state (taken after the deadman) as at `rest`. Written
+        # out here, where every idle cycle runs it: after a 10 ms sleep each Python call
+        # costs microseconds of cold caches (BENCHMARKS.md section 5).
+        if (
+            rest is not None
+            and inputs.di == rest.di
+            and inputs.ai == rest.ai
+            and now < self._status_due  # the status heartbeat is a full cycle
+            and self.commands_handled == rest.commands
+            and self.tasks_run == rest.tasks
+            and not self.inbox.wake.flag  # set whenever something is queued
+            and not any(self.image.outputs.ro.values())
+            and (guard is None or not guard.latched)
+        ):
             # No watchdog latch, no E-stop, nothing queued: the cycle goes on at the deadman.
             self._supervise(now)
             if self.control.rest_key() == rest.key:
+                # Quiet: what a full cycle does at rest, without the work that finds nothing.
                 self._rest = rest
-                self._quiet_cycle(now)
+                self.hal.scan_outputs(self.image.outputs)
+                self.axes.tick(now)
+                self.quiet += 1
             else:
                 self._rest_of_cycle(now)
             return
@@ -371,26 +389,6 @@ class ScanLoop:
             return None
         inputs = self.image.inputs
         return _Rest(key, dict(inputs.di), dict(inputs.ai), self.commands_handled, self.tasks_run)
-
-    def _still_at_rest(self, rest: _Rest, inputs: Inputs, now: float) -> bool:
-        """Everything but the control state (taken after the deadman) is as at `rest`."""
-        guard = self.guard
-        return (
-            inputs.di == rest.di
-            and inputs.ai == rest.ai
-            and now < self._status_due  # the status heartbeat is a full cycle
-            and self.commands_handled == rest.commands
-            and self.tasks_run == rest.tasks
-            and not self.inbox.wake.is_set()  # set whenever something is queued
-            and not any(self.image.outputs.ro.values())
-            and (guard is None or not guard.latched)
-        )
-
-    def _quiet_cycle(self, now: float) -> None:
-        """What a full cycle does at rest, without the work that finds nothing to do."""
-        self.hal.scan_outputs(self.image.outputs)
-        self.axes.tick(now)
-        self.quiet += 1
 
     def _take_watchdog_trip(self, now: float) -> bool:
         """The watchdog forced the outputs safe while the scan thread was stalled (and has

@@ -3,53 +3,66 @@
 from __future__ import annotations
 
 from array import array
-from dataclasses import dataclass, field
 
 from schema.diag import CycleDiag, TimingStats
 
+JITTER, EXECUTION = 0, 1
+"""Where each series sits in a cycle's pair of ring slots."""
 
-@dataclass
-class _Series:
-    """Running min/max/mean since reset plus a ring of recent samples for percentiles."""
 
-    window: int
-    ring: array[float] = field(init=False)
-    pos: int = 0
-    filled: int = 0
-    count: int = 0
-    total: float = 0.0
-    lo: float = float("inf")
-    hi: float = 0.0
-    last: float = 0.0
+class _Window:
+    """The samples since one reset: both series interleaved in one ring of recent cycles (for
+    the percentiles) and their running min/max/total. A reset swaps in a new one, so the scan
+    thread never writes into a half-reset window."""
 
-    def __post_init__(self) -> None:
-        self.ring = array("d", bytes(8 * self.window))
+    __slots__ = (
+        "count",
+        "e_hi",
+        "e_lo",
+        "e_total",
+        "filled",
+        "j_hi",
+        "j_lo",
+        "j_total",
+        "missed",
+        "overruns",
+        "pos",
+        "ring",
+        "since",
+        "size",
+    )
 
-    def add(self, value: float) -> None:
-        # Every cycle, twice: plain compares, no builtin calls (a cold cycle pays for each).
-        pos = self.pos
-        self.ring[pos] = value
-        pos += 1
-        self.pos = 0 if pos == self.window else pos
-        if self.filled < self.window:
-            self.filled += 1
-        self.count += 1
-        self.total += value
-        self.last = value
-        if value < self.lo:  # noqa: PLR1730 - a compare, not a builtin call, every cycle
-            self.lo = value
-        if value > self.hi:  # noqa: PLR1730 - likewise
-            self.hi = value
+    def __init__(self, window: int, since: float) -> None:
+        self.size = 2 * window
+        self.ring = array("d", bytes(8 * self.size))
+        self.pos = 0
+        """The next cycle's first slot (its jitter; the execution time follows)."""
+        self.filled = 0
+        """Cycles in the ring (up to the window)."""
+        self.count = 0
+        self.j_total = self.e_total = 0.0
+        self.j_lo = self.e_lo = float("inf")
+        self.j_hi = self.e_hi = 0.0
+        self.overruns = 0
+        self.missed = 0
+        self.since = since
 
-    def stats(self) -> TimingStats:
+    def stats(self, series: int) -> TimingStats:
+        """One series' figures; read from any thread while the scan thread records."""
         if self.count == 0:
             return TimingStats()
-        recent = sorted(self.ring[: self.filled])
+        ring, filled = self.ring, self.filled
+        recent = sorted(ring[series : 2 * filled : 2])
+        lo, hi, total = (
+            (self.j_lo, self.j_hi, self.j_total)
+            if series == JITTER
+            else (self.e_lo, self.e_hi, self.e_total)
+        )
         return TimingStats(
-            last=self.last,
-            mean=self.total / self.count,
-            min=self.lo,
-            max=self.hi,
+            last=ring[(self.pos - 2 + series) % self.size],
+            mean=total / self.count,
+            min=lo,
+            max=hi,
             p50=_pct(recent, 0.50),
             p99=_pct(recent, 0.99),
         )
@@ -68,34 +81,59 @@ class CycleStats:
         self.window = window
         self.cycles = 0
         self.commands = 0
-        self.reset(now)
+        self._w = _Window(window, now)
 
     def reset(self, now: float) -> None:
         """Clear min/max/mean, the overrun counter and missed cycles (the resettable counters)."""
-        self.execution = _Series(self.window)
-        self.jitter = _Series(self.window)
-        self.overruns = 0
-        self.missed_cycles = 0
-        self.since = now
+        self._w = _Window(self.window, now)
+
+    @property
+    def overruns(self) -> int:
+        return self._w.overruns
+
+    @property
+    def missed_cycles(self) -> int:
+        return self._w.missed
 
     def record(self, jitter_s: float, exec_s: float, missed: int) -> None:
+        # Every cycle: one object and one ring, plain compares, no calls (after a 10 ms sleep
+        # each object and call touched costs microseconds of cold caches: BENCHMARKS.md §5).
         self.cycles += 1
-        self.jitter.add(jitter_s)
-        self.execution.add(exec_s)
+        w = self._w
+        pos = w.pos
+        ring = w.ring
+        ring[pos] = jitter_s
+        ring[pos + 1] = exec_s
+        pos += 2
+        w.pos = 0 if pos == w.size else pos
+        if w.filled < self.window:
+            w.filled += 1
+        w.count += 1
+        w.j_total += jitter_s
+        w.e_total += exec_s
+        if jitter_s < w.j_lo:  # noqa: PLR1730 - a compare, not a builtin call, every cycle
+            w.j_lo = jitter_s
+        if jitter_s > w.j_hi:  # noqa: PLR1730 - likewise
+            w.j_hi = jitter_s
+        if exec_s < w.e_lo:  # noqa: PLR1730 - likewise
+            w.e_lo = exec_s
+        if exec_s > w.e_hi:  # noqa: PLR1730 - likewise
+            w.e_hi = exec_s
         if missed:
-            self.overruns += 1
-            self.missed_cycles += missed
+            w.overruns += 1
+            w.missed += missed
 
     def diag(self, now: float) -> CycleDiag:
+        w = self._w
         return CycleDiag(
             period_s=self.period_s,
             cycles=self.cycles,
-            execution=self.execution.stats(),
-            jitter=self.jitter.stats(),
-            overruns=self.overruns,
-            missed_cycles=self.missed_cycles,
+            execution=w.stats(EXECUTION),
+            jitter=w.stats(JITTER),
+            overruns=w.overruns,
+            missed_cycles=w.missed,
             commands=self.commands,
-            window=min(self.window, self.execution.filled),
-            since=self.since,
+            window=w.filled,
+            since=w.since,
             time=now,
         )

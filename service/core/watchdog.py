@@ -27,6 +27,8 @@ class GuardedHal:
 
     def __init__(self, inner: Hal) -> None:
         self.inner = inner
+        self.scan_inputs: Callable[[], Inputs] = inner.scan_inputs
+        """The inner HAL's own: the latch guards outputs only (no wrapper call per cycle)."""
         self.latched = False
         """Set by the watchdog's thread, cleared by the scan thread (one bool: atomic), read
         every cycle; a plain attribute, where an `Event` costs a Python call per read."""
@@ -37,9 +39,6 @@ class GuardedHal:
 
     def unlatch(self) -> None:
         self.latched = False
-
-    def scan_inputs(self) -> Inputs:
-        return self.inner.scan_inputs()
 
     def scan_outputs(self, outputs: Outputs) -> None:
         if self.latched:

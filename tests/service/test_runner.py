@@ -9,6 +9,7 @@ from collections.abc import Callable
 import pytest
 
 from schema.commands import Command, Reply, StartRequest
+from schema.diag import TimingStats
 from schema.status import FaultCode, MachineState
 from service.core.loop import PendingCommand
 from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
@@ -48,16 +49,16 @@ class FakeWake:
         self.oversleep = oversleep
         self.arrivals: list[tuple[float, Callable[[], None]]] = []
         self.waits: list[float] = []
-        self._set = False
+        self.flag = False
 
     def set(self) -> None:
-        self._set = True
+        self.flag = True
 
     def clear(self) -> None:
-        self._set = False
+        self.flag = False
 
     def is_set(self) -> bool:
-        return self._set
+        return self.flag
 
     def wait(self, timeout: float | None = None) -> bool:
         assert timeout is not None, "the runner must always wait with a deadline"
@@ -65,14 +66,14 @@ class FakeWake:
         self.waits.append(timeout)
         if len(self.waits) > 1_000_000:
             raise AssertionError("runner keeps waking without progress")
-        if self._set:
+        if self.flag:
             return True
         until = self.clock.t + timeout
         if self.arrivals and self.arrivals[0][0] <= until:
             at, action = self.arrivals.pop(0)
             self.clock.t = max(self.clock.t, at)
             action()
-            return self._set
+            return self.flag
         self.clock.t = until + self.oversleep
         return False
 
@@ -156,9 +157,9 @@ def test_cycles_start_on_absolute_deadlines() -> None:
     assert h.stats.cycles == 300
     assert h.stats.overruns == 0
     assert h.stats.missed_cycles == 0
-    jitter = h.stats.jitter.stats()
+    jitter = h.stats.diag(0.0).jitter
     assert 0 <= jitter.min <= jitter.max < 20 * TICK
-    assert h.stats.execution.stats().last == pytest.approx(0.002, abs=50 * TICK)
+    assert h.stats.diag(0.0).execution.last == pytest.approx(0.002, abs=50 * TICK)
     # Between cycles it sleeps (one wait per cycle), it does not spin.
     assert len(h.wake.waits) == 299
     assert all(w == pytest.approx(PERIOD - 0.002, abs=50 * TICK) for w in h.wake.waits)
@@ -172,7 +173,7 @@ def test_varying_execution_time_does_not_drift_the_schedule() -> None:
     assert_on_grid(h)
     assert round(h.grid_offsets()[-1]) == 499
     assert h.stats.overruns == 0
-    assert h.stats.execution.stats().max == pytest.approx(max(costs), abs=50 * TICK)
+    assert h.stats.diag(0.0).execution.max == pytest.approx(max(costs), abs=50 * TICK)
 
 
 @pytest.mark.parametrize(
@@ -193,7 +194,7 @@ def test_overrun_is_counted_and_missed_cycles_are_skipped(cost_periods: float, m
     assert h.starts[long + 1] - h.ends[long] < PERIOD
     assert_on_grid(h)
     assert slots == sorted(set(slots))
-    assert h.stats.execution.stats().max == pytest.approx(cost_periods * PERIOD, abs=50 * TICK)
+    assert h.stats.diag(0.0).execution.max == pytest.approx(cost_periods * PERIOD, abs=50 * TICK)
     h.stats.reset(h.clock())
     assert h.stats.overruns == 0
     assert h.stats.missed_cycles == 0
@@ -211,7 +212,7 @@ def test_repeated_overruns_accumulate() -> None:
 def test_late_wakeups_are_recorded_as_jitter() -> None:
     h = Harness(100, oversleep=0.0003)
     h.run()
-    jitter = h.stats.jitter.stats()
+    jitter = h.stats.diag(0.0).jitter
     assert jitter.min < 20 * TICK  # the first scan runs at once, without a wait
     assert jitter.p50 == pytest.approx(0.0003, abs=20 * TICK)
     assert jitter.max == pytest.approx(0.0003, abs=20 * TICK)
@@ -221,7 +222,7 @@ def test_late_wakeups_are_recorded_as_jitter() -> None:
 def test_spinning_the_last_stretch_absorbs_late_wakeups() -> None:
     h = Harness(100, oversleep=0.0003, spin_s=0.0005)
     h.run()
-    assert h.stats.jitter.stats().max < 20 * TICK
+    assert h.stats.diag(0.0).jitter.max < 20 * TICK
     assert all(w == pytest.approx(PERIOD - 0.002 - 0.0005, abs=50 * TICK) for w in h.wake.waits)
 
 
@@ -331,3 +332,24 @@ def test_cycle_stats_percentiles_and_window() -> None:
     assert diag.period_s == PERIOD
     assert diag.time == 5.0
     assert CycleStats(PERIOD).diag(0.0).execution.max == 0.0
+
+
+def test_cycle_stats_keep_the_series_apart_across_wraps_and_resets() -> None:
+    stats = CycleStats(PERIOD, window=4)
+    for i in range(1, 8):  # 7 cycles in a ring of 4: wrapped once, mid-lap now
+        stats.record(i * 1e-5, i * 1e-3, 1 if i % 3 == 0 else 0)
+    d = stats.diag(1.0)
+    assert d.window == 4
+    assert (d.jitter.last, d.execution.last) == (pytest.approx(7e-5), pytest.approx(7e-3))
+    assert (d.jitter.p50, d.execution.p50) == (pytest.approx(6e-5), pytest.approx(6e-3))
+    assert (d.jitter.p99, d.execution.p99) == (pytest.approx(7e-5), pytest.approx(7e-3))
+    assert (d.jitter.min, d.execution.min) == (pytest.approx(1e-5), pytest.approx(1e-3))
+    assert (d.jitter.mean, d.execution.mean) == (pytest.approx(4e-5), pytest.approx(4e-3))
+    assert (d.overruns, d.missed_cycles, stats.overruns, stats.missed_cycles) == (2, 2, 2, 2)
+    stats.reset(2.0)
+    d = stats.diag(3.0)
+    assert (d.cycles, d.overruns, d.missed_cycles, d.window, d.since) == (7, 0, 0, 0, 2.0)
+    assert d.execution == d.jitter == TimingStats()
+    stats.record(3e-5, 2e-3, 0)
+    d = stats.diag(4.0)
+    assert (d.jitter.last, d.execution.max, d.execution.p50, d.window) == (3e-5, 2e-3, 2e-3, 1)
