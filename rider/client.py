@@ -316,6 +316,8 @@ class Rider:
         self.rider_id = ""
         self._attachment = b""
         self._keys: dict[str, zenoh.KeyExpr] = {}
+        self._machine_of: dict[str, str | None] = {}
+        """`_machine_in`'s answers by key (bounded: cleared when it holds `KEY_CACHE` keys)."""
         """Command keys declared to the session (`_declare_key`): a query on a declared key
         expression is routed without matching its string again (BENCHMARKS.md, section 1)."""
 
@@ -1045,11 +1047,20 @@ class Rider:
     # ----------------------------------------------------------------------------- pinning
     def _machine_in(self, key: str) -> str | None:
         """The one machine id `key` is under (None: a wildcard id, or not a machine key)."""
+        try:
+            return self._machine_of[key]
+        except KeyError:
+            pass
         prefix = f"{self.key_prefix}/"
-        if not key.startswith(prefix):
-            return None
-        mid = key[len(prefix) :].split("/", 1)[0]
-        return None if any(c in mid for c in "*$") else mid
+        mid: str | None = None
+        if key.startswith(prefix):
+            mid = key[len(prefix) :].split("/", 1)[0]
+            if any(c in mid for c in "*$"):
+                mid = None
+        if len(self._machine_of) >= KEY_CACHE:
+            self._machine_of.clear()
+        self._machine_of[key] = mid
+        return mid
 
     def holders(self, machine_id: str) -> _Holders:
         """Ask who holds `machine_id` now (its `holder/<zid>` and `supervisor/<zid>` tokens)."""
@@ -1076,7 +1087,11 @@ class Rider:
         mid = self._machine_in(key)
         if mid is None:
             return
-        repliers = sorted({str(r.replier_id.zid) for r in replies if r.replier_id is not None})
+        if len(replies) == 1:  # a command's usual answer: one reply, one replier
+            replier = replies[0].replier_id
+            repliers = [] if replier is None else [str(replier.zid)]
+        else:
+            repliers = sorted({str(r.replier_id.zid) for r in replies if r.replier_id is not None})
         if len(repliers) > 1:
             raise DuplicateMachine(mid, repliers, f"{len(repliers)} sessions replied to {key}")
         if not repliers:
@@ -1143,6 +1158,10 @@ def _direct(callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback
     callback on a thread of its own, so samples of two subscribers (e.g. `status` and `done/*`)
     reach the caller out of the order the machine published them in (~20 % under load)."""
     return zenoh.handlers.Callback(callback, indirect=False)
+
+
+KEY_CACHE = 256
+"""Keys whose machine id a Rider remembers (the same few keys are asked again and again)."""
 
 
 def _zenoh_timeout(reply: zenoh.Reply) -> bool:

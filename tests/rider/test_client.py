@@ -229,6 +229,26 @@ def test_the_pinned_holder_and_its_supervisor_may_answer_and_no_one_else() -> No
     assert known.pinned == "a2" and not known.allows("a")
 
 
+def test_the_machine_a_key_is_under_is_remembered_within_a_bound() -> None:
+    from rider.client import KEY_CACHE
+
+    rider = Rider("m1")  # not opened: the key arithmetic needs no session
+    cases = {
+        "machine/m1/cmd/home": "m1",
+        "machine/other/status": "other",
+        "machine/*/status": None,
+        "machine/$*x/status": None,
+        "site/m1/status": None,
+        "machine": None,
+    }
+    for _ in range(2):  # computed, then remembered: the same answers
+        assert {key: rider._machine_in(key) for key in cases} == cases
+    for i in range(3 * KEY_CACHE):
+        assert rider._machine_in(f"machine/m{i}/status") == f"m{i}"
+        assert len(rider._machine_of) <= KEY_CACHE
+    assert rider._machine_in("machine/*/status") is None
+
+
 def test_subscribe_drops_samples_of_any_session_but_the_machine(machine: Daemon) -> None:
     """A peer that publishes under the machine's keys (with no source, or naming itself) is
     not the machine: a pinned Rider drops its IO samples and still gets the machine's own."""
