@@ -316,10 +316,10 @@ class Rider:
         self.rider_id = ""
         self._attachment = b""
         self._keys: dict[str, zenoh.KeyExpr] = {}
-        self._machine_of: dict[str, str | None] = {}
-        """`_machine_in`'s answers by key (bounded: cleared when it holds `KEY_CACHE` keys)."""
         """Command keys declared to the session (`_declare_key`): a query on a declared key
         expression is routed without matching its string again (BENCHMARKS.md, section 1)."""
+        self._machine_of: dict[str, str | None] = {}
+        """`_machine_in`'s answers by key (bounded: cleared when it holds `KEY_CACHE` keys)."""
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
