@@ -25,6 +25,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from schema.codec import dump_json, pack
 from schema.diag import EventsDiag
@@ -133,34 +134,27 @@ StoredRow = tuple[int, float, int | None, str, str, str]
 
 
 def row_event(row: StoredRow) -> Event:
-    seq, when, cycle, machine_id, kind, details = row
-    return Event.model_validate(
-        {
-            "seq": seq,
-            "time": when,
-            "cycle": cycle,
-            "machine_id": machine_id,
-            "kind": kind,
-            "details": json.loads(details),
-        }
-    )
+    return Event.model_validate(_row_fields(row))
 
 
 def row_payload(row: StoredRow) -> bytes:
     """The msgpack bytes of `row_event(row)` (`encode`'s), made from the stored row without
     building the model: the writer publishes every event it commits, one per command under a
     command stream, and the model's validation and serialisation were most of that work."""
+    return pack(_row_fields(row))
+
+
+def _row_fields(row: StoredRow) -> dict[str, Any]:
+    """A stored row as the `Event`'s fields, in the model's order (its wire order)."""
     seq, when, cycle, machine_id, kind, details = row
-    return pack(
-        {
-            "seq": seq,
-            "time": when,
-            "cycle": cycle,
-            "machine_id": machine_id,
-            "kind": kind,
-            "details": json.loads(details),
-        }
-    )
+    return {
+        "seq": seq,
+        "time": when,
+        "cycle": cycle,
+        "machine_id": machine_id,
+        "kind": kind,
+        "details": json.loads(details),
+    }
 
 
 def _where(q: EventQuery) -> tuple[str, list[object]]:
