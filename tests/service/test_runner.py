@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import random
+from array import array
 from collections.abc import Callable
 
 import pytest
@@ -13,7 +14,7 @@ from schema.diag import TimingStats
 from schema.status import FaultCode, MachineState
 from service.core.loop import PendingCommand
 from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
-from service.core.timing import CycleStats
+from service.core.timing import SORT_CHUNK, CycleStats, percentiles
 from tests.rig import FakeClock, Rig, known_calibration
 
 S = MachineState
@@ -332,6 +333,21 @@ def test_cycle_stats_percentiles_and_window() -> None:
     assert diag.period_s == PERIOD
     assert diag.time == 5.0
     assert CycleStats(PERIOD).diag(0.0).execution.max == 0.0
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 7, 64, SORT_CHUNK])
+def test_percentiles_from_sorted_chunks_are_those_of_one_sort(chunk: int) -> None:
+    """A large window's percentiles are picked from chunks sorted one at a time (no long GIL
+    hold in the `diag` publisher): the same values one full sort gives, with repeats, ties
+    across chunks and every size up to a few chunks."""
+    rng = random.Random(7)
+    qs = (0.0, 0.01, 0.25, 0.5, 0.9, 0.99, 1.0)
+    for n in [*range(1, 40), 129, 500, 2 * SORT_CHUNK + 3]:
+        for spread in (3, 1000):  # many repeats, then few
+            values = array("d", (rng.randrange(spread) * 1e-6 for _ in range(n)))
+            full = sorted(values)
+            want = [full[min(n - 1, max(0, round(q * (n - 1))))] for q in qs]
+            assert percentiles(values, qs, chunk) == want, (n, spread)
 
 
 def test_cycle_stats_keep_the_series_apart_across_wraps_and_resets() -> None:
