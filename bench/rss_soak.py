@@ -3,9 +3,9 @@
 `python -m bench.rss_soak [--minutes 30] [--every 0.2]` runs side by side, for the whole time:
 - a daemon at 10 ms with no Rider (its defaults);
 - a daemon at 10 ms with Rider churn: a Rider connects, reads the status and disconnects,
-  waits `--every` seconds, and again;
-- the same with glibc's default malloc arenas (`MALLOC_ARENA_MAX` = 8 per core): the daemon as
-  it was before it bounded its arenas (service/supervision/malloc.py);
+  waits `--every` seconds, and again; with its malloc arenas capped (`loop.malloc_arenas = 2`,
+  service/supervision/malloc.py);
+- the same with glibc's default malloc arenas (8 per core): the daemon's default;
 - a bare zenoh-python echo under the same churn (a session, a liveliness token, one get): the
   floor of what Zenoh itself keeps per connect.
 RSS (/proc/<pid>/status) and the malloc arenas (from /proc/<pid>/maps) of each process are
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import sys
 import tempfile
 import threading
@@ -41,7 +40,7 @@ from bench.common import (
 )
 from rider.client import RiderError
 from rider.client import zenoh_config as rider_zenoh_config
-from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS
+from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS, TUNABLES_ENV
 from tests.procs import Daemon, free_port, malloc_arenas, start_daemon, write_zenoh_config
 from tests.reliability.support import environ
 
@@ -110,15 +109,17 @@ def churn(proc: Proc, every_s: float, stop: threading.Event) -> None:
 
 
 def start_procs(stack: contextlib.ExitStack, tmp: Path, lifetime_s: float) -> list[Proc]:
-    def daemon(name: str) -> Daemon:
-        d = start_daemon(tmp / name, "m1")
+    def daemon(name: str, config: str = "") -> Daemon:
+        (tmp / name / "machine.toml").write_text(f"[loop]\n{config}")
+        d = start_daemon(tmp / name, "m1", extra=["--config", str(tmp / name / "machine.toml")])
         stack.callback(d.stop)
         return d
 
     for name in ("idle", "churn", "churn-arenas", "echo"):
         (tmp / name).mkdir()
-    idle, churned = daemon("idle"), daemon("churn")
-    with environ({ARENA_ENV: str(8 * (os.cpu_count() or 1))}):  # glibc's own default cap
+    with environ({ARENA_ENV: None, TUNABLES_ENV: None}):  # theirs would win over the config
+        idle = daemon("idle")
+        churned = daemon("churn", f"malloc_arenas = {MALLOC_ARENAS}\n")
         unbounded = daemon("churn-arenas")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     zconf = write_zenoh_config(tmp / "echo")
@@ -138,7 +139,11 @@ def start_procs(stack: contextlib.ExitStack, tmp: Path, lifetime_s: float) -> li
     echo.expect("ready")
     return [
         Proc("daemon, no Rider", idle.proc.pid),
-        Proc("daemon, Rider churn", churned.proc.pid, _rider_churn(churned)),
+        Proc(
+            f"daemon, Rider churn, malloc_arenas = {MALLOC_ARENAS}",
+            churned.proc.pid,
+            _rider_churn(churned),
+        ),
         Proc(
             "daemon, Rider churn, glibc's default arenas",
             unbounded.proc.pid,
@@ -190,8 +195,8 @@ def soak(opts: RssOptions) -> Section:
         f"{opts.minutes:g} min; each churned process: connect, read, disconnect, then"
         f" {opts.every_s:g} s pause; RSS sampled every {sample_every:g} s. Warm-up left out of"
         f" the growth: the first {warmup / 60:.1f} min. Daemons: `machine run --sim` at 10 ms,"
-        f" the defaults (malloc arenas bounded to {MALLOC_ARENAS}, unless the environment sets"
-        f" `{ARENA_ENV}`)."
+        f" the defaults but `loop.malloc_arenas = {MALLOC_ARENAS}` where the row says so (the"
+        f" environment's `{ARENA_ENV}` left out)."
     )
     return section
 

@@ -42,6 +42,10 @@ class LoopSection(_Section):
     watchdog_min_s: float = Field(default=0.02, ge=0.0, le=10.0)
     max_commands_per_cycle: int = Field(default=64, ge=1, le=10_000)
     stats_window: int = Field(default=1000, ge=10, le=100_000)
+    malloc_arenas: int | None = Field(default=None, ge=1, le=1024)
+    """Cap glibc's malloc arenas at start (None: glibc's default, 8 per core). 2 keeps RSS flat
+    under heavy Rider connect churn, but slowed the scan's execution 5-10 % under motion load
+    (BENCHMARKS.md section 5); `MALLOC_ARENA_MAX` in the environment wins."""
 
 
 class RotateSection(_Section):

@@ -39,7 +39,7 @@ from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
 from service.simwing import sim_hal, sim_port
-from service.supervision.malloc import MALLOC_ARENAS, bound_malloc_arenas
+from service.supervision.malloc import bound_malloc_arenas
 
 log = logging.getLogger("machine")
 
@@ -91,7 +91,9 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         log.error("event=supervisor_gone pid=%s", supervisor)
         return EXIT_FAILED
     daemon = Daemon(config, options, supervised=bool(supervisor))
-    daemon.malloc_bounded = bound_malloc_arenas()  # before Zenoh's threads start
+    arenas = config.loop.malloc_arenas
+    if arenas is not None and bound_malloc_arenas(arenas):  # before Zenoh's threads start
+        daemon.malloc_arenas = arenas
     return daemon.run()
 
 
@@ -126,8 +128,9 @@ class Daemon:
         self.exit_deadline: threading.Timer | None = None
         self._stop_asked = False
         self._stop_recorded = False
-        self.malloc_bounded = False
-        """`run_daemon` capped glibc's malloc arenas (reported in the start line's tuning)."""
+        self.malloc_arenas: int | None = None
+        """The cap `run_daemon` put on glibc's malloc arenas (`loop.malloc_arenas`), reported in
+        the start line's tuning; None: glibc's own."""
 
     def run(self) -> int:
         """Set up, serve until stopped, undo; the exit code (the `EXIT_*` constants)."""
@@ -306,8 +309,8 @@ class Daemon:
         self.served = True
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
         applied.append(switch_interval(config.loop.switch_interval_s))
-        if self.malloc_bounded:
-            applied.append(f"malloc_arenas={MALLOC_ARENAS}")
+        if self.malloc_arenas is not None:
+            applied.append(f"malloc_arenas={self.malloc_arenas}")
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
             config.machine.id,

@@ -1,11 +1,15 @@
-"""glibc's malloc arenas, bounded, so a long-running daemon's memory stays flat.
+"""glibc's malloc arenas, bounded on request (`loop.malloc_arenas`), so a daemon's memory
+stays flat under heavy Rider connect churn.
 
 glibc gives each thread that allocates its own arena, up to 8 per core. Zenoh's runtime and
 the daemon's threads then spread the short-lived allocations of every Rider that connects
 (the routes and declarations exchanged with a new peer) over many arenas, and the freed space
 stays resident in each: RSS grew ~0.5 KiB per Rider connect after the first minutes, the
 arenas' free space rising while the memory in use stayed flat (BENCHMARKS.md section 5). With
-two arenas the same churn leaves RSS flat within the noise, at no measured cost in round trip.
+two arenas the same churn leaves RSS flat within the noise, at no measured cost in round trip,
+but the scan's execution under motion load (publications every cycle from the scan thread,
+Zenoh's threads allocating beside it) took 5-10 % longer at the median in six alternated
+pairs: so it is an option, off by default.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import os
 import platform
 
 MALLOC_ARENAS = 2
-"""The arenas a daemon process allocates from: the main one and one shared by its threads."""
+"""The cap that keeps RSS flat under churn: the main arena and one shared by every thread."""
 M_ARENA_MAX = -8
 """`mallopt` parameter number, from glibc's <malloc.h>."""
 ARENA_ENV = "MALLOC_ARENA_MAX"

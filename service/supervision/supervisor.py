@@ -48,7 +48,7 @@ from service.config.validate import finding_line
 from service.core.runner import SUPERVISOR_PID_ENV
 from service.simwing import World, sim_world
 from service.supervision.daemon import DaemonOptions, StartRefused
-from service.supervision.malloc import MALLOC_ARENAS, bound_malloc_arenas
+from service.supervision.malloc import bound_malloc_arenas
 
 log = logging.getLogger("machine.supervisor")
 
@@ -425,8 +425,9 @@ class Supervisor:
 
 def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: SupervisorOptions) -> int:
     """`machine supervise`: returns the process exit code."""
-    if bound_malloc_arenas():  # before its Zenoh session's threads start
-        log.info("event=malloc_arenas limit=%d", MALLOC_ARENAS)
+    arenas = config.loop.malloc_arenas
+    if arenas is not None and bound_malloc_arenas(arenas):  # before its Zenoh threads start
+        log.info("event=malloc_arenas limit=%d", arenas)
     return Supervisor(config, zenoh, options).run()
 
 

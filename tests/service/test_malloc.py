@@ -1,5 +1,6 @@
-"""The daemon's glibc malloc arenas stay bounded however many threads allocate (its RSS under
-Rider churn depends on it: BENCHMARKS.md section 5). Counted from outside, in /proc."""
+"""`loop.malloc_arenas`: a daemon's glibc malloc arenas stay bounded however many threads
+allocate (its RSS under Rider churn depends on it: BENCHMARKS.md section 5). Counted from
+outside, in /proc."""
 
 from __future__ import annotations
 
@@ -78,14 +79,23 @@ def test_the_environments_arena_cap_wins() -> None:
 
 @glibc_only
 @pytest.mark.integration
-def test_daemon_serving_riders_keeps_its_arenas_bounded(tmp_path: Path) -> None:
+@pytest.mark.parametrize("cap", [MALLOC_ARENAS, None])
+def test_a_daemon_caps_its_arenas_when_configured_to(tmp_path: Path, cap: int | None) -> None:
+    """`loop.malloc_arenas = 2`: a daemon serving Riders allocates from 2 arenas and says so in
+    its start line; by default glibc's own cap holds (more arenas, nothing said)."""
     clean = {k: os.environ.pop(k) for k in (ARENA_ENV, TUNABLES_ENV) if k in os.environ}
+    config = tmp_path / "machine.toml"
+    config.write_text("[loop]\n" + (f"malloc_arenas = {cap}\n" if cap else ""))
     try:
-        with running_daemon(tmp_path) as daemon:
+        with running_daemon(tmp_path, extra=["--config", str(config)]) as daemon:
             for _ in range(3):  # Zenoh's threads and the callbacks' run for each Rider
                 with daemon.rider(timeout=5.0) as rider:
                     rider.status()
-            assert malloc_arenas(daemon.proc.pid) <= MALLOC_ARENAS
-            assert daemon.has_logged(f"malloc_arenas={MALLOC_ARENAS}")
+            arenas = malloc_arenas(daemon.proc.pid)
+            logged = daemon.has_logged(f"malloc_arenas={MALLOC_ARENAS}")
+            if cap:
+                assert arenas <= cap and logged
+            else:
+                assert arenas > MALLOC_ARENAS and not logged
     finally:
         os.environ.update(clean)
