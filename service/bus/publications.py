@@ -131,11 +131,11 @@ class Publications:
                 encode(record), source_info=self._source()
             )
 
-    def _put(self, key: str, record: Any, **options: Any) -> None:
+    def _put(self, key: str, payload: bytes, **options: Any) -> None:
         """A one-off publication on `key` (no declared publisher: keys vary)."""
         self.session.put(
             key,
-            encode(record),
+            payload,
             encoding=MSGPACK,
             congestion_control=zenoh.CongestionControl.DROP,
             source_info=self._source(),
@@ -145,12 +145,14 @@ class Publications:
     def publish_completion(self, notice: Completion) -> None:
         """A motion ended: its notice on `done/<transaction_id>` (scan thread, after the status)."""
         self._put(
-            f"{self.base}/done/{notice.transaction_id}", notice, priority=zenoh.Priority.DATA_HIGH
+            f"{self.base}/done/{notice.transaction_id}",
+            encode(notice),
+            priority=zenoh.Priority.DATA_HIGH,
         )
 
     def publish_calibration(self, record: CalibrationRecord) -> None:
         """The calibration changed (measured, entered by hand, or at start-up): scan thread."""
-        self._put(f"{self.base}/calibration", record)
+        self._put(f"{self.base}/calibration", encode(record))
 
     def publish_watchdog_trip(self, stalled_s: float) -> None:
         """From the watchdog thread: tell everyone at once, the scan thread may be stuck."""
@@ -191,10 +193,4 @@ class Publications:
         if self._stop.is_set():
             return
         for row in rows:
-            self.session.put(
-                f"{self.base}/events/{row[0]}",
-                row_payload(row),
-                encoding=MSGPACK,
-                congestion_control=zenoh.CongestionControl.DROP,
-                source_info=self._source(),
-            )
+            self._put(f"{self.base}/events/{row[0]}", row_payload(row))
