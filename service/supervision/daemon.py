@@ -91,9 +91,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         log.error("event=supervisor_gone pid=%s", supervisor)
         return EXIT_FAILED
     daemon = Daemon(config, options, supervised=bool(supervisor))
-    arenas = config.loop.malloc_arenas
-    if arenas is not None and bound_malloc_arenas(arenas):  # before Zenoh's threads start
-        daemon.malloc_arenas = arenas
+    if bound_malloc_arenas(config.loop.malloc_arenas):  # before Zenoh's threads start
+        daemon.malloc_arenas = config.loop.malloc_arenas
     return daemon.run()
 
 

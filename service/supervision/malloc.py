@@ -26,14 +26,17 @@ ARENA_ENV = "MALLOC_ARENA_MAX"
 TUNABLES_ENV = "GLIBC_TUNABLES"
 
 
-def bound_malloc_arenas(limit: int = MALLOC_ARENAS) -> bool:
-    """Cap this process's glibc malloc arenas at `limit`; whether it was applied.
+def bound_malloc_arenas(limit: int | None = MALLOC_ARENAS) -> bool:
+    """Cap this process's glibc malloc arenas at `limit` (None: leave glibc's, the
+    `loop.malloc_arenas` default); whether a cap was applied.
 
     Call it before the process starts its threads (each takes an arena on its first
     allocation, up to the cap). Not applied on another C library, nor when the environment
     already sets the cap (`MALLOC_ARENA_MAX`, or `arena_max` in `GLIBC_TUNABLES`): glibc has
     applied that one at start-up, and the operator's choice wins.
     """
+    if limit is None:
+        return False
     if os.environ.get(ARENA_ENV) or "arena_max" in os.environ.get(TUNABLES_ENV, ""):
         return False
     if platform.libc_ver()[0] != "glibc":

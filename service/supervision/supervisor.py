@@ -425,9 +425,8 @@ class Supervisor:
 
 def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: SupervisorOptions) -> int:
     """`machine supervise`: returns the process exit code."""
-    arenas = config.loop.malloc_arenas
-    if arenas is not None and bound_malloc_arenas(arenas):  # before its Zenoh threads start
-        log.info("event=malloc_arenas limit=%d", arenas)
+    if bound_malloc_arenas(config.loop.malloc_arenas):  # before its Zenoh threads start
+        log.info("event=malloc_arenas limit=%d", config.loop.malloc_arenas)
     return Supervisor(config, zenoh, options).run()
 
 
