@@ -39,6 +39,7 @@ from schema.events import (
     StorageEvent,
 )
 from service.config.model import EventsSection
+from service.core.events import Held
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,10 @@ counts as failed: short, so a locked file can never hold up start-up or the shut
 
 COALESCE_S = 0.02
 """How long the writer gathers events after the first one before writing them in one batch."""
+
+DEFER_MAX = 1024
+"""Commands' held records (`defer`) queued at most: they are objects the garbage collector
+scans, where a queued event is text; beyond this (a stalled disk) the scan thread makes them."""
 
 
 class ForeignDatabase(sqlite3.DatabaseError):
@@ -254,7 +259,9 @@ class EventLog:
         self.settings = settings
         self.wall = wall
         self.capacity = settings.queue_capacity
-        self._items: deque[_Row] = deque()
+        self._items: deque[_Row | Held] = deque()
+        self._deferred = 0
+        """`Held` records among `_items`."""
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._hurry = threading.Event()
@@ -354,6 +361,25 @@ class EventLog:
         if not self._wake.is_set():  # set() takes a Condition's lock: once per batch is enough
             self._wake.set()
 
+    def defer(self, held: Held) -> bool:
+        """Queue a command's held record, made (events and log line) on the writer thread in
+        its place among the events: a command stream's events are made off both the command's
+        and the scan thread's path. False (made by the caller, its events queued or counted as
+        dropped as any) before the writer runs, once it stops, or with the queue full."""
+        with self._lock:
+            if (
+                self._writer is None
+                or self._stopping
+                or len(self._items) >= self.capacity
+                or self._deferred >= DEFER_MAX
+            ):
+                return False
+            self._items.append(held)
+            self._deferred += 1
+        if not self._wake.is_set():
+            self._wake.set()
+        return True
+
     def emit_now(self, details: KnownDetails) -> None:
         """An event from outside the scan loop, stamped with the wall clock."""
         self.emit(details, self.wall(), None)
@@ -377,13 +403,36 @@ class EventLog:
     _busy = False
 
     def _take(self) -> list[_Row]:
+        """The next batch, held records made into its events in their place."""
         with self._lock:
             n = min(len(self._items), self.settings.batch_max)
             batch = [self._items.popleft() for _ in range(n)]
             self._busy = bool(batch) or self.dropped > self._dropped_recorded
             if not self._items:
                 self._wake.clear()
-            return batch
+            held = sum(isinstance(item, Held) for item in batch) if self._deferred else 0
+            self._deferred -= held
+        if not held:
+            return batch  # type: ignore[return-value]  # events only
+        rows: list[_Row] = []
+        for item in batch:
+            if isinstance(item, Held):
+                self._make(item, rows)
+            else:
+                rows.append(item)
+        return rows
+
+    def _make(self, held: Held, rows: list[_Row]) -> None:
+        """A held record's events into `rows` (and its log line written)."""
+
+        def add(details: KnownDetails, time: float, cycle: int | None) -> None:
+            rows.append((details.kind, dump_json(details), time, cycle))
+
+        try:
+            held.write(add)
+        except Exception as exc:  # one bad record must not stop the writer
+            self.lost += 1
+            log.error("event=events_make_failed error=%r", str(exc), exc_info=exc)
 
     def _run(self) -> None:
         while True:

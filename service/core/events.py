@@ -42,12 +42,20 @@ class EventSink(Protocol):
 
     def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None: ...
 
+    def defer(self, held: Held) -> bool:
+        """Take a command's held record to make on a thread of the sink's own, in its place
+        among the events; False: the caller makes it now (`held.write(sink.emit)`)."""
+        ...
+
 
 class NullEventSink:
     """Records nothing."""
 
     def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None:
         pass
+
+    def defer(self, held: Held) -> bool:
+        return False
 
 
 @dataclass
@@ -58,6 +66,9 @@ class ListEventSink:
 
     def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None:
         self.events.append((details, time, cycle))
+
+    def defer(self, held: Held) -> bool:
+        return False
 
 
 @dataclass
@@ -73,10 +84,29 @@ Lazy = KnownDetails | Callable[[], KnownDetails]
 """An event, or what makes it when it is written (a command's own event: off its reply's path)."""
 Emit = Callable[[Lazy], None]
 
+
+@dataclass(slots=True, eq=False)
+class Held:
+    """A command's events, compared when it ran, and its log line (`then`), made later."""
+
+    rows: list[Lazy]
+    wall: float
+    cycle: int
+    then: Callable[[], None] | None
+
+    def write(self, emit: Callable[[KnownDetails, float, int | None], None]) -> None:
+        """Make the events and hand each to `emit`, then write the log line."""
+        for row in self.rows:
+            emit(row() if callable(row) else row, self.wall, self.cycle)
+        if self.then is not None:
+            self.then()
+
+
 HOLD_PER_MS = 1
 """Commands whose events a cycle hands over, per millisecond of its period (10 at 10 ms, 1 at
 1 ms): a command beyond that hands over the oldest one held itself, on its own thread, so a
-command storm does not lengthen the scan cycle (bench.throughput, section 8)."""
+command storm does not lengthen the scan cycle (bench.throughput, section 8). Handing over to the
+event log only queues the record (`EventLog.defer`): its writer makes it."""
 
 
 def hold_limit(period_s: float) -> int:
@@ -102,7 +132,7 @@ class EventRecorder:
         self._session: _Session | None = None
         self._storage_version = 0
         self._storage_seen: set[str] = set()
-        self._held: deque[Callable[[], None]] = deque()
+        self._held: deque[Held] = deque()
         self.hold_limit = hold_limit(0.010)
         """Commands held for the next cycle at most (the loop sets it from its period)."""
 
@@ -140,11 +170,12 @@ class EventRecorder:
             )
 
         rows: list[Lazy] = []
-        self._compare(control, now + self.wall_offset, rows.append, cause)
+        wall = now + self.wall_offset
+        self._compare(control, wall, rows.append, cause)
         held = self._held
         if len(held) >= self.hold_limit:
-            held.popleft()()  # the oldest first: the order stays
-        held.append(self._writer(rows, self._emitter(now + self.wall_offset), then))
+            self._hand_over(held.popleft())  # the oldest first: the order stays
+        held.append(Held(rows, wall, self.cycle, then))
 
     @property
     def holding(self) -> bool:
@@ -155,19 +186,13 @@ class EventRecorder:
         the outputs are written; any later event, a history read and the shutdown do it first."""
         held = self._held
         while held:
-            held.popleft()()
+            self._hand_over(held.popleft())
 
-    @staticmethod
-    def _writer(
-        rows: list[Lazy], emit: Emit, then: Callable[[], None] | None
-    ) -> Callable[[], None]:
-        def write() -> None:
-            for row in rows:
-                emit(row)
-            if then is not None:
-                then()
-
-        return write
+    def _hand_over(self, held: Held) -> None:
+        """To the sink, which makes it on its own thread (the event log's writer), or made
+        here when it will not take it."""
+        if not self.sink.defer(held):
+            held.write(self.sink.emit)
 
     def emit(self, details: KnownDetails, now: float) -> None:
         """One event from the scan loop itself (after what is held)."""

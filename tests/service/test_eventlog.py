@@ -26,6 +26,7 @@ from schema.events import (
     StorageEvent,
     WatchdogEvent,
 )
+from service.adapters import eventlog
 from service.adapters.eventlog import (
     BUSY_TIMEOUT_S,
     EVENTS_FILE,
@@ -38,6 +39,7 @@ from service.adapters.eventlog import (
     row_payload,
 )
 from service.config.model import EventsSection
+from service.core.events import Held
 from tests.schema.event_samples import DETAILS
 
 T0 = time.time()
@@ -128,6 +130,78 @@ def test_kind_filter(log: EventLog) -> None:
     assert [e.seq for e in page(log, kinds=("watchdog_trip",)).events] == [1, 3]
     with connect(log.path) as conn:
         assert len(list(iter_events(conn, EventQuery(kinds=("daemon_stop",)), chunk=1))) == 1
+
+
+def test_a_held_record_is_made_on_the_writer_in_its_place_among_the_events(log: EventLog) -> None:
+    """A command's held record (`defer`) becomes its events, with its own time and cycle,
+    between the events queued before and after it, and its log line is written by the writer."""
+    threads: list[str] = []
+    made: list[str] = []
+
+    def command_event() -> KnownDetails:
+        made.append(threading.current_thread().name)
+        return DETAILS[0]
+
+    log.emit(WatchdogEvent(stalled_s=0.1), T0, 1)
+    held = Held([command_event, DETAILS[1]], T0 + 1, 2, lambda: threads.append("then"))
+    assert log.defer(held)
+    log.emit(WatchdogEvent(stalled_s=0.3), T0 + 2, 3)
+    assert log.flush()
+    events = page(log).events
+    assert [e.details for e in events] == [
+        WatchdogEvent(stalled_s=0.1),
+        DETAILS[0],
+        DETAILS[1],
+        WatchdogEvent(stalled_s=0.3),
+    ]
+    assert [(e.time, e.cycle) for e in events[1:3]] == [(T0 + 1, 2), (T0 + 1, 2)]
+    assert made == ["eventlog"] and threads == ["then"]
+    assert log.queued == 0
+
+
+def test_defer_is_refused_before_start_after_close_and_past_its_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Refused, the caller makes the record itself (`held.write(log.emit)`); nothing is lost
+    and the order stays."""
+    monkeypatch.setattr(eventlog, "DEFER_MAX", 2)
+    log = EventLog(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    assert not log.defer(Held([], T0, 0, None))  # no writer yet
+    log.start()
+    stuck, go = threading.Event(), threading.Event()
+
+    def hold_the_writer() -> None:
+        stuck.set()
+        go.wait(5.0)
+
+    try:
+        assert log.defer(Held([WatchdogEvent(stalled_s=0.0)], T0, 0, hold_the_writer))
+        assert stuck.wait(5.0)  # the writer is making it: the next ones wait in the queue
+        records = [Held([WatchdogEvent(stalled_s=float(i))], T0 + i, i, None) for i in (1, 2, 3)]
+        taken = [log.defer(h) for h in records]
+        assert taken == [True, True, False]
+        records[2].write(log.emit)  # what the recorder does with a refused one
+        go.set()
+        assert log.flush()
+        stalls = [e.details.stalled_s for e in page(log).events]  # type: ignore[union-attr]
+        assert stalls == [0.0, 1.0, 2.0, 3.0]
+    finally:
+        go.set()
+        log.close()
+    assert not log.defer(Held([], T0, 0, None))  # stopped
+
+
+def test_a_held_record_that_cannot_be_made_is_counted_lost_and_the_writer_goes_on(
+    log: EventLog,
+) -> None:
+    def broken() -> KnownDetails:
+        raise RuntimeError("bug")
+
+    assert log.defer(Held([broken], T0, 1, None))
+    log.emit(WatchdogEvent(stalled_s=0.5), T0 + 1, 2)
+    assert log.flush()
+    assert [e.details for e in page(log).events] == [WatchdogEvent(stalled_s=0.5)]
+    assert log.lost == 1
 
 
 def test_a_full_queue_drops_without_waiting_and_records_the_count_later(tmp_path: Path) -> None:
