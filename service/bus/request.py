@@ -30,12 +30,17 @@ class Host(Protocol):
     def state(self) -> MachineState | None: ...
 
 
-def reply_format(query: zenoh.Query, payload: bytes | None = None) -> Format:
+def encoding_of(query: zenoh.Query) -> str | None:
+    """The query's encoding as text (read once per query: each read crosses into Zenoh)."""
+    encoding = query.encoding
+    return str(encoding) if encoding is not None else None
+
+
+def reply_format(query: zenoh.Query, encoding: str | None, payload: bytes | None = None) -> Format:
     """JSON when asked (`?format=json`, a JSON encoding, or JSON text sent); msgpack otherwise."""
     fmt = query.parameters.get("format")
     if fmt is not None:
         return Format.JSON if fmt.lower() == "json" else Format.MSGPACK
-    encoding = str(query.encoding) if query.encoding is not None else None
     if payload:
         return sniff_format(payload, encoding)
     return Format.JSON if encoding and encoding.startswith(Format.JSON) else Format.MSGPACK
@@ -61,6 +66,8 @@ class Request:
     query: zenoh.Query
     key: str
     payload: bytes
+    encoding: str | None
+    """The query's encoding, as text (`encoding_of`)."""
     fmt: Format
     host: Host
     command: str | None = None
@@ -74,11 +81,6 @@ class Request:
         """The key has a wildcard: it may reach many keys (and many machines)."""
         key = self.key
         return "*" in key or "$" in key
-
-    @property
-    def encoding(self) -> str | None:
-        encoding = self.query.encoding
-        return str(encoding) if encoding is not None else None
 
     def raw(self) -> Any:
         """The payload as plain data (None when empty); `Rejected` when it cannot be read."""

@@ -14,7 +14,7 @@ from typing import Any
 
 import zenoh
 
-from service.bus.request import Host, Request, reply_format
+from service.bus.request import Host, Request, encoding_of, reply_format
 from service.errors import BadKey, MachineError
 
 Handler = Callable[[Request], None]
@@ -71,9 +71,9 @@ def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
     """Answer one query on `route`: exactly one reply, or a refusal, or (a covered read) none."""
     key = str(query.key_expr)
     payload = query.payload.to_bytes() if query.payload is not None else b""
-    request = Request(
-        query, key, payload, reply_format(query, payload if route.sniff else None), host
-    )
+    encoding = encoding_of(query)
+    fmt = reply_format(query, encoding, payload if route.sniff else None)
+    request = Request(query, key, payload, encoding, fmt, host)
     try:
         rule = route.wildcard
         if rule is not Wildcard.READ and request.wild:
