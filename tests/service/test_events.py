@@ -22,7 +22,7 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import MachineState
-from service.core.events import ListEventSink, hold_limit
+from service.core.events import Held, ListEventSink, hold_limit
 from service.core.persist import StorageHealth
 from tests.rig import Rig, known_calibration
 
@@ -310,6 +310,46 @@ def test_a_command_storm_between_cycles_leaves_the_cycle_a_bounded_share() -> No
     rig.step()
     assert [d.transaction_id for d in details(sink, mark)] == [f"c{i}" for i in range(15)]
     assert hold_limit(0.001) == 1 and hold_limit(0.05) == 50
+
+
+class DeferringSink(ListEventSink):
+    """Takes held records as the event log does (`EventLog.defer`), to make them later."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.deferred: list[Held] = []
+
+    def defer(self, held: Held) -> bool:
+        self.deferred.append(held)
+        return True
+
+
+def test_a_sink_that_defers_gets_the_held_records_unmade_and_in_order(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """With the event log, the cycle (or a command past the cycle's share) only passes the
+    record on: no event is made and no log line written on the scan or the command thread;
+    made later, they are the events and the line the command's state gave, in order."""
+    sink = DeferringSink()
+    rig = Rig(calibration=known_calibration(), events=sink)
+    rig.home()
+    caplog.set_level(logging.INFO, logger="machine")
+    caplog.clear()
+    made, passed = len(sink.events), len(sink.deferred)
+    between_cycles(rig, Command.CHECK_HOME, "first")
+    between_cycles(rig, Command.START, "second")
+    rig.step()
+    assert len(sink.events) == made  # nothing made on this thread
+    assert "event=command" not in caplog.text
+    assert len(sink.deferred) == passed + 2
+    for held in sink.deferred[passed:]:
+        held.write(sink.emit)
+    assert kinds(sink, made)[:4] == ["command", "command", "state", "session_started"]
+    assert [getattr(d, "transaction_id", None) for d in details(sink, made)][:2] == [
+        "first",
+        "second",
+    ]
+    assert "event=command tx=first" in caplog.text and "event=command tx=second" in caplog.text
 
 
 def test_a_history_read_hands_over_held_records_unless_the_loop_is_stalled() -> None:
