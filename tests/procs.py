@@ -235,6 +235,18 @@ def running_daemon(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Itera
         daemon.stop()
 
 
+def thread_cpus(pid: int) -> dict[int, tuple[int, ...]]:
+    """The CPUs each thread of a process may run on, by thread id (threads that end while
+    being read are left out)."""
+    cpus: dict[int, tuple[int, ...]] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            cpus[int(tid)] = tuple(sorted(os.sched_getaffinity(int(tid))))
+        except ProcessLookupError:
+            continue
+    return cpus
+
+
 GLIBC_HEAP_BYTES = 64 << 20
 """glibc reserves each thread arena's heap as one block of this size, aligned to it (64-bit)."""
 

@@ -37,6 +37,11 @@ class LoopSection(_Section):
     """How long another Python thread (a command's callback under a storm) may keep the GIL
     once the scan thread wants it (`sys.setswitchinterval`; Python's default is 5 ms)."""
     cpu: int | None = Field(default=None, ge=0)
+    cpus: list[Annotated[int, Field(ge=0)]] | None = Field(default=None, min_length=1)
+    """Pin the whole daemon (every thread: Zenoh's, the command callbacks, the event and log
+    writers, the scan) to these CPUs, from its start; `cpu` then pins the scan thread alone.
+    One core for the daemon kept its threads' code and data in that core's caches: a command's
+    round trip −25..−40 µs on two cores (BENCHMARKS.md section 1)."""
     rt_priority: int | None = Field(default=None, ge=1, le=99)
     watchdog_periods: int = Field(default=3, ge=2, le=1000)
     watchdog_min_s: float = Field(default=0.02, ge=0.0, le=10.0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import gc
 import logging
@@ -134,6 +135,31 @@ class RealtimeRunner:
                 )
         if consecutive >= MAX_CONSECUTIVE_ERRORS:
             raise LoopFailed(f"scan loop failed {consecutive} cycles in a row: {exc!r}") from exc
+
+
+def pin_process(cpus: list[int]) -> str | None:
+    """Every thread of the process on `cpus` (threads started later inherit it from the one
+    that starts them); what was applied, or None (refused: logged, and every thread left on
+    the CPUs it had)."""
+    before = os.sched_getaffinity(0)
+    try:
+        _pin_threads(set(cpus))
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            _pin_threads(before)
+        log.warning("event=affinity_failed cpus=%s error=%r", _cpu_list(cpus), exc.strerror)
+        return None
+    return f"cpus={_cpu_list(cpus)}"
+
+
+def _pin_threads(cpus: set[int]) -> None:
+    for tid in os.listdir("/proc/self/task"):
+        with contextlib.suppress(ProcessLookupError):  # a thread that has just ended
+            os.sched_setaffinity(int(tid), cpus)
+
+
+def _cpu_list(cpus: list[int]) -> str:
+    return "+".join(str(c) for c in sorted(set(cpus)))
 
 
 def tune_thread(

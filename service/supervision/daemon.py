@@ -32,6 +32,7 @@ from service.core.runner import (
     LoopFailed,
     RealtimeRunner,
     die_with_parent,
+    pin_process,
     switch_interval,
     tune_thread,
 )
@@ -93,6 +94,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     daemon = Daemon(config, options, supervised=bool(supervisor))
     if bound_malloc_arenas(config.loop.malloc_arenas):  # before Zenoh's threads start
         daemon.malloc_arenas = config.loop.malloc_arenas
+    if config.loop.cpus is not None:  # before Zenoh's threads start: they inherit it
+        daemon.pinned = pin_process(config.loop.cpus)
     return daemon.run()
 
 
@@ -127,6 +130,8 @@ class Daemon:
         self.exit_deadline: threading.Timer | None = None
         self._stop_asked = False
         self._stop_recorded = False
+        self.pinned: str | None = None
+        """The CPUs `run_daemon` pinned the process to (`loop.cpus`), for the start line."""
         self.malloc_arenas: int | None = None
         """The cap `run_daemon` put on glibc's malloc arenas (`loop.malloc_arenas`), reported in
         the start line's tuning; None: glibc's own."""
@@ -310,6 +315,8 @@ class Daemon:
         applied.append(switch_interval(config.loop.switch_interval_s))
         if self.malloc_arenas is not None:
             applied.append(f"malloc_arenas={self.malloc_arenas}")
+        if self.pinned is not None:
+            applied.append(self.pinned)
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
             config.machine.id,
