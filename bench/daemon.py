@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -26,6 +27,8 @@ class Tuning:
     gc_freeze: bool = True
     cpu: int | None = None
     rt_priority: int | None = None
+    cpus: tuple[int, ...] | None = None
+    """`loop.cpus`: the whole daemon pinned."""
 
     def label(self) -> str:
         parts = []
@@ -35,9 +38,18 @@ class Tuning:
             parts.append("no gc_freeze")
         if self.cpu is not None:
             parts.append(f"pinned cpu {self.cpu}")
+        if self.cpus is not None:
+            parts.append(f"daemon on cpus {'+'.join(map(str, self.cpus))}")
         if self.rt_priority is not None:
             parts.append(f"SCHED_FIFO {self.rt_priority}")
         return ", ".join(parts) or "defaults"
+
+
+def pinnable_cpu() -> int | None:
+    """A CPU to pin a whole process to (`loop.cpus`): the last one this process may use, or
+    None with a single CPU (pinning would change nothing)."""
+    cpus = os.sched_getaffinity(0)
+    return max(cpus) if len(cpus) > 1 else None
 
 
 def config_toml(
@@ -58,6 +70,8 @@ def config_toml(
         lines.append(f"cpu = {tuning.cpu}")
     if tuning.rt_priority is not None:
         lines.append(f"rt_priority = {tuning.rt_priority}")
+    if tuning.cpus is not None:
+        lines.append(f"cpus = {list(tuning.cpus)}")
     if watchdog_periods is not None:
         lines.append(f"watchdog_periods = {watchdog_periods}")
     if heartbeat_s is not None:

@@ -31,7 +31,7 @@ from bench.common import (
     python_module,
     share,
 )
-from bench.daemon import bench_daemon
+from bench.daemon import Tuning, bench_daemon, pinnable_cpu
 from rider.client import zenoh_config as rider_zenoh_config
 from schema.codec import Format, decode
 from schema.commands import Reply
@@ -41,6 +41,8 @@ PERIOD_S = 0.010
 RIDER = "daemon: Rider.check_home()"
 RAW = "daemon: raw zenoh get"
 RAW_BARE = "daemon without event history: raw zenoh get"
+RAW_PINNED = "daemon on one CPU (loop.cpus): raw zenoh get"
+ECHO_PINNED = "bare zenoh echo on the same CPU"
 ECHO = "bare zenoh echo queryable"
 ECHO_DIRECT = "bare zenoh echo, direct callback"
 ECHO_HANDOFF = "zenoh echo via a woken thread"
@@ -75,6 +77,27 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         zconf = daemon.zenoh_config
         # The same daemon with `[events] enabled = false`: what the history costs a command.
         bare = stack.enter_context(bench_daemon(PERIOD_S, events=False, machine_id="m2"))
+        # `loop.cpus`: the whole daemon on one CPU, against an echo pinned to it alike.
+        pin = pinnable_cpu()
+        if pin is not None:
+            pinned = stack.enter_context(
+                bench_daemon(PERIOD_S, Tuning(cpus=(pin,)), machine_id="m3")
+            )
+            pinned_echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
+            pinned_echo = Child(
+                python_module(
+                    "bench.baselines.zenoh_echo",
+                    "--listen",
+                    pinned_echo_endpoint,
+                    "--zenoh-config",
+                    zconf,
+                    "--cpus",
+                    str(pin),
+                ),
+                tmp / "zenoh-echo-pinned.log",
+            )
+            stack.callback(pinned_echo.stop)
+            pinned_echo.expect("ready")
 
         echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
         echo = Child(
@@ -111,21 +134,33 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         bare_session = stack.enter_context(
             zenoh.open(rider_zenoh_config(bare.zenoh_config, connect=[bare.endpoint]))
         )
+        checked = [(rider.session, cmd_key := f"{rider.base}/cmd/check/home")]
+        checked.append((bare_session, bare_key := "machine/m2/cmd/check/home"))
+        if pin is not None:
+            pinned_session = stack.enter_context(
+                zenoh.open(
+                    rider_zenoh_config(zconf, connect=[pinned.endpoint, pinned_echo_endpoint])
+                )
+            )
+            checked.append((pinned_session, pinned_key := "machine/m3/cmd/check/home"))
         ids = itertools.count()
-        cmd_key = f"{rider.base}/cmd/check/home"
-        bare_key = "machine/m2/cmd/check/home"
         echo_payload = _request("echo-000000")
         calls[RIDER] = rider.check_home
         calls[RAW] = lambda: _get_one(rider.session, cmd_key, _request(f"raw-{next(ids)}"))
         calls[RAW_BARE] = lambda: _get_one(bare_session, bare_key, _request(f"bare-{next(ids)}"))
         calls[ECHO] = lambda: _get_one(echo_session, "bench/echo", echo_payload)
+        if pin is not None:
+            calls[RAW_PINNED] = lambda: _get_one(
+                pinned_session, pinned_key, _request(f"pin-{next(ids)}")
+            )
+            calls[ECHO_PINNED] = lambda: _get_one(pinned_session, "bench/echo", echo_payload)
         calls[ECHO_DIRECT] = lambda: _get_one(echo_session, "bench/echo-direct", echo_payload)
         calls[ECHO_HANDOFF] = lambda: _get_one(echo_session, "bench/echo-handoff", echo_payload)
         if not grpc_missing:
             calls[GRPC] = lambda: grpc_client.call(echo_payload)
         calls[UDP] = lambda: udp_client.call(echo_payload)
 
-        for session, key in ((rider.session, cmd_key), (bare_session, bare_key)):
+        for session, key in checked:
             first = decode(Reply, _get_one(session, key, _request("check")), Format.MSGPACK)
             if not first.success:
                 raise RuntimeError(f"{key} refused: {first.error}")
@@ -166,6 +201,14 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         " event, made, written to SQLite and published by threads of the daemon beside the"
         " next commands."
     )
+    if RAW_PINNED in dists:
+        section.notes.append(
+            f"`{RAW_PINNED}`: a third daemon with `[loop] cpus = [{pin}]` (every thread on CPU"
+            f" {pin}), against the same echo pinned to CPU {pin} (`{ECHO_PINNED}`):"
+            f" {dists[RAW_PINNED].p50 / dists[ECHO_PINNED].p50:.2f}× it at the median."
+        )
+    else:
+        section.notes.append("One CPU only: no `loop.cpus` rows.")
     client = dists[RIDER].p50 - dists[RAW].p50
     section.notes.append(
         f"The Rider API adds {ms(client)} ms at the median to the raw get: the client's own"
@@ -188,6 +231,13 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         ratio = dists[name].p50 / echo_p50
         section.targets.append(
             Target.at_most(f"{name} p50 ÷ zenoh echo p50", ratio, goal, lambda x: f"{x:.2f}×")
+        )
+    if RAW_PINNED in dists:
+        ratio = dists[RAW_PINNED].p50 / dists[ECHO_PINNED].p50
+        section.targets.append(
+            Target.at_most(
+                f"{RAW_PINNED} p50 ÷ {ECHO_PINNED} p50", ratio, RAW_GOAL, lambda x: f"{x:.2f}×"
+            )
         )
     if GRPC in dists:
         grpc_p50 = dists[GRPC].p50

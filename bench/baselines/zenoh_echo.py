@@ -18,6 +18,7 @@ import zenoh
 
 from bench.baselines.lifetime import stop_event
 from service.bus import zenoh_config
+from service.core.runner import pin_process
 
 KEY = "bench/echo"
 DIRECT_KEY = "bench/echo-direct"
@@ -58,7 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--listen", required=True, help="e.g. tcp/127.0.0.1:7450")
     parser.add_argument("--zenoh-config", type=Path, required=True, help="the daemon's zenoh.json5")
     parser.add_argument("--lifetime", type=float, default=600.0, help="exit after this many s")
+    parser.add_argument(
+        "--cpus", help="pin the echo (every thread) to these CPUs, e.g. 1 or 0,1 (`loop.cpus`)"
+    )
     args = parser.parse_args(argv)
+    if args.cpus is not None and pin_process([int(c) for c in args.cpus.split(",")]) is None:
+        return 1
     stop = stop_event(args.lifetime)
     handoff = Handoff(stop)
     handoff.thread.start()
