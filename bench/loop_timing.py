@@ -104,6 +104,8 @@ def plan(opts: Options) -> tuple[list[tuple[Run, float]], list[tuple[list[Run], 
         ([Run(0.001, True, Tuning(gc_freeze=False))], side_s),
         ([Run(0.001, True, Tuning(spin_s=SPIN_S))], side_s),
         ([Run(0.001, True, Tuning(cpu=PIN_CPU))], side_s),
+        ([Run(0.001, True, Tuning(cpus=(PIN_CPU,)))], side_s),
+        ([Run(0.001, True, Tuning(cpus=(PIN_CPU,), cpu=1 - PIN_CPU))], side_s),
         ([Run(0.001, True, Tuning(rt_priority=FIFO))], side_s),
         ([Run(0.001, True, tuned)], side_s),
     ]
