@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+import msgpack
 import zenoh
 from pydantic import BaseModel, ValidationError
 
@@ -64,6 +65,7 @@ log = logging.getLogger(__name__)
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 _MSGPACK = zenoh.Encoding(Format.MSGPACK.value)
 """Prebuilt: a request does not parse its encoding string."""
+_ALL = zenoh.ConsolidationMode.NONE
 DEFAULT_TIMEOUT_S = 2.0
 EMPTY_RETRY_S = 0.05
 DONE_RECHECK_S = 1.0
@@ -158,6 +160,13 @@ class _Holders:
     holders: set[str] = dataclasses.field(default_factory=set)
     supervisors: set[str] = dataclasses.field(default_factory=set)
     pinned: str | None = None
+    changes: int = 0
+    """How many `update`s ran (counted after each, as a liveliness callback may run one on
+    another thread while `Rider._check_repliers` reads)."""
+    allowed: zenoh.ZenohId | None = None
+    """The replier (its `zenoh.ZenohId`) `Rider._check_repliers` last allowed, valid while
+    `changes` is still `allowed_at`: the next reply from it needs no second look."""
+    allowed_at: int = -1
 
     def update(self, kind: str, zid: str, present: bool) -> None:
         group = self.holders if kind == "holder" else self.supervisors
@@ -167,6 +176,7 @@ class _Holders:
             group.discard(zid)
         if self.pinned not in self.holders and len(self.holders) == 1:
             self.pinned = next(iter(self.holders))  # first contact, or the daemon restarted
+        self.changes += 1
 
     def allows(self, zid: str) -> bool:
         if len(self.holders) > 1:
@@ -318,6 +328,7 @@ class Rider:
         self._keys: dict[str, zenoh.KeyExpr] = {}
         """Command keys declared to the session (`_declare_key`): a query on a declared key
         expression is routed without matching its string again (BENCHMARKS.md, section 1)."""
+        self._command_keys: dict[Command, str] = {}
         self._machine_of: dict[str, str | None] = {}
         """`_machine_in`'s answers by key (bounded: cleared when it holds `KEY_CACHE` keys)."""
 
@@ -330,6 +341,9 @@ class Rider:
             where = str(exc).split(" at /", 1)[0]
             raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
         self.rider_id = str(self._session.zid())
+        # What `_own_request` packs without a model, checked once: a tag-and-counter id and
+        # this session's id are valid transaction ids.
+        CommandRequest(transaction_id=f"{self._tag}-0", rider=self.rider_id)
         # Who asked, for the machine's event history (the payload's `rider` field means
         # "watch me" and stays unset for one-shot commands).
         self._attachment = f"rider={self.rider_id}".encode()
@@ -351,6 +365,7 @@ class Rider:
                 with contextlib.suppress(zenoh.ZError):
                     self._session.undeclare(key_expr)
             self._keys.clear()
+            self._command_keys.clear()
             self._session.close()
             self._session = None
 
@@ -477,15 +492,15 @@ class Rider:
         # machine after that (a frozen daemon resuming) is refused there, not acted unseen.
         wait = (timeout if timeout is not None else self.timeout) * (self.retries + 1)
         if request is None:
-            request = CommandRequest.model_validate(self._req(valid_for=min(wait, VALID_FOR_MAX_S)))
-        elif request.valid_for is None:
-            now = time.time()
-            sent = request.timecode if request.timecode is not None else now
-            valid = max(now - sent, 0.0) + wait
-            request = request.model_copy(update={"valid_for": min(valid, VALID_FOR_MAX_S)})
-        payload = encode(request)
-        key = f"{self.base}/cmd/{command.key}"
-        self._declare_key(key)
+            payload = self._own_request(min(wait, VALID_FOR_MAX_S))
+        else:
+            if request.valid_for is None:
+                now = time.time()
+                sent = request.timecode if request.timecode is not None else now
+                valid = max(now - sent, 0.0) + wait
+                request = request.model_copy(update={"valid_for": min(valid, VALID_FOR_MAX_S)})
+            payload = encode(request)
+        key = self._command_key(command)
         last: RiderError | None = None
         for _ in range(self.retries + 1):
             try:
@@ -499,11 +514,41 @@ class Rider:
         assert last is not None
         raise last
 
+    def _command_key(self, command: Command) -> str:
+        """`command`'s key on this Rider's machine, declared (the machine is fixed once
+        picked, and so is the prefix: worked out once per command)."""
+        key = self._command_keys.get(command)
+        if key is None:
+            key = f"{self.base}/cmd/{command.key}"
+            self._declare_key(key)
+            self._command_keys[command] = key
+        return key
+
     def _declare_key(self, key: str) -> None:
         """Declare `key` to this session as a key expression (once); `_get` asks by it."""
         if key not in self._keys:
             with _bus_errors(f"cannot declare {key}"):
                 self._keys[key] = self.session.declare_keyexpr(key)
+
+    def _own_request(self, valid_for: float) -> bytes:
+        """A plain command's request, packed straight from its fields: the same bytes as
+        `encode(CommandRequest(...))` (tests/rider/test_request_bytes.py) without building and
+        validating a model per command. Every field is the Rider's own: the id is its tag and a
+        counter, the rider its session id (both checked once, at `open`); a `valid_for` that is
+        no number in range (a zero timeout) or a Rider not open goes through the model, as
+        before."""
+        if type(valid_for) not in (float, int) or not 0 < valid_for <= VALID_FOR_MAX_S:
+            return encode(CommandRequest.model_validate(self._req(valid_for=valid_for)))
+        if self._session is None:
+            return encode(CommandRequest.model_validate(self._req(valid_for=valid_for)))
+        return pack(
+            {
+                "transaction_id": self.new_transaction_id(),
+                "timecode": time.time(),
+                "rider": self.rider_id if self.supervise else None,
+                "valid_for": float(valid_for),
+            }
+        )
 
     def _req(self, **extra: Any) -> dict[str, Any]:
         return {
@@ -1005,7 +1050,12 @@ class Rider:
         deadline = time.monotonic() + limit
         while True:
             remaining = deadline - time.monotonic()
-            replies = self._answered(key, self._get(key, payload, max(remaining, 0.05)), limit)
+            replies = self._get(key, payload, max(remaining, 0.05))
+            if len(replies) == 1:  # the usual answer: one reply, from the machine, ok
+                sample = replies[0].ok
+                if sample is not None:
+                    return self._decode_ok(sample, model)
+            replies = self._answered(key, replies, limit)
             if replies:
                 return self._decode(replies[0], model)
             if deadline - time.monotonic() < EMPTY_RETRY_S:
@@ -1032,15 +1082,26 @@ class Rider:
 
     def _get(self, key: str, payload: bytes | None, timeout: float | None) -> list[zenoh.Reply]:
         """All replies to `key` (asked by its key expression when it is declared)."""
-        kwargs: dict[str, Any] = {"timeout": timeout or self.timeout}
-        if payload is not None:
-            kwargs["payload"] = payload
-            kwargs["encoding"] = _MSGPACK
-            kwargs["attachment"] = self._attachment
-        # Every reply, not one per key: two daemons with one id must both be seen.
-        kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
-        with _bus_errors(f"cannot query {key}"):
-            replies = list(self.session.get(self._keys.get(key, key), **kwargs))
+        session = self.session
+        target = self._keys.get(key, key)
+        # Every reply, not one per key (`_ALL`): two daemons with one id must both be seen.
+        # No `_bus_errors` wrapper here: a generator context manager per query costs more
+        # than the rest of this function (BENCHMARKS.md, section 1).
+        try:
+            if payload is None:
+                handler = session.get(target, timeout=timeout or self.timeout, consolidation=_ALL)
+            else:
+                handler = session.get(
+                    target,
+                    payload=payload,
+                    encoding=_MSGPACK,
+                    attachment=self._attachment,
+                    timeout=timeout or self.timeout,
+                    consolidation=_ALL,
+                )
+            replies = list(handler)
+        except zenoh.ZError as exc:
+            raise _bus_error(f"cannot query {key}", exc) from exc
         self._check_repliers(key, replies)
         return replies
 
@@ -1089,17 +1150,31 @@ class Rider:
             return
         if len(replies) == 1:  # a command's usual answer: one reply, one replier
             replier = replies[0].replier_id
-            repliers = [] if replier is None else [str(replier.zid)]
-        else:
-            repliers = sorted({str(r.replier_id.zid) for r in replies if r.replier_id is not None})
+            if replier is None:
+                return
+            replier_id = replier.zid
+            known = self._holders.get(mid)
+            if (
+                known is not None
+                and known.allowed_at == known.changes
+                and known.allowed == replier_id
+            ):
+                return  # the replier allowed last time, and nothing changed since
+            self._vet(mid, key, str(replier_id), replier_id)
+            return
+        repliers = sorted({str(r.replier_id.zid) for r in replies if r.replier_id is not None})
         if len(repliers) > 1:
             raise DuplicateMachine(mid, repliers, f"{len(repliers)} sessions replied to {key}")
-        if not repliers:
-            return
-        zid = repliers[0]
+        if repliers:
+            self._vet(mid, key, repliers[0], None)
+
+    def _vet(self, mid: str, key: str, zid: str, replier_id: zenoh.ZenohId | None) -> None:
+        """`zid`, the one session that replied to `key`, may answer for machine `mid`
+        (`DuplicateMachine` otherwise); remembered by its `zenoh.ZenohId` when given."""
         known = self._holders.get(mid)
         if known is None or not known.allows(zid):
             known = self.holders(mid)  # first contact, or the holder changed since
+        checked = known.changes
         if len(known.holders) > 1:
             raise DuplicateMachine(mid, sorted(known.holders), "each holds the machine's token")
         if known.pinned is None and not known.holders:
@@ -1110,6 +1185,8 @@ class Rider:
                 [str(known.pinned), zid],
                 f"{zid} replied to {key}, but this Rider talks to {known.pinned}",
             )
+        if replier_id is not None:
+            known.allowed, known.allowed_at = replier_id, checked
 
     def _sample_ok(self, sample: zenoh.Sample) -> bool:
         """A publication under a machine from the pinned session (or its supervisor); one
@@ -1136,8 +1213,24 @@ class Rider:
             except DecodeError as exc:
                 raise BadReply(f"error reply: {data[:200]!r}") from exc
             raise CommandRefused(refused)
+        return Rider._decode_ok(sample, model)
+
+    @staticmethod
+    def _decode_ok(sample: zenoh.Sample, model: type[M]) -> M:
+        """A reply's sample as `model`; `BadReply` (or `CommandRefused` for an error `Reply`)
+        when it is none. The usual msgpack reply is unpacked and validated in one step each;
+        anything that fails there is decoded again the long way, which says why."""
         data = sample.payload.to_bytes()
-        fmt = _format_of(sample.encoding)
+        encoding = sample.encoding
+        if encoding == _MSGPACK and len(data) <= MAX_REPLY_BYTES:
+            try:
+                raw = msgpack.unpackb(data, raw=False, strict_map_key=True)
+                if type(raw) is dict:
+                    result: M = model.__pydantic_validator__.validate_python(raw)
+                    return result
+            except (ValueError, RecursionError, msgpack.UnpackException, ValidationError):
+                pass
+        fmt = _format_of(encoding)
         try:
             return decode(model, data, fmt, MAX_REPLY_BYTES)
         except DecodeError as exc:
@@ -1214,8 +1307,12 @@ def _bus_errors(what: str) -> Iterator[None]:
     try:
         yield
     except zenoh.ZError as exc:
-        where = str(exc).split(" at /", 1)[0]  # not the Rust source path of the check
-        raise BusError(f"{what}: {where}") from exc
+        raise _bus_error(what, exc) from exc
+
+
+def _bus_error(what: str, exc: zenoh.ZError) -> BusError:
+    where = str(exc).split(" at /", 1)[0]  # not the Rust source path of the check
+    return BusError(f"{what}: {where}")
 
 
 def _drain_changes(

@@ -1,0 +1,272 @@
+"""The Rider's command path against a scripted machine: a real Zenoh session on 127.0.0.1 whose
+queryable records each request and answers what the test tells it to.
+
+The Rider packs its own requests without a model and reads the usual reply in one unpack and
+one validation (rider/client.py `_own_request`, `_decode_ok`); these pin that the bytes are the
+model's, that every reply is still validated (a broken or hostile one is `BadReply`, an error
+`Reply` is `CommandRefused`), and that a replier allowed once is looked at again once the
+machine's holders change.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import pytest
+import zenoh
+from pydantic import ValidationError
+
+from rider.client import BadReply, CommandRefused, DuplicateMachine, Rider
+from schema.codec import MAX_REPLY_BYTES, Format, encode
+from schema.commands import (
+    VALID_FOR_MAX_S,
+    CheckResult,
+    Command,
+    CommandRequest,
+    Reply,
+    ReplyCode,
+    StartRequest,
+)
+from schema.errors import Error, ErrorCode
+from schema.status import MachineState
+from tests.procs import free_port, write_zenoh_config
+
+MSGPACK = zenoh.Encoding(Format.MSGPACK.value)
+JSON = zenoh.Encoding(Format.JSON.value)
+
+
+def good_reply(tid: str | None, command: str | None = "CheckHome") -> Reply:
+    return Reply(
+        transaction_id=tid,
+        command=command,
+        timecode=1.5,
+        request_timecode=1.25,
+        success=True,
+        code=ReplyCode.RESP_CHECK,
+        state=MachineState.IDLE,
+        result=CheckResult(ok=True, tilt=True, rotate=False),
+    )
+
+
+def good_fields(**changes: object) -> bytes:
+    """A good reply's msgpack with fields changed, added, or (given as `DROP`) removed."""
+    fields = {**msgpack.unpackb(encode(good_reply("t"))), **changes}
+    data: bytes = msgpack.packb({k: v for k, v in fields.items() if v is not DROP})
+    return data
+
+
+DROP = object()
+
+Answer = Callable[[zenoh.Query, bytes], None]
+
+
+@dataclass
+class Scripted:
+    """The scripted machine: `answer(query, payload)` replies; `payloads` holds every request."""
+
+    endpoint: str
+    answer: Answer | None = None
+    payloads: list[bytes] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def reply_with(self, data: bytes, encoding: zenoh.Encoding = MSGPACK) -> None:
+        self.answer = lambda q, _: q.reply(q.key_expr, data, encoding=encoding)
+
+
+@pytest.fixture(scope="module")
+def machine() -> Iterator[Scripted]:
+    scripted = Scripted(f"tcp/127.0.0.1:{free_port()}")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps([scripted.endpoint]))
+
+    def on_query(query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        with scripted.lock:
+            scripted.payloads.append(payload)
+        answer = scripted.answer or (
+            lambda q, p: q.reply(
+                q.key_expr,
+                encode(good_reply(msgpack.unpackb(p)["transaction_id"])),
+                encoding=MSGPACK,
+            )
+        )
+        with query:
+            answer(query, payload)
+
+    with zenoh.open(conf) as session:
+        queryable = session.declare_queryable("machine/m1/cmd/**", on_query)
+        try:
+            yield scripted
+        finally:
+            queryable.undeclare()
+
+
+@pytest.fixture
+def scripted(machine: Scripted) -> Iterator[Scripted]:
+    machine.answer = None
+    machine.payloads.clear()
+    yield machine
+    machine.answer = None
+
+
+def rider_for(machine: Scripted, tmp_path: Path, **kwargs: object) -> Rider:
+    conf = write_zenoh_config(tmp_path)
+    return Rider("m1", connect=[machine.endpoint], zenoh_config_path=conf, **kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("timeout", "retries", "supervise"),
+    [(2.0, 1, False), (3, 0, True), (0.25, 2, True), (1800.0, 3, False)],
+)
+def test_a_commands_request_is_the_models_encoding_byte_for_byte(
+    scripted: Scripted, tmp_path: Path, timeout: float, retries: int, supervise: bool
+) -> None:
+    with rider_for(scripted, tmp_path, timeout=timeout, retries=retries, supervise=supervise) as r:
+        for command in Command:
+            reply = r.command(command)
+            assert reply == good_reply(reply.transaction_id)
+        sent = list(scripted.payloads)
+        ids = set()
+        for payload in sent:
+            fields = msgpack.unpackb(payload)
+            request = CommandRequest.model_validate(fields)  # a valid request, as it was
+            assert encode(request) == payload  # the model's own bytes: order, types, all
+            assert list(fields) == ["transaction_id", "timecode", "rider", "valid_for"]
+            assert request.transaction_id.startswith(f"{r._tag}-")
+            assert request.rider == (r.rider_id if supervise else None)
+            assert request.valid_for == min(timeout * (retries + 1), VALID_FOR_MAX_S)
+            assert isinstance(fields["valid_for"], float)
+            ids.add(request.transaction_id)
+        assert len(sent) == len(Command) == len(ids)
+
+
+def test_requests_the_caller_builds_still_go_through_their_model(
+    scripted: Scripted, tmp_path: Path
+) -> None:
+    with rider_for(scripted, tmp_path, timeout=1.0) as r:
+        r.start()
+        given = CommandRequest(transaction_id="given-1", timecode=None)
+        r.command(Command.HOME, given)
+    start, home = (msgpack.unpackb(p) for p in scripted.payloads)
+    assert encode(StartRequest.model_validate(start)) == scripted.payloads[0]
+    assert "session" in start
+    assert home["transaction_id"] == "given-1" and home["valid_for"] == 2.0
+
+
+def test_a_timeout_of_zero_is_refused_by_the_request_model_and_nothing_is_sent(
+    scripted: Scripted, tmp_path: Path
+) -> None:
+    with rider_for(scripted, tmp_path) as r, pytest.raises(ValidationError, match="valid_for"):
+        r.command(Command.HOME, timeout=0)
+    assert scripted.payloads == []
+
+
+def test_the_usual_reply_is_the_model_validated_from_its_bytes(
+    scripted: Scripted, tmp_path: Path
+) -> None:
+    """The fast read gives what the codec's decode gives, for msgpack and JSON replies."""
+    with rider_for(scripted, tmp_path) as r:
+        for fmt, encoding in ((Format.MSGPACK, MSGPACK), (Format.JSON, JSON)):
+            scripted.reply_with(encode(good_reply("t-1"), fmt), encoding)
+            result = r.check_home()
+            assert result == CheckResult(ok=True, tilt=True, rotate=False)
+            assert r.command(Command.HOME) == good_reply("t-1")
+        # An older or newer machine's extra field is ignored, as the model says.
+        scripted.reply_with(good_fields(new_field=[1]))
+        assert r.command(Command.HOME) == good_reply("t")
+
+
+def refused(tid: str) -> Reply:
+    return Reply.failure(
+        Error(code=ErrorCode.WRONG_STATE, message="not now"),
+        transaction_id=tid,
+        command="Home",
+        timecode=2.0,
+        state=MachineState.RUNNING,
+    )
+
+
+HOSTILE: dict[str, tuple[bytes, zenoh.Encoding]] = {
+    "not msgpack": (b"\xc1\xc1", MSGPACK),
+    "a msgpack array": (msgpack.packb([1, 2, 3]), MSGPACK),
+    "a msgpack string": (msgpack.packb("RESP_CHECK"), MSGPACK),
+    "trailing bytes": (encode(good_reply("t")) + b"\x00", MSGPACK),
+    "a field missing": (
+        good_fields(code=DROP),
+        MSGPACK,
+    ),
+    "an unknown code": (
+        good_fields(code="RESP_MAYBE"),
+        MSGPACK,
+    ),
+    "a result of the wrong shape": (
+        good_fields(result={"ok": [1]}),
+        MSGPACK,
+    ),
+    "an integer map key": (msgpack.packb({1: 2}), MSGPACK),
+    "msgpack labelled as JSON": (encode(good_reply("t")), JSON),
+    "JSON labelled as msgpack": (encode(good_reply("t"), Format.JSON), MSGPACK),
+    "too large": (
+        good_fields(pad="x" * MAX_REPLY_BYTES),
+        MSGPACK,
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE))
+def test_a_broken_or_hostile_reply_is_a_bad_reply(
+    scripted: Scripted, tmp_path: Path, case: str
+) -> None:
+    data, encoding = HOSTILE[case]
+    scripted.reply_with(data, encoding)
+    with rider_for(scripted, tmp_path, retries=0) as r, pytest.raises(BadReply, match="cmd/home"):
+        r.command(Command.HOME)
+
+
+def test_a_reply_without_its_result_is_a_bad_reply(scripted: Scripted, tmp_path: Path) -> None:
+    scripted.reply_with(encode(good_reply("t").model_copy(update={"result": None})))
+    with rider_for(scripted, tmp_path) as r, pytest.raises(BadReply, match="no result"):
+        r.check_home()
+
+
+def test_an_error_reply_is_a_refusal_whether_sent_as_a_reply_or_as_an_error(
+    scripted: Scripted, tmp_path: Path
+) -> None:
+    with rider_for(scripted, tmp_path) as r:
+        scripted.reply_with(encode(refused("t-1")))
+        with pytest.raises(CommandRefused, match="WRONG_STATE: not now") as first:
+            r.home()
+        assert first.value.reply == refused("t-1")
+        assert r.command(Command.HOME, check=False) == refused("t-1")
+        scripted.answer = lambda q, _: q.reply_err(encode(refused("t-2")), encoding=MSGPACK)
+        with pytest.raises(CommandRefused, match="WRONG_STATE") as second:
+            r.home()
+        assert second.value.reply == refused("t-2")
+        scripted.answer = lambda q, _: q.reply_err(b"\xc1", encoding=MSGPACK)
+        with pytest.raises(BadReply, match="error reply"):
+            r.home()
+
+
+def test_a_replier_allowed_once_is_looked_at_again_when_the_holders_change(
+    scripted: Scripted, tmp_path: Path
+) -> None:
+    with rider_for(scripted, tmp_path) as r:
+        r.check_home()  # first contact: the scripted machine names no holder, its reply pins it
+        known = r._holders["m1"]
+        pinned = known.pinned
+        assert pinned is not None and known.allowed is not None
+        for _ in range(3):
+            r.check_home()  # the same replier: remembered, still allowed
+        assert known.pinned == pinned
+        # A holder token for another session appears (what `subscribe` hears): the same
+        # replier is no longer the machine's, and its next reply is refused, not remembered.
+        known.update("holder", "another-session", True)
+        with pytest.raises(DuplicateMachine, match="this Rider talks to"):
+            r.check_home()
