@@ -13,6 +13,7 @@ from bench import (
     events_cost,
     loop_timing,
     pick,
+    rider_cost,
     rider_loss,
     roundtrip,
     status_latency,
@@ -43,6 +44,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.rider_loss", rider_loss.run),
     ("bench.pick", pick.run),
     ("bench.throughput", throughput.run),
+    ("bench.rider_cost", rider_cost.run),
 ]
 
 

@@ -27,6 +27,7 @@ MODULES = [
     "rider_loss",
     "pick",
     "throughput",
+    "rider_cost",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0
