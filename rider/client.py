@@ -36,7 +36,15 @@ from schema.calibration import (
     RotateCalibrationSet,
     TiltCalibrationSet,
 )
-from schema.codec import MAX_REPLY_BYTES, DecodeError, Format, decode, encode, pack
+from schema.codec import (
+    MAX_PAYLOAD_BYTES,
+    MAX_REPLY_BYTES,
+    DecodeError,
+    Format,
+    decode,
+    encode,
+    pack,
+)
 from schema.commands import (
     VALID_FOR_MAX_S,
     CheckResult,
@@ -532,14 +540,13 @@ class Rider:
 
     def _own_request(self, valid_for: float) -> bytes:
         """A plain command's request, packed straight from its fields: the same bytes as
-        `encode(CommandRequest(...))` (tests/rider/test_request_bytes.py) without building and
+        `encode(CommandRequest(...))` (tests/rider/test_replies.py) without building and
         validating a model per command. Every field is the Rider's own: the id is its tag and a
         counter, the rider its session id (both checked once, at `open`); a `valid_for` that is
         no number in range (a zero timeout) or a Rider not open goes through the model, as
         before."""
-        if type(valid_for) not in (float, int) or not 0 < valid_for <= VALID_FOR_MAX_S:
-            return encode(CommandRequest.model_validate(self._req(valid_for=valid_for)))
-        if self._session is None:
+        in_range = type(valid_for) in (float, int) and 0 < valid_for <= VALID_FOR_MAX_S
+        if not in_range or self._session is None:
             return encode(CommandRequest.model_validate(self._req(valid_for=valid_for)))
         return pack(
             {
@@ -772,10 +779,13 @@ class Rider:
 
     @staticmethod
     def _decode_sample(sample: zenoh.Sample, model: type[M]) -> M:
+        data = sample.payload.to_bytes()
+        encoding = sample.encoding
+        result = _read(data, encoding, model, MAX_REPLY_BYTES)
+        if result is not None:
+            return result
         try:
-            return decode(
-                model, sample.payload.to_bytes(), _format_of(sample.encoding), MAX_REPLY_BYTES
-            )
+            return decode(model, data, _format_of(encoding), MAX_REPLY_BYTES)
         except DecodeError as exc:
             raise BadReply(f"{sample.key_expr}: {exc.error.message}") from exc
 
@@ -1218,18 +1228,12 @@ class Rider:
     @staticmethod
     def _decode_ok(sample: zenoh.Sample, model: type[M]) -> M:
         """A reply's sample as `model`; `BadReply` (or `CommandRefused` for an error `Reply`)
-        when it is none. The usual msgpack reply is unpacked and validated in one step each;
-        anything that fails there is decoded again the long way, which says why."""
+        when it is none (`_read`, else the long way, which says why)."""
         data = sample.payload.to_bytes()
         encoding = sample.encoding
-        if encoding == _MSGPACK and len(data) <= MAX_REPLY_BYTES:
-            try:
-                raw = msgpack.unpackb(data, raw=False, strict_map_key=True)
-                if type(raw) is dict:
-                    result: M = model.__pydantic_validator__.validate_python(raw)
-                    return result
-            except (ValueError, RecursionError, msgpack.UnpackException, ValidationError):
-                pass
+        result = _read(data, encoding, model, MAX_REPLY_BYTES)
+        if result is not None:
+            return result
         fmt = _format_of(encoding)
         try:
             return decode(model, data, fmt, MAX_REPLY_BYTES)
@@ -1267,6 +1271,22 @@ def _src(sample: zenoh.Sample) -> str:
     return "none" if source is None else str(source.source_id.zid)
 
 
+def _read(data: bytes, encoding: zenoh.Encoding, model: type[M], limit: int) -> M | None:
+    """`data` as `model` in one unpack and one validation by the model's validator (what
+    `model_validate` calls, without its wrapper): the usual msgpack payload, at two thirds of
+    `decode`'s cost run hot. None for anything else (another encoding, too large, not a map,
+    invalid): the caller decodes that with `decode`, which says why (BENCHMARKS.md, section 9)."""
+    if encoding == _MSGPACK and len(data) <= limit:
+        try:
+            raw = msgpack.unpackb(data, raw=False, strict_map_key=True)
+            if type(raw) is dict:
+                result: M = model.__pydantic_validator__.validate_python(raw)
+                return result
+        except (ValueError, RecursionError, msgpack.UnpackException, ValidationError):
+            pass
+    return None
+
+
 def _format_of(encoding: zenoh.Encoding | None) -> Format:
     return Format.JSON if str(encoding or "").startswith(Format.JSON) else Format.MSGPACK
 
@@ -1291,10 +1311,14 @@ def _decode_update(sample: zenoh.Sample) -> Update | None:
         model = CalibrationRecord
     else:
         return None
-    try:
-        result = decode(model, sample.payload.to_bytes(), _format_of(sample.encoding))
-    except DecodeError as exc:
-        raise BadReply(f"{key}: {exc.error.message}") from exc
+    data = sample.payload.to_bytes()
+    encoding = sample.encoding
+    result = _read(data, encoding, model, MAX_PAYLOAD_BYTES)
+    if result is None:
+        try:
+            result = decode(model, data, _format_of(encoding))
+        except DecodeError as exc:
+            raise BadReply(f"{key}: {exc.error.message}") from exc
     assert isinstance(
         result, Status | IoValue | AxisRecord | CycleDiag | Completion | CalibrationRecord
     )

@@ -10,8 +10,11 @@ machine's holders change.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import queue
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,8 +24,8 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
-from rider.client import BadReply, CommandRefused, DuplicateMachine, Rider
-from schema.codec import MAX_REPLY_BYTES, Format, encode
+from rider.client import BadReply, CommandRefused, DuplicateMachine, Rider, Update
+from schema.codec import MAX_PAYLOAD_BYTES, MAX_REPLY_BYTES, Format, encode
 from schema.commands import (
     VALID_FOR_MAX_S,
     CheckResult,
@@ -33,11 +36,13 @@ from schema.commands import (
     StartRequest,
 )
 from schema.errors import Error, ErrorCode
-from schema.status import MachineState
+from schema.status import MachineState, Status
 from tests.procs import free_port, write_zenoh_config
 
 MSGPACK = zenoh.Encoding(Format.MSGPACK.value)
 JSON = zenoh.Encoding(Format.JSON.value)
+BLOCK = zenoh.CongestionControl.BLOCK
+"""For the test's own puts: with the default (drop), a put right behind a large one is lost."""
 
 
 def good_reply(tid: str | None, command: str | None = "CheckHome") -> Reply:
@@ -70,6 +75,7 @@ class Scripted:
     """The scripted machine: `answer(query, payload)` replies; `payloads` holds every request."""
 
     endpoint: str
+    session: zenoh.Session | None = None
     answer: Answer | None = None
     payloads: list[bytes] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -101,6 +107,7 @@ def machine() -> Iterator[Scripted]:
             answer(query, payload)
 
     with zenoh.open(conf) as session:
+        scripted.session = session
         queryable = session.declare_queryable("machine/m1/cmd/**", on_query)
         try:
             yield scripted
@@ -270,3 +277,47 @@ def test_a_replier_allowed_once_is_looked_at_again_when_the_holders_change(
         known.update("holder", "another-session", True)
         with pytest.raises(DuplicateMachine, match="this Rider talks to"):
             r.check_home()
+
+
+def test_a_broken_or_hostile_publication_is_dropped_and_a_good_one_read(
+    scripted: Scripted, tmp_path: Path
+) -> None:
+    """Publications are read the same way (one unpack, one validation, else the codec's
+    `decode`): what does not validate as the key's model never reaches the subscriber, nor a
+    status larger than a request may be (64 KiB), while the next good one does."""
+    good = Status(machine_id="m1", state=MachineState.IDLE, seq=7, cycle=70, time=1.5)
+    other = good.model_copy(update={"seq": 666})  # valid itself: only its wrapping is wrong
+    fields = msgpack.unpackb(encode(other))
+    hostile: list[tuple[bytes, zenoh.Encoding]] = [
+        (b"\xc1\xc1", MSGPACK),
+        (msgpack.packb([fields]), MSGPACK),
+        (msgpack.packb({**fields, "state": "FLYING"}), MSGPACK),
+        (msgpack.packb({k: v for k, v in fields.items() if k != "cycle"}), MSGPACK),
+        (msgpack.packb({**fields, "estop": {"active": "maybe"}}), MSGPACK),
+        (encode(other), JSON),
+        (encode(other, Format.JSON), MSGPACK),
+        (msgpack.packb({**fields, "pad": "x" * MAX_PAYLOAD_BYTES}), MSGPACK),
+    ]
+    updates: queue.Queue[Update] = queue.Queue()
+    ready = good.model_copy(update={"seq": 1})
+
+    def put(data: bytes, encoding: zenoh.Encoding) -> None:
+        assert scripted.session is not None
+        scripted.session.put("machine/m1/status", data, encoding=encoding, congestion_control=BLOCK)
+
+    with rider_for(scripted, tmp_path) as r, r.subscribe(("status",), updates.put):
+        # The subscription reaches the publishing session a moment after it is declared.
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            put(encode(ready), MSGPACK)
+            with contextlib.suppress(queue.Empty):
+                if updates.get(timeout=0.1) == ready:
+                    break
+        for data, encoding in hostile:
+            put(data, encoding)
+        put(encode(good), MSGPACK)
+        put(encode(good, Format.JSON), JSON)
+        after = [updates.get(timeout=5.0) for _ in range(2)]
+        while after[0] == ready:  # a late copy of the probe
+            after = [*after[1:], updates.get(timeout=5.0)]
+        assert after == [good, good]  # the first to arrive after: every hostile one dropped
