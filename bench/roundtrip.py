@@ -212,7 +212,7 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
     client = dists[RIDER].p50 - dists[RAW].p50
     section.notes.append(
         f"The Rider API adds {ms(client)} ms at the median to the raw get: the client's own"
-        " work (request model, transaction id, reply decoding and validation)."
+        " work (packing the request, reading and validating the reply, checking who replied)."
     )
     section.notes.append(
         "`via a woken thread`: the echo queryable puts the query in a queue and wakes a"
