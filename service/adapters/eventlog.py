@@ -410,10 +410,8 @@ class EventLog:
             self._busy = bool(batch) or self.dropped > self._dropped_recorded
             if not self._items:
                 self._wake.clear()
-            held = sum(isinstance(item, Held) for item in batch) if self._deferred else 0
-            self._deferred -= held
-        if not held:
-            return batch  # type: ignore[return-value]  # events only
+            if self._deferred:
+                self._deferred -= sum(isinstance(item, Held) for item in batch)
         rows: list[_Row] = []
         for item in batch:
             if isinstance(item, Held):
