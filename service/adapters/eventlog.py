@@ -352,7 +352,7 @@ class EventLog:
 
         Queued as plain text and numbers, which the garbage collector never scans: a queue
         filled by a stalled disk must not make the scan thread's collections longer."""
-        row = (details.kind, dump_json(details), time, cycle)
+        row = _row(details, time, cycle)
         with self._lock:
             if len(self._items) >= self.capacity or self._stopping:
                 self.dropped += 1
@@ -424,7 +424,7 @@ class EventLog:
         """A held record's events into `rows` (and its log line written)."""
 
         def add(details: KnownDetails, time: float, cycle: int | None) -> None:
-            rows.append((details.kind, dump_json(details), time, cycle))
+            rows.append(_row(details, time, cycle))
 
         try:
             held.write(add)
@@ -458,7 +458,7 @@ class EventLog:
         dropped = self.dropped - self._dropped_recorded
         if dropped:
             extra.append(DroppedEvent(count=dropped))
-        items = [(d.kind, dump_json(d), now, None) for d in extra] + batch
+        items = [_row(d, now, None) for d in extra] + batch
         conn = self._conn
         if conn is None:
             conn = self._reopen()
@@ -631,5 +631,11 @@ class EventLog:
 
 _Row = tuple[str, str, float, int | None]
 """A queued event: kind, details as JSON, wall time, scan cycle."""
+
+
+def _row(details: KnownDetails, time: float, cycle: int | None) -> _Row:
+    """An event as queued: plain text and numbers (see `EventLog.emit`)."""
+    return (details.kind, dump_json(details), time, cycle)
+
 
 _ReadJob = Callable[[sqlite3.Connection | None, str | None], None]
