@@ -92,10 +92,11 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         log.error("event=supervisor_gone pid=%s", supervisor)
         return EXIT_FAILED
     daemon = Daemon(config, options, supervised=bool(supervisor))
-    if bound_malloc_arenas(config.loop.malloc_arenas):  # before Zenoh's threads start
-        daemon.malloc_arenas = config.loop.malloc_arenas
-    if config.loop.cpus is not None:  # before Zenoh's threads start: they inherit it
-        daemon.pinned = pin_process(config.loop.cpus)
+    # Before Zenoh's threads start: each takes an arena, and inherits the affinity.
+    if bound_malloc_arenas(config.loop.malloc_arenas):
+        daemon.tuned.append(f"malloc_arenas={config.loop.malloc_arenas}")
+    if config.loop.cpus is not None and (pinned := pin_process(config.loop.cpus)):
+        daemon.tuned.append(pinned)
     return daemon.run()
 
 
@@ -130,11 +131,9 @@ class Daemon:
         self.exit_deadline: threading.Timer | None = None
         self._stop_asked = False
         self._stop_recorded = False
-        self.pinned: str | None = None
-        """The CPUs `run_daemon` pinned the process to (`loop.cpus`), for the start line."""
-        self.malloc_arenas: int | None = None
-        """The cap `run_daemon` put on glibc's malloc arenas (`loop.malloc_arenas`), reported in
-        the start line's tuning; None: glibc's own."""
+        self.tuned: list[str] = []
+        """What `run_daemon` applied to the process before it started (`loop.malloc_arenas`,
+        `loop.cpus`), for the start line's tuning."""
 
     def run(self) -> int:
         """Set up, serve until stopped, undo; the exit code (the `EXIT_*` constants)."""
@@ -313,10 +312,7 @@ class Daemon:
         self.served = True
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
         applied.append(switch_interval(config.loop.switch_interval_s))
-        if self.malloc_arenas is not None:
-            applied.append(f"malloc_arenas={self.malloc_arenas}")
-        if self.pinned is not None:
-            applied.append(self.pinned)
+        applied += self.tuned
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
             config.machine.id,
