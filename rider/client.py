@@ -724,7 +724,7 @@ class Rider:
                     yield None
                     continue
                 try:
-                    event = self._decode_sample(sample, Event)
+                    event = _decode_sample(sample, Event, MAX_REPLY_BYTES)
                 except BadReply as exc:
                     log.warning("event=bad_event key=%s error=%r", sample.key_expr, str(exc))
                     continue
@@ -776,18 +776,6 @@ class Rider:
             if replies or time.monotonic() > deadline - EMPTY_RETRY_S:
                 return [self._decode(r, EventPage) for r in replies]
             time.sleep(EMPTY_RETRY_S)
-
-    @staticmethod
-    def _decode_sample(sample: zenoh.Sample, model: type[M]) -> M:
-        data = sample.payload.to_bytes()
-        encoding = sample.encoding
-        result = _read(data, encoding, model, MAX_REPLY_BYTES)
-        if result is not None:
-            return result
-        try:
-            return decode(model, data, _format_of(encoding), MAX_REPLY_BYTES)
-        except DecodeError as exc:
-            raise BadReply(f"{sample.key_expr}: {exc.error.message}") from exc
 
     def machines(self, with_status: bool = True) -> list[MachineInfo]:
         """Machines alive on the network (their liveliness tokens), with state and uptime.
@@ -1287,6 +1275,20 @@ def _read(data: bytes, encoding: zenoh.Encoding, model: type[M], limit: int) -> 
     return None
 
 
+def _decode_sample(sample: zenoh.Sample, model: type[M], limit: int) -> M:
+    """A published sample as `model` (`_read`, else `decode`, which says why); `BadReply`
+    naming its key when it is none."""
+    data = sample.payload.to_bytes()
+    encoding = sample.encoding
+    result = _read(data, encoding, model, limit)
+    if result is not None:
+        return result
+    try:
+        return decode(model, data, _format_of(encoding), limit)
+    except DecodeError as exc:
+        raise BadReply(f"{sample.key_expr}: {exc.error.message}") from exc
+
+
 def _format_of(encoding: zenoh.Encoding | None) -> Format:
     return Format.JSON if str(encoding or "").startswith(Format.JSON) else Format.MSGPACK
 
@@ -1311,14 +1313,7 @@ def _decode_update(sample: zenoh.Sample) -> Update | None:
         model = CalibrationRecord
     else:
         return None
-    data = sample.payload.to_bytes()
-    encoding = sample.encoding
-    result = _read(data, encoding, model, MAX_PAYLOAD_BYTES)
-    if result is None:
-        try:
-            result = decode(model, data, _format_of(encoding))
-        except DecodeError as exc:
-            raise BadReply(f"{key}: {exc.error.message}") from exc
+    result = _decode_sample(sample, model, MAX_PAYLOAD_BYTES)
     assert isinstance(
         result, Status | IoValue | AxisRecord | CycleDiag | Completion | CalibrationRecord
     )
