@@ -287,6 +287,17 @@ def build_parser(prog: str, description: str) -> argparse.ArgumentParser:
     return parser
 
 
+def soak_parser(prog: str, description: str, minutes: float) -> argparse.ArgumentParser:
+    """The soaks' options: a duration instead of `--quick`/`--long`, and where to write."""
+    parser = argparse.ArgumentParser(prog=f"python -m {prog}", description=description)
+    parser.add_argument(
+        "--minutes", type=float, default=minutes, help=f"soak duration (default {minutes:g})"
+    )
+    parser.add_argument("--out", type=Path, default=RESULTS, help="Markdown file to update")
+    parser.add_argument("--no-write", action="store_true", help="print the tables only")
+    return parser
+
+
 def options_from(args: argparse.Namespace) -> Options:
     out: Path | None = args.out
     if out is None and not args.quick:

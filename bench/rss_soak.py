@@ -33,10 +33,12 @@ from bench.common import (
     Section,
     Table,
     Target,
+    command_line,
     growth_per_hour,
     measure_and_save,
     python_module,
     rss_bytes,
+    soak_parser,
 )
 from rider.client import RiderError
 from rider.client import zenoh_config as rider_zenoh_config
@@ -285,11 +287,8 @@ def flat_targets(times: list[float], procs: list[Proc], minutes: float) -> list[
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.rss_soak", description=__doc__)
-    p.add_argument("--minutes", type=float, default=30.0, help="soak duration (default 30)")
+    p = soak_parser("bench.rss_soak", __doc__ or "", minutes=30.0)
     p.add_argument("--every", type=float, default=0.2, help="pause between Rider connects, s")
-    p.add_argument("--out", type=Path, default=RESULTS, help="Markdown file to update")
-    p.add_argument("--no-write", action="store_true", help="print the tables only")
     return p
 
 
@@ -302,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     opts = RssOptions(
         minutes=args.minutes, every_s=args.every, out=None if args.no_write else args.out
     )
-    measure_and_save(lambda: soak(opts), opts.out, " ".join(["python -m bench.rss_soak", *argv]))
+    measure_and_save(lambda: soak(opts), opts.out, command_line("bench.rss_soak", argv))
     return 0
 
 

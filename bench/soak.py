@@ -34,11 +34,13 @@ from bench.common import (
     Dist,
     Section,
     Table,
+    command_line,
     growth_per_hour,
     measure_and_save,
     mib,
     ms,
     rss_bytes,
+    soak_parser,
 )
 from rider.client import CommandRefused, MachineTimeout, Rider, RiderError
 from schema.codec import Format, decode, pack
@@ -458,12 +460,9 @@ def kills_table(kills: Kills, n: int) -> Table:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__)
-    p.add_argument("--minutes", type=float, default=10.0, help="soak duration (default 10)")
+    p = soak_parser("bench.soak", __doc__ or "", minutes=10.0)
     p.add_argument("--rate", type=float, default=200.0, help="storm requests per second")
     p.add_argument("--kills", type=int, default=3, help="SIGKILLs of the daemon at the end")
-    p.add_argument("--out", type=Path, default=RESULTS, help="Markdown file to update")
-    p.add_argument("--no-write", action="store_true", help="print the tables only")
     return p
 
 
@@ -479,7 +478,7 @@ def main(argv: list[str] | None = None) -> int:
         kills=args.kills,
         out=None if args.no_write else args.out,
     )
-    measure_and_save(lambda: soak(opts), opts.out, " ".join(["python -m bench.soak", *argv]))
+    measure_and_save(lambda: soak(opts), opts.out, command_line("bench.soak", argv))
     return 0
 
 
