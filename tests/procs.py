@@ -235,6 +235,21 @@ def running_daemon(tmp: Path, machine_id: str = "m1", **kwargs: object) -> Itera
         daemon.stop()
 
 
+def run_module(module: str, *args: object, timeout: float) -> str:
+    """`python -m <module> <args>` in the repo, bounded by `timeout`: its stdout, once it has
+    exited 0 (else the assertion shows the end of both streams)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", module, *map(str, args)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout
+
+
 def thread_cpus(pid: int) -> dict[int, tuple[int, ...]]:
     """The CPUs each thread of a process may run on, by thread id (threads that end while
     being read are left out)."""

@@ -5,14 +5,12 @@ reports."""
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from service.supervision.malloc import MALLOC_ARENAS
-from tests.procs import REPO
+from tests.procs import run_module
 
 pytestmark = pytest.mark.integration
 
@@ -21,16 +19,7 @@ BOUND_S = 120.0
 
 def test_short_rss_soak_churns_and_writes_its_section(tmp_path: Path) -> None:
     out = tmp_path / "B.md"
-    proc = subprocess.run(
-        [sys.executable, "-m", "bench.rss_soak", "--minutes", "0.1", "--out", out],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=BOUND_S,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    text = proc.stdout
+    text = run_module("bench.rss_soak", "--minutes", "0.1", "--out", out, timeout=BOUND_S)
     # Each churned process connected at least once, none failed (a failure shows its count).
     capped = f"daemon, Rider churn, malloc_arenas = {MALLOC_ARENAS}"
     for label in (

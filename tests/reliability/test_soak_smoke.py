@@ -4,13 +4,11 @@ its section."""
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from tests.procs import REPO
+from tests.procs import run_module
 
 pytestmark = pytest.mark.integration
 
@@ -19,16 +17,9 @@ BOUND_S = 180.0
 
 def test_short_soak_misses_no_reply_and_writes_its_section(tmp_path: Path) -> None:
     out = tmp_path / "SOAK.md"
-    proc = subprocess.run(
-        [sys.executable, "-m", "bench.soak", "--minutes", "0.25", "--kills", "1", "--out", out],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=BOUND_S,
-        check=False,
+    text = run_module(
+        "bench.soak", "--minutes", "0.25", "--kills", "1", "--out", out, timeout=BOUND_S
     )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    text = proc.stdout
     assert re.search(r"\*\*missed replies\*\*\s+0\s", text), text
     assert re.search(r"Rider connect/disconnect\s+[1-9]\d*\s+0 failed", text), text
     assert re.search(r"rides to DONE\s+[1-9]", text), text
