@@ -10,6 +10,7 @@ import os
 import platform
 import re
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -58,15 +59,13 @@ class Dist:
 
 
 def growth_per_hour(ts: list[float], values: list[int]) -> float:
-    """Least-squares slope of `values` over `ts` (seconds), per hour."""
-    if len(ts) < 2:
+    """Least-squares slope of `values` over `ts` (seconds), per hour; NaN with fewer than two
+    samples or all at one time."""
+    try:
+        fit = statistics.linear_regression(ts, [float(v) for v in values])
+    except statistics.StatisticsError:
         return float("nan")
-    ys = [float(v) for v in values]
-    mt, my = sum(ts) / len(ts), sum(ys) / len(ys)
-    var = sum((t - mt) ** 2 for t in ts)
-    if var == 0:
-        return float("nan")
-    return 3600.0 * sum((t - mt) * (y - my) for t, y in zip(ts, ys, strict=True)) / var
+    return 3600.0 * fit.slope
 
 
 def ms(seconds: float, digits: int = 3) -> str:
