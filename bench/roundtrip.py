@@ -75,6 +75,20 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-rt-")))
         daemon = stack.enter_context(bench_daemon(PERIOD_S))
         zconf = daemon.zenoh_config
+
+        def echo_at(log: str, *extra: str) -> str:
+            """A bare zenoh echo (`bench.baselines.zenoh_echo`) on a free port, ready; its
+            endpoint."""
+            endpoint = f"tcp/127.0.0.1:{free_port()}"
+            module = "bench.baselines.zenoh_echo"
+            echo = Child(
+                python_module(module, "--listen", endpoint, "--zenoh-config", zconf, *extra),
+                tmp / log,
+            )
+            stack.callback(echo.stop)
+            echo.expect("ready")
+            return endpoint
+
         # The same daemon with `[events] enabled = false`: what the history costs a command.
         bare = stack.enter_context(bench_daemon(PERIOD_S, events=False, machine_id="m2"))
         # `loop.cpus`: the whole daemon on one CPU, against an echo pinned to it alike.
@@ -83,31 +97,9 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
             pinned = stack.enter_context(
                 bench_daemon(PERIOD_S, Tuning(cpus=(pin,)), machine_id="m3")
             )
-            pinned_echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
-            pinned_echo = Child(
-                python_module(
-                    "bench.baselines.zenoh_echo",
-                    "--listen",
-                    pinned_echo_endpoint,
-                    "--zenoh-config",
-                    zconf,
-                    "--cpus",
-                    str(pin),
-                ),
-                tmp / "zenoh-echo-pinned.log",
-            )
-            stack.callback(pinned_echo.stop)
-            pinned_echo.expect("ready")
+            pinned_echo_endpoint = echo_at("zenoh-echo-pinned.log", "--cpus", str(pin))
 
-        echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
-        echo = Child(
-            python_module(
-                "bench.baselines.zenoh_echo", "--listen", echo_endpoint, "--zenoh-config", zconf
-            ),
-            tmp / "zenoh-echo.log",
-        )
-        stack.callback(echo.stop)
-        echo.expect("ready")
+        echo_endpoint = echo_at("zenoh-echo.log")
         udp = Child(python_module("bench.baselines.udp_echo"), tmp / "udp-echo.log")
         stack.callback(udp.stop)
         udp_client = UdpClient(int(udp.expect("ready")))
