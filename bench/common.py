@@ -20,6 +20,8 @@ from pathlib import Path
 from types import FrameType
 from typing import TextIO, TypeVar
 
+import zenoh
+
 from tests.procs import LineReader, stop_process
 
 REPO = Path(__file__).resolve().parent.parent
@@ -441,6 +443,13 @@ class Child:
                 with contextlib.suppress(OSError):
                     pipe.close()
         return self.proc.returncode
+
+
+def only_reply(replies: list[zenoh.Reply], key: str) -> bytes:
+    """The payload of the one ok reply a benchmark's get expects; RuntimeError otherwise."""
+    if len(replies) != 1 or replies[0].ok is None:
+        raise RuntimeError(f"{key}: expected one reply, got {len(replies)}")
+    return replies[0].ok.payload.to_bytes()
 
 
 def python_module(module: str, *args: object) -> list[str]:

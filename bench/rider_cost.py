@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import msgpack
 import zenoh
 
-from bench.common import Options, Section, Table, Target, main_for
+from bench.common import Options, Section, Table, Target, main_for, only_reply
 from bench.daemon import bench_daemon
 from rider.client import Rider
 
@@ -35,7 +35,7 @@ Call = Callable[[], object]
 
 @dataclass
 class Costs:
-    """Per-call medians over the rounds, in microseconds, and the per-round differences."""
+    """Per-call medians over the rounds, in microseconds."""
 
     thread: float
     process: float
@@ -69,19 +69,13 @@ def _raw_calls(rider: Rider) -> dict[str, Call]:
                 consolidation=everyone,
             )
         )
-        return _bytes_of(replies)
+        return only_reply(replies, "check/home")
 
     def raw_status() -> bytes:
         replies = list(session.get(status_key, timeout=rider.timeout, consolidation=everyone))
-        return _bytes_of(replies)
+        return only_reply(replies, "status")
 
     return {"check/home": raw_command, "status": raw_status}
-
-
-def _bytes_of(replies: list[zenoh.Reply]) -> bytes:
-    if len(replies) != 1 or replies[0].ok is None:
-        raise RuntimeError(f"expected one reply, got {len(replies)}")
-    return replies[0].ok.payload.to_bytes()
 
 
 def _measure(

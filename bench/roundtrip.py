@@ -28,6 +28,7 @@ from bench.common import (
     Target,
     main_for,
     ms,
+    only_reply,
     python_module,
     share,
 )
@@ -59,9 +60,7 @@ def _request(tid: str) -> bytes:
 
 def _get_one(session: zenoh.Session, key: str, payload: bytes) -> bytes:
     replies = list(session.get(key, payload=payload, encoding=Format.MSGPACK.value, timeout=2.0))
-    if len(replies) != 1 or replies[0].ok is None:
-        raise RuntimeError(f"{key}: expected one reply, got {len(replies)}")
-    return replies[0].ok.payload.to_bytes()
+    return only_reply(replies, key)
 
 
 def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark script: setup, measure, report, in order
