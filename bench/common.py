@@ -445,6 +445,14 @@ class Child:
         return self.proc.returncode
 
 
+def tenths(n: int, rows: int = 10) -> list[int]:
+    """Indices of `n` samples for a curve over a run: one per tenth (`rows`), and the last."""
+    picked = list(range(0, n, max(1, n // rows)))
+    if picked and picked[-1] != n - 1:
+        picked.append(n - 1)
+    return picked
+
+
 def only_reply(replies: list[zenoh.Reply], key: str) -> bytes:
     """The payload of the one ok reply a benchmark's get expects; RuntimeError otherwise."""
     if len(replies) != 1 or replies[0].ok is None:

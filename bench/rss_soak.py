@@ -39,6 +39,7 @@ from bench.common import (
     python_module,
     rss_bytes,
     soak_parser,
+    tenths,
 )
 from rider.client import RiderError
 from rider.client import zenoh_config as rider_zenoh_config
@@ -215,11 +216,7 @@ def curve_table(times: list[float], procs: list[Proc], rows: int = 10) -> Table:
         "RSS over time (MiB)",
         ["minute", f"connects ({churned.label})", *(p.label for p in procs)],
     )
-    step = max(1, len(times) // rows)
-    picked = list(range(0, len(times), step))
-    if picked[-1] != len(times) - 1:
-        picked.append(len(times) - 1)
-    for i in picked:
+    for i in tenths(len(times), rows):
         t.add(
             f"{times[i] / 60:.1f}",
             f"{churned.seen[i]:,}",

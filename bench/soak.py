@@ -41,6 +41,7 @@ from bench.common import (
     ms,
     rss_bytes,
     soak_parser,
+    tenths,
 )
 from rider.client import CommandRefused, MachineTimeout, Rider, RiderError
 from schema.codec import Format, decode, pack
@@ -420,11 +421,7 @@ def memory_table(samples: list[Sample], steady: list[Sample]) -> Table:
 def rss_curve(samples: list[Sample], rows: int = 10) -> Table:
     """RSS over time, a row per tenth of the run."""
     t = Table("RSS over time", ["minute", "daemon MiB", "supervisor MiB"])
-    step = max(1, len(samples) // rows)
-    picked = samples[::step]
-    if samples and picked[-1] is not samples[-1]:
-        picked.append(samples[-1])
-    for s in picked:
+    for s in (samples[i] for i in tenths(len(samples), rows)):
         t.add(f"{s.t / 60:.1f}", mib(s.daemon_rss), mib(s.supervisor_rss))
     return t
 
