@@ -40,8 +40,10 @@ class LoopSection(_Section):
     cpus: list[Annotated[int, Field(ge=0)]] | None = Field(default=None, min_length=1)
     """Pin the whole daemon (every thread: Zenoh's, the command callbacks, the event and log
     writers, the scan) to these CPUs, from its start; `cpu` then pins the scan thread alone.
-    One core for the daemon kept its threads' code and data in that core's caches: a command's
-    round trip −25..−40 µs on two cores (BENCHMARKS.md section 1)."""
+    On two cores, one CPU for the daemon cut a command's round trip by 23-39 µs in a timeline
+    harness and by nothing in the committed `bench.roundtrip` run, and it lengthens a 1 ms
+    loop's jitter unless `cpu` gives the scan thread the other core (BENCHMARKS.md sections 1
+    and 2): an option, not a default."""
     rt_priority: int | None = Field(default=None, ge=1, le=99)
     watchdog_periods: int = Field(default=3, ge=2, le=1000)
     watchdog_min_s: float = Field(default=0.02, ge=0.0, le=10.0)
