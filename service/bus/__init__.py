@@ -27,6 +27,7 @@ from service.bus.session import (
     close_session,
     file_config,
     open_session,
+    use_runtime,
     zenoh_config,
 )
 from service.bus.writes import ParamService
@@ -46,5 +47,6 @@ __all__ = [
     "holders_of",
     "open_session",
     "reply_format",
+    "use_runtime",
     "zenoh_config",
 ]

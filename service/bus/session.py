@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import threading
 from pathlib import Path
 
@@ -45,8 +46,47 @@ def zenoh_config(
     return conf
 
 
+RUNTIME_ENV = "ZENOH_RUNTIME"
+"""Zenoh's runtime layout (RON, read once, when the process first uses Zenoh)."""
+
+
+def runtime_layout(threads: int) -> str | None:
+    """`ZENOH_RUNTIME` for `bus.zenoh_threads`: every runtime handed over to the application
+    runtime, which gets `threads` workers; None (Zenoh's own layout) for 0.
+
+    Zenoh's default is five runtimes with six threads (receive 2, send, network, accept,
+    application). On two cores a query then crosses threads between its receipt and its reply's
+    send, each a wake-up: one thread for all of it took a command's round trip from 1.44x to
+    1.26x a bare echo, and a third of the daemon's CPU per command (BENCHMARKS.md section 1)."""
+    if threads == 0:
+        return None
+    handed = ", ".join(f"{rt}: (handover: app)" for rt in ("rx", "tx", "net", "acc"))
+    return f"({handed}, app: (worker_threads: {threads}))"
+
+
+def use_runtime(threads: int) -> str | None:
+    """Lay out Zenoh's runtime for this process before its first session (`bus.zenoh_threads`);
+    what the start line shows, or None when nothing was set. A `ZENOH_RUNTIME` already in the
+    environment is the operator's: it is kept, and named."""
+    if os.environ.get(RUNTIME_ENV):
+        return f"zenoh_runtime={RUNTIME_ENV}"
+    layout = runtime_layout(threads)
+    if layout is None:
+        return None
+    os.environ[RUNTIME_ENV] = layout
+    return f"zenoh_threads={threads}"
+
+
 def open_session(conf: zenoh.Config) -> zenoh.Session:
-    return zenoh.open(conf)
+    """The session; a `ZENOH_RUNTIME` Zenoh cannot read (it panics) is a `ValueError` that
+    names it, not a crash."""
+    try:
+        return zenoh.open(conf)
+    except BaseException as exc:  # pyo3's PanicException derives from BaseException
+        layout = os.environ.get(RUNTIME_ENV)
+        if isinstance(exc, Exception | KeyboardInterrupt | SystemExit) or not layout:
+            raise
+        raise ValueError(f"{RUNTIME_ENV}={layout!r} cannot be read by Zenoh: {exc}") from None
 
 
 def close_session(session: zenoh.Session, timeout: float = 3.0) -> bool:

@@ -114,6 +114,11 @@ class BusSection(_Section):
     clock_margin_s: float = Field(default=1.0, ge=0, le=86_400)
     """How far a sender's clock may be behind this machine's before its motion commands look
     older than their `valid_for` and are refused `STALE_REQUEST`."""
+    zenoh_threads: int = Field(default=1, ge=0, le=64)
+    """Zenoh's worker threads in the daemon: all of its runtimes (receive, send, network,
+    accept, application) handed over to one pool of this many threads; 0 keeps Zenoh's own
+    layout (five runtimes, six threads). Set as the daemon starts (`ZENOH_RUNTIME`, which wins
+    when the environment already has it)."""
 
 
 class EventsSection(_Section):

@@ -97,6 +97,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         daemon.tuned.append(f"malloc_arenas={config.loop.malloc_arenas}")
     if config.loop.cpus is not None and (pinned := pin_process(config.loop.cpus)):
         daemon.tuned.append(pinned)
+    if runtime := zbus.use_runtime(config.bus.zenoh_threads):
+        daemon.tuned.append(runtime)
     return daemon.run()
 
 
@@ -133,7 +135,7 @@ class Daemon:
         self._stop_recorded = False
         self.tuned: list[str] = []
         """What `run_daemon` applied to the process before it started (`loop.malloc_arenas`,
-        `loop.cpus`), for the start line's tuning."""
+        `loop.cpus`, `bus.zenoh_threads`), for the start line's tuning."""
 
     def run(self) -> int:
         """Set up, serve until stopped, undo; the exit code (the `EXIT_*` constants)."""
