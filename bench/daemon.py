@@ -29,6 +29,8 @@ class Tuning:
     rt_priority: int | None = None
     cpus: tuple[int, ...] | None = None
     """`loop.cpus`: the whole daemon pinned."""
+    zenoh_threads: int | None = None
+    """`bus.zenoh_threads` (None: the default, one)."""
 
     def label(self) -> str:
         parts = []
@@ -42,6 +44,8 @@ class Tuning:
             parts.append(f"daemon on cpus {'+'.join(map(str, self.cpus))}")
         if self.rt_priority is not None:
             parts.append(f"SCHED_FIFO {self.rt_priority}")
+        if self.zenoh_threads is not None:
+            parts.append(f"zenoh_threads {self.zenoh_threads}")
         return ", ".join(parts) or "defaults"
 
 
@@ -74,8 +78,11 @@ def config_toml(
         lines.append(f"cpus = {list(tuning.cpus)}")
     if watchdog_periods is not None:
         lines.append(f"watchdog_periods = {watchdog_periods}")
-    if heartbeat_s is not None:
-        lines += ["", "[bus]", f"heartbeat_s = {heartbeat_s!r}"]
+    bus = [] if heartbeat_s is None else [f"heartbeat_s = {heartbeat_s!r}"]
+    if tuning.zenoh_threads is not None:
+        bus.append(f"zenoh_threads = {tuning.zenoh_threads}")
+    if bus:
+        lines += ["", "[bus]", *bus]
     if not events:
         lines += ["", "[events]", "enabled = false"]
     return "\n".join(lines) + "\n"

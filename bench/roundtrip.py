@@ -44,6 +44,8 @@ RAW = "daemon: raw zenoh get"
 RAW_BARE = "daemon without event history: raw zenoh get"
 RAW_PINNED = "daemon on one CPU (loop.cpus): raw zenoh get"
 ECHO_PINNED = "bare zenoh echo on the same CPU"
+RAW_SIX = "daemon on Zenoh's own threads (bus.zenoh_threads = 0): raw zenoh get"
+ECHO_ONE = "bare zenoh echo on one Zenoh thread"
 ECHO = "bare zenoh echo queryable"
 ECHO_DIRECT = "bare zenoh echo, direct callback"
 ECHO_HANDOFF = "zenoh echo via a woken thread"
@@ -98,6 +100,11 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
             )
             pinned_echo_endpoint = echo_at("zenoh-echo-pinned.log", "--cpus", str(pin))
 
+        # `bus.zenoh_threads = 0`: Zenoh's own six threads, as before the default became one;
+        # and the echo on one Zenoh thread, as the daemon is by default.
+        six = stack.enter_context(bench_daemon(PERIOD_S, Tuning(zenoh_threads=0), machine_id="m4"))
+        one_echo_endpoint = echo_at("zenoh-echo-one.log", "--zenoh-threads", "1")
+
         echo_endpoint = echo_at("zenoh-echo.log")
         udp = Child(python_module("bench.baselines.udp_echo"), tmp / "udp-echo.log")
         stack.callback(udp.stop)
@@ -125,8 +132,12 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         bare_session = stack.enter_context(
             zenoh.open(rider_zenoh_config(bare.zenoh_config, connect=[bare.endpoint]))
         )
+        six_session = stack.enter_context(
+            zenoh.open(rider_zenoh_config(zconf, connect=[six.endpoint, one_echo_endpoint]))
+        )
         checked = [(rider.session, cmd_key := f"{rider.base}/cmd/check/home")]
         checked.append((bare_session, bare_key := "machine/m2/cmd/check/home"))
+        checked.append((six_session, six_key := "machine/m4/cmd/check/home"))
         if pin is not None:
             pinned_session = stack.enter_context(
                 zenoh.open(
@@ -139,7 +150,9 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         calls[RIDER] = rider.check_home
         calls[RAW] = lambda: _get_one(rider.session, cmd_key, _request(f"raw-{next(ids)}"))
         calls[RAW_BARE] = lambda: _get_one(bare_session, bare_key, _request(f"bare-{next(ids)}"))
+        calls[RAW_SIX] = lambda: _get_one(six_session, six_key, _request(f"six-{next(ids)}"))
         calls[ECHO] = lambda: _get_one(echo_session, "bench/echo", echo_payload)
+        calls[ECHO_ONE] = lambda: _get_one(six_session, "bench/echo", echo_payload)
         if pin is not None:
             calls[RAW_PINNED] = lambda: _get_one(
                 pinned_session, pinned_key, _request(f"pin-{next(ids)}")
@@ -191,6 +204,14 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         f" (`{RAW_BARE}`: a second daemon with `[events] enabled = false`). Each command is an"
         " event, made, written to SQLite and published by threads of the daemon beside the"
         " next commands."
+    )
+    raw, own, one = dists[RAW].p50, dists[RAW_SIX].p50, dists[ECHO_ONE].p50
+    section.notes.append(
+        f"Zenoh's threads: the daemons run Zenoh's five runtimes on one thread"
+        f" (`bus.zenoh_threads = 1`, the default); `{RAW_SIX}` is a fourth daemon on Zenoh's"
+        f" own layout (six threads): {ms(own)} ms at the median, {own / echo_p50:.2f}× the echo,"
+        f" against {ms(raw)} ms. The echo gains from one thread too: `{ECHO_ONE}` took"
+        f" {ms(one)} ms, and the raw get is {raw / one:.2f}× it."
     )
     if RAW_PINNED in dists:
         section.notes.append(

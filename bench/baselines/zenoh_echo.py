@@ -17,7 +17,7 @@ from pathlib import Path
 import zenoh
 
 from bench.baselines.lifetime import stop_event
-from service.bus import zenoh_config
+from service.bus import use_runtime, zenoh_config
 from service.core.runner import pin_process
 
 KEY = "bench/echo"
@@ -62,9 +62,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--cpus", help="pin the echo (every thread) to these CPUs, e.g. 1 or 0,1 (`loop.cpus`)"
     )
+    parser.add_argument(
+        "--zenoh-threads",
+        type=int,
+        default=0,
+        help="Zenoh's runtimes on one pool of this many threads (`bus.zenoh_threads`); 0, the"
+        " default: Zenoh's own layout",
+    )
     args = parser.parse_args(argv)
     if args.cpus is not None and pin_process([int(c) for c in args.cpus.split(",")]) is None:
         return 1
+    use_runtime(args.zenoh_threads)
     stop = stop_event(args.lifetime)
     handoff = Handoff(stop)
     handoff.thread.start()
