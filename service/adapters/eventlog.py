@@ -439,12 +439,20 @@ class EventLog:
                 # took the GIL from the Zenoh thread replying to the next command.
                 self._hurry.wait(COALESCE_S)
             self._hurry.clear()
-            batch = self._take()
-            if batch or self.dropped > self._dropped_recorded:
-                self._write(batch)
-            self._busy = False
+            batch: list[_Row] = []
+            try:
+                batch = self._take()
+                if batch or self.dropped > self._dropped_recorded:
+                    self._write(batch)
+            except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
+                self._fail(f"event writer failed: {exc!r}", len(batch), exc)
+            finally:
+                self._busy = False
             if self.wall() >= self._prune_due:
-                self._prune()
+                try:
+                    self._prune()
+                except Exception as exc:  # noqa: BLE001 - nor one bad prune
+                    self._fail(f"event prune failed: {exc!r}", 0, exc)
             with self._lock:
                 if self._stopping and not self._items:
                     return
@@ -479,7 +487,8 @@ class EventLog:
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
             if conn.in_transaction:
-                conn.execute("ROLLBACK")
+                with contextlib.suppress(sqlite3.Error):  # the disk that failed the write
+                    conn.execute("ROLLBACK")
             self._fail(str(exc), len(batch))
             return
         self._failure = None
@@ -493,7 +502,9 @@ class EventLog:
             except Exception as exc:  # noqa: BLE001 - a publishing failure loses no stored event
                 log.warning("event=events_publish_failed error=%r", str(exc))
 
-    def _fail(self, error: str, lost: int) -> None:
+    def _fail(self, error: str, lost: int, exc: BaseException | None = None) -> None:
+        """`lost` events not written: counted, recorded as `storage_failed` once writing works,
+        and logged once per problem (`exc`: with its traceback, a bug rather than a disk)."""
         self.failures += 1
         self.lost += lost
         self.last_error = error
@@ -503,7 +514,7 @@ class EventLog:
         # Once per problem, not once per batch: a full disk must not also fill the log.
         # Every loss is counted in diag and recorded as `storage_failed` once writing works.
         (log.debug if ongoing else log.error)(
-            "event=events_write_failed error=%r lost=%d", error, lost
+            "event=events_write_failed error=%r lost=%d", error, lost, exc_info=exc
         )
 
     def _reopen(self) -> sqlite3.Connection | None:

@@ -204,6 +204,64 @@ def test_a_held_record_that_cannot_be_made_is_counted_lost_and_the_writer_goes_o
     assert log.lost == 1
 
 
+def test_a_batch_that_fails_unexpectedly_is_counted_lost_and_the_writer_goes_on(
+    log: EventLog, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A bug, not a disk: the batch is lost and counted, the history goes on and says so."""
+    write = EventLog._write
+    batches: list[int] = []
+
+    def failing_once(self: EventLog, batch: list[eventlog._Row]) -> None:
+        batches.append(len(batch))
+        if len(batches) == 1:
+            raise RuntimeError("bug in a batch")
+        write(self, batch)
+
+    monkeypatch.setattr(EventLog, "_write", failing_once)
+    log.emit(WatchdogEvent(stalled_s=0.1), T0, 1)
+    assert log.flush()
+    log.emit(WatchdogEvent(stalled_s=0.2), T0 + 1, 2)
+    assert log.flush()
+    error = "event writer failed: RuntimeError('bug in a batch')"
+    assert [e.details for e in page(log).events] == [
+        StorageEvent(what="events", error=error, lost=1),
+        WatchdogEvent(stalled_s=0.2),
+    ]
+    assert (log.lost, log.failures, log.last_error) == (1, 1, error)
+    assert log._writer is not None and log._writer.is_alive()
+    [record] = [r for r in caplog.records if "events_write_failed" in r.getMessage()]
+    assert record.exc_info is not None  # a bug: its traceback is in the log
+
+
+def test_a_prune_that_fails_unexpectedly_leaves_the_writer_running(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken(self: EventLog) -> None:
+        self._prune_due = self.wall() + self.settings.prune_every_s
+        raise RuntimeError("bug in a prune")
+
+    monkeypatch.setattr(EventLog, "_prune", broken)
+    now = [T0]
+    log = EventLog(tmp_path / EVENTS_FILE, "m1", EventsSection(), wall=lambda: now[0])
+    log.start()
+    try:
+        for i in range(3):
+            now[0] += log.settings.prune_every_s  # a prune is due after each write
+            log.emit(WatchdogEvent(stalled_s=i / 10), T0 + i, i)
+            assert log.flush()
+        assert log.failures >= 2  # the third prune may still be under way
+        assert log.lost == 0
+        details = [e.details for e in page(log).events]
+        assert details[-1] == WatchdogEvent(stalled_s=0.2)
+        assert (
+            StorageEvent(what="events", error="event prune failed: RuntimeError('bug in a prune')")
+            in details
+        )
+        assert log._writer is not None and log._writer.is_alive()
+    finally:
+        log.close()
+
+
 def test_a_full_queue_drops_without_waiting_and_records_the_count_later(tmp_path: Path) -> None:
     log = EventLog(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
     # Not started: nothing drains the queue, as when the disk is slow.
