@@ -36,9 +36,10 @@ def encoding_of(query: zenoh.Query) -> str | None:
     return str(encoding) if encoding is not None else None
 
 
-def reply_format(query: zenoh.Query, encoding: str | None, payload: bytes | None = None) -> Format:
-    """JSON when asked (`?format=json`, a JSON encoding, or JSON text sent); msgpack otherwise."""
-    fmt = query.parameters.get("format")
+def reply_format(parameters: str, encoding: str | None, payload: bytes | None = None) -> Format:
+    """JSON when asked (`?format=json` in the selector's `parameters`, a JSON encoding, or JSON
+    text sent); msgpack otherwise."""
+    fmt = zenoh.Parameters(parameters).get("format") if parameters else None
     if fmt is not None:
         return Format.JSON if fmt.lower() == "json" else Format.MSGPACK
     if payload:

@@ -69,10 +69,11 @@ class Route:
 
 def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
     """Answer one query on `route`: exactly one reply, or a refusal, or (a covered read) none."""
-    key = str(query.key_expr)
+    # One read of the selector for the key and its parameters: each read crosses into Zenoh.
+    key, _, parameters = str(query.selector).partition("?")
     payload = query.payload.to_bytes() if query.payload is not None else b""
     encoding = encoding_of(query)
-    fmt = reply_format(query, encoding, payload if route.sniff else None)
+    fmt = reply_format(parameters, encoding, payload if route.sniff else None)
     request = Request(query, key, payload, encoding, fmt, host)
     try:
         rule = route.wildcard

@@ -116,6 +116,27 @@ def test_a_raised_machine_error_is_one_reply_in_the_refusal_shape(
     assert reply.error_message == "queue full"
 
 
+@pytest.mark.parametrize(
+    ("parameters", "fmt"),
+    [
+        ("", Format.MSGPACK),
+        ("?format=json", Format.JSON),
+        ("?x=1;format=JSON", Format.JSON),
+        ("?format=msgpack", Format.MSGPACK),
+        ("?formats=json", Format.MSGPACK),
+    ],
+)
+def test_the_reply_format_comes_from_the_selector_and_the_key_goes_without_it(
+    session: zenoh.Session, routes: Calls, parameters: str, fmt: Format
+) -> None:
+    (reply,) = session.get(f"{BASE}/read/a{parameters}", timeout=2.0)
+    assert reply.ok is not None
+    assert str(reply.ok.key_expr) == f"{BASE}/read/a"
+    assert decode(Echo, reply.ok.payload.to_bytes(), fmt) == Echo(key=f"{BASE}/read/a")
+    assert str(reply.ok.encoding).startswith(fmt.value)
+    assert routes.seen == [f"{BASE}/read/a"]
+
+
 def test_a_wildcard_on_a_key_that_acts_is_refused_before_its_handler(
     session: zenoh.Session, routes: Calls
 ) -> None:
