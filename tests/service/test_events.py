@@ -22,6 +22,7 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import MachineState
+from service.core import events as events_module
 from service.core.events import Held, ListEventSink, hold_limit
 from service.core.persist import StorageHealth
 from tests.rig import Rig, known_calibration
@@ -350,6 +351,29 @@ def test_a_sink_that_defers_gets_the_held_records_unmade_and_in_order(
         "second",
     ]
     assert "event=command tx=first" in caplog.text and "event=command tx=second" in caplog.text
+
+
+def test_without_a_history_a_held_record_writes_its_log_line_and_makes_no_event(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`[events] enabled = false`: the command's line is logged, in order, and none of its
+    events is made (they would only be dropped)."""
+    made: list[str] = []
+    command_event = events_module.CommandEvent
+
+    def counting(**fields: object) -> CommandEvent:
+        made.append(str(fields["transaction_id"]))
+        return command_event(**fields)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(events_module, "CommandEvent", counting)
+    rig = Rig(calibration=known_calibration())
+    caplog.set_level(logging.INFO, logger="machine")
+    between_cycles(rig, Command.CHECK_HOME, "first")
+    between_cycles(rig, Command.CHECK_HOME, "second")
+    rig.step()
+    assert made == []
+    lines = [r.getMessage() for r in caplog.records if "event=command" in r.getMessage()]
+    assert [line.split()[1] for line in lines] == ["tx=first", "tx=second"]
 
 
 def test_a_history_read_hands_over_held_records_unless_the_loop_is_stalled() -> None:
