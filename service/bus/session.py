@@ -56,8 +56,9 @@ def runtime_layout(threads: int) -> str | None:
 
     Zenoh's default is five runtimes with six threads (receive 2, send, network, accept,
     application). On two cores a query then crosses threads between its receipt and its reply's
-    send, each a wake-up: one thread for all of it took a command's round trip from 1.44x to
-    1.26x a bare echo, and a third of the daemon's CPU per command (BENCHMARKS.md section 1)."""
+    send, each a wake-up: one thread for all of it took a command's round trip from 1.49-1.54x
+    to 1.29-1.39x a bare echo, and a fifth off the daemon's CPU per command (BENCHMARKS.md
+    section 1); a bare echo gains as much from it."""
     if threads == 0:
         return None
     handed = ", ".join(f"{rt}: (handover: app)" for rt in ("rx", "tx", "net", "acc"))
