@@ -13,6 +13,7 @@ from bench import (
     events_cost,
     loop_timing,
     pick,
+    read_flood,
     rider_cost,
     rider_loss,
     roundtrip,
@@ -45,6 +46,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.pick", pick.run),
     ("bench.throughput", throughput.run),
     ("bench.rider_cost", rider_cost.run),
+    ("bench.read_flood", read_flood.run),
 ]
 
 

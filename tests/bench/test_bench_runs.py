@@ -28,6 +28,7 @@ MODULES = [
     "pick",
     "throughput",
     "rider_cost",
+    "read_flood",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0

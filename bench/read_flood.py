@@ -1,0 +1,208 @@
+"""Read flood: a peer keeps status reads in flight as fast as the daemon answers them, while a
+Rider sends commands beside it; for each layout of Zenoh's threads (`bus.zenoh_threads`).
+
+The `status`, `io/**` and `axis/**` reads are answered on Zenoh's own thread (they never block),
+so with one Zenoh thread a flood of them shares that thread with every command's receipt and
+reply and every publication's send. Three daemons (1 thread, the default; 2; Zenoh's own
+layout, `0`) are flooded in turn, in rounds, by one flooder process (its own Zenoh session,
+`WINDOW` gets in flight); meanwhile this process sends sequential `check/home` gets 2 ms apart.
+Per phase: the reads the flooder got answered, the commands' round trips, and the daemon's
+cycle counters (`diag/reset` before, `diag/cycle` after).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import itertools
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import msgpack
+import zenoh
+
+from bench.common import (
+    Child,
+    Dist,
+    Options,
+    Section,
+    Table,
+    Target,
+    main_for,
+    ms,
+    python_module,
+)
+from bench.daemon import Tuning, bench_daemon
+from rider.client import zenoh_config as rider_zenoh_config
+from tests.procs import Daemon
+
+PERIOD_S = 0.010
+LAYOUTS = (1, 2, 0)
+"""`bus.zenoh_threads` of each daemon (0: Zenoh's own layout, six threads)."""
+WINDOW = 32
+"""Status gets the flooder keeps in flight."""
+COMMAND_GAP_S = 0.002
+GET_TIMEOUT_S = 2.0
+
+
+def flooder(connect: str, zenoh_config: Path, key: str) -> int:
+    """Reads `run <seconds>` lines; floods `key` for that long, answering `result <reads>`."""
+    with zenoh.open(rider_zenoh_config(zenoh_config, connect=[connect])) as session:
+        key_expr = session.declare_keyexpr(key)
+        print("ready", flush=True)
+        for line in sys.stdin:
+            parts = line.split()
+            if not parts or parts[0] != "run":
+                break
+            end = time.monotonic() + float(parts[1])
+            reads = 0
+            while time.monotonic() < end:
+                pending = [session.get(key_expr, timeout=GET_TIMEOUT_S) for _ in range(WINDOW)]
+                for replies in pending:
+                    reads += sum(1 for r in replies if r.ok is not None)
+            print(f"result {reads}", flush=True)
+    return 0
+
+
+def _label(threads: int) -> str:
+    return "Zenoh's own (0: six threads)" if threads == 0 else str(threads)
+
+
+def _commands(
+    session: zenoh.Session, key: str, seconds: float, ids: itertools.count[int]
+) -> list[float]:
+    """Sequential `check/home` gets, `COMMAND_GAP_S` apart, for `seconds`: their round trips."""
+    out: list[float] = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        payload = msgpack.packb({"transaction_id": f"rf-{next(ids)}", "timecode": time.time()})
+        t0 = time.perf_counter()
+        replies = list(session.get(key, payload=payload, timeout=GET_TIMEOUT_S))
+        out.append(time.perf_counter() - t0)
+        if len(replies) != 1 or replies[0].ok is None:
+            raise RuntimeError(f"{key}: no reply beside the flood")
+        time.sleep(COMMAND_GAP_S)
+    return out
+
+
+def run(opts: Options) -> Section:
+    seconds = opts.pick(1.0, 6.0, 15.0)
+    rounds = opts.pick(1, 2, 3)
+    section = Section("read_flood", "10. Read flood and Zenoh's threads")
+    rtts: dict[int, list[float]] = {n: [] for n in LAYOUTS}
+    reads: dict[int, int] = dict.fromkeys(LAYOUTS, 0)
+    jitter: dict[int, list[float]] = {n: [] for n in LAYOUTS}
+    overruns: dict[int, int] = dict.fromkeys(LAYOUTS, 0)
+    flooded_s: dict[int, float] = dict.fromkeys(LAYOUTS, 0.0)
+    ids = itertools.count()
+    with contextlib.ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-rf-")))
+        daemons: dict[int, Daemon] = {
+            n: stack.enter_context(
+                bench_daemon(PERIOD_S, Tuning(zenoh_threads=n), machine_id=f"rf{n}")
+            )
+            for n in LAYOUTS
+        }
+        floods: dict[int, Child] = {}
+        for n, daemon in daemons.items():
+            flood = Child(
+                python_module(
+                    "bench.read_flood",
+                    "flooder",
+                    "--connect",
+                    daemon.endpoint,
+                    "--zenoh-config",
+                    daemon.zenoh_config,
+                    "--key",
+                    f"machine/{daemon.machine_id}/status",
+                ),
+                tmp / f"flooder-{n}.log",
+                stdin=True,
+            )
+            stack.callback(flood.stop)
+            floods[n] = flood
+        for flood in floods.values():
+            flood.expect("ready")
+        riders = {n: stack.enter_context(d.rider(supervise=False)) for n, d in daemons.items()}
+        for rider in riders.values():  # warm-up: the session has met its machine
+            _commands(rider.session, f"{rider.base}/cmd/check/home", 0.2, ids)
+        for r in range(rounds):
+            order = LAYOUTS if r % 2 == 0 else LAYOUTS[::-1]
+            for n in order:
+                rider = riders[n]
+                rider.diag(reset=True)
+                t0 = time.monotonic()
+                floods[n].send(f"run {seconds}")
+                rtts[n] += _commands(rider.session, f"{rider.base}/cmd/check/home", seconds, ids)
+                reads[n] += int(floods[n].expect("result", timeout=seconds + 30.0))
+                flooded_s[n] += time.monotonic() - t0
+                diag = rider.diag()
+                jitter[n].append(diag.jitter.p99)
+                overruns[n] += diag.overruns
+    table = Table(
+        f"A flooder keeping {WINDOW} `status` gets in flight, {rounds} × {seconds:g} s per layout"
+        f" (interleaved), commands 2 ms apart beside it; daemon loop at {PERIOD_S * 1e3:g} ms",
+        [
+            "Zenoh threads (bus.zenoh_threads)",
+            "reads/s answered",
+            "commands",
+            "command p50 ms",
+            "command p99 ms",
+            "scan jitter p99 ms (worst phase)",
+            "overruns",
+        ],
+    )
+    for n in LAYOUTS:
+        d = Dist.of(rtts[n])
+        table.add(
+            _label(n),
+            f"{reads[n] / flooded_s[n]:,.0f}",
+            len(rtts[n]),
+            ms(d.p50),
+            ms(d.p99),
+            ms(max(jitter[n])),
+            overruns[n],
+        )
+    section.tables.append(table)
+    default = LAYOUTS[0]
+    section.targets.append(
+        Target(
+            f"overruns at {PERIOD_S * 1e3:g} ms under the flood, {default} Zenoh thread (default)",
+            "0",
+            f"{overruns[default]} in {flooded_s[default]:.0f} s",
+            overruns[default] == 0,
+        )
+    )
+    section.targets.append(
+        Target.at_most(
+            f"command p99 beside the flood, {default} Zenoh thread (within one period)",
+            Dist.of(rtts[default]).p99,
+            PERIOD_S,
+            lambda x: f"{ms(x)} ms",
+        )
+    )
+    section.notes.append(
+        "The reads are answered on Zenoh's thread(s); the commands on a Python thread of their"
+        " own. With one Zenoh thread the flood and the commands' messages share it: the flooder"
+        " gets more reads answered, and a command beside it waits longer. The scan loop runs on"
+        " its own thread either way; its jitter and overruns say what the flood cost it."
+    )
+    return section
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["flooder"]:
+        parser = argparse.ArgumentParser(prog="bench.read_flood flooder")
+        parser.add_argument("--connect", required=True)
+        parser.add_argument("--zenoh-config", type=Path, required=True)
+        parser.add_argument("--key", required=True)
+        args = parser.parse_args(argv[1:])
+        return flooder(args.connect, args.zenoh_config, args.key)
+    return main_for("bench.read_flood", __doc__ or "", run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
