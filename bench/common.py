@@ -20,6 +20,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TextIO, TypeVar
 
+import msgpack
 import zenoh
 
 from tests.procs import LineReader, stop_process
@@ -451,6 +452,12 @@ def tenths(n: int, rows: int = 10) -> list[int]:
     if picked and picked[-1] != n - 1:
         picked.append(n - 1)
     return picked
+
+
+def command_request(transaction_id: str) -> bytes:
+    """The msgpack body of a benchmark's raw command get: its id and the time it is sent."""
+    body = {"transaction_id": transaction_id, "timecode": time.time(), "rider": None}
+    return bytes(msgpack.packb(body))
 
 
 def only_reply(replies: list[zenoh.Reply], key: str) -> bytes:

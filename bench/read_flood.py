@@ -20,7 +20,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import msgpack
 import zenoh
 
 from bench.common import (
@@ -30,8 +29,10 @@ from bench.common import (
     Section,
     Table,
     Target,
+    command_request,
     main_for,
     ms,
+    only_reply,
     python_module,
 )
 from bench.daemon import Tuning, bench_daemon
@@ -77,12 +78,11 @@ def _commands(
     out: list[float] = []
     end = time.monotonic() + seconds
     while time.monotonic() < end:
-        payload = msgpack.packb({"transaction_id": f"rf-{next(ids)}", "timecode": time.time()})
+        payload = command_request(f"rf-{next(ids)}")
         t0 = time.perf_counter()
         replies = list(session.get(key, payload=payload, timeout=GET_TIMEOUT_S))
         out.append(time.perf_counter() - t0)
-        if len(replies) != 1 or replies[0].ok is None:
-            raise RuntimeError(f"{key}: no reply beside the flood")
+        only_reply(replies, key)
         time.sleep(COMMAND_GAP_S)
     return out
 

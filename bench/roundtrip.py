@@ -15,7 +15,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import msgpack
 import zenoh
 
 from bench.baselines.udp_echo import UdpClient
@@ -26,6 +25,7 @@ from bench.common import (
     Section,
     Table,
     Target,
+    command_request,
     main_for,
     ms,
     only_reply,
@@ -54,10 +54,6 @@ UDP = "raw UDP echo"
 RAW_GOAL = 1.3
 RIDER_GOAL = 1.4
 GRPC_FACTOR = 1.5
-
-
-def _request(tid: str) -> bytes:
-    return bytes(msgpack.packb({"transaction_id": tid, "timecode": time.time(), "rider": None}))
 
 
 def _get_one(session: zenoh.Session, key: str, payload: bytes) -> bytes:
@@ -146,16 +142,18 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
             )
             checked.append((pinned_session, pinned_key := "machine/m3/cmd/check/home"))
         ids = itertools.count()
-        echo_payload = _request("echo-000000")
+        echo_payload = command_request("echo-000000")
         calls[RIDER] = rider.check_home
-        calls[RAW] = lambda: _get_one(rider.session, cmd_key, _request(f"raw-{next(ids)}"))
-        calls[RAW_BARE] = lambda: _get_one(bare_session, bare_key, _request(f"bare-{next(ids)}"))
-        calls[RAW_SIX] = lambda: _get_one(six_session, six_key, _request(f"six-{next(ids)}"))
+        calls[RAW] = lambda: _get_one(rider.session, cmd_key, command_request(f"raw-{next(ids)}"))
+        calls[RAW_BARE] = lambda: _get_one(
+            bare_session, bare_key, command_request(f"bare-{next(ids)}")
+        )
+        calls[RAW_SIX] = lambda: _get_one(six_session, six_key, command_request(f"six-{next(ids)}"))
         calls[ECHO] = lambda: _get_one(echo_session, "bench/echo", echo_payload)
         calls[ECHO_ONE] = lambda: _get_one(six_session, "bench/echo", echo_payload)
         if pin is not None:
             calls[RAW_PINNED] = lambda: _get_one(
-                pinned_session, pinned_key, _request(f"pin-{next(ids)}")
+                pinned_session, pinned_key, command_request(f"pin-{next(ids)}")
             )
             calls[ECHO_PINNED] = lambda: _get_one(pinned_session, "bench/echo", echo_payload)
         calls[ECHO_DIRECT] = lambda: _get_one(echo_session, "bench/echo-direct", echo_payload)
@@ -165,7 +163,7 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         calls[UDP] = lambda: udp_client.call(echo_payload)
 
         for session, key in checked:
-            first = decode(Reply, _get_one(session, key, _request("check")), Format.MSGPACK)
+            first = decode(Reply, _get_one(session, key, command_request("check")), Format.MSGPACK)
             if not first.success:
                 raise RuntimeError(f"{key} refused: {first.error}")
         for fn in calls.values():

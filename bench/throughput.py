@@ -18,10 +18,18 @@ import tempfile
 import time
 from pathlib import Path
 
-import msgpack
 import zenoh
 
-from bench.common import Child, Options, Section, Table, Target, main_for, python_module
+from bench.common import (
+    Child,
+    Options,
+    Section,
+    Table,
+    Target,
+    command_request,
+    main_for,
+    python_module,
+)
 from bench.daemon import bench_daemon
 from rider.client import zenoh_config as rider_zenoh_config
 from schema.diag import CycleDiag
@@ -33,11 +41,6 @@ GET_TIMEOUT_S = 2.0
 
 
 # ------------------------------------------------------------------------------ worker
-def _request(prefix: str, n: int) -> bytes:
-    body = {"transaction_id": f"{prefix}-{n}", "timecode": time.time(), "rider": None}
-    return bytes(msgpack.packb(body))
-
-
 def worker(connect: list[str], zenoh_config: Path, name: str) -> int:
     """Reads `run <key> <seconds>` lines; answers each with `result {"count": n, "failed": f}`."""
     ids = itertools.count()
@@ -51,7 +54,7 @@ def worker(connect: list[str], zenoh_config: Path, name: str) -> int:
             count = failed = 0
             end = time.monotonic() + seconds
             while time.monotonic() < end:
-                payload = _request(name, next(ids))
+                payload = command_request(f"{name}-{next(ids)}")
                 replies = list(session.get(key, payload=payload, timeout=GET_TIMEOUT_S))
                 if len(replies) == 1 and replies[0].ok is not None:
                     count += 1
