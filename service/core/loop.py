@@ -41,6 +41,7 @@ from service.core.io import IoChanges, IoPoints, ProcessImage
 from service.core.transactions import TransactionLog
 from service.core.watchdog import GuardedHal
 from service.errors import Busy, NotAvailable
+from service.logfmt import info
 
 log = logging.getLogger("machine")
 
@@ -646,12 +647,10 @@ def _log_command(
     command: Command, request: CommandRequest, reply: Reply, sender: str | None
 ) -> None:
     """A command's one log line (written with its events, after its reply)."""
-    log.info(
-        "event=command tx=%s command=%s rider=%s timecode=%s code=%s state=%s",
-        request.transaction_id,
-        command.value,
-        request.rider or sender,
-        request.timecode,
-        reply.error.code if reply.error is not None else reply.code,
-        reply.state,
+    code = reply.error.code if reply.error is not None else reply.code
+    info(
+        log,
+        f"event=command tx={request.transaction_id} command={command.value}"
+        f" rider={request.rider or sender} timecode={request.timecode} code={code}"
+        f" state={reply.state}",
     )

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import io
 import logging
+import re
 import threading
 import time
-from logging.handlers import QueueListener
+
+import pytest
 
 from service import logfmt
-from service.logfmt import KeyValueFormatter, LineHandler, LineQueue
+from service.logfmt import KeyValueFormatter, LineHandler, LineQueue, LineWriter
 
 
 def _record(created: float) -> logging.LogRecord:
@@ -41,10 +43,8 @@ class _Stalled(io.StringIO):
         return super().write(text)
 
 
-def _logger(lines: LineQueue, stream: io.StringIO) -> tuple[logging.Logger, QueueListener]:
-    out = logging.StreamHandler(stream)
-    out.setFormatter(KeyValueFormatter())
-    writer = QueueListener(lines, out)  # type: ignore[arg-type]
+def _logger(lines: LineQueue, stream: io.StringIO) -> tuple[logging.Logger, LineWriter]:
+    writer = LineWriter(lines, stream)
     writer.start()
     logger = logging.getLogger(f"test-logfmt-{id(lines)}")
     logger.propagate = False
@@ -76,7 +76,8 @@ def test_a_stalled_reader_never_blocks_the_logger_and_the_lost_lines_are_counted
     for i in range(1000):
         logger.info("event=n i=%d", i)
     assert time.monotonic() - started < 5.0  # each call returned although nothing was written
-    assert lines.dropped >= 1000 - 100 - 1  # the writer holds at most one line in its write
+    # The writer holds at most one batch (here the whole queue) in its write.
+    assert lines.dropped >= 1000 - 2 * 100
     dropped = lines.dropped
     stream.go.set()
     deadline = time.monotonic() + 5.0
@@ -108,3 +109,85 @@ def test_the_exit_flush_writes_every_queued_line_and_never_hangs_on_a_stalled_re
     assert time.monotonic() - started < 2.0
     assert logfmt._writer is None
     stalled.go.set()
+
+
+class _Kept(LineQueue):
+    """A queue that keeps what kind of thing each queued item was."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.kinds: list[str] = []
+
+    def put_nowait(self, record: logfmt.Item) -> None:
+        self.kinds.append(type(record).__name__)
+        super().put_nowait(record)
+
+
+class _Counted(io.StringIO):
+    """A stream that counts its writes."""
+
+    writes = 0
+
+    def write(self, text: str) -> int:
+        self.writes += 1
+        return super().write(text)
+
+
+def test_a_burst_of_lines_is_written_in_one_write_per_batch() -> None:
+    lines, stream = LineQueue(), _Counted()
+    logger, writer = _logger(lines, stream)
+    for i in range(200):
+        logger.info("event=n i=%d", i)
+    writer.stop()
+    text = stream.getvalue().splitlines()
+    assert [int(line.rsplit("i=", 1)[1]) for line in text] == list(range(200))
+    assert stream.writes <= 200 // logfmt.WRITE_MAX + 2  # not one per line
+
+
+def test_a_line_made_as_text_reads_as_the_same_line_made_from_a_record(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    lines, stream = _Kept(), io.StringIO()
+    logger, writer = _logger(lines, stream)
+    monkeypatch.setattr(logfmt, "_handler", logger.handlers[0])
+    logger.info("%s", "event=command tx=a code=OK")
+    logfmt.info(logger, "event=command tx=a code=OK")
+    writer.stop()
+    assert lines.kinds == ["LogRecord", "str", "NoneType"]  # the second made no record
+    record_line, text_line = stream.getvalue().splitlines()
+    stamp = r"ts=\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z"
+    for line in (record_line, text_line):
+        assert re.fullmatch(
+            stamp + f" level=info logger={logger.name} event=command tx=a code=OK", line
+        )
+
+
+def test_a_line_made_as_text_goes_as_a_record_where_another_handler_or_a_filter_would_see_it(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    lines, stream = _Kept(), io.StringIO()
+    logger, writer = _logger(lines, stream)
+    monkeypatch.setattr(logfmt, "_handler", logger.handlers[0])
+    logger.propagate = True  # pytest's capture sits at the root
+    with caplog.at_level(logging.INFO):
+        logfmt.info(logger, "event=a value=100%s")
+    logger.propagate = False
+    seen: list[str] = []
+
+    def look(record: logging.LogRecord) -> bool:
+        seen.append(record.getMessage())
+        return True
+
+    logger.addFilter(look)
+    logfmt.info(logger, "event=b")
+    logger.filters.clear()
+    logger.setLevel(logging.WARNING)
+    logfmt.info(logger, "event=c")  # below the level: neither a line nor a record
+    writer.stop()
+    assert [r.getMessage() for r in caplog.records] == ["event=a value=100%s"]
+    assert seen == ["event=b"]
+    assert lines.kinds == ["LogRecord", "LogRecord", "NoneType"]
+    assert [line.split(" ", 3)[3] for line in stream.getvalue().splitlines()] == [
+        "event=a value=100%s",
+        "event=b",
+    ]
