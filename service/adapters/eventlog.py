@@ -64,6 +64,7 @@ CREATE INDEX IF NOT EXISTS events_kind ON events(kind, seq);
 
 
 _TABLE_COLUMNS = ["seq", "time", "cycle", "machine_id", "kind", "details"]
+_INSERT = "INSERT INTO events (time, cycle, machine_id, kind, details) VALUES (?, ?, ?, ?, ?)"
 
 BUSY_TIMEOUT_S = 1.0
 """How long a write or read waits for a database another process holds locked before it
@@ -473,17 +474,12 @@ class EventLog:
         if conn is None:
             self._fail(self.last_error or "event log unavailable", len(batch))
             return
-        rows: list[StoredRow] = []
+        machine_id = self.machine_id
         try:
             conn.execute("BEGIN")
-            for kind, details, when, cycle in items:
-                cur = conn.execute(
-                    "INSERT INTO events (time, cycle, machine_id, kind, details)"
-                    " VALUES (?, ?, ?, ?, ?)",
-                    (when, cycle, self.machine_id, kind, details),
-                )
-                assert cur.lastrowid is not None
-                rows.append((cur.lastrowid, when, cycle, self.machine_id, kind, details))
+            conn.executemany(_INSERT, [(w, c, machine_id, k, d) for k, d, w, c in items])
+            # One transaction holds the write lock: AUTOINCREMENT numbered the batch in a row.
+            [(last,)] = conn.execute("SELECT last_insert_rowid()").fetchall()
             conn.execute("COMMIT")
         except sqlite3.Error as exc:
             if conn.in_transaction:
@@ -493,9 +489,14 @@ class EventLog:
             return
         self._failure = None
         self._dropped_recorded += dropped
-        self.written += len(rows)
+        self.written += len(items)
         if not self._listeners:
             return
+        first = last - len(items) + 1
+        rows: list[StoredRow] = [
+            (first + i, when, cycle, machine_id, kind, details)
+            for i, (kind, details, when, cycle) in enumerate(items)
+        ]
         for listener in self._listeners:
             try:
                 listener(rows)

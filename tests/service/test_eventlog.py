@@ -90,6 +90,33 @@ def test_listeners_get_each_committed_batch_with_its_seq(log: EventLog) -> None:
     assert events == page(log).events  # what listeners get is what is stored
 
 
+def test_listeners_get_the_stored_seq_of_every_row_after_a_prune_and_a_reopen(
+    tmp_path: Path,
+) -> None:
+    """A batch is inserted in one statement and numbered from SQLite's last row id: the seq
+    a listener gets is the stored one, also once the oldest rows are gone (AUTOINCREMENT never
+    reuses a number) and in a log opened again."""
+    path = tmp_path / EVENTS_FILE
+    first = open_log(path)
+    for i in range(4):
+        first.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)
+    assert first.flush()
+    first.close()
+    with connect(path) as conn:
+        conn.execute("DELETE FROM events WHERE seq >= 3")  # the newest gone: a max() would reuse 3
+    log = open_log(path, batch_max=3)
+    try:
+        seen: list[StoredRow] = []
+        log.subscribe(seen.extend)
+        for i in range(7):
+            log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, 100 + i)
+        assert log.flush()
+        assert [row[0] for row in seen] == list(range(5, 12))
+        assert [row_event(row) for row in seen] == page(log, since=5).events
+    finally:
+        log.close()
+
+
 @pytest.mark.parametrize("details", DETAILS, ids=lambda d: type(d).__name__)
 def test_a_rows_wire_bytes_are_its_events_encoding(details: KnownDetails) -> None:
     """The bus publishes `row_payload(row)`, made without the model: the same bytes as the
