@@ -58,8 +58,6 @@ class Publications:
         s, b = self.session, self.base
         self.loop.completion_listeners.append(self.publish_completion)
         self.loop.calibration_listeners.append(self.publish_calibration)
-        if self.events is not None:
-            self.events.subscribe(self._publish_events)
         drop = zenoh.CongestionControl.DROP
         self._status_pub = s.declare_publisher(
             f"{b}/status",
@@ -71,13 +69,18 @@ class Publications:
         self._diag_pub = s.declare_publisher(
             f"{b}/diag/cycle", encoding=Format.MSGPACK.value, congestion_control=drop
         )
+        # Never put on: it only tells whether anybody (a Rider following, a storage) would
+        # receive an event, from Zenoh's routing tables, where a put would be dropped anyway.
+        self._events_pub = s.declare_publisher(f"{b}/events/*")
+        if self.events is not None:
+            self.events.subscribe(self._publish_events)
         for point in self.loop.points.all():
             self._publisher(f"{b}/io/{point.kind}/{point.name}")
         for axis in ("rotate", "tilt"):
             self._publisher(f"{b}/axis/{axis}")
         self._diag_thread = threading.Thread(target=self._diag_loop, name="diag", daemon=True)
         self._diag_thread.start()
-        return [self._status_pub, self._diag_pub]
+        return [self._status_pub, self._diag_pub, self._events_pub]
 
     def undeclare(self) -> None:
         """Stop the diag publisher; drop the tokens and the data publishers."""
@@ -189,8 +192,18 @@ class Publications:
 
     def _publish_events(self, rows: list[StoredRow]) -> None:
         """From the event log's writer thread: each event on its own key, `events/<seq>`, so a
-        Zenoh storage keeps them all (it keeps the latest sample per key)."""
-        if self._stop.is_set():
+        Zenoh storage keeps them all (it keeps the latest sample per key). Not made at all
+        while no subscriber matches `events/*`: under a command stream with nobody following,
+        making and putting them was a third of the writer's work per command (BENCHMARKS.md,
+        section 1); a subscriber declared later would not have received them either."""
+        if self._stop.is_set() or not matching(self._events_pub):
             return
         for row in rows:
             self._put(f"{self.base}/events/{row[0]}", row_payload(row))
+
+
+def matching(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches `publisher`'s key expression (zenoh-python 1.x returns a
+    `MatchingStatus`, which its type stubs call a bool)."""
+    status: Any = publisher.matching_status
+    return bool(getattr(status, "matching", status))

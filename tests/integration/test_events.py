@@ -15,6 +15,7 @@ import pytest
 import zenoh
 
 from rider.client import Rider
+from schema.codec import Format, decode
 from schema.events import Event, EventPage
 from schema.status import MachineState, Status
 from service.adapters.eventlog import EVENTS_FILE
@@ -253,3 +254,52 @@ def test_a_lost_rider_is_recorded_with_what_the_policy_did(tmp_path: Path) -> No
     state = events[at + 1].details
     assert state.kind == "state" and (state.old, state.new) == (S.CALIBRATING, S.PAUSED)  # type: ignore[union-attr]
     assert state.reason == "Rider lost"  # type: ignore[union-attr]
+
+
+def heard(samples: list[zenoh.Sample]) -> dict[int, Event]:
+    """The events among `samples`, by the seq in their key."""
+    return {
+        int(str(s.key_expr).rsplit("/", 1)[1]): decode(Event, s.payload.to_bytes(), Format.MSGPACK)
+        for s in list(samples)
+        if "/events/" in str(s.key_expr)
+    }
+
+
+def test_a_subscriber_that_comes_later_gets_every_event_from_then_on(tmp_path: Path) -> None:
+    """The daemon makes no event publication while no subscriber matches `events/*` (Zenoh's
+    matching status): a storage-like subscriber on `machine/**` and a narrow one on the events,
+    each declared after commands nobody heard, get every later event once, as stored."""
+    daemon = start_daemon(tmp_path)
+    conf = zenoh.Config.from_file(str(daemon.zenoh_config))
+    conf.insert_json5("connect/endpoints", json.dumps([daemon.endpoint]))
+    try:
+        with daemon.rider(supervise=False) as r, zenoh.open(conf) as session:
+            for _ in range(5):
+                r.check_home()  # nobody follows: stored, not published
+            unheard = r.events(last=1)[-1].seq  # a read writes what is queued first
+            for key in ("machine/**", f"machine/{daemon.machine_id}/events/*"):
+                got: list[zenoh.Sample] = []
+                sub = session.declare_subscriber(key, got.append)
+                deadline = time.monotonic() + 10.0
+
+                try:
+                    while not heard(got):  # until the daemon has seen the subscription
+                        r.check_home()
+                        assert time.monotonic() < deadline, f"{key}: no event published"
+                        time.sleep(0.02)
+                    for _ in range(5):
+                        r.check_home()
+                    last = r.events(last=1)[-1].seq
+                    while last not in heard(got):
+                        assert time.monotonic() < deadline, f"{key}: events went missing"
+                        time.sleep(0.02)
+                finally:
+                    sub.undeclare()
+                events = heard(got)
+                first = min(events)
+                assert len([s for s in got if "/events/" in str(s.key_expr)]) == len(events)
+                stored = [e for e in r.events(since=first) if e.seq <= last]
+                assert [events[e.seq] for e in stored] == stored  # every one, as stored
+                assert len(stored) >= 5 and first > unheard
+    finally:
+        daemon.stop()
