@@ -2,9 +2,11 @@
 
 Queryables are a table of routes (`routes.py`): each query becomes one `Request` (key, format,
 payload), a handler answers it with `reply` or raises a `MachineError`, and `Request.refuse`
-turns that into the one refusal shape. A command runs on Zenoh's callback thread, between two
-scan cycles, under the loop's lock (one writer at a time; the next cycle still reads inputs and
+turns that into the one refusal shape. A command runs on Zenoh's own thread, between two scan
+cycles, under the loop's lock (one writer at a time; the next cycle still reads inputs and
 handles E-stop before any output changes) and is answered from the same thread: no hand-off.
+It never waits there: while the scan holds the lock, the command waits on a thread of its own
+(`commands.Deferred`), in arrival order.
 Other work for the machine goes to the scan thread through the `Inbox`. Read-only queries
 (status, IO, axes, diagnostics) are answered from the latest published records without
 touching state. Publishers drop rather than block under congestion.

@@ -1,26 +1,77 @@
-"""`cmd/<command>`: decoded and run on Zenoh's callback thread, between two scan cycles.
+"""`cmd/<command>`: decoded and run on Zenoh's own thread, between two scan cycles.
 
 The hot path of the bus: one dictionary lookup on the key, one decode, the command under the
-loop's lock, one reply (`Request.reply`, prebuilt key expression and encoding).
+loop's lock, one reply (`Request.reply`, prebuilt key expression and encoding). The callback
+runs on Zenoh's thread (no hand-off to a Python thread first), so it never waits there: when
+the scan thread holds the loop's lock (mid-cycle), or a command is already waiting, the
+command goes to `Deferred`, a thread of its own that waits for the lock in order.
 """
 
 from __future__ import annotations
 
+import logging
+import threading
+from collections import deque
 from collections.abc import Callable
 
 import zenoh
 
-from schema.commands import REQUEST_MODELS, Command, Reply
+from schema.commands import REQUEST_MODELS, Command, CommandRequest, Reply
 from service.bus.request import Request, sender_of
 from service.bus.routes import Handler, Route, Wildcard
 from service.core.loop import PendingCommand, ScanLoop
-from service.errors import BadRequest, Busy, UnknownCommand, WildcardCommand
+from service.errors import BadRequest, Busy, MachineError, UnknownCommand, WildcardCommand
+
+log = logging.getLogger(__name__)
 
 LOCK_TIMEOUT_S = 0.5
 """How long a command waits for the scan thread to finish a cycle before BUSY (a stalled loop)."""
+DEFERRED_MAX = 64
+"""Commands waiting for the loop's lock at most; beyond this a command is refused BUSY."""
 
 
-def command_route(handler: Handler, keys: tuple[str, ...] = ()) -> Route:
+class Deferred:
+    """Commands that found the loop's lock taken: run in arrival order on a thread of their own,
+    started when the first one arrives and ended when none is left (no thread while idle)."""
+
+    def __init__(self, capacity: int = DEFERRED_MAX) -> None:
+        self.capacity = capacity
+        self.pending = 0
+        """Queued or running: while any is, a later command queues behind it (its order)."""
+        self._jobs: deque[Callable[[], None]] = deque()
+        self._lock = threading.Lock()
+        self._running = False
+
+    def put(self, job: Callable[[], None]) -> bool:
+        """Queue `job`; False (and nothing queued) when `capacity` are pending."""
+        with self._lock:
+            if self.pending >= self.capacity:
+                return False
+            self._jobs.append(job)
+            self.pending += 1
+            if self._running:
+                return True
+            self._running = True
+        threading.Thread(target=self._run, name="cmd-deferred", daemon=True).start()
+        return True
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                if not self._jobs:
+                    self._running = False
+                    return
+                job = self._jobs.popleft()
+            try:
+                job()
+            except Exception as exc:  # the next command must still run
+                log.error("event=command_failed error=%r", str(exc), exc_info=exc)
+            finally:
+                with self._lock:
+                    self.pending -= 1
+
+
+def command_route(handler: Handler, keys: tuple[str, ...] = (), *, direct: bool = False) -> Route:
     """`cmd/**`, one queryable for every command key: a query reaches one callback, where a
     queryable per command beside a `cmd/**` one made every command wait for two
     (bench/roundtrip). Any wildcard is refused, as a Zenoh error reply."""
@@ -34,6 +85,7 @@ def command_route(handler: Handler, keys: tuple[str, ...] = ()) -> Route:
         noun="command",
         refusal=WildcardCommand,
         keys=keys,
+        direct=direct,
     )
 
 
@@ -49,9 +101,11 @@ class Commands:
             f"{base}/cmd/{c.key}": (c, zenoh.KeyExpr(f"{base}/cmd/{c.key}")) for c in Command
         }
         """Exact command key → (command, its prebuilt key expression: no parsing per reply)."""
+        self.deferred = Deferred()
 
     def routes(self) -> list[Route]:
-        return [command_route(self.command, tuple(f"cmd/{c.key}" for c in Command))]
+        keys = tuple(f"cmd/{c.key}" for c in Command)
+        return [command_route(self.command, keys, direct=True)]
 
     def command(self, request: Request) -> None:
         """A known command key runs its command; any other key is refused."""
@@ -68,6 +122,31 @@ class Commands:
             )
         body = request.decode(REQUEST_MODELS[command])
         sender = sender_of(request.query)
+        if not self.deferred.pending:
+            reply = self.loop.execute_if_free(command, body, self.clock, sender=sender)
+            if reply is not None:
+                request.reply(reply, key_expr)
+                return
+
+        def wait() -> None:
+            try:
+                self._wait(request, command, body, sender, key_expr)
+            except MachineError as exc:
+                request.refuse(exc)
+
+        if not self.deferred.put(wait):
+            raise Busy("command queue full; retry later")
+
+    def _wait(
+        self,
+        request: Request,
+        command: Command,
+        body: CommandRequest,
+        sender: str | None,
+        key_expr: zenoh.KeyExpr,
+    ) -> None:
+        """On the deferred thread: wait for the lock (BUSY if the scan stalls past the timeout),
+        or queue it for the scan thread before the first scan and after shutdown."""
         reply = self.loop.execute_between_cycles(
             command, body, self.clock, sender=sender, timeout=LOCK_TIMEOUT_S
         )
@@ -75,7 +154,6 @@ class Commands:
             request.reply(reply, key_expr)
             return
 
-        # Before the first scan (no input image yet) or after shutdown: the scan thread decides.
         def respond(reply: Reply) -> None:
             request.reply(reply, key_expr)
 

@@ -196,13 +196,13 @@ class Publications:
         while no subscriber matches `events/*`: under a command stream with nobody following,
         making and putting them was a third of the writer's work per command (BENCHMARKS.md,
         section 1); a subscriber declared later would not have received them either."""
-        if self._stop.is_set() or not matching(self._events_pub):
+        if self._stop.is_set() or not subscribed(self._events_pub):
             return
         for row in rows:
             self._put(f"{self.base}/events/{row[0]}", row_payload(row))
 
 
-def matching(publisher: zenoh.Publisher) -> bool:
+def subscribed(publisher: zenoh.Publisher) -> bool:
     """Whether a subscriber matches `publisher`'s key expression (zenoh-python 1.x returns a
     `MatchingStatus`, which its type stubs call a bool)."""
     status: Any = publisher.matching_status

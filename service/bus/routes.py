@@ -56,8 +56,9 @@ class Route:
     the wildcard, on the hot path of every command (BENCHMARKS.md, section 1)."""
     direct: bool = False
     """Run the handler on Zenoh's receive thread instead of a Python thread of its own (one
-    fewer thread and hop): only for handlers that never block, i.e. replies from published
-    records. Not `cmd/**`: measured slower that way (BENCHMARKS.md, section 1)."""
+    fewer thread and hop): only for handlers that never block (replies from published
+    records; `cmd/**`, which runs a command only when the loop's lock is free and otherwise
+    hands it to a thread of its own)."""
 
     def refuse_wildcard(self, base: str, key: str) -> MachineError:
         """The one wildcard refusal."""

@@ -2,8 +2,9 @@
 
 `ScanLoop.step(now)` is a pure function of (inputs, queued commands, now); the real-time runner
 in `service/core/runner.py` calls it on absolute deadlines. Machine state has one writer at a time,
-`ScanLoop.lock`: the scan thread holds it for each cycle; a Zenoh callback thread holds it to run
-a command between cycles (`execute_between_cycles`); other threads put work into the `Inbox`.
+`ScanLoop.lock`: the scan thread holds it for each cycle; Zenoh's thread takes it, if free, to run
+a command between cycles (`execute_if_free`), and the bus's deferred thread waits for it
+(`execute_between_cycles`); other threads put work into the `Inbox`.
 """
 
 from __future__ import annotations
@@ -284,7 +285,7 @@ class ScanLoop:
         self._max_tasks = config.loop.max_commands_per_cycle
         self.lock = threading.Lock()
         """One writer at a time: held by the runner for a cycle (and for queued tasks between
-        cycles), and by a Zenoh callback thread running a command between cycles."""
+        cycles), and by the bus running a command between cycles."""
         self.tasks_run = 0
         """Inbox tasks run (between cycles and within them)."""
         self.quiet_cycles = True
@@ -459,6 +460,25 @@ class ScanLoop:
                 timecode=clock() + self.wall_offset,
                 request_timecode=request.timecode,
             )
+        try:
+            if self.cycle == 0 or self.inbox.closed:
+                return None
+            return self.execute(command, request, clock(), sender=sender)
+        finally:
+            self.lock.release()
+
+    def execute_if_free(
+        self,
+        command: Command,
+        request: CommandRequest,
+        clock: Callable[[], float],
+        *,
+        sender: str | None = None,
+    ) -> Reply | None:
+        """`execute_between_cycles` without waiting: None, and nothing run, while the scan
+        thread holds the lock (mid-cycle), before the first scan and after shutdown."""
+        if not self.lock.acquire(blocking=False):
+            return None
         try:
             if self.cycle == 0 or self.inbox.closed:
                 return None
