@@ -184,10 +184,11 @@ def run(opts: Options) -> Section:
         )
     )
     section.notes.append(
-        "The reads are answered on Zenoh's thread(s); the commands on a Python thread of their"
-        " own. With one Zenoh thread the flood and the commands' messages share it: the flooder"
-        " gets more reads answered, and a command beside it waits longer. The scan loop runs on"
-        " its own thread either way; its jitter and overruns say what the flood cost it."
+        "The reads and the commands are answered on Zenoh's thread(s) (a command that finds"
+        " the loop's lock taken waits on a thread of its own). With one Zenoh thread the flood"
+        " and the commands share it: the flooder gets more reads answered, and a command beside"
+        " it waits longer. The scan loop runs on its own thread either way; its jitter and"
+        " overruns say what the flood cost it."
     )
     return section
 
