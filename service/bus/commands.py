@@ -123,7 +123,9 @@ class Commands:
         body = request.decode(REQUEST_MODELS[command])
         sender = sender_of(request.query)
         if not self.deferred.pending:
-            reply = self.loop.execute_if_free(command, body, self.clock, sender=sender)
+            reply = self.loop.execute_between_cycles(
+                command, body, self.clock, sender=sender, timeout=None
+            )
             if reply is not None:
                 request.reply(reply, key_expr)
                 return

@@ -3,8 +3,8 @@
 `ScanLoop.step(now)` is a pure function of (inputs, queued commands, now); the real-time runner
 in `service/core/runner.py` calls it on absolute deadlines. Machine state has one writer at a time,
 `ScanLoop.lock`: the scan thread holds it for each cycle; Zenoh's thread takes it, if free, to run
-a command between cycles (`execute_if_free`), and the bus's deferred thread waits for it
-(`execute_between_cycles`); other threads put work into the `Inbox`.
+a command between cycles, and the bus's deferred thread waits for it (`execute_between_cycles`);
+other threads put work into the `Inbox`.
 """
 
 from __future__ import annotations
@@ -443,16 +443,20 @@ class ScanLoop:
         clock: Callable[[], float],
         *,
         sender: str | None = None,
-        timeout: float,
+        timeout: float | None,
     ) -> Reply | None:
         """Run a command on the calling thread under the loop's lock, between two cycles.
 
         The command sees the state the last cycle left, as a queued one would; its effect on
         outputs comes with the next cycle, which reads inputs and handles E-stop first. None
         before the first scan and after shutdown (queue it instead); a BUSY reply when the scan
-        thread holds the lock longer than `timeout` (stalled).
+        thread holds the lock longer than `timeout` (stalled). `timeout=None` never waits: None,
+        and nothing run, while the scan thread holds the lock (mid-cycle).
         """
-        if not self.lock.acquire(timeout=timeout):
+        if timeout is None:
+            if not self.lock.acquire(blocking=False):
+                return None
+        elif not self.lock.acquire(timeout=timeout):
             return Reply.failure(
                 Busy("scan loop not responding; retry later").to_error(),
                 transaction_id=request.transaction_id,
@@ -460,25 +464,6 @@ class ScanLoop:
                 timecode=clock() + self.wall_offset,
                 request_timecode=request.timecode,
             )
-        try:
-            if self.cycle == 0 or self.inbox.closed:
-                return None
-            return self.execute(command, request, clock(), sender=sender)
-        finally:
-            self.lock.release()
-
-    def execute_if_free(
-        self,
-        command: Command,
-        request: CommandRequest,
-        clock: Callable[[], float],
-        *,
-        sender: str | None = None,
-    ) -> Reply | None:
-        """`execute_between_cycles` without waiting: None, and nothing run, while the scan
-        thread holds the lock (mid-cycle), before the first scan and after shutdown."""
-        if not self.lock.acquire(blocking=False):
-            return None
         try:
             if self.cycle == 0 or self.inbox.closed:
                 return None
