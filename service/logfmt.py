@@ -38,14 +38,16 @@ def _stamp(created: float) -> str:
     return f"{text}.{int((created - second) * 1000):03d}Z"
 
 
+def _line(created: float, level: str, logger: str, message: str) -> str:
+    """One log line: `ts=... level=... logger=... <message>`."""
+    return f"ts={_stamp(created)} level={level} logger={logger} {message}"
+
+
 class KeyValueFormatter(logging.Formatter):
     """`ts=... level=... logger=... event=...`: greppable and machine-parsable."""
 
     def format(self, record: logging.LogRecord) -> str:
-        line = (
-            f"ts={_stamp(record.created)} level={record.levelname.lower()}"
-            f" logger={record.name} {record.getMessage()}"
-        )
+        line = _line(record.created, record.levelname.lower(), record.name, record.getMessage())
         if record.exc_info:
             line += " traceback=" + repr(self.formatException(record.exc_info))
         return line
@@ -236,8 +238,7 @@ def info(logger: logging.Logger, message: str) -> None:
     other handler, filter or level (a test's capture, a library's setup) gets the record."""
     handler = _handler
     if handler is not None and logger.isEnabledFor(logging.INFO) and _only(logger, handler):
-        now = time.time()
-        handler.queue.put_nowait(f"ts={_stamp(now)} level=info logger={logger.name} {message}")
+        handler.queue.put_nowait(_line(time.time(), "info", logger.name, message))
         return
     logger.info("%s", message)
 
