@@ -9,6 +9,7 @@ command goes to `Deferred`, a thread of its own that waits for the lock in order
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 from collections import deque
@@ -37,10 +38,10 @@ class Deferred:
     def __init__(self, capacity: int = DEFERRED_MAX) -> None:
         self.capacity = capacity
         self.pending = 0
-        """Queued or running: while any is, a later command queues behind it (its order)."""
+        """Queued or running; the thread runs exactly while any is: while it does, a later
+        command queues behind them (its order)."""
         self._jobs: deque[Callable[[], None]] = deque()
         self._lock = threading.Lock()
-        self._running = False
 
     def put(self, job: Callable[[], None]) -> bool:
         """Queue `job`; False (and nothing queued) when `capacity` are pending."""
@@ -49,26 +50,23 @@ class Deferred:
                 return False
             self._jobs.append(job)
             self.pending += 1
-            if self._running:
-                return True
-            self._running = True
+            if self.pending > 1:
+                return True  # the thread running the others takes it
         threading.Thread(target=self._run, name="cmd-deferred", daemon=True).start()
         return True
 
     def _run(self) -> None:
         while True:
             with self._lock:
-                if not self._jobs:
-                    self._running = False
-                    return
                 job = self._jobs.popleft()
             try:
                 job()
             except Exception as exc:  # the next command must still run
                 log.error("event=command_failed error=%r", str(exc), exc_info=exc)
-            finally:
-                with self._lock:
-                    self.pending -= 1
+            with self._lock:
+                self.pending -= 1
+                if not self.pending:
+                    return
 
 
 def command_route(handler: Handler, keys: tuple[str, ...] = (), *, direct: bool = False) -> Route:
@@ -130,12 +128,7 @@ class Commands:
                 request.reply(reply, key_expr)
                 return
 
-        def wait() -> None:
-            try:
-                self._wait(request, command, body, sender, key_expr)
-            except MachineError as exc:
-                request.refuse(exc)
-
+        wait = functools.partial(self._wait, request, command, body, sender, key_expr)
         if not self.deferred.put(wait):
             raise Busy("command queue full; retry later")
 
@@ -148,19 +141,22 @@ class Commands:
         key_expr: zenoh.KeyExpr,
     ) -> None:
         """On the deferred thread: wait for the lock (BUSY if the scan stalls past the timeout),
-        or queue it for the scan thread before the first scan and after shutdown."""
-        reply = self.loop.execute_between_cycles(
-            command, body, self.clock, sender=sender, timeout=LOCK_TIMEOUT_S
-        )
-        if reply is not None:
-            request.reply(reply, key_expr)
-            return
+        or queue it for the scan thread before the first scan and after shutdown; refused as
+        `dispatch` would (away from it)."""
 
         def respond(reply: Reply) -> None:
             request.reply(reply, key_expr)
 
-        if not self.loop.inbox.put(PendingCommand(command, body, respond, sender)):
-            raise Busy("command queue full; retry later")
+        try:
+            reply = self.loop.execute_between_cycles(
+                command, body, self.clock, sender=sender, timeout=LOCK_TIMEOUT_S
+            )
+            if reply is not None:
+                respond(reply)
+            elif not self.loop.inbox.put(PendingCommand(command, body, respond, sender)):
+                raise Busy("command queue full; retry later")
+        except MachineError as exc:
+            request.refuse(exc)
 
     def _unknown(self, key: str) -> UnknownCommand:
         prefix = f"{self.base}/cmd/"
