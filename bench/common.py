@@ -446,6 +446,16 @@ class Child:
         return self.proc.returncode
 
 
+def run_lines() -> Iterator[list[str]]:
+    """A helper process's side of `Child.send`: the arguments of each `run ...` line on its
+    stdin, until any other line or the end of input."""
+    for line in sys.stdin:
+        parts = line.split()
+        if not parts or parts[0] != "run":
+            return
+        yield parts[1:]
+
+
 def tenths(n: int, rows: int = 10) -> list[int]:
     """Indices of `n` samples for a curve over a run: one per tenth (`rows`), and the last."""
     picked = list(range(0, n, max(1, n // rows)))

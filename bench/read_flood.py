@@ -34,6 +34,7 @@ from bench.common import (
     ms,
     only_reply,
     python_module,
+    run_lines,
 )
 from bench.daemon import Tuning, bench_daemon
 from rider.client import zenoh_config as rider_zenoh_config
@@ -53,11 +54,8 @@ def flooder(connect: str, zenoh_config: Path, key: str) -> int:
     with zenoh.open(rider_zenoh_config(zenoh_config, connect=[connect])) as session:
         key_expr = session.declare_keyexpr(key)
         print("ready", flush=True)
-        for line in sys.stdin:
-            parts = line.split()
-            if not parts or parts[0] != "run":
-                break
-            end = time.monotonic() + float(parts[1])
+        for (seconds,) in run_lines():
+            end = time.monotonic() + float(seconds)
             reads = 0
             while time.monotonic() < end:
                 pending = [session.get(key_expr, timeout=GET_TIMEOUT_S) for _ in range(WINDOW)]

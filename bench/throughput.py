@@ -29,6 +29,7 @@ from bench.common import (
     command_request,
     main_for,
     python_module,
+    run_lines,
 )
 from bench.daemon import bench_daemon
 from rider.client import zenoh_config as rider_zenoh_config
@@ -46,11 +47,8 @@ def worker(connect: list[str], zenoh_config: Path, name: str) -> int:
     ids = itertools.count()
     with zenoh.open(rider_zenoh_config(zenoh_config, connect=connect)) as session:
         print("ready", flush=True)
-        for line in sys.stdin:
-            parts = line.split()
-            if not parts or parts[0] != "run":
-                break
-            key, seconds = parts[1], float(parts[2])
+        for key, seconds_text in run_lines():
+            seconds = float(seconds_text)
             count = failed = 0
             end = time.monotonic() + seconds
             while time.monotonic() < end:
