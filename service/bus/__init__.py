@@ -13,8 +13,9 @@ touching state. Publishers drop rather than block under congestion.
 
 Modules by role: `request` (one query, one reply function), `routes` (the table and the
 wildcard rule), `commands`, `reads`, `writes`, `injection` (`sim/**` through `SimPort`),
-`publications`, `presence` (duplicates, Riders), `session` (config, open, close), `node` (the
-daemon's bus), `supervisor` (the supervisor's), `exposure`.
+`publications`, `presence` (duplicates, Riders), `callbacks` (Zenoh's threads keep their
+Python state), `session` (config, open, close), `node` (the daemon's bus), `supervisor` (the
+supervisor's), `exposure`.
 """
 
 from service.bus.commands import LOCK_TIMEOUT_S

@@ -12,6 +12,7 @@ import zenoh
 
 from schema import rider as rider_keys
 from schema.events import RiderEvent
+from service.bus.callbacks import direct
 from service.config.model import MachineConfig
 from service.core.loop import LoopCall, ScanLoop
 
@@ -68,8 +69,7 @@ class Presence:
         # Each callback only notes what arrived (a set, a dict, the inbox): run on Zenoh's own
         # thread, without a Python thread each, and in arrival order.
         rider, beat, holder = (
-            zenoh.handlers.Callback(fn, indirect=False)
-            for fn in (self._on_rider, self._on_heartbeat, self._on_holder)
+            direct(fn) for fn in (self._on_rider, self._on_heartbeat, self._on_holder)
         )
         return [
             live.declare_subscriber(rider_keys.ALIVE_KEYS, rider, history=True),

@@ -14,6 +14,7 @@ from typing import Any
 
 import zenoh
 
+from service.bus.callbacks import direct
 from service.bus.request import Host, Request, encoding_of, reply_format
 from service.errors import BadKey, MachineError
 
@@ -56,9 +57,9 @@ class Route:
     the wildcard, on the hot path of every command (BENCHMARKS.md, section 1)."""
     direct: bool = False
     """Run the handler on Zenoh's receive thread instead of a Python thread of its own (one
-    fewer thread and hop): only for handlers that never block (replies from published
-    records; `cmd/**`, which runs a command only when the loop's lock is free and otherwise
-    hands it to a thread of its own)."""
+    fewer thread and hop; `callbacks.direct`): only for handlers that never block (replies
+    from published records; `cmd/**`, which runs a command only when the loop's lock is free
+    and otherwise hands it to a thread of its own)."""
 
     def refuse_wildcard(self, base: str, key: str) -> MachineError:
         """The one wildcard refusal."""
@@ -97,7 +98,7 @@ def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Rout
         def fn(query: zenoh.Query) -> None:
             dispatch(route, base, host, query)
 
-        return zenoh.handlers.Callback(fn, indirect=False) if route.direct else fn
+        return direct(fn) if route.direct else fn
 
     declared: list[Any] = []
     for r in routes:
