@@ -7,13 +7,21 @@ from collections import OrderedDict
 from schema.commands import Reply
 from service.errors import DuplicateTransaction
 
+_to_json = Reply.__pydantic_serializer__.to_json
+
 
 class TransactionLog:
-    """The last `capacity` replies by transaction id (oldest forgotten first)."""
+    """The last `capacity` replies by transaction id (oldest forgotten first).
+
+    Each reply is kept as its JSON (1 µs to make; a repeat reads it back). Kept as models,
+    thousands of long-lived objects turning over at the command rate were the garbage
+    collector's: a full collection every few thousand commands, 15-18 ms with the GIL held
+    (BENCHMARKS.md, section 1). Bytes are not tracked by it.
+    """
 
     def __init__(self, capacity: int = 4096) -> None:
         self.capacity = capacity
-        self._replies: OrderedDict[str, tuple[str, Reply]] = OrderedDict()
+        self._replies: OrderedDict[str, tuple[str, bytes]] = OrderedDict()
         self.repeats = 0
 
     def lookup(self, transaction_id: str, command: str, timecode: float) -> Reply | None:
@@ -22,7 +30,8 @@ class TransactionLog:
         if hit is None:
             return None
         self.repeats += 1
-        first_command, reply = hit
+        first_command, packed = hit
+        reply = Reply.model_validate_json(packed)
         if first_command == command:
             return reply
         return Reply.failure(
@@ -37,7 +46,7 @@ class TransactionLog:
         )
 
     def record(self, transaction_id: str, command: str, reply: Reply) -> None:
-        self._replies[transaction_id] = (command, reply)
+        self._replies[transaction_id] = (command, _to_json(reply))
         if len(self._replies) > self.capacity:
             self._replies.popitem(last=False)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 from dataclasses import dataclass
 
 import pytest
@@ -447,3 +448,17 @@ def test_transaction_window_forgets_the_oldest_id() -> None:
     assert reply.code is R.RESP_DONE
     # "c" is still remembered.
     assert rig.send(C.STOP, transaction_id="c").error is not None
+
+
+def test_the_transaction_window_holds_no_objects_for_the_garbage_collector() -> None:
+    """Thousands of remembered replies turning over at the command rate, kept as models, made
+    every full collection long; kept as bytes, the collector never looks at them."""
+    rig = Rig(calibration=known_calibration())
+    first = rig.send(C.CHECK_HOME, transaction_id="gc-0")
+    for i in range(1, 50):
+        rig.send(C.CHECK_HOME, transaction_id=f"gc-{i}")
+    gc.collect()
+    entries = gc.get_referents(rig.loop.transactions._replies)
+    assert len(entries) >= 50
+    assert not any(gc.is_tracked(e) for e in entries)
+    assert rig.send(C.CHECK_HOME, transaction_id="gc-0") == first  # read back whole
