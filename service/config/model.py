@@ -33,6 +33,10 @@ class LoopSection(_Section):
     period_s: float = Field(default=0.010, ge=0.001, le=1.0)
     spin_s: float = Field(default=0.0, ge=0.0, le=0.005)
     gc_freeze: bool = True
+    gc_threshold: int = Field(default=10_000, ge=100, le=1_000_000)
+    """Young objects that start a garbage collection (`gc.set_threshold`'s first value;
+    Python's default 700). A command stream keeps ~15 objects per command in flight to the
+    event writer: at 700 a collection ran every batch, ~45 a second (BENCHMARKS.md section 1)."""
     switch_interval_s: float = Field(default=0.0005, ge=0.0001, le=0.1)
     """How long another Python thread (a command's callback under a storm) may keep the GIL
     once the scan thread wants it (`sys.setswitchinterval`; Python's default is 5 ms)."""

@@ -192,6 +192,14 @@ def tune_thread(
     return applied
 
 
+def gc_threshold(young: int) -> str:
+    """How many young objects start a garbage collection, for the process (the older
+    generations' thresholds are Python's)."""
+    _, middle, old = gc.get_threshold()
+    gc.set_threshold(young, middle, old)
+    return f"gc_threshold={young}"
+
+
 def switch_interval(seconds: float) -> str:
     """How long any Python thread keeps the GIL once another one wants it, for the process.
 

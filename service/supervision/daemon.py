@@ -32,6 +32,7 @@ from service.core.runner import (
     LoopFailed,
     RealtimeRunner,
     die_with_parent,
+    gc_threshold,
     pin_process,
     switch_interval,
     tune_thread,
@@ -313,6 +314,7 @@ class Daemon:
         config = self.config
         self.served = True
         applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
+        applied.append(gc_threshold(config.loop.gc_threshold))
         applied.append(switch_interval(config.loop.switch_interval_s))
         applied += self.tuned
         log.info(

@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import gc
 import sys
 import threading
 from collections.abc import Callable
 
 import pytest
 
-from service.core.runner import TIMER_SLACK_NS, switch_interval, timer_slack, tune_thread
+from service.core.runner import (
+    TIMER_SLACK_NS,
+    gc_threshold,
+    switch_interval,
+    timer_slack,
+    tune_thread,
+)
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux")
 
@@ -62,3 +69,13 @@ def test_the_switch_interval_is_set_for_the_process() -> None:
         assert sys.getswitchinterval() == pytest.approx(0.0005)
     finally:
         sys.setswitchinterval(before)
+
+
+def test_the_young_generation_threshold_is_set_and_the_older_ones_kept() -> None:
+    before = gc.get_threshold()
+    try:
+        gc.set_threshold(700, 11, 12)
+        assert gc_threshold(10_000) == "gc_threshold=10000"
+        assert gc.get_threshold() == (10_000, 11, 12)
+    finally:
+        gc.set_threshold(*before)
