@@ -15,11 +15,14 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
+from typing import Any
 
 import pytest
 import zenoh
 
-from service.bus import callbacks
+from rider.client import _direct as riders_direct
+from schema import threadstate
+from service.bus.callbacks import direct
 from service.bus.session import RUNTIME_ENV, open_session, use_runtime
 from tests.procs import REPO, free_port
 
@@ -55,10 +58,13 @@ def scenario(how: str, threads: int) -> Counts:
     """Serve `CALLS` queries with the callback wrapped `how`; the counts it saw."""
     use_runtime(threads)
     if how == "bounded":  # the bound reached before the first call
-        callbacks.KEPT_MAX = 0
+        threadstate.KEPT_MAX = 0
     counts: Counts = {}
     fn = _counting(counts)
-    handler = zenoh.handlers.Callback(fn, indirect=False) if how == "pyo3" else callbacks.direct(fn)
+    if how == "pyo3":
+        handler: zenoh.handlers.Callback[Any] = zenoh.handlers.Callback(fn, indirect=False)
+    else:
+        handler = riders_direct(fn) if how == "rider" else direct(fn)  # type: ignore[arg-type]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with open_session(_config("listen", endpoint)) as server:
         queryable = server.declare_queryable(KEY, handler)
@@ -89,11 +95,15 @@ def run_child(how: str, threads: int = 1) -> Counts:
     return counts
 
 
-@pytest.mark.parametrize("threads", [1, 0], ids=["one Zenoh thread", "Zenoh's own threads"])
+@pytest.mark.parametrize(
+    ("how", "threads"),
+    [("direct", 1), ("direct", 0), ("rider", 0)],
+    ids=["the daemon, one Zenoh thread", "the daemon, Zenoh's own threads", "the Rider"],
+)
 def test_a_direct_callback_keeps_its_thread_state_from_one_call_to_the_next(
-    threads: int,
+    how: str, threads: int
 ) -> None:
-    counts = run_child("direct", threads)
+    counts = run_child(how, threads)
     # Per Zenoh thread the count goes on (1, 2, 3, ...): one state for every call.
     assert all(c == list(range(1, len(c) + 1)) for c in counts.values()), counts
     assert max(map(len, counts.values())) > CALLS // 2
