@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from collections import OrderedDict
 
+from schema.codec import Format, encode
 from schema.commands import Reply
 from service.errors import DuplicateTransaction
-
-_to_json = Reply.__pydantic_serializer__.to_json
 
 
 class TransactionLog:
@@ -46,7 +45,7 @@ class TransactionLog:
         )
 
     def record(self, transaction_id: str, command: str, reply: Reply) -> None:
-        self._replies[transaction_id] = (command, _to_json(reply))
+        self._replies[transaction_id] = (command, encode(reply, Format.JSON))
         if len(self._replies) > self.capacity:
             self._replies.popitem(last=False)
 
