@@ -51,7 +51,7 @@ class Idle:
     rss: int
     peak: int
     threads: int
-    windows: tuple[float, ...] = ()
+    rounds: tuple[float, ...] = ()
     """CPU % in each round, in order."""
 
 
@@ -117,7 +117,7 @@ def idle_pair(period_s: float, seconds: float, rounds: int, tmp: Path) -> list[I
 def _median_of(runs: list[Idle]) -> Idle:
     ranked = sorted(runs, key=lambda i: i.cpu)
     middle = ranked[(len(ranked) - 1) // 2]
-    return replace(middle, windows=tuple(i.cpu for i in runs))
+    return replace(middle, rounds=tuple(i.cpu for i in runs))
 
 
 def idle_zenoh(seconds: float, tmp: Path, zenoh_config: Path) -> Idle:
@@ -195,7 +195,7 @@ def run(opts: Options) -> Section:
         ["process", "CPU % of one core", "rounds", "RSS MiB", "peak RSS MiB", "threads"],
     )
     for i in idles:
-        each = " / ".join(f"{c:.1f}" for c in i.windows)
+        each = " / ".join(f"{c:.1f}" for c in i.rounds)
         table.add(i.label, f"{i.cpu:.1f}", each, mib(i.rss), mib(i.peak), i.threads)
     section.tables.append(table)
     rate_table = Table(
