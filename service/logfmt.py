@@ -23,6 +23,8 @@ import time
 from collections import deque
 from typing import Any
 
+from service.threads import NamedThread
+
 _second: tuple[int, str] = (-1, "")
 """The last second formatted, and its text: one tuple, so a thread reads both of one second."""
 
@@ -142,7 +144,7 @@ class LineWriter:
         self.lines = lines
         self.stream = stream
         self.formatter = KeyValueFormatter()
-        self._thread = threading.Thread(target=self._run, name="log-writer", daemon=True)
+        self._thread = NamedThread(target=self._run, name="log-writer", daemon=True)
 
     def start(self) -> None:
         self._thread.start()

@@ -18,6 +18,7 @@ from hal.base import HalError
 from hal.iomap import IoMap
 from schema.sim import SimWorldState
 from service.config.model import PhysicsParams
+from service.threads import NamedThread
 from sim import faults as simfaults
 from sim.procimg import ProcImgSim
 
@@ -56,7 +57,7 @@ class SimWorld:
         self.failures = 0
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="sim-world", daemon=True)
+        self._thread = NamedThread(target=self._run, name="sim-world", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:

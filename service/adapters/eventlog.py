@@ -40,6 +40,7 @@ from schema.events import (
 )
 from service.config.model import EventsSection
 from service.core.events import Held
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -296,9 +297,9 @@ class EventLog:
                 self._replace(exc)
             else:
                 self._fail(f"cannot open {self.path}: {exc}", 0)
-        self._writer = threading.Thread(target=self._run, name="eventlog", daemon=True)
+        self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
         self._writer.start()
-        self._reader = threading.Thread(target=self._serve_reads, name="eventlog-read", daemon=True)
+        self._reader = NamedThread(target=self._serve_reads, name="eventlog-read", daemon=True)
         self._reader.start()
 
     def _open(self) -> None:

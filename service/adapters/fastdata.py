@@ -25,6 +25,7 @@ from schema.fastdata import (
     encode,
 )
 from service.config.model import MachineConfig
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -202,7 +203,7 @@ class FastDataServer:
         sock.setblocking(False)
         self._sock = sock
         self._port = sock.getsockname()[1]
-        self._thread = threading.Thread(target=self._serve, name="fastdata", daemon=True)
+        self._thread = NamedThread(target=self._serve, name="fastdata", daemon=True)
         self._thread.start()
         log.info("event=fastdata_listening host=%s port=%d", self.host, self._port)
 

@@ -22,6 +22,7 @@ from service.bus.request import Request, sender_of
 from service.bus.routes import Handler, Route, Wildcard
 from service.core.loop import PendingCommand, ScanLoop
 from service.errors import BadRequest, Busy, MachineError, UnknownCommand, WildcardCommand
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ class Deferred:
             self.pending += 1
             if self.pending > 1:
                 return True  # the thread running the others takes it
-        threading.Thread(target=self._run, name="cmd-deferred", daemon=True).start()
+        NamedThread(target=self._run, name="cmd-deferred", daemon=True).start()
         return True
 
     def _run(self) -> None:

@@ -26,6 +26,7 @@ from service.adapters.eventlog import EventLog, StoredRow, row_payload
 from service.config.model import MachineConfig
 from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
+from service.threads import NamedThread
 
 MSGPACK = zenoh.Encoding(Format.MSGPACK.value)
 """Prebuilt for one-off publications (no encoding string parsed per put)."""
@@ -78,7 +79,7 @@ class Publications:
             self._publisher(f"{b}/io/{point.kind}/{point.name}")
         for axis in ("rotate", "tilt"):
             self._publisher(f"{b}/axis/{axis}")
-        self._diag_thread = threading.Thread(target=self._diag_loop, name="diag", daemon=True)
+        self._diag_thread = NamedThread(target=self._diag_loop, name="diag", daemon=True)
         self._diag_thread.start()
         return [self._status_pub, self._diag_pub, self._events_pub]
 

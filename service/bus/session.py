@@ -10,6 +10,7 @@ from pathlib import Path
 import zenoh
 
 from schema.credentials import MACHINE, zenoh_settings
+from service.threads import NamedThread
 
 Session = zenoh.Session
 """The session type, for modules outside this package (they never import `zenoh` themselves)."""
@@ -98,5 +99,5 @@ def close_session(session: zenoh.Session, timeout: float = 3.0) -> bool:
         session.close()
         done.set()
 
-    threading.Thread(target=closer, name="zenoh-close", daemon=True).start()
+    NamedThread(target=closer, name="zenoh-close", daemon=True).start()
     return done.wait(timeout)

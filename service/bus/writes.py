@@ -4,7 +4,6 @@ hand, and the diagnostics reset. A write names one key of one machine (no wildca
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -22,6 +21,7 @@ from service.core.loop import LoopCall, ScanLoop, calibration_record
 from service.core.persist import SaveTicket
 from service.core.timing import CycleStats
 from service.errors import BadRequest, Busy, MachineError, Rejected, StorageFailed
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +155,7 @@ class Writes:
                 req.rotate is not None,
             )
             # The scan thread never waits for the disk: a short-lived thread answers.
-            threading.Thread(
+            NamedThread(
                 target=_answer_saved,
                 args=(request, record, ticket),
                 name="calibration-saved",

@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, FiniteFloat, ValidationError
 from schema.calibration import CalibrationSource
 from schema.errors import ErrorCode
 from service.core.devices import Calibration, RotateCalibration, TiltCalibration
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +204,7 @@ class BackgroundWriter:
 
     def __init__(self, name: str = "persist") -> None:
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread = NamedThread(target=self._run, name=name, daemon=True)
         self._thread.start()
         self.failures = 0
 

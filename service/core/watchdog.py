@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 
 from hal.base import Hal, Inputs, Outputs
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ class Watchdog:
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="watchdog", daemon=True)
+        self._thread = NamedThread(target=self._run, name="watchdog", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:

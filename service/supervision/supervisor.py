@@ -24,7 +24,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -49,6 +48,7 @@ from service.core.runner import SUPERVISOR_PID_ENV
 from service.simwing import World, sim_world
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
+from service.threads import NamedThread
 
 log = logging.getLogger("machine.supervisor")
 
@@ -389,7 +389,7 @@ class Supervisor:
         child = Child(proc, self.generation, time.monotonic())
         self.child = child
         log.info("event=child_started generation=%d pid=%d", child.generation, proc.pid)
-        threading.Thread(
+        NamedThread(
             target=self._reap, args=(child,), name=f"reap-{child.generation}", daemon=True
         ).start()
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from schema.status import MachineState
 from tests.procs import Daemon
 
@@ -12,3 +14,13 @@ def test_rider_reads_status_of_a_fresh_daemon(daemon: Daemon) -> None:
     assert status.machine_id == "m1"
     assert status.state is MachineState.WARNING_NEEDS_CALIBRATION
     assert status.estop.active is False
+
+
+def test_the_daemons_threads_carry_their_names_for_the_os(daemon: Daemon) -> None:
+    """`top -H` and `ps -L` tell the threads apart: each of ours under its own name, the
+    Zenoh runtime under its own, none of ours under the name of the thread that started it."""
+    with daemon.rider() as r:
+        r.check_home()  # a command answered: the event writer has run
+    tasks = Path(f"/proc/{daemon.proc.pid}/task")
+    names = {(t / "comm").read_text().strip() for t in tasks.iterdir()}
+    assert {"eventlog", "eventlog-read", "log-writer", "watchdog", "diag"} <= names, names

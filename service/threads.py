@@ -1,0 +1,48 @@
+"""The daemon's threads named for the OS, so `top -H`, `ps -L` and `/proc/<pid>/task/*/comm`
+show which thread is which.
+
+Python names its threads for itself only: the OS sees each new thread under its creator's name,
+so every thread started from the main one read `python`, and a thread started from a Zenoh
+callback read as Zenoh's own (`app-0`). `NamedThread` gives the OS the thread's name as it
+starts (Linux keeps its first 15 bytes)."""
+
+from __future__ import annotations
+
+import ctypes
+import sys
+import threading
+
+PR_SET_NAME = 15
+OS_NAME_MAX = 15
+"""Bytes of a thread name the Linux kernel keeps (16 with the terminating NUL)."""
+
+_libc: ctypes.CDLL | None = None
+
+
+class NamedThread(threading.Thread):
+    """A `threading.Thread` that names itself for the OS (`os_name`) before its target runs."""
+
+    def run(self) -> None:
+        name_os_thread(self.name)
+        super().run()
+
+
+def os_name(name: str) -> bytes:
+    """What the OS is given for `name`: UTF-8, cut to `OS_NAME_MAX` bytes on a character
+    boundary."""
+    data = name.encode()[:OS_NAME_MAX]
+    return data.decode(errors="ignore").encode()
+
+
+def name_os_thread(name: str) -> bool:
+    """Name the calling thread for the OS (Linux `prctl(PR_SET_NAME)`); False where the OS
+    cannot (another platform, no C library): the thread runs on unnamed, nothing else changes."""
+    global _libc  # noqa: PLW0603 - one handle on the C library, loaded at first use
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        if _libc is None:
+            _libc = ctypes.CDLL(None, use_errno=True)
+        return int(_libc.prctl(PR_SET_NAME, ctypes.c_char_p(os_name(name)), 0, 0, 0)) == 0
+    except (OSError, AttributeError):
+        return False

@@ -1,0 +1,51 @@
+"""Daemon threads named for the OS (`service/threads.py`)."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from service.threads import OS_NAME_MAX, NamedThread, name_os_thread, os_name
+
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="names via /proc")
+
+
+def _comm_seen_by(thread_factory: type[threading.Thread], name: str) -> str:
+    seen: list[str] = []
+
+    def read() -> None:
+        seen.append(Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip())
+
+    t = thread_factory(target=read, name=name)
+    t.start()
+    t.join(5.0)
+    return seen[0]
+
+
+@linux_only
+def test_a_named_thread_carries_its_name_for_the_os() -> None:
+    assert _comm_seen_by(NamedThread, "eventlog") == "eventlog"
+
+
+@linux_only
+def test_a_plain_thread_carries_its_creators_name_which_is_what_this_fixes() -> None:
+    assert _comm_seen_by(threading.Thread, "eventlog") != "eventlog"
+
+
+@linux_only
+def test_a_long_name_is_cut_to_what_the_kernel_keeps() -> None:
+    assert _comm_seen_by(NamedThread, "calibration-saved") == "calibration-sav"
+
+
+def test_a_cut_never_splits_a_character() -> None:
+    assert os_name("calibration-saved") == b"calibration-sav"
+    assert os_name("ä" * 10) == ("ä" * 7).encode()  # 14 bytes: the 8th would need 16
+    assert len(os_name("x" * 40)) == OS_NAME_MAX
+
+
+def test_naming_is_refused_quietly_where_the_os_cannot(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sys, "platform", "darwin")
+    assert name_os_thread("eventlog") is False
