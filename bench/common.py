@@ -502,6 +502,29 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
+ZENOH_THREAD = re.compile(r"(app|rx|tx|net|acc)-\d+")
+"""The names Zenoh's runtimes give their threads (one `app-0` under `bus.zenoh_threads = 1`)."""
+
+
+def thread_cpu(pid: int) -> dict[str, float]:
+    """CPU seconds of process `pid` by thread: Zenoh's runtime threads as `zenoh`, the main
+    thread (the daemon's scan thread) as `main`, every other under the name it gave the OS
+    (service/threads.py), summed per name. From each thread's `schedstat` (ns); a thread
+    that ends between two calls takes its time with it."""
+    out: dict[str, float] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm") as fh:
+                name = fh.read().strip()
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as fh:
+                ns = int(fh.read().split()[0])
+        except (OSError, ValueError, IndexError):
+            continue  # ended meanwhile
+        key = "main" if tid == str(pid) else "zenoh" if ZENOH_THREAD.fullmatch(name) else name
+        out[key] = out.get(key, 0.0) + ns / 1e9
+    return out
+
+
 def rss_bytes(pid: int) -> int:
     """Resident set size of a process."""
     with open(f"/proc/{pid}/status") as fh:

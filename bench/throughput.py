@@ -16,6 +16,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
@@ -30,8 +31,10 @@ from bench.common import (
     main_for,
     python_module,
     run_lines,
+    thread_cpu,
 )
 from bench.daemon import bench_daemon
+from rider.client import Rider
 from rider.client import zenoh_config as rider_zenoh_config
 from schema.diag import CycleDiag
 from tests.procs import free_port
@@ -63,6 +66,57 @@ def worker(connect: list[str], zenoh_config: Path, name: str) -> int:
 
 
 # ------------------------------------------------------------------------------- bench
+THREAD_COLUMNS = (
+    ("zenoh", "Zenoh's thread"),
+    ("eventlog", "event writer"),
+    ("log-writer", "log writer"),
+    ("main", "scan thread"),
+)
+"""The daemon's threads named in the CPU table (`bench.common.thread_cpu`); the rest is `other`."""
+
+
+@dataclass
+class _Results:
+    """What the phases measured: commands, failures and seconds per (target, Riders); the
+    daemon's overruns and its CPU seconds by thread (`thread_cpu`) per Riders."""
+
+    rows: dict[tuple[str, int], list[tuple[int, int, float]]] = field(default_factory=dict)
+    overruns: dict[int, int] = field(default_factory=dict)
+    threads: dict[int, dict[str, float]] = field(default_factory=dict)
+
+    def daemon_phase(
+        self, workers: list[Child], key: str, seconds: float, rider: Rider, pid: int
+    ) -> None:
+        riders = len(workers)
+        rider.diag(reset=True)
+        before = thread_cpu(pid)
+        self.rows.setdefault(("daemon", riders), []).append(_phase(workers, key, seconds))
+        after = thread_cpu(pid)
+        spent = self.threads.setdefault(riders, {})
+        for name, cpu_s in after.items():
+            spent[name] = spent.get(name, 0.0) + cpu_s - before.get(name, 0.0)
+        self.overruns[riders] = self.overruns.get(riders, 0) + rider.diag().overruns
+
+
+def _by_thread(
+    rows: dict[tuple[str, int], list[tuple[int, int, float]]],
+    threads: dict[int, dict[str, float]],
+) -> Table:
+    """The daemon's CPU per command answered, by thread, over its phases."""
+    table = Table(
+        "The daemon's CPU per command by thread, µs (its phases above; `/proc/<pid>/task/*`"
+        " schedstat, threads named for the OS by service/threads.py)",
+        ["Riders", "all threads", *(label for _, label in THREAD_COLUMNS), "other"],
+    )
+    for riders, spent in sorted(threads.items()):
+        count = sum(p[0] for p in rows[("daemon", riders)])
+        per = {name: cpu_s / count * 1e6 for name, cpu_s in spent.items()} if count else {}
+        named = [per.get(name, 0.0) for name, _ in THREAD_COLUMNS]
+        total = sum(per.values())
+        table.add(riders, f"{total:.0f}", *(f"{x:.1f}" for x in named), f"{total - sum(named):.1f}")
+    return table
+
+
 def _phase(workers: list[Child], key: str, seconds: float) -> tuple[int, int, float]:
     """All workers run against `key` at once; (commands answered, failed, wall seconds)."""
     t0 = time.monotonic()
@@ -80,8 +134,7 @@ def run(opts: Options) -> Section:
     seconds = opts.pick(0.5, 3.0, 8.0)
     rounds = opts.pick(1, 3, 3)
     section = Section("throughput", "8. Throughput")
-    rows: dict[tuple[str, int], list[tuple[int, int, float]]] = {}
-    overruns: dict[int, int] = {}
+    res = _Results()
     with contextlib.ExitStack() as stack:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-tp-")))
         daemon = stack.enter_context(bench_daemon(PERIOD_S))
@@ -140,12 +193,11 @@ def run(opts: Options) -> Section:
                 order = [("daemon", cmd_key), ("echo", ECHO_KEY)]
                 for target, key in order if r % 2 == 0 else order[::-1]:
                     if target == "daemon":
-                        rider.diag(reset=True)
-                    rows.setdefault((target, riders), []).append(
-                        _phase(workers[:riders], key, seconds)
-                    )
-                    if target == "daemon":
-                        overruns[riders] = overruns.get(riders, 0) + rider.diag().overruns
+                        res.daemon_phase(workers[:riders], key, seconds, rider, daemon.proc.pid)
+                    else:
+                        res.rows.setdefault((target, riders), []).append(
+                            _phase(workers[:riders], key, seconds)
+                        )
         measured_s = time.monotonic() - bare_t0
         floor = CycleDiag.model_validate(
             json.loads(bare.expect("result", timeout=bare_s + 10.0)), strict=False
@@ -156,11 +208,11 @@ def run(opts: Options) -> Section:
         ["path", "Riders", "commands/s", "per Rider /s", "failed", "overruns", "vs echo"],
     )
     rate: dict[tuple[str, int], float] = {}
-    for (target, riders), phases in rows.items():
+    for (target, riders), phases in res.rows.items():
         rate[(target, riders)] = sum(p[0] for p in phases) / sum(p[2] for p in phases)
     for riders in (1, 4):
         for target in ("daemon", "echo"):
-            phases = rows[(target, riders)]
+            phases = res.rows[(target, riders)]
             r_s = rate[(target, riders)]
             table.add(
                 "daemon: raw zenoh get" if target == "daemon" else "bare zenoh echo queryable",
@@ -168,10 +220,11 @@ def run(opts: Options) -> Section:
                 f"{r_s:,.0f}",
                 f"{r_s / riders:,.0f}",
                 sum(p[1] for p in phases),
-                overruns[riders] if target == "daemon" else "",
+                res.overruns[riders] if target == "daemon" else "",
                 f"{r_s / rate[('echo', riders)]:.2f}×",
             )
     section.tables.append(table)
+    section.tables.append(_by_thread(res.rows, res.threads))
     section.notes.append(
         "Each Rider is its own process and Zenoh session on the same two cores as the daemon;"
         " the echo replies with the request and does no work, so its row is what Zenoh and the"
@@ -193,9 +246,9 @@ def run(opts: Options) -> Section:
             rate[("daemon", 4)] >= 5000,
         )
     )
-    total = sum(overruns.values())
+    total = sum(res.overruns.values())
     daemon_s = sum(
-        p[2] for (target, _), phases in rows.items() if target == "daemon" for p in phases
+        p[2] for (target, _), phases in res.rows.items() if target == "daemon" for p in phases
     )
     floor_s = floor.cycles * PERIOD_S
     section.targets.append(
