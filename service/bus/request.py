@@ -36,14 +36,14 @@ def encoding_of(query: zenoh.Query) -> str | None:
     return str(encoding) if encoding is not None else None
 
 
-def reply_format(parameters: str, encoding: str | None, payload: bytes | None = None) -> Format:
+def reply_format(parameters: str, encoding: str | None, sent: Format | None = None) -> Format:
     """JSON when asked (`?format=json` in the selector's `parameters`, a JSON encoding, or JSON
-    text sent); msgpack otherwise."""
+    text sent: `sent`, the payload's `sniff_format`); msgpack otherwise."""
     fmt = zenoh.Parameters(parameters).get("format") if parameters else None
     if fmt is not None:
         return Format.JSON if fmt.lower() == "json" else Format.MSGPACK
-    if payload:
-        return sniff_format(payload, encoding)
+    if sent is not None:
+        return sent
     return Format.JSON if encoding and encoding.startswith(Format.JSON) else Format.MSGPACK
 
 
@@ -75,6 +75,8 @@ class Request:
     """The command a refusal names (set once the key is known to be one)."""
     transaction_id: str | None = None
     """The id a refusal echoes; without one, whatever id the payload carries."""
+    sent: Format | None = None
+    """The payload's own format (`sniff_format`), once it has been told; None: not yet."""
     _raw: Any = _UNREAD
 
     @property
@@ -90,7 +92,8 @@ class Request:
             self._raw = None
             if data:
                 try:
-                    self._raw = decode_raw(data, sniff_format(data, self.encoding))
+                    sent = self.sent or sniff_format(data, self.encoding)
+                    self._raw = decode_raw(data, sent)
                 except DecodeError as exc:
                     raise Rejected(exc.error) from None
         return self._raw
@@ -141,8 +144,9 @@ class Request:
 
 def sender_of(query: zenoh.Query) -> str | None:
     """The Rider's session id from the query's attachment (`rider=<zid>`), if it sent one."""
-    if query.attachment is None:
+    attachment = query.attachment  # one read: each crosses into Zenoh
+    if attachment is None:
         return None
-    text = query.attachment.to_bytes()[:128].decode(errors="replace")
+    text = attachment.to_bytes()[:128].decode(errors="replace")
     name, _, value = text.partition("=")
     return value[:64] if name == "rider" and value.isalnum() else None

@@ -14,6 +14,7 @@ from typing import Any
 
 import zenoh
 
+from schema.codec import sniff_format
 from service.bus.callbacks import direct
 from service.bus.request import Host, Request, encoding_of, reply_format
 from service.errors import BadKey, MachineError
@@ -73,10 +74,13 @@ def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
     """Answer one query on `route`: exactly one reply, or a refusal, or (a covered read) none."""
     # One read of the selector for the key and its parameters: each read crosses into Zenoh.
     key, _, parameters = str(query.selector).partition("?")
-    payload = query.payload.to_bytes() if query.payload is not None else b""
+    body = query.payload
+    payload = body.to_bytes() if body is not None else b""
     encoding = encoding_of(query)
-    fmt = reply_format(parameters, encoding, payload if route.sniff else None)
-    request = Request(query, key, payload, encoding, fmt, host)
+    # The payload's format is told once, for the reply's and for reading it (`Request.raw`).
+    sent = sniff_format(payload, encoding) if route.sniff and payload else None
+    fmt = reply_format(parameters, encoding, sent)
+    request = Request(query, key, payload, encoding, fmt, host, sent=sent)
     try:
         rule = route.wildcard
         if rule is not Wildcard.READ and request.wild:
