@@ -4,17 +4,24 @@ show which thread is which.
 Python names its threads for itself only: the OS sees each new thread under its creator's name,
 so every thread started from the main one read `python`, and a thread started from a Zenoh
 callback read as Zenoh's own (`app-0`). `NamedThread` gives the OS the thread's name as it
-starts (Linux keeps its first 15 bytes)."""
+starts (Linux keeps its first 15 bytes); `name_callback_threads` names the threads zenoh-python
+starts for its callbacks."""
 
 from __future__ import annotations
 
 import ctypes
 import sys
 import threading
+from pathlib import Path
 
 PR_SET_NAME = 15
 OS_NAME_MAX = 15
 """Bytes of a thread name the Linux kernel keeps (16 with the terminating NUL)."""
+
+CALLBACK_THREAD = "zenoh-callback"
+"""The OS name of the threads zenoh-python runs its indirect callbacks on."""
+CALLBACK_SUFFIX = "(pyo3-closure)"
+"""How zenoh-python's callback threads are named in Python (`Thread-N (pyo3-closure)`)."""
 
 _libc: ctypes.CDLL | None = None
 
@@ -46,3 +53,21 @@ def name_os_thread(name: str) -> bool:
         return int(_libc.prctl(PR_SET_NAME, ctypes.c_char_p(os_name(name)), 0, 0, 0)) == 0
     except (OSError, AttributeError):
         return False
+
+
+def name_callback_threads() -> int:
+    """Give `CALLBACK_THREAD` to each thread zenoh-python started for a callback declared with
+    a plain function (one per queryable or subscriber; `cmd/**` and the reads run on Zenoh's
+    own threads instead), which the OS saw under its creator's name. From the outside, by
+    `/proc/self/task/<tid>/comm`: zenoh-python starts them. How many were named."""
+    named = 0
+    for thread in threading.enumerate():
+        tid = thread.native_id
+        if tid is None or not thread.name.endswith(CALLBACK_SUFFIX):
+            continue
+        try:
+            Path(f"/proc/self/task/{tid}/comm").write_bytes(os_name(CALLBACK_THREAD))
+        except OSError:
+            continue  # ended meanwhile, or no /proc here
+        named += 1
+    return named

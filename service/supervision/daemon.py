@@ -42,6 +42,7 @@ from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
 from service.simwing import sim_hal, sim_port
 from service.supervision.malloc import bound_malloc_arenas
+from service.threads import name_callback_threads
 
 log = logging.getLogger("machine")
 
@@ -175,6 +176,7 @@ class Daemon:
         self._build_machine(hal, store, registry, session)
         _on_exit(stack, "bus", self.bus.close)
         self.bus.start()
+        name_callback_threads()  # zenoh-python's callback threads, for `top -H`
         _on_exit(stack, "wind_down", self._wind_down)  # while the bus is up: last answers
         self._start_watchdog(stack, hal)
         if self.config.fastdata.enabled:

@@ -22,5 +22,10 @@ def test_the_daemons_threads_carry_their_names_for_the_os(daemon: Daemon) -> Non
     with daemon.rider() as r:
         r.check_home()  # a command answered: the event writer has run
     tasks = Path(f"/proc/{daemon.proc.pid}/task")
-    names = {(t / "comm").read_text().strip() for t in tasks.iterdir()}
-    assert {"eventlog", "eventlog-read", "log-writer", "watchdog", "diag"} <= names, names
+    main = (tasks / str(daemon.proc.pid) / "comm").read_text().strip()  # the scan thread
+    names = [
+        (t / "comm").read_text().strip() for t in tasks.iterdir() if t.name != str(daemon.proc.pid)
+    ]
+    assert {"eventlog", "eventlog-read", "log-writer", "watchdog", "diag"} <= set(names), names
+    assert "zenoh-callback" in names  # zenoh-python's own, for the writes' queryables
+    assert main not in names, names

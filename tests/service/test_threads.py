@@ -8,7 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from service.threads import OS_NAME_MAX, NamedThread, name_os_thread, os_name
+from service.threads import (
+    CALLBACK_THREAD,
+    OS_NAME_MAX,
+    NamedThread,
+    name_callback_threads,
+    name_os_thread,
+    os_name,
+)
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="names via /proc")
 
@@ -49,3 +56,22 @@ def test_a_cut_never_splits_a_character() -> None:
 def test_naming_is_refused_quietly_where_the_os_cannot(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(sys, "platform", "darwin")
     assert name_os_thread("eventlog") is False
+
+
+@linux_only
+def test_zenoh_pythons_callback_threads_are_named_from_outside() -> None:
+    release = threading.Event()
+    plain = threading.Thread(target=release.wait, name="Thread-99 (pyo3-closure)")
+    other = threading.Thread(target=release.wait, name="someone-else")
+    plain.start()
+    other.start()
+    try:
+        assert name_callback_threads() >= 1
+        comm = Path(f"/proc/self/task/{plain.native_id}/comm").read_text().strip()
+        untouched = Path(f"/proc/self/task/{other.native_id}/comm").read_text().strip()
+    finally:
+        release.set()
+        plain.join(5.0)
+        other.join(5.0)
+    assert comm == CALLBACK_THREAD
+    assert untouched != CALLBACK_THREAD
