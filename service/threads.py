@@ -5,14 +5,18 @@ Python names its threads for itself only: the OS sees each new thread under its 
 so every thread started from the main one read `python`, and a thread started from a Zenoh
 callback read as Zenoh's own (`app-0`). `NamedThread` gives the OS the thread's name as it
 starts (Linux keeps its first 15 bytes); `name_callback_threads` names the threads zenoh-python
-starts for its callbacks. Both write the thread's `/proc/self/task/<tid>/comm`."""
+starts for its callbacks, from the outside (`/proc/self/task/<tid>/comm`). `prctl` is the
+process's one call of the Linux `prctl(2)` (thread names here, timer slack and the parent's
+death signal in service/core/runner.py)."""
 
 from __future__ import annotations
 
+import ctypes
 import sys
 import threading
 from pathlib import Path
 
+PR_SET_NAME = 15
 OS_NAME_MAX = 15
 """Bytes of a thread name the Linux kernel keeps (16 with the terminating NUL)."""
 
@@ -20,6 +24,8 @@ CALLBACK_THREAD = "zenoh-callback"
 """The OS name of the threads zenoh-python runs its indirect callbacks on."""
 CALLBACK_SUFFIX = "(pyo3-closure)"
 """How zenoh-python's callback threads are named in Python (`Thread-N (pyo3-closure)`)."""
+
+_libc: ctypes.CDLL | None = None
 
 
 class NamedThread(threading.Thread):
@@ -38,30 +44,41 @@ def os_name(name: str) -> bytes:
 
 
 def name_os_thread(name: str) -> bool:
-    """Name the calling thread for the OS; False where the OS cannot: the thread runs on
-    unnamed, nothing else changes."""
-    return _name(threading.get_native_id(), name)
+    """Name the calling thread for the OS (`prctl(PR_SET_NAME)`: one call, no file); False
+    where the OS cannot: the thread runs on unnamed, nothing else changes."""
+    return prctl(PR_SET_NAME, os_name(name))
+
+
+def prctl(option: int, arg: int | bytes) -> bool:
+    """Linux `prctl(2)` on the calling thread or process, `arg` a number or a string; False
+    where it is not available or refused (`ctypes.get_errno()` then says why)."""
+    global _libc  # noqa: PLW0603 - one handle on the C library, loaded at first use
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        if _libc is None:
+            _libc = ctypes.CDLL(None, use_errno=True)
+        value = ctypes.c_char_p(arg) if isinstance(arg, bytes) else ctypes.c_ulong(arg)
+        return int(_libc.prctl(option, value, 0, 0, 0)) == 0
+    except (OSError, AttributeError):
+        return False
 
 
 def name_callback_threads() -> int:
     """Give `CALLBACK_THREAD` to each thread zenoh-python started for a callback declared with
     a plain function (one per queryable or subscriber; `cmd/**` and the reads run on Zenoh's
-    own threads instead), which the OS saw under its creator's name. From the outside:
-    zenoh-python starts them. How many were named."""
-    return sum(
-        _name(thread.native_id, CALLBACK_THREAD)
-        for thread in threading.enumerate()
-        if thread.native_id is not None and thread.name.endswith(CALLBACK_SUFFIX)
-    )
-
-
-def _name(tid: int, name: str) -> bool:
-    """One thread of this process named for the OS (Linux: its `/proc/self/task/<tid>/comm`);
-    False on another platform, or for a thread that has ended meanwhile."""
+    own threads instead), which the OS saw under its creator's name. From the outside, by
+    `/proc/self/task/<tid>/comm`: zenoh-python starts them. How many were named."""
     if not sys.platform.startswith("linux"):
-        return False
-    try:
-        Path(f"/proc/self/task/{tid}/comm").write_bytes(os_name(name))
-    except OSError:
-        return False
-    return True
+        return 0
+    named = 0
+    for thread in threading.enumerate():
+        tid = thread.native_id
+        if tid is None or not thread.name.endswith(CALLBACK_SUFFIX):
+            continue
+        try:
+            Path(f"/proc/self/task/{tid}/comm").write_bytes(os_name(CALLBACK_THREAD))
+        except OSError:
+            continue  # ended meanwhile
+        named += 1
+    return named

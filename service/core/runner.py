@@ -16,6 +16,7 @@ from collections.abc import Callable
 from schema.status import Fault, FaultCode
 from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
+from service.threads import prctl
 
 log = logging.getLogger(__name__)
 
@@ -210,21 +211,10 @@ def switch_interval(seconds: float) -> str:
     return f"switch_interval={seconds:g}s"
 
 
-def _prctl(option: int, arg: int) -> bool:
-    """Linux prctl(2) on the calling thread/process; False where it is not available."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        return int(libc.prctl(option, ctypes.c_ulong(arg), 0, 0, 0)) == 0
-    except (OSError, AttributeError):
-        return False
-
-
 def die_with_parent(parent_pid: int) -> bool:
     """Get SIGTERM (the safe shutdown path) when the parent process dies; False if the parent
     is already gone or the OS cannot do it."""
-    ok = _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    ok = prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     return ok and os.getppid() == parent_pid
 
 
@@ -238,7 +228,7 @@ def timer_slack() -> int | None:
 
 def set_timer_slack(ns: int) -> bool:
     """Set the calling thread's timer slack (Linux); False where that is not possible."""
-    ok = _prctl(PR_SET_TIMERSLACK, ns)
+    ok = prctl(PR_SET_TIMERSLACK, ns)
     if not ok and sys.platform.startswith("linux"):
         log.warning("event=timer_slack_failed ns=%d errno=%d", ns, ctypes.get_errno())
     return ok
