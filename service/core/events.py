@@ -9,6 +9,7 @@ after each command and cycle.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,8 +34,12 @@ from schema.status import Fault, MachineState
 from service.core.control import ControlAPI, Transition
 from service.core.controllers import SessionRun
 from service.core.devices import Calibration
+from service.logfmt import info
 
 S = MachineState
+
+COMMAND_LOG = logging.getLogger("machine")
+"""The logger of a command's one line (`event=command …`), the daemon's own."""
 
 
 class EventSink(Protocol):
@@ -82,6 +87,88 @@ class _Session:
     run: SessionRun
     transaction_id: str | None
     started: float
+
+
+@dataclass(frozen=True, slots=True)
+class CommandFacts:
+    """What a command's event and its log line are made of: plain values taken when it was
+    answered. Calling it makes the event (a `Lazy` row); made later, on the event log's writer
+    thread or in the history's own process (service/adapters/history.py), from `wire()`."""
+
+    command: str
+    transaction_id: str
+    rider: str | None
+    accepted: bool
+    code: str
+    message: str
+    state: str | None
+    repeat: bool
+    timecode: float | None
+
+    @classmethod
+    def of(
+        cls,
+        command: Command,
+        request: CommandRequest,
+        reply: Reply,
+        sender: str | None,
+        repeat: bool,
+    ) -> CommandFacts:
+        error = reply.error
+        return cls(
+            command.value,
+            request.transaction_id,
+            request.rider or sender,
+            reply.success,
+            error.code.value if error is not None else reply.code.value,
+            error.message if error is not None else "",
+            reply.state.value if reply.state is not None else None,
+            repeat,
+            request.timecode,
+        )
+
+    def __call__(self) -> CommandEvent:
+        return CommandEvent(
+            command=self.command,
+            transaction_id=self.transaction_id,
+            rider=self.rider,
+            accepted=self.accepted,
+            code=self.code,
+            message=self.message,
+            state=MachineState(self.state) if self.state is not None else None,
+            repeat=self.repeat,
+        )
+
+    def log_line(self) -> str:
+        """The command's log line (its message: `logfmt` adds the time, level and logger)."""
+        return (
+            f"event=command tx={self.transaction_id} command={self.command}"
+            f" rider={self.rider} timecode={self.timecode} code={self.code} state={self.state}"
+        )
+
+    def wire(self) -> tuple[str, str, str | None, bool, str, str, str | None, bool, float | None]:
+        """The values in field order, for `CommandFacts(*values)` in another process."""
+        return (
+            self.command,
+            self.transaction_id,
+            self.rider,
+            self.accepted,
+            self.code,
+            self.message,
+            self.state,
+            self.repeat,
+            self.timecode,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class LogLine:
+    """A command's log line as a held record's `then`: written where its events are made."""
+
+    facts: CommandFacts
+
+    def __call__(self) -> None:
+        info(COMMAND_LOG, self.facts.log_line())
 
 
 Lazy = KnownDetails | Callable[[], KnownDetails]
@@ -155,31 +242,19 @@ class EventRecorder:
         *,
         sender: str | None = None,
         repeat: bool = False,
-        then: Callable[[], None] | None = None,
+        logged: bool = False,
     ) -> None:
         """A command was answered: the command event, then what it changed. What changed is
         compared now (the state is the command's); the events are made and handed to the sink,
-        and `then` run (its log line), at the next `release`: off the path of its reply."""
-
-        def cause() -> CommandEvent:
-            return CommandEvent(
-                command=command.value,
-                transaction_id=request.transaction_id,
-                rider=request.rider or sender,
-                accepted=reply.success,
-                code=reply.error.code.value if reply.error is not None else reply.code.value,
-                message=reply.error.message if reply.error is not None else "",
-                state=reply.state,
-                repeat=repeat,
-            )
-
+        and its log line written (`logged`), at the next `release`: off the path of its reply."""
+        facts = CommandFacts.of(command, request, reply, sender, repeat)
         rows: list[Lazy] = []
         wall = now + self.wall_offset
-        self._compare(control, wall, rows.append, cause)
+        self._compare(control, wall, rows.append, facts)
         held = self._held
         if len(held) >= self.hold_limit:
             self._hand_over(held.popleft())  # the oldest first: the order stays
-        held.append(Held(rows, wall, self.cycle, then))
+        held.append(Held(rows, wall, self.cycle, LogLine(facts) if logged else None))
 
     @property
     def holding(self) -> bool:

@@ -42,7 +42,6 @@ from service.core.io import IoChanges, IoPoints, ProcessImage
 from service.core.transactions import TransactionLog
 from service.core.watchdog import GuardedHal
 from service.errors import Busy, NotAvailable
-from service.logfmt import info
 
 log = logging.getLogger("machine")
 
@@ -499,7 +498,7 @@ class ScanLoop:
             reply,
             now,
             sender=sender,
-            then=lambda: _log_command(command, request, reply, sender),
+            logged=True,
         )
         return reply
 
@@ -646,16 +645,3 @@ def calibration_record(cal: Calibration, machine_id: str, wall: float) -> Calibr
 def _wire(model: type[W], values: object | None) -> W | None:
     """One axis' calibration as its wire model (the same field names); None stays None."""
     return None if values is None else model.model_validate(values, from_attributes=True)
-
-
-def _log_command(
-    command: Command, request: CommandRequest, reply: Reply, sender: str | None
-) -> None:
-    """A command's one log line (written with its events, after its reply)."""
-    code = reply.error.code if reply.error is not None else reply.code
-    info(
-        log,
-        f"event=command tx={request.transaction_id} command={command.value}"
-        f" rider={request.rider or sender} timecode={request.timecode} code={code}"
-        f" state={reply.state}",
-    )
