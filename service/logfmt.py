@@ -15,6 +15,7 @@ only one that would see it, the line is made as text and queued as it is.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import logging
 import logging.handlers
 import sys
@@ -214,8 +215,9 @@ class Stderr(logging.StreamHandler):  # type: ignore[type-arg]
         """`StreamHandler.__init__` sets it; the line goes to the current stderr anyway."""
 
 
-def setup_logging(level: str = "info") -> None:
-    """Log lines as `key=value` text to stderr, through the writer thread."""
+def setup_logging(level: str = "info", stream: Any = None) -> None:
+    """Log lines as `key=value` text to stderr (or `stream`: anything with `write` and
+    `flush`), through the writer thread."""
     global _writer, _handler  # noqa: PLW0603 - one writer per process
     # The format names neither thread, process nor source line: don't look them up for every
     # record (the logging HOWTO's "Optimization"; a quarter of a command's log line).
@@ -225,12 +227,24 @@ def setup_logging(level: str = "info") -> None:
     logging._srcfile = None
     flush_logs()
     lines = LineQueue()
-    _writer = LineWriter(lines)
+    _writer = LineWriter(lines, stream)
     _writer.start()
     _handler = LineHandler(lines)  # type: ignore[arg-type]  # read by LineWriter, not QueueListener
     root = logging.getLogger()
     root.handlers[:] = [_handler]
     root.setLevel(level.upper())
+
+
+def put_text(text: str) -> None:
+    """Lines already made elsewhere (`ts=… level=…`, one per line: the event history's own
+    process, service/adapters/history.py), written with the daemon's in one queued item."""
+    handler = _handler
+    if handler is not None:
+        handler.queue.put_nowait(text.rstrip("\n"))
+        return
+    with contextlib.suppress(Exception):  # a closed or broken stderr, as the writer's
+        sys.stderr.write(text)
+        sys.stderr.flush()
 
 
 def info(logger: logging.Logger, message: str) -> None:

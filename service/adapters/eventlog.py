@@ -75,6 +75,9 @@ counts as failed: short, so a locked file can never hold up start-up or the shut
 COALESCE_S = 0.02
 """How long the writer gathers events after the first one before writing them in one batch."""
 
+WRITE_CHUNK = 16
+"""Rows inserted per `executemany` of a batch (all in its one transaction), `_pace` between."""
+
 DEFER_MAX = 1024
 """Commands' held records (`defer`) queued at most: they are objects the garbage collector
 scans, where a queued event is text; beyond this (a stalled disk) the scan thread makes them."""
@@ -289,6 +292,13 @@ class EventLog:
     def start(self) -> None:
         """Open the database and start the threads; a database that cannot be opened is
         reported (and its events counted as lost) but never stops the machine."""
+        self._open_or_replace()
+        self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
+        self._writer.start()
+        self._reader = NamedThread(target=self._serve_reads, name="eventlog-read", daemon=True)
+        self._reader.start()
+
+    def _open_or_replace(self) -> None:
         try:
             self._open()
         except (sqlite3.Error, OSError) as exc:
@@ -297,10 +307,6 @@ class EventLog:
                 self._replace(exc)
             else:
                 self._fail(f"cannot open {self.path}: {exc}", 0)
-        self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
-        self._writer.start()
-        self._reader = NamedThread(target=self._serve_reads, name="eventlog-read", daemon=True)
-        self._reader.start()
 
     def _open(self) -> None:
         self._conn = connect(self.path)
@@ -333,9 +339,7 @@ class EventLog:
             self._stopping = True
         self._wake.set()
         self._hurry.set()
-        if self._reader is not None:
-            with contextlib.suppress(queue.Full):
-                self._reads.put_nowait(lambda conn, error: None)
+        self._stop_reader()
         for thread in (self._writer, self._reader):
             if thread is not None:
                 thread.join(max(0.0, deadline - time.monotonic()))
@@ -343,6 +347,11 @@ class EventLog:
         if self._conn is not None and writer_done:
             self._conn.close()
             self._conn = None
+
+    def _stop_reader(self) -> None:
+        if self._reader is not None:
+            with contextlib.suppress(queue.Full):
+                self._reads.put_nowait(lambda conn, error: None)
 
     def subscribe(self, listener: Listener) -> None:
         """Call `listener` (on the writer thread) with every batch once it is committed."""
@@ -361,6 +370,16 @@ class EventLog:
                 return
             self._items.append(row)
         if not self._wake.is_set():  # set() takes a Condition's lock: once per batch is enough
+            self._wake.set()
+
+    def put_rows(self, rows: list[_Row]) -> None:
+        """Queue events already made (kind, details JSON, wall time, cycle), in order; those
+        beyond the queue's capacity are dropped and counted, as `emit` does."""
+        with self._lock:
+            room = 0 if self._stopping else max(0, self.capacity - len(self._items))
+            self._items.extend(rows[:room])
+            self.dropped += max(0, len(rows) - room)
+        if not self._wake.is_set():
             self._wake.set()
 
     def defer(self, held: Held) -> bool:
@@ -400,6 +419,10 @@ class EventLog:
     @property
     def queued(self) -> int:
         return len(self._items)
+
+    def _unsettled(self) -> bool:
+        """Events emitted but not yet written (or counted lost)."""
+        return bool(self._items) or self._busy
 
     # ---------------------------------------------------------------------------- thread
     _busy = False
@@ -478,7 +501,10 @@ class EventLog:
         machine_id = self.machine_id
         try:
             conn.execute("BEGIN")
-            conn.executemany(_INSERT, [(w, c, machine_id, k, d) for k, d, w, c in items])
+            for at in range(0, len(items), WRITE_CHUNK):
+                chunk = items[at : at + WRITE_CHUNK]
+                conn.executemany(_INSERT, [(w, c, machine_id, k, d) for k, d, w, c in chunk])
+                self._pace()
             # One transaction holds the write lock: AUTOINCREMENT numbered the batch in a row.
             [(last,)] = conn.execute("SELECT last_insert_rowid()").fetchall()
             conn.execute("COMMIT")
@@ -503,6 +529,10 @@ class EventLog:
                 listener(rows)
             except Exception as exc:  # noqa: BLE001 - a publishing failure loses no stored event
                 log.warning("event=events_publish_failed error=%r", str(exc))
+
+    def _pace(self) -> None:
+        """Between two chunks of a batch's inserts: nothing here (the history's own process
+        gives way to the daemon's threads, service/adapters/history.py)."""
 
     def _fail(self, error: str, lost: int, exc: BaseException | None = None) -> None:
         """`lost` events not written: counted, recorded as `storage_failed` once writing works,
@@ -614,7 +644,7 @@ class EventLog:
                 job = self._reads.get()
                 if self._stopping:
                     return
-                if self._items or self._busy:
+                if self._unsettled():
                     self.flush(BUSY_TIMEOUT_S)  # a reader sees every event emitted before it asked
                 error = None
                 if conn is None:

@@ -129,6 +129,9 @@ class EventsSection(_Section):
     """The event history in `<data_dir>/events.db`: queue, batching, retention, query pages."""
 
     enabled: bool = True
+    process: bool = True
+    """Make and write the events in a process of their own (service/adapters/history.py), off
+    the daemon's GIL and CPU time slices; false: on a thread of the daemon."""
     queue_capacity: int = Field(default=4096, ge=16, le=1_000_000)
     batch_max: int = Field(default=512, ge=1, le=100_000)
     max_age_days: float = Field(default=90.0, gt=0, le=36_500)

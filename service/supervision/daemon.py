@@ -19,6 +19,7 @@ from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
 from service import bus as zbus
 from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.fastdata import FastDataServer, user_registers
+from service.adapters.history import HistoryProcess
 from service.bus.exposure import warn_if_exposed
 from service.config.load import check_candidate
 from service.config.model import HalBackend, MachineConfig
@@ -404,7 +405,8 @@ def _event_log(config: MachineConfig) -> EventLog | None:
     """The event history, started, with this start recorded first; None when disabled."""
     if not config.events.enabled:
         return None
-    events = EventLog(Path(config.data_dir) / EVENTS_FILE, config.machine.id, config.events)
+    kind = HistoryProcess if config.events.process else EventLog
+    events = kind(Path(config.data_dir) / EVENTS_FILE, config.machine.id, config.events)
     events.start()
     events.emit_now(
         DaemonStartEvent(

@@ -1,4 +1,7 @@
-"""The event log on disk: what is written reads back, pages, drops are counted, retention holds."""
+"""The event log on disk: what is written reads back, pages, drops are counted, retention holds.
+
+The tests that take `kind` run on both writers: a thread of the daemon (`EventLog`) and a
+process of its own (`HistoryProcess`, `[events] process = true`, the default)."""
 
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ from service.adapters.eventlog import (
     row_event,
     row_payload,
 )
+from service.adapters.history import HistoryProcess
 from service.config.model import EventsSection
 from service.core.events import Held
 from tests.schema.event_samples import DETAILS
@@ -46,8 +50,8 @@ T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""
 
 
-def open_log(path: Path, **settings: object) -> EventLog:
-    log = EventLog(path, "m1", EventsSection.model_validate(settings))
+def open_log(path: Path, kind: type[EventLog] = EventLog, **settings: object) -> EventLog:
+    log = kind(path, "m1", EventsSection.model_validate(settings))
     log.start()
     return log
 
@@ -59,16 +63,28 @@ def log(tmp_path: Path) -> Iterator[EventLog]:
     events.close()
 
 
+@pytest.fixture(params=[EventLog, HistoryProcess], ids=["thread", "process"])
+def kind(request: pytest.FixtureRequest) -> type[EventLog]:
+    return request.param  # type: ignore[no-any-return]
+
+
+@pytest.fixture
+def any_log(tmp_path: Path, kind: type[EventLog]) -> Iterator[EventLog]:
+    events = open_log(tmp_path / EVENTS_FILE, kind)
+    yield events
+    events.close()
+
+
 def page(log: EventLog, **criteria: object) -> EventPage:
     with connect(log.path) as conn:
         return read_page(conn, "m1", EventQuery(**criteria), log.settings.page_max)  # type: ignore[arg-type]
 
 
-def test_written_events_read_back_in_order_with_seq_time_and_cycle(log: EventLog) -> None:
+def test_written_events_read_back_in_order_with_seq_time_and_cycle(any_log: EventLog) -> None:
     for i in range(5):
-        log.emit(WatchdogEvent(stalled_s=i / 10), T0 + i, 10 + i)
-    assert log.flush()
-    got = page(log)
+        any_log.emit(WatchdogEvent(stalled_s=i / 10), T0 + i, 10 + i)
+    assert any_log.flush()
+    got = page(any_log)
     assert [e.seq for e in got.events] == [1, 2, 3, 4, 5]
     assert [e.time for e in got.events] == [T0 + i for i in range(5)]
     assert [e.cycle for e in got.events] == [10, 11, 12, 13, 14]
@@ -76,35 +92,35 @@ def test_written_events_read_back_in_order_with_seq_time_and_cycle(log: EventLog
     assert (got.more, got.first_seq, got.last_seq) == (False, 1, 5)
 
 
-def test_listeners_get_each_committed_batch_with_its_seq(log: EventLog) -> None:
+def test_listeners_get_each_committed_batch_with_its_seq(any_log: EventLog) -> None:
     seen: list[StoredRow] = []
-    log.subscribe(seen.extend)
-    log.emit_now(DaemonStopEvent(reason="test", exit_code=0))
-    log.emit(WatchdogEvent(stalled_s=0.5), T0, 7)
-    assert log.flush()
+    any_log.subscribe(seen.extend)
+    any_log.emit_now(DaemonStopEvent(reason="test", exit_code=0))
+    any_log.emit(WatchdogEvent(stalled_s=0.5), T0, 7)
+    assert any_log.flush()
     events = [row_event(row) for row in seen]
     assert [(e.seq, e.kind, e.cycle) for e in events] == [
         (1, "daemon_stop", None),
         (2, "watchdog_trip", 7),
     ]
-    assert events == page(log).events  # what listeners get is what is stored
+    assert events == page(any_log).events  # what listeners get is what is stored
 
 
 def test_listeners_get_the_stored_seq_of_every_row_after_a_prune_and_a_reopen(
-    tmp_path: Path,
+    tmp_path: Path, kind: type[EventLog]
 ) -> None:
     """A batch is inserted in one statement and numbered from SQLite's last row id: the seq
     a listener gets is the stored one, also once the oldest rows are gone (AUTOINCREMENT never
     reuses a number) and in a log opened again."""
     path = tmp_path / EVENTS_FILE
-    first = open_log(path)
+    first = open_log(path, kind)
     for i in range(4):
         first.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)
     assert first.flush()
     first.close()
     with connect(path) as conn:
         conn.execute("DELETE FROM events WHERE seq >= 3")  # the newest gone: a max() would reuse 3
-    log = open_log(path, batch_max=3)
+    log = open_log(path, kind, batch_max=3)
     try:
         seen: list[StoredRow] = []
         log.subscribe(seen.extend)
@@ -149,17 +165,19 @@ def test_pages_are_bounded_and_continue_from_next_since(tmp_path: Path) -> None:
         log.close()
 
 
-def test_kind_filter(log: EventLog) -> None:
-    log.emit_now(WatchdogEvent(stalled_s=1.0))
-    log.emit_now(DaemonStopEvent(reason="x", exit_code=1))
-    log.emit_now(WatchdogEvent(stalled_s=2.0))
-    assert log.flush()
-    assert [e.seq for e in page(log, kinds=("watchdog_trip",)).events] == [1, 3]
-    with connect(log.path) as conn:
+def test_kind_filter(any_log: EventLog) -> None:
+    any_log.emit_now(WatchdogEvent(stalled_s=1.0))
+    any_log.emit_now(DaemonStopEvent(reason="x", exit_code=1))
+    any_log.emit_now(WatchdogEvent(stalled_s=2.0))
+    assert any_log.flush()
+    assert [e.seq for e in page(any_log, kinds=("watchdog_trip",)).events] == [1, 3]
+    with connect(any_log.path) as conn:
         assert len(list(iter_events(conn, EventQuery(kinds=("daemon_stop",)), chunk=1))) == 1
 
 
-def test_a_held_record_is_made_on_the_writer_in_its_place_among_the_events(log: EventLog) -> None:
+def test_a_held_record_is_made_on_the_writer_in_its_place_among_the_events(
+    any_log: EventLog,
+) -> None:
     """A command's held record (`defer`) becomes its events, with its own time and cycle,
     between the events queued before and after it, and its log line is written by the writer."""
     threads: list[str] = []
@@ -169,12 +187,12 @@ def test_a_held_record_is_made_on_the_writer_in_its_place_among_the_events(log: 
         made.append(threading.current_thread().name)
         return DETAILS[0]
 
-    log.emit(WatchdogEvent(stalled_s=0.1), T0, 1)
+    any_log.emit(WatchdogEvent(stalled_s=0.1), T0, 1)
     held = Held([command_event, DETAILS[1]], T0 + 1, 2, lambda: threads.append("then"))
-    assert log.defer(held)
-    log.emit(WatchdogEvent(stalled_s=0.3), T0 + 2, 3)
-    assert log.flush()
-    events = page(log).events
+    assert any_log.defer(held)
+    any_log.emit(WatchdogEvent(stalled_s=0.3), T0 + 2, 3)
+    assert any_log.flush()
+    events = page(any_log).events
     assert [e.details for e in events] == [
         WatchdogEvent(stalled_s=0.1),
         DETAILS[0],
@@ -183,7 +201,7 @@ def test_a_held_record_is_made_on_the_writer_in_its_place_among_the_events(log: 
     ]
     assert [(e.time, e.cycle) for e in events[1:3]] == [(T0 + 1, 2), (T0 + 1, 2)]
     assert made == ["eventlog"] and threads == ["then"]
-    assert log.queued == 0
+    assert any_log.queued == 0
 
 
 def test_defer_is_refused_before_start_after_close_and_past_its_bound(
@@ -219,16 +237,16 @@ def test_defer_is_refused_before_start_after_close_and_past_its_bound(
 
 
 def test_a_held_record_that_cannot_be_made_is_counted_lost_and_the_writer_goes_on(
-    log: EventLog,
+    any_log: EventLog,
 ) -> None:
     def broken() -> KnownDetails:
         raise RuntimeError("bug")
 
-    assert log.defer(Held([broken], T0, 1, None))
-    log.emit(WatchdogEvent(stalled_s=0.5), T0 + 1, 2)
-    assert log.flush()
-    assert [e.details for e in page(log).events] == [WatchdogEvent(stalled_s=0.5)]
-    assert log.lost == 1
+    assert any_log.defer(Held([broken], T0, 1, None))
+    any_log.emit(WatchdogEvent(stalled_s=0.5), T0 + 1, 2)
+    assert any_log.flush()
+    assert [e.details for e in page(any_log).events] == [WatchdogEvent(stalled_s=0.5)]
+    assert any_log.lost == 1
 
 
 def test_a_batch_that_fails_unexpectedly_is_counted_lost_and_the_writer_goes_on(
@@ -289,8 +307,10 @@ def test_a_prune_that_fails_unexpectedly_leaves_the_writer_running(
         log.close()
 
 
-def test_a_full_queue_drops_without_waiting_and_records_the_count_later(tmp_path: Path) -> None:
-    log = EventLog(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
+def test_a_full_queue_drops_without_waiting_and_records_the_count_later(
+    tmp_path: Path, kind: type[EventLog]
+) -> None:
+    log = kind(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
     # Not started: nothing drains the queue, as when the disk is slow.
     for i in range(20):
         log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)
@@ -307,8 +327,10 @@ def test_a_full_queue_drops_without_waiting_and_records_the_count_later(tmp_path
         log.close()
 
 
-def test_emit_never_blocks_while_the_writer_holds_the_database(tmp_path: Path) -> None:
-    log = open_log(tmp_path / EVENTS_FILE, queue_capacity=16)
+def test_emit_never_blocks_while_the_writer_holds_the_database(
+    tmp_path: Path, kind: type[EventLog]
+) -> None:
+    log = open_log(tmp_path / EVENTS_FILE, kind, queue_capacity=16)
     blocker = sqlite3.connect(log.path, timeout=0.1)
     try:
         blocker.execute("BEGIN IMMEDIATE")  # the writer's next commit waits on this lock
@@ -390,8 +412,10 @@ def test_retention_prunes_by_age_and_seq_keeps_growing(tmp_path: Path) -> None:
         log.close()
 
 
-def test_retention_keeps_the_database_under_max_mb(tmp_path: Path) -> None:
-    log = open_log(tmp_path / EVENTS_FILE, max_mb=1, prune_every_s=0.1, queue_capacity=100_000)
+def test_retention_keeps_the_database_under_max_mb(tmp_path: Path, kind: type[EventLog]) -> None:
+    log = open_log(
+        tmp_path / EVENTS_FILE, kind, max_mb=1, prune_every_s=0.1, queue_capacity=100_000
+    )
     try:
         big = "x" * 1000
         for i in range(3000):  # about 3 MB of events
@@ -417,17 +441,19 @@ def test_retention_keeps_the_database_under_max_mb(tmp_path: Path) -> None:
         log.close()
 
 
-def test_a_restart_knows_whether_the_last_run_stopped_cleanly(tmp_path: Path) -> None:
+def test_a_restart_knows_whether_the_last_run_stopped_cleanly(
+    tmp_path: Path, kind: type[EventLog]
+) -> None:
     path = tmp_path / EVENTS_FILE
-    log = open_log(path)
+    log = open_log(path, kind)
     assert log.previous_stop_clean is None
     log.emit_now(DaemonStartEvent(pid=1, hal="sim", period_s=0.01))
     log.close()
-    log = open_log(path)
+    log = open_log(path, kind)
     assert log.previous_stop_clean is False  # the last run never wrote daemon_stop
     log.emit_now(DaemonStopEvent(reason="signal SIGTERM", exit_code=0))
     log.close()
-    log = open_log(path)
+    log = open_log(path, kind)
     assert log.previous_stop_clean is True
     log.close()
 
@@ -470,12 +496,12 @@ def _foreign(path: Path) -> None:
 
 @pytest.mark.parametrize("spoil", [_garbage, _foreign], ids=["garbage", "foreign-schema"])
 def test_an_unusable_database_is_kept_aside_and_a_new_log_started(
-    tmp_path: Path, spoil: Callable[[Path], None]
+    tmp_path: Path, spoil: Callable[[Path], None], kind: type[EventLog]
 ) -> None:
     path = tmp_path / EVENTS_FILE
     spoil(path)
     before = path.read_bytes()
-    log = open_log(path)
+    log = open_log(path, kind)
     try:
         log.emit_now(WatchdogEvent(stalled_s=1.0))
         assert log.flush()
@@ -488,13 +514,13 @@ def test_an_unusable_database_is_kept_aside_and_a_new_log_started(
         assert log.diag().lost == 0
     finally:
         log.close()
-    again = open_log(path)  # the next start finds its own log: nothing more set aside
+    again = open_log(path, kind)  # the next start finds its own log: nothing more set aside
     again.close()
     assert len(list(tmp_path.glob(f"{EVENTS_FILE}.bad-*"))) == 1
 
 
 def test_a_database_locked_by_another_process_never_holds_up_start_or_close(
-    tmp_path: Path,
+    tmp_path: Path, kind: type[EventLog]
 ) -> None:
     path = tmp_path / EVENTS_FILE
     open_log(path).close()
@@ -502,7 +528,7 @@ def test_a_database_locked_by_another_process_never_holds_up_start_or_close(
     blocker.execute("BEGIN EXCLUSIVE")
     try:
         started = time.monotonic()
-        log = open_log(path)
+        log = open_log(path, kind)
         log.emit_now(WatchdogEvent(stalled_s=1.0))
         log.close()
         assert time.monotonic() - started < 2 * BUSY_TIMEOUT_S + 2.5
@@ -514,15 +540,15 @@ def test_a_database_locked_by_another_process_never_holds_up_start_or_close(
 
 
 def test_a_query_the_database_cannot_take_is_answered_and_the_reader_lives_on(
-    log: EventLog,
+    any_log: EventLog,
 ) -> None:
-    log.emit_now(WatchdogEvent(stalled_s=1.0))
-    assert log.flush()
+    any_log.emit_now(WatchdogEvent(stalled_s=1.0))
+    assert any_log.flush()
     answers: queue.Queue[object] = queue.Queue()
     too_big = EventQuery(since=2**70)  # built directly, past the selector's checks
-    assert log.read(too_big, answers.put, answers.put)
+    assert any_log.read(too_big, answers.put, answers.put)
     assert "event log read failed" in str(answers.get(timeout=5.0))
-    assert log.read(EventQuery(), answers.put, answers.put)
+    assert any_log.read(EventQuery(), answers.put, answers.put)
     answer = answers.get(timeout=5.0)
     assert isinstance(answer, EventPage) and len(answer.events) == 1
 
@@ -546,9 +572,9 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
 
 
 def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recovers(
-    small_disk: Path,
+    small_disk: Path, kind: type[EventLog]
 ) -> None:
-    log = open_log(small_disk / EVENTS_FILE)
+    log = open_log(small_disk / EVENTS_FILE, kind)
     try:
         log.emit_now(WatchdogEvent(stalled_s=1.0))
         assert log.flush()

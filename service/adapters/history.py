@@ -1,0 +1,558 @@
+"""The event history written by a process of its own (`[events] process = true`, the default).
+
+Why: on a host with few cores, any thread of the daemon that runs for a millisecond, holding
+the GIL or a CPU, delays whoever wakes beside it. Made and written on a thread of the daemon,
+the history (20-27 µs of CPU per command, in bursts of a batch) was what made the 1 % slowest
+commands take 1.2-1.5 ms (BENCHMARKS.md, section 1, tenth pass). A process has a GIL of its
+own, and it gives way between short slices of work (`sched_yield`), so the scheduler runs a
+woken command thread at once instead of after the writer's time slice.
+
+`HistoryProcess` is an `EventLog` whose writer thread only sends: what the scan loop and the
+commands queue (`emit`, `defer`) goes down a pipe, a batch at a time, as msgpack, to
+`python -m service.adapters.history`. That process makes the events (a command's
+`CommandEvent` and its log line from its `CommandFacts`) and writes them with an `EventLog` of
+its own: the same batches, retention, failure handling and `storage_failed` records. It sends
+back what it wrote (the bus publishes it), its counters and its log lines (written to the
+daemon's stderr by the daemon's log writer, so lines never interleave). Reads stay in the
+daemon, on a connection of their own: WAL lets them read while the other process writes.
+
+If the process ends unexpectedly, the events it had not confirmed are counted lost, a new one
+is started (at most once a second), and its first write records a `storage_failed` event. It
+ends by itself when the daemon does: the pipe closes, it writes what it received and exits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from schema.codec import dump_json
+from schema.diag import EventsDiag
+from service.adapters.eventlog import (
+    COALESCE_S,
+    EventLog,
+    StoredRow,
+    _Row,
+    _row,
+)
+from service.config.model import EventsSection
+from service.core.events import COMMAND_LOG, CommandFacts, Held, LogLine
+from service.logfmt import flush_logs, info, put_text, setup_logging
+from service.threads import NamedThread, name_os_thread
+
+log = logging.getLogger(__name__)
+
+# daemon → history process
+_BATCH, _FLUSH, _FAILED = 0, 1, 2
+# history process → daemon
+_WROTE, _FLUSHED, _LOG = 0, 1, 2
+# an item of a batch
+_MADE, _COMMAND = 0, 1
+
+RESPAWN_S = 1.0
+"""A history process that ended is started again after this long; one that keeps ending
+within `STEADY_S` of its start waits twice as long each time, up to `RESPAWN_MAX_S`."""
+RESPAWN_MAX_S = 30.0
+STEADY_S = 10.0
+SLICE_S = 0.0001
+"""The history process gives way (`sched_yield`) after this much work at a time."""
+READ_BYTES = 1 << 16
+PYTHON = sys.executable
+"""The interpreter the history process runs on: the daemon's own."""
+
+_Item = tuple[Any, ...]
+"""`(_MADE, kind, details JSON, wall, cycle)` or `(_COMMAND, wall, cycle, facts, logged)`."""
+
+
+def _rows_in(entry: _Row | Held) -> int:
+    return len(entry.rows) if isinstance(entry, Held) else 1
+
+
+def _items(entry: _Row | Held) -> list[_Item]:
+    """What the history process needs of a queued event or a command's held record: plain
+    values. A held record's own events are made here only when they are not a command's."""
+    if not isinstance(entry, Held):
+        kind, text, wall, cycle = entry
+        return [(_MADE, kind, text, wall, cycle)]
+    then = entry.then
+    logged = then.facts if isinstance(then, LogLine) else None
+    out: list[_Item] = []
+    for row in entry.rows:
+        if isinstance(row, CommandFacts):
+            out.append((_COMMAND, entry.wall, entry.cycle, row.wire(), row is logged))
+            if row is logged:
+                then = None
+        else:
+            details = row() if callable(row) else row
+            out.append((_MADE, details.kind, dump_json(details), entry.wall, entry.cycle))
+    if then is not None:  # a line that is not its command's own: written here
+        then()
+    return out
+
+
+class HistoryProcess(EventLog):
+    """An `EventLog` whose events are made and written by `python -m service.adapters.history`."""
+
+    def __init__(self, path: Path, machine_id: str, settings: EventsSection, **kw: Any) -> None:
+        super().__init__(path, machine_id, settings, **kw)
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._send_lock = threading.Lock()
+        self._state = threading.Lock()
+        """Guards the counters below and the ones `EventLog` keeps, set from two threads."""
+        self._receiver: threading.Thread | None = None
+        self._spawned_at = -RESPAWN_S
+        self._respawn_s = RESPAWN_S
+        self._last_try = False
+        self._cut_short = False
+        """`close` killed the process at its deadline."""
+        self._sending = False
+        self._sent = 0
+        """Events sent to the current process."""
+        self._settled = 0
+        """Of those, written, dropped or counted lost by it (its latest word)."""
+        self._base = (0, 0, 0)
+        """written, lost, failures of the processes before the current one, and of this side."""
+        self._child_dropped = 0
+        self._forward_dropped = 0
+        """Of `dropped` (here), those told to the process (it records them as `events_dropped`)."""
+        self._pending_failure: tuple[str, int] | None = None
+        self._flushes: dict[int, threading.Event] = {}
+        self._tokens = itertools.count(1)
+
+    # ------------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Open (or set aside and replace) the database here, as `EventLog` does, so that
+        `previous_stop_clean` is known at once; then start the process that writes it."""
+        self._open_or_replace()
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        self._pending_failure = self._failure
+        self._failure = None
+        self._base = (0, self.lost, self.failures)
+        self._spawn()
+        self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
+        self._writer.start()
+        self._reader = NamedThread(target=self._serve_reads, name="eventlog-read", daemon=True)
+        self._reader.start()
+
+    def _spawn(self) -> bool:
+        self._spawned_at = time.monotonic()
+        root = str(Path(__file__).resolve().parents[2])
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
+        try:
+            proc = subprocess.Popen(
+                [
+                    PYTHON,
+                    "-m",
+                    "service.adapters.history",
+                    str(self.path),
+                    self.machine_id,
+                    self.settings.model_dump_json(),
+                    level,
+                ],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                bufsize=0,
+                env=env,
+            )
+        except OSError as exc:  # e.g. out of memory or of processes: tried again, less often
+            self._respawn_s = min(RESPAWN_MAX_S, self._respawn_s * 2)
+            self._lose(0, f"cannot start the event writer process: {exc}")
+            return False
+        with self._state:
+            self._proc = proc
+            self._sent = self._settled = 0
+            self._child_dropped = 0
+        self._receiver = NamedThread(
+            target=self._receive, args=(proc,), name="eventlog-recv", daemon=True
+        )
+        self._receiver.start()
+        if self._pending_failure is not None:
+            error, lost = self._pending_failure
+            self._pending_failure = None
+            self._send(proc, [_FAILED, error, lost])
+        return True
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Send what is queued, let the process write it and end; never longer than
+        `timeout` (then the process is killed, and what it had not written is counted lost)."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            self._stopping = True
+        self._wake.set()
+        self._hurry.set()
+        self._stop_reader()
+        if self._writer is not None:
+            self._writer.join(max(0.0, deadline - time.monotonic()))
+        proc = self._proc
+        if proc is not None:
+            with contextlib.suppress(OSError):
+                if proc.stdin is not None:
+                    proc.stdin.close()
+            try:
+                proc.wait(max(0.05, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._cut_short = True
+                proc.kill()
+                proc.wait()
+        if self._receiver is not None:  # it counts what a killed process had not written
+            self._receiver.join(max(0.5, deadline - time.monotonic()))
+        if self._reader is not None:
+            self._reader.join(max(0.0, deadline - time.monotonic()))
+
+    # ---------------------------------------------------------------------------- sending
+    def _run(self) -> None:
+        while True:
+            if self._wake.wait(timeout=1.0):
+                self._hurry.wait(COALESCE_S)  # a batch per wake-up, as `EventLog` gathers
+            self._hurry.clear()
+            proc = self._proc
+            if proc is None and not self._respawn():
+                with self._lock:
+                    if not self._stopping:
+                        continue
+                    rest = sum(_rows_in(entry) for entry in self._items)
+                    self._items.clear()
+                if rest:
+                    self._lose(rest, "the event writer process is not running")
+                return
+            with self._lock:
+                batch = list(self._items)
+                self._items.clear()
+                self._wake.clear()
+                self._deferred = 0
+                self._sending = bool(batch)
+                dropped = self.dropped - self._forward_dropped
+                self._forward_dropped = self.dropped
+                stopping = self._stopping
+            try:
+                if batch or dropped:
+                    self._send_batch(batch, dropped)
+            except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
+                self._lose(len(batch), f"event writer failed: {exc!r}", exc)
+            finally:
+                self._sending = False
+            if stopping:
+                with self._lock:
+                    if not self._items:
+                        return
+
+    def _respawn(self) -> bool:
+        """A new process once the pause since the last start has passed (events wait in the
+        queue meanwhile; a full queue drops and counts them); on `close`, one more try at
+        once for what is still queued (the daemon's last events)."""
+        with self._lock:
+            stopping, queued = self._stopping, bool(self._items)
+        if stopping:
+            if not queued or self._last_try:
+                return False
+            self._last_try = True
+            return self._spawn()
+        wait = self._spawned_at + self._respawn_s - time.monotonic()
+        if wait > 0:
+            time.sleep(min(wait, 0.1))
+            self._wake.set()  # come back for the queue
+            return False
+        return self._spawn()
+
+    def _send_batch(self, batch: list[_Row | Held], dropped: int) -> None:
+        items: list[_Item] = []
+        for entry in batch:
+            try:
+                items.extend(_items(entry))
+            except Exception as exc:  # noqa: BLE001 - one bad record must not stop the batch
+                self._lose(1, f"event making failed: {exc!r}", exc)
+        proc = self._proc
+        if proc is None or not self._send(proc, [_BATCH, dropped, items]):
+            self._lose(len(items), "the event writer process is not running")
+            return
+        with self._state:
+            current = proc is self._proc
+            if current:
+                self._sent += len(items)
+        if not current:  # it ended while this batch went: whatever it received is unconfirmed
+            self._lose(len(items), "the event writer process ended")
+
+    def _send(self, proc: subprocess.Popen[bytes], message: list[Any]) -> bool:
+        data = msgpack.packb(message, use_bin_type=True)
+        with self._send_lock:
+            pipe = proc.stdin
+            if pipe is None:
+                return False
+            try:
+                view = memoryview(data)
+                while view:
+                    n = pipe.write(view)
+                    view = view[n or 0 :]
+            except (OSError, ValueError):  # ended, or closed by `close`
+                return False
+        return True
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until everything queued so far is written (tests, reads and shutdown)."""
+        deadline = time.monotonic() + timeout
+        self._hurry.set()
+        self._wake.set()
+        while self._items or self._sending:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.002)
+        proc = self._proc
+        if proc is None:
+            return False
+        token = next(self._tokens)
+        done = self._flushes[token] = threading.Event()
+        try:
+            if not self._send(proc, [_FLUSH, token]):
+                return False
+            return done.wait(max(0.0, deadline - time.monotonic())) and proc is self._proc
+        finally:
+            self._flushes.pop(token, None)
+
+    def _unsettled(self) -> bool:
+        return bool(self._items) or self._sending or self._sent != self._settled
+
+    # -------------------------------------------------------------------------- receiving
+    def _receive(self, proc: subprocess.Popen[bytes]) -> None:
+        assert proc.stdout is not None
+        fd = proc.stdout.fileno()
+        unpacker = msgpack.Unpacker(raw=False, use_list=False)
+        try:
+            while data := os.read(fd, READ_BYTES):
+                unpacker.feed(data)
+                for message in unpacker:
+                    self._handle(proc, message)
+        except Exception as exc:  # a garbled pipe ends this process
+            log.error("event=events_process_garbled error=%r", str(exc), exc_info=exc)
+            proc.kill()
+        code = proc.wait()
+        self._ended(proc, code)
+
+    def _handle(self, proc: subprocess.Popen[bytes], message: tuple[Any, ...]) -> None:
+        tag = message[0]
+        if tag == _WROTE:
+            _, rows, status = message
+            self._status(proc, status)
+            if rows:
+                self._publish(rows)
+        elif tag == _FLUSHED:
+            _, token, status = message
+            self._status(proc, status)
+            done = self._flushes.get(token)
+            if done is not None:
+                done.set()
+        elif tag == _LOG:
+            put_text(message[1])
+
+    def _status(self, proc: subprocess.Popen[bytes], status: tuple[Any, ...]) -> None:
+        written, lost, failures, last_error, dropped, settled = status
+        with self._state:
+            if proc is not self._proc:
+                return
+            base_written, base_lost, base_failures = self._base
+            self.written = base_written + written
+            self.lost = base_lost + lost
+            self.failures = base_failures + failures
+            if last_error is not None:
+                self.last_error = last_error
+            self._child_dropped = dropped
+            self._settled = settled
+
+    def _publish(self, rows: tuple[StoredRow, ...]) -> None:
+        listed = list(rows)
+        for listener in self._listeners:
+            try:
+                listener(listed)
+            except Exception as exc:  # noqa: BLE001 - a publishing failure loses no stored event
+                log.warning("event=events_publish_failed error=%r", str(exc))
+
+    def _ended(self, proc: subprocess.Popen[bytes], code: int) -> None:
+        """The process is gone: what it had not confirmed is lost (unless it ended cleanly
+        on `close` with everything written)."""
+        with self._state:
+            if proc is not self._proc:
+                return
+            unconfirmed = self._sent - self._settled
+            self._proc = None
+            self._base = (self.written, self.lost, self.failures)
+            self._sent = self._settled = 0
+        for done in list(self._flushes.values()):
+            done.set()  # a flush waiting on it learns at once (and reads `_unsettled`)
+        if self._stopping and code == 0 and not unconfirmed:
+            return
+        lived = time.monotonic() - self._spawned_at
+        self._respawn_s = (
+            RESPAWN_S if lived >= STEADY_S else min(RESPAWN_MAX_S, self._respawn_s * 2)
+        )
+        error = f"the event writer process ended with exit code {code}"
+        if self._cut_short:  # what held it up (a locked or stalled disk) says more
+            error = (
+                f"the event writer process was stopped at the shutdown deadline: {self.last_error}"
+            )
+        self._lose(unconfirmed, error)
+        self._pending_failure = (error, unconfirmed)
+        self._wake.set()
+
+    def _lose(self, lost: int, error: str, exc: BaseException | None = None) -> None:
+        with self._state:
+            written, base_lost, failures = self._base
+            self._base = (written, base_lost + lost, failures + 1)
+            self.lost += lost
+            self.failures += 1
+            self.last_error = error
+        log.error("event=events_write_failed error=%r lost=%d", error, lost, exc_info=exc)
+
+    def diag(self) -> EventsDiag:
+        d = super().diag()
+        return d.model_copy(update={"dropped": self.dropped + self._child_dropped})
+
+
+# -------------------------------------------------------------------- the history process
+class _Pipe:
+    """Messages to the daemon on this process's stdout, from any of its threads."""
+
+    def __init__(self) -> None:
+        self._out = os.fdopen(1, "wb", buffering=0, closefd=False)
+        self._lock = threading.Lock()
+
+    def send(self, message: list[Any]) -> None:
+        data = msgpack.packb(message, use_bin_type=True)
+        with self._lock:
+            view = memoryview(data)
+            while view:
+                n = self._out.write(view)
+                view = view[n or 0 :]
+
+
+class _LogStream:
+    """Where the log writer of the history process writes: back to the daemon."""
+
+    def __init__(self, pipe: _Pipe) -> None:
+        self.pipe = pipe
+
+    def write(self, text: str) -> None:
+        self.pipe.send([_LOG, text])
+
+    def flush(self) -> None:
+        pass
+
+
+class _Writer(EventLog):
+    """The `EventLog` of the history process: after each write, its rows and counters go
+    back to the daemon."""
+
+    def __init__(self, pipe: _Pipe, path: Path, machine_id: str, settings: EventsSection) -> None:
+        super().__init__(path, machine_id, settings)
+        self.pipe = pipe
+        self.received = 0
+        self.forwarded = 0
+        """Of `dropped`, those the daemon dropped (it counts them itself)."""
+        self._wrote: list[StoredRow] = []
+        self.subscribe(self._wrote.extend)
+        self._in_flight = 0
+        """Rows of the batch being written."""
+
+    def receive(self, rows: list[_Row], dropped: int) -> None:
+        with self._lock:
+            self.received += len(rows)
+            self.dropped += dropped
+            self.forwarded += dropped
+        self.put_rows(rows)
+
+    def record_failure(self, error: str, lost: int) -> None:
+        """A failure the daemon saw (an earlier process ended): written with the next batch."""
+        with self._lock:
+            self._failure = (error, lost)
+
+    def _pace(self) -> None:
+        os.sched_yield()  # between a batch's chunks of inserts, as `_make` between events
+
+    def _take(self) -> list[_Row]:
+        batch = super()._take()
+        self._in_flight = len(batch)
+        return batch
+
+    def _write(self, batch: list[_Row]) -> None:
+        super()._write(batch)
+        self._in_flight = 0
+        rows, self._wrote[:] = list(self._wrote), []
+        self.pipe.send([_WROTE, rows, self.status()])
+
+    def status(self) -> list[Any]:
+        """Its counters, and how many of the daemon's events are settled: written, dropped or
+        counted lost (those neither queued nor in the batch being written)."""
+        with self._lock:
+            settled = self.received - len(self._items) - self._in_flight
+            own_dropped = self.dropped - self.forwarded
+        return [self.written, self.lost, self.failures, self.last_error, own_dropped, settled]
+
+
+def _make(items: tuple[_Item, ...]) -> list[_Row]:
+    """A batch's events as rows; a command's event and its log line made here."""
+    rows: list[_Row] = []
+    start = time.perf_counter()
+    for item in items:
+        if item[0] == _MADE:
+            _, kind, details, wall, cycle = item
+            rows.append((kind, details, wall, cycle))
+        else:
+            _, wall, cycle, values, logged = item
+            facts = CommandFacts(*values)
+            rows.append(_row(facts(), wall, cycle))
+            if logged:
+                info(COMMAND_LOG, facts.log_line())
+        if time.perf_counter() - start >= SLICE_S:
+            os.sched_yield()  # a woken thread of the daemon runs now, not after a time slice
+            start = time.perf_counter()
+    return rows
+
+
+def main(argv: list[str]) -> int:
+    """`python -m service.adapters.history PATH MACHINE_ID SETTINGS_JSON LEVEL`: reads
+    batches on stdin until it closes, then writes what it has and exits."""
+    # The daemon decides when this process ends (it closes the pipe): a Ctrl-C or a TERM sent
+    # to the daemon's process group must not cut the history short of the daemon's last events.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    name_os_thread("history")  # `top`, `ps -L`: not one more `python`
+    path, machine_id, settings, level = argv
+    pipe = _Pipe()
+    setup_logging(level, stream=_LogStream(pipe))
+    writer = _Writer(pipe, Path(path), machine_id, EventsSection.model_validate_json(settings))
+    writer.start()
+    unpacker = msgpack.Unpacker(raw=False, use_list=False)
+    try:
+        while data := os.read(0, READ_BYTES):
+            unpacker.feed(data)
+            for message in unpacker:
+                tag = message[0]
+                if tag == _BATCH:
+                    writer.receive(_make(message[2]), message[1])
+                elif tag == _FLUSH:
+                    writer.flush()
+                    pipe.send([_FLUSHED, message[1], writer.status()])
+                elif tag == _FAILED:
+                    writer.record_failure(message[1], message[2])
+    finally:
+        writer.close(timeout=10.0)
+        flush_logs()
+    return 0
+
+
+if __name__ == "__main__":
+    code = main(sys.argv[1:])
+    os._exit(code)  # everything is written: no interpreter teardown for the daemon to wait on

@@ -1,0 +1,190 @@
+"""The event history in a process of its own: what only `HistoryProcess` does.
+
+What it shares with the in-thread `EventLog` (order, seq, listeners, drops, retention, set-aside
+files, a full disk) is tested on both in tests/service/test_eventlog.py.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from schema.commands import Command, CommandRequest, Reply, ReplyCode
+from schema.events import CommandEvent, EventQuery, StorageEvent, WatchdogEvent
+from schema.status import MachineState
+from service.adapters import history
+from service.adapters.eventlog import EVENTS_FILE, StoredRow, connect, read_page
+from service.adapters.history import HistoryProcess
+from service.config.model import EventsSection
+from service.core.events import CommandFacts, Held, LogLine
+
+T0 = time.time()
+
+
+@pytest.fixture
+def log(tmp_path: Path) -> Iterator[HistoryProcess]:
+    events = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    events.start()
+    yield events
+    events.close()
+
+
+def stored(log: HistoryProcess) -> list[object]:
+    with connect(log.path) as conn:
+        return [e.details for e in read_page(conn, "m1", EventQuery(), 500).events]
+
+
+def facts(tid: str, *, repeat: bool = False) -> CommandFacts:
+    request = CommandRequest(transaction_id=tid, timecode=T0, rider="r1")
+    reply = Reply(
+        transaction_id=tid,
+        request_timecode=T0,
+        command=Command.HOME.value,
+        timecode=T0,
+        success=True,
+        code=ReplyCode.RESP_HOME_ACCEPTED,
+        state=MachineState.HOMING,
+    )
+    return CommandFacts.of(Command.HOME, request, reply, None, repeat)
+
+
+def test_a_commands_event_and_log_line_are_made_in_the_history_process(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The daemon sends the command's plain facts; the other process makes the same event the
+    daemon would have made, and the same log line, which comes back to the daemon's stderr."""
+    caplog.set_level(logging.INFO)  # the process logs at the daemon's level
+    log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    log.start()
+    try:
+        _made_there(log, monkeypatch, capfd)
+    finally:
+        log.close()
+
+
+def _made_there(
+    log: HistoryProcess, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    expected = facts("t1")()  # made here, before making here is forbidden
+
+    def not_here(self: CommandFacts) -> CommandEvent:
+        raise AssertionError("a command's event was made in the daemon")
+
+    monkeypatch.setattr(CommandFacts, "__call__", not_here)
+    command = facts("t1")
+    log.emit(WatchdogEvent(stalled_s=0.1), T0, 1)
+    assert log.defer(Held([command, WatchdogEvent(stalled_s=0.2)], T0 + 1, 2, LogLine(command)))
+    log.emit(WatchdogEvent(stalled_s=0.3), T0 + 2, 3)
+    assert log.flush()
+    assert stored(log) == [
+        WatchdogEvent(stalled_s=0.1),
+        expected,
+        WatchdogEvent(stalled_s=0.2),
+        WatchdogEvent(stalled_s=0.3),
+    ]
+    deadline = time.monotonic() + 5.0
+    err = ""
+    while "event=command tx=t1" not in err and time.monotonic() < deadline:
+        time.sleep(0.02)  # the line is written by the process's log writer, then relayed
+        err += capfd.readouterr().err
+    [line] = [line for line in err.splitlines() if "event=command" in line]
+    assert "level=info logger=machine event=command tx=t1 command=Home rider=r1" in line
+    assert line.endswith("code=RESP_HOME_ACCEPTED state=HOMING")
+    assert log.written == 4 and log.lost == 0
+
+
+def test_listeners_get_the_rows_the_process_wrote(log: HistoryProcess) -> None:
+    seen: list[StoredRow] = []
+    log.subscribe(seen.extend)
+    for i in range(5):
+        log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)
+    assert log.flush()
+    assert [(row[0], row[4]) for row in seen] == [(i, "watchdog_trip") for i in range(1, 6)]
+
+
+def test_a_killed_process_costs_only_what_it_had_not_written_and_a_new_one_takes_over(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Counted lost, recorded as `storage_failed` by the next process, which writes on."""
+    monkeypatch.setattr(history, "RESPAWN_S", 0.05)
+    log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    log.start()
+    try:
+        _killed(log)
+    finally:
+        log.close()
+
+
+def _killed(log: HistoryProcess) -> None:
+    log.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
+    assert log.flush()
+    first = log._proc
+    assert first is not None
+    os.kill(first.pid, signal.SIGKILL)
+    first.wait(5.0)
+    log.emit(WatchdogEvent(stalled_s=2.0), T0 + 1, 2)
+    assert log.flush(timeout=10.0)
+    assert log._proc is not None and log._proc is not first
+    kinds = [type(d).__name__ for d in stored(log)]
+    assert kinds == ["WatchdogEvent", "StorageEvent", "WatchdogEvent"]
+    failed = stored(log)[1]
+    assert isinstance(failed, StorageEvent) and "exit code -9" in failed.error
+    diag = log.diag()
+    assert diag.failures == 1 and diag.lost == failed.lost == 0
+    assert diag.written == 3
+
+
+def test_a_frozen_process_never_blocks_emit_and_close_ends_it_in_time(tmp_path: Path) -> None:
+    log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=64))
+    log.start()
+    proc = log._proc
+    assert proc is not None
+    os.kill(proc.pid, signal.SIGSTOP)
+    try:
+        started = time.monotonic()
+        for i in range(20_000):  # more than the pipe holds: the sender blocks, emit does not
+            log.emit(WatchdogEvent(stalled_s=float(i)), T0, i)
+        assert time.monotonic() - started < 2.0
+        assert log.dropped > 0
+        assert not log.flush(timeout=0.2)
+        started = time.monotonic()
+        log.close(timeout=1.0)
+        assert time.monotonic() - started < 3.0
+        assert proc.poll() is not None  # killed
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_a_process_that_cannot_start_is_retried_with_a_growing_pause(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """E.g. a broken install: each attempt is counted and logged, and the attempts slow down."""
+    broken = tmp_path / "python"
+    broken.write_text("#!/bin/sh\nexit 3\n")
+    broken.chmod(0o755)
+    monkeypatch.setattr(history, "PYTHON", str(broken))
+    monkeypatch.setattr(history, "RESPAWN_S", 0.05)
+    log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    log.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while log.failures < 3 and time.monotonic() < deadline:
+            log.emit(WatchdogEvent(stalled_s=0.0), T0, 0)
+            time.sleep(0.05)
+        assert log.failures >= 3
+        assert "event writer process" in (log.last_error or "")
+        ended = [r for r in caplog.records if "exit code 3" in r.getMessage()]
+        assert ended and all(r.levelname == "ERROR" for r in ended)
+        assert log._respawn_s > history.RESPAWN_S
+    finally:
+        log.close()
