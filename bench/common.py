@@ -495,11 +495,31 @@ def busy_percent(before: tuple[int, int], after: tuple[int, int]) -> float:
     return 100.0 * (after[0] - before[0]) / total if total > 0 else NAN
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU seconds of a process (all its threads)."""
-    with open(f"/proc/{pid}/stat") as fh:
-        fields = fh.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+def children(pid: int) -> list[int]:
+    """The processes `pid` started that still run (a daemon's event history process,
+    service/adapters/history.py)."""
+    out: list[int] = []
+    with contextlib.suppress(OSError):
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{tid}/children") as fh:
+                out.extend(int(c) for c in fh.read().split())
+    return out
+
+
+def cpu_seconds(pid: int, *, family: bool = False) -> float:
+    """User + system CPU seconds of a process (all its threads); `family`: with its running
+    child processes' (a daemon's CPU includes its history process)."""
+    total = 0.0
+    for each in [pid, *children(pid)] if family else [pid]:
+        try:
+            with open(f"/proc/{each}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+        except OSError:
+            if each == pid:
+                raise
+            continue  # a child that ended meanwhile
+        total += (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return total
 
 
 ZENOH_THREAD = re.compile(r"(app|rx|tx|net|acc)-\d+")
@@ -522,16 +542,29 @@ def thread_cpu(pid: int) -> dict[str, float]:
             continue  # ended meanwhile
         key = "main" if tid == str(pid) else "zenoh" if ZENOH_THREAD.fullmatch(name) else name
         out[key] = out.get(key, 0.0) + ns / 1e9
+    for child in children(pid):  # the history process, all its threads as one
+        spent = sum(thread_cpu(child).values())
+        out[HISTORY] = out.get(HISTORY, 0.0) + spent
     return out
 
 
-def rss_bytes(pid: int) -> int:
-    """Resident set size of a process."""
-    with open(f"/proc/{pid}/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    return 0
+HISTORY = "history"
+"""`thread_cpu`'s key for the daemon's child processes (the event history's)."""
+
+
+def rss_bytes(pid: int, *, family: bool = False) -> int:
+    """Resident set size of a process; `family`: with its running child processes'."""
+    total = 0
+    for each in [pid, *children(pid)] if family else [pid]:
+        try:
+            with open(f"/proc/{each}/status") as fh:
+                total += next(
+                    (int(line.split()[1]) * 1024 for line in fh if line.startswith("VmRSS:")), 0
+                )
+        except OSError:
+            if each == pid:
+                raise
+    return total
 
 
 @dataclass
@@ -539,15 +572,18 @@ class CpuMeter:
     """CPU % of one core used by a process between `start()` and `stop()`."""
 
     pid: int
+    family: bool = False
+    """With the process's children (a daemon's history process: `cpu_seconds`)."""
     t0: float = 0.0
     c0: float = 0.0
 
     def start(self) -> None:
-        self.t0, self.c0 = time.monotonic(), cpu_seconds(self.pid)
+        self.t0, self.c0 = time.monotonic(), cpu_seconds(self.pid, family=self.family)
 
     def percent(self) -> float:
         dt = time.monotonic() - self.t0
-        return 100.0 * (cpu_seconds(self.pid) - self.c0) / dt if dt > 0 else NAN
+        spent = cpu_seconds(self.pid, family=self.family) - self.c0
+        return 100.0 * spent / dt if dt > 0 else NAN
 
 
 def mib(n: int) -> str:

@@ -27,6 +27,7 @@ from bench.common import (
     Section,
     Table,
     Target,
+    children,
     main_for,
     mib,
     ms,
@@ -68,7 +69,7 @@ def _idle_of(
 ) -> Idle:
     pid = proc.pid
     time.sleep(min(1.0, seconds))  # past start-up
-    meter = CpuMeter(pid)
+    meter = CpuMeter(pid, family=True)  # a daemon's history process too
     meter.start()
     time.sleep(seconds)
     if proc.poll() is not None:
@@ -78,9 +79,9 @@ def _idle_of(
         label,
         period_s,
         cpu,
-        rss_bytes(pid),
-        _status_field(pid, "VmHWM") * 1024,
-        _status_field(pid, "Threads"),
+        rss_bytes(pid, family=True),
+        sum(_status_field(p, "VmHWM") for p in [pid, *children(pid)]) * 1024,
+        sum(_status_field(p, "Threads") for p in [pid, *children(pid)]),
         (cpu,),
     )
 

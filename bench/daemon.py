@@ -62,6 +62,7 @@ def config_toml(
     heartbeat_s: float | None = None,
     watchdog_periods: int | None = None,
     events: bool = True,
+    events_thread: bool = False,
 ) -> str:
     lines = [
         "[loop]",
@@ -85,6 +86,8 @@ def config_toml(
         lines += ["", "[bus]", *bus]
     if not events:
         lines += ["", "[events]", "enabled = false"]
+    elif events_thread:
+        lines += ["", "[events]", "process = false"]
     return "\n".join(lines) + "\n"
 
 
@@ -108,14 +111,18 @@ def bench_daemon(
     heartbeat_s: float | None = None,
     watchdog_periods: int | None = None,
     events: bool = True,
+    events_thread: bool = False,
     machine_id: str = "m1",
 ) -> Iterator[Daemon]:
     """A daemon on a free loopback port in its own temp dir; stopped (bounded) on exit.
-    `events=False`: without the event history (`[events] enabled = false`)."""
+    `events=False`: without the event history (`[events] enabled = false`); `events_thread`:
+    the history written by a thread of the daemon (`[events] process = false`)."""
     with tempfile.TemporaryDirectory(prefix="bench-") as tmp_name:
         tmp = Path(tmp_name)
         config = tmp / "machine.toml"
-        config.write_text(config_toml(period_s, tuning, heartbeat_s, watchdog_periods, events))
+        config.write_text(
+            config_toml(period_s, tuning, heartbeat_s, watchdog_periods, events, events_thread)
+        )
         if calibrated:
             data = tmp / f"data-{machine_id}"
             data.mkdir()

@@ -27,6 +27,7 @@ from pathlib import Path
 from bench.common import Options, Section, Table, Target, main_for, ms
 from schema.commands import Command, CommandRequest, Reply
 from service.adapters.eventlog import EVENTS_FILE, EventLog
+from service.adapters.history import HistoryProcess
 from service.config.model import EventsSection, MachineConfig
 from service.core.loop import LoopCall, PendingCommand, ScanLoop
 from service.core.machine import Machine
@@ -99,7 +100,8 @@ def one_run(mode: str, seconds: float, directory: Path) -> Result:
     blocker: sqlite3.Connection | None = None
     if mode != "off":
         db = directory / f"{len(list(directory.iterdir()))}-{EVENTS_FILE}"
-        events = EventLog(db, config.machine.id, EventsSection())
+        kind = HistoryProcess if config.events.process else EventLog  # as the daemon does
+        events = kind(db, config.machine.id, EventsSection())
         events.start()
         if mode == "on, disk stalled":
             blocker = sqlite3.connect(db, timeout=5.0)

@@ -155,7 +155,7 @@ def one_step(
     counts = StepCounts()
     in_flight = threading.BoundedSemaphore(MAX_IN_FLIGHT)
     rider.diag(reset=True)
-    cpu = CpuMeter(daemon_pid) if daemon_pid else None
+    cpu = CpuMeter(daemon_pid, family=True) if daemon_pid else None
     if cpu:
         cpu.start()
     own = CpuMeter(os.getpid())

@@ -151,14 +151,14 @@ def measure_daemon(run: Run, seconds: float, tmp: Path) -> Result:
             load.expect("ready", timeout=60.0)
         canary = BareRunner(Run(run.period_s, run.load, bare=True), seconds, tmp / "canary.log")
         stack.callback(canary.child.stop)
-        cpu = CpuMeter(daemon.proc.pid)
+        cpu = CpuMeter(daemon.proc.pid, family=True)
         before = rider.diag(reset=True)
         t0 = time.monotonic()
         cpu.start()
         time.sleep(seconds)
         after = rider.diag()
         elapsed = time.monotonic() - t0
-        result = Result(run, elapsed, after, cpu.percent(), rss_bytes(daemon.proc.pid))
+        result = Result(run, elapsed, after, cpu.percent(), rss_bytes(daemon.proc.pid, family=True))
         result.expected_cycles = elapsed / run.period_s
         result.counted_cycles = after.cycles - before.cycles
         if load is not None:

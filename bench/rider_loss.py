@@ -188,7 +188,7 @@ def cost(
     """(CPU %, jitter p99 s, jitter max s) per phase, for 0 and 3 supervising Riders."""
     out: dict[str, list[tuple[float, float, float]]] = {"no Rider": [], "3 supervising Riders": []}
     setup = Setup(daemon.endpoint, None, None, None)
-    meter = CpuMeter(daemon.proc.pid)
+    meter = CpuMeter(daemon.proc.pid, family=True)
     with daemon.rider(supervise=False) as r:
         for _ in range(rounds):
             for label, rows in out.items():

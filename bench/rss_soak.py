@@ -178,7 +178,7 @@ def soak(opts: RssOptions) -> Section:
                 t = time.monotonic() - t0
                 times.append(t)
                 for p in procs:
-                    p.rss.append(rss_bytes(p.pid))
+                    p.rss.append(rss_bytes(p.pid, family=True))  # a history process too
                     p.seen.append(p.connects)
                 if t >= duration:
                     break

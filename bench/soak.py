@@ -339,7 +339,7 @@ def soak(opts: SoakOptions) -> Section:
         try:
             while not stop.wait(max(0.0, min(SAMPLE_EVERY_S, end - time.monotonic()))):
                 t = time.monotonic() - t0
-                samples.append(Sample(t, rss_bytes(child), rss_bytes(daemon.proc.pid)))
+                samples.append(Sample(t, rss_bytes(child), rss_bytes(daemon.proc.pid, family=True)))
                 if time.monotonic() >= end or not all(w.is_alive() for w in workers):
                     break
         finally:

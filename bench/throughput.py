@@ -22,6 +22,7 @@ from pathlib import Path
 import zenoh
 
 from bench.common import (
+    HISTORY,
     Child,
     Options,
     Section,
@@ -71,8 +72,10 @@ THREAD_COLUMNS = (
     ("eventlog", "event writer"),
     ("log-writer", "log writer"),
     ("main", "scan thread"),
+    (HISTORY, "history process"),
 )
-"""The daemon's threads named in the CPU table (`bench.common.thread_cpu`); the rest is `other`."""
+"""The daemon's threads named in the CPU table (`bench.common.thread_cpu`), and its history
+process (`[events] process`, all its threads); the rest is `other`."""
 
 
 @dataclass
@@ -105,7 +108,8 @@ def _by_thread(
     """The daemon's CPU per command answered, by thread, over its phases."""
     table = Table(
         "The daemon's CPU per command by thread, µs (its phases above; `/proc/<pid>/task/*`"
-        " schedstat, threads named for the OS by service/threads.py)",
+        " schedstat, threads named for the OS by service/threads.py; its history process's"
+        " threads as one)",
         ["Riders", "all threads", *(label for _, label in THREAD_COLUMNS), "other"],
     )
     for riders, spent in sorted(threads.items()):
