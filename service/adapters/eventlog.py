@@ -293,6 +293,9 @@ class EventLog:
         """Open the database and start the threads; a database that cannot be opened is
         reported (and its events counted as lost) but never stops the machine."""
         self._open_or_replace()
+        self._start_threads()
+
+    def _start_threads(self) -> None:
         self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
         self._writer.start()
         self._reader = NamedThread(target=self._serve_reads, name="eventlog-read", daemon=True)
@@ -335,11 +338,7 @@ class EventLog:
         """Write what is queued, then stop both threads; never longer than `timeout` (a
         thread still waiting on a locked file is left behind, it is a daemon thread)."""
         deadline = time.monotonic() + timeout
-        with self._lock:
-            self._stopping = True
-        self._wake.set()
-        self._hurry.set()
-        self._stop_reader()
+        self._stop()
         for thread in (self._writer, self._reader):
             if thread is not None:
                 thread.join(max(0.0, deadline - time.monotonic()))
@@ -348,7 +347,13 @@ class EventLog:
             self._conn.close()
             self._conn = None
 
-    def _stop_reader(self) -> None:
+    def _stop(self) -> None:
+        """No more events taken; the writer hurried to the end of the queue, the reader told
+        to end."""
+        with self._lock:
+            self._stopping = True
+        self._wake.set()
+        self._hurry.set()
         if self._reader is not None:
             with contextlib.suppress(queue.Full):
                 self._reads.put_nowait(lambda conn, error: None)

@@ -142,10 +142,7 @@ class HistoryProcess(EventLog):
         self._failure = None
         self._base = (0, self.lost, self.failures)
         self._spawn()
-        self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
-        self._writer.start()
-        self._reader = NamedThread(target=self._serve_reads, name="eventlog-read", daemon=True)
-        self._reader.start()
+        self._start_threads()
 
     def _spawn(self) -> bool:
         self._spawned_at = time.monotonic()
@@ -191,11 +188,7 @@ class HistoryProcess(EventLog):
         """Send what is queued, let the process write it and end; never longer than
         `timeout` (then the process is killed, and what it had not written is counted lost)."""
         deadline = time.monotonic() + timeout
-        with self._lock:
-            self._stopping = True
-        self._wake.set()
-        self._hurry.set()
-        self._stop_reader()
+        self._stop()
         if self._writer is not None:
             self._writer.join(max(0.0, deadline - time.monotonic()))
         proc = self._proc
