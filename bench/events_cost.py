@@ -211,7 +211,8 @@ def run(opts: Options) -> Section:
     section.notes += [
         "Percentiles are of each mode's worst round (max over rounds); counts are summed.",
         "A stalled disk (the database locked by another connection for the whole run) holds the"
-        " writer in SQLite's 5 s busy wait: each batch that still cannot be written is lost"
+        " writer in SQLite's busy wait (`BUSY_TIMEOUT_S`, 1 s): each batch that still cannot"
+        " be written is lost"
         " (counted, and recorded as a `storage_failed` event once the disk is back), and past"
         " the queue's 4096 events new ones are dropped (counted, recorded as `events_dropped`).",
         "Each command is one `command` event; each E-stop toggle makes `estop_pressed`, a state"
