@@ -191,3 +191,22 @@ def test_a_line_made_as_text_goes_as_a_record_where_another_handler_or_a_filter_
         "event=a value=100%s",
         "event=b",
     ]
+
+
+def test_lines_made_by_another_process_go_out_whole_and_in_order_with_the_daemons(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The history process's lines (`put_text`, service/adapters/history.py) are queued as one
+    item beside the daemon's own, so a batch of them is never split by another line."""
+    lines, stream = LineQueue(), io.StringIO()
+    logger, writer = _logger(lines, stream)
+    monkeypatch.setattr(logfmt, "_handler", logger.handlers[0])
+    logger.info("event=before")
+    logfmt.put_text(
+        "ts=x level=info logger=machine event=a\nts=y level=info logger=machine event=b\n"
+    )
+    logger.info("event=after")
+    writer.stop()
+    events = [line.rsplit("event=", 1)[1] for line in stream.getvalue().splitlines()]
+    assert events == ["before", "a", "b", "after"]
+    assert lines.queued == 0 and lines.dropped == 0
