@@ -200,6 +200,7 @@ class HistoryProcess(EventLog):
                 proc.wait(max(0.05, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 self._cut_short = True
+                self._last_try = True  # no new process for what a blocked send still holds
                 proc.kill()
                 proc.wait()
         if self._receiver is not None:  # it counts what a killed process had not written

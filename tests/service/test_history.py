@@ -6,6 +6,7 @@ files, a full disk) is tested on both in tests/service/test_eventlog.py.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -33,6 +34,18 @@ def log(tmp_path: Path) -> Iterator[HistoryProcess]:
     events.start()
     yield events
     events.close()
+
+
+def history_processes() -> list[int]:
+    """This process's children that run a history process."""
+    found = []
+    for tid in os.listdir("/proc/self/task"):
+        with open(f"/proc/self/task/{tid}/children") as fh:
+            for pid in fh.read().split():
+                with contextlib.suppress(OSError), open(f"/proc/{pid}/cmdline", "rb") as cmd:
+                    if b"service.adapters.history" in cmd.read():
+                        found.append(int(pid))
+    return found
 
 
 def stored(log: HistoryProcess) -> list[object]:
@@ -160,6 +173,7 @@ def test_a_frozen_process_never_blocks_emit_and_close_ends_it_in_time(tmp_path: 
         log.close(timeout=1.0)
         assert time.monotonic() - started < 3.0
         assert proc.poll() is not None  # killed
+        assert history_processes() == []  # and none started in its place
     finally:
         if proc.poll() is None:
             proc.kill()
