@@ -13,7 +13,7 @@ import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
@@ -89,11 +89,11 @@ class _Session:
     started: float
 
 
-@dataclass(frozen=True, slots=True)
-class CommandFacts:
+class CommandFacts(NamedTuple):
     """What a command's event and its log line are made of: plain values taken when it was
     answered. Calling it makes the event (a `Lazy` row); made later, on the event log's writer
-    thread or in the history's own process (service/adapters/history.py), from `wire()`."""
+    thread or in the history's own process (service/adapters/history.py), from `wire()`. A
+    tuple: made on the command's own thread, where a frozen dataclass took 1 µs and this 0.3."""
 
     command: str
     transaction_id: str
@@ -148,17 +148,7 @@ class CommandFacts:
 
     def wire(self) -> tuple[str, str, str | None, bool, str, str, str | None, bool, float | None]:
         """The values in field order, for `CommandFacts(*values)` in another process."""
-        return (
-            self.command,
-            self.transaction_id,
-            self.rider,
-            self.accepted,
-            self.code,
-            self.message,
-            self.state,
-            self.repeat,
-            self.timecode,
-        )
+        return self
 
 
 @dataclass(frozen=True, slots=True)
@@ -171,7 +161,7 @@ class LogLine:
         info(COMMAND_LOG, self.facts.log_line())
 
 
-Lazy = KnownDetails | Callable[[], KnownDetails]
+Lazy = KnownDetails | CommandFacts | Callable[[], KnownDetails]
 """An event, or what makes it when it is written (a command's own event: off its reply's path)."""
 Emit = Callable[[Lazy], None]
 
