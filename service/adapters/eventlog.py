@@ -412,14 +412,19 @@ class EventLog:
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until everything queued so far is written (tests and shutdown)."""
-        deadline = time.monotonic() + timeout
+        return self._drained(time.monotonic() + timeout, lambda: not self._items and not self._busy)
+
+    def _drained(self, deadline: float, done: Callable[[], bool]) -> bool:
+        """Hurry the writer, then wait until `done()` (read under the queue's lock), at most
+        until `deadline`."""
         self._hurry.set()
-        while time.monotonic() < deadline:
+        while True:
             with self._lock:
-                if not self._items and not self._busy:
+                if done():
                     return True
+            if time.monotonic() >= deadline:
+                return False
             time.sleep(0.002)
-        return False
 
     @property
     def queued(self) -> int:
@@ -462,13 +467,17 @@ class EventLog:
             self.lost += 1
             log.error("event=events_make_failed error=%r", str(exc), exc_info=exc)
 
+    def _gather(self, timeout: float) -> None:
+        """Wait for the next event (at most `timeout`), then gather what follows for a moment
+        (unless hurried): a write (and its publications) per event took the GIL from the Zenoh
+        thread replying to the next command."""
+        if self._wake.wait(timeout):
+            self._hurry.wait(COALESCE_S)
+        self._hurry.clear()
+
     def _run(self) -> None:
         while True:
-            if self._wake.wait(timeout=min(1.0, self.settings.prune_every_s)):
-                # Gather what follows for a moment: a write (and its publications) per event
-                # took the GIL from the Zenoh thread replying to the next command.
-                self._hurry.wait(COALESCE_S)
-            self._hurry.clear()
+            self._gather(min(1.0, self.settings.prune_every_s))
             batch: list[_Row] = []
             try:
                 batch = self._take()

@@ -40,7 +40,6 @@ import msgpack
 from schema.codec import dump_json
 from schema.diag import EventsDiag
 from service.adapters.eventlog import (
-    COALESCE_S,
     EventLog,
     StoredRow,
     _Row,
@@ -90,7 +89,7 @@ def _items(entry: _Row | Held) -> list[_Item]:
     out: list[_Item] = []
     for row in entry.rows:
         if isinstance(row, CommandFacts):
-            out.append((_COMMAND, entry.wall, entry.cycle, row.wire(), row is logged))
+            out.append((_COMMAND, entry.wall, entry.cycle, row, row is logged))
             if row is logged:
                 then = None
         else:
@@ -211,9 +210,7 @@ class HistoryProcess(EventLog):
     # ---------------------------------------------------------------------------- sending
     def _run(self) -> None:
         while True:
-            if self._wake.wait(timeout=1.0):
-                self._hurry.wait(COALESCE_S)  # a batch per wake-up, as `EventLog` gathers
-            self._hurry.clear()
+            self._gather(1.0)  # a batch per wake-up, as `EventLog` gathers
             proc = self._proc
             if proc is None and not self._respawn():
                 with self._lock:
@@ -288,10 +285,7 @@ class HistoryProcess(EventLog):
             if pipe is None:
                 return False
             try:
-                view = memoryview(data)
-                while view:
-                    n = pipe.write(view)
-                    view = view[n or 0 :]
+                _write_all(pipe, data)
             except (OSError, ValueError):  # ended, or closed by `close`
                 return False
         return True
@@ -299,12 +293,9 @@ class HistoryProcess(EventLog):
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until everything queued so far is written (tests, reads and shutdown)."""
         deadline = time.monotonic() + timeout
-        self._hurry.set()
         self._wake.set()
-        while self._items or self._sending:
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.002)
+        if not self._drained(deadline, lambda: not self._items and not self._sending):
+            return False
         proc = self._proc
         if proc is None:
             return False
@@ -415,6 +406,14 @@ class HistoryProcess(EventLog):
         return d.model_copy(update={"dropped": self.dropped + self._child_dropped})
 
 
+def _write_all(out: Any, data: bytes) -> None:
+    """All of `data` to an unbuffered pipe, however many writes it takes."""
+    view = memoryview(data)
+    while view:
+        n = out.write(view)
+        view = view[n or 0 :]
+
+
 # -------------------------------------------------------------------- the history process
 class _Pipe:
     """Messages to the daemon on this process's stdout, from any of its threads."""
@@ -426,10 +425,7 @@ class _Pipe:
     def send(self, message: list[Any]) -> None:
         data = msgpack.packb(message, use_bin_type=True)
         with self._lock:
-            view = memoryview(data)
-            while view:
-                n = self._out.write(view)
-                view = view[n or 0 :]
+            _write_all(self._out, data)
 
 
 class _LogStream:

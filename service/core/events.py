@@ -92,8 +92,9 @@ class _Session:
 class CommandFacts(NamedTuple):
     """What a command's event and its log line are made of: plain values taken when it was
     answered. Calling it makes the event (a `Lazy` row); made later, on the event log's writer
-    thread or in the history's own process (service/adapters/history.py), from `wire()`. A
-    tuple: made on the command's own thread, where a frozen dataclass took 1 µs and this 0.3."""
+    thread or in the history's own process (service/adapters/history.py), sent as the tuple
+    it is and made again there with `CommandFacts(*values)`. A tuple: made on the command's
+    own thread, where a frozen dataclass took 1 µs and this 0.3."""
 
     command: str
     transaction_id: str
@@ -145,10 +146,6 @@ class CommandFacts(NamedTuple):
             f"event=command tx={self.transaction_id} command={self.command}"
             f" rider={self.rider} timecode={self.timecode} code={self.code} state={self.state}"
         )
-
-    def wire(self) -> tuple[str, str, str | None, bool, str, str, str | None, bool, float | None]:
-        """The values in field order, for `CommandFacts(*values)` in another process."""
-        return self
 
 
 @dataclass(frozen=True, slots=True)
