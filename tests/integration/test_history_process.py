@@ -14,20 +14,13 @@ from pathlib import Path
 
 import pytest
 
+from bench.common import children
 from service.adapters.eventlog import EVENTS_FILE
 from tests.procs import Daemon, start_daemon
 
 pytestmark = pytest.mark.integration
 
 COMMANDS = 20
-
-
-def children(pid: int) -> list[int]:
-    out: list[int] = []
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{tid}/children") as fh:
-            out.extend(int(c) for c in fh.read().split())
-    return out
 
 
 def history_child(daemon: Daemon) -> int:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from bench.common import children
 from schema.commands import Command, CommandRequest, Reply, ReplyCode
 from schema.events import CommandEvent, EventQuery, StorageEvent, WatchdogEvent
 from schema.status import MachineState
@@ -39,12 +40,10 @@ def log(tmp_path: Path) -> Iterator[HistoryProcess]:
 def history_processes() -> list[int]:
     """This process's children that run a history process."""
     found = []
-    for tid in os.listdir("/proc/self/task"):
-        with open(f"/proc/self/task/{tid}/children") as fh:
-            for pid in fh.read().split():
-                with contextlib.suppress(OSError), open(f"/proc/{pid}/cmdline", "rb") as cmd:
-                    if b"service.adapters.history" in cmd.read():
-                        found.append(int(pid))
+    for pid in children(os.getpid()):
+        with contextlib.suppress(OSError), open(f"/proc/{pid}/cmdline", "rb") as cmd:
+            if b"service.adapters.history" in cmd.read():
+                found.append(pid)
     return found
 
 
