@@ -76,10 +76,10 @@ class SimHal:
         return self._inputs
 
     def scan_outputs(self, outputs: Outputs) -> None:
-        self._advance()
         self.writes += 1
         if outputs.ro == self._written.ro:
-            return  # the drive already runs on exactly these outputs
+            return  # the drive runs on these already: the next scan integrates up to then
+        self._advance()
         self._written = Outputs(ro={ch: bool(outputs.ro.get(ch, False)) for ch in self._relays})
         self._apply(self._written)
 
@@ -139,8 +139,14 @@ class SimHal:
         """Integrate up to now under the old outputs before they change."""
         now = self._clock()
         dt = now - self._last
-        self.world.step(dt if dt < self.max_step_s else self.max_step_s)
         self._last = now
+        world = self.world
+        dt = dt if dt < self.max_step_s else self.max_step_s
+        drive = world.drive
+        if drive.rotate_on or drive.tilt_on:
+            world.step(dt)
+        elif dt > 0:
+            world.time += dt  # `step` with no relay on moves nothing (an idle cycle's call)
 
     def _apply(self, outputs: Outputs) -> None:
         m, d = self.iomap, self.world.drive

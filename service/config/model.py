@@ -230,12 +230,13 @@ class LiveConfig:
         self.current = config
         """The config the machine runs with now; only `take` sets it (a plain attribute: the
         loop reads it every cycle)."""
-        self._offered = config
+        self.offered = config
+        """The latest offer (`take` makes it current)."""
 
     def offer(self, config: MachineConfig) -> None:
         """A new config for the next cycle (one reference swap: safe from any thread)."""
-        self._offered = config
+        self.offered = config
 
     def take(self) -> None:
         """On the scan thread, between cycles: run with the latest offer from now on."""
-        self.current = self._offered
+        self.current = self.offered

@@ -230,6 +230,9 @@ class _Rest:
     ai: dict[str, int]
     commands: int
     tasks: int
+    watched: bool
+    """A Rider controls and heartbeats are watched: the deadman runs in quiet cycles too.
+    Without one it has nothing to judge until a command names a controller (a full cycle)."""
 
 
 class ScanLoop:
@@ -306,7 +309,9 @@ class ScanLoop:
         """One scan cycle, in the design's order."""
         self.cycle += 1
         self.recorder.cycle = self.cycle
-        self.live.take()  # online parameter writes take effect here, between cycles
+        live = self.live
+        if live.offered is not live.current:
+            live.take()  # online parameter writes take effect here, between cycles
         inputs = self.image.inputs = self.hal.scan_inputs()
         rest, self._rest = self._rest, None
         guard = self.guard
@@ -325,7 +330,8 @@ class ScanLoop:
             and (guard is None or not guard.latched)
         ):
             # No watchdog latch, no E-stop, nothing queued: the cycle goes on at the deadman.
-            self._supervise(now)
+            if rest.watched:
+                self._supervise(now)
             if self.control.rest_key() == rest.key:
                 # Quiet: what a full cycle does at rest, without the work that finds nothing.
                 self._rest = rest
@@ -389,7 +395,10 @@ class ScanLoop:
         ):
             return None
         inputs = self.image.inputs
-        return _Rest(key, dict(inputs.di), dict(inputs.ai), self.commands_handled, self.tasks_run)
+        watched = self.beats is not None and control.controller_rider is not None
+        return _Rest(
+            key, dict(inputs.di), dict(inputs.ai), self.commands_handled, self.tasks_run, watched
+        )
 
     def _take_watchdog_trip(self, now: float) -> bool:
         """The watchdog forced the outputs safe while the scan thread was stalled (and has
