@@ -112,7 +112,7 @@ class Commands:
         if target is None:
             raise self._unknown(request.key)
         command, key_expr = target
-        request.command = command.value
+        request.command = command._value_
         if request.raw() is None:
             raise BadRequest(
                 'a command needs a payload with at least a transaction_id, e.g. {"transaction_id":'

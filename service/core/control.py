@@ -336,7 +336,7 @@ class ControlAPI:
             self._rider = _RiderWatch(request.rider, request.rider is not None, heard_at=now)
         return Reply(
             transaction_id=request.transaction_id,
-            command=command.value,
+            command=command._value_,
             timecode=stamp,
             request_timecode=request.timecode,
             success=True,

@@ -117,13 +117,13 @@ class CommandFacts(NamedTuple):
     ) -> CommandFacts:
         error = reply.error
         return cls(
-            command.value,
+            command._value_,
             request.transaction_id,
             request.rider or sender,
             reply.success,
-            error.code.value if error is not None else reply.code.value,
+            error.code._value_ if error is not None else reply.code._value_,
             error.message if error is not None else "",
-            reply.state.value if reply.state is not None else None,
+            reply.state._value_ if reply.state is not None else None,
             repeat,
             request.timecode,
         )

@@ -490,14 +490,14 @@ class ScanLoop:
             self._observe(now)  # the fault and its notice, before the command's own
         self.commands_handled += 1
         stamp = now + self.wall_offset
-        repeat = self.transactions.lookup(request.transaction_id, command.value, stamp)
+        repeat = self.transactions.lookup(request.transaction_id, command._value_, stamp)
         if repeat is not None:
             self.recorder.command(
                 self.control, command, request, repeat, now, sender=sender, repeat=True
             )
             return repeat
         reply = self.control.handle(command, request, now)
-        self.transactions.record(request.transaction_id, command.value, reply)
+        self.transactions.record(request.transaction_id, command._value_, reply)
         # Before the reply goes out: a Rider that asks for the notice at once finds the motion.
         self._collect_completions()
         self.recorder.command(
