@@ -15,6 +15,7 @@ events, in practice the last millisecond or so (tests/service/test_eventlog_cras
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
 import os
@@ -72,6 +73,12 @@ BUSY_TIMEOUT_S = 1.0
 counts as failed: short, so a locked file can never hold up start-up or the shutdown deadline."""
 
 
+WRITER_WAIT_S = 5.0
+"""How long a log's writer waits at start for the one before it to let go (`claim_writer`):
+the history process of a killed daemon still writes what it was sent, for milliseconds."""
+WRITER_POLL_S = 0.01
+
+
 COALESCE_S = 0.02
 """How long the writer gathers events after the first one before writing them in one batch."""
 
@@ -108,6 +115,36 @@ def connect(path: Path) -> sqlite3.Connection:
         conn.close()
         raise
     return conn
+
+
+def claim_writer(path: Path, wait_s: float) -> tuple[int | None, str | None]:
+    """One writer per log: an exclusive `flock` on `<path>.writer`, which holds the holder's
+    pid, waited for up to `wait_s`. The file descriptor (closed: let go), and None or, when
+    another process still holds it after the wait, who does (the log is written anyway, so
+    that no event is lost, and that is said). (None, None) where no lock file can be made."""
+    lock = path.with_name(path.name + ".writer")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    except OSError:
+        return None, None  # a read-only place: writing will say what is wrong
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if time.monotonic() < deadline:
+                time.sleep(WRITER_POLL_S)
+                continue
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            return None, (
+                f"{path} is still written by another process (pid {holder}) after"
+                f" {wait_s:g} s; writing beside it, so events of the two may interleave"
+            )
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        return fd, None
 
 
 def unusable(exc: BaseException) -> bool:
@@ -258,8 +295,12 @@ class EventLog:
         settings: EventsSection,
         *,
         wall: Callable[[], float] = time.time,
+        writer_wait_s: float = WRITER_WAIT_S,
     ) -> None:
         self.path = path
+        self.writer_wait_s = writer_wait_s
+        self._writer_fd: int | None = None
+        """`claim_writer`'s lock, held while this writes the log."""
         self.machine_id = machine_id
         self.settings = settings
         self.wall = wall
@@ -292,8 +333,16 @@ class EventLog:
     def start(self) -> None:
         """Open the database and start the threads; a database that cannot be opened is
         reported (and its events counted as lost) but never stops the machine."""
+        self._claim()
         self._open_or_replace()
         self._start_threads()
+
+    def _claim(self) -> None:
+        """Wait for the log's previous writer to let go (`claim_writer`); said, not fatal."""
+        self._writer_fd, busy = claim_writer(self.path, self.writer_wait_s)
+        if busy is not None:
+            log.error("event=events_writer_busy path=%s error=%r", self.path, busy)
+            self.last_error = busy
 
     def _start_threads(self) -> None:
         self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
@@ -346,6 +395,9 @@ class EventLog:
         if self._conn is not None and writer_done:
             self._conn.close()
             self._conn = None
+        if self._writer_fd is not None and writer_done:
+            os.close(self._writer_fd)  # the next writer of this log may start
+            self._writer_fd = None
 
     def _stop(self) -> None:
         """No more events taken; the writer hurried to the end of the queue, the reader told

@@ -603,3 +603,49 @@ def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recover
         assert isinstance(failed, StorageEvent) and failed.lost == log.lost
     finally:
         log.close()
+
+
+def test_a_writer_waits_for_the_one_before_it_to_let_go(
+    tmp_path: Path, kind: type[EventLog]
+) -> None:
+    """The history process of a killed daemon may still be writing when the next daemon's
+    writer starts: the new one waits for it, so the old run's last events come first."""
+    path = tmp_path / EVENTS_FILE
+    before = open_log(path)
+    after = kind(path, "m1", EventsSection())
+    starting = threading.Thread(target=after.start, daemon=True)
+    starting.start()
+    try:
+        after.emit(WatchdogEvent(stalled_s=2.0), T0 + 1, 2)
+        assert not after.flush(timeout=0.3)  # it waits: nothing of it is written yet
+        before.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
+        before.close()  # writes its last event, then lets go
+        starting.join(10.0)
+        assert after.flush()
+        assert [e.details.stalled_s for e in page(after).events] == [1.0, 2.0]  # type: ignore[union-attr]
+        assert after.last_error is None
+    finally:
+        before.close()
+        after.close()
+
+
+def test_a_writer_still_held_after_its_wait_writes_anyway_and_says_by_whom(tmp_path: Path) -> None:
+    path = tmp_path / EVENTS_FILE
+    fd, busy = eventlog.claim_writer(path, 0.0)  # another writer, here: this process
+    assert fd is not None and busy is None
+    try:
+        log = EventLog(path, "m1", EventsSection(), writer_wait_s=0.05)
+        log.start()
+        try:
+            log.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
+            assert log.flush()  # nothing lost
+            assert log.last_error is not None
+            assert f"pid {os.getpid()}" in log.last_error
+            assert "interleave" in log.last_error
+        finally:
+            log.close()
+    finally:
+        os.close(fd)
+    again = open_log(path)  # let go: the next writer takes it at once, quietly
+    assert again.last_error is None
+    again.close()
