@@ -128,6 +128,9 @@ class HistoryProcess(EventLog):
         self._pending_failure: tuple[str, int] | None = None
         self._flushes: dict[int, threading.Event] = {}
         self._tokens = itertools.count(1)
+        self._retry: list[_Item] = []
+        """A batch whose send found the process gone (no reader: none of it was taken), for
+        the next process; only the writer thread changes it."""
 
     # ------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -216,8 +219,9 @@ class HistoryProcess(EventLog):
                 with self._lock:
                     if not self._stopping:
                         continue
-                    rest = sum(_rows_in(entry) for entry in self._items)
+                    rest = sum(_rows_in(entry) for entry in self._items) + len(self._retry)
                     self._items.clear()
+                    self._retry = []
                 if rest:
                     self._lose(rest, "the event writer process is not running")
                 return
@@ -226,12 +230,12 @@ class HistoryProcess(EventLog):
                 self._items.clear()
                 self._wake.clear()
                 self._deferred = 0
-                self._sending = bool(batch)
+                self._sending = bool(batch or self._retry)
                 dropped = self.dropped - self._forward_dropped
                 self._forward_dropped = self.dropped
                 stopping = self._stopping
             try:
-                if batch or dropped:
+                if batch or dropped or self._retry:
                     self._send_batch(batch, dropped)
             except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
                 self._lose(len(batch), f"event writer failed: {exc!r}", exc)
@@ -239,7 +243,7 @@ class HistoryProcess(EventLog):
                 self._sending = False
             if stopping:
                 with self._lock:
-                    if not self._items:
+                    if not self._items and not self._retry:
                         return
 
     def _respawn(self) -> bool:
@@ -247,7 +251,7 @@ class HistoryProcess(EventLog):
         queue meanwhile; a full queue drops and counts them); on `close`, one more try at
         once for what is still queued (the daemon's last events)."""
         with self._lock:
-            stopping, queued = self._stopping, bool(self._items)
+            stopping, queued = self._stopping, bool(self._items or self._retry)
         if stopping:
             if not queued or self._last_try:
                 return False
@@ -261,7 +265,7 @@ class HistoryProcess(EventLog):
         return self._spawn()
 
     def _send_batch(self, batch: list[_Row | Held], dropped: int) -> None:
-        items: list[_Item] = []
+        items, self._retry = self._retry, []
         for entry in batch:
             try:
                 items.extend(_items(entry))
@@ -269,7 +273,14 @@ class HistoryProcess(EventLog):
                 self._lose(1, f"event making failed: {exc!r}", exc)
         proc = self._proc
         if proc is None or not self._send(proc, [_BATCH, dropped, items]):
-            self._lose(len(items), "the event writer process is not running")
+            # It ended before the receiver saw it go: these wait for the next process, as
+            # events emitted after it went do (its unconfirmed ones are counted lost there).
+            self._retry = items
+            with self._lock:  # the next process is told of these drops instead
+                self._forward_dropped -= dropped
+            gone_by = time.monotonic() + 1.0  # the receiver reaps it and counts what it lost
+            while proc is not None and self._proc is proc and time.monotonic() < gone_by:
+                time.sleep(0.005)
             return
         with self._state:
             current = proc is self._proc
@@ -294,7 +305,9 @@ class HistoryProcess(EventLog):
         """Wait until everything queued so far is written (tests, reads and shutdown)."""
         deadline = time.monotonic() + timeout
         self._wake.set()
-        if not self._drained(deadline, lambda: not self._items and not self._sending):
+        if not self._drained(
+            deadline, lambda: not self._items and not self._sending and not self._retry
+        ):
             return False
         proc = self._proc
         if proc is None:
@@ -309,7 +322,7 @@ class HistoryProcess(EventLog):
             self._flushes.pop(token, None)
 
     def _unsettled(self) -> bool:
-        return bool(self._items) or self._sending or self._sent != self._settled
+        return bool(self._items or self._retry) or self._sending or self._sent != self._settled
 
     # -------------------------------------------------------------------------- receiving
     def _receive(self, proc: subprocess.Popen[bytes]) -> None:

@@ -10,6 +10,8 @@ import contextlib
 import logging
 import os
 import signal
+import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -153,6 +155,42 @@ def _killed(log: HistoryProcess) -> None:
     diag = log.diag()
     assert diag.failures == 1 and diag.lost == failed.lost == 0
     assert diag.written == 3
+
+
+def test_an_event_sent_as_the_process_dies_waits_for_the_next_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The writer thread can send to a process that has died before the receiver saw it go:
+    that batch reached no reader, so it goes to the next process instead of being lost."""
+    monkeypatch.setattr(history, "RESPAWN_S", 0.05)
+    noticed = threading.Event()
+    ended = HistoryProcess._ended
+
+    def held_back(self: HistoryProcess, proc: subprocess.Popen[bytes], code: int) -> None:
+        assert noticed.wait(10.0)  # the receiver sees the death only once the batch was sent
+        ended(self, proc, code)
+
+    monkeypatch.setattr(HistoryProcess, "_ended", held_back)
+    log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    log.start()
+    try:
+        log.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
+        assert log.flush()
+        first = log._proc
+        assert first is not None
+        os.kill(first.pid, signal.SIGKILL)
+        first.wait(5.0)
+        log.emit(WatchdogEvent(stalled_s=2.0), T0 + 1, 2)
+        assert not log.flush(timeout=0.3)  # sent to the dead process: waiting, not lost
+        assert log.lost == 0
+        noticed.set()
+        assert log.flush(timeout=10.0)
+        stalls = [d.stalled_s for d in stored(log) if isinstance(d, WatchdogEvent)]
+        assert stalls == [1.0, 2.0]
+        assert log.diag().lost == 0
+    finally:
+        noticed.set()
+        log.close()
 
 
 def test_a_frozen_process_never_blocks_emit_and_close_ends_it_in_time(tmp_path: Path) -> None:
