@@ -138,7 +138,8 @@ def test_a_killed_process_costs_only_what_it_had_not_written_and_a_new_one_takes
         log.close()
 
 
-def _killed(log: HistoryProcess) -> None:
+def _kill_between_two(log: HistoryProcess) -> subprocess.Popen[bytes]:
+    """One event written, the process SIGKILLed (and reaped), then a second event emitted."""
     log.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
     assert log.flush()
     first = log._proc
@@ -146,6 +147,11 @@ def _killed(log: HistoryProcess) -> None:
     os.kill(first.pid, signal.SIGKILL)
     first.wait(5.0)
     log.emit(WatchdogEvent(stalled_s=2.0), T0 + 1, 2)
+    return first
+
+
+def _killed(log: HistoryProcess) -> None:
+    first = _kill_between_two(log)
     assert log.flush(timeout=10.0)
     assert log._proc is not None and log._proc is not first
     kinds = [type(d).__name__ for d in stored(log)]
@@ -174,13 +180,7 @@ def test_an_event_sent_as_the_process_dies_waits_for_the_next_one(
     log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
     log.start()
     try:
-        log.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
-        assert log.flush()
-        first = log._proc
-        assert first is not None
-        os.kill(first.pid, signal.SIGKILL)
-        first.wait(5.0)
-        log.emit(WatchdogEvent(stalled_s=2.0), T0 + 1, 2)
+        _kill_between_two(log)
         assert not log.flush(timeout=0.3)  # sent to the dead process: waiting, not lost
         assert log.lost == 0
         noticed.set()
