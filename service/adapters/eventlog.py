@@ -142,8 +142,9 @@ def claim_writer(path: Path, wait_s: float) -> tuple[int | None, str | None]:
                 f"{path} is still written by another process (pid {holder}) after"
                 f" {wait_s:g} s; writing beside it, so events of the two may interleave"
             )
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        with contextlib.suppress(OSError):  # a full disk: held all the same, only unnamed
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
         return fd, None
 
 

@@ -608,6 +608,25 @@ def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recover
         log.close()
 
 
+def test_a_log_started_on_a_full_disk_starts_and_writes_once_there_is_room(
+    small_disk: Path, kind: type[EventLog]
+) -> None:
+    filler = small_disk / "filler"
+    fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
+    with contextlib.suppress(OSError):  # until ENOSPC, before the log (or its lock) exists
+        while True:
+            os.write(fd, b"x" * 4096)
+    os.close(fd)
+    log = open_log(small_disk / EVENTS_FILE, kind)  # no exception: the machine runs on
+    try:
+        filler.unlink()
+        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        assert log.flush(timeout=10.0)
+        assert [e.kind for e in page(log).events][-1] == "watchdog_trip"
+    finally:
+        log.close()
+
+
 def test_a_writer_waits_for_the_one_before_it_to_let_go(
     tmp_path: Path, kind: type[EventLog]
 ) -> None:
