@@ -278,9 +278,9 @@ class HistoryProcess(EventLog):
             self._retry = items
             with self._lock:  # the next process is told of these drops instead
                 self._forward_dropped -= dropped
-            gone_by = time.monotonic() + 1.0  # the receiver reaps it and counts what it lost
-            while proc is not None and self._proc is proc and time.monotonic() < gone_by:
-                time.sleep(0.005)
+            receiver = self._receiver  # that process's: only this thread starts another
+            if proc is not None and receiver is not None:
+                receiver.join(1.0)  # it reaps the process and counts what it lost, then ends
             return
         with self._state:
             current = proc is self._proc
