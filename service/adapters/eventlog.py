@@ -133,19 +133,24 @@ def claim_writer(path: Path, wait_s: float) -> tuple[int | None, str | None]:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            if time.monotonic() < deadline:
-                time.sleep(WRITER_POLL_S)
-                continue
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            pass  # held: wait, below
+        except OSError:  # a file system without locks (ENOLCK): written unlocked, as before
             os.close(fd)
-            return None, (
-                f"{path} is still written by another process (pid {holder}) after"
-                f" {wait_s:g} s; writing beside it, so events of the two may interleave"
-            )
-        with contextlib.suppress(OSError):  # a full disk: held all the same, only unnamed
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, str(os.getpid()).encode(), 0)
-        return fd, None
+            return None, None
+        else:
+            with contextlib.suppress(OSError):  # a full disk: held all the same, only unnamed
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, str(os.getpid()).encode(), 0)
+            return fd, None
+        if time.monotonic() < deadline:
+            time.sleep(WRITER_POLL_S)
+            continue
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        return None, (
+            f"{path} is still written by another process (pid {holder}) after"
+            f" {wait_s:g} s; writing beside it, so events of the two may interleave"
+        )
 
 
 def unusable(exc: BaseException) -> bool:

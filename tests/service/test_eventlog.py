@@ -6,6 +6,7 @@ process of its own (`HistoryProcess`, `[events] process = true`, the default).""
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import queue
 import sqlite3
@@ -623,6 +624,23 @@ def test_a_log_started_on_a_full_disk_starts_and_writes_once_there_is_room(
         log.emit_now(WatchdogEvent(stalled_s=1.0))
         assert log.flush(timeout=10.0)
         assert [e.kind for e in page(log).events][-1] == "watchdog_trip"
+    finally:
+        log.close()
+
+
+def test_a_file_system_without_locks_is_written_unlocked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def no_locks(fd: int, operation: int) -> None:
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(eventlog.fcntl, "flock", no_locks)
+    log = open_log(tmp_path / EVENTS_FILE)  # no exception: the machine runs on
+    try:
+        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        assert log.flush()
+        assert [e.kind for e in page(log).events] == ["watchdog_trip"]
+        assert log.last_error is None
     finally:
         log.close()
 
