@@ -24,6 +24,7 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 from rider.client import (
     AmbiguousMachine,
     BadCredentials,
+    BadRuntime,
     CommandRefused,
     DuplicateMachine,
     MachineTimeout,
@@ -780,7 +781,7 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0912 - one
             timeout=args.timeout,
         ) as rider:
             return run(args, rider)
-    except (UsageError, BadCredentials) as exc:
+    except (UsageError, BadCredentials, BadRuntime) as exc:
         print(f"rider: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except CommandRefused as exc:

@@ -63,6 +63,7 @@ from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
 from schema.rider import HEARTBEAT_INTERVAL_S, alive_key, heartbeat_key
+from schema.runtime import RUNTIME_ENV, first_session_on
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 from schema.threadstate import keeping_state
@@ -102,6 +103,10 @@ class CommandRefused(RiderError):
 
 class BadCredentials(RiderError):
     """A RIDER_ZENOH_* variable is incomplete or names a file that cannot be read."""
+
+
+class BadRuntime(RiderError):
+    """`ZENOH_RUNTIME` in the environment is a layout Zenoh cannot read."""
 
 
 class BadReply(RiderError):
@@ -277,6 +282,21 @@ def zenoh_config(
     return conf
 
 
+def open_session(conf: zenoh.Config, zenoh_threads: int = 1) -> zenoh.Session:
+    """A session opened as a Rider opens it. The process's first one lays out Zenoh's runtime
+    on `zenoh_threads` worker threads (`schema.runtime`; 0: Zenoh's own six), as the daemon
+    does: a command's round trip ~8 % shorter on two cores (BENCHMARKS.md, section 1). A
+    `ZENOH_RUNTIME` in the environment wins; one that Zenoh cannot read is `BadRuntime`."""
+    with first_session_on(zenoh_threads):
+        try:
+            return zenoh.open(conf)
+        except BaseException as exc:  # pyo3's PanicException derives from BaseException
+            layout = os.environ.get(RUNTIME_ENV)
+            if isinstance(exc, Exception | KeyboardInterrupt | SystemExit) or not layout:
+                raise
+            raise BadRuntime(f"{RUNTIME_ENV}={layout!r} cannot be read by Zenoh: {exc}") from None
+
+
 def _answers(endpoint: str, timeout: float = 0.5) -> bool | None:
     """Whether a process serves a `tcp/` or `tls/` endpoint: True if it reacts to a bad frame
     (a live Zenoh or TLS listener answers or closes at once), None if the connection is
@@ -303,7 +323,7 @@ def _answers(endpoint: str, timeout: float = 0.5) -> bool | None:
 class Rider:
     """A synchronous Rider session; use as a context manager so the session always closes."""
 
-    def __init__(
+    def __init__(  # noqa: PLR0913 - the machine, then keyword-only options
         self,
         machine_id: str | None = "m1",
         *,
@@ -314,9 +334,12 @@ class Rider:
         timeout: float = DEFAULT_TIMEOUT_S,
         retries: int = 1,
         supervise: bool = True,
+        zenoh_threads: int = 1,
     ) -> None:
         """`supervise`: name this Rider in motion commands, so the machine applies its
-        rider-loss policy if this process disappears mid-motion (off for one-shot CLI calls)."""
+        rider-loss policy if this process disappears mid-motion (off for one-shot CLI calls).
+        `zenoh_threads`: Zenoh's worker threads in this process, as `bus.zenoh_threads` is the
+        daemon's (`open_session`; 0 keeps Zenoh's own six)."""
         self.key_prefix = key_prefix
         self.timeout = timeout
         self.retries = retries
@@ -332,6 +355,7 @@ class Rider:
         self.discovery: Discovery | None = None
         """What the default-machine lookup saw (None when a machine was named)."""
         self.supervise = supervise
+        self.zenoh_threads = zenoh_threads
         self.rider_id = ""
         self._attachment = b""
         self._keys: dict[str, zenoh.KeyExpr] = {}
@@ -344,7 +368,7 @@ class Rider:
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
         try:
-            self._session = zenoh.open(self._conf)
+            self._session = open_session(self._conf, self.zenoh_threads)
         except zenoh.ZError as exc:
             # e.g. a client whose router is down: a clear error, not a traceback
             where = str(exc).split(" at /", 1)[0]
@@ -475,7 +499,7 @@ class Rider:
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/timeout_ms", str(int(PROBE_TIMEOUT_S * 1000)))
         conf.insert_json5("connect/exit_on_failure", "true")
-        return zenoh.open(conf)
+        return open_session(conf, self.zenoh_threads)
 
     @property
     def base(self) -> str:

@@ -5,6 +5,20 @@ import pytest
 from tests.rig import Rig
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Zenoh's runtime in this process as a Rider lays it out (one worker thread,
+    `rider.client.open_session`): the first session fixes it for every later one, so it is
+    fixed here, not by whichever test happens to open a session first."""
+    import zenoh
+
+    from rider.client import open_session
+
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", "[]")
+    open_session(conf).close()
+
+
 @pytest.fixture
 def rig() -> Rig:
     return Rig()

@@ -10,6 +10,7 @@ from pathlib import Path
 import zenoh
 
 from schema.credentials import MACHINE, zenoh_settings
+from schema.runtime import RUNTIME_ENV, runtime_layout
 from service.threads import NamedThread
 
 Session = zenoh.Session
@@ -45,25 +46,6 @@ def zenoh_config(
     for setting, value in zenoh_settings(MACHINE).items():
         conf.insert_json5(setting, value)
     return conf
-
-
-RUNTIME_ENV = "ZENOH_RUNTIME"
-"""Zenoh's runtime layout (RON, read once, when the process first uses Zenoh)."""
-
-
-def runtime_layout(threads: int) -> str | None:
-    """`ZENOH_RUNTIME` for `bus.zenoh_threads`: every runtime handed over to the application
-    runtime, which gets `threads` workers; None (Zenoh's own layout) for 0.
-
-    Zenoh's default is five runtimes with six threads (receive 2, send, network, accept,
-    application). On two cores a query then crosses threads between its receipt and its reply's
-    send, each a wake-up: one thread for all of it took a command's round trip from 1.49-1.54x
-    to 1.29-1.39x a bare echo, and a fifth off the daemon's CPU per command (BENCHMARKS.md
-    section 1); a bare echo gains as much from it."""
-    if threads == 0:
-        return None
-    handed = ", ".join(f"{rt}: (handover: app)" for rt in ("rx", "tx", "net", "acc"))
-    return f"({handed}, app: (worker_threads: {threads}))"
 
 
 def use_runtime(threads: int) -> str | None:

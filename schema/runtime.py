@@ -1,0 +1,70 @@
+"""Zenoh's runtime layout (`ZENOH_RUNTIME`), for the daemon's bus and for the Rider alike.
+
+Not a wire concern: it lives here because both lay out Zenoh's threads the same way, and this
+is the one package both import (without `zenoh`).
+
+Zenoh reads `ZENOH_RUNTIME` (RON) once per process, when its first session opens; later
+sessions share that runtime. Zenoh's default is five runtimes with six threads (receive 2,
+send, network, accept, application): a query crosses threads between its receipt and its
+reply's send, each a wake-up. One thread for all of it took a command's round trip from
+1.49-1.54x to 1.29-1.39x a bare echo on the daemon's side (BENCHMARKS.md, section 1), and the
+Rider's side gains as much (BENCHMARKS.md, section 1, twelfth pass).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+from collections.abc import Iterator
+
+RUNTIME_ENV = "ZENOH_RUNTIME"
+"""Zenoh's own variable for its runtime layout."""
+
+
+class _FirstOpen:
+    """Whether a session has opened through `first_session_on` in this process."""
+
+    lock = threading.Lock()
+    done = False
+
+
+def runtime_layout(threads: int) -> str | None:
+    """`ZENOH_RUNTIME` for `threads` workers: every runtime handed over to the application
+    runtime, which gets them; None (Zenoh's own layout) for 0."""
+    if threads == 0:
+        return None
+    handed = ", ".join(f"{rt}: (handover: app)" for rt in ("rx", "tx", "net", "acc"))
+    return f"({handed}, app: (worker_threads: {threads}))"
+
+
+@contextlib.contextmanager
+def first_session_on(threads: int) -> Iterator[str | None]:
+    """Around a library's `zenoh.open`: if it is the first through here in this process, Zenoh
+    lays out its runtime for `threads` (0: Zenoh's own), and the variable is taken away again
+    after, so processes this one starts later never inherit it. Yields what was applied
+    (`zenoh_threads=N`, `zenoh_runtime=ZENOH_RUNTIME` for a layout already in the environment,
+    which is kept, or None).
+
+    A session this process opened before, some other way, has fixed the layout already: then
+    this changes nothing. Opens run one at a time here while the variable is set."""
+    first = _FirstOpen
+    with first.lock:
+        if first.done:
+            yield None
+            return
+        if os.environ.get(RUNTIME_ENV):
+            first.done = True
+            yield f"zenoh_runtime={RUNTIME_ENV}"
+            return
+        layout = runtime_layout(threads)
+        if layout is None:
+            first.done = True
+            yield None
+            return
+        os.environ[RUNTIME_ENV] = layout
+        try:
+            yield f"zenoh_threads={threads}"
+            first.done = True
+        finally:
+            os.environ.pop(RUNTIME_ENV, None)

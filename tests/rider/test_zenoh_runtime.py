@@ -1,0 +1,116 @@
+"""A Rider lays out Zenoh's runtime in its process as the daemon does (`zenoh_threads`, one
+worker by default), read from outside in /proc; the variable it sets for that is gone after the
+first open, so processes it starts later inherit nothing; the operator's `ZENOH_RUNTIME` wins,
+and one Zenoh cannot read is a clear error."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+from schema.runtime import RUNTIME_ENV, runtime_layout
+from tests.procs import REPO, free_port
+from tests.service.test_zenoh_runtime import runtimes
+
+CHILD = """
+import os, subprocess, sys, time
+import zenoh
+from rider.client import Rider
+threads, endpoint, first = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+def config():
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    return conf
+server = zenoh.open(config()) if first == "other" else None
+rider = Rider("m1", listen=[endpoint], zenoh_threads=threads, supervise=False).open()
+during = os.environ.get("ZENOH_RUNTIME")
+server = server or zenoh.open(config())
+answer = server.declare_queryable("t/q", lambda query: query.reply("t/q", b"ok"))
+for _ in range(100):  # a link, a query and its reply: every runtime that serves them is up
+    replies = list(rider.session.get("t/q", timeout=0.2))
+    if replies and replies[0].ok is not None:
+        break
+    time.sleep(0.05)  # the peer that connects first retries on its own period
+tasks = os.listdir("/proc/self/task")
+names = sorted(open(f"/proc/self/task/{t}/comm").read().strip() for t in tasks)
+inherited = subprocess.run(
+    [sys.executable, "-c", "import os; print(os.environ.get('ZENOH_RUNTIME'))"],
+    capture_output=True, text=True, check=True,
+).stdout.strip()
+print(during, inherited, bool(replies), " ".join(names), sep="\\n")
+rider.close()
+server.close()
+"""
+
+
+def child(
+    threads: int, env: dict[str, str] | None = None, first: str = "rider"
+) -> tuple[str, str, list[str]]:
+    """A process whose Rider opens with `threads` (after a session opened some other way when
+    `first` is "other"): `ZENOH_RUNTIME` after the Rider's open, in a process it starts
+    then, and its threads' names."""
+    environ = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, str(threads), f"tcp/127.0.0.1:{free_port()}", first],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+        env={**environ, **(env or {})},
+    )
+    after, inherited, answered, names = proc.stdout.splitlines()
+    assert answered == "True", proc.stderr
+    return after, inherited, names.split()
+
+
+def test_a_rider_runs_zenoh_on_one_thread_and_leaves_no_variable_behind() -> None:
+    after, inherited, names = child(1)
+    assert runtimes(names) == {"app"}
+    assert "app-0" in names
+    assert (after, inherited) == ("None", "None")
+
+
+def test_zero_keeps_zenohs_own_layout() -> None:
+    after, inherited, names = child(0)
+    assert {"rx", "tx"} <= runtimes(names)
+    assert "rx-1" in names  # Zenoh's two receive threads
+    assert (after, inherited) == ("None", "None")
+
+
+def test_a_session_opened_before_keeps_its_layout() -> None:
+    """The process's first session fixed the runtime (Zenoh's own here): the Rider changes
+    nothing, and sets nothing."""
+    after, inherited, names = child(1, first="other")
+    assert "rx-1" in names
+    assert (after, inherited) == ("None", "None")
+
+
+def test_the_operators_zenoh_runtime_wins_and_stays() -> None:
+    mine = "(rx: (handover: app))"
+    after, inherited, names = child(1, {RUNTIME_ENV: mine})
+    assert "rx" not in runtimes(names)
+    assert "tx" in runtimes(names)  # not handed over by the operator's layout
+    assert (after, inherited) == (mine, mine)
+    assert runtime_layout(1) != mine
+
+
+def test_a_zenoh_runtime_zenoh_cannot_read_is_a_usage_error_that_names_it() -> None:
+    """Zenoh panics on it: the CLI says what was wrong, and exits 2, without a traceback."""
+    broken = "(rx: (handover: app)"  # the closing parenthesis missing
+    environ = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.run(
+        [sys.executable, "-m", "rider.cli", "--connect", endpoint, "-m", "m1", "status"],
+        check=False,
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**environ, RUNTIME_ENV: broken},
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert f"{RUNTIME_ENV}={broken!r} cannot be read by Zenoh" in proc.stderr
+    assert "Traceback" not in proc.stderr
