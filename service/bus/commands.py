@@ -126,7 +126,7 @@ class Commands:
                 command, body, self.clock, sender=sender, timeout=None
             )
             if reply is not None:
-                request.reply(reply, key_expr)
+                request.reply(reply, key_expr, self.loop.transactions.wire(reply))
                 return
 
         wait = functools.partial(self._wait, request, command, body, sender, key_expr)
@@ -146,7 +146,7 @@ class Commands:
         `dispatch` would (away from it)."""
 
         def respond(reply: Reply) -> None:
-            request.reply(reply, key_expr)
+            request.reply(reply, key_expr, self.loop.transactions.wire(reply))
 
         try:
             reply = self.loop.execute_between_cycles(

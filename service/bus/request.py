@@ -47,12 +47,20 @@ def reply_format(parameters: str, encoding: str | None, sent: Format | None = No
     return Format.JSON if encoding and encoding.startswith(Format.JSON) else Format.MSGPACK
 
 
-def send(query: zenoh.Query, key: str | zenoh.KeyExpr, model: BaseModel, fmt: Format) -> None:
+def send(
+    query: zenoh.Query,
+    key: str | zenoh.KeyExpr,
+    model: BaseModel,
+    fmt: Format,
+    packed: bytes | None = None,
+) -> None:
     """The one reply of a query, and its end (the caller's `get` returns without a timeout).
+    `packed`: the model's msgpack bytes, made already (a command's, `TransactionLog.wire`).
 
     Every reply of the bus goes out here (or through `put`, for a query with several)."""
+    data = packed if packed is not None and fmt is Format.MSGPACK else encode(model, fmt)
     with query:
-        query.reply(key, encode(model, fmt), encoding=ENCODINGS[fmt])
+        query.reply(key, data, encoding=ENCODINGS[fmt])
 
 
 def put(query: zenoh.Query, key: str | zenoh.KeyExpr, model: BaseModel, fmt: Format) -> None:
@@ -107,8 +115,13 @@ class Request:
         self.transaction_id = getattr(value, "transaction_id", None)
         return value
 
-    def reply(self, model: BaseModel, key: str | zenoh.KeyExpr | None = None) -> None:
-        send(self.query, self.key if key is None else key, model, self.fmt)
+    def reply(
+        self,
+        model: BaseModel,
+        key: str | zenoh.KeyExpr | None = None,
+        packed: bytes | None = None,
+    ) -> None:
+        send(self.query, self.key if key is None else key, model, self.fmt, packed)
 
     def refuse(self, error: MachineError) -> None:
         """The one wire shape of a refusal: a `Reply` with `success: false` and the error."""

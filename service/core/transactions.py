@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 
-from schema.codec import Format, encode
+from schema.codec import Format, decode, encode
 from schema.commands import Reply
 from service.errors import DuplicateTransaction
 
@@ -12,15 +12,17 @@ from service.errors import DuplicateTransaction
 class TransactionLog:
     """The last `capacity` replies by transaction id (oldest forgotten first).
 
-    Each reply is kept as its JSON (1 µs to make; a repeat reads it back). Kept as models,
-    thousands of long-lived objects turning over at the command rate were the garbage
-    collector's: a full collection every few thousand commands, 15-18 ms with the GIL held
-    (BENCHMARKS.md, section 1). Bytes are not tracked by it.
+    Each reply is kept as its msgpack bytes, the wire's usual format: the last one recorded
+    goes out as those bytes (`wire`), so a command's reply is serialised once, not twice; a
+    repeat reads them back. Kept as models, thousands of long-lived objects turning over at the
+    command rate were the garbage collector's: a full collection every few thousand commands,
+    15-18 ms with the GIL held (BENCHMARKS.md, section 1). Bytes are not tracked by it.
     """
 
     def __init__(self, capacity: int = 4096) -> None:
         self.capacity = capacity
         self._replies: OrderedDict[str, tuple[str, bytes]] = OrderedDict()
+        self._last: tuple[Reply, bytes] | None = None
         self.repeats = 0
 
     def lookup(self, transaction_id: str, command: str, timecode: float) -> Reply | None:
@@ -30,7 +32,7 @@ class TransactionLog:
             return None
         self.repeats += 1
         first_command, packed = hit
-        reply = Reply.model_validate_json(packed)
+        reply = decode(Reply, packed, Format.MSGPACK, limit=len(packed))
         if first_command == command:
             return reply
         return Reply.failure(
@@ -45,9 +47,17 @@ class TransactionLog:
         )
 
     def record(self, transaction_id: str, command: str, reply: Reply) -> None:
-        self._replies[transaction_id] = (command, encode(reply, Format.JSON))
+        packed = encode(reply, Format.MSGPACK)
+        self._replies[transaction_id] = (command, packed)
+        self._last = (reply, packed)
         if len(self._replies) > self.capacity:
             self._replies.popitem(last=False)
+
+    def wire(self, reply: Reply) -> bytes | None:
+        """`reply` as msgpack, when it is the reply recorded last (`encode`'s bytes, made once);
+        None for any other (a repeat's refusal, or a later command recorded meanwhile)."""
+        last = self._last
+        return last[1] if last is not None and last[0] is reply else None
 
     def __len__(self) -> int:
         return len(self._replies)

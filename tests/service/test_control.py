@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import pytest
 
+from schema.codec import Format, encode
 from schema.commands import ALLOWED_STATES, CheckResult, Command, ReplyCode
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
@@ -462,3 +463,22 @@ def test_the_transaction_window_holds_no_objects_for_the_garbage_collector() -> 
     assert len(entries) >= 50
     assert not any(gc.is_tracked(e) for e in entries)
     assert rig.send(C.CHECK_HOME, transaction_id="gc-0") == first  # read back whole
+
+
+def test_a_reply_goes_out_as_the_bytes_its_window_keeps_and_no_other_does() -> None:
+    """One serialisation per command: the reply recorded last is sent as its window's bytes;
+    a refusal of a reused id, or a reply once a later one is recorded, is encoded afresh."""
+    rig = Rig(calibration=known_calibration())
+    window = rig.loop.transactions
+    first = rig.send(C.CHECK_HOME, transaction_id="w-1")
+    assert window.wire(first) == encode(first, Format.MSGPACK)
+    reused = rig.send(C.STOP, transaction_id="w-1")
+    assert reused.error is not None
+    assert reused.error.code is ErrorCode.DUPLICATE_TRANSACTION
+    assert window.wire(reused) is None  # never the first command's bytes
+    repeat = rig.send(C.CHECK_HOME, transaction_id="w-1")
+    assert repeat == first
+    assert window.wire(repeat) is None  # read back: equal, not the same object
+    later = rig.send(C.CHECK_HOME, transaction_id="w-2")
+    assert window.wire(first) is None
+    assert window.wire(later) == encode(later, Format.MSGPACK)
