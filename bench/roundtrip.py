@@ -33,6 +33,7 @@ from bench.common import (
     share,
 )
 from bench.daemon import Tuning, bench_daemon, pinnable_cpu
+from rider.client import open_session
 from rider.client import zenoh_config as rider_zenoh_config
 from schema.codec import Format, decode
 from schema.commands import Reply
@@ -126,15 +127,15 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
 
         rider = stack.enter_context(daemon.rider(supervise=False))
         echo_session = stack.enter_context(
-            zenoh.open(rider_zenoh_config(zconf, connect=[echo_endpoint]))
+            open_session(rider_zenoh_config(zconf, connect=[echo_endpoint]))
         )
         bare_session = stack.enter_context(
-            zenoh.open(
+            open_session(
                 rider_zenoh_config(bare.zenoh_config, connect=[bare.endpoint, threaded.endpoint])
             )
         )
         six_session = stack.enter_context(
-            zenoh.open(rider_zenoh_config(zconf, connect=[six.endpoint, one_echo_endpoint]))
+            open_session(rider_zenoh_config(zconf, connect=[six.endpoint, one_echo_endpoint]))
         )
         checked = [(rider.session, cmd_key := f"{rider.base}/cmd/check/home")]
         checked.append((bare_session, bare_key := "machine/m2/cmd/check/home"))
@@ -142,7 +143,7 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         checked.append((six_session, six_key := "machine/m4/cmd/check/home"))
         if pin is not None:
             pinned_session = stack.enter_context(
-                zenoh.open(
+                open_session(
                     rider_zenoh_config(zconf, connect=[pinned.endpoint, pinned_echo_endpoint])
                 )
             )
@@ -229,6 +230,11 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         )
     else:
         section.notes.append("One CPU only: no `loop.cpus` rows.")
+    section.notes.append(
+        "The client, this process, opens its sessions as a Rider does"
+        " (`rider.client.open_session`): Zenoh on one worker thread, the Rider's default"
+        " (`zenoh_threads`); every row's client gains from it alike."
+    )
     client = dists[RIDER].p50 - dists[RAW].p50
     section.notes.append(
         f"The Rider API adds {ms(client)} ms at the median to the raw get: the client's own"

@@ -19,8 +19,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import zenoh
-
 from bench.common import (
     HISTORY,
     Child,
@@ -35,7 +33,7 @@ from bench.common import (
     thread_cpu,
 )
 from bench.daemon import bench_daemon
-from rider.client import Rider
+from rider.client import Rider, open_session
 from rider.client import zenoh_config as rider_zenoh_config
 from schema.diag import CycleDiag
 from tests.procs import free_port
@@ -49,7 +47,8 @@ GET_TIMEOUT_S = 2.0
 def worker(connect: list[str], zenoh_config: Path, name: str) -> int:
     """Reads `run <key> <seconds>` lines; answers each with `result {"count": n, "failed": f}`."""
     ids = itertools.count()
-    with zenoh.open(rider_zenoh_config(zenoh_config, connect=connect)) as session:
+    # Opened as a Rider opens its session (`open_session`: Zenoh on one worker thread).
+    with open_session(rider_zenoh_config(zenoh_config, connect=connect)) as session:
         print("ready", flush=True)
         for key, seconds_text in run_lines():
             seconds = float(seconds_text)
