@@ -95,6 +95,22 @@ def _positive_s(text: str) -> float:
     return value
 
 
+ZENOH_THREADS_MAX = 64
+"""As the daemon's `bus.zenoh_threads`."""
+
+
+def _zenoh_threads(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= ZENOH_THREADS_MAX:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a thread count from 0 (Zenoh's own layout) to {ZENOH_THREADS_MAX}"
+        )
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 - argparse declarations, one statement per option
     p = argparse.ArgumentParser(
         prog="rider", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -115,6 +131,13 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 - argparse decla
     )
     p.add_argument("--prefix", default="machine", help="key prefix (default: machine)")
     p.add_argument("--timeout", type=_positive_s, default=2.0, help="reply timeout in seconds")
+    p.add_argument(
+        "--zenoh-threads",
+        type=_zenoh_threads,
+        default=1,
+        help="Zenoh's worker threads in this process (default 1, as the daemon; 0: Zenoh's own"
+        " six; $ZENOH_RUNTIME wins)",
+    )
     p.add_argument("--json", action="store_true", help="print JSON instead of tables")
     sub = p.add_subparsers(dest="cmd", required=True)
 
@@ -767,7 +790,13 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0912 - one
         from rider.ui.app import main as ui_main
 
         return int(
-            ui_main(rest, connect=connect, zenoh_config=args.zenoh_config, machine=args.machine)
+            ui_main(
+                rest,
+                connect=connect,
+                zenoh_config=args.zenoh_config,
+                machine=args.machine,
+                zenoh_threads=args.zenoh_threads,
+            )
         )
     try:
         # A one-shot command that exits at once supervises nothing; `--wait` and live views do.
@@ -779,6 +808,7 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0912 - one
             zenoh_config_path=args.zenoh_config,
             key_prefix=args.prefix,
             timeout=args.timeout,
+            zenoh_threads=args.zenoh_threads,
         ) as rider:
             return run(args, rider)
     except (UsageError, BadCredentials, BadRuntime) as exc:

@@ -332,7 +332,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(
-    argv: Sequence[str], connect: list[str], zenoh_config: Path | None, machine: str | None
+    argv: Sequence[str],
+    connect: list[str],
+    zenoh_config: Path | None,
+    machine: str | None,
+    zenoh_threads: int = 1,
 ) -> int:
     """Serve until SIGTERM/SIGINT; the Rider session is closed before returning."""
     try:
@@ -353,6 +357,7 @@ def main(
         zenoh_config_path=zenoh_config,
         key_prefix=args.prefix,
         supervise=not args.monitor,
+        zenoh_threads=zenoh_threads,
     )
     app = create_app(rider, monitor=args.monitor)
     ui: UiState = app.state.ui

@@ -20,6 +20,9 @@ from tests.procs import free_port
         ("--timeout", "0"),
         ("--timeout", "nan"),
         ("--timeout", "inf"),
+        ("--zenoh-threads", "-1"),
+        ("--zenoh-threads", "65"),
+        ("--zenoh-threads", "two"),
     ],
 )
 def test_bad_global_option_is_usage_error(

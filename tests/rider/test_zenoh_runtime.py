@@ -9,6 +9,10 @@ import os
 import subprocess
 import sys
 
+import pytest
+
+from rider import cli
+from rider.client import MachineTimeout, Rider
 from schema.runtime import RUNTIME_ENV, runtime_layout
 from tests.procs import REPO, free_port
 from tests.service.test_zenoh_runtime import runtimes
@@ -95,6 +99,22 @@ def test_the_operators_zenoh_runtime_wins_and_stays() -> None:
     assert "tx" in runtimes(names)  # not handed over by the operator's layout
     assert (after, inherited) == (mine, mine)
     assert runtime_layout(1) != mine
+
+
+def test_the_cli_passes_its_thread_count_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`rider --zenoh-threads N` is the Rider's `zenoh_threads` (the session is not opened)."""
+    seen: list[int] = []
+
+    def opened(rider: Rider) -> Rider:
+        seen.append(rider.zenoh_threads)
+        raise MachineTimeout("not opened here")
+
+    monkeypatch.setattr(Rider, "open", opened)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    for argv in (["--zenoh-threads", "0"], ["--zenoh-threads", "4"], []):
+        code = cli.main(["--connect", endpoint, "-m", "m1", *argv, "status"])
+        assert code == cli.EXIT_NO_REPLY
+    assert seen == [0, 4, 1]
 
 
 def test_a_zenoh_runtime_zenoh_cannot_read_is_a_usage_error_that_names_it() -> None:
