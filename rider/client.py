@@ -12,6 +12,7 @@ import dataclasses
 import itertools
 import json
 import logging
+import math
 import os
 import queue
 import socket
@@ -364,6 +365,9 @@ class Rider:
         self._command_keys: dict[Command, str] = {}
         self._machine_of: dict[str, str | None] = {}
         """`_machine_in`'s answers by key (bounded: cleared when it holds `KEY_CACHE` keys)."""
+        self._foreign = Throttle(FOREIGN_LOG_EVERY_S)
+        """The `foreign_sample` warning: a peer can publish under the machine's keys at any
+        rate, and a line per sample cost the Rider's thread more than the sample did."""
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
@@ -951,7 +955,14 @@ class Rider:
             if self._sample_ok(sample):
                 on_sample(sample)
             else:
-                log.warning("event=foreign_sample key=%s source=%s", sample.key_expr, _src(sample))
+                suppressed = self._foreign.allow()
+                if suppressed is not None:
+                    log.warning(
+                        "event=foreign_sample key=%s source=%s suppressed=%d",
+                        sample.key_expr,
+                        _src(sample),
+                        suppressed,
+                    )
 
         try:
             with _bus_errors(f"cannot subscribe under {base}"):
@@ -1269,6 +1280,33 @@ def _direct(callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback
     reach the caller out of the order the machine published them in (~20 % under load). The
     thread keeps its Python state between samples (`schema.threadstate`)."""
     return zenoh.handlers.Callback(keeping_state(callback), indirect=False)
+
+
+FOREIGN_LOG_EVERY_S = 10.0
+"""A `foreign_sample` warning at most this often (the first at once)."""
+
+
+class Throttle:
+    """A line that may repeat at any rate: the first passes, then at most one per `every_s`,
+    saying how many were held back since the last (thread-safe: Zenoh's threads call it)."""
+
+    def __init__(self, every_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.every_s = every_s
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._next = -math.inf
+        self._held = 0
+
+    def allow(self) -> int | None:
+        """None: hold this one back (counted); else how many were held back before it."""
+        with self._lock:
+            now = self.clock()
+            if now < self._next:
+                self._held += 1
+                return None
+            held, self._held = self._held, 0
+            self._next = now + self.every_s
+            return held
 
 
 KEY_CACHE = 256

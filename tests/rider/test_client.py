@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import queue
 import threading
 from pathlib import Path
@@ -18,6 +19,7 @@ from rider.client import (
     MachineTimeout,
     NoMachine,
     Rider,
+    Throttle,
     Update,
 )
 from schema.axes import AxisRecord
@@ -249,9 +251,14 @@ def test_the_machine_a_key_is_under_is_remembered_within_a_bound() -> None:
     assert rider._machine_in("machine/*/status") is None
 
 
-def test_subscribe_drops_samples_of_any_session_but_the_machine(machine: Daemon) -> None:
+def test_subscribe_drops_samples_of_any_session_but_the_machine(
+    machine: Daemon, caplog: pytest.LogCaptureFixture
+) -> None:
     """A peer that publishes under the machine's keys (with no source, or naming itself) is
-    not the machine: a pinned Rider drops its IO samples and still gets the machine's own."""
+    not the machine: a pinned Rider drops its IO samples and still gets the machine's own,
+    and says so once, not once per sample (a flood of them must not become a flood of lines).
+    """
+    caplog.set_level(logging.WARNING, logger="rider.client")
     updates: queue.Queue[Update] = queue.Queue()
     rogue_at = f"tcp/127.0.0.1:{free_port()}"
     conf = zenoh.Config.from_file(str(machine.zenoh_config))
@@ -278,3 +285,20 @@ def test_subscribe_drops_samples_of_any_session_but_the_machine(machine: Daemon)
                 seen.append(updates.get(timeout=STEP_TIMEOUT_S))
             pub.undeclare()
     assert not [u for u in seen if isinstance(u, IoValue) and u.time == 12345.0]
+    warned = [r.getMessage() for r in caplog.records if "event=foreign_sample" in r.getMessage()]
+    assert len(warned) == 1, warned  # 40 dropped within a second: the first one is said
+    assert f"key={key}" in warned[0] and "suppressed=0" in warned[0]
+
+
+def test_a_repeated_line_is_said_first_then_at_most_once_per_period_with_its_count() -> None:
+    now = [100.0]
+    throttle = Throttle(10.0, clock=lambda: now[0])
+    assert throttle.allow() == 0
+    assert [throttle.allow() for _ in range(5)] == [None] * 5
+    now[0] = 109.9
+    assert throttle.allow() is None
+    now[0] = 110.0
+    assert throttle.allow() == 6  # the six held back since the first
+    assert throttle.allow() is None
+    now[0] = 500.0
+    assert throttle.allow() == 1
