@@ -7,8 +7,10 @@ process of its own, so all of them see the same machine noise.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import itertools
+import json
 import sys
 import tempfile
 import time
@@ -30,10 +32,11 @@ from bench.common import (
     ms,
     only_reply,
     python_module,
+    run_lines,
     share,
 )
 from bench.daemon import Tuning, bench_daemon, pinnable_cpu
-from rider.client import open_session
+from rider.client import Rider, open_session
 from rider.client import zenoh_config as rider_zenoh_config
 from schema.codec import Format, decode
 from schema.commands import Reply
@@ -41,6 +44,7 @@ from tests.procs import free_port
 
 PERIOD_S = 0.010
 RIDER = "daemon: Rider.check_home()"
+RIDER_SIX = "daemon: Rider.check_home() from a process on Zenoh's own threads (zenoh_threads=0)"
 RAW = "daemon: raw zenoh get"
 RAW_BARE = "daemon without event history: raw zenoh get"
 RAW_THREAD = "daemon, history on a daemon thread (events.process = false): raw zenoh get"
@@ -56,6 +60,29 @@ UDP = "raw UDP echo"
 RAW_GOAL = 1.3
 RIDER_GOAL = 1.4
 GRPC_FACTOR = 1.5
+
+
+def worker(connect: str, zenoh_config: Path, threads: int, warmup: int) -> int:
+    """A Rider in a process of its own, its Zenoh laid out for `threads` (`zenoh_threads`):
+    answers each `run <n>` line with `result [<seconds>, ...]` of n sequential check_home()."""
+    with Rider(
+        "m1",
+        connect=[connect],
+        zenoh_config_path=zenoh_config,
+        supervise=False,
+        zenoh_threads=threads,
+    ) as rider:
+        for _ in range(warmup):
+            rider.check_home()
+        print("ready", flush=True)
+        for (count,) in run_lines():
+            took = []
+            for _ in range(int(count)):
+                t0 = time.perf_counter()
+                rider.check_home()
+                took.append(time.perf_counter() - t0)
+            print("result " + json.dumps(took), flush=True)
+    return 0
 
 
 def _get_one(session: zenoh.Session, key: str, payload: bytes) -> bytes:
@@ -126,6 +153,33 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
             stack.callback(grpc_client.close)
 
         rider = stack.enter_context(daemon.rider(supervise=False))
+        # The same Rider in a process on Zenoh's own six threads (`zenoh_threads=0`), as a
+        # Rider ran before the twelfth pass: its calls timed in that process, a batch a round.
+        six_rider = Child(
+            python_module(
+                "bench.roundtrip",
+                "worker",
+                "--connect",
+                daemon.endpoint,
+                "--zenoh-config",
+                zconf,
+                "--zenoh-threads",
+                "0",
+                "--warmup",
+                warmup,
+            ),
+            tmp / "rider-six.log",
+            stdin=True,
+        )
+        stack.callback(six_rider.stop)
+        six_rider.expect("ready", timeout=60.0)
+
+        def six_batch(n: int) -> list[float]:
+            six_rider.send(f"run {n}")
+            took: list[float] = json.loads(six_rider.expect("result", timeout=60.0))
+            return took
+
+        batches: dict[str, Callable[[int], list[float]]] = {RIDER_SIX: six_batch}
         echo_session = stack.enter_context(
             open_session(rider_zenoh_config(zconf, connect=[echo_endpoint]))
         )
@@ -179,12 +233,16 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         for fn in calls.values():
             for _ in range(warmup):
                 fn()
-        samples: dict[str, list[float]] = {name: [] for name in calls}
-        names = list(calls)
+        samples: dict[str, list[float]] = {name: [] for name in [*calls, *batches]}
+        names = [RIDER, *batches, *(n for n in calls if n != RIDER)]
         for r in range(rounds):
             # Rotate the order each round, so no transport always follows the same neighbour.
             for name in names[r % len(names) :] + names[: r % len(names)]:
-                fn, out = calls[name], samples[name]
+                out = samples[name]
+                if name in batches:
+                    out += batches[name](per_round)
+                    continue
+                fn = calls[name]
                 for _ in range(per_round):
                     t0 = time.perf_counter()
                     fn()
@@ -234,6 +292,12 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         "The client, this process, opens its sessions as a Rider does"
         " (`rider.client.open_session`): Zenoh on one worker thread, the Rider's default"
         " (`zenoh_threads`); every row's client gains from it alike."
+    )
+    six_p50 = dists[RIDER_SIX].p50
+    section.notes.append(
+        f"`{RIDER_SIX}`: the same Rider in a process of its own whose Zenoh keeps its own"
+        f" layout: {ms(six_p50)} ms at the median against {ms(dists[RIDER].p50)} ms"
+        f" ({six_p50 / dists[RIDER].p50:.2f}×)."
     )
     client = dists[RIDER].p50 - dists[RAW].p50
     section.notes.append(
@@ -290,6 +354,15 @@ def _ms_unit(seconds: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["worker"]:
+        parser = argparse.ArgumentParser(prog="bench.roundtrip worker")
+        parser.add_argument("--connect", required=True)
+        parser.add_argument("--zenoh-config", type=Path, required=True)
+        parser.add_argument("--zenoh-threads", type=int, required=True)
+        parser.add_argument("--warmup", type=int, required=True)
+        args = parser.parse_args(argv[1:])
+        return worker(args.connect, args.zenoh_config, args.zenoh_threads, args.warmup)
     return main_for("bench.roundtrip", __doc__ or "", run, argv)
 
 
