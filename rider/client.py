@@ -64,7 +64,7 @@ from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
 from schema.rider import HEARTBEAT_INTERVAL_S, alive_key, heartbeat_key
-from schema.runtime import RUNTIME_ENV, first_session_on
+from schema.runtime import first_session_on, unreadable_layout
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 from schema.threadstate import keeping_state
@@ -291,11 +291,10 @@ def open_session(conf: zenoh.Config, zenoh_threads: int = 1) -> zenoh.Session:
     with first_session_on(zenoh_threads):
         try:
             return zenoh.open(conf)
-        except BaseException as exc:  # pyo3's PanicException derives from BaseException
-            layout = os.environ.get(RUNTIME_ENV)
-            if isinstance(exc, Exception | KeyboardInterrupt | SystemExit) or not layout:
+        except BaseException as exc:
+            if (unreadable := unreadable_layout(exc)) is None:
                 raise
-            raise BadRuntime(f"{RUNTIME_ENV}={layout!r} cannot be read by Zenoh: {exc}") from None
+            raise BadRuntime(unreadable) from None
 
 
 def _answers(endpoint: str, timeout: float = 0.5) -> bool | None:

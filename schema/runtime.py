@@ -38,6 +38,16 @@ def runtime_layout(threads: int) -> str | None:
     return f"({handed}, app: (worker_threads: {threads}))"
 
 
+def unreadable_layout(exc: BaseException) -> str | None:
+    """What to say for `exc` raised by `zenoh.open` when it is Zenoh's panic over a
+    `ZENOH_RUNTIME` it cannot read (pyo3's `PanicException` derives from `BaseException`
+    only); None for any other exception, which is the caller's to raise as it is."""
+    layout = os.environ.get(RUNTIME_ENV)
+    if isinstance(exc, Exception | KeyboardInterrupt | SystemExit) or not layout:
+        return None
+    return f"{RUNTIME_ENV}={layout!r} cannot be read by Zenoh: {exc}"
+
+
 @contextlib.contextmanager
 def first_session_on(threads: int) -> Iterator[str | None]:
     """Around a library's `zenoh.open`: if it is the first through here in this process, Zenoh

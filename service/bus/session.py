@@ -10,7 +10,7 @@ from pathlib import Path
 import zenoh
 
 from schema.credentials import MACHINE, zenoh_settings
-from schema.runtime import RUNTIME_ENV, runtime_layout
+from schema.runtime import RUNTIME_ENV, runtime_layout, unreadable_layout
 from service.threads import NamedThread
 
 Session = zenoh.Session
@@ -66,11 +66,10 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
     names it, not a crash."""
     try:
         return zenoh.open(conf)
-    except BaseException as exc:  # pyo3's PanicException derives from BaseException
-        layout = os.environ.get(RUNTIME_ENV)
-        if isinstance(exc, Exception | KeyboardInterrupt | SystemExit) or not layout:
+    except BaseException as exc:
+        if (unreadable := unreadable_layout(exc)) is None:
             raise
-        raise ValueError(f"{RUNTIME_ENV}={layout!r} cannot be read by Zenoh: {exc}") from None
+        raise ValueError(unreadable) from None
 
 
 def close_session(session: zenoh.Session, timeout: float = 3.0) -> bool:

@@ -15,7 +15,7 @@ from rider import cli
 from rider.client import MachineTimeout, Rider
 from schema.runtime import RUNTIME_ENV, runtime_layout
 from tests.procs import REPO, free_port
-from tests.service.test_zenoh_runtime import runtimes
+from tests.service.test_zenoh_runtime import run_child, runtimes
 
 CHILD = """
 import os, subprocess, sys, time
@@ -55,18 +55,8 @@ def child(
     """A process whose Rider opens with `threads` (after a session opened some other way when
     `first` is "other"): `ZENOH_RUNTIME` after the Rider's open, in a process it starts
     then, and its threads' names."""
-    environ = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
-    proc = subprocess.run(
-        [sys.executable, "-c", CHILD, str(threads), f"tcp/127.0.0.1:{free_port()}", first],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=True,
-        env={**environ, **(env or {})},
-    )
-    after, inherited, answered, names = proc.stdout.splitlines()
-    assert answered == "True", proc.stderr
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    after, inherited, _, names = run_child(CHILD, [str(threads), endpoint, first], env)
     return after, inherited, names.split()
 
 

@@ -51,12 +51,12 @@ def runtimes(names: list[str]) -> set[str]:
     return {n.split("-")[0] for n in names if ZENOH_RUNTIMES.match(n)}
 
 
-def child(threads: int, env: dict[str, str] | None = None) -> tuple[str, str, list[str]]:
-    """A process that lays out the runtime for `threads` and opens a session: what it applied,
-    the `ZENOH_RUNTIME` it ran with, and its threads' names."""
+def run_child(code: str, args: list[str], env: dict[str, str] | None) -> list[str]:
+    """`python -c code *args` with no `ZENOH_RUNTIME` but `env`'s: its stdout lines, the third
+    of which says whether a query got its reply (checked here)."""
     environ = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
     proc = subprocess.run(
-        [sys.executable, "-c", CHILD, str(threads), f"tcp/127.0.0.1:{free_port()}"],
+        [sys.executable, "-c", code, *args],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -64,8 +64,16 @@ def child(threads: int, env: dict[str, str] | None = None) -> tuple[str, str, li
         check=True,
         env={**environ, **(env or {})},
     )
-    applied, layout, answered, names = proc.stdout.splitlines()
-    assert answered == "True", proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[2] == "True", proc.stderr
+    return lines
+
+
+def child(threads: int, env: dict[str, str] | None = None) -> tuple[str, str, list[str]]:
+    """A process that lays out the runtime for `threads` and opens a session: what it applied,
+    the `ZENOH_RUNTIME` it ran with, and its threads' names."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    applied, layout, _, names = run_child(CHILD, [str(threads), endpoint], env)
     return applied, layout, names.split()
 
 
