@@ -57,8 +57,12 @@ def first_session_on(threads: int) -> Iterator[str | None]:
     which is kept, or None).
 
     A session this process opened before, some other way, has fixed the layout already: then
-    this changes nothing. Opens run one at a time here while the variable is set."""
+    this changes nothing. Only the first open waits for another here (the variable is
+    process-wide while it is set); later ones pass straight through."""
     first = _FirstOpen
+    if first.done:
+        yield None
+        return
     with first.lock:
         if first.done:
             yield None

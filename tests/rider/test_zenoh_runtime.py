@@ -8,11 +8,13 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 
 import pytest
 
 from rider import cli
 from rider.client import MachineTimeout, Rider
+from schema import runtime
 from schema.runtime import RUNTIME_ENV, runtime_layout
 from tests.procs import REPO, free_port
 from tests.service.test_zenoh_runtime import run_child, runtimes
@@ -124,3 +126,37 @@ def test_a_zenoh_runtime_zenoh_cannot_read_is_a_usage_error_that_names_it() -> N
     assert proc.returncode == 2, proc.stderr
     assert f"{RUNTIME_ENV}={broken!r} cannot be read by Zenoh" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_only_the_first_open_waits_for_another() -> None:
+    """A slow open (a router that does not answer) must not hold up every later one: once
+    the layout is fixed, an open does not wait for the one under way."""
+    started, release = threading.Event(), threading.Event()
+    first = runtime._FirstOpen
+    done = first.done
+    first.done = True  # the layout is fixed (this process's first session has opened)
+    try:
+
+        def slow_open() -> None:
+            with runtime.first_session_on(1):
+                started.set()
+                release.wait(5.0)
+
+        slow = threading.Thread(target=slow_open)
+        slow.start()
+        assert started.wait(5.0)
+        passed = threading.Event()
+
+        def quick_open() -> None:
+            with runtime.first_session_on(1) as applied:
+                assert applied is None
+                passed.set()
+
+        quick = threading.Thread(target=quick_open)
+        quick.start()
+        assert passed.wait(5.0), "a later open waited for the slow one"
+        release.set()
+        slow.join(5.0)
+        quick.join(5.0)
+    finally:
+        first.done = done
