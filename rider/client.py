@@ -286,7 +286,7 @@ def zenoh_config(
 def open_session(conf: zenoh.Config, zenoh_threads: int = 1) -> zenoh.Session:
     """A session opened as a Rider opens it. The process's first one lays out Zenoh's runtime
     on `zenoh_threads` worker threads (`schema.runtime`; 0: Zenoh's own six), as the daemon
-    does: a command's round trip ~8 % shorter on two cores (BENCHMARKS.md, section 1). A
+    does: a command's round trip 6-14 % shorter on two cores (BENCHMARKS.md, section 1). A
     `ZENOH_RUNTIME` in the environment wins; one that Zenoh cannot read is `BadRuntime`."""
     with first_session_on(zenoh_threads):
         try:
