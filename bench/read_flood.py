@@ -1,13 +1,15 @@
 """Read flood: a peer keeps status reads in flight as fast as the daemon answers them, while a
-Rider sends commands beside it; for each layout of Zenoh's threads (`bus.zenoh_threads`).
+Rider sends commands beside it; for each layout of Zenoh's threads (`bus.zenoh_threads`). Then
+the same with a flood of samples: the peer puts on `rider/<id>/heartbeat` as fast as it can (a
+rogue on the open profile: every such sample is a Python callback on Zenoh's thread).
 
 The `status`, `io/**` and `axis/**` reads are answered on Zenoh's own thread (they never block),
 so with one Zenoh thread a flood of them shares that thread with every command's receipt and
 reply and every publication's send. Three daemons (1 thread, the default; 2; Zenoh's own
 layout, `0`) are flooded in turn, in rounds, by one flooder process (its own Zenoh session,
 `WINDOW` gets in flight); meanwhile this process sends sequential `check/home` gets 2 ms apart.
-Per phase: the reads the flooder got answered, the commands' round trips, and the daemon's
-cycle counters (`diag/reset` before, `diag/cycle` after).
+Per phase: the reads the flooder got answered (or the samples it put), the commands' round
+trips, and the daemon's cycle counters (`diag/reset` before, `diag/cycle` after).
 """
 
 from __future__ import annotations
@@ -45,23 +47,35 @@ LAYOUTS = (1, 2, 0)
 """`bus.zenoh_threads` of each daemon (0: Zenoh's own layout, six threads)."""
 WINDOW = 32
 """Status gets the flooder keeps in flight."""
+KINDS = ("reads", "samples")
+"""What the flooder sends: status gets (`WINDOW` in flight), or heartbeat samples."""
+SAMPLE_KEY = "rider/flood0000/heartbeat"
+"""Where the sample flood goes: a made-up Rider's heartbeat, which every daemon subscribes to."""
+PUT_BATCH = 1000
 COMMAND_GAP_S = 0.002
 GET_TIMEOUT_S = 2.0
 
 
 def flooder(connect: str, zenoh_config: Path, key: str) -> int:
-    """Reads `run <seconds>` lines; floods `key` for that long, answering `result <reads>`."""
+    """Reads `run <seconds> <kind>` lines; floods for that long (`reads`: gets of `key`;
+    `samples`: puts on `SAMPLE_KEY`), answering `result <reads answered or samples put>`."""
     with zenoh.open(rider_zenoh_config(zenoh_config, connect=[connect])) as session:
         key_expr = session.declare_keyexpr(key)
+        pub = session.declare_publisher(SAMPLE_KEY, congestion_control=zenoh.CongestionControl.DROP)
         print("ready", flush=True)
-        for (seconds,) in run_lines():
+        for seconds, kind in run_lines():
             end = time.monotonic() + float(seconds)
-            reads = 0
+            count = 0
             while time.monotonic() < end:
+                if kind == "samples":
+                    for _ in range(PUT_BATCH):
+                        pub.put(b"beat")
+                    count += PUT_BATCH
+                    continue
                 pending = [session.get(key_expr, timeout=GET_TIMEOUT_S) for _ in range(WINDOW)]
                 for replies in pending:
-                    reads += sum(1 for r in replies if r.ok is not None)
-            print(f"result {reads}", flush=True)
+                    count += sum(1 for r in replies if r.ok is not None)
+            print(f"result {count}", flush=True)
     return 0
 
 
@@ -89,11 +103,12 @@ def run(opts: Options) -> Section:
     seconds = opts.pick(1.0, 6.0, 15.0)
     rounds = opts.pick(1, 2, 3)
     section = Section("read_flood", "10. Read flood and Zenoh's threads")
-    rtts: dict[int, list[float]] = {n: [] for n in LAYOUTS}
-    reads: dict[int, int] = dict.fromkeys(LAYOUTS, 0)
-    jitter: dict[int, list[float]] = {n: [] for n in LAYOUTS}
-    overruns: dict[int, int] = dict.fromkeys(LAYOUTS, 0)
-    flooded_s: dict[int, float] = dict.fromkeys(LAYOUTS, 0.0)
+    phases = [(kind, n) for kind in KINDS for n in LAYOUTS]
+    rtts: dict[tuple[str, int], list[float]] = {p: [] for p in phases}
+    sent: dict[tuple[str, int], int] = dict.fromkeys(phases, 0)
+    jitter: dict[tuple[str, int], list[float]] = {p: [] for p in phases}
+    overruns: dict[tuple[str, int], int] = dict.fromkeys(phases, 0)
+    flooded_s: dict[tuple[str, int], float] = dict.fromkeys(phases, 0.0)
     ids = itertools.count()
     with contextlib.ExitStack() as stack:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-rf-")))
@@ -127,56 +142,76 @@ def run(opts: Options) -> Section:
         for rider in riders.values():  # warm-up: the session has met its machine
             _commands(rider.session, f"{rider.base}/cmd/check/home", 0.2, ids)
         for r in range(rounds):
-            order = LAYOUTS if r % 2 == 0 else LAYOUTS[::-1]
-            for n in order:
+            for kind, n in phases if r % 2 == 0 else phases[::-1]:
                 rider = riders[n]
                 rider.diag(reset=True)
                 t0 = time.monotonic()
-                floods[n].send(f"run {seconds}")
-                rtts[n] += _commands(rider.session, f"{rider.base}/cmd/check/home", seconds, ids)
-                reads[n] += int(floods[n].expect("result", timeout=seconds + 30.0))
-                flooded_s[n] += time.monotonic() - t0
+                floods[n].send(f"run {seconds} {kind}")
+                phase = (kind, n)
+                rtts[phase] += _commands(
+                    rider.session, f"{rider.base}/cmd/check/home", seconds, ids
+                )
+                sent[phase] += int(floods[n].expect("result", timeout=seconds + 30.0))
+                flooded_s[phase] += time.monotonic() - t0
                 diag = rider.diag()
-                jitter[n].append(diag.jitter.p99)
-                overruns[n] += diag.overruns
-    table = Table(
-        f"A flooder keeping {WINDOW} `status` gets in flight, {rounds} × {seconds:g} s per layout"
-        f" (interleaved), commands 2 ms apart beside it; daemon loop at {PERIOD_S * 1e3:g} ms",
-        [
-            "Zenoh threads (bus.zenoh_threads)",
+                jitter[phase].append(diag.jitter.p99)
+                overruns[phase] += diag.overruns
+    titles = {
+        "reads": (
+            f"A flooder keeping {WINDOW} `status` gets in flight, {rounds} × {seconds:g} s per"
+            f" layout (interleaved), commands 2 ms apart beside it; daemon loop at"
+            f" {PERIOD_S * 1e3:g} ms",
             "reads/s answered",
-            "commands",
-            "command p50 ms",
-            "command p99 ms",
-            "scan jitter p99 ms (worst phase)",
-            "overruns",
-        ],
-    )
-    for n in LAYOUTS:
-        d = Dist.of(rtts[n])
-        table.add(
-            _label(n),
-            f"{reads[n] / flooded_s[n]:,.0f}",
-            len(rtts[n]),
-            ms(d.p50),
-            ms(d.p99),
-            ms(max(jitter[n])),
-            overruns[n],
+        ),
+        "samples": (
+            f"A flooder putting samples on `{SAMPLE_KEY}` as fast as it can (congestion control"
+            f" `DROP`), {rounds} × {seconds:g} s per layout (interleaved with the read flood),"
+            f" commands 2 ms apart beside it; daemon loop at {PERIOD_S * 1e3:g} ms",
+            "samples/s put",
+        ),
+    }
+    for kind in KINDS:
+        title, rate = titles[kind]
+        table = Table(
+            title,
+            [
+                "Zenoh threads (bus.zenoh_threads)",
+                rate,
+                "commands",
+                "command p50 ms",
+                "command p99 ms",
+                "scan jitter p99 ms (worst phase)",
+                "overruns",
+            ],
         )
-    section.tables.append(table)
+        for n in LAYOUTS:
+            phase = (kind, n)
+            d = Dist.of(rtts[phase])
+            table.add(
+                _label(n),
+                f"{sent[phase] / flooded_s[phase]:,.0f}",
+                len(rtts[phase]),
+                ms(d.p50),
+                ms(d.p99),
+                ms(max(jitter[phase])),
+                overruns[phase],
+            )
+        section.tables.append(table)
     default = LAYOUTS[0]
-    section.targets.append(
-        Target(
-            f"overruns at {PERIOD_S * 1e3:g} ms under the flood, {default} Zenoh thread (default)",
-            "0",
-            f"{overruns[default]} in {flooded_s[default]:.0f} s",
-            overruns[default] == 0,
+    for kind, what in (("reads", "the flood"), ("samples", "the sample flood")):
+        phase = (kind, default)
+        section.targets.append(
+            Target(
+                f"overruns at {PERIOD_S * 1e3:g} ms under {what}, {default} Zenoh thread (default)",
+                "0",
+                f"{overruns[phase]} in {flooded_s[phase]:.0f} s",
+                overruns[phase] == 0,
+            )
         )
-    )
     section.targets.append(
         Target.at_most(
             f"command p99 beside the flood, {default} Zenoh thread (within one period)",
-            Dist.of(rtts[default]).p99,
+            Dist.of(rtts[("reads", default)]).p99,
             PERIOD_S,
             lambda x: f"{ms(x)} ms",
         )
@@ -187,6 +222,19 @@ def run(opts: Options) -> Section:
         " and the commands share it: the flooder gets more reads answered, and a command beside"
         " it waits longer. The scan loop runs on its own thread either way; its jitter and"
         " overruns say what the flood cost it."
+    )
+    samples = Dist.of(rtts[("samples", default)]).p50
+    others = ", ".join(
+        f"{ms(Dist.of(rtts[('samples', n)]).p50)} ms with {_label(n)}"
+        for n in LAYOUTS
+        if n != default
+    )
+    section.notes.append(
+        f"The sample flood: every heartbeat sample is a Python callback on Zenoh's thread (one"
+        f" dict write); with one thread the flood's samples and a command's query wait for the"
+        f" same worker: a command took {ms(samples)} ms at the median with {default} thread,"
+        f" {others}. Only a peer on the bus can do this: the ACL profiles keep a rogue off it"
+        " (docs/security.md row 19)."
     )
     return section
 
