@@ -48,6 +48,20 @@ def unreadable_layout(exc: BaseException) -> str | None:
     return f"{RUNTIME_ENV}={layout!r} cannot be read by Zenoh: {exc}"
 
 
+def use_runtime(threads: int) -> str | None:
+    """Lay out Zenoh's runtime for this process before its first session (the daemon's
+    `bus.zenoh_threads`, for good: `first_session_on` for a library); what the start line
+    shows, or None when nothing was set. A `ZENOH_RUNTIME` already in the environment is the
+    operator's: it is kept, and named."""
+    if os.environ.get(RUNTIME_ENV):
+        return f"zenoh_runtime={RUNTIME_ENV}"
+    layout = runtime_layout(threads)
+    if layout is None:
+        return None
+    os.environ[RUNTIME_ENV] = layout
+    return f"zenoh_threads={threads}"
+
+
 @contextlib.contextmanager
 def first_session_on(threads: int) -> Iterator[str | None]:
     """Around a library's `zenoh.open`: if it is the first through here in this process, Zenoh
@@ -67,18 +81,11 @@ def first_session_on(threads: int) -> Iterator[str | None]:
         if first.done:
             yield None
             return
-        if os.environ.get(RUNTIME_ENV):
-            first.done = True
-            yield f"zenoh_runtime={RUNTIME_ENV}"
-            return
-        layout = runtime_layout(threads)
-        if layout is None:
-            first.done = True
-            yield None
-            return
-        os.environ[RUNTIME_ENV] = layout
+        operators = bool(os.environ.get(RUNTIME_ENV))
+        applied = use_runtime(threads)
         try:
-            yield f"zenoh_threads={threads}"
+            yield applied
             first.done = True
         finally:
-            os.environ.pop(RUNTIME_ENV, None)
+            if not operators:
+                os.environ.pop(RUNTIME_ENV, None)

@@ -18,6 +18,7 @@ Python state), `session` (config, open, close), `node` (the daemon's bus), `supe
 supervisor's), `exposure`.
 """
 
+from schema.runtime import use_runtime
 from service.bus.commands import LOCK_TIMEOUT_S
 from service.bus.injection import SimPort
 from service.bus.node import ZenohBus
@@ -30,7 +31,6 @@ from service.bus.session import (
     close_session,
     file_config,
     open_session,
-    use_runtime,
     zenoh_config,
 )
 from service.bus.writes import ParamService

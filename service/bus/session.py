@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 import threading
 from pathlib import Path
 
 import zenoh
 
 from schema.credentials import MACHINE, zenoh_settings
-from schema.runtime import RUNTIME_ENV, runtime_layout, unreadable_layout
+from schema.runtime import unreadable_layout
 from service.threads import NamedThread
 
 Session = zenoh.Session
@@ -46,19 +45,6 @@ def zenoh_config(
     for setting, value in zenoh_settings(MACHINE).items():
         conf.insert_json5(setting, value)
     return conf
-
-
-def use_runtime(threads: int) -> str | None:
-    """Lay out Zenoh's runtime for this process before its first session (`bus.zenoh_threads`);
-    what the start line shows, or None when nothing was set. A `ZENOH_RUNTIME` already in the
-    environment is the operator's: it is kept, and named."""
-    if os.environ.get(RUNTIME_ENV):
-        return f"zenoh_runtime={RUNTIME_ENV}"
-    layout = runtime_layout(threads)
-    if layout is None:
-        return None
-    os.environ[RUNTIME_ENV] = layout
-    return f"zenoh_threads={threads}"
 
 
 def open_session(conf: zenoh.Config) -> zenoh.Session:

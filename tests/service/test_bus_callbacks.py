@@ -22,8 +22,9 @@ import zenoh
 
 from rider.client import _direct as riders_direct
 from schema import threadstate
+from schema.runtime import RUNTIME_ENV, use_runtime
 from service.bus.callbacks import direct
-from service.bus.session import RUNTIME_ENV, open_session, use_runtime
+from service.bus.session import open_session
 from tests.procs import REPO, free_port
 
 KEY = "test/callbacks/echo"
