@@ -572,6 +572,17 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
         subprocess.run(["umount", "-l", str(where)], check=False)
 
 
+def fill(disk: Path) -> Path:
+    """Write a file on `disk` until it is full (ENOSPC); the file, to unlink for room again."""
+    filler = disk / "filler"
+    fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
+    with contextlib.suppress(OSError):  # until ENOSPC
+        while True:
+            os.write(fd, b"x" * 4096)
+    os.close(fd)
+    return filler
+
+
 def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recovers(
     small_disk: Path, kind: type[EventLog]
 ) -> None:
@@ -579,12 +590,7 @@ def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recover
     try:
         log.emit_now(WatchdogEvent(stalled_s=1.0))
         assert log.flush()
-        filler = small_disk / "filler"
-        fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
-        with contextlib.suppress(OSError):  # until ENOSPC
-            while True:
-                os.write(fd, b"x" * 4096)
-        os.close(fd)
+        filler = fill(small_disk)
         # More than fits in what a prune frees: its checkpoint truncates the write-ahead log
         # (at a time of its own), which gives the small disk back a few pages; 50 events fit
         # there on a loaded host, and then nothing was lost.
@@ -612,12 +618,7 @@ def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recover
 def test_a_log_started_on_a_full_disk_starts_and_writes_once_there_is_room(
     small_disk: Path, kind: type[EventLog]
 ) -> None:
-    filler = small_disk / "filler"
-    fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
-    with contextlib.suppress(OSError):  # until ENOSPC, before the log (or its lock) exists
-        while True:
-            os.write(fd, b"x" * 4096)
-    os.close(fd)
+    filler = fill(small_disk)  # before the log (or its lock) exists
     log = open_log(small_disk / EVENTS_FILE, kind)  # no exception: the machine runs on
     try:
         filler.unlink()
