@@ -31,6 +31,8 @@ class Tuning:
     """`loop.cpus`: the whole daemon pinned."""
     zenoh_threads: int | None = None
     """`bus.zenoh_threads` (None: the default, one)."""
+    kernel_slice: bool = False
+    """`loop.slice_s = 0`: the scan thread on the kernel's time slice, not its own short one."""
 
     def label(self) -> str:
         parts = []
@@ -46,6 +48,8 @@ class Tuning:
             parts.append(f"SCHED_FIFO {self.rt_priority}")
         if self.zenoh_threads is not None:
             parts.append(f"zenoh_threads {self.zenoh_threads}")
+        if self.kernel_slice:
+            parts.append("kernel time slice")
         return ", ".join(parts) or "defaults"
 
 
@@ -77,6 +81,8 @@ def config_toml(
         lines.append(f"rt_priority = {tuning.rt_priority}")
     if tuning.cpus is not None:
         lines.append(f"cpus = {list(tuning.cpus)}")
+    if tuning.kernel_slice:
+        lines.append("slice_s = 0")
     if watchdog_periods is not None:
         lines.append(f"watchdog_periods = {watchdog_periods}")
     bus = [] if heartbeat_s is None else [f"heartbeat_s = {heartbeat_s!r}"]

@@ -31,7 +31,7 @@ from service.adapters.history import HistoryProcess
 from service.config.model import EventsSection, MachineConfig
 from service.core.loop import LoopCall, PendingCommand, ScanLoop
 from service.core.machine import Machine
-from service.core.runner import RealtimeRunner, tune_thread
+from service.core.runner import RealtimeRunner, slice_process, tune_thread
 from service.core.timing import CycleStats
 from sim.hal import SimHal
 
@@ -111,7 +111,9 @@ def one_run(mode: str, seconds: float, directory: Path) -> Result:
     runner = RealtimeRunner(machine.loop, PERIOD_S, stats)
 
     def scan_thread() -> None:
-        # As `machine run` does (the [loop] defaults): timer slack, gc.freeze().
+        # As `machine run` does (the [loop] defaults): time slice, timer slack, gc.freeze().
+        if config.loop.slice_ns is not None:
+            slice_process(config.loop.slice_ns)
         tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
         runner.run()
 

@@ -262,6 +262,23 @@ def thread_cpus(pid: int) -> dict[int, tuple[int, ...]]:
     return cpus
 
 
+def thread_slices(pid: int) -> dict[int, int]:
+    """Each thread's time slice in ns as the kernel shows it (`se.slice` in
+    /proc/<pid>/task/<tid>/sched), by thread id (threads that end while being read are left
+    out)."""
+    slices: dict[int, int] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            text = Path(f"/proc/{pid}/task/{tid}/sched").read_text()
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+        for line in text.splitlines():
+            name, _, value = line.partition(":")
+            if name.strip() == "se.slice":
+                slices[int(tid)] = int(value)
+    return slices
+
+
 GLIBC_HEAP_BYTES = 64 << 20
 """glibc reserves each thread arena's heap as one block of this size, aligned to it (64-bit)."""
 

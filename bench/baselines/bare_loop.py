@@ -14,7 +14,13 @@ import time
 from typing import Any, cast
 
 from service.core.loop import Inbox, ScanLoop
-from service.core.runner import TIMER_SLACK_NS, RealtimeRunner, tune_thread
+from service.core.runner import (
+    SCHED_SLICE_NS,
+    TIMER_SLACK_NS,
+    RealtimeRunner,
+    slice_process,
+    tune_thread,
+)
 from service.core.timing import CycleStats
 
 
@@ -47,11 +53,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--kernel-timer-slack", action="store_true", help="keep the kernel's timer slack"
     )
+    parser.add_argument(
+        "--kernel-slice", action="store_true", help="keep the kernel's time slice (slice_s = 0)"
+    )
     args = parser.parse_args(argv)
     stats = CycleStats(args.period, 100_000, time.time())
     runner = RealtimeRunner(cast(ScanLoop, EmptyScan()), args.period, stats, spin_s=args.spin)
     slack = None if args.kernel_timer_slack else TIMER_SLACK_NS
     applied = tune_thread(not args.no_gc_freeze, args.cpu, args.rt_priority, slack)
+    if not args.kernel_slice and (sliced := slice_process(SCHED_SLICE_NS)):
+        applied.append(sliced)  # as the daemon's `loop.slice_s` does
     timer = threading.Timer(args.duration, runner.stop)
     timer.daemon = True
     timer.start()

@@ -27,6 +27,10 @@ class MachineSection(_Section):
     key_prefix: str = Field(default="machine", pattern=r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
 
 
+MIN_SLICE_S = 0.0001
+"""The shortest time slice the kernel grants (it clamps a shorter request up to it)."""
+
+
 class LoopSection(_Section):
     """The scan task: period, and the real-time measures that help hold short periods."""
 
@@ -49,6 +53,10 @@ class LoopSection(_Section):
     loop's jitter unless `cpu` gives the scan thread the other core (BENCHMARKS.md sections 1
     and 2): an option, not a default."""
     rt_priority: int | None = Field(default=None, ge=1, le=99)
+    slice_s: float = Field(default=MIN_SLICE_S, ge=0.0, le=0.1)
+    """Every daemon thread's time slice under the normal policy (Linux 6.12+, no privilege): a
+    short one lets a wake-up preempt a busy neighbour at once (BENCHMARKS.md section 2). 0
+    keeps the kernel's (1.4 ms on two CPUs); below `MIN_SLICE_S` is a finding."""
     watchdog_periods: int = Field(default=3, ge=2, le=1000)
     watchdog_min_s: float = Field(default=0.02, ge=0.0, le=10.0)
     max_commands_per_cycle: int = Field(default=64, ge=1, le=10_000)
@@ -57,6 +65,11 @@ class LoopSection(_Section):
     """Cap glibc's malloc arenas at start (None: glibc's default, 8 per core). 2 keeps RSS flat
     under heavy Rider connect churn, but slowed the scan's execution 5-10 % under motion load
     (BENCHMARKS.md section 5); `MALLOC_ARENA_MAX` in the environment wins."""
+
+    @property
+    def slice_ns(self) -> int | None:
+        """`slice_s` for `tune_thread`: None keeps the kernel's."""
+        return round(self.slice_s * 1e9) or None
 
 
 class RotateSection(_Section):

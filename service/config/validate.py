@@ -18,7 +18,7 @@ from schema.codec import json_pointer
 from schema.commands import DEFAULT_SESSION, TiltStep
 from schema.findings import Finding, Findings, Severity
 from schema.rider import HEARTBEAT_INTERVAL_S
-from service.config.model import HalBackend, MachineConfig, read_toml
+from service.config.model import MIN_SLICE_S, HalBackend, MachineConfig, read_toml
 
 # Below this the wake-up jitter of a Python thread on a general-purpose kernel is of the
 # same order as the period itself: the loop runs, but overruns become routine.
@@ -166,6 +166,15 @@ def _io_conflicts(iomap: IoMap) -> Iterator[Finding]:
 
 
 def _ranges(config: MachineConfig) -> Iterator[Finding]:
+    if 0 < config.loop.slice_s < MIN_SLICE_S:
+        yield _error(
+            Category.OUT_OF_RANGE,
+            "/loop/slice_s",
+            f"loop.slice_s {config.loop.slice_s:g} is below the shortest slice the kernel"
+            f" grants, {MIN_SLICE_S:g} s; 0 keeps the kernel's own",
+            value=config.loop.slice_s,
+            ge=MIN_SLICE_S,
+        )
     tilt = config.tilt
     if tilt.min_deg >= tilt.max_deg:
         yield _error(

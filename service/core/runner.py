@@ -7,6 +7,7 @@ import ctypes
 import gc
 import logging
 import os
+import platform
 import signal
 import sys
 import threading
@@ -26,6 +27,23 @@ MAX_CONSECUTIVE_ERRORS = 50
 TIMER_SLACK_NS = 1_000
 """The scan thread's timer slack. Linux lets a timed wait end up to 50 µs late by default,
 which was half of the median wake-up jitter measured at 1 ms (bench/loop_timing.py)."""
+SCHED_SLICE_NS = 100_000
+"""The daemon's time slice under the normal policy: Linux's EEVDF scheduler (6.12 and later)
+gives a thread that asks for a short slice an early deadline, so its wake-up preempts a busy
+neighbour at once instead of waiting out the neighbour's slice (the kernel's default slice,
+1.4 ms on two CPUs, is longer than a 1 ms period). Every thread, not the scan thread alone:
+the scan waits for the GIL, and a Zenoh callback that holds it must not wait out a neighbour's
+slice either. No privilege and no priority: each thread's share of the CPU is unchanged
+(BENCHMARKS.md section 2). 100 µs is the shortest the kernel grants."""
+_SCHED_ATTR_CALLS = {
+    "x86_64": (314, 315),
+    "aarch64": (274, 275),
+    "riscv64": (274, 275),
+    "armv7l": (380, 381),
+    "armv6l": (380, 381),
+    "i686": (351, 352),
+}
+"""`sched_setattr(2)` and `sched_getattr(2)` by machine (no C library wraps them)."""
 PR_SET_TIMERSLACK = 29
 PR_GET_TIMERSLACK = 30
 PR_SET_PDEATHSIG = 1
@@ -224,6 +242,75 @@ def timer_slack() -> int | None:
         return None
     value = int(ctypes.CDLL(None, use_errno=True).prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0))
     return value if value >= 0 else None
+
+
+class _SchedAttr(ctypes.Structure):
+    """`struct sched_attr` as the kernel's first version laid it out (48 bytes)."""
+
+    _fields_ = [
+        ("size", ctypes.c_uint32),
+        ("sched_policy", ctypes.c_uint32),
+        ("sched_flags", ctypes.c_uint64),
+        ("sched_nice", ctypes.c_int32),
+        ("sched_priority", ctypes.c_uint32),
+        ("sched_runtime", ctypes.c_uint64),
+        ("sched_deadline", ctypes.c_uint64),
+        ("sched_period", ctypes.c_uint64),
+    ]
+
+
+def sched_slice(tid: int = 0) -> int | None:
+    """A thread's time slice in ns as the kernel holds it (`tid` 0: the calling thread); None
+    where it cannot say (not Linux, a machine not in the table, a kernel before 6.12)."""
+    calls = _sched_attr_calls()
+    if calls is None:
+        return None
+    attr = _SchedAttr()
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.syscall(calls[1], tid, ctypes.byref(attr), ctypes.sizeof(attr), 0) != 0:
+        return None
+    return int(attr.sched_runtime) or None
+
+
+def set_sched_slice(ns: int, tid: int = 0) -> bool:
+    """Ask for a time slice of `ns` for one thread (`tid` 0: the calling thread) under the
+    normal policy, its nice value kept; False where refused or impossible. A thread under
+    another policy (SCHED_FIFO: no slice) is left alone (True). The kernel clamps the slice to
+    0.1-100 ms, and one before 6.12 takes the call and ignores it: `sched_slice` tells."""
+    calls = _sched_attr_calls()
+    if calls is None:
+        return False
+    if os.sched_getscheduler(tid) != os.SCHED_OTHER:
+        return True
+    attr = _SchedAttr(
+        size=ctypes.sizeof(_SchedAttr),
+        sched_policy=os.SCHED_OTHER,
+        sched_nice=os.getpriority(os.PRIO_PROCESS, tid),  # a thread's own, on Linux
+        sched_runtime=ns,
+    )
+    libc = ctypes.CDLL(None, use_errno=True)
+    return int(libc.syscall(calls[0], tid, ctypes.byref(attr), 0)) == 0
+
+
+def slice_process(ns: int) -> str | None:
+    """Every thread of the process on a time slice of `ns` (threads and processes started
+    later inherit it from the one that starts them); what was applied, or None (logged: the
+    kernel's slice stays)."""
+    refused = 0
+    for tid in os.listdir("/proc/self/task") if sys.platform == "linux" else []:
+        try:
+            refused += not set_sched_slice(ns, int(tid))
+        except ProcessLookupError:  # a thread that has just ended
+            continue
+    held = sched_slice()
+    if held != ns or refused:
+        log.warning("event=slice_not_applied ns=%d held=%s refused=%d", ns, held, refused)
+        return None
+    return f"slice={ns}ns"
+
+
+def _sched_attr_calls() -> tuple[int, int] | None:
+    return _SCHED_ATTR_CALLS.get(platform.machine()) if sys.platform == "linux" else None
 
 
 def set_timer_slack(ns: int) -> bool:

@@ -35,6 +35,7 @@ from service.core.runner import (
     die_with_parent,
     gc_threshold,
     pin_process,
+    slice_process,
     switch_interval,
     tune_thread,
 )
@@ -100,6 +101,8 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         daemon.tuned.append(f"malloc_arenas={config.loop.malloc_arenas}")
     if config.loop.cpus is not None and (pinned := pin_process(config.loop.cpus)):
         daemon.tuned.append(pinned)
+    if config.loop.slice_ns is not None and (sliced := slice_process(config.loop.slice_ns)):
+        daemon.tuned.append(sliced)
     if runtime := zbus.use_runtime(config.bus.zenoh_threads):
         daemon.tuned.append(runtime)
     return daemon.run()
@@ -138,7 +141,7 @@ class Daemon:
         self._stop_recorded = False
         self.tuned: list[str] = []
         """What `run_daemon` applied to the process before it started (`loop.malloc_arenas`,
-        `loop.cpus`, `bus.zenoh_threads`), for the start line's tuning."""
+        `loop.cpus`, `loop.slice_s`, `bus.zenoh_threads`), for the start line's tuning."""
 
     def run(self) -> int:
         """Set up, serve until stopped, undo; the exit code (the `EXIT_*` constants)."""
@@ -316,9 +319,10 @@ class Daemon:
     def _serve(self) -> None:
         config = self.config
         self.served = True
-        applied = tune_thread(config.loop.gc_freeze, config.loop.cpu, config.loop.rt_priority)
-        applied.append(gc_threshold(config.loop.gc_threshold))
-        applied.append(switch_interval(config.loop.switch_interval_s))
+        loop = config.loop
+        applied = tune_thread(loop.gc_freeze, loop.cpu, loop.rt_priority)
+        applied.append(gc_threshold(loop.gc_threshold))
+        applied.append(switch_interval(loop.switch_interval_s))
         applied += self.tuned
         log.info(
             "event=started id=%s hal=%s period_s=%g tuning=%s",
