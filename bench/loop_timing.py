@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+import statistics
 import sys
 import tempfile
 import time
@@ -54,11 +56,14 @@ class Run:
     bare: bool = False
     kernel_slack: bool = False
     """Empty runner only: keep the kernel's 50 µs timer slack instead of the runner's 1 µs."""
+    neighbours: int = 0
+    """CPU-bound processes (bench/baselines/burner.py) running beside it, one per core."""
 
     @property
     def name(self) -> str:
         what = "empty runner" if self.bare else "daemon"
-        return f"{what}, {self.period_s * 1e3:g} ms, {'load' if self.load else 'idle'}"
+        name = f"{what}, {self.period_s * 1e3:g} ms, {'load' if self.load else 'idle'}"
+        return f"{name}, {self.neighbours} CPU-bound neighbours" if self.neighbours else name
 
     @property
     def label(self) -> str:
@@ -88,7 +93,9 @@ class Result:
 
 
 def plan(opts: Options) -> tuple[list[tuple[Run, float]], list[tuple[list[Run], float]]]:
-    """(main runs, side-by-side groups), with durations; a group's runs run concurrently."""
+    """(main runs, side-by-side groups), with durations; a group's runs run concurrently.
+    Last among the groups, rounds of the daemon beside CPU-bound neighbours, on its own time
+    slice and on the kernel's, alternated (`neighbour_rounds`)."""
     main_s = opts.pick(1.0, 60.0, 600.0)
     side_s = opts.pick(0.5, 8.0, 60.0)
     main = [
@@ -122,7 +129,17 @@ def plan(opts: Options) -> tuple[list[tuple[Run, float]], list[tuple[list[Run], 
         # One of each code path: idle, load with motion, a bare group, the tuned daemon.
         main = [main[0], main[3]]
         side = [side[0], side[-1]]
-    return main, side
+    return main, side + neighbour_rounds(opts)
+
+
+def neighbour_rounds(opts: Options) -> list[tuple[list[Run], float]]:
+    """The daemon at 1 ms under load with a CPU-bound process per core beside it: what
+    `loop.slice_s` is for. Its own slice and the kernel's alternate, round by round."""
+    cores = len(os.sched_getaffinity(0))
+    mine = Run(0.001, True, neighbours=cores)
+    kernel = Run(0.001, True, Tuning(kernel_slice=True), neighbours=cores)
+    rounds = opts.pick(1, 3, 5)
+    return [([run], opts.pick(0.5, 15.0, 60.0)) for _ in range(rounds) for run in (mine, kernel)]
 
 
 def measure_daemon(run: Run, seconds: float, tmp: Path) -> Result:
@@ -158,6 +175,13 @@ def measure_daemon(run: Run, seconds: float, tmp: Path) -> Result:
             )
             stack.callback(load.stop)
             load.expect("ready", timeout=60.0)
+        for i in range(run.neighbours):
+            burner = Child(
+                python_module("bench.baselines.burner", "--lifetime", seconds + 120.0),
+                tmp / f"burner-{i}.log",
+            )
+            stack.callback(burner.stop)
+            burner.expect("ready")
         canary = BareRunner(Run(run.period_s, run.load, bare=True), seconds, tmp / "canary.log")
         stack.callback(canary.child.stop)
         cpu = CpuMeter(daemon.proc.pid, family=True)
@@ -318,6 +342,26 @@ def crosscheck_table(results: list[Result]) -> Table:
     return table
 
 
+def neighbour_note(results: list[Result]) -> str:
+    """The medians of the alternated rounds beside CPU-bound neighbours, per slice."""
+    parts = []
+    for kernel in (False, True):
+        rs = [r for r in results if r.run.tuning.kernel_slice is kernel]
+        if not rs:
+            continue
+        p99 = statistics.median(r.diag.jitter.p99 for r in rs)
+        overruns = statistics.median(r.diag.overruns for r in rs)
+        which = "on the kernel's slice" if kernel else "on its own 0.1 ms slice (the default)"
+        parts.append(
+            f"{which}: p99 jitter {ms(p99)} ms and {overruns:g} overruns, the median of"
+            f" {len(rs)} rounds"
+        )
+    return (
+        "Beside CPU-bound neighbours (bench/baselines/burner.py, one per core: a build or a"
+        " batch job on the same host), the daemon " + "; ".join(parts) + "."
+    )
+
+
 def _counted(items: list[str]) -> str:
     return ", ".join(f"{k} ×{n}" for k, n in Counter(items).items()) or "none"
 
@@ -349,9 +393,19 @@ def run(opts: Options) -> Section:
     section = Section("loop_timing", "2. Scan loop timing")
     main_results = [r for run, seconds in main for r in measure_group([run], seconds)]
     side_results = [r for runs, seconds in variants for r in measure_group(runs, seconds)]
+    crowded = [r for r in side_results if r.run.neighbours]
+    side_results = [r for r in side_results if not r.run.neighbours]
     section.tables.append(timing_table("Main runs (project defaults)", main_results))
     section.tables.append(timing_table("Side by side at 1 ms: each real-time option", side_results))
-    section.tables.append(crosscheck_table(main_results + side_results))
+    section.tables.append(
+        timing_table(
+            "Beside a CPU-bound process per core, 1 ms, load: the daemon's time slice"
+            " (`loop.slice_s`) and the kernel's, rounds alternated",
+            crowded,
+        )
+    )
+    section.notes.append(neighbour_note(crowded))
+    section.tables.append(crosscheck_table(main_results + side_results + crowded))
     section.targets += targets([r for r in main_results if r.run.tuning == Tuning()])
     section.notes.append(
         f"Load: a Rider process sending {LOAD_RATE:g} `check/home` commands/s (sequential, on an"
