@@ -41,6 +41,7 @@ _SCHED_ATTR_CALLS = {
     "riscv64": (274, 275),
     "armv7l": (380, 381),
     "armv6l": (380, 381),
+    "armv8l": (380, 381),  # a 32-bit userland on a 64-bit ARM kernel
     "i686": (351, 352),
 }
 """`sched_setattr(2)` and `sched_getattr(2)` by machine (no C library wraps them)."""
