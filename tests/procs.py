@@ -250,6 +250,43 @@ def run_module(module: str, *args: object, timeout: float) -> str:
     return proc.stdout
 
 
+_AROUND_THREADS = """
+import os, sys, threading
+{setup}
+started, go = threading.Barrier(3), threading.Event()
+def body():
+    started.wait(10)
+    go.wait(10)
+before = [threading.Thread(target=body) for _ in range(2)]
+for t in before:
+    t.start()
+started.wait(10)  # two threads run before the call
+print({call}, flush=True)
+after = threading.Thread(target=go.wait, args=(10,))
+after.start()  # and one after it
+print({report}, flush=True)
+go.set()
+"""
+
+
+def call_among_threads(setup: str, call: str, report: str, arg: str) -> tuple[str, str]:
+    """In a child process (`setup`: its imports) with two threads running, `call` (an
+    expression of `sys.argv[1]`, `arg`), then a third thread started, then `report` (an
+    expression of `os.getpid()`): what each printed. For what a process applies to every
+    thread: to those before and to those after."""
+    code = _AROUND_THREADS.format(setup=setup, call=call, report=report)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, arg],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    applied, threads = proc.stdout.splitlines()
+    return applied, threads
+
+
 def thread_cpus(pid: int) -> dict[int, tuple[int, ...]]:
     """The CPUs each thread of a process may run on, by thread id (threads that end while
     being read are left out)."""

@@ -3,53 +3,27 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
 
 from service.config.model import LoopSection
-from tests.procs import REPO, running_daemon, thread_cpus
+from tests.procs import call_among_threads, running_daemon, thread_cpus
 
 several_cpus = pytest.mark.skipif(
     len(os.sched_getaffinity(0)) < 2, reason="pinning to one CPU changes nothing on a single CPU"
 )
 
-CHILD = """
-import sys, threading
-from service.core.runner import pin_process
-started, go = threading.Barrier(3), threading.Event()
-def body():
-    started.wait(10)
-    go.wait(10)
-before = [threading.Thread(target=body) for _ in range(2)]
-for t in before:
-    t.start()
-started.wait(10)  # two threads run before the pin
-print(pin_process([int(c) for c in sys.argv[1].split(",")]), flush=True)
-after = threading.Thread(target=go.wait, args=(10,))
-after.start()  # and one after it
-import os
-from tests.procs import thread_cpus
-print(sorted(set(map(tuple, thread_cpus(os.getpid()).values()))), flush=True)
-go.set()
-"""
-
 
 def thread_cpus_of(cpus: str) -> tuple[str, str]:
     """A child that pins itself to `cpus` with threads running: (applied, each thread's CPUs)."""
-    proc = subprocess.run(
-        [sys.executable, "-c", CHILD, cpus],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=True,
+    return call_among_threads(
+        "from service.core.runner import pin_process\nfrom tests.procs import thread_cpus",
+        "pin_process([int(c) for c in sys.argv[1].split(',')])",
+        "sorted(set(map(tuple, thread_cpus(os.getpid()).values())))",
+        cpus,
     )
-    applied, threads = proc.stdout.splitlines()
-    return applied, threads
 
 
 @several_cpus

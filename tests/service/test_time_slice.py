@@ -4,8 +4,6 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,7 +13,7 @@ from bench.common import children
 from service.config.model import LoopSection
 from service.config.validate import validate_data
 from service.core.runner import SCHED_SLICE_NS, sched_slice
-from tests.procs import REPO, running_daemon, thread_slices
+from tests.procs import call_among_threads, running_daemon, thread_slices
 
 KERNEL_SLICE = thread_slices(os.getpid()).get(os.getpid())
 """This process's slice as the kernel gave it (the test process asks for none)."""
@@ -25,39 +23,15 @@ custom_slices = pytest.mark.skipif(
     reason="this kernel has no custom time slices for the normal policy (Linux 6.12+)",
 )
 
-CHILD = """
-import sys, threading
-from service.core.runner import slice_process
-started, go = threading.Barrier(3), threading.Event()
-def body():
-    started.wait(10)
-    go.wait(10)
-before = [threading.Thread(target=body) for _ in range(2)]
-for t in before:
-    t.start()
-started.wait(10)  # two threads run before the slice is asked for
-print(slice_process(int(sys.argv[1])), flush=True)
-after = threading.Thread(target=go.wait, args=(10,))
-after.start()  # and one after it
-import os
-from tests.procs import thread_slices
-print(sorted(thread_slices(os.getpid()).values()), flush=True)
-go.set()
-"""
-
 
 def slices_of(ns: int) -> tuple[str, str]:
     """A child that asks for `ns` with threads running: (applied, each thread's slice)."""
-    proc = subprocess.run(
-        [sys.executable, "-c", CHILD, str(ns)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=True,
+    return call_among_threads(
+        "from service.core.runner import slice_process\nfrom tests.procs import thread_slices",
+        "slice_process(int(sys.argv[1]))",
+        "sorted(thread_slices(os.getpid()).values())",
+        str(ns),
     )
-    applied, threads = proc.stdout.splitlines()
-    return applied, threads
 
 
 @custom_slices
