@@ -12,7 +12,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 
 from hal.base import Hal, HalConfigError, HalError
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
@@ -42,6 +41,7 @@ from service.core.runner import (
 from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
+from service.signals import SignalThread
 from service.simwing import sim_hal, sim_port
 from service.supervision.malloc import bound_malloc_arenas
 from service.threads import name_callback_threads
@@ -105,6 +105,9 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
         daemon.tuned.append(sliced)
     if runtime := zbus.use_runtime(config.bus.zenoh_threads):
         daemon.tuned.append(runtime)
+    # The process ends when `run` returns: a signal from then on must not kill it (the
+    # default action) before its last log lines are written.
+    daemon.signals_after = signal.SIG_IGN
     return daemon.run()
 
 
@@ -138,6 +141,10 @@ class Daemon:
         self.runner: RealtimeRunner | None = None
         self.exit_deadline: threading.Timer | None = None
         self._stop_asked = False
+        self.signals: SignalThread | None = None
+        self.signals_repeated = 0
+        self.signals_after: signal.Handlers | None = None
+        """What SIGTERM and SIGINT get once `run` returns; None: the handlers from before."""
         self._stop_recorded = False
         self.tuned: list[str] = []
         """What `run_daemon` applied to the process before it started (`loop.malloc_arenas`,
@@ -160,11 +167,17 @@ class Daemon:
             if self.served:
                 # One line that says the outputs were forced safe (the first undo), for logs
                 # and tests.
+                repeated = self.signals_repeated
                 log.info(
-                    "event=stopped code=%d outputs=safe cycles=%d", self.code, self.stats.cycles
+                    "event=stopped code=%d outputs=safe cycles=%d%s",
+                    self.code,
+                    self.stats.cycles,
+                    f" signals_repeated={repeated}" if repeated else "",
                 )
             if self.session_closed and self.exit_deadline is not None:
                 self.exit_deadline.cancel()
+            if self.signals is not None:
+                self.signals.close(then=self.signals_after)
         return self.code
 
     # ------------------------------------------------------------------------------ setup
@@ -173,8 +186,10 @@ class Daemon:
         hal = self._open_hal(stack)
         store, registry = self._open_storage(stack)
         self._open_event_log(stack)
-        signal.signal(signal.SIGTERM, self._on_signal)
-        signal.signal(signal.SIGINT, self._on_signal)
+        # Handled on a thread of their own, never inside the code a signal interrupts; until
+        # `run` returns, so a signal during the teardown is handled too.
+        self.signals = SignalThread(self._on_signal)
+        self.signals.start()
         session = self._open_session(stack)
         self._refuse_duplicate(session)
         self._build_machine(hal, store, registry, session)
@@ -339,8 +354,13 @@ class Daemon:
             self.code = EXIT_FAILED
             self.reason = f"loop failed: {exc}"
 
-    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+    def _on_signal(self, signum: int) -> None:
+        """SIGTERM or SIGINT, on the signal thread (`SignalThread`): the first one stops the
+        daemon; one more while it stops is only counted (`event=stopped ... signals_repeated`)."""
         name = signal.Signals(signum).name
+        if self._stop_asked:
+            self.signals_repeated += 1
+            return
         log.info("event=signal signal=%s", name)
         self.reason = f"signal {name}"
         self._stop_asked = True

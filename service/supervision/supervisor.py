@@ -29,7 +29,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from types import FrameType
 from typing import Any, Protocol
 
 from hal.base import HalConfigError, HalError
@@ -45,6 +44,7 @@ from service.bus.supervisor import (
 from service.config.model import HalBackend, MachineConfig
 from service.config.validate import finding_line
 from service.core.runner import SUPERVISOR_PID_ENV
+from service.signals import SignalThread
 from service.simwing import World, sim_world
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
@@ -145,6 +145,10 @@ class Supervisor:
         self.options = options
         self.dir = Path(config.data_dir).resolve() / SUPERVISOR_DIR
         self.events: queue.SimpleQueue[Event] = queue.SimpleQueue()  # put() is signal-safe
+        self._stop_asked = False
+        self.signals_repeated = 0
+        self.signals_after: signal.Handlers | None = None
+        """What SIGTERM and SIGINT get once `run` returns; None: the handlers from before."""
         self.child: Child | None = None
         self.generation = 0
         self.world: World | None = None
@@ -160,8 +164,8 @@ class Supervisor:
 
         Each step registers its undo on one `ExitStack`, so they run in reverse: the child
         stopped, the outputs forced safe, the bus and session closed, the files cleaned up."""
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, self._on_signal)
+        signals = SignalThread(self._on_signal)  # never inside the code a signal interrupts
+        signals.start()
         code = EXIT_OK
         started = False
         try:
@@ -192,7 +196,14 @@ class Supervisor:
                 code = self._loop()
         finally:
             if started:
-                log.info("event=supervisor_stopped code=%d restarts=%d", code, self.generation - 1)
+                repeated = self.signals_repeated
+                log.info(
+                    "event=supervisor_stopped code=%d restarts=%d%s",
+                    code,
+                    self.generation - 1,
+                    f" signals_repeated={repeated}" if repeated else "",
+                )
+            signals.close(then=self.signals_after)
         return code
 
     def _open_hal(self) -> MachineConfig:
@@ -415,7 +426,13 @@ class Supervisor:
         if self.safe is not None:
             self.safe.force_all_outputs_safe()
 
-    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+    def _on_signal(self, signum: int) -> None:
+        """SIGTERM or SIGINT, on the signal thread (`SignalThread`): the first one stops the
+        supervisor; one more while it stops is only counted."""
+        if self._stop_asked:
+            self.signals_repeated += 1
+            return
+        self._stop_asked = True
         log.info("event=signal signal=%s", signal.Signals(signum).name)
         self.events.put(Event(Kind.STOP))
 
@@ -427,7 +444,11 @@ def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: Supervi
     """`machine supervise`: returns the process exit code."""
     if bound_malloc_arenas(config.loop.malloc_arenas):  # before its Zenoh threads start
         log.info("event=malloc_arenas limit=%d", config.loop.malloc_arenas)
-    return Supervisor(config, zenoh, options).run()
+    supervisor = Supervisor(config, zenoh, options)
+    # The process ends when `run` returns: a signal from then on must not kill it (the
+    # default action) before its last log lines are written.
+    supervisor.signals_after = signal.SIG_IGN
+    return supervisor.run()
 
 
 # ------------------------------------------------------------------------------ TOML out
