@@ -301,6 +301,7 @@ class _Server(uvicorn.Server):
     def __init__(self, config: uvicorn.Config, on_exit: Callable[[], None]) -> None:
         super().__init__(config)
         self._on_exit = on_exit
+        self._signalled = False
 
     @contextlib.contextmanager
     def capture_signals(self) -> Iterator[None]:
@@ -308,17 +309,27 @@ class _Server(uvicorn.Server):
             yield
             return
         sigs = (signal.SIGINT, signal.SIGTERM)
-        previous = {sig: signal.signal(sig, self.handle_exit) for sig in sigs}
+        for sig in sigs:
+            signal.signal(sig, self.handle_exit)
         try:
             yield
         finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+            # Served: one more signal must not kill the process (the default action) before
+            # the Rider's session has closed.
+            for sig in sigs:
+                signal.signal(sig, signal.SIG_IGN)
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
-        log.info("event=signal signal=%s", signal.Signals(sig).name)
-        self._on_exit()
+        """Run on the main thread inside whatever the signal interrupted: the first signal
+        logs and ends the event streams; a repeat only tells uvicorn (a second Ctrl-C forces
+        the exit), so a stream of signals cannot nest a log line per signal (hundreds deep,
+        the process ended 1 or -15 instead of 0)."""
+        first = not self._signalled
+        self._signalled = True  # before anything a repeat could interrupt
         super().handle_exit(sig, frame)
+        if first:
+            log.info("event=signal signal=%s", signal.Signals(sig).name)
+            self._on_exit()
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -7,39 +7,17 @@ from __future__ import annotations
 
 import os
 import signal
-import time
 from pathlib import Path
 
 import pytest
 
-from tests.procs import STOP_TIMEOUT_S, Daemon
+from tests.procs import STOP_TIMEOUT_S, Daemon, signal_storm
 from tests.reliability.support import start_machine, supervisor_child
-
-STORM_S = 0.3
-GAP_S = 20e-6
-"""A SIGTERM every 20 µs: standard signals do not queue, so the gap is what lets one land
-while the handler of the one before still runs."""
-
-
-def storm(pid: int) -> int:
-    """SIGTERMs at `pid` for `STORM_S`, or until it is gone; how many were sent."""
-    sent = 0
-    end = time.monotonic() + STORM_S
-    while time.monotonic() < end:
-        try:
-            os.kill(pid, signal.SIGTERM)
-        except ProcessLookupError:
-            break
-        sent += 1
-        gap = time.perf_counter() + GAP_S
-        while time.perf_counter() < gap:
-            pass  # sleeping would space them by the timer slack, 50 µs or more
-    return sent
 
 
 def stopped_once(daemon: Daemon) -> str:
     """The storm, then the exit (bounded): the log, once the process has exited 0."""
-    assert storm(daemon.proc.pid) > 1
+    assert signal_storm(daemon.proc.pid) > 1
     try:
         code = daemon.proc.wait(STOP_TIMEOUT_S)
     except Exception:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from schema.commands import ALLOWED_STATES, Command
-from tests.procs import REPO, STOP_TIMEOUT_S, Daemon, free_port, rider_cmd
+from tests.procs import REPO, STOP_TIMEOUT_S, Daemon, free_port, rider_cmd, signal_storm
 from tests.ui.uiproc import UiServer, events, request
 
 pytestmark = pytest.mark.integration
@@ -129,6 +129,15 @@ def test_sigterm_closes_the_rider_session_and_exits_zero(ui: UiServer) -> None:
     ui.proc.send_signal(signal.SIGTERM)
     assert ui.proc.wait(STOP_TIMEOUT_S) == 0
     stream.close()
+    assert "event=ui_session_closed" in ui.log()
+
+
+def test_a_signal_storm_stops_the_ui_once_and_exits_zero(ui: UiServer) -> None:
+    """A repeat nests no log line per signal in the one before (hundreds deep, the process
+    then ended 1 or -15): only the first is told, and the session still closes."""
+    assert signal_storm(ui.proc.pid) > 1
+    assert ui.proc.wait(STOP_TIMEOUT_S) == 0
+    assert ui.log().count("event=signal ") == 1
     assert "event=ui_session_closed" in ui.log()
 
 
