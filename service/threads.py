@@ -7,10 +7,12 @@ callback read as Zenoh's own (`app-0`). `NamedThread` gives the OS the thread's 
 starts (Linux keeps its first 15 bytes); `name_callback_threads` names the threads zenoh-python
 starts for its callbacks, from the outside (`/proc/self/task/<tid>/comm`). `prctl` is the
 process's one call of the Linux `prctl(2)` (thread names here, timer slack and the parent's
-death signal in service/core/runner.py)."""
+death signal in service/core/runner.py), through `libc`, its one handle on the C library
+(`sched_setattr(2)` in service/core/runner.py too)."""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import sys
 import threading
@@ -49,18 +51,28 @@ def name_os_thread(name: str) -> bool:
     return prctl(PR_SET_NAME, os_name(name))
 
 
+def libc() -> ctypes.CDLL | None:
+    """The process's C library (Linux), loaded at first use, errno kept for
+    `ctypes.get_errno()`; None elsewhere or where it cannot be loaded."""
+    global _libc  # noqa: PLW0603 - one handle on the C library, loaded at first use
+    if not sys.platform.startswith("linux"):
+        return None
+    if _libc is None:
+        with contextlib.suppress(OSError):
+            _libc = ctypes.CDLL(None, use_errno=True)
+    return _libc
+
+
 def prctl(option: int, arg: int | bytes) -> bool:
     """Linux `prctl(2)` on the calling thread or process, `arg` a number or a string; False
     where it is not available or refused (`ctypes.get_errno()` then says why)."""
-    global _libc  # noqa: PLW0603 - one handle on the C library, loaded at first use
-    if not sys.platform.startswith("linux"):
+    lib = libc()
+    if lib is None:
         return False
     try:
-        if _libc is None:
-            _libc = ctypes.CDLL(None, use_errno=True)
         value = ctypes.c_char_p(arg) if isinstance(arg, bytes) else ctypes.c_ulong(arg)
-        return int(_libc.prctl(option, value, 0, 0, 0)) == 0
-    except (OSError, AttributeError):
+        return int(lib.prctl(option, value, 0, 0, 0)) == 0
+    except AttributeError:
         return False
 
 

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from schema.status import Fault, FaultCode
 from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
-from service.threads import prctl
+from service.threads import libc, prctl
 
 log = logging.getLogger(__name__)
 
@@ -239,9 +239,10 @@ def die_with_parent(parent_pid: int) -> bool:
 
 def timer_slack() -> int | None:
     """The calling thread's timer slack in ns (Linux); None where it cannot be read."""
-    if not sys.platform.startswith("linux"):
+    lib = libc()
+    if lib is None:
         return None
-    value = int(ctypes.CDLL(None, use_errno=True).prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0))
+    value = int(lib.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0))
     return value if value >= 0 else None
 
 
@@ -263,12 +264,11 @@ class _SchedAttr(ctypes.Structure):
 def sched_slice(tid: int = 0) -> int | None:
     """A thread's time slice in ns as the kernel holds it (`tid` 0: the calling thread); None
     where it cannot say (not Linux, a machine not in the table, a kernel before 6.12)."""
-    calls = _sched_attr_calls()
-    if calls is None:
+    calls, lib = _sched_attr_calls(), libc()
+    if calls is None or lib is None:
         return None
     attr = _SchedAttr()
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.syscall(calls[1], tid, ctypes.byref(attr), ctypes.sizeof(attr), 0) != 0:
+    if lib.syscall(calls[1], tid, ctypes.byref(attr), ctypes.sizeof(attr), 0) != 0:
         return None
     return int(attr.sched_runtime) or None
 
@@ -278,8 +278,8 @@ def set_sched_slice(ns: int, tid: int = 0) -> bool:
     normal policy, its nice value kept; False where refused or impossible. A thread under
     another policy (SCHED_FIFO: no slice) is left alone (True). The kernel clamps the slice to
     0.1-100 ms, and one before 6.12 takes the call and ignores it: `sched_slice` tells."""
-    calls = _sched_attr_calls()
-    if calls is None:
+    calls, lib = _sched_attr_calls(), libc()
+    if calls is None or lib is None:
         return False
     if os.sched_getscheduler(tid) != os.SCHED_OTHER:
         return True
@@ -289,8 +289,7 @@ def set_sched_slice(ns: int, tid: int = 0) -> bool:
         sched_nice=os.getpriority(os.PRIO_PROCESS, tid),  # a thread's own, on Linux
         sched_runtime=ns,
     )
-    libc = ctypes.CDLL(None, use_errno=True)
-    return int(libc.syscall(calls[0], tid, ctypes.byref(attr), 0)) == 0
+    return int(lib.syscall(calls[0], tid, ctypes.byref(attr), 0)) == 0
 
 
 def slice_process(ns: int) -> str | None:
