@@ -32,7 +32,7 @@ class Tuning:
     zenoh_threads: int | None = None
     """`bus.zenoh_threads` (None: the default, one)."""
     kernel_slice: bool = False
-    """`loop.slice_s = 0`: the scan thread on the kernel's time slice, not its own short one."""
+    """`loop.slice_s = 0`: the daemon's threads on the kernel's time slice, not a short one."""
 
     def label(self) -> str:
         parts = []

@@ -92,10 +92,12 @@ class Result:
     """The empty runner that ran at the same time, at the same period: the noise of the moment."""
 
 
-def plan(opts: Options) -> tuple[list[tuple[Run, float]], list[tuple[list[Run], float]]]:
-    """(main runs, side-by-side groups), with durations; a group's runs run concurrently.
-    Last among the groups, rounds of the daemon beside CPU-bound neighbours, on its own time
-    slice and on the kernel's, alternated (`neighbour_rounds`)."""
+Groups = list[tuple[list[Run], float]]
+
+
+def plan(opts: Options) -> tuple[list[tuple[Run, float]], Groups, Groups]:
+    """(main runs, side-by-side groups, rounds beside CPU-bound neighbours), with durations;
+    a group's runs run concurrently."""
     main_s = opts.pick(1.0, 60.0, 600.0)
     side_s = opts.pick(0.5, 8.0, 60.0)
     main = [
@@ -129,10 +131,10 @@ def plan(opts: Options) -> tuple[list[tuple[Run, float]], list[tuple[list[Run], 
         # One of each code path: idle, load with motion, a bare group, the tuned daemon.
         main = [main[0], main[3]]
         side = [side[0], side[-1]]
-    return main, side + neighbour_rounds(opts)
+    return main, side, neighbour_rounds(opts)
 
 
-def neighbour_rounds(opts: Options) -> list[tuple[list[Run], float]]:
+def neighbour_rounds(opts: Options) -> Groups:
     """The daemon at 1 ms under load with a CPU-bound process per core beside it: what
     `loop.slice_s` is for. Its own slice and the kernel's alternate, round by round."""
     cores = len(os.sched_getaffinity(0))
@@ -389,12 +391,11 @@ def targets(results: list[Result]) -> list[Target]:
 
 
 def run(opts: Options) -> Section:
-    main, variants = plan(opts)
+    main, variants, rounds = plan(opts)
     section = Section("loop_timing", "2. Scan loop timing")
     main_results = [r for run, seconds in main for r in measure_group([run], seconds)]
     side_results = [r for runs, seconds in variants for r in measure_group(runs, seconds)]
-    crowded = [r for r in side_results if r.run.neighbours]
-    side_results = [r for r in side_results if not r.run.neighbours]
+    crowded = [r for runs, seconds in rounds for r in measure_group(runs, seconds)]
     section.tables.append(timing_table("Main runs (project defaults)", main_results))
     section.tables.append(timing_table("Side by side at 1 ms: each real-time option", side_results))
     section.tables.append(
