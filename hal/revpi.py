@@ -16,13 +16,14 @@ import logging
 import os
 import stat
 import threading
+import time
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
-from hal.base import HalError, Inputs, Outputs
+from hal.base import HalConfigError, HalError, Inputs, Outputs
 from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
 from hal.pictory import (
     BYTE_IO_BASES,
@@ -558,7 +559,16 @@ class RevPiHal:
     written when the HAL opens and when it closes.
     """
 
-    def __init__(self, iomap: IoMap, procimg: str, configrsc: str | None = None) -> None:
+    def __init__(
+        self,
+        iomap: IoMap,
+        procimg: str,
+        configrsc: str | None = None,
+        *,
+        hw_watchdog: bool = False,
+    ) -> None:
+        """`hw_watchdog`: toggle the base module's hardware watchdog bit (RevPiLED bit 7)
+        from `scan_outputs`, so the box resets when the scan stops (docs/revpi.md)."""
         self.iomap = iomap
         self.procimg = procimg
         self._lock = threading.Lock()
@@ -579,9 +589,15 @@ class RevPiHal:
         self.configrsc = path
         # Monitoring: revpimodio2 reads, never writes (on open it would write the base module).
         self._rpi, _ = open_modio(path, procimg, monitoring=True)
+        self._wd: tuple[int, int] | None = None
+        """The hardware watchdog's byte and bit mask, when asked to toggle it."""
+        self._wd_next = 0.0
+        self._wd_on = False
         try:
             bound, findings = bind_ios(self._rpi, iomap)
             raise_for_errors(findings)
+            if hw_watchdog:
+                self._wd = _watchdog_bit(self._rpi)
             self._setup(bound)
             self.force_all_outputs_safe()
         except BaseException:
@@ -636,6 +652,29 @@ class RevPiHal:
                 self._io(
                     functools.partial(_merge, offset=byte, mask=mask, bits=bits[byte]), "write"
                 )
+
+        if self._wd is not None:
+            self._toggle_watchdog()
+
+    def _toggle_watchdog(self) -> None:
+        """Flip the hardware watchdog bit once per `WD_TOGGLE_S`, from the scan thread only:
+        a scan that stops cycling stops toggling, and the hardware resets the box."""
+        now = time.monotonic()
+        if now < self._wd_next or self._wd is None:
+            return
+        self._wd_next = now + WD_TOGGLE_S
+        self._wd_on = not self._wd_on
+        byte, mask = self._wd
+        on = mask if self._wd_on else 0
+        self._io(functools.partial(_merge, offset=byte, mask=mask, bits=on), "write")
+
+    def energised(self) -> bool:
+        """Whether any of our relay bits is on in the image now (read, not remembered): what
+        a supervisor asks of a stalled daemon's outputs."""
+        for byte, mask in self._owned.items():
+            if self._io(functools.partial(_read_byte, offset=byte), "read") & mask:
+                return True
+        return False
 
     def force_all_outputs_safe(self) -> None:
         """Our relays off through our own descriptor; works after the loop failed or close."""
@@ -702,6 +741,27 @@ class RevPiHal:
         self._rpi.cleanup()
         with self._raw_lock:
             self._drop_fd()
+
+
+WD_TOGGLE_S = 1.0
+"""How often the hardware watchdog bit flips; the RevPi's MAX6370 resets after 60 s without."""
+
+
+def _watchdog_bit(rpi: Any) -> tuple[int, int]:
+    """The base module's watchdog bit (revpimodio2's `core.wd`: RevPiLED bit 7)."""
+    wd = getattr(getattr(rpi, "core", None), "wd", None)
+    if wd is None:
+        raise HalConfigError(
+            [
+                _error(
+                    "revpi_config",
+                    "/hal/revpi/hw_watchdog",
+                    "hw_watchdog needs a RevPi Core or Connect base module in the piCtory"
+                    " config (its RevPiLED byte holds the watchdog bit); none found",
+                )
+            ]
+        )
+    return int(wd.address), int(wd._bitshift)
 
 
 def _read_byte(fd: int, offset: int) -> int:

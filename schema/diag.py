@@ -42,3 +42,10 @@ class CycleDiag(OpenWireModel):
     since: float
     time: float
     events: EventsDiag | None = None
+    stalls: int = 0
+    """Scans that completed no cycle for the watchdog limit (since the last reset), whether
+    or not anything was energised."""
+    longest_stall_s: float = 0.0
+    watchdog_trips: int = 0
+    """Stalls with an output energised: outputs forced safe, `FAULT_HW` (`WATCHDOG`)."""
+    watchdog_limit_s: float | None = None

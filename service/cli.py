@@ -114,6 +114,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_args(sup)
     sup.add_argument("--backoff", type=float, default=0.5, help="first restart delay (s)")
     sup.add_argument("--backoff-max", type=float, default=8.0, help="longest restart delay (s)")
+    sup.add_argument(
+        "--hang",
+        type=float,
+        default=None,
+        help="kill and restart a daemon whose scan has not cycled for this long (s; default:"
+        " 1 s, or 3 watchdog limits when that is longer)",
+    )
 
     val = sub.add_parser("validate", help="check a machine config and print every finding")
     _add_config_args(val)
@@ -268,8 +275,18 @@ def _main(argv: list[str] | None) -> int:
         if not 0 < args.backoff <= args.backoff_max:
             print("machine: need 0 < --backoff <= --backoff-max", file=sys.stderr)
             return EXIT_CONFIG
+        if args.hang is not None and not config.loop.watchdog_limit_s < args.hang <= 600:
+            print(
+                f"machine: --hang must be longer than the watchdog limit"
+                f" ({config.loop.watchdog_limit_s:g} s) and at most 600 s",
+                file=sys.stderr,
+            )
+            return EXIT_CONFIG
         sup = SupervisorOptions(
-            backoff_s=args.backoff, backoff_max_s=args.backoff_max, log_level=args.log_level
+            backoff_s=args.backoff,
+            backoff_max_s=args.backoff_max,
+            hang_s=args.hang,
+            log_level=args.log_level,
         )
         return run_supervisor(config, options, sup)
     return run_daemon(config, options)

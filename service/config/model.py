@@ -58,13 +58,22 @@ class LoopSection(_Section):
     short one lets a wake-up preempt a busy neighbour at once (BENCHMARKS.md section 2). 0
     keeps the kernel's (1.4 ms on two CPUs); below `MIN_SLICE_S` is a finding."""
     watchdog_periods: int = Field(default=3, ge=2, le=1000)
-    watchdog_min_s: float = Field(default=0.02, ge=0.0, le=10.0)
+    watchdog_min_s: float = Field(default=0.1, ge=0.0, le=10.0)
+    """The watchdog limit is never shorter than this. 0.1 s: a 2-core host beside two
+    CPU-bound processes stalled an idle daemon's scan 40-150 ms (BENCHMARKS.md, freeze); a
+    moving tilt covers 1.5° and the rotate 9° in it at the nominal speeds."""
     max_commands_per_cycle: int = Field(default=64, ge=1, le=10_000)
     stats_window: int = Field(default=1000, ge=10, le=100_000)
     malloc_arenas: int | None = Field(default=None, ge=1, le=1024)
     """Cap glibc's malloc arenas at start (None: glibc's default, 8 per core). 2 keeps RSS flat
     under heavy Rider connect churn, but slowed the scan's execution 5-10 % under motion load
     (BENCHMARKS.md section 5); `MALLOC_ARENA_MAX` in the environment wins."""
+
+    @property
+    def watchdog_limit_s(self) -> float:
+        """How long the scan may go without completing a cycle before a stall is declared
+        (the in-process watchdog, the scan's own check and the supervisor's output guard)."""
+        return max(self.period_s * self.watchdog_periods, self.watchdog_min_s)
 
     @property
     def slice_ns(self) -> int | None:
@@ -163,6 +172,11 @@ class RevPiSection(_Section):
 
     procimg: str = "/dev/piControl0"
     configrsc: str | None = None
+    hw_watchdog: bool = False
+    """Toggle the base module's hardware watchdog bit from the scan loop (RevPi Connect: a
+    MAX6370 that power-cycles the box after 60 s without a toggle, once its WD jumper is
+    removed; docs/revpi.md). Off by default: an armed watchdog resets the box while nothing
+    toggles it (updates, a stopped daemon)."""
 
 
 class PhysicsParams(_Section):

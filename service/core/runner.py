@@ -15,8 +15,10 @@ import time
 from collections.abc import Callable
 
 from schema.status import Fault, FaultCode
+from service.core.beat import BeatWriter
 from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
+from service.core.watchdog import ARM_AFTER_CYCLES
 from service.threads import libc, prctl
 
 log = logging.getLogger(__name__)
@@ -72,7 +74,12 @@ class RealtimeRunner:
         *,
         spin_s: float = 0.0,
         clock: Callable[[], float] = time.monotonic,
+        stall_limit_s: float | None = None,
+        beat: BeatWriter | None = None,
     ) -> None:
+        """`stall_limit_s`: a cycle that starts this long after the previous one ended is a
+        stall, judged by `on_stall` before the cycle runs. `beat`: the record a supervisor
+        watches from its own process, stamped after every cycle."""
         self.loop = loop
         self.period = period_s
         self.stats = stats
@@ -88,6 +95,10 @@ class RealtimeRunner:
         self.errors = 0
         self.finished = False
         """Set once the cycling has ended (stopped or failed), just before the outputs go safe."""
+        self.stall_limit = stall_limit_s
+        self.on_stall: Callable[[float, float], bool] | None = None
+        """`(now, stalled_s) -> tripped`, on the scan thread (the watchdog's `after_stall`)."""
+        self.beat = beat
 
     def stop(self) -> None:
         self._stopping = True
@@ -101,29 +112,22 @@ class RealtimeRunner:
         finally:
             self.finished = True  # no cycle runs any more: nothing for the watchdog to watch
             self.loop.go_safe()
+            if self.beat is not None:
+                self.beat.finish()
 
     def _run(self) -> None:
-        clock, period, spin = self.clock, self.period, self.spin_s
-        wake = self.loop.inbox.wake
+        clock, period = self.clock, self.period
         loop, stats = self.loop, self.stats
         lock = loop.lock
+        limit = self.stall_limit if self.stall_limit is not None else float("inf")
+        shared = self.beat.rec if self.beat is not None else None
         deadline = clock()  # first scan at once: commands need a real input image
         consecutive = 0
-        while not self._stopping:
-            while True:
-                remaining = deadline - clock()
-                if remaining <= spin:
-                    break
-                if wake.wait(remaining - spin):
-                    if self._stopping:
-                        return
-                    with lock:
-                        loop.service_inbox(clock())
-            if spin:
-                while clock() < deadline:
-                    pass
+        while self._sleep_until(deadline):
             with lock:
                 start = clock()
+                if start - self.beat_at > limit:  # stopped between cycles
+                    self._stalled(start, start - self.beat_at)
                 try:
                     loop.step(start)
                     consecutive = 0
@@ -131,6 +135,8 @@ class RealtimeRunner:
                     consecutive += 1
                     self._on_error(exc, start, consecutive)
                 end = clock()
+                if end - start > limit:  # stopped inside this cycle: safe before the next
+                    self._stalled(end, end - start)
             jitter = start - deadline
             deadline += period
             missed = 0
@@ -141,6 +147,35 @@ class RealtimeRunner:
             stats.commands = loop.commands_handled
             self.beat_at = end
             self.heartbeat += 1
+            if shared is not None:
+                shared.beat_ns = int(end * 1e9)  # one store: what the supervisor watches
+
+    def _sleep_until(self, deadline: float) -> bool:
+        """Wait for the deadline on the inbox's event, serving commands as they come; the
+        last `spin_s` busy-waited. False once stopped."""
+        clock, spin, loop = self.clock, self.spin_s, self.loop
+        wake = loop.inbox.wake
+        while not self._stopping:
+            remaining = deadline - clock()
+            if remaining <= spin:
+                while spin and clock() < deadline:
+                    pass
+                return not self._stopping
+            if wake.wait(remaining - spin):
+                if self._stopping:
+                    return False
+                with loop.lock:
+                    loop.service_inbox(clock())
+        return False
+
+    def _stalled(self, now: float, stalled_s: float) -> None:
+        """No cycle for longer than the limit (the process was stopped, starved or blocked):
+        the watchdog judges it before this cycle runs; it is counted either way. The first
+        cycles (start-up work) are not judged."""
+        if self.heartbeat < ARM_AFTER_CYCLES:
+            return
+        tripped = self.on_stall(now, stalled_s) if self.on_stall is not None else False
+        self.stats.stall(stalled_s, tripped)
 
     def _on_error(self, exc: Exception, now: float, consecutive: int) -> None:
         self.errors += 1

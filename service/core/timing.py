@@ -36,6 +36,9 @@ class _Window:
         "ring",
         "since",
         "size",
+        "stall_max",
+        "stalls",
+        "trips",
     )
 
     def __init__(self, window: int, since: float) -> None:
@@ -51,6 +54,9 @@ class _Window:
         self.j_hi = self.e_hi = 0.0
         self.overruns = 0
         self.missed = 0
+        self.stalls = 0
+        self.trips = 0
+        self.stall_max = 0.0
         self.since = since
 
     def stats(self, series: int) -> TimingStats:
@@ -111,8 +117,12 @@ def _kth(chunks: list[list[float]], k: int) -> float:
 class CycleStats:
     """Written by the scan thread only; `diag()` may be called from any thread (GIL-safe reads)."""
 
-    def __init__(self, period_s: float, window: int = 1000, now: float = 0.0) -> None:
+    def __init__(
+        self, period_s: float, window: int = 1000, now: float = 0.0, limit_s: float | None = None
+    ) -> None:
         self.period_s = period_s
+        self.limit_s = limit_s
+        """The watchdog limit, for the report."""
         self.window = window
         self.cycles = 0
         self.commands = 0
@@ -158,6 +168,14 @@ class CycleStats:
             w.overruns += 1
             w.missed += missed
 
+    def stall(self, stalled_s: float, tripped: bool) -> None:
+        """A scan that completed no cycle for the watchdog limit; `tripped`: an output was
+        energised and the watchdog forced the outputs safe."""
+        w = self._w
+        w.stalls += 1
+        w.trips += tripped
+        w.stall_max = max(w.stall_max, stalled_s)
+
     def diag(self, now: float) -> CycleDiag:
         w = self._w
         return CycleDiag(
@@ -171,4 +189,8 @@ class CycleStats:
             window=w.filled,
             since=w.since,
             time=now,
+            stalls=w.stalls,
+            longest_stall_s=w.stall_max,
+            watchdog_trips=w.trips,
+            watchdog_limit_s=self.limit_s,
         )

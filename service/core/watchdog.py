@@ -1,9 +1,19 @@
-"""The loop watchdog: a scan thread that stops cycling is caught and the outputs go safe.
+"""The loop watchdog: a scan thread that stops cycling is caught, and a danger is stopped.
 
-A thread watches the runner's heartbeat. If it has not moved for `periods` scan periods, the
-watchdog latches the HAL safe (`GuardedHal`): outputs drop at once, and every later write is
-forced safe too, so a loop that wakes up again cannot re-energise a relay with stale decisions.
-The scan thread clears the latch only after it has put the machine into FAULT_HW.
+A stall is a scan that has not completed a cycle for the watchdog limit. What it means depends
+on the outputs, as a PLC runtime's watchdog "sensitivity" does: a stall while every output is
+off could move nothing, so it is counted, logged and shown on `diag/cycle` and changes no
+state; a stall while any output is energised is a danger, and the outputs go safe at once.
+
+Two eyes see a stall. A thread watches the runner's heartbeat and, with an output energised,
+latches the HAL safe (`GuardedHal`): outputs drop at once, and every later write is forced safe
+too, so a loop that wakes up again cannot re-energise a relay with stale decisions. The scan
+thread itself measures the gap since its last cycle when it runs again (`after_stall`), so a
+stall the thread could not see (it was frozen too: SIGSTOP, a GIL held) becomes `FAULT_HW`
+(`WATCHDOG`) in the first cycle after it, before any controller judges the lost time as motion.
+The scan thread clears the latch only after it has put the machine into `FAULT_HW`. What
+neither can catch, a process frozen as a whole, the supervisor's output guard catches from
+outside (`service.core.beat`, `service.supervision.outputguard`).
 """
 
 from __future__ import annotations
@@ -14,6 +24,7 @@ import time
 from collections.abc import Callable
 
 from hal.base import Hal, Inputs, Outputs
+from service.core.beat import BeatWriter
 from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
@@ -24,31 +35,53 @@ ARM_AFTER_CYCLES = 10
 
 
 class GuardedHal:
-    """A `Hal` whose outputs a watchdog can latch safe from another thread."""
+    """A `Hal` whose outputs a watchdog can latch safe from another thread, and that knows
+    whether the outputs it last wrote energise anything."""
 
-    def __init__(self, inner: Hal) -> None:
+    def __init__(self, inner: Hal, beat: BeatWriter | None = None) -> None:
         self.inner = inner
         self.scan_inputs: Callable[[], Inputs] = inner.scan_inputs
         """The inner HAL's own: the latch guards outputs only (no wrapper call per cycle)."""
         self.latched = False
         """Set by the watchdog's thread, cleared by the scan thread (one bool: atomic), read
         every cycle; a plain attribute, where an `Event` costs a Python call per read."""
+        self.energised = False
+        """Any output on in the latest write: set before a write that energises, cleared
+        after one that does not, so a thread that reads it never sees False while a relay
+        may be on."""
+        self._beat = beat.rec if beat is not None else None
+        """The record the supervisor may latch from its own process (`service.core.beat`)."""
 
     def latch_safe(self) -> None:
         self.latched = True
         self.inner.force_all_outputs_safe()
+        self.energised = False
 
     def unlatch(self) -> None:
         self.latched = False
+        if self._beat is not None:
+            self._beat.latched = 0
 
     def scan_outputs(self, outputs: Outputs) -> None:
+        beat = self._beat
+        if beat is not None and beat.latched and not self.latched:
+            # The supervisor forced the outputs safe over a stall (the scan's own gap check
+            # has normally tripped already): latch here too, so the loop takes the fault.
+            self.latched = True
         if self.latched:
             self.inner.force_all_outputs_safe()
-        else:
-            self.inner.scan_outputs(outputs)
+            self.energised = False
+            return
+        on = any(outputs.ro.values())
+        if on:
+            self.energised = True
+        self.inner.scan_outputs(outputs)
+        if not on:
+            self.energised = False
 
     def force_all_outputs_safe(self) -> None:
         self.inner.force_all_outputs_safe()
+        self.energised = False
 
     def read_estop(self) -> bool:
         return self.inner.read_estop()
@@ -59,7 +92,8 @@ class GuardedHal:
 
 class Watchdog:
     """Trips when `heartbeat()` has not moved for `periods` periods (but never less than
-    `min_s`: at very short periods a fixed floor keeps ordinary OS hiccups from tripping it).
+    `min_s`: at very short periods a fixed floor keeps ordinary OS hiccups from tripping it)
+    while an output is energised; with every output off it only says so.
     It checks three times per limit, so a stall is caught between 1 and 4/3 limits. Given
     `beat_at` (the clock time of the latest beat), a healthy loop is checked once, a third of
     a limit after its latest beat would be `limit` old: one wake-up per limit instead of
@@ -90,6 +124,8 @@ class Watchdog:
         self.clock = clock
         self.trips = 0
         self.tripped_at: float | None = None
+        self._said = False
+        """The stall under way (outputs off) was logged by the thread."""
         self._gate = threading.Lock()
         self._gate.acquire()  # held until `stop()`: a timed acquire is the watchdog's sleep
         self._stopped = False
@@ -125,6 +161,7 @@ class Watchdog:
                 armed = beat >= ARM_AFTER_CYCLES
             if beat != last_beat:
                 last_beat, last_change = beat, now
+                self._said = False
                 if self.beat_at is not None:
                     last_change = self.beat_at()
                     if armed and self.tripped_at is None:
@@ -133,7 +170,37 @@ class Watchdog:
                     self.tripped_at = None  # the loop recovered and took the fault
                 continue
             if armed and self.tripped_at is None and now - last_change > self.limit:
-                self.check(now, now - last_change)
+                self._stalled(now, now - last_change)
+
+    def _stalled(self, now: float, stalled_s: float) -> None:
+        """Seen from the watchdog's thread: a danger trips; a stall with every output off is
+        said once (the scan thread counts it, with its length, when it runs again)."""
+        if self.hal.energised:
+            self.check(now, stalled_s)
+        elif not self._said:
+            self._said = True
+            log.warning(
+                "event=loop_stalled stalled_s=%.4f limit_s=%.4f outputs=off action=none",
+                stalled_s,
+                self.limit,
+            )
+
+    def after_stall(self, now: float, stalled_s: float) -> bool:
+        """Seen from the scan thread as it runs again after `stalled_s` without a cycle (more
+        than the limit): an energised output trips now, in this cycle, if the thread has not
+        (True: the loop takes `FAULT_HW`); a stall with every output off is logged (False)."""
+        self._said = False
+        if self.hal.latched:
+            return True
+        if self.hal.energised:
+            self.check(now, stalled_s)
+            return True
+        log.warning(
+            "event=stall stalled_s=%.4f limit_s=%.4f outputs=off action=none",
+            stalled_s,
+            self.limit,
+        )
+        return False
 
     def next_check(self, beat_at: float, now: float) -> float:
         """Seconds to sleep after a beat at `beat_at`: nothing can trip before it is `limit`

@@ -23,6 +23,7 @@ from service.bus.exposure import warn_if_exposed
 from service.config.load import check_candidate
 from service.config.model import HalBackend, MachineConfig
 from service.config.validate import Category, finding_line, one_error
+from service.core.beat import BeatWriter, beat_from_env
 from service.core.loop import ScanLoop
 from service.core.machine import Machine
 from service.core.params import ParamRegistry
@@ -68,7 +69,7 @@ def make_hal(config: MachineConfig, clock: object) -> Hal:
         from hal.revpi import RevPiHal
 
         rp = config.hal.revpi
-        return RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc)
+        return RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc, hw_watchdog=rp.hw_watchdog)
     return sim_hal(config)
 
 
@@ -146,6 +147,8 @@ class Daemon:
         self.signals_after: signal.Handlers | None = None
         """What SIGTERM and SIGINT get once `run` returns; None: the handlers from before."""
         self._stop_recorded = False
+        self.beat: BeatWriter | None = beat_from_env() if supervised else None
+        """The shared record the supervisor's output guard watches (`service.core.beat`)."""
         self.tuned: list[str] = []
         """What `run_daemon` applied to the process before it started (`loop.malloc_arenas`,
         `loop.cpus`, `loop.slice_s`, `bus.zenoh_threads`), for the start line's tuning."""
@@ -211,7 +214,7 @@ class Daemon:
         self.raw_hal = raw_hal
         self.exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
         self.exit_deadline.daemon = True
-        hal = GuardedHal(raw_hal)
+        hal = GuardedHal(raw_hal, self.beat)
         _on_exit(stack, "hal", hal.close)
         return hal
 
@@ -223,7 +226,12 @@ class Daemon:
         store = CalibrationStore(data_dir, writer)
         registry = ParamRegistry(self.config, ParamStore(data_dir), store.health)
         self.config = config = registry.config  # persisted online values survive a restart
-        self.stats = CycleStats(config.loop.period_s, config.loop.stats_window, time.time())
+        self.stats = CycleStats(
+            config.loop.period_s,
+            config.loop.stats_window,
+            time.time(),
+            limit_s=config.loop.watchdog_limit_s,
+        )
         return store, registry
 
     def _open_event_log(self, stack: contextlib.ExitStack) -> None:
@@ -279,8 +287,15 @@ class Daemon:
         )
         self.loop = machine.loop
         self.runner = RealtimeRunner(
-            self.loop, config.loop.period_s, self.stats, spin_s=config.loop.spin_s
+            self.loop,
+            config.loop.period_s,
+            self.stats,
+            spin_s=config.loop.spin_s,
+            stall_limit_s=config.loop.watchdog_limit_s,
+            beat=self.beat,
         )
+        if self.beat is not None:
+            self.beat.start(config.loop.watchdog_limit_s)
         if self._stop_asked:  # a signal during setup: serve no cycle
             self.runner.stop()
 
@@ -314,6 +329,7 @@ class Daemon:
             beat_at=lambda: runner.beat_at,
             finished=lambda: runner.finished,
         )
+        runner.on_stall = watchdog.after_stall
         _on_exit(stack, "watchdog", watchdog.stop)
         watchdog.start()
 

@@ -43,11 +43,13 @@ from service.bus.supervisor import (
 )
 from service.config.model import HalBackend, MachineConfig
 from service.config.validate import finding_line
+from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
 from service.core.runner import SUPERVISOR_PID_ENV
 from service.signals import SignalThread
 from service.simwing import World, sim_world
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
+from service.supervision.outputguard import OutputGuard, Stall
 from service.threads import NamedThread
 
 log = logging.getLogger("machine.supervisor")
@@ -56,10 +58,14 @@ EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_CONFIG = 2
 SUPERVISOR_DIR = "supervisor"
+HANG_S = 1.0
+"""The default hang limit: what the shipped Zenoh profiles' lease gave before (1 s)."""
 
 
 class SafeOutputs(Protocol):
-    """What the supervisor needs from a HAL: drop the outputs, from any thread, any time."""
+    """What the supervisor needs from a HAL: read and drop the outputs, from any thread."""
+
+    def energised(self) -> bool: ...
 
     def force_all_outputs_safe(self) -> None: ...
 
@@ -79,6 +85,10 @@ class SupervisorOptions:
     exit_grace_s: float = 1.0
     """After the token goes: how long a child that is still running may take to exit."""
     stop_timeout_s: float = 10.0
+    hang_s: float | None = None
+    """A daemon whose scan has completed no cycle for this long is killed and restarted,
+    whatever its outputs (they were made safe at the watchdog limit if any was on); None:
+    `HANG_S`, or three watchdog limits when that is longer."""
     world_period_s: float = 0.005
     log_level: str = "info"
 
@@ -102,6 +112,7 @@ class Backoff:
 class Kind(Enum):
     EXITED = "exited"
     PRESENCE = "presence"
+    HUNG = "hung"
     STOP = "stop"
 
 
@@ -111,6 +122,7 @@ class Event:
     generation: int = 0
     code: int = 0
     present: bool = False
+    stall: Stall | None = None
 
 
 @dataclass
@@ -155,6 +167,10 @@ class Supervisor:
         self.safe: SafeOutputs | None = None
         self.backoff = Backoff(options.backoff_s, options.backoff_max_s)
         self.bus: SupervisorBus
+        self.beat_fd = create_beat_fd()
+        self.beat = BeatReader(self.beat_fd)
+        """The record the daemon child stamps every cycle (`service.core.beat`)."""
+        self.guard: OutputGuard | None = None
         self._sockdir = Path(tempfile.mkdtemp(prefix="machine-sup-"))
         self.private = f"unixsock-stream/{self._sockdir / 'zenoh.sock'}"
 
@@ -182,6 +198,8 @@ class Supervisor:
                 )
                 stack.callback(self.bus.close)
                 stack.callback(self._force_safe)
+                self.guard = self._start_guard()
+                stack.callback(self.guard.stop)
                 stack.callback(self._stop_child)
                 started = True
                 zenoh_json = child_config(self.zenoh.zenoh_config, self.private)
@@ -272,11 +290,27 @@ class Supervisor:
         _write_private(self.dir / "machine.toml", to_toml(data))
         _write_private(self.dir / "zenoh-child.json5", zenoh_json)
 
+    def _start_guard(self) -> OutputGuard:
+        """The output guard: outputs safe when the child's scan stops (outputguard.py)."""
+        assert self.safe is not None
+        guard = OutputGuard(
+            self.beat,
+            self.safe,
+            on_trip=self._on_guard_trip,
+            on_hang=lambda stall: self.events.put(Event(Kind.HUNG, stall=stall)),
+            hang_s=self.options.hang_s or max(HANG_S, 3 * self.config.loop.watchdog_limit_s),
+            after_safe=self.world.step_now if self.world is not None else None,
+        )
+        guard.start()
+        return guard
+
     def _cleanup(self) -> None:
         if self.world is not None:
             self.world.stop()
         if self.safe is not None:
             self.safe.close()
+        self.beat.close()
+        os.close(self.beat_fd)
         shutil.rmtree(self._sockdir, ignore_errors=True)
 
     # ------------------------------------------------------------------------- the loop
@@ -314,6 +348,9 @@ class Supervisor:
             if event.kind is Kind.PRESENCE:
                 restart_at = self._presence(event.present) or restart_at
                 continue
+            if event.kind is Kind.HUNG:
+                restart_at = self._hung(event.stall) or restart_at
+                continue
             if child is None or event.generation != child.generation or child.down:
                 continue  # an exit we already handled (a child we killed as frozen)
             self._went_down(child, describe_exit(event.code))
@@ -341,6 +378,35 @@ class Supervisor:
         if child.up_since is None:
             return None  # the token of an earlier child, gone late
         self._freeze(child, "the daemon stopped answering (its liveliness token is gone)")
+        return self._schedule(child)
+
+    def _on_guard_trip(self, stall: Stall) -> None:
+        """On the guard's thread, the outputs already safe: say so (the daemon, should it
+        wake, takes FAULT_HW itself; if it does not, `_hung` follows)."""
+        log.error(
+            "event=output_guard_trip pid=%d stalled_s=%.4f outputs=safe action=latched",
+            stall.pid,
+            stall.stalled_s,
+        )
+
+    def _hung(self, stall: Stall | None) -> float | None:
+        """The child's scan has not cycled for `hang_s`: kill it first (it can no longer
+        write), outputs safe, report, restart."""
+        child = self.child
+        if stall is None or child is None or child.down or child.proc.pid != stall.pid:
+            return None
+        with contextlib.suppress(ProcessLookupError):
+            child.proc.kill()
+        energised = "energised, made safe at the watchdog limit" if stall.energised else "off"
+        self._went_down(
+            child,
+            f"the daemon's scan loop stopped cycling {stall.stalled_s:.2f} s ago (outputs"
+            f" {energised}); killed",
+        )
+        try:
+            child.proc.wait(timeout=self.options.stop_timeout_s)
+        except subprocess.TimeoutExpired:  # stuck in the kernel: it dies when that returns
+            log.error("event=child_kill_pending pid=%d", child.proc.pid)
         return self._schedule(child)
 
     def _freeze(self, child: Child, reason: str) -> None:
@@ -395,8 +461,13 @@ class Supervisor:
             "--log-level",
             self.options.log_level,
         ]
-        env = {**os.environ, SUPERVISOR_PID_ENV: str(os.getpid())}
-        proc = subprocess.Popen(cmd, env=env)
+        env = {
+            **os.environ,
+            SUPERVISOR_PID_ENV: str(os.getpid()),
+            BEAT_FD_ENV: str(self.beat_fd),
+        }
+        self.beat.reset()  # the new child's first beat arms the guard
+        proc = subprocess.Popen(cmd, env=env, pass_fds=(self.beat_fd,))
         child = Child(proc, self.generation, time.monotonic())
         self.child = child
         log.info("event=child_started generation=%d pid=%d", child.generation, proc.pid)
@@ -444,6 +515,9 @@ def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: Supervi
     """`machine supervise`: returns the process exit code."""
     if bound_malloc_arenas(config.loop.malloc_arenas):  # before its Zenoh threads start
         log.info("event=malloc_arenas limit=%d", config.loop.malloc_arenas)
+    # A Zenoh callback must not keep the GIL for Python's default 5 ms while the output
+    # guard wakes to a stall (service/core/runner.py `switch_interval`).
+    sys.setswitchinterval(config.loop.switch_interval_s)
     supervisor = Supervisor(config, zenoh, options)
     # The process ends when `run` returns: a signal from then on must not kill it (the
     # default action) before its last log lines are written.

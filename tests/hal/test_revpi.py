@@ -560,3 +560,56 @@ def test_package_imports_without_revpimodio2() -> None:
         cwd=Path(__file__).parents[2],
     )
     assert out.stdout.split() == ["revpi_unavailable", "revpi_unavailable"]
+
+
+# -- the hardware watchdog ----------------------------------------------------------------------
+def _led(image: str) -> int:
+    byte, _ = address("RevPiLED")
+    return Path(image).read_bytes()[byte]
+
+
+def _set_led(image: str, value: int) -> None:
+    byte, _ = address("RevPiLED")
+    data = bytearray(Path(image).read_bytes())
+    data[byte] = value
+    Path(image).write_bytes(bytes(data))
+
+
+def test_the_hardware_watchdog_bit_flips_from_the_scan_and_only_it(
+    image: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("hal.revpi.WD_TOGGLE_S", 0.0)  # every scan, for the test
+    _set_led(image, 0b0000_0101)  # LEDs A1, A2 green: another program's bits
+    h = RevPiHal(MAP, image, CONFIG, hw_watchdog=True)
+    try:
+        seen = []
+        for _ in range(4):
+            h.scan_outputs(Outputs())
+            seen.append(_led(image))
+        assert [b >> 7 for b in seen] == [1, 0, 1, 0]
+        assert all(b & 0x7F == 0b0000_0101 for b in seen)
+        h.force_all_outputs_safe()  # the safe image is the relays; the watchdog bit is not one
+        assert _led(image) == seen[-1]
+    finally:
+        h.close()
+
+
+def test_the_hardware_watchdog_bit_is_never_written_unless_asked(
+    image: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("hal.revpi.WD_TOGGLE_S", 0.0)
+    h = RevPiHal(MAP, image, CONFIG)
+    try:
+        for _ in range(3):
+            h.scan_outputs(Outputs())
+        assert _led(image) == 0
+    finally:
+        h.close()
+
+
+def test_energised_reads_the_relays_from_the_image(hal: RevPiHal, image: str) -> None:
+    assert not hal.energised()
+    hal.scan_outputs(Outputs(ro={"O_1": True}))
+    assert hal.energised()
+    hal.force_all_outputs_safe()
+    assert not hal.energised()

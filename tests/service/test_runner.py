@@ -15,6 +15,7 @@ from schema.status import FaultCode, MachineState
 from service.core.loop import PendingCommand
 from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
 from service.core.timing import SORT_CHUNK, CycleStats, percentiles
+from service.core.watchdog import Watchdog
 from tests.rig import FakeClock, Rig, known_calibration
 
 S = MachineState
@@ -82,7 +83,7 @@ class FakeWake:
 class Harness:
     """A rig whose loop is run by a `RealtimeRunner` on simulated time, step by step observed."""
 
-    def __init__(
+    def __init__(  # noqa: PLR0913 - the cycle count, then keyword-only scenario knobs
         self,
         cycles: int,
         *,
@@ -93,19 +94,37 @@ class Harness:
         running: bool = False,
         spin_s: float = 0.0,
         oversleep: float = 0.0,
+        stall_limit: float | None = None,
+        estopped: bool = False,
     ) -> None:
+        """`stall_limit`: the watchdog limit, with the watchdog's latch between the loop and
+        the HAL and its `after_stall` judging the runner's stalls (as the daemon wires it)."""
         self.clock = TickingClock()
-        self.rig = Rig(calibration=known_calibration(), clock=self.clock)
+        guarded = stall_limit is not None
+        self.rig = Rig(calibration=known_calibration(), clock=self.clock, guarded=guarded)
         if homed or running:
             self.rig.home()
         if running:
             assert self.rig.send(Command.START).success
             self.rig.run_until(self.rig.relays_on)
+        if estopped:
+            self.rig.hal.press_estop()
+            self.rig.step(3)
+            self.rig.hal.release_estop()
+            self.rig.step(3)
         loop = self.rig.loop
         self.wake = FakeWake(self.clock, oversleep)
         loop.inbox.wake = self.wake  # type: ignore[assignment]
         self.stats = CycleStats(PERIOD, window=100, now=self.clock())
-        self.runner = RealtimeRunner(loop, PERIOD, self.stats, spin_s=spin_s, clock=self.clock)
+        self.runner = RealtimeRunner(
+            loop, PERIOD, self.stats, spin_s=spin_s, clock=self.clock, stall_limit_s=stall_limit
+        )
+        self.watchdog: Watchdog | None = None
+        if self.rig.guard is not None and stall_limit is not None:
+            self.watchdog = Watchdog(
+                lambda: self.runner.heartbeat, self.rig.guard, PERIOD, 2, stall_limit
+            )
+            self.runner.on_stall = self.watchdog.after_stall
         self.starts: list[float] = []
         self.ends: list[float] = []
         self.seen: list[tuple[MachineState, bool]] = []

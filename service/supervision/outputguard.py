@@ -1,0 +1,156 @@
+"""The supervisor's output guard: outputs safe when the daemon's scan stops, from outside it.
+
+The daemon stamps a shared record after every cycle (`service.core.beat`). A thread here reads
+the stamp and sleeps until it would be `limit` old; if it has not moved by then, the scan has
+stopped. If any of the ride's relays is on in the process image at that moment, the guard
+latches the record (the daemon, should it wake, writes nothing but the safe state until it has
+taken `FAULT_HW`) and writes the safe image through the supervisor's own handle — in the
+supervisor's process, which does not freeze with the daemon. A stall with every relay off
+could move nothing: it is only reported. A scan that stays stopped past `hang_s` is a hung
+daemon, whatever its outputs: the supervisor kills and restarts it.
+
+One wake-up per limit while the daemon is healthy; a stall is acted on within a few hundred
+microseconds of reaching the limit (plus this thread's wake-up on a busy host).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+from service.core.beat import Beat, BeatReader
+from service.core.runner import SCHED_SLICE_NS, set_sched_slice
+from service.threads import NamedThread
+
+log = logging.getLogger("machine.supervisor")
+
+MARGIN_S = 0.0005
+"""Looked at this long after the stamp would reach the limit, so a beat due just then counts."""
+IDLE_LOOK_S = 0.05
+"""How often the record is read before the daemon's first beat and after its last."""
+
+
+class GuardedOutputs(Protocol):
+    """What the guard needs of the supervisor's HAL: the relays as the image has them, and
+    a way to drop them (from this thread, at any time)."""
+
+    def energised(self) -> bool: ...
+
+    def force_all_outputs_safe(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Stall:
+    """A scan that stopped: whose (pid), since when (the last stamp), and what was done."""
+
+    pid: int
+    beat_ns: int
+    stalled_s: float
+    energised: bool
+
+
+class OutputGuard:
+    """Watches the shared record on a thread of its own; `on_trip` hears of a danger it made
+    safe, `on_hang` of a scan stopped past `hang_s` (both on this thread: never block)."""
+
+    def __init__(
+        self,
+        reader: BeatReader,
+        outputs: GuardedOutputs,
+        *,
+        on_trip: Callable[[Stall], None],
+        on_hang: Callable[[Stall], None],
+        hang_s: float,
+        after_safe: Callable[[], None] | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.reader = reader
+        self.outputs = outputs
+        self.on_trip = on_trip
+        self.on_hang = on_hang
+        self.after_safe = after_safe
+        """Called right after the safe image is written (the simulated world steps on it)."""
+        self.hang_ns = round(hang_s * 1e9)
+        self.clock_ns = clock_ns
+        self.trips = 0
+        self.stalls = 0
+        self._stall: Stall | None = None
+        self._hung_reported: int | None = None
+        self._gate = threading.Lock()
+        self._gate.acquire()  # held until `stop()`: a timed acquire is this thread's sleep
+        self._stopped = False
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = NamedThread(target=self._run, name="output-guard", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        if not self._stopped:
+            self._stopped = True
+            self._gate.release()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        set_sched_slice(SCHED_SLICE_NS)  # wake at once beside a busy neighbour (runner.py)
+        wait = IDLE_LOOK_S
+        while not self._gate.acquire(True, wait):
+            wait = self.look(self.reader.read(), self.clock_ns())
+
+    def look(self, beat: Beat, now_ns: int) -> float:
+        """One look at the record; the seconds until the next (public for tests)."""
+        if beat.beat_ns == 0 or beat.finished or beat.limit_ns == 0:
+            self._stall = None
+            return IDLE_LOOK_S
+        age = now_ns - beat.beat_ns
+        if age <= beat.limit_ns:
+            if self._stall is not None:
+                self._resumed(self._stall, beat)
+            return (beat.beat_ns + beat.limit_ns - now_ns) / 1e9 + MARGIN_S
+        stall = self._stall
+        if stall is None or stall.beat_ns != beat.beat_ns or stall.pid != beat.pid:
+            stall = self._stalled(beat, age)
+        elif stall.energised and self.outputs.energised():
+            self._make_safe()  # written again while latched (a write in flight at the trip)
+        if age > self.hang_ns and self._hung_reported != beat.beat_ns:
+            self._hung_reported = beat.beat_ns
+            self.on_hang(Stall(beat.pid, beat.beat_ns, age / 1e9, stall.energised))
+        until_hang = (beat.beat_ns + self.hang_ns - now_ns) / 1e9
+        return max(MARGIN_S, min(beat.limit_ns / 1e9, until_hang + MARGIN_S))
+
+    def _stalled(self, beat: Beat, age_ns: int) -> Stall:
+        energised = self.outputs.energised()
+        stall = Stall(beat.pid, beat.beat_ns, age_ns / 1e9, energised)
+        self._stall = stall
+        self.stalls += 1
+        if energised:
+            self.reader.latch()  # first: a daemon that wakes now writes only the safe state
+            self._make_safe()
+            self.trips += 1
+            self.on_trip(stall)
+        else:
+            log.warning(
+                "event=daemon_stalled pid=%d stalled_s=%.4f outputs=off action=none",
+                beat.pid,
+                stall.stalled_s,
+            )
+        return stall
+
+    def _make_safe(self) -> None:
+        self.outputs.force_all_outputs_safe()
+        if self.after_safe is not None:
+            self.after_safe()
+
+    def _resumed(self, stall: Stall, beat: Beat) -> None:
+        self._stall = None
+        log.info(
+            "event=daemon_resumed pid=%d stalled_s=%.4f latched=%s",
+            stall.pid,
+            (beat.beat_ns - stall.beat_ns) / 1e9,
+            "yes" if beat.latched else "no",
+        )
