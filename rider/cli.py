@@ -354,6 +354,12 @@ def fmt_diag(d: CycleDiag) -> str:
         f"{'jitter':10} {us(d.jitter.last)} {us(d.jitter.p50)} {us(d.jitter.p99)}"
         f" {us(d.jitter.max)} {us(d.jitter.mean)}",
     ]
+    if d.watchdog_limit_s is not None:
+        lines.append(
+            f"stalls     {d.stalls} over the {d.watchdog_limit_s * 1000:g} ms limit"
+            f" (longest {d.longest_stall_s * 1000:.0f} ms), {d.watchdog_trips} with an output"
+            " on (watchdog trips)"
+        )
     if d.events is not None:
         e = d.events
         lines.append(
@@ -511,7 +517,14 @@ def motion(args: argparse.Namespace, rider: Rider) -> int:
             return EXIT_OK
         tid = motion_ref.transaction_id
     assert tid is not None
-    notice = rider.wait_done(tid, timeout=args.wait_timeout, on_status=_halted_notifier())
+    teller = WaitTeller(rider.machine_id)
+    notice = rider.wait_done(
+        tid,
+        timeout=args.wait_timeout,
+        on_status=teller.on_status,
+        on_silence=teller.on_silence,
+        quiet_s=quiet_limit(rider),
+    )
     emit(notice, args.json, fmt_completion)
     final = rider.status()
     emit(final, args.json, fmt_status)
@@ -559,24 +572,49 @@ def _calibration_values(
     return tilt, rotate
 
 
-def _halted_notifier() -> Callable[[Status], None]:
-    """Say once on stderr when the awaited motion is paused or E-stopped (it is not over)."""
-    said: list[MachineState] = []
+class WaitTeller:
+    """What `--wait` says on stderr while it waits: once when the awaited motion is paused or
+    E-stopped (it is not over), once when the machine goes silent, and when it is heard again."""
 
-    def on_status(status: Status) -> None:
+    def __init__(self, machine_id: str) -> None:
+        self.machine_id = machine_id
+        self.said: MachineState | None = None
+        self.silent = False
+        self.last: MachineState | None = None
+
+    def on_status(self, status: Status) -> None:
+        if self.silent:
+            self.silent = False
+            _tell(f"machine {self.machine_id} answering again: {status.state}")
+        self.last = status.state
         if status.state in (MachineState.PAUSED, MachineState.FAULT_ESTOP):
-            if not said or said[-1] is not status.state:
-                said.append(status.state)
-                print(
-                    f"rider: machine {status.state}; the motion continues after resume"
-                    " (stop ends it)",
-                    file=sys.stderr,
-                    flush=True,
-                )
-        elif said:
-            said.clear()
+            if self.said is not status.state:
+                self.said = status.state
+                _tell(f"machine {status.state}; the motion continues after resume (stop ends it)")
+        else:
+            self.said = None
 
-    return on_status
+    def on_silence(self, quiet_s: float) -> None:
+        self.silent = True
+        last = f" (last heard: {self.last})" if self.last is not None else ""
+        _tell(
+            f"machine {self.machine_id} not answering for {quiet_s:.1f} s{last}: frozen,"
+            " overloaded or the link is down; still waiting (Ctrl-C stops waiting, not the ride)"
+        )
+
+
+def _tell(text: str) -> None:
+    print(f"rider: {printable(text)}", file=sys.stderr, flush=True)
+
+
+def quiet_limit(rider: Rider) -> float:
+    """How long `--wait` hears nothing before it says so: the Rider's timeout, or 2.5 of the
+    machine's status heartbeats when they are slower (an idle machine is quiet in between)."""
+    try:
+        heartbeat = float(rider.param("bus.heartbeat_s").value)
+    except (RiderError, TypeError, ValueError):
+        heartbeat = 1.0
+    return max(rider.timeout, 2.5 * heartbeat)
 
 
 def done(args: argparse.Namespace, rider: Rider) -> int:

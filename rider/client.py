@@ -28,7 +28,6 @@ import msgpack
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from rider.discovery import LIMIT_S as DISCOVERY_LIMIT_S
 from rider.discovery import MOTION_SETTLE_S, PROBE_TIMEOUT_S, SETTLE_S, Discovery, discover
 from schema.axes import AxisRecord
 from schema.calibration import (
@@ -283,6 +282,21 @@ def zenoh_config(
     return conf
 
 
+OPEN_TIMEOUT_MIN_S = 1.0
+DISCOVERY_MIN_S = 1.0
+"""The default-machine lookup waits at least this long, whatever is left of the timeout."""
+HINT_PROBE_S = 0.3
+
+
+def bound_open_timeout(conf: zenoh.Config, timeout: float) -> None:
+    """A link's handshake may take the Rider's timeout (at least `OPEN_TIMEOUT_MIN_S`), not
+    Zenoh's 10 s: a frozen machine's kernel still accepts the connection, and a handshake
+    waiting on it held the session's close, so `rider --timeout 2 status` took 10 s to say so."""
+    current = int(json.loads(conf.get_json("transport/unicast/open_timeout") or "10000"))
+    wanted = max(round(OPEN_TIMEOUT_MIN_S * 1000), round(timeout * 1000))
+    conf.insert_json5("transport/unicast/open_timeout", str(min(current, wanted)))
+
+
 def open_session(conf: zenoh.Config, zenoh_threads: int = 1) -> zenoh.Session:
     """A session opened as a Rider opens it. The process's first one lays out Zenoh's runtime
     on `zenoh_threads` worker threads (`schema.runtime`; 0: Zenoh's own six), as the daemon
@@ -297,7 +311,7 @@ def open_session(conf: zenoh.Config, zenoh_threads: int = 1) -> zenoh.Session:
             raise BadRuntime(unreadable) from None
 
 
-def _answers(endpoint: str, timeout: float = 0.5) -> bool | None:
+def _answers(endpoint: str, timeout: float = HINT_PROBE_S) -> bool | None:
     """Whether a process serves a `tcp/` or `tls/` endpoint: True if it reacts to a bad frame
     (a live Zenoh or TLS listener answers or closes at once), None if the connection is
     accepted but nothing comes back (the kernel accepted it for a frozen or stalled process),
@@ -344,7 +358,9 @@ class Rider:
         self.timeout = timeout
         self.retries = retries
         self._conf = zenoh_config(zenoh_config_path, connect, listen)
+        bound_open_timeout(self._conf, timeout)
         self._conf_path = zenoh_config_path
+        self._opened_at = 0.0
         self._session: zenoh.Session | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._heartbeat: Heartbeat | None = None
@@ -370,6 +386,7 @@ class Rider:
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
+        self._opened_at = time.monotonic()
         try:
             self._session = open_session(self._conf, self.zenoh_threads)
         except zenoh.ZError as exc:
@@ -465,7 +482,9 @@ class Rider:
             self.session,
             self.key_prefix,
             settle=MOTION_SETTLE_S if motion else SETTLE_S,
-            limit=max(DISCOVERY_LIMIT_S, self.timeout),
+            # What is left of the timeout since the open began (a session with no link
+            # spent 0.5 s opening), so a frozen machine is told within the timeout.
+            limit=max(DISCOVERY_MIN_S, self.timeout - (time.monotonic() - self._opened_at)),
             probe=self._probe,
             links_peers=self._links_peers(),
         )
@@ -499,6 +518,7 @@ class Rider:
         """A short client session to one router (this Rider's config and credentials), for
         the default-machine lookup to ask a router out of its sight (rider/discovery.py)."""
         conf = zenoh_config(self._conf_path, [endpoint])
+        bound_open_timeout(conf, self.timeout)
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/timeout_ms", str(int(PROBE_TIMEOUT_S * 1000)))
         conf.insert_json5("connect/exit_on_failure", "true")
@@ -1001,7 +1021,8 @@ class Rider:
 
     def recent_completions(self) -> list[Completion]:
         """Every completion notice the machine remembers (`done/**`), oldest first."""
-        return sorted(self._get_all(f"{self.base}/done/**", Completion), key=lambda n: n.time)
+        notices = self._get_all(f"{self.base}/done/**", Completion, required=False)
+        return sorted(notices, key=lambda n: n.time)
 
     def wait_done(
         self,
@@ -1009,6 +1030,8 @@ class Rider:
         timeout: float = 600.0,
         *,
         on_status: Callable[[Status], None] | None = None,
+        on_silence: Callable[[float], None] | None = None,
+        quiet_s: float = 3.0,
     ) -> Completion:
         """Block until the completion notice of `transaction` (an id, or the reply of the
         command that started it) and return it, whatever its outcome (DONE, STOPPED, FAULT_*…).
@@ -1016,8 +1039,9 @@ class Rider:
         Subscribes to `done/<id>` first, then asks (a notice published before the subscription
         is found), and asks again every `DONE_RECHECK_S` (a dropped publication, a machine that
         restarted and forgot the motion: `UnknownTransaction`). `on_status` gets every status
-        meanwhile (e.g. to say the motion is paused or E-stopped). MachineTimeout after
-        `timeout` seconds.
+        meanwhile (e.g. to say the motion is paused or E-stopped); `on_silence` hears, once
+        per silence, that no status came for `quiet_s` seconds (a frozen machine, a link down:
+        the wait goes on, the operator is told). MachineTimeout after `timeout` seconds.
         """
         tid = transaction.transaction_id if isinstance(transaction, Reply) else transaction
         if not tid:
@@ -1032,10 +1056,15 @@ class Rider:
                 if update is not None:
                     q.put(update)
 
+        heard = time.monotonic()
+        silent = False
         with self._declare(keys, on_sample):
             recheck = 0.0
             while True:
                 now = time.monotonic()
+                if on_silence is not None and not silent and now - heard > quiet_s:
+                    silent = True
+                    on_silence(now - heard)
                 if now >= recheck:
                     recheck = now + DONE_RECHECK_S
                     with contextlib.suppress(MachineTimeout):  # down for now: keep waiting
@@ -1052,6 +1081,7 @@ class Rider:
                 if isinstance(update, Completion) and update.transaction_id == tid:
                     return update
                 if isinstance(update, Status) and on_status is not None:
+                    heard, silent = time.monotonic(), False
                     on_status(update)
 
     def wait_for(
@@ -1096,8 +1126,13 @@ class Rider:
                 raise MachineTimeout(f"no reply from {key} within {limit:g} s{hint}")
             time.sleep(EMPTY_RETRY_S)
 
-    def _get_all(self, key: str, model: type[M]) -> list[M]:
+    def _get_all(self, key: str, model: type[M], *, required: bool = True) -> list[M]:
+        """Every reply to a wildcard key. `required`: a live machine always answers it (IO,
+        axes, parameters), so no reply at all is `MachineTimeout`, never an empty list."""
         replies = self._answered(key, self._get(key, None, None), self.timeout)
+        if required and not replies:
+            hint = self.no_link_hint() or " (is the machine up?)"
+            raise MachineTimeout(f"no reply from {key} within {self.timeout:g} s{hint}")
         return [self._decode(r, model) for r in replies]
 
     @staticmethod
