@@ -1,0 +1,163 @@
+"""A frozen daemon: from the freeze to the ride's relays off, and how far the tilt overran.
+
+Under `machine supervise --sim` as the README runs it (no --zenoh-config: Zenoh's 10 s lease),
+with the project's defaults (10 ms period, watchdog limit 0.1 s), the daemon drives the tilt
+towards 45° at its nominal 15°/s and is frozen 5° into the move, each trial one of three ways:
+SIGSTOP (every thread stops), its scan thread holding the GIL for ever, or its scan thread
+blocked in a system call (tests/fixtures/freeze). The time is from the signal to the process
+image showing every relay off (read every 0.2 ms); the overrun is the simulator's tilt travel
+past where it was at the signal. Each kind runs on a quiet host and beside one CPU-bound
+process per core (bench/baselines/burner.py), the phases alternated.
+
+Then the stall soak: an idle, homed daemon (the same defaults, under the supervisor) beside
+one CPU-bound process per core for ten minutes: its stalls, their longest, and its faults.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from bench.common import Child, Dist, Options, Section, Table, Target, main_for, ms, python_module
+from rider.client import Rider
+from schema.status import FAULT_STATES
+from tests.freeze import (
+    LIMIT_S,
+    PERIOD_S,
+    Freeze,
+    Outcome,
+    home,
+    ready,
+    ride_and_freeze,
+    start_supervised,
+    stop,
+)
+from tests.procs import Daemon
+
+BOUND_S = LIMIT_S + 2 * PERIOD_S
+"""The issue's target: relays off within the watchdog limit plus two periods."""
+
+
+@contextlib.contextmanager
+def burners(tmp: Path, on: bool, seconds: float) -> Iterator[None]:
+    """One CPU-bound process per core for the block (none when `on` is False)."""
+    with contextlib.ExitStack() as stack:
+        for i in range(2 if on else 0):
+            child = Child(
+                python_module("bench.baselines.burner", "--lifetime", seconds + 120.0),
+                tmp / f"burner-{i}.log",
+            )
+            stack.callback(child.stop)
+            child.expect("ready")
+        yield
+
+
+@contextlib.contextmanager
+def supervised(tmp: Path) -> Iterator[tuple[Daemon, Rider]]:
+    supervisor = start_supervised(tmp)
+    try:
+        with supervisor.rider(timeout=5.0, supervise=False) as rider:
+            ready(rider, timeout=60.0)
+            yield supervisor, rider
+    finally:
+        stop(supervisor)
+
+
+def trials(n: int, tmp: Path, loads: tuple[bool, ...]) -> dict[tuple[Freeze, bool], list[Outcome]]:
+    """`n` freezes of each kind on each host (`loads`: quiet False, beside burners True), the
+    phases alternated in rounds."""
+    results: dict[tuple[Freeze, bool], list[Outcome]] = {
+        (k, load): [] for k in Freeze for load in loads
+    }
+    with supervised(tmp) as (supervisor, rider):
+        for i in range(n):
+            for load in loads if i % 2 == 0 else loads[::-1]:
+                with burners(tmp, load, 60.0):
+                    for kind in Freeze:
+                        results[kind, load].append(ride_and_freeze(supervisor, rider, kind))
+    return results
+
+
+def soak(seconds: float, tmp: Path, load: bool) -> tuple[float, int, float, int, int, str]:
+    """An idle, homed daemon (beside a burner per core with `load`): (seconds, stalls, longest
+    stall s, watchdog trips, fault states seen, its final state)."""
+    faults = 0
+    with supervised(tmp / "soak") as (_, rider), burners(tmp, load, seconds):
+        home(rider)
+        before = rider.diag(reset=True)
+        t0 = time.monotonic()
+        deadline = t0 + seconds
+        state = rider.status().state
+        while time.monotonic() < deadline:
+            time.sleep(min(1.0, max(0.0, deadline - time.monotonic())))
+            state = rider.status().state
+            faults += state in FAULT_STATES
+        after = rider.diag()
+        elapsed = time.monotonic() - t0
+    del before
+    return elapsed, after.stalls, after.longest_stall_s, after.watchdog_trips, faults, str(state)
+
+
+def run(opts: Options) -> Section:
+    n = opts.pick(1, 20, 40)
+    soak_s = opts.pick(5.0, 600.0, 1800.0)
+    # The smoke run (beside the other benchmarks' smoke runs) starts no CPU burners.
+    loads = opts.pick((False,), (False, True))
+    section = Section("freeze", "13. A frozen daemon: relays off, from outside it")
+    with tempfile.TemporaryDirectory(prefix="bench-freeze-") as name:
+        tmp = Path(name)
+        (tmp / "soak").mkdir()
+        results = trials(n, tmp, loads)
+        soaked = soak(soak_s, tmp, load=loads[-1])
+    table = Table(
+        "From the freeze to every relay off in the process image (the supervisor's output guard)",
+        ["freeze", "host", "trials", "p50 ms", "p99 ms", "max ms", "tilt overrun p50 °", "max °"],
+        note=f"watchdog limit {LIMIT_S * 1e3:g} ms, period {PERIOD_S * 1e3:g} ms; tilt 15°/s;"
+        " no --zenoh-config (the 10 s lease the relays waited for before)",
+    )
+    worst = 0.0
+    for (kind, load), outcomes in results.items():
+        off = [o.off_s for o in outcomes if o.off_s is not None]
+        over = [o.overrun_deg for o in outcomes if o.overrun_deg is not None]
+        d, o = Dist.of(off), Dist.of(over)
+        missing = len(outcomes) - len(off)
+        worst = max([worst, *off]) if not missing else float("inf")
+        table.add(
+            str(kind),
+            "2 burners" if load else "quiet",
+            f"{len(outcomes)}" + (f" ({missing} never off)" if missing else ""),
+            ms(d.p50, 1),
+            ms(d.p99, 1),
+            ms(d.max, 1),
+            f"{o.p50:.2f}",
+            f"{o.max:.2f}",
+        )
+    section.tables.append(table)
+    elapsed, stalls, longest, trips, faults, state = soaked
+    beside = "beside a CPU-bound process per core" if loads[-1] else "on a quiet host"
+    idle = Table(
+        f"An idle, homed daemon under the supervisor {beside}",
+        ["seconds", "stalls over the limit", "longest stall ms", "watchdog trips", "fault states"],
+        note=f"its state at the end: {state}",
+    )
+    idle.add(f"{elapsed:.0f}", stalls, ms(longest, 1), trips, faults)
+    section.tables.append(idle)
+    section.targets.append(
+        Target.at_most("freeze → relays off, every trial", worst, BOUND_S, lambda v: ms(v, 1))
+    )
+    section.targets.append(
+        Target(f"idle {beside}: no fault", "0", str(faults + trips), faults + trips == 0)
+    )
+    return section
+
+
+def main(argv: list[str] | None = None) -> int:
+    return main_for("bench.freeze", __doc__ or "", run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
