@@ -54,6 +54,8 @@ SAMPLE_KEY = "rider/flood0000/heartbeat"
 PUT_BATCH = 1000
 COMMAND_GAP_S = 0.002
 GET_TIMEOUT_S = 2.0
+WARM_UP_S = 30.0
+"""How long a session may take to meet its machine on a loaded host."""
 
 
 def flooder(connect: str, zenoh_config: Path, key: str) -> int:
@@ -139,7 +141,12 @@ def run(opts: Options) -> Section:
         for flood in floods.values():
             flood.expect("ready")
         riders = {n: stack.enter_context(d.rider(supervise=False)) for n, d in daemons.items()}
-        for rider in riders.values():  # warm-up: the session has met its machine
+        for rider in riders.values():
+            # Warm-up: the session has met its machine. Through the Rider, which asks again
+            # when an answer comes back empty (the machine's queryables not yet declared to
+            # this session: seen on a loaded host as "expected one reply, got 0").
+            rider.status(timeout=WARM_UP_S)
+            rider.check_home()
             _commands(rider.session, f"{rider.base}/cmd/check/home", 0.2, ids)
         for r in range(rounds):
             for kind, n in phases if r % 2 == 0 else phases[::-1]:
