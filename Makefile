@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test install browser js schema states lint bench clean
+.PHONY: run test test-under-load install browser js schema states lint bench clean
 
 # The locked versions (requirements/dev.txt, hashes checked), then the project itself on top.
 $(STAMP): pyproject.toml requirements/dev.txt
@@ -49,6 +49,12 @@ test: $(STAMP) browser js
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
 	$(BIN)/python -m pytest
+
+## The whole suite beside one CPU-bound process per core, as a busy CI host runs it;
+## ORDER=reverse or ORDER=random (random:SEED to repeat one) changes the order of the tests.
+ORDER ?= normal
+test-under-load: $(STAMP) browser js
+	$(BIN)/python -m tests.under_load --order $(ORDER)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -1,11 +1,20 @@
 from __future__ import annotations
 
+import random
+
 import pytest
 
 from tests.rig import Rig
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    order = str(config.getoption("--order"))
+    if order not in ("normal", "reverse") and not order.startswith("random"):
+        raise pytest.UsageError(f"--order: {order!r} is not normal, reverse or random[:SEED]")
+    _configure_zenoh()
+
+
+def _configure_zenoh() -> None:
     """Zenoh's runtime in this process as a Rider lays it out (one worker thread,
     `rider.client.open_session`): the first session fixes it for every later one, so it is
     fixed here, not by whichever test happens to open a session first."""
@@ -17,6 +26,51 @@ def pytest_configure(config: pytest.Config) -> None:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", "[]")
     open_session(conf).close()
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--order",
+        default="normal",
+        help="run the tests in 'normal', 'reverse' or 'random' (or 'random:SEED') order,"
+        " to find tests that lean on another's leftovers (make test-under-load)",
+    )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    order = str(config.getoption("--order"))
+    if order == "reverse":
+        items.reverse()
+    elif order.startswith("random"):
+        random.Random(_seed(config)).shuffle(items)
+
+
+def _seed(config: pytest.Config) -> str:
+    """The random order's seed: given (`random:SEED`) or drawn once per run."""
+    if _SEED not in config.stash:
+        order = str(config.getoption("--order"))
+        config.stash[_SEED] = order.partition(":")[2] or str(random.randrange(10**6))
+    return config.stash[_SEED]
+
+
+_SEED = pytest.StashKey[str]()
+
+
+def _order_line(config: pytest.Config) -> str:
+    order = str(config.getoption("--order"))
+    if order.startswith("random"):
+        seed = _seed(config)
+        return f"test order: random, seed {seed} (again: --order random:{seed})"
+    return f"test order: {order}"
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    return _order_line(config)
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    if str(terminalreporter.config.getoption("--order")) != "normal":
+        terminalreporter.write_line(_order_line(terminalreporter.config))
 
 
 @pytest.fixture
