@@ -67,11 +67,7 @@ def wait_check(argv: list[str], heartbeat: Path, healthy: bool, timeout: float) 
 def m1(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemon, Path]]:
     tmp = tmp_path_factory.mktemp("healthcheck")
     heartbeat = tmp / "machine.heartbeat"
-    os.environ[HEARTBEAT_FILE_ENV] = str(heartbeat)  # inherited by the daemon only
-    try:
-        daemon = start_daemon(tmp)
-    finally:
-        del os.environ[HEARTBEAT_FILE_ENV]
+    daemon = start_daemon(tmp, env={HEARTBEAT_FILE_ENV: str(heartbeat)})
     try:
         yield daemon, heartbeat
     finally:
@@ -108,11 +104,7 @@ def test_healthcheck_fails_when_nothing_runs(tmp_path: Path) -> None:
 
 def test_a_stopped_daemon_is_unhealthy_at_once(tmp_path: Path) -> None:
     heartbeat = tmp_path / "machine.heartbeat"
-    os.environ[HEARTBEAT_FILE_ENV] = str(heartbeat)
-    try:
-        daemon = start_daemon(tmp_path)
-    finally:
-        del os.environ[HEARTBEAT_FILE_ENV]
+    daemon = start_daemon(tmp_path, env={HEARTBEAT_FILE_ENV: str(heartbeat)})
     try:
         wait_check(compose_check(), heartbeat, healthy=True, timeout=STALE_TIMEOUT_S)
     finally:
