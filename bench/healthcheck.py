@@ -10,6 +10,7 @@ Per check: CPU seconds (user + system of the check's process tree, from `wait4`)
 from __future__ import annotations
 
 import functools
+import math
 import os
 import statistics
 import subprocess
@@ -19,7 +20,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from bench.common import CpuMeter, Options, Section, Table, Target, main_for
+from bench.common import NAN, CpuMeter, Options, Section, Table, Target, main_for
 from service.adapters.heartbeat import HEARTBEAT_FILE_ENV
 from tests.procs import rider_cmd, start_daemon
 
@@ -37,20 +38,20 @@ and exec, so `wait4` on a check started from this (large) Python process reports
 process's size, not the check's."""
 
 
-def one(argv: list[str]) -> tuple[float, int, int]:
+def one(argv: list[str]) -> tuple[float, float, int]:
     """(CPU seconds, peak RSS bytes, exit code) of one check and its children: CPU from
-    `wait4` (GNU time's own share is negligible), peak RSS from GNU time's `%M`."""
+    `wait4` (GNU time's own share is negligible), peak RSS from GNU time's `%M` (NaN without
+    GNU time)."""
+    timed = Path(GNU_TIME).exists()
+    prefix = [GNU_TIME, "-f", "maxrss_kib=%M"] if timed else []
     proc = subprocess.Popen(
-        [GNU_TIME, "-f", "maxrss_kib=%M", *argv],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
+        [*prefix, *argv], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
     )
     assert proc.stderr is not None
     err = proc.stderr.read()
     _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
-    rss = int(err.rsplit("maxrss_kib=", 1)[1].split()[0]) * 1024
+    rss = float(err.rsplit("maxrss_kib=", 1)[1].split()[0]) * 1024 if timed else NAN
     return usage.ru_utime + usage.ru_stime, rss, proc.returncode
 
 
@@ -87,7 +88,7 @@ def run(opts: Options) -> Section:
             while not heartbeat.exists():  # the first touch comes about a second in
                 time.sleep(0.05)
             kinds = checks(daemon.endpoint, heartbeat)
-            samples: dict[str, list[tuple[float, int, int]]] = {k: [] for k in kinds}
+            samples: dict[str, list[tuple[float, float, int]]] = {k: [] for k in kinds}
             for r in range(rounds):
                 for name in list(kinds) if r % 2 == 0 else list(kinds)[::-1]:
                     samples[name].append(one(kinds[name]))
@@ -110,7 +111,7 @@ def run(opts: Options) -> Section:
         ok = sum(r[2] == 0 for r in rows)
         table.add(
             name, f"{ok}/{len(rows)}", f"{cpu * 1e3:.1f} ms",
-            f"{100 * cpu / COMPOSE_INTERVAL_S:.2f} %", f"{rss / 2**20:.1f} MiB",
+            f"{100 * cpu / COMPOSE_INTERVAL_S:.2f} %", _mib(rss),
             f"{shares[name]:.1f} %",
         )  # fmt: skip
     section.tables.append(table)
@@ -125,6 +126,10 @@ def run(opts: Options) -> Section:
         "package installed, as in the image; the new one is the image's `/bin/sh -c` string."
     )
     return section
+
+
+def _mib(n: float) -> str:
+    return "— (no GNU time)" if math.isnan(n) else f"{n / 2**20:.1f} MiB"
 
 
 def _pct(share: float) -> str:
