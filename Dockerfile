@@ -2,13 +2,14 @@
 #
 #   docker build -t localhost/ride-machine:local .
 #   podman build --format docker -t localhost/ride-machine:local .   # docker format keeps HEALTHCHECK
-#   docker run --rm localhost/ride-machine:local                     # the daemon on the simulator
+#   docker run --rm localhost/ride-machine:local                     # the supervised simulator
 #   docker run --rm localhost/ride-machine:local rider --help        # the Rider CLI / operator UI
 #
-# No `# syntax=` line: the builder's own Dockerfile frontend reads everything here (RUN --mount
-# included), and fetching another one from a registry fails on an offline site.
-# Behind a private index or a TLS-intercepting proxy, pass pip's settings from outside
-# (docs/deploy.md): --build-arg PIP_INDEX_URL=… or the build secrets `pip.conf` and `pip-ca`.
+# Nothing here needs BuildKit (no RUN --mount, no `# syntax=` line): Debian 12's docker 20.10 and
+# docker-compose 1.29 build it with the classic builder, BuildKit and podman (buildah) alike, and
+# no frontend image is fetched from a registry on an offline site.
+# Behind a private index or a TLS-intercepting proxy, give pip its settings from outside
+# (docs/deploy.md): --build-arg PIP_INDEX_URL=…, or docker/pip/pip.conf and docker/pip/ca.crt.
 
 # Fully qualified, so podman resolves it without a registries.conf alias.
 ARG PYTHON_IMAGE=docker.io/library/python:3.11-slim
@@ -18,9 +19,10 @@ ARG PYTHON_IMAGE=docker.io/library/python:3.11-slim
 # the virtualenv /opt/venv: the one thing the runtime stage takes from here.
 FROM ${PYTHON_IMAGE} AS builder
 
-ARG PIP_INDEX_URL
-ARG PIP_EXTRA_INDEX_URL
-ARG PIP_TRUSTED_HOST
+# Empty defaults: no "missing build argument" warnings; an empty one is not passed to pip.
+ARG PIP_INDEX_URL=""
+ARG PIP_EXTRA_INDEX_URL=""
+ARG PIP_TRUSTED_HOST=""
 # armv7 (32-bit RevPi OS) has no wheels for some dependencies: 1 installs a compiler for them.
 ARG WITH_COMPILER=0
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1 \
@@ -29,17 +31,21 @@ ENV PIP_DISABLE_PIP_VERSION_CHECK=1 \
 
 WORKDIR /src
 COPY requirements/runtime.txt requirements/build.txt requirements/
+# The site's pip settings, if any (docker/pip/: its README alone by default). They stay in this
+# stage: the runtime stage takes /opt/venv only.
+COPY docker/pip/ /etc/pip-build/
 
-# The secrets are mounted for this one step and never become a layer; absent ones are skipped.
 # hadolint ignore=DL3008
-RUN --mount=type=secret,id=pip.conf,target=/etc/pip.conf \
-    --mount=type=secret,id=pip-ca,target=/run/secrets/pip-ca \
-    set -eu; \
+RUN set -eu; \
     if [ "$WITH_COMPILER" = 1 ]; then \
         apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
         && rm -rf /var/lib/apt/lists/*; \
     fi; \
-    if [ -s /run/secrets/pip-ca ]; then export PIP_CERT=/run/secrets/pip-ca; fi; \
+    [ -n "$PIP_INDEX_URL" ] || unset PIP_INDEX_URL; \
+    [ -n "$PIP_EXTRA_INDEX_URL" ] || unset PIP_EXTRA_INDEX_URL; \
+    [ -n "$PIP_TRUSTED_HOST" ] || unset PIP_TRUSTED_HOST; \
+    if [ -f /etc/pip-build/pip.conf ]; then export PIP_CONFIG_FILE=/etc/pip-build/pip.conf; fi; \
+    if [ -f /etc/pip-build/ca.crt ]; then export PIP_CERT=/etc/pip-build/ca.crt; fi; \
     python -m venv --without-pip /opt/venv; \
     pip --python /opt/venv/bin/python install --require-hashes --no-deps -r requirements/runtime.txt; \
     pip install --require-hashes --no-deps -r requirements/build.txt
@@ -59,11 +65,13 @@ FROM ${PYTHON_IMAGE} AS runtime
 
 ENV PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
-    PATH=/opt/venv/bin:$PATH
+    PATH=/opt/venv/bin:$PATH \
+    MACHINE_HEARTBEAT_FILE=/dev/shm/machine.heartbeat
 
-RUN groupadd --system --gid 10001 machine \
-    && useradd --system --uid 10001 --gid 10001 --home-dir /var/lib/machine \
-        --no-create-home --shell /usr/sbin/nologin machine \
+# A regular (not --system) account: uid 10001 is outside the system range, and useradd warns.
+RUN groupadd --gid 10001 machine \
+    && useradd --uid 10001 --gid 10001 --no-log-init --no-create-home \
+        --home-dir /var/lib/machine --shell /usr/sbin/nologin machine \
     && mkdir -p /etc/machine /var/lib/machine \
     && chown 10001:10001 /var/lib/machine
 
@@ -85,10 +93,14 @@ EXPOSE 7447/tcp 8080/tcp
 # exit 0 (`event=stopped code=0 outputs=safe`); a SIGKILL leaves no chance to do that in software.
 STOPSIGNAL SIGTERM
 
-# Healthy = the daemon answers a status query over Zenoh (exit 0); no answer exits 3. m1 is the
-# id in the machine.toml above (change both together). The first check comes one interval after
-# the start (compose adds a 1 s start interval where the engine has one; podman 4 has not).
-HEALTHCHECK --interval=5s --timeout=5s --start-period=30s --retries=3 \
-    CMD ["rider", "--connect", "tcp/127.0.0.1:7447", "--timeout", "2", "--machine", "m1", "status"]
+# Healthy = the daemon's scan loop cycles: it touches MACHINE_HEARTBEAT_FILE (a tmpfs) about once
+# a second while it does, and the check is `find`'s look at the file's age (fresh: under 6 s),
+# a few milliseconds of CPU, no Python, no Zenoh session (docs/deploy.md, "The healthcheck").
+# compose.yaml has the same check as a CMD-SHELL string (the form every compose implementation
+# passes on intact); here in exec form, which is the same `sh -c`.
+HEALTHCHECK --interval=5s --timeout=3s --start-period=30s --retries=3 \
+    CMD ["/bin/sh", "-c", "find /dev/shm/machine.heartbeat -mmin -0.1 | grep -q ."]
 
-CMD ["machine", "run", "--sim", "--config", "/etc/machine/machine.toml", "--zenoh-config", "/etc/machine/zenoh.json5", "--data-dir", "/var/lib/machine"]
+# The daemon as a child of its supervisor (docs/supervisor.md): outputs safe and a restart
+# when the daemon dies or freezes.
+CMD ["machine", "supervise", "--sim", "--config", "/etc/machine/machine.toml", "--zenoh-config", "/etc/machine/zenoh.json5", "--data-dir", "/var/lib/machine"]

@@ -12,6 +12,7 @@ from bench import (
     estop,
     events_cost,
     freeze,
+    healthcheck,
     loop_timing,
     pick,
     read_flood,
@@ -49,6 +50,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.rider_cost", rider_cost.run),
     ("bench.read_flood", read_flood.run),
     ("bench.freeze", freeze.run),
+    ("bench.healthcheck", healthcheck.run),
 ]
 
 

@@ -151,7 +151,7 @@ def rider_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "rider.cli", *args]
 
 
-def start_daemon(
+def start_daemon(  # noqa: PLR0913 - keyword options of one test helper, each defaulted
     tmp: Path,
     machine_id: str = "m1",
     *,
@@ -161,12 +161,13 @@ def start_daemon(
     listen_host: str = "127.0.0.1",
     wait: bool = True,
     pipe: bool = False,
+    env: dict[str, str] | None = None,
 ) -> Daemon:
     """Start `machine run --sim` and wait until its liveliness token is seen.
 
     Without a `--config` in `extra` the daemon runs on `HOST_CONFIG` (the defaults, a watchdog
     that tolerates a loaded host). `pipe`: its output goes to a pipe (`proc.stdout`) the caller
-    reads, or leaves unread, instead of to its log file."""
+    reads, or leaves unread, instead of to its log file. `env`: added to its environment."""
     port = port or free_port()
     endpoint = f"tcp/{listen_host}:{port}"
     data_dir = tmp / f"data-{machine_id}"
@@ -191,7 +192,7 @@ def start_daemon(
         cmd += ["--config", str(host_config)]
     if netns:
         cmd = ["ip", "netns", "exec", netns, *cmd]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     with log_path.open("w") as log:
         proc = subprocess.Popen(
             cmd,

@@ -18,6 +18,7 @@ from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
 from service import bus as zbus
 from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.fastdata import FastDataServer, user_registers
+from service.adapters.heartbeat import HeartbeatFile
 from service.adapters.history import HistoryProcess
 from service.bus.exposure import warn_if_exposed
 from service.config.load import check_candidate
@@ -201,6 +202,10 @@ class Daemon:
         name_callback_threads()  # zenoh-python's callback threads, for `top -H`
         _on_exit(stack, "wind_down", self._wind_down)  # while the bus is up: last answers
         self._start_watchdog(stack, hal)
+        loop = self.loop
+        if (beat := HeartbeatFile.from_env(lambda: loop.cycle)) is not None:  # healthcheck
+            _on_exit(stack, "heartbeat_file", beat.stop)
+            beat.start()
         if self.config.fastdata.enabled:
             self._start_fastdata(stack, registry)
         _on_exit(stack, "outputs_safe", self.loop.go_safe)  # pushed last, so undone first

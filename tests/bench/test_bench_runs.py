@@ -30,6 +30,7 @@ MODULES = [
     "rider_cost",
     "read_flood",
     "freeze",
+    "healthcheck",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0

@@ -27,6 +27,7 @@ from tests.procs import REPO
 
 COMPOSE = REPO / "compose.yaml"
 REVPI_OVERRIDE = REPO / "docker" / "compose.revpi.yaml"
+ROUTER_OVERRIDE = REPO / "docker" / "compose.router.yaml"
 DOCKERFILE = REPO / "Dockerfile"
 DOCKERIGNORE = REPO / ".dockerignore"
 
@@ -106,6 +107,18 @@ def healthcheck_argv(svc: Mapping[str, Any]) -> list[str]:
     if kind == "CMD-SHELL":
         return ["sh", "-c", " ".join(rest)]
     raise SpecError(f"healthcheck.test must start with CMD or CMD-SHELL, got {kind!r}")
+
+
+_HEARTBEAT_CHECK = re.compile(r"find (?P<path>\S+) -mmin -(?P<minutes>[0-9.]+) \| grep -q \.")
+
+
+def heartbeat_freshness_s(check: str, path: str) -> float:
+    """The age in seconds up to which a heartbeat check (`find PATH -mmin -M | grep -q .`)
+    passes; SpecError if `check` is not that command on `path`."""
+    m = _HEARTBEAT_CHECK.fullmatch(check.strip())
+    if m is None or m["path"] != path:
+        raise SpecError(f"not a heartbeat check of {path}: {check!r}")
+    return float(m["minutes"]) * 60.0
 
 
 def environment(svc: Mapping[str, Any]) -> dict[str, str]:

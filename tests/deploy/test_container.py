@@ -1,9 +1,12 @@
-"""The image and compose.yaml in a real container engine (podman), where one is present.
+"""The image and compose.yaml in real container engines, where present: podman (with
+podman-compose 1.0.3 from Debian and 1.6 from PyPI) and Debian's docker 20.10 (with
+docker-compose 1.29, which builds with the classic builder).
 
-Skipped, with the reason, without podman or without the base image (no registry is reached: make
-it with docker/make-base-image.sh, docs/deploy.md "No registry"). The build is cached by the
-engine, so a run without changes to the package takes seconds; every container, volume and
-network a test makes is removed afterwards, even when it fails.
+Skipped, with the reason, without an engine or without the base image (no registry is reached:
+make it with docker/make-base-image.sh, docs/deploy.md "No registry"). The image is built from a
+copy of the build context; behind this host's TLS proxy pip's CA goes in as docker/pip/ca.crt.
+The build is cached by the engine, so a run without changes to the package takes seconds; every
+container, volume and network a test makes is removed afterwards, even when it fails.
 """
 
 from __future__ import annotations
@@ -15,18 +18,19 @@ import shutil
 import subprocess
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import yaml
 
 from schema.status import MachineState, Status
-from service.adapters.credentials import init_credentials
 from tests.deploy import spec
 from tests.integration.support import write_fast_config
 from tests.procs import REPO, free_port, rider_cmd
 
 ENGINE = shutil.which("podman")
+DOCKER = "/usr/bin/docker" if Path("/usr/bin/docker").exists() else shutil.which("docker")
 BASE_IMAGE = "docker.io/library/python:3.11-slim"
 IMAGE = "localhost/ride-machine:local"
 BUILD_TIMEOUT_S = 300.0
@@ -61,20 +65,47 @@ def _skip_reason() -> str | None:
 pytestmark = [pytest.mark.integration, pytest.mark.container]
 
 
+def build_context(tmp: Path) -> Path:
+    """The files the build context holds (.dockerignore), copied, plus pip's CA if this host
+    has one (docker/pip/ca.crt: pip in the build goes through the same proxy)."""
+    context = tmp / "context"
+    for rel in spec.context_files():
+        (context / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(REPO / rel, context / rel)
+    shutil.copy2(REPO / "Dockerfile", context / "Dockerfile")
+    ca = os.environ.get("PIP_CERT") or os.environ.get("SSL_CERT_FILE")
+    if ca and Path(ca).is_file():
+        (context / "docker" / "pip").mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ca, context / "docker" / "pip" / "ca.crt")
+    return context
+
+
+def build_args() -> list[str]:
+    return [
+        arg
+        for name in ("PIP_INDEX_URL", "PIP_EXTRA_INDEX_URL", "PIP_TRUSTED_HOST")
+        if os.environ.get(name)
+        for arg in ("--build-arg", f"{name}={os.environ[name]}")
+    ]
+
+
 @pytest.fixture(scope="module")
-def image() -> str:
+def context(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_context(tmp_path_factory.mktemp("build"))
+
+
+@pytest.fixture(scope="module")
+def image(context: Path) -> str:
     reason = _skip_reason()
     if reason:
         pytest.skip(reason)
-    args = ["build", "--format", "docker", "-t", IMAGE]
-    # Behind this host's TLS proxy pip needs its CA: the build secret of the Dockerfile.
-    ca = os.environ.get("PIP_CERT") or os.environ.get("SSL_CERT_FILE")
-    if ca and Path(ca).is_file():
-        args += ["--secret", f"id=pip-ca,src={ca}"]
-    for name in ("PIP_INDEX_URL", "PIP_EXTRA_INDEX_URL", "PIP_TRUSTED_HOST"):
-        if os.environ.get(name):
-            args += ["--build-arg", f"{name}={os.environ[name]}"]
-    engine(*args, str(REPO), timeout=BUILD_TIMEOUT_S)
+    done = subprocess.run(
+        [str(ENGINE), "build", "--format", "docker", "-t", IMAGE, *build_args(), str(context)],
+        capture_output=True, text=True, timeout=BUILD_TIMEOUT_S, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    # issue 41: no "missing build argument" and no useradd SYS_UID_MAX warning on a build
+    assert "missing" not in done.stderr and "SYS_UID_MAX" not in done.stdout + done.stderr
     return IMAGE
 
 
@@ -118,7 +149,7 @@ def test_image_keeps_its_healthcheck_user_and_size(image: str) -> None:
     config = info["Config"]
     # podman shows it at the top level, docker under Config
     check = info.get("Healthcheck") or config.get("Healthcheck") or {}
-    assert check.get("Test", [])[:2] == ["CMD", "rider"], "built without --format docker?"
+    assert check.get("Test", [])[:2] == ["CMD", "/bin/sh"], "built without --format docker?"
     assert config["User"] == f"{UID}:{UID}"
     assert config["StopSignal"] == "SIGTERM"
     assert not config.get("Volumes"), "an image VOLUME leaves anonymous volumes behind"
@@ -168,68 +199,157 @@ def test_container_runs_a_session_from_the_host_and_stops_safely(
         assert "event=stopped code=0 outputs=safe" in logs.stderr, logs.stderr
 
 
-@pytest.fixture
-def project(image: str, tmp_path: Path) -> Iterator[tuple[Path, str]]:
-    """compose.yaml's own files in a project directory, with credentials and a free UI port."""
-    if shutil.which("podman-compose") is None and not (REPO / ".venv/bin/podman-compose").exists():
-        pytest.skip("podman-compose is not installed (pip install podman-compose, the dev extra)")
-    root = tmp_path / "site"
-    for rel in ("machine.toml", "zenoh.json5", "zenoh/acl.json5", "docker/zenohd.json5"):
-        (root / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(REPO / rel, root / rel)
-    shutil.copy2(write_fast_config(tmp_path), root / "machine.toml")
-    compose = yaml.safe_load((REPO / "compose.yaml").read_text())
-    ui = free_port()
-    compose["services"]["rider"]["ports"] = [f"127.0.0.1:{ui}:8080"]
-    del compose["services"]["machine"]["build"]  # the fixture built it
-    (root / "compose.yaml").write_text(yaml.safe_dump(compose, sort_keys=False))
-    # As docs/deploy.md says: make the logins, readable by the containers' group.
-    init_credentials(root / "secrets")
-    for f in (root / "secrets").iterdir():
-        os.chown(f, -1, UID)
-        f.chmod(0o640)
-    name = f"ridetest{os.getpid()}"
-    try:
-        yield root, name
-    finally:
-        compose_cmd(root, name, "down", "-v", check=False)
+@dataclass(frozen=True)
+class ComposeTool:
+    """A compose implementation and the engine it drives."""
+
+    label: str
+    argv: tuple[str, ...]
+    engine: str
+    build: bool
+    """`up --build` (docker-compose builds with the classic builder); podman-compose takes the
+    image the `image` fixture built (`podman-compose build` would drop the healthcheck)."""
 
 
-def compose_cmd(root: Path, name: str, *args: str, check: bool = True) -> str:
-    tool = shutil.which("podman-compose") or str(REPO / ".venv/bin/podman-compose")
+TOOLS = [
+    ComposeTool("podman-compose-debian", ("/usr/bin/podman-compose",), "podman", False),
+    ComposeTool("podman-compose-pypi", (str(REPO / ".venv/bin/podman-compose"),), "podman", False),
+    ComposeTool("docker-compose", ("/usr/bin/docker-compose",), "docker", True),
+]
+
+
+def _docker_skip_reason() -> str | None:
+    if DOCKER is None:
+        return "no docker engine on this host"
+    done = subprocess.run([DOCKER, "info"], capture_output=True, timeout=30, check=False)
+    if done.returncode != 0:
+        return "dockerd is not running (docs/deploy.md: start Debian's dockerd)"
     done = subprocess.run(
-        [tool, "-p", name, *args],
-        cwd=root,
-        capture_output=True,
-        text=True,
-        timeout=STEP_TIMEOUT_S * 2,
-        check=False,
+        [DOCKER, "image", "inspect", BASE_IMAGE], capture_output=True, check=False
+    )
+    if done.returncode != 0:
+        return f"base image {BASE_IMAGE} missing in docker (docker/make-base-image.sh docker)"
+    return None
+
+
+def run_engine(engine: str, *args: str, timeout: float = STEP_TIMEOUT_S, check: bool = True) -> str:
+    binary = str(ENGINE if engine == "podman" else DOCKER)
+    done = subprocess.run(
+        [binary, *args], capture_output=True, text=True, timeout=timeout, check=False
     )
     if check and done.returncode != 0:
-        raise AssertionError(
-            f"podman-compose {args}: {done.returncode}\n{done.stdout}{done.stderr}"
-        )
+        raise AssertionError(f"{engine} {' '.join(args)}: exit {done.returncode}\n{done.stderr}")
     return done.stdout
 
 
-def in_rider(name: str, *args: str) -> str:
-    return engine("exec", f"{name}_rider_1", "rider", *args)
+@dataclass
+class Site:
+    """A project directory made as docs/deploy.md says, run by one compose tool."""
+
+    tool: ComposeTool
+    root: Path
+    name: str
+
+    def compose(self, *args: str, check: bool = True) -> str:
+        done = subprocess.run(
+            [*self.tool.argv, "-p", self.name, *args], cwd=self.root, capture_output=True,
+            text=True, timeout=BUILD_TIMEOUT_S, check=False,
+        )  # fmt: skip
+        if check and done.returncode != 0:
+            raise AssertionError(f"{self.tool.label} {args}: {done.returncode}\n{done.stderr}")
+        return done.stdout
+
+    def engine(self, *args: str, check: bool = True) -> str:
+        return run_engine(self.tool.engine, *args, check=check)
+
+    def container(self, service: str) -> str:
+        return f"{self.name}_{service}_1"
+
+    def wait_healthy(self, service: str) -> None:
+        """Until the engine calls the container healthy: podman runs the check on request
+        (no systemd here), docker runs it itself every interval."""
+        name, start = self.container(service), time.monotonic()
+        while True:
+            if self.tool.engine == "podman":
+                binary = str(ENGINE)
+                check = subprocess.run(
+                    [binary, "healthcheck", "run", name], timeout=30, check=False
+                )
+                ok = check.returncode == 0
+            else:
+                state = self.engine("inspect", "-f", "{{.State.Health.Status}}", name).strip()
+                ok = state == "healthy"
+            if ok:
+                return
+            assert time.monotonic() - start < HEALTHY_TIMEOUT_S * 2, self.engine("logs", name)
+            time.sleep(1.0)  # bounded retry of an outside probe, not a settle
+
+    def leftovers(self) -> list[str]:
+        label = f"label=com.docker.compose.project={self.name}"
+        names = self.engine("ps", "-a", "--filter", label, "--format", "{{.Names}}").split()
+        networks = self.engine("network", "ls", "--format", "{{.Name}}").split()
+        volumes = self.engine("volume", "ls", "--format", "{{.Name}}").split()
+        return names + [n for n in networks + volumes if n.startswith(f"{self.name}_")]
+
+    def remove_leftovers(self) -> None:
+        label = f"label=com.docker.compose.project={self.name}"
+        for c in self.engine("ps", "-a", "-q", "--filter", label, check=False).split():
+            self.engine("rm", "-f", c, check=False)
+        for n in self.engine("network", "ls", "--format", "{{.Name}}", check=False).split():
+            if n.startswith(f"{self.name}_"):
+                self.engine("network", "rm", n, check=False)
+        for v in self.engine("volume", "ls", "--format", "{{.Name}}", check=False).split():
+            if v.startswith(f"{self.name}_"):
+                self.engine("volume", "rm", "-f", v, check=False)
 
 
-def test_compose_up_down_keeps_the_calibration_and_no_anonymous_volume(
-    project: tuple[Path, str],
-) -> None:
-    root, name = project
-    volumes_before = set(engine("volume", "ls", "-q").split())
-    compose_cmd(root, name, "up", "-d")
-    wait_healthy(f"{name}_machine_1")
-    in_rider(name, "calibrate", "tilt", "--wait")
-    compose_cmd(root, name, "down")
-    compose_cmd(root, name, "up", "-d")
-    wait_healthy(f"{name}_machine_1")
-    status = Status.model_validate_json(in_rider(name, "--json", "status").strip().splitlines()[-1])
+@pytest.fixture(params=TOOLS, ids=lambda t: t.label)
+def site(request: pytest.FixtureRequest, context: Path, tmp_path: Path) -> Iterator[Site]:
+    """compose.yaml with the build context, the logins made from the image as the docs say."""
+    tool: ComposeTool = request.param
+    if not Path(tool.argv[0]).exists():
+        pytest.skip(f"{tool.label} is not installed")
+    reason = _skip_reason() if tool.engine == "podman" else _docker_skip_reason()
+    if reason:
+        pytest.skip(reason)
+    if tool.engine == "podman":
+        request.getfixturevalue("image")
+    root = tmp_path / "site"
+    shutil.copytree(context, root)
+    shutil.copy2(write_fast_config(tmp_path), root / "machine.toml")
+    compose = yaml.safe_load((REPO / "compose.yaml").read_text())
+    compose["services"]["rider"]["ports"] = [f"127.0.0.1:{free_port()}:8080"]
+    (root / "compose.yaml").write_text(yaml.safe_dump(compose, sort_keys=False))
+    site = Site(tool, root, f"ridetest{os.getpid()}{tool.engine}")
+    try:
+        if tool.build:
+            site.compose("build")  # docker-compose 1.29: the classic builder
+        # docs/deploy.md: the logins made with the image on a host without the package
+        site.engine(
+            "run", "--rm", "-u", f"{os.getuid()}:{os.getgid()}", "-v", f"{root}:/site",
+            "-w", "/site", IMAGE, "machine", "credentials", "init", "secrets",
+        )  # fmt: skip
+        for f in (root / "secrets").iterdir():
+            os.chown(f, -1, UID)
+            f.chmod(0o640)
+        yield site
+    finally:
+        site.compose("down", "-v", check=False)
+        # podman-compose 1.0.3's `down` leaves the project's network: the test removes whatever
+        # is left, then checks that nothing of its project remains.
+        site.remove_leftovers()
+        assert not site.leftovers(), f"{tool.label}: could not remove {site.leftovers()}"
+
+
+def test_compose_services_turn_healthy_and_keep_the_calibration(site: Site) -> None:
+    site.compose("up", "-d")
+    site.wait_healthy("machine")
+    site.wait_healthy("rider")
+    rider = site.container("rider")
+    site.engine("exec", rider, "rider", "calibrate", "tilt", "--wait")
+    site.compose("down")
+    site.compose("up", "-d")
+    site.wait_healthy("machine")
+    out = site.engine("exec", rider, "rider", "--json", "status")
+    status = Status.model_validate_json(out.strip().splitlines()[-1])
     assert status.calibrated.tilt, "the data volume did not survive down/up"
-    compose_cmd(root, name, "down")
-    left = set(engine("volume", "ls", "-q").split()) - volumes_before
-    assert left == {f"{name}_machine-data"}, f"volumes left by up/down: {left}"
-    assert spec.load_compose()["volumes"] == {"machine-data": None}

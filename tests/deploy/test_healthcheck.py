@@ -1,11 +1,16 @@
-"""The exact HEALTHCHECK commands of the Dockerfile and compose.yaml, run against real daemons.
+"""The HEALTHCHECK of the Dockerfile and the machine service's of compose.yaml, run as the engine
+runs them (`/bin/sh -c …`) against a real daemon that touches its heartbeat file.
 
-Only the endpoint changes: the container's `tcp/127.0.0.1:7447` becomes the test daemon's free
-loopback port. Exit 0 when the daemon answers, 3 (no reply) when nothing listens.
+Only the file's container path (`/dev/shm/machine.heartbeat`) becomes a file of this test. The
+check passes while the scan loop cycles, fails once the daemon is frozen (SIGSTOP) for longer
+than the check allows, passes again when it runs on, and fails at once when the daemon has
+stopped (the file is removed).
 """
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import time
 from collections.abc import Iterator
@@ -13,26 +18,17 @@ from pathlib import Path
 
 import pytest
 
-from rider.cli import EXIT_NO_REPLY, EXIT_OK
-from rider.client import Rider
+from service.adapters.heartbeat import HEARTBEAT_FILE_ENV
 from tests.deploy import spec
-from tests.procs import REPO, Daemon, free_port, running_daemon, start_daemon
+from tests.procs import Daemon, start_daemon
 
 pytestmark = pytest.mark.integration
 
 CHECK_TIMEOUT_S = 30.0
 """Bound for one healthcheck process (Docker's own is tighter; this one only ends a hang)."""
-
-CONTAINER_ENDPOINT = "tcp/127.0.0.1:7447"
-
-SEE_BOTH_TIMEOUT_S = 20.0
-
-GOSSIP_CONFIG = """{
-  mode: "peer",
-  scouting: { multicast: { enabled: false }, gossip: { enabled: true } },
-  transport: { link: { tx: { lease: 1000, keep_alive: 4 } } },
-}
-"""
+CONTAINER_FILE = "/dev/shm/machine.heartbeat"
+STALE_TIMEOUT_S = 30.0
+"""Bound for a frozen daemon's file to age past the check (the check allows 6 s)."""
 
 
 def image_check() -> list[str]:
@@ -42,68 +38,76 @@ def image_check() -> list[str]:
 
 
 def compose_check() -> list[str]:
-    return spec.healthcheck_argv(spec.service(spec.load_compose(), "machine"))
+    """CMD-SHELL, as docker and podman run it: `/bin/sh -c STRING`."""
+    kind, script = spec.service(spec.load_compose(), "machine")["healthcheck"]["test"]
+    assert kind == "CMD-SHELL"
+    return ["/bin/sh", "-c", script]
 
 
 CHECKS = {"Dockerfile": image_check, "compose.yaml": compose_check}
 
 
-def run_check(argv: list[str], endpoint: str) -> subprocess.CompletedProcess[str]:
-    assert CONTAINER_ENDPOINT in argv, argv
-    argv = [endpoint if a == CONTAINER_ENDPOINT else a for a in argv]
-    return subprocess.run(
-        spec.host_argv(argv, {}),
-        capture_output=True,
-        text=True,
-        timeout=CHECK_TIMEOUT_S,
-        cwd=REPO,
-        check=False,
-    )
+def run_check(argv: list[str], heartbeat: Path) -> int:
+    assert any(CONTAINER_FILE in a for a in argv), argv
+    argv = [a.replace(CONTAINER_FILE, str(heartbeat)) for a in argv]
+    done = subprocess.run(argv, capture_output=True, timeout=CHECK_TIMEOUT_S, check=False)
+    return done.returncode
+
+
+def wait_check(argv: list[str], heartbeat: Path, healthy: bool, timeout: float) -> float:
+    """Seconds until the check gives the wanted answer (a bounded poll of an outside probe)."""
+    start = time.monotonic()
+    while (run_check(argv, heartbeat) == 0) != healthy:
+        assert time.monotonic() - start < timeout, f"healthy={not healthy} for {timeout:g} s"
+        time.sleep(0.25)
+    return time.monotonic() - start
 
 
 @pytest.fixture(scope="module")
-def m1(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with running_daemon(tmp_path_factory.mktemp("healthcheck")) as daemon:
-        yield daemon
-
-
-@pytest.mark.parametrize("source", CHECKS)
-def test_healthcheck_passes_when_the_daemon_answers(source: str, m1: Daemon) -> None:
-    done = run_check(CHECKS[source](), m1.endpoint)
-    assert done.returncode == EXIT_OK, done.stdout + done.stderr
-    assert "m1" in done.stdout
-
-
-@pytest.mark.parametrize("source", CHECKS)
-def test_healthcheck_fails_when_nothing_answers(source: str) -> None:
-    done = run_check(CHECKS[source](), f"tcp/127.0.0.1:{free_port()}")
-    assert done.returncode == EXIT_NO_REPLY, done.stdout + done.stderr
-
-
-def test_healthcheck_stays_healthy_with_a_second_machine_on_the_network(tmp_path: Path) -> None:
-    """With gossip on (as in zenoh.json5) a Rider connected to m1 also learns of m2, as it
-    would through a site router; an unnamed `status` could then exit 4 (ambiguous). The
-    healthcheck names its machine, so it cannot."""
-    gossip = tmp_path / "gossip.json5"
-    gossip.write_text(GOSSIP_CONFIG)
-    use_gossip = ["--zenoh-config", str(gossip)]  # the last --zenoh-config wins
-    m1 = start_daemon(tmp_path, "m1", extra=use_gossip)
-    m2: Daemon | None = None
+def m1(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemon, Path]]:
+    tmp = tmp_path_factory.mktemp("healthcheck")
+    heartbeat = tmp / "machine.heartbeat"
+    daemon = start_daemon(tmp, env={HEARTBEAT_FILE_ENV: str(heartbeat)})
     try:
-        m2 = start_daemon(tmp_path, "m2", extra=[*use_gossip, "--connect", m1.endpoint])
-        seen: set[str] = set()
-        deadline = time.monotonic() + SEE_BOTH_TIMEOUT_S
-        with Rider(None, connect=[m1.endpoint], zenoh_config_path=gossip) as watcher:
-            for change in watcher.follow_machines(timeout=0.5):
-                if change is not None and change[1]:
-                    seen.add(change[0])
-                if seen >= {"m1", "m2"} or time.monotonic() > deadline:
-                    break
-        assert seen >= {"m1", "m2"}, f"m2 never became visible through m1: {seen}"
-        for _ in range(3):
-            done = run_check(image_check(), m1.endpoint)
-            assert done.returncode == EXIT_OK, done.stdout + done.stderr
+        yield daemon, heartbeat
     finally:
-        if m2 is not None:
-            m2.stop()
-        m1.stop()
+        daemon.stop()
+
+
+@pytest.mark.parametrize("source", CHECKS)
+def test_healthcheck_passes_while_the_scan_loop_cycles(
+    source: str, m1: tuple[Daemon, Path]
+) -> None:
+    daemon, heartbeat = m1
+    wait_check(CHECKS[source](), heartbeat, healthy=True, timeout=STALE_TIMEOUT_S)
+    assert daemon.has_logged(f"event=heartbeat_file path={heartbeat}")
+
+
+def test_a_frozen_daemon_turns_unhealthy_and_recovers(m1: tuple[Daemon, Path]) -> None:
+    daemon, heartbeat = m1
+    check = compose_check()
+    wait_check(check, heartbeat, healthy=True, timeout=STALE_TIMEOUT_S)
+    os.kill(daemon.proc.pid, signal.SIGSTOP)
+    try:
+        stale_after = wait_check(check, heartbeat, healthy=False, timeout=STALE_TIMEOUT_S)
+        assert run_check(image_check(), heartbeat) != 0
+    finally:
+        os.kill(daemon.proc.pid, signal.SIGCONT)
+    assert stale_after >= 4.0, "the check allows about 6 s of silence, not less"
+    wait_check(check, heartbeat, healthy=True, timeout=STALE_TIMEOUT_S)
+
+
+def test_healthcheck_fails_when_nothing_runs(tmp_path: Path) -> None:
+    for source, check in CHECKS.items():
+        assert run_check(check(), tmp_path / "machine.heartbeat") != 0, source
+
+
+def test_a_stopped_daemon_is_unhealthy_at_once(tmp_path: Path) -> None:
+    heartbeat = tmp_path / "machine.heartbeat"
+    daemon = start_daemon(tmp_path, env={HEARTBEAT_FILE_ENV: str(heartbeat)})
+    try:
+        wait_check(compose_check(), heartbeat, healthy=True, timeout=STALE_TIMEOUT_S)
+    finally:
+        assert daemon.stop() == 0
+    assert not heartbeat.exists()
+    assert run_check(compose_check(), heartbeat) != 0

@@ -6,8 +6,8 @@ resolve, as the compose network's DNS does. The commands are compose.yaml's own,
 parsed file: only container paths become host paths (by the service's mounts), and the mounted
 machine.toml is swapped for a fast simulator config (a site mounts its own config there too).
 `docker compose exec rider rider …` is the Rider CLI in the rider namespace with that service's
-environment. The router profile's router runs beside the Rider (the namespace helper makes
-pairs), so it too reaches the machine across the veth, by name.
+environment. The machine service runs as compose.yaml has it: the daemon under its supervisor.
+(The router of docker/compose.router.yaml is run by tests/deploy/test_router.py.)
 
 Skipped, with the reason, where namespaces cannot be created (not root, no iproute2).
 """
@@ -15,7 +15,6 @@ Skipped, with the reason, where namespaces cannot be created (not root, no iprou
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 import subprocess
@@ -29,7 +28,7 @@ from typing import Any
 
 import pytest
 
-from rider.cli import EXIT_NO_REPLY, EXIT_OK
+from rider.cli import EXIT_OK
 from schema.status import MachineState, Status
 from service.adapters.credentials import init_credentials
 from tests.deploy import spec
@@ -44,13 +43,13 @@ pytestmark = [
 ]
 
 READY_TIMEOUT_S = 30.0
-"""Bound for a service to start (the daemon's bus up, the UI listening, the router open)."""
+"""Bound for a service to start (the daemon's bus up, the UI listening)."""
 STEP_TIMEOUT_S = 60.0
 """Bound for one Rider CLI process (a calibration, homing or a whole session at fast speed)."""
 STOP_TIMEOUT_S = 15.0
 
 ALL_STATES = [s.value for s in MachineState]
-SITE_CLIENT = REPO / "docker" / "rider-client.json5"
+HEARTBEAT = "/dev/shm/machine.heartbeat"
 
 
 @dataclass
@@ -138,21 +137,19 @@ class Stack:
 
     def env(self, name: str) -> dict[str, str]:
         svc_env = spec.environment(self.svc(name))
-        secrets = self.secrets(name)
-        svc_env = {k: str(secrets.get(v, v)) for k, v in svc_env.items()}
+        paths = {**self.secrets(name), **self.tmpfs()}
+        svc_env = {k: str(paths.get(v, v)) for k, v in svc_env.items()}
         return {**os.environ, "PYTHONUNBUFFERED": "1", **svc_env}
 
+    def tmpfs(self) -> dict[str, Path]:
+        """The container's /dev/shm (the heartbeat file) as a directory of this test."""
+        shm = self.tmp / "shm"
+        shm.mkdir(exist_ok=True)
+        return {HEARTBEAT: shm / Path(HEARTBEAT).name}
+
     def up(self, name: str) -> Child:
-        if name == "router":  # a shell in the router image: /entrypoint.sh runs zenohd
-            shell, flag, script = self.svc(name)["entrypoint"]
-            zenohd = f"{sys.executable} -m tests.deploy.zenohd"
-            script = script.replace("/entrypoint.sh", zenohd)
-            for target, path in {**self.paths(name), **self.secrets(name)}.items():
-                script = script.replace(target, str(path))
-            host = [shell, flag, script]
-        else:
-            argv = spec.command(self.svc(name))
-            host = spec.host_argv(argv, self.paths(name))
+        argv = spec.command(self.svc(name))
+        host = spec.host_argv(argv, self.paths(name))
         child = Child.start(name, self.net.cmd(self.ns(name), host), self.env(name))
         self.children[name] = child
         return child
@@ -175,8 +172,18 @@ class Stack:
         assert done.returncode == EXIT_OK, self.explain(args, done)
         return done
 
-    def healthcheck(self, name: str) -> int:
-        return self.run(name, spec.healthcheck_argv(self.svc(name))).returncode
+    def healthcheck(self, name: str, argv: list[str] | None = None) -> int:
+        """The service's healthcheck (CMD-SHELL: `sh -c STRING`) in its namespace, container
+        paths and `python` made this host's."""
+        argv = argv or spec.healthcheck_argv(self.svc(name))
+        script = argv[-1].replace(HEARTBEAT, str(self.tmpfs()[HEARTBEAT]))
+        script = script.replace("python -c", f"{sys.executable} -c")
+        done = subprocess.run(
+            self.net.cmd(self.ns(name), [*argv[:-1], script]),
+            capture_output=True, text=True, timeout=STEP_TIMEOUT_S, env=self.env(name),
+            check=False,
+        )  # fmt: skip
+        return done.returncode
 
     def explain(self, what: object, done: subprocess.CompletedProcess[str]) -> str:
         logs = "\n".join(f"--- {n}\n{c.log()}" for n, c in self.children.items())
@@ -202,7 +209,7 @@ def stack(tmp_path: Path) -> Iterator[Stack]:
         with contextlib.ExitStack() as stack:
             net = stack.enter_context(veth_pair("zd"))
             # The compose network's DNS: every service name, from every container.
-            names = {"machine": net.addr_a, "rider": net.addr_b, "router": net.addr_b}
+            names = {"machine": net.addr_a, "rider": net.addr_b}
             for ns in (net.a, net.b):
                 stack.enter_context(hosts_file(ns, names))
             site = Stack(net, tmp_path, spec.load_compose())
@@ -218,9 +225,12 @@ def test_compose_stack_runs_a_session_to_done_and_stops_safely(stack: Stack) -> 
     ui = stack.up("rider")
     ui.wait_line("rider ui: http://")
 
-    # Docker's view: the daemon answers in its own container, the UI in its own.
-    assert stack.healthcheck("machine") == EXIT_OK, machine.log()
-    assert stack.run("machine", image_healthcheck()).returncode == EXIT_OK
+    # Docker's view: the daemon's loop cycles in its own container, the UI answers in its own.
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    while stack.healthcheck("machine") != EXIT_OK:  # the first touch comes about 1 s in
+        assert time.monotonic() < deadline, machine.log()
+        time.sleep(0.25)
+    assert stack.healthcheck("machine", image_healthcheck()) == EXIT_OK
     assert stack.healthcheck("rider") == EXIT_OK, ui.log()
 
     # An operator at the rider container: a whole session over tcp/machine:7447.
@@ -254,18 +264,5 @@ def test_compose_stack_runs_a_session_to_done_and_stops_safely(stack: Stack) -> 
     assert code == 0, machine.log()
     machine.wait_line("event=signal signal=SIGTERM")
     machine.wait_line("event=stopped code=0 outputs=safe")
-    assert stack.healthcheck("machine") == EXIT_NO_REPLY
+    assert stack.healthcheck("machine") != EXIT_OK  # the stopped daemon removed its file
     assert ui.stop(grace) == 0, ui.log()
-
-
-def test_router_profile_reaches_the_machine_by_name(stack: Stack) -> None:
-    stack.up("machine").wait_line("event=started")
-    stack.up("router").wait_line("ready")
-    site = ["rider", "--zenoh-config", str(SITE_CLIENT), "--connect", "tcp/router:7447"]
-    # The router connects to tcp/machine:7447 on its own: wait for the machine's status.
-    until = ["watch", "--keys", "status", "--until", *ALL_STATES, "--for", "30"]
-    stack.rider(*site[1:], "--machine", "m1", *until)
-    found = json.loads(stack.rider(*site[1:], "--json", "machines").stdout)
-    assert [m["id"] for m in found] == ["m1"]
-    status = last_status(stack.rider(*site[1:], "-m", "m1", "--json", "status").stdout)
-    assert status.machine_id == "m1"

@@ -1,0 +1,251 @@
+"""compose.yaml as each compose implementation on this host hands it to its engine, no engine
+needed: podman-compose (Debian 12's 1.0.3, PyPI's 1.6) runs against a stand-in `podman` that
+records the commands it is given; docker-compose 1.29 (and `docker compose` v2 where present)
+prints its resolved file (`config`).
+
+For each, the healthcheck the engine would run (podman: a JSON array is exec form, any other
+string is `/bin/sh -c STRING`; docker: `CMD` exec form, `CMD-SHELL` via `/bin/sh -c`) is run
+here against a fresh heartbeat file and a stand-in of the UI's endpoint, container paths mapped
+to this test's; every implementation starts exactly the machine and the rider by default; the
+router file keeps its entrypoint. Each implementation not installed is skipped, with the reason.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import http.server
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import yaml
+
+from service.adapters.credentials import init_credentials
+from tests.procs import REPO
+
+TOOL_TIMEOUT_S = 60.0
+HEARTBEAT = "/dev/shm/machine.heartbeat"
+UI = "127.0.0.1:8080"
+FAKE_PODMAN = """#!{python}
+import json, os, sys
+args = sys.argv[1:]
+with open(os.environ["FAKE_PODMAN_LOG"], "a") as log:
+    log.write(json.dumps(args) + "\\n")
+if args[:1] in (["--version"], ["-v"]):
+    print("podman version 4.3.1")
+elif args[:1] == ["version"]:
+    print("4.3.1")
+elif "inspect" in args[:2]:
+    print('[{{"Id": "0"}}]')
+elif "json" in args:
+    print("[]")
+"""
+
+
+@dataclass(frozen=True)
+class Reader:
+    """One compose implementation: how to call it, and which kind it is."""
+
+    label: str
+    argv: tuple[str, ...]
+    kind: str  # "podman-compose" or "docker"
+
+
+def _version(argv: list[str]) -> str | None:
+    try:
+        done = subprocess.run(
+            [*argv, "version"], capture_output=True, text=True, timeout=30, check=False
+        )
+    except OSError:
+        return None
+    return done.stdout.strip().splitlines()[-1] if done.returncode == 0 and done.stdout else None
+
+
+def readers() -> list[Reader]:
+    found: list[Reader] = []
+    podman_composes = {"/usr/bin/podman-compose", str(REPO / ".venv/bin/podman-compose")}
+    podman_composes |= {p for p in [shutil.which("podman-compose")] if p}
+    for path in sorted(podman_composes):
+        if Path(path).exists():
+            found.append(Reader(f"podman-compose ({path})", (path,), "podman-compose"))
+    if (path := shutil.which("docker-compose")) is not None:
+        found.append(Reader(f"docker-compose ({path})", (path,), "docker"))
+    docker = shutil.which("docker")
+    if docker is not None and _version([docker, "compose"]) is not None:
+        found.append(Reader("docker compose (v2)", (docker, "compose"), "docker"))
+    return found
+
+
+def _shebang_python(path: str) -> str:
+    """podman-compose's own interpreter (Debian's is /usr/bin/python3, PyPI's the venv's)."""
+    first = Path(path).read_text().splitlines()[0]
+    return first[2:].strip() if first.startswith("#!") else sys.executable
+
+
+READERS = readers()
+
+
+@pytest.fixture
+def project(tmp_path: Path) -> Path:
+    """compose.yaml's files in a project directory, with the logins made as the docs say."""
+    root = tmp_path / "site"
+    for rel in ("compose.yaml", "machine.toml", "zenoh.json5", "zenoh/acl.json5"):
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(REPO / rel, root / rel)
+    for name in ("compose.router.yaml", "zenohd.json5", "zenohd-start.sh"):
+        (root / "docker").mkdir(exist_ok=True)
+        shutil.copy2(REPO / "docker" / name, root / "docker" / name)
+    init_credentials(root / "secrets")
+    return root
+
+
+def podman_runs(reader: Reader, root: Path, *files: str) -> dict[str, list[str]]:
+    """Service → the `podman run`/`create` argv podman-compose gives for `up -d`."""
+    fake = root.parent / "fake-bin"
+    fake.mkdir(exist_ok=True)
+    podman = fake / "podman"
+    podman.write_text(FAKE_PODMAN.format(python=sys.executable))
+    podman.chmod(0o755)
+    log = root.parent / "podman.jsonl"
+    log.unlink(missing_ok=True)
+    python = _shebang_python(reader.argv[-1])
+    argv = [python, reader.argv[-1], *(f for name in files for f in ("-f", name))]
+    env = {**os.environ, "PATH": f"{fake}:{os.environ['PATH']}", "FAKE_PODMAN_LOG": str(log)}
+    done = subprocess.run(
+        [*argv, "-p", "readers", "up", "-d", "--no-build"],
+        cwd=root, capture_output=True, text=True, timeout=TOOL_TIMEOUT_S, env=env, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    runs = {}
+    for line in log.read_text().splitlines():
+        args = json.loads(line)
+        if args and args[0] in ("run", "create"):
+            label = next(a for a in args if a.startswith("com.docker.compose.service="))
+            runs[label.partition("=")[2]] = args
+    return runs
+
+
+def podman_test(value: str) -> list[str]:
+    """What podman 4.3 runs for `--health-cmd VALUE` (checked with `podman create` and
+    `podman inspect`): a string that is no JSON array, or an array of one string, is CMD-SHELL
+    (`/bin/sh -c`); `["CMD-SHELL", s]` too; a longer array is exec form."""
+    if not value.startswith("["):
+        return ["/bin/sh", "-c", value]
+    test = json.loads(value)
+    if test[0] == "CMD-SHELL":
+        return ["/bin/sh", "-c", test[1]]
+    if test[0] == "CMD":
+        return test[1:]
+    return test if len(test) > 1 else ["/bin/sh", "-c", test[0]]
+
+
+def podman_health(args: list[str]) -> list[str]:
+    for flag in ("--healthcheck-command", "--health-cmd"):
+        if flag in args:
+            return podman_test(args[args.index(flag) + 1])
+    raise AssertionError(f"no healthcheck in {args}")
+
+
+def docker_config(reader: Reader, root: Path, *files: str) -> dict[str, dict[str, object]]:
+    argv = [*reader.argv, *(f for name in files for f in ("-f", name)), "config"]
+    done = subprocess.run(
+        argv, cwd=root, capture_output=True, text=True, timeout=TOOL_TIMEOUT_S, check=False
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    services: dict[str, dict[str, object]] = yaml.safe_load(done.stdout)["services"]
+    return services
+
+
+def docker_health(svc: dict[str, object]) -> list[str]:
+    test = svc["healthcheck"]["test"]  # type: ignore[index]
+    if isinstance(test, str):
+        return ["/bin/sh", "-c", test]
+    kind, *rest = test
+    return rest if kind == "CMD" else ["/bin/sh", "-c", rest[0]]
+
+
+def engine_view(reader: Reader, root: Path) -> tuple[set[str], dict[str, list[str]]]:
+    """(services started by default, service → healthcheck argv) as the engine gets them."""
+    if reader.kind == "podman-compose":
+        runs = podman_runs(reader, root, "compose.yaml")
+        return set(runs), {name: podman_health(args) for name, args in runs.items()}
+    services = docker_config(reader, root, "compose.yaml")
+    started = {n for n, s in services.items() if not s.get("profiles")}
+    return started, {name: docker_health(svc) for name, svc in services.items()}
+
+
+@contextlib.contextmanager
+def ui_stand_in(root: Path) -> Iterator[int]:
+    """An HTTP server answering /api/config as the UI does (200), on a free port."""
+    (root / "www" / "api").mkdir(parents=True)
+    (root / "www" / "api" / "config").write_text("{}")
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=root / "www")
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield server.server_address[1]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def run_here(argv: list[str], mapping: dict[str, str], path: Path) -> int:
+    """A healthcheck argv with container paths and addresses mapped, `python` this one."""
+    mapped = []
+    for arg in argv:
+        for container, host in mapping.items():
+            arg = arg.replace(container, host)  # noqa: PLW2901 - each mapping in turn
+        mapped.append(arg)
+    env = {**os.environ, "PATH": f"{path}:{os.environ['PATH']}"}
+    return subprocess.run(mapped, capture_output=True, timeout=30, env=env, check=False).returncode
+
+
+@pytest.mark.parametrize("reader", READERS or [None], ids=lambda r: r.label if r else "none")
+def test_every_compose_implementation_passes_the_healthchecks_on_intact(
+    reader: Reader | None, project: Path
+) -> None:
+    if reader is None:
+        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
+    started, checks = engine_view(reader, project)
+    assert started == {"machine", "rider"}, f"{reader.label} starts {started} by default"
+    bin_dir = project.parent / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "python").symlink_to(sys.executable)
+    heartbeat = project.parent / "machine.heartbeat"
+    heartbeat.touch()
+    with ui_stand_in(project) as port:
+        mapping = {HEARTBEAT: str(heartbeat), UI: f"127.0.0.1:{port}"}
+        assert run_here(checks["machine"], mapping, bin_dir) == 0, checks["machine"]
+        assert run_here(checks["rider"], mapping, bin_dir) == 0, checks["rider"]
+    heartbeat.unlink()
+    assert run_here(checks["machine"], mapping, bin_dir) != 0
+
+
+@pytest.mark.parametrize("reader", READERS or [None], ids=lambda r: r.label if r else "none")
+def test_every_compose_implementation_keeps_the_router_entrypoint_and_mounts(
+    reader: Reader | None, project: Path
+) -> None:
+    if reader is None:
+        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
+    files = ("compose.yaml", "docker/compose.router.yaml")
+    script = str(project / "docker" / "zenohd-start.sh")
+    if reader.kind == "podman-compose":
+        args = podman_runs(reader, project, *files)["router"]
+        entrypoint = args[args.index("--entrypoint") + 1]
+        assert json.loads(entrypoint) == ["/bin/sh", "/etc/zenoh/zenohd-start.sh"]
+        mounts = [args[i + 1] for i, a in enumerate(args) if a in ("-v", "--volume")]
+        assert f"{script}:/etc/zenoh/zenohd-start.sh:ro" in mounts, mounts
+        return
+    router = docker_config(reader, project, *files)["router"]
+    assert router["entrypoint"] == ["/bin/sh", "/etc/zenoh/zenohd-start.sh"]
+    sources = [v["source"] if isinstance(v, dict) else v.split(":")[0] for v in router["volumes"]]  # type: ignore[attr-defined]
+    assert script in sources, sources
