@@ -1170,8 +1170,7 @@ class Rider:
             replies = list(handler)
         except zenoh.ZError as exc:
             raise _bus_error(f"cannot query {key}", exc) from exc
-        self._check_repliers(key, replies)
-        return replies
+        return self._check_repliers(key, replies)
 
     # ----------------------------------------------------------------------------- pinning
     def _machine_in(self, key: str) -> str | None:
@@ -1211,15 +1210,16 @@ class Rider:
                 known.update(kind, zid, True)
         return known
 
-    def _check_repliers(self, key: str, replies: list[zenoh.Reply]) -> None:
-        """One session answers for one machine, and it is the pinned one (or its supervisor)."""
+    def _check_repliers(self, key: str, replies: list[zenoh.Reply]) -> list[zenoh.Reply]:
+        """One session answers for one machine, and it is the pinned one (or its supervisor);
+        the replies to use (the daemon's, when its supervisor answered beside it)."""
         mid = self._machine_in(key)
         if mid is None:
-            return
+            return replies
         if len(replies) == 1:  # a command's usual answer: one reply, one replier
             replier = replies[0].replier_id
             if replier is None:
-                return
+                return replies
             replier_id = replier.zid
             known = self._holders.get(mid)
             if (
@@ -1227,14 +1227,30 @@ class Rider:
                 and known.allowed_at == known.changes
                 and known.allowed == replier_id
             ):
-                return  # the replier allowed last time, and nothing changed since
+                return replies  # the replier allowed last time, and nothing changed since
             self._vet(mid, key, str(replier_id), replier_id)
-            return
+            return replies
         repliers = sorted({str(r.replier_id.zid) for r in replies if r.replier_id is not None})
+        if len(repliers) > 1:
+            replies, repliers = self._without_stand_in(mid, replies, repliers)
         if len(repliers) > 1:
             raise DuplicateMachine(mid, repliers, f"{len(repliers)} sessions replied to {key}")
         if repliers:
             self._vet(mid, key, repliers[0], None)
+        return replies
+
+    def _without_stand_in(
+        self, mid: str, replies: list[zenoh.Reply], repliers: list[str]
+    ) -> tuple[list[zenoh.Reply], list[str]]:
+        """A supervisor answers for its machine while the daemon is down, and for a moment
+        after a restarted daemon answers again (until it has seen the daemon's token): its
+        reply is dropped when another session replied beside it."""
+        supervisors = self.holders(mid).supervisors
+        others = [z for z in repliers if z not in supervisors]
+        if not others or len(others) == len(repliers):
+            return replies, repliers
+        kept = [r for r in replies if r.replier_id is None or str(r.replier_id.zid) in others]
+        return kept, others
 
     def _vet(self, mid: str, key: str, zid: str, replier_id: zenoh.ZenohId | None) -> None:
         """`zid`, the one session that replied to `key`, may answer for machine `mid`
