@@ -64,9 +64,9 @@ LOCK = $(BIN)/pip-compile --quiet --generate-hashes --allow-unsafe --strip-extra
 	--no-emit-index-url $(if $(UPGRADE),--upgrade)
 lock: $(STAMP)
 	$(BIN)/python -m pip install --quiet "pip-tools>=7.5,<8"
-	$(LOCK) --extra dev --extra revpi --extra ui --all-build-deps \
+	$(LOCK) --extra dev --extra revpi --extra ui --extra gateway --all-build-deps \
 	  -o requirements/dev.txt pyproject.toml
-	$(LOCK) --extra revpi --extra ui -c requirements/dev.txt -o requirements/runtime.txt pyproject.toml
+	$(LOCK) --extra revpi --extra ui --extra gateway -c requirements/dev.txt -o requirements/runtime.txt pyproject.toml
 	$(LOCK) --all-build-deps --only-build-deps -c requirements/dev.txt \
 	  -o requirements/build.txt pyproject.toml
 
