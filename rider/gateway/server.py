@@ -190,7 +190,7 @@ class Gateway:
             machine_id, item = await self._inbox.get()
             try:
                 await self._handle(machine_id, item)
-            except Exception:  # noqa: BLE001 - one item that fails must not stop the gateway
+            except Exception:  # one item that fails must not stop the gateway (it is logged)
                 log.exception("event=update_failed machine=%s item=%s", machine_id, type(item))
 
     async def _handle(self, machine_id: str, item: Any) -> None:

@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from asyncua import Node, Server, ua
+from asyncua.common.manage_nodes import delete_nodes
 
 from rider.gateway.alarms import Alarm
 from rider.gateway.variables import (
@@ -134,8 +135,9 @@ class MachineNode:
         if alive:
             return
         self.last.clear()
-        for nid, _var in self.nodes.values():
-            await self.space.server.write_attribute_value(nid, ua.DataValue(StatusCode=_GONE))
+        for path, (nid, _var) in self.nodes.items():
+            if path != "Alive":
+                await self.space.server.write_attribute_value(nid, ua.DataValue(StatusCode=_GONE))
 
     async def fire(self, alarm: Alarm, when: float) -> None:
         """The machine's event on its object, and on the Server object for event views."""
@@ -198,5 +200,13 @@ class Space:
         node = self.machines.pop(machine_id, None)
         if node is None:
             return
-        await self.server.delete_nodes([node.obj], recursive=True)
+        # Without `delete_target_references`: asyncua would scan the whole address space for
+        # references to each deleted node, blocking the loop for seconds (long enough for its
+        # own session watchdog to close idle clients). The only reference from outside the
+        # machine's subtree is the folder's, removed here.
+        assert self.folder is not None
+        await self.folder.delete_reference(node.obj, ua.ObjectIds.Organizes, bidirectional=False)
+        await delete_nodes(
+            self.server.iserver.isession, [node.obj], recursive=True, delete_target_references=False
+        )
         log.info("event=opcua_machine_removed machine=%s", machine_id)

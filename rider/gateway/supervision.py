@@ -77,11 +77,12 @@ class Supervisor:
             if key not in open_now or now - caller.last_active > self.session_timeout
         ]
 
-    async def end(self, keys: list[str]) -> None:
+    async def end(self, keys: list[str], reason: str = "session_gone") -> None:
         for key in keys:
-            _caller, handle = self._riders.pop(key)
+            caller, handle = self._riders.pop(key)
             await asyncio.to_thread(handle.close)
-            log.warning("event=opcua_rider_ended rider=%s reason=session_gone", key)
+            idle = self._clock() - caller.last_active
+            log.warning("event=opcua_rider_ended rider=%s reason=%s idle_s=%.3f", key, reason, idle)
 
     async def watch(self) -> None:
         """Ends the Riders of sessions gone, every `CHECK_S`, until cancelled."""
@@ -93,7 +94,7 @@ class Supervisor:
 
     async def close(self) -> None:
         async with self._lock:
-            await self.end(list(self._riders))
+            await self.end(list(self._riders), "gateway_stopped")
 
 
 def open_session_keys(iserver: Any) -> set[str]:

@@ -1,0 +1,142 @@
+"""The gateway's OPC UA server against asyncua's client in this process: browse, read,
+subscribe, methods and their refusals, who may call, the encrypted endpoint."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+import pytest
+from asyncua import ua
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+
+from tests.gateway.support import Credentials, GatewayProc, make_credentials
+from tests.gateway.ua import Changes, call, connected, machines, ns, read, run
+
+pytestmark = pytest.mark.integration
+OPERATOR = "operator"
+_S = ua.StatusCodes
+
+
+def test_an_operator_browses_reads_subscribes_and_calls(
+    gateway: GatewayProc, creds: Credentials
+) -> None:
+    async def body() -> None:
+        async with connected(gateway.url, OPERATOR, creds.password) as c:
+            assert "m1" in await machines(c)
+            assert (await call(c, "m1", "Stop")).code == "RESP_DONE"
+            changes = Changes()
+            sub = await c.create_subscription(50, changes)
+            await sub.subscribe_data_change(c.get_node(ua.NodeId("m1/State", await ns(c))))
+            await changes.until("m1/State", "DONE", 10)
+
+            home = await call(c, "m1", "Home")
+            assert home.good and home.code == "RESP_HOME_ACCEPTED", home
+            assert home.state == "HOMING" and home.transaction_id
+            when = await changes.until("m1/State", "HOMING", 10)
+            # The machine's own time of the status that said it, as its source timestamp.
+            assert abs((datetime.now(UTC) - when).total_seconds()) < 10
+
+            start = await call(c, "m1", "Start", ua.Variant("", ua.VariantType.String))
+            assert start.status.value == _S.BadInvalidState, start
+            assert start.code == "WRONG_STATE" and "Start" in start.message, start
+            assert (await call(c, "m1", "Stop")).good
+
+            state = await read(c, "m1", "State")
+            assert state.StatusCode.is_good() and state.Value.Value in {"DONE", "HOMING"}
+            position = c.get_node(ua.NodeId("m1/TiltPosition", await ns(c)))
+            eu = await position.get_child(f"{await ns(c)}:EngineeringUnits")
+            assert (await eu.read_value()).DisplayName.Text == "°"
+
+    run(body())
+
+
+def test_anonymous_reads_and_browses_but_never_calls(gateway: GatewayProc) -> None:
+    async def body() -> None:
+        async with connected(gateway.url) as c:
+            assert "m1" in await machines(c)
+            before = await read(c, "m1", "State")
+            assert before.StatusCode.is_good()
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await call(c, "m1", "Home")
+            assert (await read(c, "m1", "State")).Value.Value == before.Value.Value
+
+    run(body())
+
+
+def test_a_wrong_password_is_refused(gateway: GatewayProc) -> None:
+    async def body() -> None:
+        with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+            async with connected(gateway.url, OPERATOR, "not-the-password"):
+                pass
+        with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+            async with connected(gateway.url, "nobody", "x"):
+                pass
+
+    run(body())
+
+
+def test_a_bad_argument_is_a_clear_bad_status_and_the_machine_keeps_cycling(
+    gateway: GatewayProc, creds: Credentials
+) -> None:
+    async def body() -> None:
+        async with connected(gateway.url, OPERATOR, creds.password) as c:
+            cycles = (await read(c, "m1", "Diagnostics/Cycles")).Value.Value
+            cases = [
+                ("Start", ua.Variant(5, ua.VariantType.Int32), _S.BadTypeMismatch, "String"),
+                (
+                    "Start",
+                    ua.Variant("{oops", ua.VariantType.String),
+                    _S.BadInvalidArgument,
+                    "not JSON",
+                ),
+                (
+                    "Start",
+                    ua.Variant('{"steps": []}', ua.VariantType.String),
+                    _S.BadInvalidArgument,
+                    "/steps",
+                ),
+                ("Home", ua.Variant("x", ua.VariantType.String), _S.BadTooManyArguments, "Home"),
+            ]
+            for method, arg, status, text in cases:
+                got = await call(c, "m1", method, arg)
+                assert got.status.value == status, got
+                assert got.code == "BAD_PAYLOAD" and text in got.message, got
+            deadline = time.monotonic() + 20
+            while (await read(c, "m1", "Diagnostics/Cycles")).Value.Value <= cycles:
+                assert time.monotonic() < deadline, "the scan loop stopped cycling"
+                await asyncio.sleep(0.1)
+
+    run(body())
+
+
+def test_the_encrypted_endpoint_uses_the_certificate_credentials_init_made(
+    gateway: GatewayProc, creds: Credentials, tmp_path: Path
+) -> None:
+    client_creds = make_credentials(tmp_path / "client")  # any application certificate
+
+    async def body() -> None:
+        async with connected(gateway.url) as c:
+            endpoints = await c.get_endpoints()
+        secure = [
+            e
+            for e in endpoints
+            if e.SecurityPolicyUri == SecurityPolicyBasic256Sha256.URI
+            and e.SecurityMode == ua.MessageSecurityMode.SignAndEncrypt
+        ]
+        assert secure and secure[0].ServerCertificate == creds.certificate.read_bytes()
+        security = ",".join(
+            [
+                "Basic256Sha256",
+                "SignAndEncrypt",
+                str(client_creds.certificate),
+                str(client_creds.private_key),
+                str(creds.certificate),
+            ]
+        )
+        async with connected(gateway.url, OPERATOR, creds.password, security=security) as c:
+            assert (await call(c, "m1", "Stop")).code == "RESP_DONE"
+
+    run(body())
