@@ -112,18 +112,16 @@ def _state(views: list[MachineView]) -> Iterator[Metric]:
 
 
 def _cycle(views: list[MachineView]) -> Iterator[Metric]:
-    execution = _gauge(
-        "ride_machine_cycle_execution_seconds",
-        "Scan-cycle execution time over the recent window, by quantile",
-        ("machine", "quantile"),
-    )
-    jitter = _gauge(
-        "ride_machine_cycle_jitter_seconds",
-        "Wake-up jitter over the recent window, by quantile",
-        ("machine", "quantile"),
-    )
-    worst = _gauge("ride_machine_cycle_execution_max_seconds", "Longest execution since reset")
-    period = _gauge("ride_machine_cycle_period_seconds", "The scan period configured")
+    # Quantiles as gauges of their own: the machine measures them over its recent window, and
+    # a `quantile` label belongs to summaries (with a count and a sum of the same cycles).
+    window = "over the machine's recent window of cycles"
+    gauges = {
+        "p50": _gauge("ride_machine_cycle_execution_p50_seconds", f"Median execution {window}"),
+        "p99": _gauge("ride_machine_cycle_execution_p99_seconds", f"99th pct execution {window}"),
+        "max": _gauge("ride_machine_cycle_execution_max_seconds", "Longest execution since reset"),
+        "jit": _gauge("ride_machine_cycle_jitter_p99_seconds", f"99th pct wake-up jitter {window}"),
+        "period": _gauge("ride_machine_cycle_period_seconds", "The scan period configured"),
+    }
     cycles = _counter("ride_machine_cycles", "Scan cycles run")
     overruns = _counter("ride_machine_overruns", "Cycles that overran their period (resettable)")
     missed = _counter("ride_machine_missed_cycles", "Deadlines skipped after overruns")
@@ -131,18 +129,19 @@ def _cycle(views: list[MachineView]) -> Iterator[Metric]:
         d, mid = v.diag, v.machine_id
         if d is None:
             continue
-        for q, e, j in (
-            ("0.5", d.execution.p50, d.jitter.p50),
-            ("0.99", d.execution.p99, d.jitter.p99),
-        ):
-            execution.add_metric([mid, q], e)
-            jitter.add_metric([mid, q], j)
-        worst.add_metric([mid], d.execution.max)
-        period.add_metric([mid], d.period_s)
+        values = {
+            "p50": d.execution.p50,
+            "p99": d.execution.p99,
+            "max": d.execution.max,
+            "jit": d.jitter.p99,
+            "period": d.period_s,
+        }
+        for key, family in gauges.items():
+            family.add_metric([mid], values[key])
         cycles.add_metric([mid], float(d.cycles))
         overruns.add_metric([mid], float(d.overruns))
         missed.add_metric([mid], float(d.missed_cycles))
-    yield from (execution, jitter, worst, period, cycles, overruns, missed)
+    yield from (*gauges.values(), cycles, overruns, missed)
 
 
 def _events(views: list[MachineView]) -> Iterator[Metric]:
