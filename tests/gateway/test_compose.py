@@ -1,0 +1,35 @@
+"""compose.yaml's gateway service: opt-in profile, a command the gateway's own parser takes,
+ports on host loopback, the `rider` login and the files `machine credentials init` makes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from service.adapters.credentials import password_file
+from service.adapters.opcua_credentials import CERTIFICATE, PRIVATE_KEY, USERS
+from tests.deploy import spec
+from tests.procs import REPO
+
+
+def test_the_gateway_service_is_opt_in_and_on_host_loopback() -> None:
+    compose = spec.load_compose()
+    svc = spec.service(compose, "gateway")
+    assert svc["profiles"] == ["gateway"]
+    args = spec.parse_cli(spec.command(svc))
+    assert args.cmd == "gateway"
+    gw = args.gateway
+    assert svc["ports"] == [
+        f"127.0.0.1:{gw.opcua[1]}:{gw.opcua[1]}",
+        f"127.0.0.1:{gw.metrics[1]}:{gw.metrics[1]}",
+    ]
+    env = spec.environment(svc)
+    assert env["RIDER_ZENOH_USER"] == "rider" and not gw.monitor
+    secrets = spec.secret_paths(compose, svc, REPO / "secrets")
+    assert secrets[env["RIDER_ZENOH_PASSWORD_FILE"]] == password_file(REPO / "secrets", "rider")
+    made = {Path(name) for name in (USERS, CERTIFICATE, PRIVATE_KEY)}
+    assert {
+        secrets[str(p)].relative_to(REPO / "secrets")
+        for p in (gw.users, gw.certificate, gw.private_key)
+    } == made
+    (endpoint,) = args.connect
+    assert endpoint == spec.environment(spec.service(compose, "rider"))["RIDER_CONNECT"]
