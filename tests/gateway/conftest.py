@@ -24,5 +24,5 @@ def plant(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
 @pytest.fixture(scope="package")
 def gateway(plant: Site, creds: Credentials) -> Iterator[GatewayProc]:
     """`rider gateway` on the plant's router, with operators, a certificate and short timeouts."""
-    with running_gateway(plant, creds) as gw:
+    with running_gateway(plant.rider_cmd(), creds) as gw:
         yield gw

@@ -17,7 +17,7 @@ from typing import TypeVar
 
 from service.adapters.opcua_credentials import CERTIFICATE, OPERATOR, PRIVATE_KEY, USERS, init_opcua
 from tests.procs import REPO, START_TIMEOUT_S, free_port, stop_process
-from tests.site.stand import Lines, Site
+from tests.site.stand import Lines
 
 T = TypeVar("T")
 NAMESPACE = "urn:ride-machine:gateway"
@@ -75,12 +75,14 @@ class GatewayProc:
 
 
 def start_gateway(
-    site: Site, creds: Credentials, *more: str, env: dict[str, str] | None = None
+    rider: list[str], creds: Credentials, *more: str, env: dict[str, str] | None = None
 ) -> GatewayProc:
-    """`rider gateway` connected to the site's router, as a client; returns once it serves."""
+    """`rider gateway` after the Rider options `rider` (`rider --connect …`); returns once it
+    serves."""
     opcua, metrics = free_port(), free_port()
     cmd = [
-        *site.rider_cmd("gateway"),
+        *rider,
+        "gateway",
         *["--opcua", f"127.0.0.1:{opcua}", "--metrics", f"127.0.0.1:{metrics}"],
         *["--users", str(creds.users), "--certificate", str(creds.certificate)],
         *["--private-key", str(creds.private_key)],
@@ -105,8 +107,10 @@ def start_gateway(
 
 
 @contextlib.contextmanager
-def running_gateway(site: Site, creds: Credentials, *more: str) -> Iterator[GatewayProc]:
-    gateway = start_gateway(site, creds, *more)
+def running_gateway(
+    rider: list[str], creds: Credentials, *more: str, env: dict[str, str] | None = None
+) -> Iterator[GatewayProc]:
+    gateway = start_gateway(rider, creds, *more, env=env)
     try:
         yield gateway
     finally:
