@@ -36,7 +36,7 @@ RUN --mount=type=secret,id=pip.conf,target=/etc/pip.conf \
     --mount=type=secret,id=pip-ca,target=/run/secrets/pip-ca \
     set -eu; \
     if [ "$WITH_COMPILER" = 1 ]; then \
-        apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+        apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev libffi-dev \
         && rm -rf /var/lib/apt/lists/*; \
     fi; \
     if [ -s /run/secrets/pip-ca ]; then export PIP_CERT=/run/secrets/pip-ca; fi; \
