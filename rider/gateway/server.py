@@ -159,8 +159,12 @@ class Gateway:
         for task in tasks:
             task.cancel()
         for task in tasks:
-            with contextlib.suppress(asyncio.CancelledError):
+            try:
                 await task
+            except asyncio.CancelledError:
+                pass
+            except Exception:  # the session must still close (an open one hangs the exit)
+                log.exception("event=task_failed task=%s", task.get_coro())
         await self.supervisor.close()
         with contextlib.suppress(Exception):  # a server that never started
             await self.server.stop()

@@ -113,8 +113,12 @@ def running_gateway(
     gateway = start_gateway(rider, creds, *more, env=env)
     try:
         yield gateway
-    finally:
+    except BaseException:
         gateway.stop()
+        raise
+    # SIGTERM: its sessions and the Zenoh session closed, exit 0 (an open session would hang).
+    assert gateway.stop() == 0
+    gateway.lines.wait_for("event=gateway_stopped")
 
 
 def until(what: str, probe: Callable[[], T | None], timeout: float = WAIT_S) -> T:

@@ -6,40 +6,22 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
 import pytest
 
 from tests.gateway.support import Credentials, GatewayProc
+from tests.procs import npm_ready
 
 pytestmark = pytest.mark.integration
 JS = Path(__file__).resolve().parent / "js"
 
 
-def node_ready() -> None:
-    """npm ci once (the lock file pins node-opcua's client), or skip saying why."""
-    if shutil.which("node") is None or shutil.which("npm") is None:
-        pytest.skip("node and npm are needed for the node-opcua check")
-    if (JS / "node_modules" / "node-opcua-client").is_dir():
-        return
-    done = subprocess.run(
-        ["npm", "ci", "--no-audit", "--no-fund"],
-        cwd=JS,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    if done.returncode != 0:
-        pytest.skip(f"npm ci failed (offline registry?): {done.stderr.strip()[-300:]}")
-
-
 def test_node_opcua_browses_reads_subscribes_and_calls(
     gateway: GatewayProc, creds: Credentials, tmp_path: Path
 ) -> None:
-    node_ready()
+    npm_ready(JS, "node-opcua-client", "the node-opcua check")
     done = subprocess.run(
         ["node", "opcua_check.mjs", gateway.url, "operator", creds.password, "m1"],
         cwd=JS,
