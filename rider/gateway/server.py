@@ -18,7 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from asyncua import Server, ua
-from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client import (
+    CollectorRegistry,
+    GCCollector,
+    PlatformCollector,
+    ProcessCollector,
+    start_http_server,
+)
 
 from rider.client import NoMachine
 from rider.gateway.alarms import alarm_of
@@ -110,6 +116,10 @@ class Gateway:
             return None
         registry = CollectorRegistry(auto_describe=False)
         registry.register(MachineCollector(lambda: list(self.views.values()), self.stats))
+        # The gateway's own CPU, memory and Python runtime, as any exporter has them.
+        ProcessCollector(registry=registry)
+        PlatformCollector(registry=registry)
+        GCCollector(registry=registry)
         host, port = self.o.metrics
         return start_http_server(port, addr=host, registry=registry)
 
