@@ -12,8 +12,9 @@ import pytest
 from asyncua import ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
-from tests.gateway.support import Credentials, GatewayProc, make_credentials
+from tests.gateway.support import Credentials, GatewayProc, make_credentials, running_gateway
 from tests.gateway.ua import Changes, call, connected, machines, ns, read, run
+from tests.site.stand import Site
 
 pytestmark = pytest.mark.integration
 OPERATOR = "operator"
@@ -140,3 +141,27 @@ def test_the_encrypted_endpoint_uses_the_certificate_credentials_init_made(
             assert (await call(c, "m1", "Stop")).code == "RESP_DONE"
 
     run(body())
+
+
+def test_a_listed_certificate_is_an_operator_an_unlisted_one_only_reads(
+    plant: Site, creds: Credentials, tmp_path: Path
+) -> None:
+    listed, unlisted = make_credentials(tmp_path / "a"), make_credentials(tmp_path / "b")
+    trusted = tmp_path / "operators"
+    trusted.mkdir()
+    (trusted / "a.der").write_bytes(listed.certificate.read_bytes())
+
+    def security(client: Credentials) -> str:
+        parts = [client.certificate, client.private_key, creds.certificate]
+        return ",".join(["Basic256Sha256", "SignAndEncrypt", *map(str, parts)])
+
+    async def body(url: str) -> None:
+        async with connected(url, security=security(listed)) as c:
+            assert (await call(c, "m1", "Stop")).code == "RESP_DONE"
+        async with connected(url, security=security(unlisted)) as c:
+            assert (await read(c, "m1", "State")).StatusCode.is_good()
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await call(c, "m1", "Stop")
+
+    with running_gateway(plant.rider_cmd(), creds, "--operator-certs", str(trusted)) as gw:
+        run(body(gw.url))
