@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -59,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--monitor",
         action="store_true",
-        help="read-only: every method call is refused (log into Zenoh as monitor)",
+        help="read-only: every method call is refused; give it the monitor login"
+        " (RIDER_ZENOH_USER=monitor) under the ACL profiles",
     )
     p.add_argument(
         "--users",
@@ -146,6 +148,9 @@ def main(
     )
     # asyncua logs every session and call at INFO; the gateway's own lines say what matters.
     logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger().level))
+    if os.environ.get("RIDER_ZENOH_USER") == "monitor" and not args.monitor:
+        # The ACL drops a monitor's commands unanswered: every call would end BadTimeout.
+        log.warning("event=monitor_login_commands hint=add --monitor for a read-only gateway")
     try:
         options = options_from(args, connect, zenoh_config, zenoh_threads)
         asyncio.run(_serve(options))
