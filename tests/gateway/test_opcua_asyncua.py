@@ -7,12 +7,20 @@ import asyncio
 import time
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import pytest
 from asyncua import ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
-from tests.gateway.support import Credentials, GatewayProc, make_credentials, running_gateway
+from rider.client import Rider
+from tests.gateway.support import (
+    Credentials,
+    GatewayProc,
+    make_credentials,
+    running_gateway,
+    until,
+)
 from tests.gateway.ua import Changes, call, connected, machines, ns, read, run
 from tests.site.stand import Site
 
@@ -165,3 +173,41 @@ def test_a_listed_certificate_is_an_operator_an_unlisted_one_only_reads(
 
     with running_gateway(plant.rider_cmd(), creds, "--operator-certs", str(trusted)) as gw:
         run(body(gw.url))
+
+
+def test_an_estop_is_an_opc_ua_event_on_the_machine_with_a_severity(
+    plant: Site, gateway: GatewayProc
+) -> None:
+    class Events:
+        def __init__(self) -> None:
+            self.got: asyncio.Queue[Any] = asyncio.Queue()
+
+        def event_notification(self, event: Any) -> None:
+            self.got.put_nowait(event)
+
+    async def body() -> None:
+        async with connected(gateway.url) as c:  # anonymous: events are read access
+            idx = await ns(c)
+            etype = await c.nodes.base_event_type.get_child(f"{idx}:MachineEventType")
+            events = Events()
+            sub = await c.create_subscription(50, events)
+            await sub.subscribe_events(c.get_node(ua.NodeId("m1", idx)), etype)
+            with plant.rider("m1", timeout=5.0, supervise=False) as r:
+                await asyncio.to_thread(r.sim, "estop", pressed=True)
+                try:
+                    async with asyncio.timeout(20):
+                        while (ev := await events.got.get()).Kind != "estop_pressed":
+                            pass
+                finally:
+                    await asyncio.to_thread(r.sim, "estop", pressed=False)
+                    await asyncio.to_thread(_released, r)
+                    await asyncio.to_thread(r.stop)
+            assert ev.Severity == 900 and ev.Code == "ESTOP" and ev.Machine == "m1"
+            assert ev.SourceName == "m1" and "E-stop" in ev.Message.Text
+
+    run(body())
+
+
+def _released(rider: Rider) -> None:
+    """Until the scan has seen the E-stop released (Stop is refused before)."""
+    until("E-stop released", lambda: not rider.status().estop.active or None)
