@@ -22,7 +22,21 @@ def plant(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
 
 
 @pytest.fixture(scope="package")
-def gateway(plant: Site, creds: Credentials) -> Iterator[GatewayProc]:
-    """`rider gateway` on the plant's router, with operators, a certificate and short timeouts."""
-    with running_gateway(plant.rider_cmd(), creds) as gw:
+def client_certs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Credentials, Credentials]:
+    """Two client application certificates: the first listed as an operator's, the other not."""
+    tmp = tmp_path_factory.mktemp("clients")
+    return make_credentials(tmp / "listed"), make_credentials(tmp / "unlisted")
+
+
+@pytest.fixture(scope="package")
+def gateway(
+    plant: Site, creds: Credentials, client_certs: tuple[Credentials, Credentials]
+) -> Iterator[GatewayProc]:
+    """`rider gateway` on the plant's router, with operators (by password, and by the listed
+    certificate), a certificate of its own and short timeouts."""
+    operators = client_certs[0].certificate.parent / "operators"
+    operators.mkdir()
+    (operators / "listed.der").write_bytes(client_certs[0].certificate.read_bytes())
+    more = ("--operator-certs", str(operators))
+    with running_gateway(plant.rider_cmd(), creds, *more) as gw:
         yield gw

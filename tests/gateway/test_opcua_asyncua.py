@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import time
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -17,8 +16,6 @@ from rider.client import Rider
 from tests.gateway.support import (
     Credentials,
     GatewayProc,
-    make_credentials,
-    running_gateway,
     until,
 )
 from tests.gateway.ua import Changes, call, connected, machines, ns, read, run
@@ -122,9 +119,9 @@ def test_a_bad_argument_is_a_clear_bad_status_and_the_machine_keeps_cycling(
 
 
 def test_the_encrypted_endpoint_uses_the_certificate_credentials_init_made(
-    gateway: GatewayProc, creds: Credentials, tmp_path: Path
+    gateway: GatewayProc, creds: Credentials, client_certs: tuple[Credentials, Credentials]
 ) -> None:
-    client_creds = make_credentials(tmp_path / "client")  # any application certificate
+    client_creds = client_certs[1]  # an application certificate that is no operator's
 
     async def body() -> None:
         async with connected(gateway.url) as c:
@@ -152,27 +149,23 @@ def test_the_encrypted_endpoint_uses_the_certificate_credentials_init_made(
 
 
 def test_a_listed_certificate_is_an_operator_an_unlisted_one_only_reads(
-    plant: Site, creds: Credentials, tmp_path: Path
+    gateway: GatewayProc, creds: Credentials, client_certs: tuple[Credentials, Credentials]
 ) -> None:
-    listed, unlisted = make_credentials(tmp_path / "a"), make_credentials(tmp_path / "b")
-    trusted = tmp_path / "operators"
-    trusted.mkdir()
-    (trusted / "a.der").write_bytes(listed.certificate.read_bytes())
+    listed, unlisted = client_certs
 
     def security(client: Credentials) -> str:
         parts = [client.certificate, client.private_key, creds.certificate]
         return ",".join(["Basic256Sha256", "SignAndEncrypt", *map(str, parts)])
 
-    async def body(url: str) -> None:
-        async with connected(url, security=security(listed)) as c:
+    async def body() -> None:
+        async with connected(gateway.url, security=security(listed)) as c:
             assert (await call(c, "m1", "Stop")).code == "RESP_DONE"
-        async with connected(url, security=security(unlisted)) as c:
+        async with connected(gateway.url, security=security(unlisted)) as c:
             assert (await read(c, "m1", "State")).StatusCode.is_good()
             with pytest.raises(ua.uaerrors.BadUserAccessDenied):
                 await call(c, "m1", "Stop")
 
-    with running_gateway(plant.rider_cmd(), creds, "--operator-certs", str(trusted)) as gw:
-        run(body(gw.url))
+    run(body())
 
 
 def test_an_estop_is_an_opc_ua_event_on_the_machine_with_a_severity(
