@@ -38,7 +38,7 @@ COPY docker/pip/ /etc/pip-build/
 # hadolint ignore=DL3008
 RUN set -eu; \
     if [ "$WITH_COMPILER" = 1 ]; then \
-        apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+        apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev libffi-dev \
         && rm -rf /var/lib/apt/lists/*; \
     fi; \
     [ -n "$PIP_INDEX_URL" ] || unset PIP_INDEX_URL; \

@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-under-load install browser js schema states lint bench clean
+.PHONY: run test test-under-load install browser prometheus js schema states lint bench clean
 
 # The locked versions (requirements/dev.txt, hashes checked), then the project itself on top.
 $(STAMP): pyproject.toml requirements/dev.txt
@@ -28,11 +28,22 @@ browser:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	  else echo "chromium not installed: the browser tests will be skipped"; fi; }
 
-## ajv for the JSON Schema check from Node (tests/js; pinned by its package-lock.json), when
-## node and npm are present; without them that test skips and says why.
+## Debian's Prometheus server and promtool for the gateway's metrics tests (installed when root
+## with apt, as on CI; elsewhere those tests skip and say why).
+prometheus:
+	@command -v promtool >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends prometheus >/dev/null; \
+	  else echo "prometheus not installed: the gateway's Prometheus tests will be skipped"; fi; }
+
+## ajv for the JSON Schema check from Node (tests/js) and node-opcua's client for the gateway's
+## OPC UA check (tests/gateway/js), each pinned by its package-lock.json, when node and npm are
+## present; without them those tests skip and say why.
 js:
-	@if command -v npm >/dev/null 2>&1; then npm ci --prefix tests/js --no-audit --no-fund --silent; \
-	else echo "npm not installed: the ajv schema check will be skipped"; fi
+	@if command -v npm >/dev/null 2>&1; then \
+	  npm ci --prefix tests/js --no-audit --no-fund --silent && \
+	  npm ci --prefix tests/gateway/js --no-audit --no-fund --silent; \
+	else echo "npm not installed: the ajv and node-opcua checks will be skipped"; fi
 
 ## Regenerate the checked-in JSON Schema (schema/json/) from the models.
 schema: $(STAMP)
@@ -44,7 +55,7 @@ states: $(STAMP)
 	$(BIN)/python -m service.core.control_doc
 
 ## Install, then lint, type-check and run the whole test suite.
-test: $(STAMP) browser js
+test: $(STAMP) browser prometheus js
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
@@ -70,11 +81,12 @@ LOCK = $(BIN)/pip-compile --quiet --generate-hashes --allow-unsafe --strip-extra
 	--no-emit-index-url $(if $(UPGRADE),--upgrade)
 lock: $(STAMP)
 	$(BIN)/python -m pip install --quiet "pip-tools>=7.5,<8"
-	$(LOCK) --extra dev --extra revpi --extra ui --all-build-deps \
+	$(LOCK) --extra dev --extra revpi --extra ui --extra gateway --all-build-deps \
 	  -o requirements/dev.txt pyproject.toml
-	$(LOCK) --extra revpi --extra ui -c requirements/dev.txt -o requirements/runtime.txt pyproject.toml
+	$(LOCK) --extra revpi --extra ui --extra gateway -c requirements/dev.txt -o requirements/runtime.txt pyproject.toml
 	$(LOCK) --all-build-deps --only-build-deps -c requirements/dev.txt \
 	  -o requirements/build.txt pyproject.toml
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache tests/js/node_modules
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache tests/js/node_modules \
+	  tests/gateway/js/node_modules

@@ -12,6 +12,7 @@ from bench import (
     estop,
     events_cost,
     freeze,
+    gateway,
     healthcheck,
     loop_timing,
     pick,
@@ -51,6 +52,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.read_flood", read_flood.run),
     ("bench.freeze", freeze.run),
     ("bench.healthcheck", healthcheck.run),
+    ("bench.gateway", gateway.run),
 ]
 
 

@@ -230,9 +230,10 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 - argparse decla
         "--summary", action="store_true", help="sessions, ride time, E-stops, faults by code"
     )
     ev.add_argument("--json", action="store_true", default=argparse.SUPPRESS, help="JSON lines")
-    # These two parse their own options (see rider/fastdata.py and rider/ui/app.py).
+    # These parse their own options (rider/fastdata.py, rider/ui/app.py, rider/gateway/cli.py).
     sub.add_parser("fastdata", help="read the FastData UDP axis stream", add_help=False)
     sub.add_parser("ui", help="serve the operator web UI", add_help=False)
+    sub.add_parser("gateway", help="OPC UA and Prometheus for the plant", add_help=False)
     return p
 
 
@@ -811,7 +812,7 @@ def events(args: argparse.Namespace, rider: Rider) -> int:
 def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0912 - one branch per way the CLI ends (usage, refusal, link, interrupt)
     parser = build_parser()
     args, rest = parser.parse_known_args(argv)
-    if args.cmd not in ("fastdata", "ui") and rest:
+    if args.cmd not in ("fastdata", "ui", "gateway") and rest:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
     if args.cmd == "fastdata":
         from rider.fastdata import SET_COMMANDS, parse_set
@@ -824,6 +825,10 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0912 - one
         args.cmd, args.params_cmd = "params", "set"
         args.name, args.value, args.persist = reg.name, reg.value, reg.persist
     connect = args.connect or env_connect()
+    if args.cmd == "gateway":
+        from rider.gateway.cli import main as gateway_main
+
+        return gateway_main(rest, connect, args.zenoh_config, args.zenoh_threads)
     if args.cmd == "ui":
         from rider.ui.app import main as ui_main
 

@@ -206,9 +206,20 @@ def credentials_init(directory: Path, force: bool) -> int:
         init_credentials,
         password_file,
     )
+    from service.adapters.opcua_credentials import (
+        CERTIFICATE,
+        PRIVATE_KEY,
+        USERS,
+        init_opcua,
+        opcua_files,
+    )
 
     try:
+        existing = [str(p) for p in opcua_files(directory) if p.exists()]
+        if existing and not force:
+            raise CredentialsExist(f"{', '.join(existing)}: exists already (--force replaces)")
         written = init_credentials(directory, force=force)
+        written += init_opcua(directory)  # the plant gateway's (docs/plant.md)
     except (CredentialsExist, OSError) as exc:
         print(f"machine: credentials: {exc}", file=sys.stderr)
         return EXIT_FAILED
@@ -220,6 +231,9 @@ def credentials_init(directory: Path, force: bool) -> int:
         f"{d / DICTIONARY} machine run --zenoh-config zenoh/acl.json5\n"
         f"rider:   RIDER_ZENOH_USER=rider RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'rider')}\n"
         f"monitor: RIDER_ZENOH_USER=monitor RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'monitor')}"
+        "\n"
+        f"gateway: rider gateway --users {d / USERS} --certificate {d / CERTIFICATE}"
+        f" --private-key {d / PRIVATE_KEY}"
     )
     return EXIT_OK
 

@@ -24,8 +24,14 @@ MAY_IMPORT = {
 SIM_DOOR = "service/simwing.py"
 """The composition point: the only production module that imports `sim` (lazily)."""
 
-ZENOH_MODULES = ("service/bus/", "rider/client.py", "rider/discovery.py")
-"""Where `zenoh` may be imported: the machine's bus and the Rider's client side."""
+ZENOH_MODULES = (
+    "service/bus/",
+    "rider/client.py",
+    "rider/discovery.py",
+    "rider/gateway/bus.py",
+)
+"""Where `zenoh` may be imported: the machine's bus and the Rider's client side (the plant
+gateway's own session included)."""
 
 
 def modules() -> Iterator[Path]:

@@ -32,6 +32,7 @@ MODULES = [
     "read_flood",
     "freeze",
     "healthcheck",
+    "gateway",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0

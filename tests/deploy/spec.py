@@ -300,7 +300,8 @@ def entry_points() -> dict[str, str]:
 
 def parse_cli(argv: Sequence[str]) -> argparse.Namespace:
     """Parse a `machine …` or `rider …` command line with the package's own parsers, the way
-    their `main()` does (including `rider ui`'s own options); raise SpecError if it fails."""
+    their `main()` does (including `rider ui`'s and `rider gateway`'s own options); raise
+    SpecError if it fails."""
     if not argv:
         raise SpecError("empty command")
     program, args = argv[0], list(argv[1:])
@@ -318,6 +319,10 @@ def parse_cli(argv: Sequence[str]) -> argparse.Namespace:
         from rider.ui.app import build_parser as ui_parser
 
         ns.ui = _parse(ui_parser(), rest, argv)
+    elif ns.cmd == "gateway":
+        from rider.gateway.cli import build_parser as gateway_parser
+
+        ns.gateway = _parse(gateway_parser(), rest, argv)
     elif rest:
         raise SpecError(f"{shlex.join(argv)}: unrecognized arguments {rest}")
     return ns

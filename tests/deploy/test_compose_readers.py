@@ -100,7 +100,7 @@ def project(tmp_path: Path) -> Path:
     for rel in ("compose.yaml", "machine.toml", "zenoh.json5", "zenoh/acl.json5"):
         (root / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(REPO / rel, root / rel)
-    for name in ("compose.router.yaml", "zenohd.json5", "zenohd-start.sh"):
+    for name in ("compose.router.yaml", "compose.gateway.yaml", "zenohd.json5", "zenohd-start.sh"):
         (root / "docker").mkdir(exist_ok=True)
         shutil.copy2(REPO / "docker" / name, root / "docker" / name)
     init_credentials(root / "secrets")
@@ -249,3 +249,41 @@ def test_every_compose_implementation_keeps_the_router_entrypoint_and_mounts(
     assert router["entrypoint"] == ["/bin/sh", "/etc/zenoh/zenohd-start.sh"]
     sources = [v["source"] if isinstance(v, dict) else v.split(":")[0] for v in router["volumes"]]  # type: ignore[attr-defined]
     assert script in sources, sources
+
+
+@contextlib.contextmanager
+def metrics_stand_in(root: Path) -> Iterator[int]:
+    """An HTTP server answering /metrics (200) as the gateway does, on a free port."""
+    (root / "metrics-www").mkdir()
+    (root / "metrics-www" / "metrics").write_text("up 1\n")
+    handler = functools.partial(
+        http.server.SimpleHTTPRequestHandler, directory=root / "metrics-www"
+    )
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield server.server_address[1]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@pytest.mark.parametrize("reader", READERS or [None], ids=lambda r: r.label if r else "none")
+def test_every_compose_implementation_passes_the_gateway_healthcheck_on_intact(
+    reader: Reader | None, project: Path
+) -> None:
+    if reader is None:
+        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
+    files = ("compose.yaml", "docker/compose.gateway.yaml")
+    if reader.kind == "podman-compose":
+        check = podman_health(podman_runs(reader, project, *files)["gateway"])
+    else:
+        check = docker_health(docker_config(reader, project, *files)["gateway"])
+    bin_dir = project.parent / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "python").symlink_to(sys.executable)
+    with metrics_stand_in(project) as port:
+        mapping = {"127.0.0.1:9464": f"127.0.0.1:{port}"}
+        assert run_here(check, mapping, bin_dir) == 0, check
+    assert run_here(check, mapping, bin_dir) != 0  # nothing answers: unhealthy

@@ -38,7 +38,7 @@ def canonical(name: str) -> str:
 def declared() -> list[Requirement]:
     project = spec.pyproject()["project"]
     reqs = list(project["dependencies"])
-    for extra in ("dev", "revpi", "ui"):
+    for extra in ("dev", "revpi", "ui", "gateway"):
         reqs += project["optional-dependencies"][extra]
     reqs += spec.pyproject()["build-system"]["requires"]
     return [Requirement(r) for r in reqs]
@@ -63,7 +63,7 @@ def test_the_image_locks_are_the_dev_versions() -> None:
     runtime = pins(LOCKS / "runtime.txt")
     project = spec.pyproject()["project"]
     image_reqs = project["dependencies"] + [
-        r for e in ("revpi", "ui") for r in project["optional-dependencies"][e]
+        r for e in ("revpi", "ui", "gateway") for r in project["optional-dependencies"][e]
     ]
     assert {canonical(Requirement(r).name) for r in image_reqs} <= runtime.keys()
     assert not {"pytest", "ruff", "mypy", "playwright"} & runtime.keys(), "dev tools in the image"

@@ -27,6 +27,7 @@ import zenoh
 
 from service.adapters.credentials import DICTIONARY, IDENTITIES, password_file
 from service.adapters.heartbeat import HEARTBEAT_FILE_ENV, INTERVAL_S
+from service.adapters.opcua_credentials import opcua_files
 from service.bus import close_session
 from service.config.model import MachineConfig
 from service.supervision.daemon import SHUTDOWN_DEADLINE_S
@@ -170,7 +171,8 @@ def test_machine_runs_the_authenticated_profile_and_clients_log_in(
     host = spec.secret_paths(compose, rider, REPO / "secrets")[env["RIDER_ZENOH_PASSWORD_FILE"]]
     assert host == password_file(REPO / "secrets", "rider")
     declared = {Path(d["file"]).name for d in compose["secrets"].values()}
-    assert declared <= {password_file(Path(), u).name for u in IDENTITIES} | {DICTIONARY}
+    gateway = {p.name for p in opcua_files(Path())}  # the plant gateway's (docs/plant.md)
+    assert declared <= {password_file(Path(), u).name for u in IDENTITIES} | {DICTIONARY} | gateway
 
 
 def test_machine_config_and_data_dir_are_mounted(compose: dict[str, Any]) -> None:

@@ -8,17 +8,14 @@ the table is also checked against what the daemon really serves.
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
 
-import pytest
-
 from rider.client import Rider
 from schema.keys import KEYS, Direction
 from tests.integration.support import fast_daemon, prepare
-from tests.procs import REPO
+from tests.procs import REPO, npm_ready
 
 JS = REPO / "tests" / "js"
 SCHEMA_DIR = REPO / "schema" / "json"
@@ -38,20 +35,7 @@ SKIP_COMMANDS = {"cmd/calibrate/tilt", "cmd/calibrate/rotate", "cmd/home", "cmd/
 
 def node_ready() -> None:
     """npm ci once (the lock file pins ajv), or skip saying why."""
-    if shutil.which("node") is None or shutil.which("npm") is None:
-        pytest.skip("node and npm are needed for the ajv check")
-    if (JS / "node_modules" / "ajv").is_dir():
-        return
-    done = subprocess.run(
-        ["npm", "ci", "--no-audit", "--no-fund"],
-        cwd=JS,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    if done.returncode != 0:
-        pytest.skip(f"npm ci failed (offline registry?): {done.stderr.strip()[-300:]}")
+    npm_ready(JS, "ajv", "the ajv check")
 
 
 def ask_json(rider: Rider, key: str, body: dict[str, Any] | None) -> list[Any]:

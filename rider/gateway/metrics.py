@@ -1,0 +1,184 @@
+"""The machines as Prometheus metrics, read from the gateway's views at each scrape.
+
+Names follow Prometheus' conventions: a `ride_machine_` prefix, base units (seconds), `_total`
+for counters, one label `machine` (plus `state`, `code`, `axis` or `quantile` where a metric has
+several series). docs/plant.md lists them; docs/plant-alerts.yml alerts on them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+from rider.gateway.model import MachineView
+from schema.status import MachineState
+
+
+@dataclass(frozen=True)
+class GatewayStats:
+    """The gateway's own counters, for its metrics."""
+
+    machines: int
+    opcua_sessions: int
+    supervising: int
+    updates_dropped: int
+
+
+class MachineCollector(Collector):
+    """A custom collector: the views as they are at scrape time, no copy kept per update."""
+
+    def __init__(
+        self,
+        views: Callable[[], list[MachineView]],
+        stats: Callable[[], GatewayStats],
+    ) -> None:
+        self._views = views
+        self._stats = stats
+
+    def describe(self) -> list[Metric]:
+        return []  # unchecked registration: the series come and go with the machines
+
+    def collect(self) -> Iterator[Metric]:
+        views = self._views()
+        yield from _presence(views)
+        yield from _state(views)
+        yield from _cycle(views)
+        yield from _events(views)
+        yield from _gateway(self._stats())
+
+
+def _gauge(name: str, doc: str, labels: tuple[str, ...] = ("machine",)) -> GaugeMetricFamily:
+    return GaugeMetricFamily(name, doc, labels=list(labels))
+
+
+def _counter(name: str, doc: str, labels: tuple[str, ...] = ("machine",)) -> CounterMetricFamily:
+    return CounterMetricFamily(name, doc, labels=list(labels))
+
+
+def _presence(views: list[MachineView]) -> Iterator[Metric]:
+    alive = _gauge("ride_machine_alive", "1 while the machine's liveliness token is present")
+    uptime = _gauge("ride_machine_uptime_seconds", "Seconds since the daemon started")
+    seen = _gauge(
+        "ride_machine_status_timestamp_seconds",
+        "The machine's time of its latest status publication (Unix seconds)",
+    )
+    for v in views:
+        alive.add_metric([v.machine_id], 1.0 if v.alive else 0.0)
+        if v.status is not None:
+            uptime.add_metric([v.machine_id], v.status.uptime_s)
+            seen.add_metric([v.machine_id], v.status.time)
+    yield from (alive, uptime, seen)
+
+
+def _state(views: list[MachineView]) -> Iterator[Metric]:
+    state = _gauge(
+        "ride_machine_state",
+        "1 for the machine's current state, 0 for the others",
+        ("machine", "state"),
+    )
+    fault = _gauge("ride_machine_fault", "1 while a fault is active, by code", ("machine", "code"))
+    estop = _gauge("ride_machine_estop_active", "1 while the E-stop input is pressed")
+    latched = _gauge("ride_machine_estop_latched", "1 while the E-stop latch is set")
+    rider = _gauge("ride_machine_rider_connected", "1 while the controlling Rider is present")
+    storage = _gauge(
+        "ride_machine_storage_warnings", "Status warnings about writes to the data directory"
+    )
+    flags = {
+        "calibrated": _gauge(
+            "ride_machine_calibrated", "1 if the axis is calibrated", ("machine", "axis")
+        ),
+        "homed": _gauge("ride_machine_homed", "1 if the axis is homed", ("machine", "axis")),
+    }
+    for v in views:
+        s, mid = v.status, v.machine_id
+        if s is None:
+            continue
+        for name in MachineState:
+            state.add_metric([mid, name.value], 1.0 if s.state is name else 0.0)
+        if s.fault is not None:
+            fault.add_metric([mid, str(s.fault.code)], 1.0)
+        estop.add_metric([mid], float(s.estop.active))
+        latched.add_metric([mid], float(s.estop.latched))
+        rider.add_metric([mid], float(s.rider_connected))
+        storage.add_metric([mid], float(v.storage_warnings))
+        for attr, family in flags.items():
+            axes = getattr(s, attr)
+            for axis in ("tilt", "rotate"):
+                family.add_metric([mid, axis], float(getattr(axes, axis)))
+    yield from (state, fault, estop, latched, rider, storage, *flags.values())
+
+
+def _cycle(views: list[MachineView]) -> Iterator[Metric]:
+    # Quantiles as gauges of their own: the machine measures them over its recent window, and
+    # a `quantile` label belongs to summaries (with a count and a sum of the same cycles).
+    window = "over the machine's recent window of cycles"
+    gauges = {
+        "p50": _gauge("ride_machine_cycle_execution_p50_seconds", f"Median execution {window}"),
+        "p99": _gauge("ride_machine_cycle_execution_p99_seconds", f"99th pct execution {window}"),
+        "max": _gauge("ride_machine_cycle_execution_max_seconds", "Longest execution since reset"),
+        "jit": _gauge("ride_machine_cycle_jitter_p99_seconds", f"99th pct wake-up jitter {window}"),
+        "period": _gauge("ride_machine_cycle_period_seconds", "The scan period configured"),
+    }
+    cycles = _counter("ride_machine_cycles", "Scan cycles run")
+    overruns = _counter("ride_machine_overruns", "Cycles that overran their period (resettable)")
+    missed = _counter("ride_machine_missed_cycles", "Deadlines skipped after overruns")
+    for v in views:
+        d, mid = v.diag, v.machine_id
+        if d is None:
+            continue
+        values = {
+            "p50": d.execution.p50,
+            "p99": d.execution.p99,
+            "max": d.execution.max,
+            "jit": d.jitter.p99,
+            "period": d.period_s,
+        }
+        for key, family in gauges.items():
+            family.add_metric([mid], values[key])
+        cycles.add_metric([mid], float(d.cycles))
+        overruns.add_metric([mid], float(d.overruns))
+        missed.add_metric([mid], float(d.missed_cycles))
+    yield from (*gauges.values(), cycles, overruns, missed)
+
+
+def _events(views: list[MachineView]) -> Iterator[Metric]:
+    commands = _counter(
+        "ride_machine_commands",
+        "Commands answered since the gateway started, by reply code",
+        ("machine", "code"),
+    )
+    written = _counter("ride_machine_events_written", "Events written to the machine's history")
+    lost = _counter("ride_machine_events_lost", "Events lost: dropped (queue full) or not written")
+    failures = _counter("ride_machine_storage_failures", "Writes of the event history that failed")
+    for v in views:
+        mid = v.machine_id
+        for code, n in sorted(v.commands.items()):
+            commands.add_metric([mid, code], float(n))
+        events = v.diag.events if v.diag is not None else None
+        if events is not None:
+            written.add_metric([mid], float(events.written))
+            lost.add_metric([mid], float(events.lost + events.dropped))
+            failures.add_metric([mid], float(events.failures))
+    yield from (commands, written, lost, failures)
+
+
+def _gateway(stats: GatewayStats) -> Iterator[Metric]:
+    yield GaugeMetricFamily(
+        "ride_gateway_machines", "Machines the gateway follows", value=stats.machines
+    )
+    yield GaugeMetricFamily(
+        "ride_gateway_opcua_sessions", "OPC UA sessions open", value=stats.opcua_sessions
+    )
+    yield GaugeMetricFamily(
+        "ride_gateway_opcua_supervising",
+        "OPC UA sessions holding a Rider's supervision (they commanded)",
+        value=stats.supervising,
+    )
+    yield CounterMetricFamily(
+        "ride_gateway_updates_dropped",
+        "Publications dropped: the gateway fell behind",
+        value=stats.updates_dropped,
+    )

@@ -1,0 +1,68 @@
+"""What the gateway knows of each machine: the latest publications, kept as plain data.
+
+The bus side writes it (one thread at a time: the gateway's event loop), the OPC UA side and the
+Prometheus collector read it. No Zenoh, no OPC UA and no clock reads here: time comes in.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+from schema.axes import AxisRecord
+from schema.diag import CycleDiag
+from schema.errors import ErrorCode
+from schema.events import CommandEvent, Event
+from schema.io import IoValue
+from schema.status import Status
+
+STORAGE_WARNING = ErrorCode.STORAGE_FAILED.value
+"""How every status warning about the data directory starts (service/core/persist.py)."""
+
+
+@dataclass
+class MachineView:
+    """One machine as the gateway last heard it. `alive` follows its liveliness token."""
+
+    machine_id: str
+    alive: bool = True
+    status: Status | None = None
+    diag: CycleDiag | None = None
+    io: dict[str, IoValue] = field(default_factory=dict)
+    """By `<kind>/<name>`, e.g. `di/estop`."""
+    axes: dict[str, AxisRecord] = field(default_factory=dict)
+    commands: Counter[str] = field(default_factory=Counter)
+    """Commands the machine answered since the gateway started, by reply or error code (from
+    its `command` events)."""
+    events_seen: int = 0
+    left_at: float | None = None
+    """When its token went (monotonic seconds); None while alive."""
+
+    def apply(self, update: Status | CycleDiag | IoValue | AxisRecord) -> None:
+        """Keep a publication (a newer status never loses to an older one arriving late)."""
+        if isinstance(update, Status):
+            if self.status is None or update.seq >= self.status.seq or update.seq < 2:
+                self.status = update  # seq restarts at 1 with the daemon
+        elif isinstance(update, CycleDiag):
+            self.diag = update
+        elif isinstance(update, IoValue):
+            self.io[f"{update.kind}/{update.name}"] = update
+        else:
+            self.axes[update.axis] = update
+
+    def count(self, event: Event) -> None:
+        """An event from the machine's history stream: commands are counted by code."""
+        self.events_seen += 1
+        if isinstance(event.details, CommandEvent) and not event.details.repeat:
+            self.commands[event.details.code] += 1
+
+    def presence(self, alive: bool, now: float) -> None:
+        self.alive = alive
+        self.left_at = None if alive else now
+
+    @property
+    def storage_warnings(self) -> int:
+        """Status warnings about the data directory (a write that failed)."""
+        if self.status is None:
+            return 0
+        return sum(w.startswith(STORAGE_WARNING) for w in self.status.warnings)

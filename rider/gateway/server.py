@@ -1,0 +1,286 @@
+"""The gateway assembled: the bus, the OPC UA server, the metrics endpoint, and the loop that
+carries what the machines publish to both.
+
+One asyncio loop owns the views and the address space. Zenoh's threads only hand samples to it
+(`call_soon_threadsafe`); blocking Zenoh work (declarations, command round trips) runs on worker
+threads. A publication the loop cannot keep up with is dropped and counted, never queued without
+bound.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from asyncua import Server, ua
+from prometheus_client import (
+    CollectorRegistry,
+    GCCollector,
+    PlatformCollector,
+    ProcessCollector,
+    start_http_server,
+)
+
+from rider.client import NoMachine
+from rider.gateway.alarms import alarm_of
+from rider.gateway.bus import Attached, Deliver, GatewayBus
+from rider.gateway.methods import Commander, add_methods
+from rider.gateway.metrics import GatewayStats, MachineCollector
+from rider.gateway.model import MachineView
+from rider.gateway.security import Rules, Users
+from rider.gateway.space import NAMESPACE, Space
+from rider.gateway.supervision import Supervisor, open_session_keys
+from schema.commands import Command, CommandRequest, Reply
+from schema.events import Event
+
+log = logging.getLogger(__name__)
+
+MAX_PENDING = 10_000
+"""Publications waiting for the loop; beyond this they are dropped (and counted)."""
+APPLICATION_URI = NAMESPACE
+"""The gateway's OPC UA application URI: its certificate names it (`machine credentials init`)."""
+
+
+@dataclass
+class Options:
+    """What `rider gateway` was told (rider/gateway/cli.py)."""
+
+    connect: list[str]
+    zenoh_config: Path | None
+    opcua: tuple[str, int] = ("127.0.0.1", 4840)
+    metrics: tuple[str, int] | None = ("127.0.0.1", 9464)
+    read_only: bool = False
+    users: dict[str, str] = field(default_factory=dict)
+    operator_certs: dict[bytes, str] = field(default_factory=dict)
+    certificate: Path | None = None
+    private_key: Path | None = None
+    session_timeout_s: float = 10.0
+    forget_after_s: float = 30.0
+    command_timeout_s: float = 2.0
+    prefix: str = "machine"
+    zenoh_threads: int = 1
+
+
+class Gateway:
+    """Serves every machine the bus shows, until `stop` is set."""
+
+    def __init__(self, options: Options) -> None:
+        self.o = options
+        self.views: dict[str, MachineView] = {}
+        self.attached: dict[str, Attached] = {}
+        self.dropped = 0
+        self.ready = asyncio.Event()
+        self._pending = 0
+        self._inbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
+        self.server = Server(user_manager=Users(options.users, options.operator_certs))
+        self.space = Space(self.server)
+        self.bus: GatewayBus | None = None
+        self.supervisor = Supervisor(
+            self._declare_rider,
+            lambda: open_session_keys(self.server.iserver),
+            options.session_timeout_s,
+        )
+        self.commander = Commander(self._send, self.supervisor.rider_for, options.read_only)
+
+    # ------------------------------------------------------------------------------- setup
+    async def _opcua(self) -> None:
+        o, s = self.o, self.server
+        await s.init()
+        host, port = o.opcua
+        s.set_endpoint(f"opc.tcp://{host}:{port}/")
+        s.set_server_name("ride-machine gateway")
+        await s.set_application_uri(APPLICATION_URI)
+        policies = [ua.SecurityPolicyType.NoSecurity]
+        if o.certificate is not None and o.private_key is not None:
+            await s.load_certificate(str(o.certificate))
+            await s.load_private_key(str(o.private_key))
+            policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
+        s.set_security_policy(policies, permission_ruleset=Rules())
+        s.set_identity_tokens(
+            [ua.AnonymousIdentityToken, ua.UserNameIdentityToken, ua.X509IdentityToken]
+        )
+        # The longest a session may stay silent before it is closed (and its Riders end).
+        timeout_ms = o.session_timeout_s * 1000
+        s.iserver.max_session_timeout_ms = timeout_ms
+        s.iserver.min_session_timeout_ms = min(1000.0, timeout_ms)
+        await self.space.setup()
+        await s.start()
+
+    def _metrics(self) -> Any:
+        if self.o.metrics is None:
+            return None
+        registry = CollectorRegistry(auto_describe=False)
+        registry.register(MachineCollector(lambda: list(self.views.values()), self.stats))
+        # The gateway's own CPU, memory and Python runtime, as any exporter has them.
+        ProcessCollector(registry=registry)
+        PlatformCollector(registry=registry)
+        GCCollector(registry=registry)
+        host, port = self.o.metrics
+        return start_http_server(port, addr=host, registry=registry)
+
+    def stats(self) -> GatewayStats:
+        return GatewayStats(
+            machines=sum(v.alive for v in self.views.values()),
+            opcua_sessions=len(open_session_keys(self.server.iserver)),
+            supervising=self.supervisor.supervising,
+            updates_dropped=self.dropped,
+        )
+
+    # --------------------------------------------------------------------------------- run
+    async def run(self, stop: asyncio.Event) -> None:
+        o = self.o
+        self.bus = await asyncio.to_thread(
+            GatewayBus,
+            o.connect,
+            o.zenoh_config,
+            prefix=o.prefix,
+            timeout=o.command_timeout_s,
+            zenoh_threads=o.zenoh_threads,
+        )
+        metrics: Any = None
+        tasks: list[asyncio.Task[None]] = []
+        try:
+            await self._opcua()
+            metrics = self._metrics()
+            self.bus.follow(self._deliver())
+            tasks = [
+                asyncio.create_task(self._consume()),
+                asyncio.create_task(self.supervisor.watch()),
+                asyncio.create_task(self._forget()),
+            ]
+            self.ready.set()
+            log.info(
+                "event=gateway_ready opcua=%s:%s metrics=%s zenoh=%s mode=%s",
+                *o.opcua,
+                f"{o.metrics[0]}:{o.metrics[1]}" if o.metrics else "off",
+                self.bus.zid,
+                "monitor" if o.read_only else "operator",
+            )
+            await stop.wait()
+        finally:
+            await self._shutdown(tasks, metrics)
+
+    async def _shutdown(self, tasks: list[asyncio.Task[None]], metrics: Any) -> None:
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+            except Exception:  # the session must still close (an open one hangs the exit)
+                log.exception("event=task_failed task=%s", task.get_coro())
+        await self.supervisor.close()
+        with contextlib.suppress(Exception):  # a server that never started
+            await self.server.stop()
+        if metrics is not None:
+            server, thread = metrics
+            server.shutdown()
+            thread.join(timeout=2.0)
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            for attached in self.attached.values():
+                await asyncio.to_thread(attached.close)
+            await asyncio.to_thread(bus.close)
+        log.info("event=gateway_stopped")
+
+    # ----------------------------------------------------------------------- machines
+    def _arrive(self, machine_id: str, item: Any) -> None:
+        """On the loop: queue what the bus delivered (presence is never dropped)."""
+        if not isinstance(item, bool):
+            if self._pending >= MAX_PENDING:
+                self.dropped += 1
+                return
+            self._pending += 1
+        self._inbox.put_nowait((machine_id, item))
+
+    async def _consume(self) -> None:
+        while True:
+            machine_id, item = await self._inbox.get()
+            try:
+                await self._handle(machine_id, item)
+            except Exception:  # one item that fails must not stop the gateway (it is logged)
+                log.exception("event=update_failed machine=%s item=%s", machine_id, type(item))
+
+    async def _handle(self, machine_id: str, item: Any) -> None:
+        if isinstance(item, bool):
+            await self._presence(machine_id, item)
+            return
+        self._pending -= 1
+        view, node = self.views.get(machine_id), self.space.machines.get(machine_id)
+        if view is None or node is None:
+            return  # forgotten, or a sample that came before its token
+        if isinstance(item, Event):
+            view.count(item)
+            if (alarm := alarm_of(item)) is not None:
+                await node.fire(alarm, item.time)
+        else:
+            view.apply(item)
+            await node.update(item)
+
+    async def _presence(self, machine_id: str, alive: bool) -> None:
+        view = self.views.get(machine_id)
+        if not alive:
+            if view is not None and view.alive:
+                view.presence(False, time.monotonic())
+                if (node := self.space.machines.get(machine_id)) is not None:
+                    await node.presence(False)
+                log.warning("event=machine_gone machine=%s", machine_id)
+            return
+        if view is None:
+            view = self.views[machine_id] = MachineView(machine_id)
+        view.presence(True, time.monotonic())
+        node = self.space.machines.get(machine_id)
+        if node is None:
+            node = await self.space.add(machine_id)
+            await add_methods(node.obj, self.space.idx, machine_id, self.commander)
+        else:
+            await node.presence(True)
+        if machine_id not in self.attached and self.bus is not None:
+            deliver = self._deliver()
+            self.attached[machine_id] = await asyncio.to_thread(
+                self.bus.attach, machine_id, deliver
+            )
+        log.info("event=machine_seen machine=%s", machine_id)
+
+    def _deliver(self) -> Deliver:
+        """For Zenoh's threads: hand an item to the loop and return at once."""
+        loop = asyncio.get_running_loop()
+
+        def deliver(machine_id: str, item: Any) -> None:
+            with contextlib.suppress(RuntimeError):  # the loop closed while shutting down
+                loop.call_soon_threadsafe(self._arrive, machine_id, item)
+
+        return deliver
+
+    async def _forget(self) -> None:
+        """A machine gone for `forget_after_s` leaves the address space (its metrics stay,
+        `ride_machine_alive` 0, so an alert on it can fire)."""
+        while True:
+            await asyncio.sleep(min(1.0, max(self.o.forget_after_s / 4, 0.05)))
+            now = time.monotonic()
+            for mid, view in list(self.views.items()):
+                if view.left_at is not None and now - view.left_at >= self.o.forget_after_s:
+                    view.left_at = None
+                    attached = self.attached.pop(mid, None)
+                    if attached is not None:
+                        await asyncio.to_thread(attached.close)
+                    await self.space.remove(mid)
+
+    # ----------------------------------------------------------------------- commands
+    async def _send(self, machine_id: str, command: Command, request: CommandRequest) -> Reply:
+        attached, bus = self.attached.get(machine_id), self.bus
+        view = self.views.get(machine_id)
+        if attached is None or bus is None or view is None or not view.alive:
+            raise NoMachine(f"machine {machine_id} is not alive")
+        timeout = self.o.command_timeout_s
+        return await asyncio.to_thread(bus.command, attached, command, request, timeout)
+
+    def _declare_rider(self, key: str) -> Any:
+        assert self.bus is not None
+        return self.bus.supervise(key)
