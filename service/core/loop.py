@@ -431,9 +431,11 @@ class ScanLoop:
                 policy,
             )
             acted = self.control.state is not before
-            self.recorder.emit(
-                RiderEvent(kind="rider_lost", rider=rider, policy=str(policy), acted=acted), now
+            moving = acted or self.control.is_moving()  # after a stop, only `acted` tells
+            event = RiderEvent(
+                kind="rider_lost", rider=rider, policy=str(policy), acted=acted, mid_motion=moving
             )
+            self.recorder.emit(event, now)
 
     def service_inbox(self, now: float) -> int:
         """Run queued tasks (bounded per call so a storm cannot stretch a cycle unboundedly)."""
