@@ -634,6 +634,7 @@ class ScanLoop:
             cycle=self.cycle,
             time=now + self.wall_offset,
             uptime_s=round(now - self.started_at, 3),
+            heartbeat_s=self.config.bus.heartbeat_s,
         )
 
     def reject_pending(self, why: str) -> None:
