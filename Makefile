@@ -28,11 +28,12 @@ browser:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	  else echo "chromium not installed: the browser tests will be skipped"; fi; }
 
-## ajv for the JSON Schema check from Node (tests/js; pinned by its package-lock.json), when
-## node and npm are present; without them that test skips and says why.
+## The tests' Node packages (tests/js; pinned by its package-lock.json): ajv for the JSON
+## Schema check, axe-core for the UI's accessibility check; when npm is present; without it
+## those tests skip and say why.
 js:
 	@if command -v npm >/dev/null 2>&1; then npm ci --prefix tests/js --no-audit --no-fund --silent; \
-	else echo "npm not installed: the ajv schema check will be skipped"; fi
+	else echo "npm not installed: the ajv schema check and the axe check will be skipped"; fi
 
 ## Regenerate the checked-in JSON Schema (schema/json/) from the models.
 schema: $(STAMP)

@@ -43,7 +43,7 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
 from rider.client import BadReply, MachineTimeout, Rider, RiderError
 from rider.text import printable, shown
 from rider.ui.bridge import Bridge, NotReady
-from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, ui_config
+from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, event_tone, ui_config
 from rider.ui.guard import HostGuard
 from rider.ui.guard import error as _error
 from rider.ui.hosts import BadHostRule, HostPolicy, HostRule, parse_rule
@@ -245,6 +245,7 @@ async def history(request: Request) -> Response:
             "kind": e.kind,
             "machine_id": printable(e.machine_id),
             "text": printable(describe(e.details)),  # shown as text: no bidi or control tricks
+            "tone": event_tone(e.details),
         }
         for e in found
     ]

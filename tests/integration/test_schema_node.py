@@ -18,9 +18,9 @@ import pytest
 from rider.client import Rider
 from schema.keys import KEYS, Direction
 from tests.integration.support import fast_daemon, prepare
+from tests.nodejs import JS, node_module
 from tests.procs import REPO
 
-JS = REPO / "tests" / "js"
 SCHEMA_DIR = REPO / "schema" / "json"
 
 # A valid request body for the keys that need one; other keys are asked with just a
@@ -37,21 +37,10 @@ SKIP_COMMANDS = {"cmd/calibrate/tilt", "cmd/calibrate/rotate", "cmd/home", "cmd/
 
 
 def node_ready() -> None:
-    """npm ci once (the lock file pins ajv), or skip saying why."""
-    if shutil.which("node") is None or shutil.which("npm") is None:
+    """ajv installed from the lock file, and node to run it; or skip saying why."""
+    if shutil.which("node") is None:
         pytest.skip("node and npm are needed for the ajv check")
-    if (JS / "node_modules" / "ajv").is_dir():
-        return
-    done = subprocess.run(
-        ["npm", "ci", "--no-audit", "--no-fund"],
-        cwd=JS,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    if done.returncode != 0:
-        pytest.skip(f"npm ci failed (offline registry?): {done.stderr.strip()[-300:]}")
+    node_module("ajv")
 
 
 def ask_json(rider: Rider, key: str, body: dict[str, Any] | None) -> list[Any]:
