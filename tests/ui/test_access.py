@@ -209,6 +209,9 @@ def test_every_control_is_reached_by_tab_with_a_visible_focus_ring(page: Any, ui
 def test_the_keyboard_alone_sends_a_command_uploads_a_session_and_cancels_a_start(
     page: Any, ui: UiServer, tmp_path: Path
 ) -> None:
+    # Intercept file choosers from the start (Playwright turns it on with the first listener),
+    # so the key press below cannot come before the interception.
+    page.on("filechooser", lambda chooser: None)
     open_page(page, ui)
     state_is(page, "WARNING_NEEDS_CALIBRATION")
     result = page.locator("#cmd-result")
