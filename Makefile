@@ -36,9 +36,10 @@ prometheus:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends prometheus >/dev/null; \
 	  else echo "prometheus not installed: the gateway's Prometheus tests will be skipped"; fi; }
 
-## ajv for the JSON Schema check from Node (tests/js) and node-opcua's client for the gateway's
-## OPC UA check (tests/gateway/js), each pinned by its package-lock.json, when node and npm are
-## present; without them those tests skip and say why.
+## The tests' Node packages, each pinned by its package-lock.json: ajv for the JSON Schema check
+## and axe-core for the UI's accessibility check (tests/js), node-opcua's client for the
+## gateway's OPC UA check (tests/gateway/js); when node and npm are present; without them those
+## tests skip and say why.
 js:
 	@if command -v npm >/dev/null 2>&1; then \
 	  npm ci --prefix tests/js --no-audit --no-fund --silent && \

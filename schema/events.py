@@ -19,6 +19,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, model_validator
 
 from schema.base import OpenWireModel
+from schema.departure import departure_text
 from schema.status import MachineState
 
 ParamScalar = bool | int | float | str
@@ -159,6 +160,9 @@ class RiderEvent(OpenWireModel):
     policy: str = ""
     acted: bool = False
     """On loss: the policy acted at once (False: no motion, or a grace period runs)."""
+    mid_motion: bool | None = None
+    """A motion was under way, paused or held by the E-stop when the Rider went (False: it
+    left a machine at rest); None from a machine older than this field."""
 
 
 class WatchdogEvent(OpenWireModel):
@@ -510,6 +514,8 @@ def describe(details: Details) -> str:  # noqa: C901, PLR0911, PLR0912 - one bra
         what = "reset" if d.reset else "set"
         return f"{d.name} {what} {d.old!r} -> {d.new!r} persisted={d.persisted}"
     if isinstance(d, RiderEvent):
+        if d.kind == "rider_lost" and d.mid_motion is not None:
+            return departure_text(d.rider, d.policy, d.acted, d.mid_motion)
         return f"rider {d.rider}" + (f" policy={d.policy} acted={d.acted}" if d.policy else "")
     if isinstance(d, WatchdogEvent):
         return f"scan loop stalled {d.stalled_s * 1000:.0f} ms"

@@ -114,3 +114,6 @@ class Status(OpenWireModel):
     cycle: int
     time: float
     uptime_s: float = 0.0
+    heartbeat_s: float | None = None
+    """The machine republishes its status at least this often (`bus.heartbeat_s`): a reader
+    may call it lost after a longer silence. None from a machine older than this field."""

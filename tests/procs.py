@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import os
 import select
-import shutil
 import signal
 import socket
 import subprocess
@@ -367,24 +366,3 @@ def malloc_arenas(pid: int) -> int:
                 end = nhi
         heaps += end - lo == GLIBC_HEAP_BYTES
     return 1 + heaps
-
-
-def npm_ready(directory: Path, module: str, what: str) -> None:
-    """`npm ci` in `directory` once (its package-lock.json pins `module`), or skip saying why:
-    node and npm missing, or an npm registry out of reach."""
-    import pytest
-
-    if shutil.which("node") is None or shutil.which("npm") is None:
-        pytest.skip(f"node and npm are needed for {what}")
-    if (directory / "node_modules" / module).is_dir():
-        return
-    done = subprocess.run(
-        ["npm", "ci", "--no-audit", "--no-fund"],
-        cwd=directory,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    if done.returncode != 0:
-        pytest.skip(f"npm ci failed (offline registry?): {done.stderr.strip()[-300:]}")

@@ -3,7 +3,8 @@
 Routes: `/` the page; `/static/*` its files; `/api/config` commands, accepted states, state
 colours and session presets; `/api/events` server-sent events (a snapshot, then live
 updates); `/api/snapshot` the same picture once as JSON; `POST /api/cmd/<key>` one command;
-`POST /api/session` checks an uploaded session.
+`POST /api/session` checks an uploaded session. In front of them all, `HostGuard` answers only
+the names the UI is served on (rider/ui/hosts.py).
 """
 
 from __future__ import annotations
@@ -25,11 +26,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 from typing import Any
-from urllib.parse import urlsplit
 
 try:
     import uvicorn
     from starlette.applications import Starlette
+    from starlette.middleware import Middleware
     from starlette.requests import Request
     from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
     from starlette.routing import Mount, Route
@@ -42,9 +43,12 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
 from rider.client import BadReply, MachineTimeout, Rider, RiderError
 from rider.text import printable, shown
 from rider.ui.bridge import Bridge, NotReady
-from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, ui_config
+from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, event_tone, ui_config
+from rider.ui.guard import HostGuard
+from rider.ui.guard import error as _error
+from rider.ui.hosts import BadHostRule, HostPolicy, HostRule, parse_rule
 from rider.ui.hub import Hub
-from rider.ui.view import HISTORY_S, LOST_AFTER_S, SAMPLE_PERIOD_S, Event, LiveView, Update
+from rider.ui.view import HISTORY_S, SAMPLE_PERIOD_S, Event, LiveView, Update
 from schema.base import WireModel
 from schema.codec import DecodeError, Format, decode_raw, validate
 from schema.commands import Command, Reply, Session
@@ -55,6 +59,8 @@ log = logging.getLogger("rider.ui")
 STATIC = Path(__file__).resolve().parent / "static"
 KEEPALIVE_S = 0.5
 """An idle event stream sends a tick this often, so the page can tell a dead link."""
+STREAM_LOST_AFTER_S = 3 * KEEPALIVE_S
+"""The page counts the UI server as gone after this long without a word on its stream."""
 SHUTDOWN_S = 5.0
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -82,8 +88,11 @@ class UiState:
             self.hub.publish(event)
 
 
-def create_app(rider: Rider, *, monitor: bool = False) -> Starlette:
-    """The ASGI app; its lifespan starts the bridge and always closes the Rider session."""
+def create_app(
+    rider: Rider, *, monitor: bool = False, hosts: HostPolicy | None = None
+) -> Starlette:
+    """The ASGI app; its lifespan starts the bridge and always closes the Rider session.
+    `hosts`: the names it answers to (default: 127.0.0.1 and localhost on port 8080)."""
     ui = UiState(rider, monitor)
 
     @contextlib.asynccontextmanager
@@ -119,6 +128,7 @@ def create_app(rider: Rider, *, monitor: bool = False) -> Starlette:
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],
         lifespan=lifespan,
+        middleware=[Middleware(HostGuard, policy=hosts or HostPolicy.serving("127.0.0.1", 8080))],
     )
     app.state.ui = ui
     return app
@@ -142,7 +152,7 @@ async def index(request: Request) -> Response:
 
 async def config(request: Request) -> Response:
     ui = _ui(request)
-    doc = ui_config(monitor=ui.monitor, lost_after_s=LOST_AFTER_S, history_s=HISTORY_S)
+    doc = ui_config(monitor=ui.monitor, lost_after_s=STREAM_LOST_AFTER_S, history_s=HISTORY_S)
     return JSONResponse(doc, headers=NO_CACHE)
 
 
@@ -181,9 +191,6 @@ async def command(request: Request) -> Response:
     ui = _ui(request)
     if ui.monitor:
         return _error(403, "MONITOR", "this UI is read-only (rider ui --monitor): no commands")
-    bad_origin = _foreign_origin(request)
-    if bad_origin:
-        return _error(403, "FOREIGN_ORIGIN", f"commands from {bad_origin} are not accepted")
     key = request.path_params["key"]
     info = BY_KEY.get(key)
     if info is None:
@@ -238,6 +245,7 @@ async def history(request: Request) -> Response:
             "kind": e.kind,
             "machine_id": printable(e.machine_id),
             "text": printable(describe(e.details)),  # shown as text: no bidi or control tricks
+            "tone": event_tone(e.details),
         }
         for e in found
     ]
@@ -260,11 +268,6 @@ def _sse(kind: str, data: Any) -> str:
     return f"event: {kind}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
 
 
-def _error(status: int, code: str, message: str, path: str = "") -> JSONResponse:
-    body = {"ok": False, "error": {"code": code, "message": message, "path": path}}
-    return JSONResponse(body, status_code=status)
-
-
 def _reply(reply: Reply, label: str) -> JSONResponse:
     body = shown(reply).model_dump(mode="json")
     body["ok"] = reply.success
@@ -277,15 +280,6 @@ def _session(command: Command, body: bytes) -> Session | None:
     if command is not Command.START or not body.strip():
         return None
     return validate(_StartBody, decode_raw(body, Format.JSON)).session
-
-
-def _foreign_origin(request: Request) -> str | None:
-    """The Origin of a cross-site request (another page driving our buttons), else None."""
-    origin = request.headers.get("origin")
-    if origin is None or origin == "null":
-        return None
-    host = request.headers.get("host", "")
-    return None if urlsplit(origin).netloc == host else origin
 
 
 class _StartBody(WireModel):
@@ -336,6 +330,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rider ui", description="Serve the operator web page.")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (0.0.0.0 in compose)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080)")
+    p.add_argument(
+        "--allowed-host",
+        action="append",
+        default=[],
+        type=_host_rule,
+        metavar="NAME[:PORT]",
+        help="one more name the page is served as, e.g. a reverse proxy's (repeatable)",
+    )
     p.add_argument("--monitor", action="store_true", help="read-only: show, never command")
     p.add_argument("--prefix", default="machine", help="key prefix (default: machine)")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -370,7 +372,8 @@ def main(
         supervise=not args.monitor,
         zenoh_threads=zenoh_threads,
     )
-    app = create_app(rider, monitor=args.monitor)
+    hosts = HostPolicy.serving(args.host, args.port, args.allowed_host)
+    app = create_app(rider, monitor=args.monitor, hosts=hosts)
     ui: UiState = app.state.ui
     loop_holder: list[asyncio.AbstractEventLoop] = []
 
@@ -389,6 +392,7 @@ def main(
     server = _Server(cfg, on_exit)
     mode = "monitor" if args.monitor else "operator"
     print(f"rider ui: http://{args.host}:{args.port}/ ({mode})", file=sys.stderr, flush=True)
+    print(f"rider ui: answers to {hosts}", file=sys.stderr, flush=True)
 
     async def serve() -> None:
         loop_holder.append(asyncio.get_running_loop())
@@ -403,6 +407,13 @@ def main(
         log.error("event=ui_exit_forced reason=session_close_hung")
         os._exit(EXIT_FAILED)
     return EXIT_OK if server.started else EXIT_FAILED
+
+
+def _host_rule(text: str) -> HostRule:
+    try:
+        return parse_rule(text)
+    except BadHostRule as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _listen(host: str, port: int) -> socket.socket:

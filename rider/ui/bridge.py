@@ -23,7 +23,14 @@ from rider.client import (
     RiderError,
     Subscription,
 )
-from rider.ui.view import LOST_AFTER_S, MachineFound, Note, Presence, Update
+from rider.ui.view import (
+    DEFAULT_HEARTBEAT_S,
+    MachineFound,
+    Note,
+    Presence,
+    Update,
+    lost_after,
+)
 from schema.axes import AxisRecord
 from schema.calibration import CalibrationRecord
 from schema.commands import Command, Reply, Session
@@ -139,7 +146,9 @@ class Bridge:
         self._sub = self.rider.subscribe(
             WATCHED, self._enqueue, lambda alive: self._enqueue(Presence(alive))
         )
-        last_status = time.monotonic() if self._refresh() else None
+        fresh = self._refresh()
+        last_status = time.monotonic() if fresh else None
+        heartbeat_s = _heartbeat(fresh)
         while not self._stop.is_set():
             try:
                 update = self._updates.get(timeout=POLL_S)
@@ -152,17 +161,20 @@ class Bridge:
                 continue
             if isinstance(update, Status):
                 now = time.monotonic()
-                back = last_status is None or now - last_status > LOST_AFTER_S
+                # Late past the machine's own heartbeat: it was gone (or out of reach).
+                back = last_status is None or now - last_status > lost_after(heartbeat_s)
                 last_status = now
+                heartbeat_s = _heartbeat(update)
                 # IO is published on change only: after a gap, ask for all of it again. The
                 # fresh status comes last, so the page is whole when it shows the link up.
-                if back and self._refresh():
+                if back and (fresh := self._refresh()):
+                    heartbeat_s = _heartbeat(fresh)
                     continue
             self._emit(update)
 
-    def _refresh(self) -> bool:
-        """Ask for the whole picture (IO, axes, diagnostics, then status); True if the
-        machine answered with its status."""
+    def _refresh(self) -> Status | None:
+        """Ask for the whole picture (IO, axes, diagnostics, then status); the status if
+        the machine answered with it."""
         rider = self.rider
         reads: list[Callable[[], object]] = [
             rider.io,
@@ -171,10 +183,10 @@ class Bridge:
             rider.calibration,
             rider.status,
         ]
-        got_status = False
+        status: Status | None = None
         for read in reads:
             if self._stop.is_set():
-                return False
+                return None
             try:
                 got = read()
             except BusError:
@@ -187,8 +199,8 @@ class Bridge:
                     update, Status | IoValue | AxisRecord | CycleDiag | CalibrationRecord
                 ):
                     self._emit(update)
-                    got_status = got_status or isinstance(update, Status)
-        return got_status
+                    status = update if isinstance(update, Status) else status
+        return status
 
     def _enqueue(self, update: Update) -> None:
         # Zenoh's callback thread: never block it; a full queue drops the update.
@@ -212,3 +224,8 @@ class Bridge:
             self._opened = False
             self.rider.close()
             log.info("event=ui_session_closed")
+
+
+def _heartbeat(status: Status | None) -> float:
+    """The machine's status heartbeat as its status tells it (older machines: the default)."""
+    return (status.heartbeat_s if status is not None else None) or DEFAULT_HEARTBEAT_S

@@ -16,7 +16,7 @@ from schema.commands import (
     Session,
     TiltStep,
 )
-from schema.events import EventKind
+from schema.events import Details, EventKind, RiderEvent
 from schema.status import FAULT_STATES, MOTION_STATES, MachineState
 
 S = MachineState
@@ -111,6 +111,29 @@ SESSION_PRESETS: list[tuple[str, str, Session]] = [
 
 EVENTS_SHOWN = 50
 """How many of the newest events the Events panel lists."""
+
+INCIDENTS = frozenset(
+    {
+        EventKind.FAULT_RAISED,
+        EventKind.ESTOP_PRESSED,
+        EventKind.ESTOP_LATCHED,
+        EventKind.WATCHDOG_TRIP,
+        EventKind.STORAGE_FAILED,
+        EventKind.EVENTS_DROPPED,
+        EventKind.RIDER_LOST,
+    }
+)
+"""Kinds of event an operator must look into: shown in red."""
+
+
+def event_tone(details: Details) -> str:
+    """`fault` (red) for an incident, else ``. A Rider that left the machine at rest is
+    routine; one lost mid-motion is not (nor one an older machine could not tell apart)."""
+    if isinstance(details, RiderEvent):
+        lost = details.kind == "rider_lost" and details.mid_motion is not False
+        return "fault" if lost else ""
+    kind = details.get("kind") if isinstance(details, dict) else details.kind
+    return "fault" if kind in INCIDENTS else ""
 
 
 def ui_config(*, monitor: bool, lost_after_s: float, history_s: float) -> dict[str, Any]:

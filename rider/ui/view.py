@@ -18,8 +18,17 @@ from schema.diag import CycleDiag
 from schema.io import IoKind, IoValue
 from schema.status import Status
 
-LOST_AFTER_S = 1.5
-"""No status for this long (the heartbeat is 1 s) and the machine counts as lost."""
+DEFAULT_HEARTBEAT_S = 1.0
+"""The machine's status heartbeat (`bus.heartbeat_s`) until it has told its own."""
+
+
+def lost_after(heartbeat_s: float) -> float:
+    """No status for this long and the machine counts as lost: its heartbeat, late by half of
+    it (at least 0.5 s, for a loaded host or link). 1.5 s at the default 1 s heartbeat."""
+    return heartbeat_s + max(0.5, 0.5 * heartbeat_s)
+
+
+LOST_AFTER_S = lost_after(DEFAULT_HEARTBEAT_S)
 
 SAMPLE_PERIOD_S = 0.1
 HISTORY_S = 60.0
@@ -82,7 +91,7 @@ class Link:
 class LiveView:
     """Latest status, IO, axes and diagnostics, the link state and a minute of history."""
 
-    lost_after_s: float = LOST_AFTER_S
+    heartbeat_s: float = DEFAULT_HEARTBEAT_S
     sample_period_s: float = SAMPLE_PERIOD_S
     history_s: float = HISTORY_S
     machine_id: str | None = None
@@ -103,6 +112,10 @@ class LiveView:
         self._pending_ai: dict[str, IoValue] = {}
         self._next_sample = 0.0
 
+    @property
+    def lost_after_s(self) -> float:
+        return lost_after(self.heartbeat_s)
+
     # ------------------------------------------------------------------------------ input
     def apply(self, update: Update, now: float) -> list[Event]:
         """Take one update (at monotonic `now`); return the events to send at once."""
@@ -110,6 +123,7 @@ class LiveView:
         if isinstance(update, Status):
             self.status = update
             self._status_at = now
+            self.heartbeat_s = update.heartbeat_s or DEFAULT_HEARTBEAT_S  # None: an older machine
             self._alive = True  # a fresh status proves the machine is there
             events.append(Event("status", shown(update).model_dump(mode="json")))
         elif isinstance(update, IoValue):

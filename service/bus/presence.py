@@ -132,8 +132,11 @@ class Presence:
             # Through the recorder: after what it holds (the events of commands answered
             # since the last cycle), before the state change this causes.
             kind = "rider_returned" if alive else "rider_lost"
-            loop.recorder.emit(
-                RiderEvent(kind=kind, rider=rider, policy=str(policy), acted=acted), now
+            # Left at rest (the end of `rider start --wait`) or lost while its motion runs.
+            mid_motion = acted or control.is_moving()
+            event = RiderEvent(
+                kind=kind, rider=rider, policy=str(policy), acted=acted, mid_motion=mid_motion
             )
+            loop.recorder.emit(event, now)
 
         self.loop.inbox.put(LoopCall(update))

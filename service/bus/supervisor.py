@@ -234,6 +234,7 @@ class SupervisorBus:
                 seq=0,
                 cycle=0,
                 time=now,
+                heartbeat_s=self.config.bus.heartbeat_s,
             )
         return last.model_copy(
             update={
@@ -245,6 +246,7 @@ class SupervisorBus:
                 "seq": last.seq + 1,
                 "time": now,
                 "uptime_s": 0.0,
+                "heartbeat_s": self.config.bus.heartbeat_s,  # republish() keeps this period
             }
         )
 

@@ -431,9 +431,11 @@ class ScanLoop:
                 policy,
             )
             acted = self.control.state is not before
-            self.recorder.emit(
-                RiderEvent(kind="rider_lost", rider=rider, policy=str(policy), acted=acted), now
+            moving = acted or self.control.is_moving()  # after a stop, only `acted` tells
+            event = RiderEvent(
+                kind="rider_lost", rider=rider, policy=str(policy), acted=acted, mid_motion=moving
             )
+            self.recorder.emit(event, now)
 
     def service_inbox(self, now: float) -> int:
         """Run queued tasks (bounded per call so a storm cannot stretch a cycle unboundedly)."""
@@ -632,6 +634,7 @@ class ScanLoop:
             cycle=self.cycle,
             time=now + self.wall_offset,
             uptime_s=round(now - self.started_at, 3),
+            heartbeat_s=self.config.bus.heartbeat_s,
         )
 
     def reject_pending(self, why: str) -> None:

@@ -12,7 +12,6 @@ from service.adapters.opcua_credentials import CERTIFICATE, PRIVATE_KEY, USERS
 from tests.deploy import spec
 from tests.procs import REPO
 
-
 GATEWAY_OVERRIDE = REPO / "docker" / "compose.gateway.yaml"
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from tests.gateway.support import Credentials, GatewayProc
-from tests.procs import npm_ready
+from tests.nodejs import node_module
 
 pytestmark = pytest.mark.integration
 JS = Path(__file__).resolve().parent / "js"
@@ -21,7 +21,7 @@ JS = Path(__file__).resolve().parent / "js"
 def test_node_opcua_browses_reads_subscribes_and_calls(
     gateway: GatewayProc, creds: Credentials, tmp_path: Path
 ) -> None:
-    npm_ready(JS, "node-opcua-client", "the node-opcua check")
+    node_module("node-opcua-client", JS, node=True)
     done = subprocess.run(
         ["node", "opcua_check.mjs", gateway.url, "operator", creds.password, "m1"],
         cwd=JS,

@@ -251,6 +251,7 @@ def test_a_lost_rider_is_recorded_with_what_the_policy_did(tmp_path: Path) -> No
     at = kinds.index("rider_lost")
     lost = events[at].details
     assert lost.rider == rider_id and lost.acted and lost.policy == "pause"  # type: ignore[union-attr]
+    assert lost.mid_motion is True  # type: ignore[union-attr]
     state = events[at + 1].details
     assert state.kind == "state" and (state.old, state.new) == (S.CALIBRATING, S.PAUSED)  # type: ignore[union-attr]
     assert state.reason == "Rider lost"  # type: ignore[union-attr]

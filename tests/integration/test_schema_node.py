@@ -15,9 +15,9 @@ from typing import Any
 from rider.client import Rider
 from schema.keys import KEYS, Direction
 from tests.integration.support import fast_daemon, prepare
-from tests.procs import REPO, npm_ready
+from tests.nodejs import JS, node_module
+from tests.procs import REPO
 
-JS = REPO / "tests" / "js"
 SCHEMA_DIR = REPO / "schema" / "json"
 
 # A valid request body for the keys that need one; other keys are asked with just a
@@ -34,8 +34,8 @@ SKIP_COMMANDS = {"cmd/calibrate/tilt", "cmd/calibrate/rotate", "cmd/home", "cmd/
 
 
 def node_ready() -> None:
-    """npm ci once (the lock file pins ajv), or skip saying why."""
-    npm_ready(JS, "ajv", "the ajv check")
+    """ajv installed from the lock file, and node to run it; or skip saying why."""
+    node_module("ajv", node=True)
 
 
 def ask_json(rider: Rider, key: str, body: dict[str, Any] | None) -> list[Any]:

@@ -63,6 +63,7 @@ DETAILS: list[BaseModel] = [
     ),
     ParamEvent(name="tilt.tolerance_deg", old=1.0, new=1.5, persisted=True, transaction_id="t4"),
     RiderEvent(kind="rider_lost", rider="abc", policy="pause", acted=True),
+    RiderEvent(kind="rider_lost", rider="abd", policy="pause", acted=False, mid_motion=False),
     WatchdogEvent(stalled_s=0.25),
     DaemonStartEvent(pid=42, hal="sim", period_s=0.01, previous_stop_clean=False),
     DaemonStopEvent(reason="signal SIGTERM", exit_code=0),

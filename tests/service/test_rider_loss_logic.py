@@ -7,9 +7,11 @@ from pathlib import Path
 import pytest
 
 from schema.commands import Command
+from schema.events import RiderEvent
 from schema.params import ParamSet
 from schema.status import MachineState as S
 from service.config.model import MachineConfig
+from service.core.events import ListEventSink
 from service.core.params import ParamRegistry
 from service.core.persist import ParamStore
 from service.errors import ParamOutOfRange
@@ -168,3 +170,36 @@ def test_an_online_timeout_below_two_heartbeats_is_refused(tmp_path: Path) -> No
         "rider_loss.timeout_s", ParamSet(transaction_id="t2", value=1.0), moving=True, now=0
     )
     assert done.value == 1.0 and registry.config.rider_loss.timeout_s == 1.0
+
+
+def _departures(sink: ListEventSink) -> list[RiderEvent]:
+    return [e for e, _, _ in sink.events if isinstance(e, RiderEvent) and e.kind == "rider_lost"]
+
+
+def test_a_rider_silent_after_its_motion_ended_left_at_rest() -> None:
+    """`rider start --wait` ends its session after DONE: the record says nothing was moving."""
+    sink = ListEventSink()
+    rig = Rig(MachineConfig().with_overrides(rider_loss={"timeout_s": 0.3}), events=sink).ready()
+    beats = Beats()
+    rig.loop.beats = beats
+    assert rig.send(Command.HOME, rider="r1").success
+    while rig.state is S.HOMING:
+        _beat_for(rig, beats, 0.2)
+    assert rig.state is S.IDLE
+    rig.step(round(0.5 / rig.period))  # silent now
+    assert not rig.control.rider_connected
+    [gone] = _departures(sink)
+    assert (gone.rider, gone.acted, gone.mid_motion) == ("r1", False, False)
+    assert rig.state is S.IDLE
+
+
+@pytest.mark.parametrize(("policy", "acted"), [("pause", True), ("stop", True), ("ignore", False)])
+def test_a_rider_silent_mid_motion_is_recorded_as_lost_mid_motion(policy: str, acted: bool) -> None:
+    sink = ListEventSink()
+    cfg = MachineConfig().with_overrides(rider_loss={"timeout_s": 0.3, "policy": policy})
+    rig = Rig(cfg, events=sink).ready()
+    assert rig.send(Command.START, rider="r1").success
+    rig.loop.beats = Beats()  # it never beats
+    rig.step(round(0.5 / rig.period))
+    [gone] = _departures(sink)
+    assert (gone.acted, gone.mid_motion) == (acted, True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import shutil
 from collections.abc import Iterator
@@ -45,8 +47,9 @@ def ui(tmp_path: Path, fast_daemon: Daemon) -> Iterator[UiServer]:
         yield server
 
 
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
+@contextlib.contextmanager
+def launched(*extra_args: str) -> Iterator[Any]:
+    """Headless Chromium (Debian's), with `extra_args` after the usual ones."""
     sync_api = pytest.importorskip(
         "playwright.sync_api", reason="Playwright is not installed: pip install playwright"
     )
@@ -54,25 +57,53 @@ def browser() -> Iterator[Any]:
     if exe is None:
         pytest.skip("no Chromium browser: apt-get install -y chromium (or set CHROMIUM=PATH)")
     with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS, timeout=60_000)
+        b = p.chromium.launch(
+            executable_path=exe, args=[*CHROMIUM_ARGS, *extra_args], timeout=60_000
+        )
         try:
             yield b
         finally:
             b.close()
 
 
-@pytest.fixture
-def page(browser: Any) -> Iterator[Any]:
-    """A fresh page; any uncaught JavaScript error fails the test."""
-    context = browser.new_context(viewport={"width": 1280, "height": 960})
-    pg = context.new_page()
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with launched() as b:
+        yield b
+
+
+@contextlib.contextmanager
+def new_page(browser: Any, **context: Any) -> Iterator[Any]:
+    """A page in a fresh context (`context`: Playwright's options, e.g. a viewport); any
+    uncaught JavaScript error fails the test."""
+    ctx = browser.new_context(**{"viewport": {"width": 1280, "height": 960}, **context})
+    pg = ctx.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda exc: errors.append(str(exc)))
     try:
         yield pg
     finally:
-        context.close()
+        ctx.close()
     assert not errors, f"JavaScript errors on the page: {errors}"
+
+
+PHONE = {"width": 390, "height": 844}
+"""A common phone's viewport in CSS pixels (the layout must fit 360–414 px)."""
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    with new_page(browser) as pg:
+        yield pg
+
+
+@pytest.fixture
+def phone(browser: Any) -> Iterator[Any]:
+    """A page as a phone shows it: 390 px wide, touch, the meta viewport honoured."""
+    with new_page(
+        browser, viewport=PHONE, is_mobile=True, has_touch=True, device_scale_factor=2
+    ) as pg:
+        yield pg
 
 
 def shot(page: Any, name: str) -> Path:
@@ -80,4 +111,17 @@ def shot(page: Any, name: str) -> Path:
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     path = ARTIFACTS / f"{name}.png"
     page.screenshot(path=str(path), full_page=True)
+    return path
+
+
+def record(section: str, data: Any) -> Path:
+    """Merge `data` under `section` into test-artifacts/ui/measured.json (for the notes)."""
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    path = ARTIFACTS / "measured.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        doc = {}
+    doc[section] = data
+    path.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
     return path

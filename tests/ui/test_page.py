@@ -40,8 +40,8 @@ def confirm(page: Any, contains: str) -> None:
     expect(dialog).to_be_hidden()
 
 
-def open_page(page: Any, ui: UiServer) -> None:
-    page.goto(ui.url)
+def open_page(page: Any, ui: UiServer, host: str = "127.0.0.1") -> None:
+    page.goto(f"http://{host}:{ui.port}")
     expect(page.locator("#link-machine")).to_have_attribute("data-up", "true", timeout=SHORT)
 
 

@@ -109,7 +109,7 @@ def test_session_check_validates_without_sending(ui: UiServer) -> None:
 def test_browsers_that_vanish_mid_stream_never_break_the_bridge(ui: UiServer) -> None:
     for _ in range(5):
         with socket.create_connection(("127.0.0.1", ui.port), timeout=5) as s:
-            s.sendall(b"GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n")
+            s.sendall(f"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{ui.port}\r\n\r\n".encode())
             assert b"event: snapshot" in _read_until(s, b"event: snapshot")
             # Reset, not a polite close: what a crashed tab or a pulled cable looks like.
             s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))

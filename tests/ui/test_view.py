@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from rider.ui.view import LOST_AFTER_S, Event, LiveView, MachineFound, Note, Presence
+import pytest
+
+from rider.ui.view import LOST_AFTER_S, Event, LiveView, MachineFound, Note, Presence, lost_after
 from schema.axes import AxisRecord, PnStatus
 from schema.diag import CycleDiag, TimingStats
 from schema.io import IoKind, IoValue
@@ -64,6 +66,28 @@ def test_link_is_lost_when_the_heartbeat_stops_for_more_than_the_limit() -> None
     assert "link" not in kinds(view.tick(LOST_AFTER_S + 0.5, WALL))  # said once, not per tick
     view.apply(status(3.0), 3.0)
     assert view.link.up
+
+
+@pytest.mark.parametrize(
+    ("heartbeat_s", "limit_s"), [(None, 1.5), (1.0, 1.5), (2.0, 3.0), (60.0, 90.0), (0.2, 0.7)]
+)
+def test_the_limit_follows_the_heartbeat_the_machine_states(
+    heartbeat_s: float | None, limit_s: float
+) -> None:
+    """`bus.heartbeat_s` 2 s: a status every 2 s is a live machine, not a lost one (the
+    limit was 1.5 s whatever the machine said); None: a machine too old to say (1 s)."""
+    assert lost_after(heartbeat_s or 1.0) == pytest.approx(limit_s)
+    view = LiveView()
+    view.apply(MachineFound("m1"), 0.0)
+    for beat in range(4):  # four heartbeats, each as late as the limit allows
+        at = beat * (limit_s - 0.01)
+        view.apply(status(at, heartbeat_s=heartbeat_s), at)
+        view.tick(at + limit_s - 0.02, WALL)
+        assert view.link.up, (beat, view.link.reason)
+    last = 3 * (limit_s - 0.01)
+    view.tick(last + limit_s + 0.01, WALL)
+    assert not view.link.up
+    assert f"for over {limit_s:g} s" in view.link.reason
 
 
 def test_liveliness_loss_drops_the_link_at_once_and_a_new_status_restores_it() -> None:

@@ -9,7 +9,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Generator, Iterator
+from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,9 +40,15 @@ class UiServer:
 
 
 def start_ui(
-    tmp: Path, daemon: Daemon, *, port: int | None = None, monitor: bool = False
+    tmp: Path,
+    daemon: Daemon,
+    *,
+    port: int | None = None,
+    monitor: bool = False,
+    extra: Sequence[str] = (),
 ) -> UiServer:
-    """Start `rider ui` against `daemon` and wait until its page shows the machine live."""
+    """Start `rider ui` against `daemon` (`extra`: more options after `ui`) and wait until its
+    page shows the machine live."""
     port = port or free_port()
     log_path = tmp / f"ui-{port}.log"
     args = [
@@ -58,6 +64,7 @@ def start_ui(
     ]
     if monitor:
         args.append("--monitor")
+    args += extra
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     with log_path.open("a") as log:
         proc = subprocess.Popen(

@@ -184,7 +184,7 @@
   // Calibration values (machine/<id>/calibration): shown as the "calibrated" flags' tooltip.
   function calibrationText(c) {
     if (!c) return "";
-    const how = (v) => ` (${v.source || "measured"}${v.at ? `, ${new Date(v.at * 1000).toLocaleString("en-GB")}` : ""})`;
+    const how = (v) => ` (${v.source || "measured"}${v.at ? `, ${stamp(v.at)}` : ""})`;
     const t = c.tilt
       ? `tilt: offset ${c.tilt.offset_counts.toFixed(1)} counts, gain ${c.tilt.gain_counts_per_deg.toFixed(3)} counts/°${how(c.tilt)}`
       : "tilt: not calibrated";
@@ -493,7 +493,10 @@
     el.dataset.ok = String(ok);
     el.textContent = text;
     const li = document.createElement("li");
-    li.textContent = `${new Date().toLocaleTimeString("en-GB")} ${text}`;
+    const when = document.createElement("time");
+    // The server's clock, as the events beside it are stamped (the browser's may differ).
+    when.textContent = stamp(ui.server.time ? serverNow() : Date.now() / 1000);
+    li.append(when, ` ${text}`);
     $("cmd-log").prepend(li);
     while ($("cmd-log").children.length > 5) $("cmd-log").lastChild.remove();
   }
@@ -708,9 +711,7 @@
 
   // --------------------------------------------------------------------------- events
   // The machine's event history (docs/events.md): the newest first, re-read every 2 s and at
-  // once when the filter changes.
-  const FAULTY = new Set(["fault_raised", "estop_pressed", "estop_latched", "watchdog_trip",
-    "storage_failed", "events_dropped", "rider_lost"]);
+  // once when the filter changes. The server says which ones are incidents (`tone`).
 
   function buildEvents() {
     const select = $("events-kind");
@@ -745,21 +746,22 @@
     const rows = body.events.slice().reverse();
     $("events-note").textContent = rows.length ? "" : "no events";
     sync($("events-rows"), rows, () => {
-      const tr = document.createElement("tr");
-      for (const cls of ["ev-time", "ev-seq", "ev-kind", "ev-text"]) {
-        const td = document.createElement("td");
-        td.className = cls;
-        tr.append(td);
+      const li = document.createElement("li");
+      for (const [tag, cls] of [["time", "ev-time"], ["span", "ev-seq"], ["span", "ev-kind"],
+        ["span", "ev-text"]]) {
+        const part = document.createElement(tag);
+        part.className = cls;
+        li.append(part);
       }
-      return tr;
-    }, (tr, e) => {
-      const cells = tr.children;
-      cells[0].textContent = new Date(e.time * 1000).toLocaleString();
-      cells[1].textContent = `#${e.seq}`;
-      cells[2].textContent = e.kind;
-      cells[3].textContent = e.text;
-      tr.dataset.kind = e.kind;
-      tr.dataset.tone = FAULTY.has(e.kind) ? "fault" : "";
+      return li;
+    }, (li, e) => {
+      const parts = li.children;
+      parts[0].textContent = stamp(e.time);
+      parts[1].textContent = `#${e.seq}`;
+      parts[2].textContent = e.kind;
+      parts[3].textContent = e.text;
+      li.dataset.kind = e.kind;
+      li.dataset.tone = e.tone || "";
     });
   }
 
@@ -779,6 +781,16 @@
 
   function humanCode(code) {
     return String(code).replace(/^RESP_/, "").replace(/_/g, " ").toLowerCase();
+  }
+
+  // One time format on the page, the one `rider events` prints: local time with milliseconds,
+  // 2026-12-01 22:18:17.042 (rounded to the microsecond first, as Python's datetime does).
+  function stamp(seconds) {
+    const d = new Date(Math.floor(Math.round(seconds * 1e6) / 1e3));
+    const two = (n) => String(n).padStart(2, "0");
+    return `${d.getFullYear()}-${two(d.getMonth() + 1)}-${two(d.getDate())} ` +
+      `${two(d.getHours())}:${two(d.getMinutes())}:${two(d.getSeconds())}.` +
+      String(d.getMilliseconds()).padStart(3, "0");
   }
 
   function duration(s) {
