@@ -524,7 +524,7 @@ def motion(args: argparse.Namespace, rider: Rider) -> int:
         timeout=args.wait_timeout,
         on_status=teller.on_status,
         on_silence=teller.on_silence,
-        quiet_s=quiet_limit(rider),
+        quiet_s=quiet_limit(rider, rider.status()),
     )
     emit(notice, args.json, fmt_completion)
     final = rider.status()
@@ -608,14 +608,12 @@ def _tell(text: str) -> None:
     print(f"rider: {printable(text)}", file=sys.stderr, flush=True)
 
 
-def quiet_limit(rider: Rider) -> float:
+def quiet_limit(rider: Rider, status: Status | None = None) -> float:
     """How long `--wait` hears nothing before it says so: the Rider's timeout, or 2.5 of the
-    machine's status heartbeats when they are slower (an idle machine is quiet in between)."""
-    try:
-        heartbeat = float(rider.param("bus.heartbeat_s").value)
-    except (RiderError, TypeError, ValueError):
-        heartbeat = 1.0
-    return max(rider.timeout, 2.5 * heartbeat)
+    machine's status heartbeats (`Status.heartbeat_s`) when they are slower (an idle machine
+    is quiet in between)."""
+    heartbeat = status.heartbeat_s if status is not None else None
+    return max(rider.timeout, 2.5 * (heartbeat or 1.0))
 
 
 def done(args: argparse.Namespace, rider: Rider) -> int:
