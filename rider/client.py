@@ -55,14 +55,21 @@ from schema.commands import (
     StartRequest,
 )
 from schema.completion import Completion
-from schema.credentials import RIDER, CredentialError, zenoh_settings
+from schema.credentials import RIDER, CredentialError, login, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
 from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
-from schema.rider import HEARTBEAT_INTERVAL_S, alive_key, heartbeat_key
+from schema.rider import (
+    ANONYMOUS,
+    HEARTBEAT_INTERVAL_S,
+    alive_key,
+    heartbeat_key,
+    login_ok,
+    rider_id,
+)
 from schema.runtime import first_session_on, unreadable_layout
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
@@ -219,9 +226,9 @@ class Subscription:
 
 
 class Heartbeat:
-    """A supervising Rider's deadman signal: an empty sample on `rider/<zid>/heartbeat` every
-    `HEARTBEAT_INTERVAL_S`, from its own thread. It stops when the process freezes, dies or
-    loses its link, whatever the Zenoh lease says; the machine pauses within
+    """A supervising Rider's deadman signal: an empty sample on `rider/<login>/<zid>/heartbeat`
+    every `HEARTBEAT_INTERVAL_S`, from its own thread. It stops when the process freezes, dies
+    or loses its link, whatever the Zenoh lease says; the machine pauses within
     `rider_loss.timeout_s`."""
 
     def __init__(
@@ -286,6 +293,19 @@ OPEN_TIMEOUT_MIN_S = 1.0
 DISCOVERY_MIN_S = 1.0
 """The default-machine lookup waits at least this long, whatever is left of the timeout."""
 HINT_PROBE_S = 0.3
+
+
+def rider_login() -> str:
+    """`RIDER_ZENOH_USER`, the login in this Rider's keys (`anonymous` without one)."""
+    user = login(RIDER)
+    if user is None:
+        return ANONYMOUS
+    if not login_ok(user):
+        raise BadCredentials(
+            f"RIDER_ZENOH_USER={user!r}: a Rider's login names its keys (rider/<login>/…):"
+            " letters, digits and ._@+- only, at most 64"
+        )
+    return user
 
 
 def bound_open_timeout(conf: zenoh.Config, timeout: float) -> None:
@@ -358,6 +378,8 @@ class Rider:
         self.timeout = timeout
         self.retries = retries
         self._conf = zenoh_config(zenoh_config_path, connect, listen)
+        self.login = rider_login()
+        """The login this Rider's keys are under (`rider/<login>/<zid>/…`)."""
         bound_open_timeout(self._conf, timeout)
         self._conf_path = zenoh_config_path
         self._opened_at = 0.0
@@ -393,7 +415,7 @@ class Rider:
             # e.g. a client whose router is down: a clear error, not a traceback
             where = str(exc).split(" at /", 1)[0]
             raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
-        self.rider_id = str(self._session.zid())
+        self.rider_id = rider_id(self.login, str(self._session.zid()))
         # What `_own_request` packs without a model, checked once: a tag-and-counter id and
         # this session's id are valid transaction ids.
         CommandRequest(transaction_id=f"{self._tag}-0", rider=self.rider_id)

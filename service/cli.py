@@ -134,6 +134,14 @@ def build_parser() -> argparse.ArgumentParser:
         "init", help="random passwords for machine, rider and monitor, and the dictionary"
     )
     init.add_argument("directory", type=Path, help="where to write them (created 0700)")
+    init.add_argument(
+        "--station",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a login of its own for this operator station, instead of the shared `rider`"
+        " (repeat for each; list them in the profile's `rider` subject)",
+    )
     init.add_argument("--force", action="store_true", help="replace existing files")
 
     ev = sub.add_parser("events", help="the event history, offline (reads <data_dir>/events.db)")
@@ -199,28 +207,38 @@ def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None
         print(f"{path or 'defaults'}: {errors} error(s), {warnings} warning(s); {verdict}")
 
 
-def credentials_init(directory: Path, force: bool) -> int:
+def credentials_init(directory: Path, force: bool, stations: tuple[str, ...] = ()) -> int:
     from service.adapters.credentials import (
         DICTIONARY,
         CredentialsExist,
+        identities,
         init_credentials,
         password_file,
     )
 
     try:
-        written = init_credentials(directory, force=force)
-    except (CredentialsExist, OSError) as exc:
+        users = identities(stations)
+        written = init_credentials(directory, users, force=force)
+    except (CredentialsExist, OSError, ValueError) as exc:
         print(f"machine: credentials: {exc}", file=sys.stderr)
         return EXIT_FAILED
     for path in written:
         print(f"wrote {path}")
     d = directory.resolve()
-    print(
-        "machine: MACHINE_ZENOH_DICTIONARY_FILE="
-        f"{d / DICTIONARY} machine run --zenoh-config zenoh/acl.json5\n"
-        f"rider:   RIDER_ZENOH_USER=rider RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'rider')}\n"
-        f"monitor: RIDER_ZENOH_USER=monitor RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'monitor')}"
-    )
+    riders = users[1:-1]
+    lines = [
+        f"machine: MACHINE_ZENOH_DICTIONARY_FILE={d / DICTIONARY} machine run --zenoh-config"
+        " zenoh/acl.json5",
+        *(
+            f"{label:8} RIDER_ZENOH_USER={u} RIDER_ZENOH_PASSWORD_FILE={password_file(d, u)}"
+            for label, u in [*(("rider:", u) for u in riders), ("monitor:", "monitor")]
+        ),
+    ]
+    if stations:
+        names = ", ".join(f'"{u}"' for u in riders)
+        subject = f'{{ id: "rider", usernames: [{names}] }}'
+        lines.append(f"profile: in zenoh/acl.json5 (and tls.json5) set {subject}")
+    print("\n".join(lines))
     return EXIT_OK
 
 
@@ -234,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     if args.cmd == "credentials":
-        return credentials_init(args.directory, args.force)
+        return credentials_init(args.directory, args.force, tuple(args.station))
     if args.cmd == "schema":
         from schema.jsonschema import write
 
