@@ -227,6 +227,7 @@ class Daemon:
         writer = BackgroundWriter()
         _on_exit(stack, "storage", _flush_and_close, writer)
         store = CalibrationStore(data_dir, writer)
+        _on_exit(stack, "calibration", store.close)  # before the writer's own close
         registry = ParamRegistry(self.config, ParamStore(data_dir), store.health)
         self.config = config = registry.config  # persisted online values survive a restart
         self.stats = CycleStats(
