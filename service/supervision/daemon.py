@@ -40,6 +40,7 @@ from service.core.runner import (
     switch_interval,
     tune_thread,
 )
+from service.core.safety import in_effect
 from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
@@ -479,6 +480,7 @@ def _event_log(config: MachineConfig) -> EventLog | None:
             hal=str(config.hal.backend),
             period_s=config.loop.period_s,
             previous_stop_clean=events.previous_stop_clean,
+            safety=in_effect(config),
         )
     )
     return events
