@@ -28,7 +28,15 @@ import msgpack
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from rider.discovery import MOTION_SETTLE_S, PROBE_TIMEOUT_S, SETTLE_S, Discovery, discover
+from rider.discovery import (
+    MOTION_SETTLE_S,
+    PROBE_TIMEOUT_S,
+    SETTLE_S,
+    Discovery,
+    Listing,
+    discover,
+)
+from rider.waiting import Silence
 from schema.axes import AxisRecord
 from schema.calibration import (
     CalibrationRecord,
@@ -141,6 +149,10 @@ class DuplicateMachine(RiderError):
             f" ({', '.join(self.sessions)}): {what}; stop one of the daemons or give it another"
             " --id"
         )
+
+
+class LinkLost(RiderError):
+    """`wait_done` heard nothing from the machine for its `link_limit` (the link stayed down)."""
 
 
 class NoMachine(RiderError):
@@ -500,17 +512,7 @@ class Rider:
         """The only machine alive, after discovery settled (rider/discovery.py); raises
         `NoMachine`, `AmbiguousMachine` (several), or `UnsureMachine` (never settled).
         `motion` waits longer (`MOTION_SETTLE_S`) before a command may move a ride."""
-        seen = discover(
-            self.session,
-            self.key_prefix,
-            settle=MOTION_SETTLE_S if motion else SETTLE_S,
-            # What is left of the timeout since the open began (a session with no link
-            # spent 0.5 s opening), so a frozen machine is told within the timeout.
-            limit=max(DISCOVERY_MIN_S, self.timeout - (time.monotonic() - self._opened_at)),
-            probe=self._probe,
-            links_peers=self._links_peers(),
-        )
-        self.discovery = seen
+        seen = self._discover(MOTION_SETTLE_S if motion else SETTLE_S)
         if not seen.links:
             raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
         if not seen.settled:
@@ -529,6 +531,20 @@ class Rider:
             ids = ", ".join(sorted(seen.alive))
             raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
         return next(iter(seen.alive))
+
+    def _discover(self, settle: float) -> Discovery:
+        """Discovery, settled (rider/discovery.py), kept as `self.discovery`."""
+        self.discovery = discover(
+            self.session,
+            self.key_prefix,
+            settle=settle,
+            # What is left of the timeout since the open began (a session with no link
+            # spent 0.5 s opening), so a frozen machine is told within the timeout.
+            limit=max(DISCOVERY_MIN_S, self.timeout - (time.monotonic() - self._opened_at)),
+            probe=self._probe,
+            links_peers=self._links_peers(),
+        )
+        return self.discovery
 
     def _links_peers(self) -> bool:
         """A peer with gossip on links to the peers gossip names; a client never does."""
@@ -847,13 +863,17 @@ class Rider:
                 return [self._decode(r, EventPage) for r in replies]
             time.sleep(EMPTY_RETRY_S)
 
-    def machines(self, with_status: bool = True) -> list[MachineInfo]:
+    def machines(self, with_status: bool = True) -> Listing[MachineInfo]:
         """Machines alive on the network (their liveliness tokens), with state and uptime.
 
-        One query of `<prefix>/*/status` fills in every state; a machine alive but silent
-        within the timeout is listed with `state=None`.
+        Discovery settles first, as for the default pick (rider/discovery.py): a listing taken
+        right after the session opened missed machines that gossip had not linked yet. Where it
+        could not settle, or part of the network was out of sight, the listing says so
+        (`complete` False, `note` why). One query of `<prefix>/*/status` fills in every state;
+        a machine alive but silent within the timeout is listed with `state=None`.
         """
-        found: set[str] = set()
+        seen = self._discover(SETTLE_S)
+        found: set[str] = set(seen.alive)
         sessions: dict[str, set[str]] = {}
         prefix = f"{self.key_prefix}/"
         # Two queries, not `<prefix>/**`: an ACL profile allows these keys, not everything.
@@ -878,7 +898,7 @@ class Rider:
                 statuses[mid] = status
                 if reply.replier_id is not None:
                     sessions.setdefault(mid, set()).add(str(reply.replier_id.zid))
-        out = []
+        out: Listing[MachineInfo] = Listing(complete=seen.sure, note=seen.unsure())
         # One that answers is alive too: a liveliness query racing a history subscription of
         # this session (`follow_machines`) can come back short.
         for mid in sorted(found | statuses.keys()):
@@ -1054,6 +1074,7 @@ class Rider:
         on_status: Callable[[Status], None] | None = None,
         on_silence: Callable[[float], None] | None = None,
         quiet_s: float = 3.0,
+        link_limit: float | None = None,
     ) -> Completion:
         """Block until the completion notice of `transaction` (an id, or the reply of the
         command that started it) and return it, whatever its outcome (DONE, STOPPED, FAULT_*…).
@@ -1063,7 +1084,8 @@ class Rider:
         restarted and forgot the motion: `UnknownTransaction`). `on_status` gets every status
         meanwhile (e.g. to say the motion is paused or E-stopped); `on_silence` hears, once
         per silence, that no status came for `quiet_s` seconds (a frozen machine, a link down:
-        the wait goes on, the operator is told). MachineTimeout after `timeout` seconds.
+        the wait goes on, the operator is told); `LinkLost` once no status came for
+        `link_limit` seconds (with `on_status`). MachineTimeout after `timeout` seconds.
         """
         tid = transaction.transaction_id if isinstance(transaction, Reply) else transaction
         if not tid:
@@ -1078,15 +1100,17 @@ class Rider:
                 if update is not None:
                     q.put(update)
 
-        heard = time.monotonic()
-        silent = False
+        limit = link_limit if on_status is not None else None
+        silence = Silence(quiet_s, on_silence, limit, time.monotonic())
         with self._declare(keys, on_sample):
             recheck = 0.0
             while True:
                 now = time.monotonic()
-                if on_silence is not None and not silent and now - heard > quiet_s:
-                    silent = True
-                    on_silence(now - heard)
+                if (lost := silence.check(now)) is not None:
+                    raise LinkLost(
+                        f"no word from machine {self.machine_id} for {lost:.0f} s"
+                        f" (--link-limit {link_limit:g}); {tid} not known to have ended"
+                    )
                 if now >= recheck:
                     recheck = now + DONE_RECHECK_S
                     with contextlib.suppress(MachineTimeout):  # down for now: keep waiting
@@ -1103,7 +1127,7 @@ class Rider:
                 if isinstance(update, Completion) and update.transaction_id == tid:
                     return update
                 if isinstance(update, Status) and on_status is not None:
-                    heard, silent = time.monotonic(), False
+                    silence.heard(time.monotonic())
                     on_status(update)
 
     def wait_for(
