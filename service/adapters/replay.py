@@ -16,18 +16,23 @@ milliseconds before a SIGKILL or a power cut (the history's process writes withi
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from pydantic import ValidationError
 
-from schema.commands import Reply, ReplyCode
+from schema import SCHEMA_VERSION
+from schema.codec import pack
+from schema.commands import ReplyCode
 from schema.completion import Completion
-from schema.errors import Error, ErrorCode
-from schema.events import CommandEvent, CompletionEvent
+from schema.errors import ErrorCode
+from schema.events import CompletionEvent
+from schema.status import MachineState
 from service.adapters.eventlog import WRITER_WAIT_S, claim_writer, connect_readonly
 
 log = logging.getLogger(__name__)
@@ -39,9 +44,10 @@ _NEWEST = (
 
 @dataclass
 class Recalled:
-    """Replies by transaction id (oldest first), their commands, and completion notices."""
+    """The replies of recent commands, and their completion notices."""
 
-    replies: list[tuple[str, str, Reply]] = field(default_factory=list)
+    replies: list[tuple[str, str, bytes]] = field(default_factory=list)
+    """(transaction id, command, its reply as msgpack), oldest first."""
     completions: list[Completion] = field(default_factory=list)
     since: float | None = None
     """When the oldest recalled command was answered (wall time)."""
@@ -79,8 +85,10 @@ def _read(path: Path, machine_id: str, window: int) -> Recalled:
     seen: set[str] = set()
     started: dict[str, float] = {}
     for when, details in commands:
+        if len(seen) >= window:
+            break
         made = _reply(details, when)
-        if made is not None and made[0] not in seen and len(seen) < window:
+        if made is not None and made[0] not in seen:
             seen.add(made[0])
             started[made[0]] = when
             out.replies.append(made)
@@ -93,33 +101,43 @@ def _read(path: Path, machine_id: str, window: int) -> Recalled:
     return out
 
 
-def _reply(details: str, when: float) -> tuple[str, str, Reply] | None:
-    """The reply a `command` event records (a repeat's is its first one's: skipped)."""
+_REPLY_CODES = frozenset(c.value for c in ReplyCode)
+_ERROR_CODES = frozenset(c.value for c in ErrorCode)
+_STATES = frozenset(s.value for s in MachineState)
+
+
+def _reply(details: str, when: float) -> tuple[str, str, bytes] | None:
+    """The reply a `command` event records, packed as the wire's msgpack (the transaction log
+    keeps replies so, and decodes one only for a repeat); a repeat's row is skipped (its
+    first one's counts). Plain JSON and set lookups: 4096 of them at every start."""
     try:
-        event = CommandEvent.model_validate_json(details)
-        if event.repeat or not event.transaction_id or event.command is None:
-            return None
-        if event.accepted:
-            reply = Reply(
-                transaction_id=event.transaction_id,
-                command=event.command,
-                timecode=when,
-                success=True,
-                code=ReplyCode(event.code),
-                state=event.state,
-            )
-        else:
-            error = Error(code=ErrorCode(event.code), message=event.message)
-            reply = Reply.failure(
-                error,
-                transaction_id=event.transaction_id,
-                command=event.command,
-                timecode=when,
-                state=event.state,
-            )
-    except (ValidationError, ValueError):
+        event = json.loads(details)
+        tid, command, code = event["transaction_id"], event["command"], event["code"]
+        state, accepted = event.get("state"), event["accepted"]
+    except (ValueError, KeyError, TypeError):
         return None  # a row of another version, or damaged: not guessed at
-    return event.transaction_id, event.command, reply
+    if event.get("repeat") or not isinstance(tid, str) or not tid or not isinstance(command, str):
+        return None
+    if state is not None and state not in _STATES:
+        return None
+    reply: dict[str, Any] = {
+        "schema_version": SCHEMA_VERSION,
+        "transaction_id": tid,
+        "command": command,
+        "timecode": when,
+        "request_timecode": None,
+        "success": accepted is True,
+        "state": state,
+    }
+    if accepted is True and code in _REPLY_CODES:
+        reply.update(code=code, error=None, error_message="")
+    elif accepted is False and code in _ERROR_CODES:
+        message = str(event.get("message", ""))
+        error = {"code": code, "message": message, "path": ""}
+        reply.update(code=ReplyCode.RESP_ERROR.value, error=error, error_message=message)
+    else:
+        return None
+    return tid, command, pack(reply)
 
 
 def _notice(

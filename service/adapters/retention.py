@@ -68,17 +68,23 @@ def prune(
         while _delete(conn, where, args, PRUNE_CHUNK) == PRUNE_CHUNK:
             between()
     safety_limit = int(settings.safety_max_mb * 1024 * 1024)
+    safety = safety_bytes(conn)
     for tier in (CAUSABLE, PROTECTED):
         where = f"kind IN ({_in(tier)})"
-        while (over := safety_bytes(conn) - safety_limit) > 0:
-            if _delete(conn, where, (), _rows_for(conn, over, where)) == 0:
+        per_row = _per_row(conn, where) if safety > safety_limit else 0.0
+        while safety > safety_limit and per_row:
+            gone = _delete(conn, where, (), _rows(safety - safety_limit, per_row))
+            if gone == 0:
                 break
+            safety -= int(gone * per_row)
             between()
     limit = int(settings.max_mb * 1024 * 1024)
+    per_row = 0.0
     while (used := used_bytes(conn)) > limit:
+        # The average routine row, measured once (a scan of the whole table), not per chunk.
+        per_row = per_row or _per_row(conn, routine)
         # Down to 90 % of the limit, by the average row size: never all at once.
-        excess = int(used - 0.9 * limit)
-        if _delete(conn, routine, (), _rows_for(conn, excess, routine)) == 0:
+        if not per_row or _delete(conn, routine, (), _rows(used - 0.9 * limit, per_row)) == 0:
             break  # only the safety record is left: it keeps to its own limit
         between()
 
@@ -104,13 +110,15 @@ def _size(conn: sqlite3.Connection, where: str) -> tuple[int, int]:
     return int(text), int(rows)
 
 
-def _rows_for(conn: sqlite3.Connection, excess: int, where: str) -> int:
-    """How many of the oldest rows that match `where` make up about `excess` bytes."""
+def _per_row(conn: sqlite3.Connection, where: str) -> float:
+    """The average bytes of a row that matches `where` (0 when none does)."""
     text, rows = _size(conn, where)
-    if not rows:
-        return 0
-    per_row = max(1.0, (text + ROW_OVERHEAD * rows) / rows)
-    return max(1, min(PRUNE_CHUNK, int(excess / per_row) + 1))
+    return (text + ROW_OVERHEAD * rows) / rows if rows else 0.0
+
+
+def _rows(excess: float, per_row: float) -> int:
+    """How many rows of `per_row` bytes make up about `excess` bytes (one chunk at most)."""
+    return max(1, min(PRUNE_CHUNK, int(excess / max(1.0, per_row)) + 1))
 
 
 def _delete(conn: sqlite3.Connection, where: str, args: tuple[object, ...], n: int) -> int:

@@ -249,8 +249,8 @@ class Daemon:
 
     def _remember(self, recalled: Recalled) -> None:
         """A repeat of a transaction answered before this start gets that answer again."""
-        for tid, command, reply in recalled.replies:
-            self.loop.transactions.record(tid, command, reply)
+        for tid, command, packed in recalled.replies:
+            self.loop.transactions.remember(tid, command, packed)
         for notice in recalled.completions:
             self.loop.completions.record(notice)
         log.info(

@@ -24,6 +24,7 @@ MODULES = [
     "status_latency",
     "cost",
     "events_cost",
+    "retention",
     "rider_loss",
     "pick",
     "throughput",

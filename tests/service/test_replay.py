@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from schema.commands import ReplyCode
+from schema.codec import Format, decode
+from schema.commands import Reply, ReplyCode
 from schema.errors import ErrorCode
 from schema.events import CommandEvent, CompletionEvent
 from schema.status import MachineState
@@ -49,7 +50,7 @@ def test_answers_and_notices_come_back_oldest_first(tmp_path: Path) -> None:
     log.close()
     got = recall(path, "m1", 10)
     assert [(tid, cmd) for tid, cmd, _ in got.replies] == [("t1", "Start"), ("t2", "Start")]
-    first, refused = got.replies[0][2], got.replies[1][2]
+    first, refused = (decode(Reply, packed, Format.MSGPACK) for _, _, packed in got.replies)
     assert first.success and first.code is ReplyCode.RESP_START_ACCEPTED and first.timecode == T0
     assert not refused.success and refused.error is not None
     assert refused.error.code is ErrorCode.NOT_HOME and "not home" in refused.error.message
