@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.common import Options, Section, Table, main_for, ms
+from bench.common import Options, Section, Table, Target, main_for, ms
 from schema.codec import dump_json
 from schema.events import CommandEvent, EstopEvent, FaultEvent, KnownDetails, RiderEvent
 from schema.status import MachineState
@@ -45,6 +45,7 @@ class Round:
     cpu_s: float
     deleted: int
     kept_safety: bool
+    under_limit: bool
     idle_wall_s: float
     recall_s: float
     recalled: int
@@ -98,6 +99,7 @@ def _round(limit_mb: float) -> Round:
             t0, c0 = time.perf_counter(), time.process_time()
             prune(conn, settings, now, lambda: None)
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            under = used_bytes(conn) <= limit_mb * 1024 * 1024
             [(left,)] = conn.execute("SELECT COUNT(*) FROM events").fetchall()
             kinds = ",".join(f"'{k}'" for k in SAFETY_KINDS)
             [(safety,)] = conn.execute(f"SELECT COUNT(*) FROM events WHERE kind IN ({kinds})")
@@ -110,9 +112,8 @@ def _round(limit_mb: float) -> Round:
         for tid, command, packed in got.replies:
             log.remember(tid, command, packed)
         recall_s = time.perf_counter() - t2
-    return Round(
-        size, rows, wall, cpu, rows - left, safety == SAFETY_ROWS, idle, recall_s, len(got.replies)
-    )
+    kept = safety == SAFETY_ROWS
+    return Round(size, rows, wall, cpu, rows - left, kept, under, idle, recall_s, len(got.replies))
 
 
 def run(opts: Options) -> Section:
@@ -132,8 +133,10 @@ def run(opts: Options) -> Section:
             "recall 4096",
         ],
     )
+    rounds = []
     for limit in limits:
         r = _round(limit)
+        rounds.append(r)
         table.add(
             f"{limit:g}",
             f"{r.size_mb:.1f} MB",
@@ -146,6 +149,27 @@ def run(opts: Options) -> Section:
             f"{ms(r.recall_s, 1)} ({r.recalled})",
         )
     section.tables.append(table)
+    kept = sum(r.kept_safety for r in rounds)
+    section.targets += [
+        Target(
+            "the safety record survives a prune at the limit",
+            "every safety event kept",
+            f"kept in {kept} of {len(rounds)} files",
+            kept == len(rounds),
+        ),
+        Target(
+            "a prune takes the file back under max_mb",
+            "under max_mb",
+            f"{sum(r.under_limit for r in rounds)} of {len(rounds)} files",
+            all(r.under_limit for r in rounds),
+        ),
+        Target.at_most(
+            "the start-up recall of 4096 commands",
+            max(r.recall_s for r in rounds),
+            1.0,
+            lambda v: f"{v * 1000:.0f} ms",
+        ),
+    ]
     section.notes += [
         "One SQLite connection in this process, WAL, the file in a temporary directory (tmpfs"
         " or disk, as the host has it); the daemon runs the prune on its history writer (its"
