@@ -647,9 +647,11 @@ def params(args: argparse.Namespace, rider: Rider) -> int:
 
 
 def machines(args: argparse.Namespace, rider: Rider) -> int:
-    # Follow before listing: a machine that leaves while the list is taken is still reported.
-    changes = rider.follow_machines(timeout=0.5, history=False) if args.watch else None
     found = rider.machines()
+    # Followed after the listing, with history (changes against the list are printed): the
+    # listing's discovery declares and undeclares a liveliness subscriber on the same key, and
+    # zenoh 1.10 (client mode) then stops giving new tokens to one declared before it.
+    changes = rider.follow_machines(timeout=0.5, history=True) if args.watch else None
     lines = []
     for m in found:
         up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"

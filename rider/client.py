@@ -870,7 +870,10 @@ class Rider:
         right after the session opened missed machines that gossip had not linked yet. Where it
         could not settle, or part of the network was out of sight, the listing says so
         (`complete` False, `note` why). One query of `<prefix>/*/status` fills in every state;
-        a machine alive but silent within the timeout is listed with `state=None`.
+        a machine alive but silent within the timeout is listed with `state=None`. Discovery
+        declares and undeclares a liveliness subscriber on `<prefix>/*/alive`: zenoh 1.10 (client
+        mode) then stops giving new tokens to a `follow_machines` of this Rider declared before
+        it, so list first, then follow (as `rider machines --watch` does).
         """
         seen = self._discover(SETTLE_S)
         found: set[str] = set(seen.alive)
