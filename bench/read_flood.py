@@ -1,7 +1,7 @@
 """Read flood: a peer keeps status reads in flight as fast as the daemon answers them, while a
 Rider sends commands beside it; for each layout of Zenoh's threads (`bus.zenoh_threads`). Then
-the same with a flood of samples: the peer puts on `rider/<id>/heartbeat` as fast as it can (a
-rogue on the open profile: every such sample is a Python callback on Zenoh's thread).
+the same with a flood of samples: the peer puts on `rider/<login>/<id>/heartbeat` as fast as it
+can (a rogue on the open profile: every such sample is a Python callback on Zenoh's thread).
 
 The `status`, `io/**` and `axis/**` reads are answered on Zenoh's own thread (they never block),
 so with one Zenoh thread a flood of them shares that thread with every command's receipt and
@@ -49,7 +49,7 @@ WINDOW = 32
 """Status gets the flooder keeps in flight."""
 KINDS = ("reads", "samples")
 """What the flooder sends: status gets (`WINDOW` in flight), or heartbeat samples."""
-SAMPLE_KEY = "rider/flood0000/heartbeat"
+SAMPLE_KEY = "rider/flood/0000/heartbeat"
 """Where the sample flood goes: a made-up Rider's heartbeat, which every daemon subscribes to."""
 PUT_BATCH = 1000
 COMMAND_GAP_S = 0.002

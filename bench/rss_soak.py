@@ -93,7 +93,7 @@ def _echo_churn(endpoint: str, zenoh_config: Path) -> Callable[[], None]:
     def connect() -> None:
         conf = rider_zenoh_config(zenoh_config, connect=[endpoint])
         with zenoh.open(conf) as session:
-            token = session.liveliness().declare_token(f"rider/alive/{session.zid()}")
+            token = session.liveliness().declare_token(f"rider/anonymous/{session.zid()}/alive")
             if not list(session.get(ECHO_KEY, payload=b"x", timeout=REPLY_TIMEOUT_S)):
                 raise RiderError("no reply from the echo")
             token.undeclare()  # type: ignore[no-untyped-call]

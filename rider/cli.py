@@ -1,8 +1,11 @@
 """The `rider` command: operate a machine from a terminal or a script.
 
-Exit codes: 0 done; 1 the machine refused (its error is printed); 2 bad usage or input;
-3 no reply (machine or network down); 4 several machines alive and none named; 5 more than
-one session answers for the machine id (two daemons share it: DUPLICATE_ID).
+Exit codes: 0 done; 1 the machine refused (its error is printed), or a motion `--wait`ed for
+ended otherwise than DONE; 2 bad usage or input; 3 no reply (machine or network down); 4
+several machines alive and none named; 5 more than one session answers for the machine id
+(two daemons share it: DUPLICATE_ID); 6 `--wait` heard nothing from the machine for
+`--link-limit` seconds (the link stayed down: a ride this Rider supervised was paused by the
+machine's deadman; see `rider status` once the link is back).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from rider.client import (
     BadRuntime,
     CommandRefused,
     DuplicateMachine,
+    LinkLost,
     MachineTimeout,
     NoMachine,
     Rider,
@@ -35,6 +39,7 @@ from rider.client import (
     env_connect,
 )
 from rider.text import printable, shown
+from rider.waiting import LINK_LIMIT_S, WaitTeller, quiet_limit
 from schema.axes import AxisRecord, PnStatus
 from schema.calibration import CalibrationRecord, RotateCalibrationSet, TiltCalibrationSet
 from schema.commands import CheckResult, Reply, Session, TransactionId
@@ -59,6 +64,7 @@ EXIT_USAGE = 2
 EXIT_NO_REPLY = 3
 EXIT_AMBIGUOUS = 4
 EXIT_DUPLICATE = 5
+EXIT_LINK_LOST = 6
 
 
 T = TypeVar("T")
@@ -241,6 +247,14 @@ def _wait_options(p: argparse.ArgumentParser, text: str) -> None:
     p.add_argument("--wait", action="store_true", help=text)
     p.add_argument(
         "--wait-timeout", type=float, default=600.0, help="give up waiting after this many s"
+    )
+    p.add_argument(
+        "--link-limit",
+        type=float,
+        default=LINK_LIMIT_S,
+        metavar="S",
+        help="give up waiting (exit 6) after S seconds without a word from the machine"
+        f" (default {LINK_LIMIT_S:g})",
     )
 
 
@@ -518,13 +532,14 @@ def motion(args: argparse.Namespace, rider: Rider) -> int:
             return EXIT_OK
         tid = motion_ref.transaction_id
     assert tid is not None
-    teller = WaitTeller(rider.machine_id)
+    teller = WaitTeller(rider.machine_id, link=rider.no_link_hint)
     notice = rider.wait_done(
         tid,
         timeout=args.wait_timeout,
         on_status=teller.on_status,
         on_silence=teller.on_silence,
-        quiet_s=quiet_limit(rider, rider.status()),
+        quiet_s=quiet_limit(rider.timeout, _heartbeat_s(rider)),
+        link_limit=args.link_limit,
     )
     emit(notice, args.json, fmt_completion)
     final = rider.status()
@@ -573,47 +588,13 @@ def _calibration_values(
     return tilt, rotate
 
 
-class WaitTeller:
-    """What `--wait` says on stderr while it waits: once when the awaited motion is paused or
-    E-stopped (it is not over), once when the machine goes silent, and when it is heard again."""
-
-    def __init__(self, machine_id: str) -> None:
-        self.machine_id = machine_id
-        self.said: MachineState | None = None
-        self.silent = False
-        self.last: MachineState | None = None
-
-    def on_status(self, status: Status) -> None:
-        if self.silent:
-            self.silent = False
-            _tell(f"machine {self.machine_id} answering again: {status.state}")
-        self.last = status.state
-        if status.state in (MachineState.PAUSED, MachineState.FAULT_ESTOP):
-            if self.said is not status.state:
-                self.said = status.state
-                _tell(f"machine {status.state}; the motion continues after resume (stop ends it)")
-        else:
-            self.said = None
-
-    def on_silence(self, quiet_s: float) -> None:
-        self.silent = True
-        last = f" (last heard: {self.last})" if self.last is not None else ""
-        _tell(
-            f"machine {self.machine_id} not answering for {quiet_s:.1f} s{last}: frozen,"
-            " overloaded or the link is down; still waiting (Ctrl-C stops waiting, not the ride)"
-        )
-
-
-def _tell(text: str) -> None:
-    print(f"rider: {printable(text)}", file=sys.stderr, flush=True)
-
-
-def quiet_limit(rider: Rider, status: Status | None = None) -> float:
-    """How long `--wait` hears nothing before it says so: the Rider's timeout, or 2.5 of the
-    machine's status heartbeats (`Status.heartbeat_s`) when they are slower (an idle machine
-    is quiet in between)."""
-    heartbeat = status.heartbeat_s if status is not None else None
-    return max(rider.timeout, 2.5 * (heartbeat or 1.0))
+def _heartbeat_s(rider: Rider) -> float:
+    """The machine's status heartbeat (`Status.heartbeat_s`, which every login may read;
+    1 s when the machine does not say)."""
+    try:
+        return rider.status().heartbeat_s or 1.0
+    except RiderError:
+        return 1.0
 
 
 def done(args: argparse.Namespace, rider: Rider) -> int:
@@ -668,9 +649,11 @@ def params(args: argparse.Namespace, rider: Rider) -> int:
 
 
 def machines(args: argparse.Namespace, rider: Rider) -> int:
-    # Follow before listing: a machine that leaves while the list is taken is still reported.
-    changes = rider.follow_machines(timeout=0.5, history=False) if args.watch else None
     found = rider.machines()
+    # Followed after the listing, with history (changes against the list are printed): the
+    # listing's discovery declares and undeclares a liveliness subscriber on the same key, and
+    # zenoh 1.10 (client mode) then stops giving new tokens to one declared before it.
+    changes = rider.follow_machines(timeout=0.5, history=True) if args.watch else None
     lines = []
     for m in found:
         up = "?" if m.uptime_s is None else f"{m.uptime_s:.0f} s"
@@ -681,6 +664,8 @@ def machines(args: argparse.Namespace, rider: Rider) -> int:
         lines.append(line)
     none = f"no machines alive{rider.no_link_hint() if not found else ''}"
     emit([m.__dict__ for m in found], args.json, lambda _: "\n".join(lines) or none)
+    if not found.complete:
+        print(f"rider: the list may be incomplete: {found.note}", file=sys.stderr)
     conflict = any(m.conflict for m in found)
     if changes is None:
         return EXIT_DUPLICATE if conflict else EXIT_OK
@@ -807,7 +792,7 @@ def events(args: argparse.Namespace, rider: Rider) -> int:
     return EXIT_OK
 
 
-def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0912 - one branch per way the CLI ends (usage, refusal, link, interrupt)
+def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0911, PLR0912 - one branch per way the CLI ends (usage, refusal, link, interrupt)
     parser = build_parser()
     args, rest = parser.parse_known_args(argv)
     if args.cmd not in ("fastdata", "ui", "gateway") and rest:
@@ -863,6 +848,9 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901, PLR0912 - one
     except AmbiguousMachine as exc:
         print(f"rider: {exc}", file=sys.stderr)
         return EXIT_AMBIGUOUS
+    except LinkLost as exc:
+        print(f"rider: {exc}", file=sys.stderr)
+        return EXIT_LINK_LOST
     except DuplicateMachine as exc:
         print(f"rider: {printable(str(exc))}", file=sys.stderr)
         return EXIT_DUPLICATE

@@ -28,7 +28,15 @@ import msgpack
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from rider.discovery import MOTION_SETTLE_S, PROBE_TIMEOUT_S, SETTLE_S, Discovery, discover
+from rider.discovery import (
+    MOTION_SETTLE_S,
+    PROBE_TIMEOUT_S,
+    SETTLE_S,
+    Discovery,
+    Listing,
+    discover,
+)
+from rider.waiting import Silence
 from schema.axes import AxisRecord
 from schema.calibration import (
     CalibrationRecord,
@@ -55,14 +63,21 @@ from schema.commands import (
     StartRequest,
 )
 from schema.completion import Completion
-from schema.credentials import RIDER, CredentialError, zenoh_settings
+from schema.credentials import RIDER, CredentialError, login, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
 from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamSet, ParamValue
-from schema.rider import HEARTBEAT_INTERVAL_S, alive_key, heartbeat_key
+from schema.rider import (
+    ANONYMOUS,
+    HEARTBEAT_INTERVAL_S,
+    alive_key,
+    heartbeat_key,
+    login_ok,
+    rider_id,
+)
 from schema.runtime import first_session_on, unreadable_layout
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
@@ -134,6 +149,10 @@ class DuplicateMachine(RiderError):
             f" ({', '.join(self.sessions)}): {what}; stop one of the daemons or give it another"
             " --id"
         )
+
+
+class LinkLost(RiderError):
+    """`wait_done` heard nothing from the machine for its `link_limit` (the link stayed down)."""
 
 
 class NoMachine(RiderError):
@@ -219,9 +238,9 @@ class Subscription:
 
 
 class Heartbeat:
-    """A supervising Rider's deadman signal: an empty sample on `rider/<zid>/heartbeat` every
-    `HEARTBEAT_INTERVAL_S`, from its own thread. It stops when the process freezes, dies or
-    loses its link, whatever the Zenoh lease says; the machine pauses within
+    """A supervising Rider's deadman signal: an empty sample on `rider/<login>/<zid>/heartbeat`
+    every `HEARTBEAT_INTERVAL_S`, from its own thread. It stops when the process freezes, dies
+    or loses its link, whatever the Zenoh lease says; the machine pauses within
     `rider_loss.timeout_s`."""
 
     def __init__(
@@ -286,6 +305,19 @@ OPEN_TIMEOUT_MIN_S = 1.0
 DISCOVERY_MIN_S = 1.0
 """The default-machine lookup waits at least this long, whatever is left of the timeout."""
 HINT_PROBE_S = 0.3
+
+
+def rider_login() -> str:
+    """`RIDER_ZENOH_USER`, the login in this Rider's keys (`anonymous` without one)."""
+    user = login(RIDER)
+    if user is None:
+        return ANONYMOUS
+    if not login_ok(user):
+        raise BadCredentials(
+            f"RIDER_ZENOH_USER={user!r}: a Rider's login names its keys (rider/<login>/…):"
+            " letters, digits and ._@+- only, at most 64"
+        )
+    return user
 
 
 def bound_open_timeout(conf: zenoh.Config, timeout: float) -> None:
@@ -358,6 +390,8 @@ class Rider:
         self.timeout = timeout
         self.retries = retries
         self._conf = zenoh_config(zenoh_config_path, connect, listen)
+        self.login = rider_login()
+        """The login this Rider's keys are under (`rider/<login>/<zid>/…`)."""
         bound_open_timeout(self._conf, timeout)
         self._conf_path = zenoh_config_path
         self._opened_at = 0.0
@@ -393,7 +427,7 @@ class Rider:
             # e.g. a client whose router is down: a clear error, not a traceback
             where = str(exc).split(" at /", 1)[0]
             raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
-        self.rider_id = str(self._session.zid())
+        self.rider_id = rider_id(self.login, str(self._session.zid()))
         # What `_own_request` packs without a model, checked once: a tag-and-counter id and
         # this session's id are valid transaction ids.
         CommandRequest(transaction_id=f"{self._tag}-0", rider=self.rider_id)
@@ -478,17 +512,7 @@ class Rider:
         """The only machine alive, after discovery settled (rider/discovery.py); raises
         `NoMachine`, `AmbiguousMachine` (several), or `UnsureMachine` (never settled).
         `motion` waits longer (`MOTION_SETTLE_S`) before a command may move a ride."""
-        seen = discover(
-            self.session,
-            self.key_prefix,
-            settle=MOTION_SETTLE_S if motion else SETTLE_S,
-            # What is left of the timeout since the open began (a session with no link
-            # spent 0.5 s opening), so a frozen machine is told within the timeout.
-            limit=max(DISCOVERY_MIN_S, self.timeout - (time.monotonic() - self._opened_at)),
-            probe=self._probe,
-            links_peers=self._links_peers(),
-        )
-        self.discovery = seen
+        seen = self._discover(MOTION_SETTLE_S if motion else SETTLE_S)
         if not seen.links:
             raise NoMachine(f"no machine is alive on the network{self.no_link_hint()}")
         if not seen.settled:
@@ -507,6 +531,20 @@ class Rider:
             ids = ", ".join(sorted(seen.alive))
             raise AmbiguousMachine(f"several machines are alive ({ids}); pass --machine ID")
         return next(iter(seen.alive))
+
+    def _discover(self, settle: float) -> Discovery:
+        """Discovery, settled (rider/discovery.py), kept as `self.discovery`."""
+        self.discovery = discover(
+            self.session,
+            self.key_prefix,
+            settle=settle,
+            # What is left of the timeout since the open began (a session with no link
+            # spent 0.5 s opening), so a frozen machine is told within the timeout.
+            limit=max(DISCOVERY_MIN_S, self.timeout - (time.monotonic() - self._opened_at)),
+            probe=self._probe,
+            links_peers=self._links_peers(),
+        )
+        return self.discovery
 
     def _links_peers(self) -> bool:
         """A peer with gossip on links to the peers gossip names; a client never does."""
@@ -825,13 +863,20 @@ class Rider:
                 return [self._decode(r, EventPage) for r in replies]
             time.sleep(EMPTY_RETRY_S)
 
-    def machines(self, with_status: bool = True) -> list[MachineInfo]:
+    def machines(self, with_status: bool = True) -> Listing[MachineInfo]:
         """Machines alive on the network (their liveliness tokens), with state and uptime.
 
-        One query of `<prefix>/*/status` fills in every state; a machine alive but silent
-        within the timeout is listed with `state=None`.
+        Discovery settles first, as for the default pick (rider/discovery.py): a listing taken
+        right after the session opened missed machines that gossip had not linked yet. Where it
+        could not settle, or part of the network was out of sight, the listing says so
+        (`complete` False, `note` why). One query of `<prefix>/*/status` fills in every state;
+        a machine alive but silent within the timeout is listed with `state=None`. Discovery
+        declares and undeclares a liveliness subscriber on `<prefix>/*/alive`: zenoh 1.10 (client
+        mode) then stops giving new tokens to a `follow_machines` of this Rider declared before
+        it, so list first, then follow (as `rider machines --watch` does).
         """
-        found: set[str] = set()
+        seen = self._discover(SETTLE_S)
+        found: set[str] = set(seen.alive)
         sessions: dict[str, set[str]] = {}
         prefix = f"{self.key_prefix}/"
         # Two queries, not `<prefix>/**`: an ACL profile allows these keys, not everything.
@@ -856,7 +901,7 @@ class Rider:
                 statuses[mid] = status
                 if reply.replier_id is not None:
                     sessions.setdefault(mid, set()).add(str(reply.replier_id.zid))
-        out = []
+        out: Listing[MachineInfo] = Listing(complete=seen.sure, note=seen.unsure())
         # One that answers is alive too: a liveliness query racing a history subscription of
         # this session (`follow_machines`) can come back short.
         for mid in sorted(found | statuses.keys()):
@@ -1032,6 +1077,7 @@ class Rider:
         on_status: Callable[[Status], None] | None = None,
         on_silence: Callable[[float], None] | None = None,
         quiet_s: float = 3.0,
+        link_limit: float | None = None,
     ) -> Completion:
         """Block until the completion notice of `transaction` (an id, or the reply of the
         command that started it) and return it, whatever its outcome (DONE, STOPPED, FAULT_*…).
@@ -1041,7 +1087,8 @@ class Rider:
         restarted and forgot the motion: `UnknownTransaction`). `on_status` gets every status
         meanwhile (e.g. to say the motion is paused or E-stopped); `on_silence` hears, once
         per silence, that no status came for `quiet_s` seconds (a frozen machine, a link down:
-        the wait goes on, the operator is told). MachineTimeout after `timeout` seconds.
+        the wait goes on, the operator is told); `LinkLost` once no status came for
+        `link_limit` seconds (with `on_status`). MachineTimeout after `timeout` seconds.
         """
         tid = transaction.transaction_id if isinstance(transaction, Reply) else transaction
         if not tid:
@@ -1056,15 +1103,17 @@ class Rider:
                 if update is not None:
                     q.put(update)
 
-        heard = time.monotonic()
-        silent = False
+        limit = link_limit if on_status is not None else None
+        silence = Silence(quiet_s, on_silence, limit, time.monotonic())
         with self._declare(keys, on_sample):
             recheck = 0.0
             while True:
                 now = time.monotonic()
-                if on_silence is not None and not silent and now - heard > quiet_s:
-                    silent = True
-                    on_silence(now - heard)
+                if (lost := silence.check(now)) is not None:
+                    raise LinkLost(
+                        f"no word from machine {self.machine_id} for {lost:.0f} s"
+                        f" (--link-limit {link_limit:g}); {tid} not known to have ended"
+                    )
                 if now >= recheck:
                     recheck = now + DONE_RECHECK_S
                     with contextlib.suppress(MachineTimeout):  # down for now: keep waiting
@@ -1081,7 +1130,7 @@ class Rider:
                 if isinstance(update, Completion) and update.transaction_id == tid:
                     return update
                 if isinstance(update, Status) and on_status is not None:
-                    heard, silent = time.monotonic(), False
+                    silence.heard(time.monotonic())
                     on_status(update)
 
     def wait_for(

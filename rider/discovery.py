@@ -32,9 +32,9 @@ import json
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -76,6 +76,14 @@ class Discovery:
         """Settled, and nothing on the network was out of sight."""
         return self.settled and not self.unseen
 
+    def unsure(self) -> str:
+        """Why a listing may miss a machine ("" when discovery is sure)."""
+        if not self.links or self.sure:
+            return ""
+        if not self.settled:
+            return f"discovery did not settle within {self.waited_s:.1f} s ({self.describe()})"
+        return f"part of the network is out of sight ({self.describe()})"
+
     def describe(self) -> str:
         """One line for an error message: what was seen."""
         ids = ", ".join(sorted(self.alive)) or "none"
@@ -85,6 +93,19 @@ class Discovery:
         if self.unseen:
             text += f"; out of sight: {'; '.join(self.unseen)}"
         return text
+
+
+T = TypeVar("T")
+
+
+class Listing(list[T]):
+    """What a lookup listed, and whether discovery had settled when it did (`complete`; when
+    not, `note` says why): `Rider.machines()`."""
+
+    def __init__(self, items: Iterable[T] = (), *, complete: bool = True, note: str = "") -> None:
+        super().__init__(items)
+        self.complete = complete
+        self.note = note
 
 
 @dataclass(frozen=True)

@@ -142,16 +142,22 @@ VALID_FOR_MAX_S = 3600
 class CommandRequest(WireModel):
     """The envelope of every command: an id that makes a retry safe, and the sender's time.
 
-    `rider` names the sending Rider (its liveliness id); the machine watches the Rider that
-    started motion and applies the rider-loss policy when it disappears.
+    `rider` names the sending Rider (its Rider id); the machine watches the Rider that started
+    motion and applies the rider-loss policy when it disappears.
     """
 
     transaction_id: TransactionId
     timecode: float | None = None
-    """The sender's clock when it sent the request, in seconds since the Unix epoch (seed 000
-    uses integer milliseconds; here seconds, as every time on this wire). Echoed in the reply
-    as `request_timecode` and written to the daemon's log with the command."""
+    """The sender's clock when it sent the request, in seconds since the Unix epoch (UTC, as
+    `time.time()`; a JavaScript Rider sends `Date.now() / 1000`). Seed 000 used integer
+    milliseconds; here seconds, as every time on this wire, and a motion command whose timecode
+    can only be milliseconds (above 1e11), or lies ahead of the machine's clock by more than
+    `bus.clock_margin_s`, is refused `BAD_TIMECODE`. Echoed in the reply as `request_timecode`
+    and written to the daemon's log with the command."""
     rider: TransactionId | None = None
+    """The supervising Rider, `<login>/<zid>` (schema/rider.py): the machine watches its
+    heartbeat on `rider/<login>/<zid>/heartbeat` while the motion it sent runs. None: nobody
+    supervises it (a one-shot command)."""
     valid_for: float | None = Field(default=None, gt=0, le=VALID_FOR_MAX_S)
     """Seconds after `timecode` that the sender still waits for the answer (the Rider sends the
     end of this call's wait: timeout × tries, counted from `timecode`). A command that would

@@ -65,6 +65,12 @@ def zenoh_settings(side: str, env: Mapping[str, str] | None = None) -> dict[str,
     return out
 
 
+def login(side: str, env: Mapping[str, str] | None = None) -> str | None:
+    """The user name `side` logs in with (`<SIDE>_ZENOH_USER`), None without one."""
+    env = os.environ if env is None else env
+    return env.get(env_name(side, "USER")) or None
+
+
 def _readable(var: str, path: str) -> str:
     """The absolute path, after checking it can be read (Zenoh's own error names no variable)."""
     p = Path(path)

@@ -35,6 +35,10 @@ class ErrorCode(StrEnum):
     STALE_REQUEST = "STALE_REQUEST"
     """A command that would move the machine reached it after its sender had stopped waiting
     (`timecode` + `valid_for`, plus the machine's clock margin): it is not acted on."""
+    BAD_TIMECODE = "BAD_TIMECODE"
+    """A motion command's `timecode` is no time in seconds (milliseconds, a JavaScript
+    `Date.now()`), or lies ahead of the machine's clock by more than its clock margin (a clock
+    that is wrong, or a request made in advance): it is not acted on."""
     DUPLICATE_ID = "DUPLICATE_ID"
     """Another session holds this machine's id: no command that moves or changes the machine
     is taken until one of the two is alone again."""

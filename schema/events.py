@@ -41,6 +41,7 @@ class EventKind(StrEnum):
     SESSION_ENDED = "session_ended"
     CALIBRATION = "calibration"
     PARAM_CHANGED = "param_changed"
+    SAFETY_CHANGED = "safety_changed"
     RIDER_LOST = "rider_lost"
     RIDER_RETURNED = "rider_returned"
     WATCHDOG_TRIP = "watchdog_trip"
@@ -141,15 +142,21 @@ class CalibrationEvent(OpenWireModel):
 
 
 class ParamEvent(OpenWireModel):
-    """An online parameter written (or reset to its default) over the bus."""
+    """An online parameter written (or reset to its default) over the bus; a safety setting's
+    write (service/core/safety.py) is a `safety_changed` event, refused ones included."""
 
-    kind: Literal["param_changed"] = "param_changed"
+    kind: Literal["param_changed", "safety_changed"] = "param_changed"
     name: str
     old: ParamScalar
     new: ParamScalar
     persisted: bool
     reset: bool = False
     transaction_id: str | None = None
+    by: str | None = None
+    """Who asked: the Rider id (`<login>/<zid>`) the write came with, as its sender said it."""
+    accepted: bool = True
+    """False: refused (`message` says why; `new` is what was asked), nothing changed."""
+    message: str = ""
 
 
 class RiderEvent(OpenWireModel):
@@ -177,6 +184,9 @@ class DaemonStartEvent(OpenWireModel):
     period_s: float
     previous_stop_clean: bool | None = None
     """False when the log's last run ended without a `daemon_stop` (killed or crashed)."""
+    safety: dict[str, ParamScalar] | None = None
+    """The safety settings this run started with (the config file's, or stricter persisted
+    online values): the record of what the file set, beside `safety_changed` for the bus."""
 
 
 class DaemonStopEvent(OpenWireModel):
@@ -512,7 +522,10 @@ def describe(details: Details) -> str:  # noqa: C901, PLR0911, PLR0912 - one bra
         return f"{d.axis} {d.old} -> {d.new} persisted={d.persisted}"
     if isinstance(d, ParamEvent):
         what = "reset" if d.reset else "set"
-        return f"{d.name} {what} {d.old!r} -> {d.new!r} persisted={d.persisted}"
+        who = f" by {d.by}" if d.by else ""
+        if not d.accepted:
+            return f"{d.name} {what} {d.old!r} -> {d.new!r}{who} refused: {d.message}"
+        return f"{d.name} {what} {d.old!r} -> {d.new!r}{who} persisted={d.persisted}"
     if isinstance(d, RiderEvent):
         if d.kind == "rider_lost" and d.mid_motion is not None:
             return departure_text(d.rider, d.policy, d.acted, d.mid_motion)

@@ -1,33 +1,77 @@
 """The keys a Rider speaks on (outside `machine/<id>`): its presence and its deadman heartbeat.
 
-A supervising Rider holds `rider/<zid>/alive` (a liveliness token) and puts an empty sample on
-`rider/<zid>/heartbeat` every `HEARTBEAT_INTERVAL_S`. The machine judges the Rider that started
-a motion by that heartbeat, not by the token: the token lives as long as the Rider's Zenoh lease
-(10 s by default), the heartbeat stops the moment the Rider freezes, dies or loses its link.
+A supervising Rider holds `rider/<login>/<zid>/alive` (a liveliness token) and puts an empty
+sample on `rider/<login>/<zid>/heartbeat` every `HEARTBEAT_INTERVAL_S`. `<login>` is the Zenoh
+user name it logged in with (`anonymous` on the open profile), `<zid>` its session id; together
+they are its Rider id (`<login>/<zid>`), the `rider` field of its motion commands. The ACL
+profiles let each login declare and put under its own `rider/<login>/**` only, so one station
+can neither hold nor feed another station's token or heartbeat (docs/security.md).
+
+The machine judges the Rider that started a motion by that heartbeat, not by the token: the
+token lives as long as the Rider's Zenoh lease (10 s by default), the heartbeat stops the moment
+the Rider freezes, dies or loses its link.
+
+Schema 1 used `rider/<zid>/…` and a bare `<zid>` as the Rider id: a machine of schema 2 refuses
+a motion command that names such a Rider (`BAD_PAYLOAD` at `/rider`, `outdated_rider`) instead
+of running a ride whose deadman it cannot see.
 """
 
 from __future__ import annotations
+
+import re
 
 HEARTBEAT_INTERVAL_S = 0.1
 """How often a supervising Rider puts its heartbeat; `rider_loss.timeout_s` is checked
 against it."""
 
-ALIVE_KEYS = "rider/*/alive"
-HEARTBEAT_KEYS = "rider/*/heartbeat"
+ANONYMOUS = "anonymous"
+"""The login part of a Rider id when the Rider has no Zenoh login (the open profile)."""
+
+ALIVE_KEYS = "rider/*/*/alive"
+HEARTBEAT_KEYS = "rider/*/*/heartbeat"
+
+_LOGIN = re.compile(r"[A-Za-z0-9._+\-][A-Za-z0-9._@+\-]{0,63}")
+"""A login that can be one key chunk (and one part of a transaction-id-like Rider id)."""
 
 
-def alive_key(zid: str) -> str:
-    return f"rider/{zid}/alive"
+def login_ok(login: str) -> bool:
+    """Whether `login` can name a Rider's keys (letters, digits and `._@+-`, at most 64)."""
+    return _LOGIN.fullmatch(login) is not None
 
 
-def heartbeat_key(zid: str) -> str:
-    return f"rider/{zid}/heartbeat"
+def rider_id(login: str, zid: str) -> str:
+    """The Rider id of session `zid` logged in as `login`."""
+    return f"{login}/{zid}"
+
+
+def alive_key(rider: str) -> str:
+    """The liveliness key of Rider `rider` (`<login>/<zid>`)."""
+    return f"rider/{rider}/alive"
+
+
+def heartbeat_key(rider: str) -> str:
+    return f"rider/{rider}/heartbeat"
 
 
 def rider_of(key: str) -> str | None:
-    """The Rider id in `rider/<zid>/alive|heartbeat`; None for anything else (a Rider's id is
-    its session id, hex)."""
+    """The Rider id in `rider/<login>/<zid>/alive|heartbeat`; None for anything else."""
     parts = key.split("/")
-    if len(parts) != 3 or parts[0] != "rider" or not parts[1].isalnum():
+    if len(parts) != 4 or parts[0] != "rider" or not split_ok(parts[1], parts[2]):
         return None
-    return parts[1]
+    return f"{parts[1]}/{parts[2]}"
+
+
+def split_ok(login: str, zid: str) -> bool:
+    """A login and a session id (hex) that make a Rider id."""
+    return login_ok(login) and zid.isalnum() and len(zid) <= 32
+
+
+def is_rider_id(text: str) -> bool:
+    """`<login>/<zid>`, as `rider_id` makes it."""
+    login, slash, zid = text.partition("/")
+    return bool(slash) and split_ok(login, zid)
+
+
+def login_of(rider: str) -> str:
+    """The login part of a Rider id (the whole text for a schema-1 id, which has none)."""
+    return rider.partition("/")[0] if "/" in rider else ""

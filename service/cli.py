@@ -134,6 +134,14 @@ def build_parser() -> argparse.ArgumentParser:
         "init", help="random passwords for machine, rider and monitor, and the dictionary"
     )
     init.add_argument("directory", type=Path, help="where to write them (created 0700)")
+    init.add_argument(
+        "--station",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a login of its own for this operator station, instead of the shared `rider`"
+        " (repeat for each; list them in the profile's `rider` subject)",
+    )
     init.add_argument("--force", action="store_true", help="replace existing files")
 
     ev = sub.add_parser("events", help="the event history, offline (reads <data_dir>/events.db)")
@@ -199,10 +207,11 @@ def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None
         print(f"{path or 'defaults'}: {errors} error(s), {warnings} warning(s); {verdict}")
 
 
-def credentials_init(directory: Path, force: bool) -> int:
+def credentials_init(directory: Path, force: bool, stations: tuple[str, ...] = ()) -> int:
     from service.adapters.credentials import (
         DICTIONARY,
         CredentialsExist,
+        identities,
         init_credentials,
         password_file,
     )
@@ -218,23 +227,31 @@ def credentials_init(directory: Path, force: bool) -> int:
         existing = [str(p) for p in opcua_files(directory) if p.exists()]
         if existing and not force:
             raise CredentialsExist(f"{', '.join(existing)}: exists already (--force replaces)")
-        written = init_credentials(directory, force=force)
+        users = identities(stations)
+        written = init_credentials(directory, users, force=force)
         written += init_opcua(directory)  # the plant gateway's (docs/plant.md)
-    except (CredentialsExist, OSError) as exc:
+    except (CredentialsExist, OSError, ValueError) as exc:
         print(f"machine: credentials: {exc}", file=sys.stderr)
         return EXIT_FAILED
     for path in written:
         print(f"wrote {path}")
     d = directory.resolve()
-    print(
-        "machine: MACHINE_ZENOH_DICTIONARY_FILE="
-        f"{d / DICTIONARY} machine run --zenoh-config zenoh/acl.json5\n"
-        f"rider:   RIDER_ZENOH_USER=rider RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'rider')}\n"
-        f"monitor: RIDER_ZENOH_USER=monitor RIDER_ZENOH_PASSWORD_FILE={password_file(d, 'monitor')}"
-        "\n"
+    riders = users[1:-1]
+    lines = [
+        f"machine: MACHINE_ZENOH_DICTIONARY_FILE={d / DICTIONARY} machine run --zenoh-config"
+        " zenoh/acl.json5",
+        *(
+            f"{label:8} RIDER_ZENOH_USER={u} RIDER_ZENOH_PASSWORD_FILE={password_file(d, u)}"
+            for label, u in [*(("rider:", u) for u in riders), ("monitor:", "monitor")]
+        ),
         f"gateway: rider gateway --users {d / USERS} --certificate {d / CERTIFICATE}"
-        f" --private-key {d / PRIVATE_KEY}"
-    )
+        f" --private-key {d / PRIVATE_KEY}",
+    ]
+    if stations:
+        names = ", ".join(f'"{u}"' for u in riders)
+        subject = f'{{ id: "rider", usernames: [{names}] }}'
+        lines.append(f"profile: in zenoh/acl.json5 (and tls.json5) set {subject}")
+    print("\n".join(lines))
     return EXIT_OK
 
 
@@ -248,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     if args.cmd == "credentials":
-        return credentials_init(args.directory, args.force)
+        return credentials_init(args.directory, args.force, tuple(args.station))
     if args.cmd == "schema":
         from schema.jsonschema import write
 

@@ -88,6 +88,18 @@ class StaleRequest(MachineError):
     code = ErrorCode.STALE_REQUEST
 
 
+class BadTimecode(MachineError):
+    """A motion command's `timecode` that is not seconds, or is ahead of the machine's clock."""
+
+    code = ErrorCode.BAD_TIMECODE
+
+
+class OutdatedRider(MachineError):
+    """A motion command naming a Rider by the schema-1 id (no login): its deadman is unseen."""
+
+    code = ErrorCode.BAD_PAYLOAD
+
+
 class Busy(MachineError):
     code = ErrorCode.BUSY
 

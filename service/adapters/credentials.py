@@ -3,6 +3,8 @@
 One `<user>.password` file per identity (one line, a random password) and `zenoh-users` (one
 `user:password` line each): exactly what `MACHINE_ZENOH_DICTIONARY_FILE`,
 `<SIDE>_ZENOH_PASSWORD_FILE` and the subjects of zenoh/acl.json5 expect (docs/security.md).
+With `--station NAME …` each operator station gets a login of its own instead of the shared
+`rider` one (its keys are `rider/<NAME>/…`, service/bus/stations.py).
 """
 
 from __future__ import annotations
@@ -10,13 +12,30 @@ from __future__ import annotations
 import secrets
 from pathlib import Path
 
+from schema.rider import login_ok
 from service.core.persist import atomic_write
 
 IDENTITIES = ("machine", "rider", "monitor")
 """The ACL subjects of zenoh/acl.json5 and zenoh/tls.json5, by user name."""
+ROLES = ("machine", "monitor")
+"""Logins that are not operator stations."""
 DICTIONARY = "zenoh-users"
 PASSWORD_BYTES = 24
 """192 random bits per password (URL-safe base64, no ':' and no spaces)."""
+
+
+def identities(stations: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The logins to make: the machine, one per station (`rider` without any), the monitor;
+    ValueError names a station that cannot be a login."""
+    for name in stations:
+        if not login_ok(name) or name in ROLES:
+            raise ValueError(
+                f"station {name!r}: a login of letters, digits and ._@+- (at most 64), other than"
+                f" {' and '.join(ROLES)}"
+            )
+    if len(set(stations)) != len(stations):
+        raise ValueError("a station is named twice")
+    return ("machine", *(stations or ("rider",)), "monitor")
 
 
 class CredentialsExist(FileExistsError):

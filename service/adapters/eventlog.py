@@ -39,6 +39,8 @@ from schema.events import (
     KnownDetails,
     StorageEvent,
 )
+from service.adapters.retention import prune
+from service.adapters.unwritten import Unwritten
 from service.config.model import EventsSection
 from service.core.events import Held
 from service.threads import NamedThread
@@ -48,8 +50,6 @@ log = logging.getLogger(__name__)
 EVENTS_FILE = "events.db"
 MAX_PAGE_BYTES = 256 * 1024
 """A reply page stops growing past this many bytes of event JSON (and says `more`)."""
-PRUNE_CHUNK = 2000
-"""Rows deleted per transaction while pruning, so queued events are written in between."""
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
@@ -334,6 +334,9 @@ class EventLog:
         self._prune_due = 0.0
         self.previous_stop_clean: bool | None = None
         """Whether the last run in this log ended with a `daemon_stop` (None: empty log)."""
+        self._unwritten = Unwritten(path)
+        """The safety events a failed write left, kept across a stop (service/adapters/
+        unwritten.py)."""
 
     # ------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -341,7 +344,19 @@ class EventLog:
         reported (and its events counted as lost) but never stops the machine."""
         self._claim()
         self._open_or_replace()
+        self._resume_unwritten()
         self._start_threads()
+
+    def _resume_unwritten(self) -> None:
+        """What the previous run could not write: its safety events first, then its lost count
+        as a `storage_failed` event with the first write."""
+        rows, lost, error = self._unwritten.resume()
+        self.put_rows(rows)
+        if lost:
+            why = f"in the previous run: {error or 'events not written'}"
+            if self._failure is not None:
+                why, lost = f"{self._failure[0]}; {why}", lost + self._failure[1]
+            self._failure = (why, lost)
 
     def _claim(self) -> None:
         """Wait for the log's previous writer to let go (`claim_writer`); said, not fatal."""
@@ -398,12 +413,29 @@ class EventLog:
             if thread is not None:
                 thread.join(max(0.0, deadline - time.monotonic()))
         writer_done = self._writer is None or not self._writer.is_alive()
+        if writer_done:
+            self._spill()
         if self._conn is not None and writer_done:
             self._conn.close()
             self._conn = None
         if self._writer_fd is not None and writer_done:
             os.close(self._writer_fd)  # the next writer of this log may start
             self._writer_fd = None
+
+    def _spill(self) -> None:
+        """At the stop: what is unwritten (held safety events, events lost or dropped and not
+        yet recorded) into the file the next start reads (service/adapters/unwritten.py)."""
+        with self._lock:
+            queued = list(self._items)
+            self._items.clear()
+        lost = self.dropped - self._dropped_recorded
+        lost += self._unwritten.hold([item for item in queued if not isinstance(item, Held)])
+        lost += sum(isinstance(item, Held) for item in queued)
+        error = None
+        if self._failure is not None:
+            error, failed = self._failure
+            lost += failed
+        self._unwritten.spill(lost, error or (f"{lost} events not written" if lost else None))
 
     def _stop(self) -> None:
         """No more events taken; the writer hurried to the end of the queue, the reader told
@@ -539,7 +571,8 @@ class EventLog:
             batch: list[_Row] = []
             try:
                 batch = self._take()
-                if batch or self.dropped > self._dropped_recorded:
+                # Held safety events are tried again every wait (at most 1 s), events or not.
+                if batch or self.dropped > self._dropped_recorded or len(self._unwritten):
                     self._write(batch)
             except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
                 self._fail(f"event writer failed: {exc!r}", len(batch), exc)
@@ -563,12 +596,14 @@ class EventLog:
         dropped = self.dropped - self._dropped_recorded
         if dropped:
             extra.append(DroppedEvent(count=dropped))
-        items = [_row(d, now, None) for d in extra] + batch
+        held = self._unwritten.take()
+        items = [_row(d, now, None) for d in extra] + held + batch
         conn = self._conn
         if conn is None:
             conn = self._reopen()
         if conn is None:
-            self._fail(self.last_error or "event log unavailable", len(batch))
+            lost = self._unwritten.hold(held + batch)
+            self._fail(self.last_error or "event log unavailable", lost)
             return
         machine_id = self.machine_id
         try:
@@ -584,7 +619,8 @@ class EventLog:
             if conn.in_transaction:
                 with contextlib.suppress(sqlite3.Error):  # the disk that failed the write
                     conn.execute("ROLLBACK")
-            self._fail(str(exc), len(batch))
+            # The safety record waits in memory for the next write; the rest is lost.
+            self._fail(str(exc), self._unwritten.hold(held + batch))
             return
         self._failure = None
         self._dropped_recorded += dropped
@@ -631,51 +667,23 @@ class EventLog:
 
     # ----------------------------------------------------------------------------- prune
     def _prune(self) -> None:
-        """Drop events older than `max_age_days`, then the oldest until under `max_mb`."""
+        """Drop what retention says (service/adapters/retention.py): routine events by age and
+        the file's size, the safety record by its own age and size."""
         self._prune_due = self.wall() + self.settings.prune_every_s
         conn = self._conn
         if conn is None:
             return
-        cutoff = self.wall() - self.settings.max_age_days * 86_400
-        limit = int(self.settings.max_mb * 1024 * 1024)
         try:
-            while self._delete(conn, "WHERE time < ?", (cutoff,)) == PRUNE_CHUNK:
-                self._write_queued()
-            while (used := self.used_bytes(conn)) > limit:
-                [(rows,)] = conn.execute("SELECT COUNT(*) FROM events").fetchall()
-                # Down to 90 % of the limit, by the average row size: never all at once.
-                excess = int((used - 0.9 * limit) * rows / used) + 1 if rows else 0
-                if self._delete(conn, "", (), min(PRUNE_CHUNK, excess)) == 0:
-                    break
-                self._write_queued()
+            prune(conn, self.settings, self.wall(), self._write_queued)
             conn.execute("PRAGMA incremental_vacuum")
             conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         except sqlite3.Error as exc:
             log.warning("event=events_prune_failed error=%r", str(exc))
 
-    @staticmethod
-    def _delete(
-        conn: sqlite3.Connection, where: str, args: tuple[object, ...], n: int = PRUNE_CHUNK
-    ) -> int:
-        cur = conn.execute(
-            f"DELETE FROM events WHERE seq IN (SELECT seq FROM events {where} ORDER BY seq"
-            " LIMIT ?)",
-            (*args, n),
-        )
-        return cur.rowcount
-
     def _write_queued(self) -> None:
         batch = self._take()
         if batch:
             self._write(batch)
-
-    @staticmethod
-    def used_bytes(conn: sqlite3.Connection) -> int:
-        """Bytes of the database in use (free pages not counted)."""
-        page = conn.execute("PRAGMA page_size").fetchone()[0]
-        count = conn.execute("PRAGMA page_count").fetchone()[0]
-        free = conn.execute("PRAGMA freelist_count").fetchone()[0]
-        return int(page * (count - free))
 
     def file_bytes(self) -> int:
         """The database file and its WAL on disk."""

@@ -20,6 +20,8 @@ import zenoh
 from schema.commands import REQUEST_MODELS, Command, CommandRequest, Reply
 from service.bus.request import Request, sender_of
 from service.bus.routes import Handler, Route, Wildcard
+from service.core.admission import watchable
+from service.core.control import HANDLING
 from service.core.loop import PendingCommand, ScanLoop
 from service.errors import BadRequest, Busy, MachineError, UnknownCommand, WildcardCommand
 from service.threads import NamedThread
@@ -28,6 +30,8 @@ log = logging.getLogger(__name__)
 
 LOCK_TIMEOUT_S = 0.5
 """How long a command waits for the scan thread to finish a cycle before BUSY (a stalled loop)."""
+MOVES = {command: HANDLING[command].moves for command in Command}
+"""The commands that set the machine moving (and name their supervising Rider)."""
 DEFERRED_MAX = 64
 """Commands waiting for the loop's lock at most; beyond this a command is refused BUSY."""
 
@@ -120,6 +124,8 @@ class Commands:
                 path="/transaction_id",
             )
         body = request.decode(REQUEST_MODELS[command])
+        if MOVES[command]:
+            watchable(command, body)  # a supervisor of schema 1 could not be watched
         sender = sender_of(request.query)
         if not self.deferred.pending:
             reply = self.loop.execute_between_cycles(

@@ -111,7 +111,7 @@ class Presence:
     def _on_rider(self, sample: zenoh.Sample) -> None:
         rider = rider_keys.rider_of(str(sample.key_expr))
         if rider is None:
-            return  # a Rider's id is its session id (hex): anything else is not a Rider's token
+            return  # rider/<login>/<zid>/alive: anything else is not a Rider's token
         alive = sample.kind == zenoh.SampleKind.PUT
         if alive:
             self.riders_alive.add(rider)

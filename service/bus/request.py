@@ -11,6 +11,7 @@ from pydantic import BaseModel
 
 from schema.codec import DecodeError, Format, decode_raw, encode, sniff_format, validate
 from schema.commands import Reply, transaction_id_of
+from schema.rider import is_rider_id
 from schema.status import MachineState
 from service.errors import MachineError, Rejected
 
@@ -156,10 +157,14 @@ class Request:
 
 
 def sender_of(query: zenoh.Query) -> str | None:
-    """The Rider's session id from the query's attachment (`rider=<zid>`), if it sent one."""
+    """The Rider id from the query's attachment (`rider=<login>/<zid>`; a schema-1 Rider's
+    `rider=<zid>`), if it sent one. Said by the sender: the login part is its own claim,
+    which the ACL profiles do not check on a query (docs/security.md)."""
     attachment = query.attachment  # one read: each crosses into Zenoh
     if attachment is None:
         return None
     text = attachment.to_bytes()[:128].decode(errors="replace")
     name, _, value = text.partition("=")
-    return value[:64] if name == "rider" and value.isalnum() else None
+    if name != "rider":
+        return None
+    return value if is_rider_id(value) or (value.isalnum() and len(value) <= 32) else None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import threading
 from pathlib import Path
 
@@ -10,7 +11,10 @@ import zenoh
 
 from schema.credentials import MACHINE, zenoh_settings
 from schema.runtime import unreadable_layout
+from service.bus.stations import expand, without_role
 from service.threads import NamedThread
+
+log = logging.getLogger(__name__)
 
 Session = zenoh.Session
 """The session type, for modules outside this package (they never import `zenoh` themselves)."""
@@ -44,6 +48,18 @@ def zenoh_config(
     # Secrets come from files named in the environment, never from the image or this file.
     for setting, value in zenoh_settings(MACHINE).items():
         conf.insert_json5(setting, value)
+    acl = json.loads(conf.get_json("access_control") or "null")
+    if isinstance(acl, dict) and acl.get("enabled"):
+        # A rule per station login for the Riders' own keys (service/bus/stations.py).
+        conf.insert_json5("access_control", json.dumps(expand(acl)))
+        users = json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file") or "null")
+        for user in without_role(acl, Path(users)) if users else []:
+            log.warning(
+                "event=login_without_role user=%s detail=%r",
+                user,
+                "in the dictionary but in no subject of the profile: it may connect and do"
+                " nothing (add a station's login to the `rider` subject's usernames)",
+            )
     return conf
 
 

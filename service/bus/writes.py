@@ -3,6 +3,7 @@ hand, and the diagnostics reset. A write names one key of one machine (no wildca
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -15,10 +16,11 @@ from schema.events import ParamEvent
 from schema.params import ParamSet, ParamValue
 from service.adapters.eventlog import EventLog
 from service.bus.reads import matching
-from service.bus.request import Request
+from service.bus.request import Request, sender_of
 from service.bus.routes import Route, Wildcard
 from service.core.loop import LoopCall, ScanLoop, calibration_record
 from service.core.persist import SaveTicket
+from service.core.safety import is_safety
 from service.core.timing import CycleStats
 from service.errors import BadRequest, Busy, MachineError, Rejected, StorageFailed
 from service.threads import NamedThread
@@ -113,20 +115,43 @@ class Writes:
         req = request.decode(ParamSet)
         # The registry is thread-safe and its write (with fsync) stays off the scan thread;
         # the loop picks the new config up at the next cycle boundary.
-        old = params.get(name).value
-        value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
-        if self.events is not None:
-            self.events.emit_now(
-                ParamEvent(
-                    name=value.name,
-                    old=old,
-                    new=value.value,
-                    persisted=value.persisted,
-                    reset=req.reset,
-                    transaction_id=req.transaction_id,
-                )
-            )
+        old = params.get(name)
+        record = functools.partial(self._record, old, req, sender_of(request.query))
+        try:
+            value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
+        except MachineError as exc:
+            if is_safety(old.name):  # every try at a safety setting is on the record
+                record(old.default if req.reset else req.value, False, exc.message)
+            raise
+        record(value.value, value.persisted, "")
         request.reply(value)
+
+    def _record(
+        self,
+        old: ParamValue,
+        req: ParamSet,
+        by: str | None,
+        new: object,
+        persisted: bool,
+        refused: str,
+    ) -> None:
+        if self.events is None:
+            return
+        kind = "safety_changed" if is_safety(old.name) else "param_changed"
+        self.events.emit_now(
+            ParamEvent(
+                kind=kind,
+                name=old.name,
+                old=old.value,
+                new=new if isinstance(new, bool | int | float | str) else repr(new),
+                persisted=persisted,
+                reset=req.reset,
+                transaction_id=req.transaction_id,
+                by=by,
+                accepted=not refused,
+                message=refused,
+            )
+        )
 
     def calibration(self, request: Request) -> None:
         """Values entered by hand: applied on the scan thread, answered once they are saved."""

@@ -158,6 +158,13 @@ class EventsSection(_Section):
     batch_max: int = Field(default=512, ge=1, le=100_000)
     max_age_days: float = Field(default=90.0, gt=0, le=36_500)
     max_mb: float = Field(default=64.0, ge=1, le=1_000_000)
+    """The whole file; routine events (commands, states, completions, sessions) are pruned,
+    oldest first, to stay under it. The safety record is not (service/adapters/retention.py)."""
+    safety_max_age_days: float = Field(default=730.0, gt=0, le=36_500)
+    """E-stops, faults, the watchdog, Riders lost, safety-setting writes, the daemon's starts
+    and stops: kept this long, whatever routine traffic comes after them."""
+    safety_max_mb: float = Field(default=16.0, ge=0.1, le=1_000_000)
+    """The safety record's own size limit (the events a `rider` login can cause go first)."""
     prune_every_s: float = Field(default=60.0, ge=0.1, le=86_400)
     page_max: int = Field(default=500, ge=1, le=10_000)
 

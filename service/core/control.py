@@ -44,6 +44,7 @@ from schema.status import (
     SessionProgress,
 )
 from service.config.model import LiveConfig, MachineConfig, RiderLossPolicy
+from service.core.admission import admit
 from service.core.controllers import (
     Chain,
     Controller,
@@ -64,7 +65,6 @@ from service.errors import (
     NotCalibrated,
     NotHome,
     ParamOutOfRange,
-    StaleRequest,
     WrongState,
 )
 
@@ -319,7 +319,7 @@ class ControlAPI:
         handling = HANDLING[command]
         try:
             if handling.moves:
-                self._fresh(command, request, stamp)
+                admit(command, request, stamp, self.config.bus.clock_margin_s)
             if not handling.read_only:
                 self._guard(command)
             result = handling.action(self, request, now)
@@ -344,20 +344,6 @@ class ControlAPI:
             state=self.state,
             result=result,
         )
-
-    def _fresh(self, command: Command, request: CommandRequest, stamp: float) -> None:
-        """Refuse a motion command that arrives after its sender stopped waiting for it."""
-        if request.timecode is None or request.valid_for is None:
-            return
-        age = stamp - request.timecode
-        margin = self.config.bus.clock_margin_s
-        if age > request.valid_for + margin:
-            raise StaleRequest(
-                f"{command.value} refused: sent {age:.1f} s ago, and its sender stopped waiting"
-                f" after {request.valid_for:g} s (the machine was not answering, or the two"
-                f" clocks differ by more than bus.clock_margin_s = {margin:g} s); nothing"
-                " moved: send it again"
-            )
 
     def _guard(self, command: Command) -> None:
         """Refuse a command this machine cannot take now: id held twice, E-stop, state."""

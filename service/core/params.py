@@ -19,6 +19,7 @@ from schema.params import ParamSet, ParamValue
 from service.config.model import LiveConfig, MachineConfig
 from service.config.validate import semantic_findings
 from service.core.persist import ParamScalar, ParamStore, StorageHealth, StoredParam
+from service.core.safety import check_write, is_safety, weaker
 from service.errors import (
     ParamLocked,
     ParamOutOfRange,
@@ -280,6 +281,11 @@ class ParamRegistry:
                 "/value",
             )
         with self._lock:
+            if is_safety(name):  # only stricter online (service/core/safety.py)
+                project = spec.default(self._project)
+                live_value = self._live.get(name, project)
+                target = project if value is None else value
+                check_write(name, target, live=live_value, project=project, moving=moving)
             live = dict(self._live)
             if value is None:
                 live.pop(name, None)
@@ -377,6 +383,9 @@ class ParamRegistry:
                 if spec is None:
                     raise UnknownParam("not an online parameter")
                 value = spec.check(entry.value)
+                project = spec.default(self._project)
+                if is_safety(name) and weaker(name, value, project):
+                    raise ParamOutOfRange(f"less strict than the config file's {project!r}")
                 live = {**self._live, name: value}
                 self._config = self._candidate(live, spec, value)
             except (UnknownParam, ParamWrongType, ParamOutOfRange) as exc:

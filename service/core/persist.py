@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, FiniteFloat, ValidationError
 from schema.calibration import CalibrationSource
 from schema.errors import ErrorCode
 from service.core.devices import Calibration, RotateCalibration, TiltCalibration
+from service.core.unsaved import RETRY_S, Unsaved
 from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
@@ -318,8 +319,12 @@ class CalibrationStore:
     """The calibration file in the data directory; writes go through a background writer.
 
     A save that fails never leaves an older file to be loaded as current: the older file is
-    moved aside (`calibration.json.stale-<time>`); where even that fails (a read-only mount),
-    the start-up probe finds the directory not writable and the file is not trusted.
+    moved aside (`calibration.json.stale-<time>`). Where even that fails (a read-only mount),
+    the new calibration is saved as soon as the directory takes it (service/core/unsaved.py:
+    while the machine runs, and as it stops), and a start that finds the directory still not
+    writable does not trust the file. What cannot hold: a machine killed (or a power cut)
+    before any retry succeeds, then started with the directory writable again, loads the
+    older file; the refusal says so, with its values.
     """
 
     def __init__(
@@ -333,6 +338,12 @@ class CalibrationStore:
         self.writer = writer
         self.clock = clock
         self.health = health or StorageHealth()
+        self.unsaved = Unsaved(
+            lambda data: atomic_write(self.path, data),
+            writer.submit if writer is not None else None,
+            self.health.recovered,
+        )
+        """A calibration not saved over an older file still in place, tried again."""
 
     @property
     def path(self) -> Path:
@@ -361,10 +372,11 @@ class CalibrationStore:
         ticket = SaveTicket()
 
         def job() -> None:
+            self.unsaved.drop()  # this one supersedes any calibration still waiting
             try:
                 atomic_write(self.path, data)
             except OSError as exc:
-                ticket.finish(self._failed(exc))
+                ticket.finish(self._failed(exc, data))
                 return
             self.health.recovered()
             ticket.finish(None)
@@ -375,21 +387,61 @@ class CalibrationStore:
             self.writer.submit(job)
         return ticket
 
-    def _failed(self, exc: OSError) -> str:
+    def _failed(self, exc: OSError, data: bytes) -> str:
         why = exc.strerror or str(exc)
         try:
             stale = retire(self.path)
         except OSError as retire_exc:
-            older = (
-                f"the older {self.path.name} could not be moved aside"
-                f" ({retire_exc.strerror or retire_exc}) and is not trusted at the next start"
+            self.unsaved.keep(data)
+            message = (
+                f"calibration not saved to {self.path} ({why}), and the older file could not be"
+                f" moved aside ({retire_exc.strerror or retire_exc}); it holds {_holds(self.path)}."
+                f" The new calibration is in use; it is saved as soon as the data dir takes it"
+                f" (tried every {RETRY_S:g} s and as the machine stops). A start while the dir"
+                " cannot be written does not trust the older file; a start after the machine"
+                " was killed before any of these succeeded, with the dir writable again, loads"
+                " the older file as current: calibrate again then"
             )
         else:
             older = f"the older file was moved aside to {stale.name}" if stale else "no older file"
-        message = f"calibration not saved to {self.path} ({why}); it is lost at a restart; {older}"
+            message = (
+                f"calibration not saved to {self.path} ({why}); it is lost at a restart; {older}"
+            )
         self.health.failed(StorageHealth.CALIBRATION, message)
         log.error("event=persist_failed what=calibration error=%r detail=%r", why, message)
         return message
+
+    def close(self) -> None:
+        """As the machine stops: the last try at a calibration not saved yet (said if it
+        fails: the next start's trust in the older file depends on the dir)."""
+        self.unsaved.stop()
+        if self.writer is not None:
+            self.writer.submit(self.unsaved.retry)  # in order after any save under way
+            self.writer.flush()
+        else:
+            self.unsaved.retry()
+        if self.unsaved.pending:
+            log.error(
+                "event=calibration_unsaved_at_stop path=%s detail=%r",
+                self.path,
+                f"the older file ({_holds(self.path)}) is loaded as current by a start that"
+                " finds the data dir writable",
+            )
+
+
+def _holds(path: Path) -> str:
+    """What a calibration file says, for a message (read only: nothing is moved or removed)."""
+    try:
+        doc = _CalibrationFile.model_validate_json(path.read_bytes())
+    except (OSError, ValidationError):
+        return "no calibration that could be read"
+    parts = []
+    if doc.tilt is not None:
+        t = doc.tilt
+        parts.append(f"tilt gain {t.gain_counts_per_deg:g} counts/°, offset {t.offset_counts:g}")
+    if doc.rotate is not None:
+        parts.append(f"rotate {doc.rotate.revolution_s:g} s per revolution")
+    return ", ".join(parts) or "no calibration"
 
 
 def retire(path: Path) -> Path | None:

@@ -53,6 +53,12 @@ class TransactionLog:
         if len(self._replies) > self.capacity:
             self._replies.popitem(last=False)
 
+    def remember(self, transaction_id: str, command: str, packed: bytes) -> None:
+        """A reply given before this start (service/adapters/replay.py), as msgpack."""
+        self._replies[transaction_id] = (command, packed)
+        if len(self._replies) > self.capacity:
+            self._replies.popitem(last=False)
+
     def wire(self, reply: Reply) -> bytes | None:
         """`reply` as msgpack, when it is the reply recorded last (`encode`'s bytes, made once);
         None for any other (a repeat's refusal, or a later command recorded meanwhile)."""

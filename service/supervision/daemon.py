@@ -20,6 +20,7 @@ from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.fastdata import FastDataServer, user_registers
 from service.adapters.heartbeat import HeartbeatFile
 from service.adapters.history import HistoryProcess
+from service.adapters.replay import Recalled, recall
 from service.bus.exposure import warn_if_exposed
 from service.config.load import check_candidate
 from service.config.model import HalBackend, MachineConfig
@@ -40,6 +41,7 @@ from service.core.runner import (
     switch_interval,
     tune_thread,
 )
+from service.core.safety import in_effect
 from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
@@ -189,6 +191,7 @@ class Daemon:
         """The setup steps in order; each registers its undo as soon as it has succeeded."""
         hal = self._open_hal(stack)
         store, registry = self._open_storage(stack)
+        recalled = self._recall()  # before this run's history writer takes the file
         self._open_event_log(stack)
         # Handled on a thread of their own, never inside the code a signal interrupts; until
         # `run` returns, so a signal during the teardown is handled too.
@@ -197,6 +200,7 @@ class Daemon:
         session = self._open_session(stack)
         self._refuse_duplicate(session)
         self._build_machine(hal, store, registry, session)
+        self._remember(recalled)
         _on_exit(stack, "bus", self.bus.close)
         self.bus.start()
         name_callback_threads()  # zenoh-python's callback threads, for `top -H`
@@ -229,6 +233,7 @@ class Daemon:
         writer = BackgroundWriter()
         _on_exit(stack, "storage", _flush_and_close, writer)
         store = CalibrationStore(data_dir, writer)
+        _on_exit(stack, "calibration", store.close)  # before the writer's own close
         registry = ParamRegistry(self.config, ParamStore(data_dir), store.health)
         self.config = config = registry.config  # persisted online values survive a restart
         self.stats = CycleStats(
@@ -238,6 +243,27 @@ class Daemon:
             limit_s=config.loop.watchdog_limit_s,
         )
         return store, registry
+
+    def _recall(self) -> Recalled:
+        """The answers of the commands before this start (service/adapters/replay.py)."""
+        config = self.config
+        if not config.events.enabled:
+            return Recalled()
+        path = Path(config.data_dir) / EVENTS_FILE
+        return recall(path, config.machine.id, config.bus.transaction_window)
+
+    def _remember(self, recalled: Recalled) -> None:
+        """A repeat of a transaction answered before this start gets that answer again."""
+        for tid, command, packed in recalled.replies:
+            self.loop.transactions.remember(tid, command, packed)
+        for notice in recalled.completions:
+            self.loop.completions.record(notice)
+        log.info(
+            "event=transactions_recalled commands=%d completions=%d since=%s",
+            len(recalled.replies),
+            len(recalled.completions),
+            "-" if recalled.since is None else f"{recalled.since:.3f}",
+        )
 
     def _open_event_log(self, stack: contextlib.ExitStack) -> None:
         self.events = _event_log(self.config)
@@ -459,6 +485,7 @@ def _event_log(config: MachineConfig) -> EventLog | None:
             hal=str(config.hal.backend),
             period_s=config.loop.period_s,
             previous_stop_clean=events.previous_stop_clean,
+            safety=in_effect(config),
         )
     )
     return events

@@ -25,6 +25,7 @@ MODULES = [
     "status_latency",
     "cost",
     "events_cost",
+    "retention",
     "rider_loss",
     "pick",
     "throughput",

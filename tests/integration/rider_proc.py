@@ -13,12 +13,14 @@ world's revolutions travelled since `start`. Exit code 0, or 1 with `{"error": .
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import queue
+import signal
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,7 @@ from schema.codec import Format, decode
 from schema.commands import Reply, RotateStep, Session, TiltStep
 from schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, prepare, wait_revolutions
+from tests.procs import REPO, Daemon
 
 STEPS = ("alive", "prepare", "start", "running", "done", "hold")
 
@@ -49,6 +52,38 @@ def read_step(proc: subprocess.Popen[str], step: str) -> dict[str, Any]:
         if record["step"] == step:
             return record
     raise AssertionError(f"rider process ended (code {proc.wait(5)}) before step {step}")
+
+
+@contextlib.contextmanager
+def supervising(
+    daemon: Daemon, env: Mapping[str, str] | None = None, revolutions: int = 40
+) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A Rider in its own process (with `env` as its environment, else this one's) that
+    prepares the machine, starts a session of `revolutions` and holds it mid-ride: its process
+    and its Rider id; killed at the end whatever happens."""
+    cmd = command(daemon.endpoint, daemon.zenoh_config, daemon.machine_id)
+    cmd += ["--revolutions", str(revolutions), "prepare", "start", "running", "hold"]
+    proc = subprocess.Popen(
+        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO, env=env
+    )
+    try:
+        yield proc, read_step(proc, "hold")["rider"]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(STEP_TIMEOUT_S)
+
+
+def kill_until_paused(
+    proc: subprocess.Popen[str], observer: Rider, bound: float
+) -> tuple[Status, float]:
+    """SIGKILL a supervising Rider; the PAUSED status that follows (within `bound` seconds)
+    and how long it took."""
+    killed_at = time.monotonic()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(STEP_TIMEOUT_S)
+    paused = observer.wait_for({MachineState.PAUSED}, bound)
+    return paused, time.monotonic() - killed_at
 
 
 def report(step: str, **fields: Any) -> None:

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from schema.events import StorageEvent
 from schema.status import MachineState, Status
 from service.core.devices import Calibration, RotateCalibration, TiltCalibration
 from service.core.persist import CALIBRATION_FILE, calibration_to_json
-from tests.integration.support import fast_args
+from tests.integration.support import fast_args, write_fast_config
 from tests.procs import Daemon, start_daemon
 
 pytestmark = pytest.mark.integration
@@ -85,7 +86,7 @@ def test_full_disk_calibration_and_parameter_are_not_reported_saved(tmp_path: Pa
             manual = daemon.cli("calibration", "set", "--tilt-offset", "1194", "--tilt-gain", "40")
             assert manual.returncode == 1, manual.stdout + manual.stderr
             assert "STORAGE_FAILED" in manual.stderr and "NOT saved" in manual.stderr
-            param = daemon.cli("params", "set", "rider_loss.grace_s", "2", "--persist")
+            param = daemon.cli("params", "set", "tilt.tolerance_deg", "2", "--persist")
             assert param.returncode == 1 and "STORAGE_FAILED" in param.stderr, param.stderr
             shown = daemon.cli("status")
             assert "STORAGE_FAILED" in shown.stdout
@@ -136,3 +137,73 @@ def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: 
             daemon.stop()
     assert not after.calibrated.tilt  # the older file is still there, still not trusted
     assert storage_warnings(after)
+
+
+def test_a_calibration_refused_by_a_read_only_dir_is_not_undone_by_a_restart(
+    tmp_path: Path,
+) -> None:
+    """Issue 43, reproduction 4: read-only during `calibration set` (gain 33 -> 50), writable
+    again, restart: the older file (gain 33) was loaded as current, calibrated, no warning.
+    The calibration in use is saved once the dir takes it (at the latest as the daemon stops),
+    and the refusal said what would happen otherwise."""
+    with tmpfs(tmp_path / "mnt", "1m") as mount:
+        data = mount / "data"
+        data.mkdir()
+        (data / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+        # No event history in the data dir: a file open for writing keeps a remount read-only
+        # from happening (`mount point is busy`).
+        config = write_fast_config(tmp_path)
+        config.write_text(config.read_text() + "\n[events]\nenabled = false\n")
+        daemon = start_daemon(tmp_path, extra=["--config", str(config), "--data-dir", str(data)])
+        try:
+            assert _run("mount", "-o", "remount,ro", str(mount)).returncode == 0
+            manual = daemon.cli("calibration", "set", "--tilt-offset", "1194", "--tilt-gain", "50")
+            assert _run("mount", "-o", "remount,rw", str(mount)).returncode == 0
+            with daemon.rider() as r:
+                in_use = r.calibration().tilt
+        finally:
+            daemon.stop()
+        daemon = start_daemon(tmp_path, extra=["--config", str(config), "--data-dir", str(data)])
+        try:
+            with daemon.rider() as r:
+                after = r.calibration().tilt
+                status = r.status()
+        finally:
+            daemon.stop()
+    assert manual.returncode == 1, manual.stdout + manual.stderr
+    said = manual.stderr.replace("\n", " ")
+    assert "could not be moved aside" in said and "tilt gain 33 counts/°" in said, said
+    assert "loads the older file as current" in said  # what a kill before any retry does
+    assert in_use is not None and in_use.gain_counts_per_deg == 50.0
+    assert after is not None and after.gain_counts_per_deg == 50.0, after
+    assert storage_warnings(status) == []
+
+
+def test_events_lost_on_a_full_disk_are_counted_after_a_restart(tmp_path: Path) -> None:
+    """Issue 43, reproduction 4: the `storage_failed` record that counts them could not be
+    written while the disk was full, and a restart forgot the count; the file the history
+    reserved at its start keeps it for the next one."""
+    with tmpfs(tmp_path / "mnt", "2m") as mount:
+        data = mount / "data"
+        daemon = machine_on(tmp_path, data)
+        try:
+            with daemon.rider() as r:
+                assert r.events(last=1)  # the history runs (and reserved its file): now fill
+                fill(mount)
+                for _ in range(20):
+                    r.check_home()  # a `command` event each, none of them written
+                r.sim("estop", pressed=True)  # an E-stop: held, not lost
+                r.wait_for({MachineState.FAULT_ESTOP}, 20.0)
+        finally:
+            daemon.stop()
+        (mount / "filler").unlink()
+        daemon = machine_on(tmp_path, data)
+        try:
+            with daemon.rider() as r:
+                failed = [e.details for e in r.events(kinds=("storage_failed",))]
+                estops = r.events(kinds=("estop_pressed",))
+        finally:
+            daemon.stop()
+    previous = [d for d in failed if isinstance(d, StorageEvent) and "previous run" in d.error]
+    assert previous and previous[0].lost >= 20, failed
+    assert len(estops) == 1

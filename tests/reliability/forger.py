@@ -3,8 +3,9 @@
 It opens its own Zenoh session with the `RIDER_ZENOH_*` credentials it is given (any identity,
 or none), listens on its own endpoint with gossip on (so other peers could be told about it and
 dial it), and pretends to be what it is not: it holds liveliness tokens, answers queries with a
-fake "accepted" reply and publishes a fake IDLE status. It prints `ready <zid>` once everything
-is declared and exits by itself after `--duration` seconds (or on SIGTERM/SIGKILL).
+fake "accepted" reply, publishes a fake IDLE status and puts Riders' deadman heartbeats. It
+prints `ready <zid>` once everything is declared and exits by itself after `--duration` seconds
+(or on SIGTERM/SIGKILL).
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--token", action="append", default=[], help="liveliness token to hold")
     p.add_argument("--queryable", action="append", default=[], help="key to answer")
     p.add_argument("--put", action="append", default=[], help="status key to publish on")
+    p.add_argument("--beat", action="append", default=[], help="heartbeat key to put on")
     p.add_argument("--machine-id", default="m1")
     p.add_argument(
         "--session-name",
@@ -96,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         held = [session.liveliness().declare_token(k) for k in args.token]
         held += [session.declare_queryable(k, answer) for k in args.queryable]
         pubs = [session.declare_publisher(k) for k in args.put]
+        beats = [session.declare_publisher(k) for k in args.beat]
         print(f"ready {session.zid()}", flush=True)
         deadline = time.monotonic() + args.duration
         while not stop.is_set() and time.monotonic() < deadline:
@@ -103,10 +106,12 @@ def main(argv: list[str] | None = None) -> int:
                 pub.put(
                     fake_status(args.machine_id, args.session_name), encoding=Format.MSGPACK.value
                 )
+            for beat in beats:
+                beat.put(b"")  # a deadman heartbeat, as a Rider sends it
             stop.wait(0.05)
         for h in held:
             h.undeclare()
-        for pub in pubs:
+        for pub in pubs + beats:
             pub.undeclare()
     return 0
 

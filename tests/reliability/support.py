@@ -187,6 +187,20 @@ def start_machine(  # noqa: PLR0913 - keyword-only test knobs
     return daemon
 
 
+def secured_machine(
+    tmp: Path, ids: Identities, command: str, profile: Path, rider: str
+) -> tuple[Daemon, dict[str, str]]:
+    """`start_machine` on an ACL `profile` (`machine run`, or `supervise` with the daemon's own
+    `machine` login), and the environment of a Rider process logged in as `rider`."""
+    env = {env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)}
+    if command == "supervise":
+        env.update(ids.env(MACHINE, "machine"))
+    rider_env = ids.env(RIDER, rider)
+    daemon = start_machine(tmp, command=command, profile=profile, env=env, rider_env=rider_env)
+    child_env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
+    return daemon, {**child_env, **rider_env}
+
+
 def supervisor_child(daemon: Daemon) -> int:
     """The pid of the daemon child of a `machine supervise` process."""
     out = subprocess.run(

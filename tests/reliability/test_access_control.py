@@ -13,10 +13,8 @@ import contextlib
 import json
 import os
 import select
-import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +34,7 @@ from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
 from schema.status import MachineState
 from tests.integration import rider_proc
-from tests.integration.support import STEP_TIMEOUT_S, relays_off
+from tests.integration.support import relays_off
 from tests.procs import REPO, Daemon, free_port, stop_process
 from tests.reliability.forger import FORGED_SEQ
 from tests.reliability.support import (
@@ -48,6 +46,7 @@ from tests.reliability.support import (
     environ,
     make_identities,
     rider_as,
+    secured_machine,
     start_machine,
 )
 
@@ -55,7 +54,7 @@ pytestmark = pytest.mark.integration
 
 DENIED_WAIT_S = 1.5
 """How long a denied query may wait for a reply that must never come."""
-PARAM = "rider_loss.grace_s"
+PARAM = "tilt.tolerance_deg"
 
 SIM_FAULTS: dict[str, dict[str, Any]] = {
     "estop": {"pressed": True},
@@ -329,45 +328,21 @@ def test_a_monitor_cannot_keep_a_killed_rider_alive(
     Under `supervise` the Riders' tokens reach the daemon child through the supervisor's
     router as the `machine` identity (which may watch rider/** but never declare there).
     """
-    env = {env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)}
-    if command == "supervise":
-        env.update(ids.env(MACHINE, "machine"))
-    daemon = start_machine(
-        tmp_path_factory.mktemp("acl-loss"),
-        command=command,
-        profile=ACL_PROFILE,
-        env=env,
-        rider_env=ids.env(RIDER, "rider"),
-    )
-    victim_env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
-    victim_env.update(ids.env(RIDER, "rider"))
-    cmd = rider_proc.command(daemon.endpoint, daemon.zenoh_config, daemon.machine_id)
-    cmd += ["--revolutions", "40", "prepare", "start", "running", "hold"]
-    victim = subprocess.Popen(
-        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO, env=victim_env
-    )
+    tmp = tmp_path_factory.mktemp("acl-loss")
+    daemon, victim_env = secured_machine(tmp, ids, command, ACL_PROFILE, "rider")
     try:
-        held = rider_proc.read_step(victim, "hold")
-        token = f"rider/{held['rider']}/alive"
         with (
-            forger(daemon, ids.env(RIDER, "monitor"), "--token", token),
+            rider_proc.supervising(daemon, victim_env) as (victim, victim_id),
+            forger(daemon, ids.env(RIDER, "monitor"), "--token", f"rider/{victim_id}/alive"),
             session_as(daemon, ids.env(RIDER, "rider")) as observer,
         ):
             assert observer.status().state is MachineState.RUNNING
-            killed_at = time.monotonic()
-            victim.send_signal(signal.SIGKILL)
-            victim.wait(STEP_TIMEOUT_S)
-            paused = observer.wait_for({MachineState.PAUSED}, LOSS_BOUND_S)
-            print(
-                f"forged token, {command}: killed -> PAUSED in {time.monotonic() - killed_at:.2f} s"
-            )
+            paused, took = rider_proc.kill_until_paused(victim, observer, LOSS_BOUND_S)
+            print(f"forged token, {command}: killed -> PAUSED in {took:.2f} s")
             assert paused.previous_state is MachineState.RUNNING
             assert not paused.rider_connected
             assert relays_off(observer)
     finally:
-        if victim.poll() is None:
-            victim.kill()
-        victim.wait(STEP_TIMEOUT_S)
         daemon.stop()
 
 

@@ -8,7 +8,15 @@ from typing import Any
 import pytest
 import zenoh
 
-from rider.discovery import Discovery, _apply, _Change, _Neighbour, _probe_hidden, _sessions
+from rider.discovery import (
+    Discovery,
+    Listing,
+    _apply,
+    _Change,
+    _Neighbour,
+    _probe_hidden,
+    _sessions,
+)
 
 A_SUMMARY: dict[str, Any] = {
     "zid": "aa",
@@ -96,3 +104,17 @@ def test_a_client_rider_counts_a_peer_behind_a_node_it_reached_as_out_of_sight()
     seen = Discovery(settled=True)
     _probe_hidden(_sessions(A_SUMMARY), {"router", "peer"}, {"aa", "rr"}, seen, "machine", None)
     assert seen.unseen == ["peer rd (it connected to a node this Rider reached)"]
+
+
+def test_a_listing_says_why_it_may_be_incomplete() -> None:
+    """`Rider.machines()` lists after discovery; when it could not settle, or part of the
+    network was out of sight, the listing is marked incomplete and says why (issue 43)."""
+    sure = Discovery(alive={"fa", "fb"}, links={"z1"}, settled=True)
+    assert sure.unsure() == ""
+    late = Discovery(alive={"fa"}, links={"z1"}, unlinked={"z9"}, waited_s=2.0)
+    assert late.unsure().startswith("discovery did not settle within 2.0 s")
+    assert "peers not reached yet: z9" in late.unsure()
+    hidden = Discovery(alive={"fa"}, links={"z1"}, settled=True, unseen=["router r1 at x"])
+    assert hidden.unsure().startswith("part of the network is out of sight")
+    listing = Listing(["fa"], complete=False, note=hidden.unsure())
+    assert listing == ["fa"] and not listing.complete and "router r1" in listing.note

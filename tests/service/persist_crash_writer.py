@@ -21,12 +21,13 @@ from service.core.devices import Calibration, RotateCalibration, TiltCalibration
 from service.core.params import ParamRegistry
 from service.core.persist import CalibrationStore, ParamStore
 
-FIRST, SECOND = "tilt.home_timeout_s", "bus.heartbeat_s"
+FIRST, SECOND = "tilt.tolerance_deg", "bus.heartbeat_s"
+"""Ordinary parameters: a safety setting may not be made less strict online (safety.py)."""
 
 
 def first_value(i: int) -> float:
     """Round i's value of the first parameter (inside its range whatever i is)."""
-    return 10.0 + (i % 5000) * 0.1
+    return 0.5 + (i % 900) * 0.01
 
 
 def second_value(i: int) -> float:

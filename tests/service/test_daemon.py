@@ -30,6 +30,7 @@ UNDO_ORDER = [
     "bus",
     "session",
     "event_log",
+    "calibration",
     "storage",
     "hal",
 ]

@@ -20,15 +20,16 @@ import pytest
 
 from schema.codec import dump_json, encode
 from schema.events import (
+    CommandEvent,
     DaemonStartEvent,
     DaemonStopEvent,
     DroppedEvent,
     EventPage,
     EventQuery,
     KnownDetails,
+    ParamEvent,
     QueryError,
     StorageEvent,
-    WatchdogEvent,
 )
 from service.adapters import eventlog
 from service.adapters.eventlog import (
@@ -43,12 +44,18 @@ from service.adapters.eventlog import (
     row_payload,
 )
 from service.adapters.history import HistoryProcess
+from service.adapters.retention import used_bytes
 from service.config.model import EventsSection
 from service.core.events import Held
 from tests.schema.event_samples import DETAILS
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""
+
+
+def note(x: float) -> ParamEvent:
+    """A routine event that carries a number (the safety record is kept apart: its own tests)."""
+    return ParamEvent(name="tilt.tolerance_deg", old=x, new=x, persisted=False)
 
 
 def open_log(path: Path, kind: type[EventLog] = EventLog, **settings: object) -> EventLog:
@@ -83,13 +90,13 @@ def page(log: EventLog, **criteria: object) -> EventPage:
 
 def test_written_events_read_back_in_order_with_seq_time_and_cycle(any_log: EventLog) -> None:
     for i in range(5):
-        any_log.emit(WatchdogEvent(stalled_s=i / 10), T0 + i, 10 + i)
+        any_log.emit(note(i / 10), T0 + i, 10 + i)
     assert any_log.flush()
     got = page(any_log)
     assert [e.seq for e in got.events] == [1, 2, 3, 4, 5]
     assert [e.time for e in got.events] == [T0 + i for i in range(5)]
     assert [e.cycle for e in got.events] == [10, 11, 12, 13, 14]
-    assert got.events[2].details == WatchdogEvent(stalled_s=0.2)
+    assert got.events[2].details == note(0.2)
     assert (got.more, got.first_seq, got.last_seq) == (False, 1, 5)
 
 
@@ -97,12 +104,12 @@ def test_listeners_get_each_committed_batch_with_its_seq(any_log: EventLog) -> N
     seen: list[StoredRow] = []
     any_log.subscribe(seen.extend)
     any_log.emit_now(DaemonStopEvent(reason="test", exit_code=0))
-    any_log.emit(WatchdogEvent(stalled_s=0.5), T0, 7)
+    any_log.emit(note(0.5), T0, 7)
     assert any_log.flush()
     events = [row_event(row) for row in seen]
     assert [(e.seq, e.kind, e.cycle) for e in events] == [
         (1, "daemon_stop", None),
-        (2, "watchdog_trip", 7),
+        (2, "param_changed", 7),
     ]
     assert events == page(any_log).events  # what listeners get is what is stored
 
@@ -116,7 +123,7 @@ def test_listeners_get_the_stored_seq_of_every_row_after_a_prune_and_a_reopen(
     path = tmp_path / EVENTS_FILE
     first = open_log(path, kind)
     for i in range(4):
-        first.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)
+        first.emit(note(float(i)), T0 + i, i)
     assert first.flush()
     first.close()
     with connect(path) as conn:
@@ -126,7 +133,7 @@ def test_listeners_get_the_stored_seq_of_every_row_after_a_prune_and_a_reopen(
         seen: list[StoredRow] = []
         log.subscribe(seen.extend)
         for i in range(7):
-            log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, 100 + i)
+            log.emit(note(float(i)), T0 + i, 100 + i)
         assert log.flush()
         assert [row[0] for row in seen] == list(range(5, 12))
         assert [row_event(row) for row in seen] == page(log, since=5).events
@@ -148,7 +155,7 @@ def test_pages_are_bounded_and_continue_from_next_since(tmp_path: Path) -> None:
     log = open_log(tmp_path / EVENTS_FILE, page_max=4)
     try:
         for i in range(10):
-            log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, None)
+            log.emit(note(float(i)), T0 + i, None)
         assert log.flush()
         seqs, since = [], None
         while True:
@@ -167,11 +174,11 @@ def test_pages_are_bounded_and_continue_from_next_since(tmp_path: Path) -> None:
 
 
 def test_kind_filter(any_log: EventLog) -> None:
-    any_log.emit_now(WatchdogEvent(stalled_s=1.0))
+    any_log.emit_now(note(1.0))
     any_log.emit_now(DaemonStopEvent(reason="x", exit_code=1))
-    any_log.emit_now(WatchdogEvent(stalled_s=2.0))
+    any_log.emit_now(note(2.0))
     assert any_log.flush()
-    assert [e.seq for e in page(any_log, kinds=("watchdog_trip",)).events] == [1, 3]
+    assert [e.seq for e in page(any_log, kinds=("param_changed",)).events] == [1, 3]
     with connect(any_log.path) as conn:
         assert len(list(iter_events(conn, EventQuery(kinds=("daemon_stop",)), chunk=1))) == 1
 
@@ -188,17 +195,17 @@ def test_a_held_record_is_made_on_the_writer_in_its_place_among_the_events(
         made.append(threading.current_thread().name)
         return DETAILS[0]
 
-    any_log.emit(WatchdogEvent(stalled_s=0.1), T0, 1)
+    any_log.emit(note(0.1), T0, 1)
     held = Held([command_event, DETAILS[1]], T0 + 1, 2, lambda: threads.append("then"))
     assert any_log.defer(held)
-    any_log.emit(WatchdogEvent(stalled_s=0.3), T0 + 2, 3)
+    any_log.emit(note(0.3), T0 + 2, 3)
     assert any_log.flush()
     events = page(any_log).events
     assert [e.details for e in events] == [
-        WatchdogEvent(stalled_s=0.1),
+        note(0.1),
         DETAILS[0],
         DETAILS[1],
-        WatchdogEvent(stalled_s=0.3),
+        note(0.3),
     ]
     assert [(e.time, e.cycle) for e in events[1:3]] == [(T0 + 1, 2), (T0 + 1, 2)]
     assert made == ["eventlog"] and threads == ["then"]
@@ -221,15 +228,15 @@ def test_defer_is_refused_before_start_after_close_and_past_its_bound(
         go.wait(5.0)
 
     try:
-        assert log.defer(Held([WatchdogEvent(stalled_s=0.0)], T0, 0, hold_the_writer))
+        assert log.defer(Held([note(0.0)], T0, 0, hold_the_writer))
         assert stuck.wait(5.0)  # the writer is making it: the next ones wait in the queue
-        records = [Held([WatchdogEvent(stalled_s=float(i))], T0 + i, i, None) for i in (1, 2, 3)]
+        records = [Held([note(float(i))], T0 + i, i, None) for i in (1, 2, 3)]
         taken = [log.defer(h) for h in records]
         assert taken == [True, True, False]
         records[2].write(log.emit)  # what the recorder does with a refused one
         go.set()
         assert log.flush()
-        stalls = [e.details.stalled_s for e in page(log).events]  # type: ignore[union-attr]
+        stalls = [e.details.new for e in page(log).events]  # type: ignore[union-attr]
         assert stalls == [0.0, 1.0, 2.0, 3.0]
     finally:
         go.set()
@@ -244,9 +251,9 @@ def test_a_held_record_that_cannot_be_made_is_counted_lost_and_the_writer_goes_o
         raise RuntimeError("bug")
 
     assert any_log.defer(Held([broken], T0, 1, None))
-    any_log.emit(WatchdogEvent(stalled_s=0.5), T0 + 1, 2)
+    any_log.emit(note(0.5), T0 + 1, 2)
     assert any_log.flush()
-    assert [e.details for e in page(any_log).events] == [WatchdogEvent(stalled_s=0.5)]
+    assert [e.details for e in page(any_log).events] == [note(0.5)]
     assert any_log.lost == 1
 
 
@@ -264,14 +271,14 @@ def test_a_batch_that_fails_unexpectedly_is_counted_lost_and_the_writer_goes_on(
         write(self, batch)
 
     monkeypatch.setattr(EventLog, "_write", failing_once)
-    log.emit(WatchdogEvent(stalled_s=0.1), T0, 1)
+    log.emit(note(0.1), T0, 1)
     assert log.flush()
-    log.emit(WatchdogEvent(stalled_s=0.2), T0 + 1, 2)
+    log.emit(note(0.2), T0 + 1, 2)
     assert log.flush()
     error = "event writer failed: RuntimeError('bug in a batch')"
     assert [e.details for e in page(log).events] == [
         StorageEvent(what="events", error=error, lost=1),
-        WatchdogEvent(stalled_s=0.2),
+        note(0.2),
     ]
     assert (log.lost, log.failures, log.last_error) == (1, 1, error)
     assert log._writer is not None and log._writer.is_alive()
@@ -293,12 +300,12 @@ def test_a_prune_that_fails_unexpectedly_leaves_the_writer_running(
     try:
         for i in range(3):
             now[0] += log.settings.prune_every_s  # a prune is due after each write
-            log.emit(WatchdogEvent(stalled_s=i / 10), T0 + i, i)
+            log.emit(note(i / 10), T0 + i, i)
             assert log.flush()
         assert log.failures >= 2  # the third prune may still be under way
         assert log.lost == 0
         details = [e.details for e in page(log).events]
-        assert details[-1] == WatchdogEvent(stalled_s=0.2)
+        assert details[-1] == note(0.2)
         assert (
             StorageEvent(what="events", error="event prune failed: RuntimeError('bug in a prune')")
             in details
@@ -314,7 +321,7 @@ def test_a_full_queue_drops_without_waiting_and_records_the_count_later(
     log = kind(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
     # Not started: nothing drains the queue, as when the disk is slow.
     for i in range(20):
-        log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)
+        log.emit(note(float(i)), T0 + i, i)
     assert (log.queued, log.dropped) == (16, 4)
     log.start()
     try:
@@ -336,7 +343,7 @@ def test_emit_never_blocks_while_the_writer_holds_the_database(
     try:
         blocker.execute("BEGIN IMMEDIATE")  # the writer's next commit waits on this lock
         for i in range(100):
-            log.emit(WatchdogEvent(stalled_s=float(i)), T0 + i, i)  # returns at once
+            log.emit(note(float(i)), T0 + i, i)  # returns at once
         assert log.dropped >= 100 - 16 - log.settings.batch_max
     finally:
         blocker.rollback()
@@ -353,7 +360,7 @@ def test_a_database_that_cannot_be_written_is_reported_and_lost_events_counted(
     log = open_log(path)
     try:
         for i in range(20):
-            log.emit_now(WatchdogEvent(stalled_s=float(i)))
+            log.emit_now(note(float(i)))
             assert log.flush()  # one batch each
         # One error line for the problem, not one per batch (all twenty counted in diag).
         errors = [r for r in caplog.records if "events_write_failed" in r.getMessage()]
@@ -372,16 +379,16 @@ def test_a_recovered_database_records_the_failure_as_an_event(tmp_path: Path) ->
         blocker.execute("BEGIN EXCLUSIVE")
         assert log._conn is not None
         log._conn.execute("PRAGMA busy_timeout=10")
-        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.emit_now(note(1.0))
         assert log.flush()
         assert log.lost == 1
         blocker.rollback()
         blocker.close()
-        log.emit_now(WatchdogEvent(stalled_s=2.0))
+        log.emit_now(note(2.0))
         assert log.flush()
         first, second = page(log).events
         assert isinstance(first.details, StorageEvent) and first.details.lost == 1
-        assert second.details == WatchdogEvent(stalled_s=2.0)
+        assert second.details == note(2.0)
     finally:
         log.close()
 
@@ -397,10 +404,10 @@ def test_retention_prunes_by_age_and_seq_keeps_growing(tmp_path: Path) -> None:
     log.start()
     try:
         for day in (0, 1, 2):
-            log.emit(WatchdogEvent(stalled_s=float(day)), now[0] - (2 - day) * 86_400 - 1, None)
+            log.emit(note(float(day)), now[0] - (2 - day) * 86_400 - 1, None)
         assert log.flush()
         now[0] += 1.0  # prune is due
-        log.emit_now(WatchdogEvent(stalled_s=9.0))
+        log.emit_now(note(9.0))
         assert log.flush()
         deadline = threading.Event()
         for _ in range(100):
@@ -420,18 +427,19 @@ def test_retention_keeps_the_database_under_max_mb(tmp_path: Path, kind: type[Ev
     try:
         big = "x" * 1000
         for i in range(3000):  # about 3 MB of events
-            log.emit(DaemonStopEvent(reason=big, exit_code=i), T0 + i / 1000, None)
+            refused = CommandEvent(command="CheckHome", accepted=False, code="BUSY", message=big)
+            log.emit(refused, T0 + i / 1000, None)  # routine: retention's max_mb applies
             if i % 500 == 0:
                 assert log.flush()
         assert log.flush()
         for _ in range(100):
             with connect(log.path) as conn:
-                if EventLog.used_bytes(conn) <= 1024 * 1024:
+                if used_bytes(conn) <= 1024 * 1024:
                     break
             threading.Event().wait(0.05)
-            log.emit_now(WatchdogEvent(stalled_s=0.0))  # wakes the writer, prune is due
+            log.emit_now(note(0.0))  # wakes the writer, prune is due
         with connect(log.path) as conn:
-            assert EventLog.used_bytes(conn) <= 1024 * 1024
+            assert used_bytes(conn) <= 1024 * 1024
             [(kept,)] = conn.execute("SELECT COUNT(*) FROM events").fetchall()
         assert kept > 500  # pruned down to the limit, not emptied
         got = page(log, last=1)
@@ -504,14 +512,14 @@ def test_an_unusable_database_is_kept_aside_and_a_new_log_started(
     before = path.read_bytes()
     log = open_log(path, kind)
     try:
-        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.emit_now(note(1.0))
         assert log.flush()
         [aside] = tmp_path.glob(f"{EVENTS_FILE}.bad-*")
         assert aside.read_bytes() == before  # kept as it was, for whoever wants to look
         first, second = page(log).events
         assert isinstance(first.details, StorageEvent)
         assert aside.name in first.details.error and "not a usable event log" in first.details.error
-        assert second.details == WatchdogEvent(stalled_s=1.0)
+        assert second.details == note(1.0)
         assert log.diag().lost == 0
     finally:
         log.close()
@@ -530,7 +538,7 @@ def test_a_database_locked_by_another_process_never_holds_up_start_or_close(
     try:
         started = time.monotonic()
         log = open_log(path, kind)
-        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.emit_now(note(1.0))
         log.close()
         assert time.monotonic() - started < 2 * BUSY_TIMEOUT_S + 2.5
         assert log.diag().last_error is not None and "locked" in log.diag().last_error
@@ -543,7 +551,7 @@ def test_a_database_locked_by_another_process_never_holds_up_start_or_close(
 def test_a_query_the_database_cannot_take_is_answered_and_the_reader_lives_on(
     any_log: EventLog,
 ) -> None:
-    any_log.emit_now(WatchdogEvent(stalled_s=1.0))
+    any_log.emit_now(note(1.0))
     assert any_log.flush()
     answers: queue.Queue[object] = queue.Queue()
     too_big = EventQuery(since=2**70)  # built directly, past the selector's checks
@@ -588,14 +596,14 @@ def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recover
 ) -> None:
     log = open_log(small_disk / EVENTS_FILE, kind)
     try:
-        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.emit_now(note(1.0))
         assert log.flush()
         filler = fill(small_disk)
         # More than fits in what a prune frees: its checkpoint truncates the write-ahead log
         # (at a time of its own), which gives the small disk back a few pages; 50 events fit
         # there on a loaded host, and then nothing was lost.
         for i in range(1000):
-            log.emit_now(WatchdogEvent(stalled_s=2.0 + i))
+            log.emit_now(note(2.0 + i))
         assert log.flush()
         assert log.lost > 0 and "full" in (log.diag().last_error or "")
         # The history is still readable while nothing can be written.
@@ -603,12 +611,12 @@ def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recover
         assert log.read(EventQuery(), answers.put, answers.put)
         answer = answers.get(timeout=5.0)
         assert isinstance(answer, EventPage), answer
-        assert answer.events[0].details == WatchdogEvent(stalled_s=1.0)
+        assert answer.events[0].details == note(1.0)
         filler.unlink()
-        log.emit_now(WatchdogEvent(stalled_s=99.0))
+        log.emit_now(note(99.0))
         assert log.flush()
         kinds = [e.kind for e in page(log).events]
-        assert kinds[-2:] == ["storage_failed", "watchdog_trip"]
+        assert kinds[-2:] == ["storage_failed", "param_changed"]
         failed = page(log).events[-2].details
         assert isinstance(failed, StorageEvent) and failed.lost == log.lost
     finally:
@@ -622,9 +630,9 @@ def test_a_log_started_on_a_full_disk_starts_and_writes_once_there_is_room(
     log = open_log(small_disk / EVENTS_FILE, kind)  # no exception: the machine runs on
     try:
         filler.unlink()
-        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.emit_now(note(1.0))
         assert log.flush(timeout=10.0)
-        assert [e.kind for e in page(log).events][-1] == "watchdog_trip"
+        assert [e.kind for e in page(log).events][-1] == "param_changed"
     finally:
         log.close()
 
@@ -638,9 +646,9 @@ def test_a_file_system_without_locks_is_written_unlocked(
     monkeypatch.setattr(eventlog.fcntl, "flock", no_locks)
     log = open_log(tmp_path / EVENTS_FILE)  # no exception: the machine runs on
     try:
-        log.emit_now(WatchdogEvent(stalled_s=1.0))
+        log.emit_now(note(1.0))
         assert log.flush()
-        assert [e.kind for e in page(log).events] == ["watchdog_trip"]
+        assert [e.kind for e in page(log).events] == ["param_changed"]
         assert log.last_error is None
     finally:
         log.close()
@@ -657,13 +665,13 @@ def test_a_writer_waits_for_the_one_before_it_to_let_go(
     starting = threading.Thread(target=after.start, daemon=True)
     starting.start()
     try:
-        after.emit(WatchdogEvent(stalled_s=2.0), T0 + 1, 2)
+        after.emit(note(2.0), T0 + 1, 2)
         assert not after.flush(timeout=0.3)  # it waits: nothing of it is written yet
-        before.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
+        before.emit(note(1.0), T0, 1)
         before.close()  # writes its last event, then lets go
         starting.join(10.0)
         assert after.flush()
-        assert [e.details.stalled_s for e in page(after).events] == [1.0, 2.0]  # type: ignore[union-attr]
+        assert [e.details.new for e in page(after).events] == [1.0, 2.0]  # type: ignore[union-attr]
         assert after.last_error is None
     finally:
         before.close()
@@ -678,7 +686,7 @@ def test_a_writer_still_held_after_its_wait_writes_anyway_and_says_by_whom(tmp_p
         log = EventLog(path, "m1", EventsSection(), writer_wait_s=0.05)
         log.start()
         try:
-            log.emit(WatchdogEvent(stalled_s=1.0), T0, 1)
+            log.emit(note(1.0), T0, 1)
             assert log.flush()  # nothing lost
             assert log.last_error is not None
             assert f"pid {os.getpid()}" in log.last_error

@@ -18,6 +18,7 @@ from service.core.devices import Calibration, RotateCalibration, TiltCalibration
 from service.core.params import ParamRegistry
 from service.core.persist import (
     CALIBRATION_FILE,
+    CalibrationStore,
     ParamStore,
     SaveTicket,
     StorageHealth,
@@ -35,6 +36,10 @@ OLD = Calibration(
 
 def disk_full(path: Path, data: bytes) -> None:
     raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def read_only(path: Path) -> Path:
+    raise OSError(errno.EROFS, "Read-only file system")
 
 
 def test_a_failed_calibration_save_is_a_warning_and_the_older_file_goes(
@@ -121,14 +126,56 @@ def test_a_failed_parameter_write_changes_nothing_and_is_a_warning(
     health = StorageHealth()
     store = ParamStore(tmp_path)
     registry = ParamRegistry(MachineConfig(), store, health)
-    name = "rider_loss.grace_s"
+    name = "bus.heartbeat_s"
     registry.set(name, ParamSet(transaction_id="p1", value=2.0, persist=True), moving=False, now=1)
     monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
     with pytest.raises(StorageFailed, match="No space left"):
         req = ParamSet(transaction_id="p2", value=3.0, persist=True)
         registry.set(name, req, moving=False, now=2)
-    assert registry.get("rider_loss.grace_s").value == 2.0
+    assert registry.get(name).value == 2.0
     (warning,) = health.warnings()
-    assert warning.startswith("STORAGE_FAILED: rider_loss.grace_s: could not write")
+    assert warning.startswith(f"STORAGE_FAILED: {name}: could not write")
     saved = json.loads(store.path.read_text())
-    assert saved["params"]["rider_loss.grace_s"]["value"] == 2.0  # the file matches what runs
+    assert saved["params"][name]["value"] == 2.0  # the file matches what runs
+
+
+def test_a_calibration_whose_older_file_cannot_be_moved_aside_is_saved_once_it_can(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 43, point 4: neither the save nor the move aside works (a read-only dir): the new
+    calibration is written as soon as the dir takes it, here as the store closes; the refusal
+    said what the older file holds and what a kill before that would load."""
+    (tmp_path / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+    store = CalibrationStore(tmp_path)  # no writer: saves at once, the last try at `close`
+    monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
+
+    monkeypatch.setattr("service.core.persist.retire", read_only)
+    new = Calibration(tilt=TiltCalibration(offset_counts=1194.0, gain_counts_per_deg=50.0))
+    ticket = store.save(new)
+    assert ticket.done and ticket.problem is not None
+    assert "could not be moved aside" in ticket.problem
+    assert "tilt gain 33 counts/°" in ticket.problem  # what the older file holds
+    assert "loads the older file as current" in ticket.problem  # what a kill would do
+    assert store.unsaved.pending
+    monkeypatch.undo()  # writable again
+    store.close()
+    assert not store.unsaved.pending and store.health.warnings() == []
+    cal, problem = CalibrationStore(tmp_path).load()
+    assert problem is None and cal.tilt is not None and cal.tilt.gain_counts_per_deg == 50.0
+
+
+def test_a_newer_save_replaces_a_calibration_still_waiting(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+    store = CalibrationStore(tmp_path)
+    monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
+    monkeypatch.setattr("service.core.persist.retire", read_only)
+    store.save(Calibration(tilt=TiltCalibration(offset_counts=1.0, gain_counts_per_deg=50.0)))
+    monkeypatch.undo()
+    newest = Calibration(tilt=TiltCalibration(offset_counts=2.0, gain_counts_per_deg=44.0))
+    assert store.save(newest).problem is None
+    assert not store.unsaved.pending
+    store.close()
+    cal, _ = CalibrationStore(tmp_path).load()
+    assert cal.tilt is not None and cal.tilt.gain_counts_per_deg == 44.0

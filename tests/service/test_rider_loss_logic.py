@@ -167,9 +167,9 @@ def test_an_online_timeout_below_two_heartbeats_is_refused(tmp_path: Path) -> No
         )
     assert registry.config.rider_loss.timeout_s == 0.5
     done = registry.set(
-        "rider_loss.timeout_s", ParamSet(transaction_id="t2", value=1.0), moving=True, now=0
+        "rider_loss.timeout_s", ParamSet(transaction_id="t2", value=0.45), moving=True, now=0
     )
-    assert done.value == 1.0 and registry.config.rider_loss.timeout_s == 1.0
+    assert done.value == 0.45 and registry.config.rider_loss.timeout_s == 0.45
 
 
 def _departures(sink: ListEventSink) -> list[RiderEvent]:

@@ -6,6 +6,8 @@ timed out."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from schema.commands import Command
@@ -64,3 +66,41 @@ def test_the_margin_is_a_setting() -> None:
     config = MachineConfig().with_overrides(bus={"clock_margin_s": 120.0})
     rig = Rig(config)
     assert rig.send(Command.HOME, timecode=wall(rig) - 60.0, valid_for=2.0).success
+
+
+# ------------------------------------------------------------------------ one clock, seconds
+@pytest.mark.parametrize("command", [*MOTION, Command.START])
+def test_a_timecode_in_milliseconds_is_refused_whatever_its_wait(command: Command) -> None:
+    """Issue 43, point 2: a JavaScript Rider's `Date.now()` (ms) 30 s ago with `valid_for: 5`
+    was 1000 times "in the future" and passed the stale check; it is refused and says why."""
+    rig = Rig()
+    before = rig.state
+    for valid_for in (5.0, None):
+        sent_ms = round((time.time() - 30.0) * 1000)  # a Date.now() of 30 s ago
+        reply = rig.send(command, timecode=sent_ms, valid_for=valid_for)
+        assert not reply.success and reply.error is not None
+        assert reply.error.code is ErrorCode.BAD_TIMECODE and reply.error.path == "/timecode"
+        assert "milliseconds" in reply.error.message and "Date.now() / 1000" in reply.error.message
+    rig.step(20)
+    assert rig.state is before and not rig.relays_on()
+
+
+def test_a_timecode_ahead_of_the_clock_by_more_than_the_margin_is_refused() -> None:
+    """A captured or pre-made request "a day in the future" stayed fresh for a day."""
+    rig = Rig()
+    margin = rig.config.bus.clock_margin_s
+    reply = rig.send(Command.HOME, timecode=wall(rig) + 86_400.0, valid_for=5.0)
+    assert not reply.success and reply.error is not None
+    assert reply.error.code is ErrorCode.BAD_TIMECODE
+    assert "86400.0 s ahead" in reply.error.message and "clock_margin_s" in reply.error.message
+    assert rig.state is not MachineState.HOMING
+    assert rig.send(Command.HOME, timecode=wall(rig) + margin - 0.1, valid_for=5.0).success
+
+
+def test_stop_and_pause_are_taken_whatever_their_timecode_says() -> None:
+    rig = Rig(calibration=None).ready()
+    assert rig.send(Command.START, timecode=wall(rig), valid_for=2.0).success
+    rig.step(5)
+    assert rig.send(Command.PAUSE, timecode=wall(rig) * 1000).success
+    assert rig.send(Command.STOP, timecode=wall(rig) + 86_400.0).success
+    assert rig.state is MachineState.DONE

@@ -1,0 +1,143 @@
+"""One login per operator station (issue 43, reproduction 1), with two station logins of the
+test's own: `bay1` supervises a ride, `bay2` is the forger.
+
+Under one shared `rider` login a second process held the victim's `rider/<zid>/alive` token and
+put its heartbeat: the victim SIGKILLed mid-session, the ride ran on to DONE with
+`rider_connected=true`. Each login now declares and puts under `rider/<its login>/…` only (the
+profile's `<login>` rule, made per login by the daemon), and the machine watches the victim's
+own `rider/bay1/<zid>/…`: whatever `bay2` holds and feeds, the ride pauses.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from schema.credentials import MACHINE, RIDER, env_name
+from schema.events import EventQuery, RiderEvent
+from schema.status import MachineState
+from service.adapters.credentials import DICTIONARY, identities, init_credentials, password_file
+from service.bus.stations import expand
+from tests.integration import rider_proc
+from tests.integration.support import relays_off
+from tests.reliability.support import (
+    ACL_PROFILE,
+    TLS_PROFILE,
+    Identities,
+    rider_as,
+    secured_machine,
+    start_machine,
+)
+from tests.reliability.test_access_control import forger
+
+pytestmark = pytest.mark.integration
+
+STATIONS = ("bay1", "bay2")
+LOSS_BOUND_S = 10.0
+"""The victim's heartbeat timeout (1 s in the fast config) plus a loaded host's margin; the
+forger lives 60 s, so a ride it kept alive would still be RUNNING."""
+
+
+@pytest.fixture(scope="module")
+def stations(tmp_path_factory: pytest.TempPathFactory) -> tuple[Identities, Path]:
+    """`machine credentials init --station bay1 --station bay2`'s files, and the shipped profile
+    with the two stations in its `rider` subject (the edit the command prints)."""
+    directory = tmp_path_factory.mktemp("stations")
+    users = identities(STATIONS)
+    init_credentials(directory, users)
+    files = {u: password_file(directory, u) for u in users}
+    ids = Identities(directory / DICTIONARY, files, files["monitor"])
+    conf = zenoh.Config.from_file(str(ACL_PROFILE))
+    acl = json.loads(conf.get_json("access_control"))
+    for subject in acl["subjects"]:
+        if subject["id"] == "rider":
+            subject["usernames"] = list(STATIONS)
+    conf.insert_json5("access_control", json.dumps(acl))
+    profile = directory / "acl-stations.json5"
+    profile.write_text(str(conf))
+    return ids, profile
+
+
+def test_each_station_login_may_declare_and_put_under_its_own_prefix_only() -> None:
+    """The profiles' template, as the daemon makes it (both profiles alike)."""
+    for path in (ACL_PROFILE, TLS_PROFILE):
+        acl = json.loads(zenoh.Config.from_file(str(path)).get_json("access_control"))
+        for subject in acl["subjects"]:
+            if subject["id"] == "rider":
+                subject["usernames"] = list(STATIONS)
+        made = expand(acl)
+        rules = {r["id"]: r for r in made["rules"]}
+        writes: dict[str, set[str]] = {}
+        for policy in made["policies"]:
+            users = {
+                u for s in made["subjects"] if s["id"] in policy["subjects"] for u in s["usernames"]
+            }
+            for rule_id in policy["rules"]:
+                rule = rules[rule_id]
+                if "ingress" in rule["flows"] and {"put", "liveliness_token"} & set(
+                    rule["messages"]
+                ):
+                    for key in rule["key_exprs"]:
+                        if key.startswith("rider/"):
+                            for user in users:
+                                writes.setdefault(user, set()).add(key)
+        assert writes == {s: {f"rider/{s}/*/alive", f"rider/{s}/*/heartbeat"} for s in STATIONS}, (
+            path,
+            writes,
+        )
+        assert not any("<login>" in k for r in made["rules"] for k in r["key_exprs"])
+
+
+@pytest.mark.parametrize("command", ["run", "supervise"])
+def test_a_second_station_can_neither_hold_nor_feed_the_first_stations_deadman(
+    tmp_path_factory: pytest.TempPathFactory, stations: tuple[Identities, Path], command: str
+) -> None:
+    ids, profile = stations
+    tmp = tmp_path_factory.mktemp(f"stations-{command}")
+    daemon, victim_env = secured_machine(tmp, ids, command, profile, "bay1")
+    try:
+        with rider_proc.supervising(daemon, victim_env) as (victim, victim_id):
+            zid = victim_id.rsplit("/", 1)[-1]
+            # The victim's own keys, the schema-1 ones, and bay2's prefix with the victim's id.
+            forged = sorted({f"rider/{victim_id}", f"rider/{zid}", f"rider/bay2/{zid}"})
+            args = [
+                a for k in forged for a in ("--token", f"{k}/alive", "--beat", f"{k}/heartbeat")
+            ]
+            with (
+                forger(daemon, ids.env(RIDER, "bay2"), *args),
+                rider_as(daemon, ids.env(RIDER, "bay2"), timeout=5.0) as observer,
+            ):
+                assert observer.status().state is MachineState.RUNNING
+                paused, took = rider_proc.kill_until_paused(victim, observer, LOSS_BOUND_S)
+                print(f"bay2 forging bay1's deadman, {command}: killed -> PAUSED in {took:.2f} s")
+                assert paused.previous_state is MachineState.RUNNING
+                assert not paused.rider_connected
+                assert relays_off(observer)
+                lost = observer.events(EventQuery(kinds=("rider_lost",)))
+        assert any(
+            isinstance(e.details, RiderEvent) and e.details.rider == victim_id for e in lost
+        ), lost
+    finally:
+        daemon.stop()
+
+
+def test_a_station_without_a_subject_is_named_at_start(
+    tmp_path_factory: pytest.TempPathFactory, stations: tuple[Identities, Path]
+) -> None:
+    """A login made for a station but left out of the profile can connect and do nothing: the
+    daemon says so as it starts, by name (here the shipped profile, which lists `rider` only)."""
+    ids, _ = stations
+    daemon = start_machine(
+        tmp_path_factory.mktemp("stations-unlisted"),
+        profile=ACL_PROFILE,
+        env={env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)},
+        wait=False,
+    )
+    try:
+        for station in STATIONS:
+            assert daemon.has_logged(f"event=login_without_role user={station}", 20.0), daemon.log()
+    finally:
+        daemon.stop()
