@@ -97,7 +97,9 @@ class Rig:
         self.config = config or MachineConfig()
         self.clock = clock or FakeClock()
         self.period = self.config.loop.period_s
-        self.hal = SimHal(self.clock, self.config.hal.iomap, physics or self.config.hal.sim)
+        self.hal = SimHal(
+            self.clock, self.config.hal.iomap, physics or self.config.hal.sim, self.clock.advance
+        )
         self.sink = RecordingSink()
         self.transitions: list[Transition] = []
         self.store = CalibrationStore(data_dir, clock=self.clock) if data_dir else None

@@ -15,8 +15,11 @@ from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStat
 from schema.commands import Direction
 from schema.status import MachineState
 from service.config.model import LiveConfig, MachineConfig
-from service.core.controllers import Controller, RotateCalibrate, RotateHome, RotateRevolutions
+from service.core.calibrate import RotateCalibrate
+from service.core.controllers import RotateRevolutions
 from service.core.devices import Devices, RotateCalibration, TiltDirection
+from service.core.homing import RotateHome
+from service.core.motion import Controller
 
 AXIS_NUMBERS = {"rotate": ROTATE_AXIS_NUMBER, "tilt": TILT_AXIS_NUMBER}
 # Plain ints: `IntFlag` arithmetic runs Python code in `enum`, several times a cycle.
@@ -49,6 +52,9 @@ class RotateEstimator:
     switch edge is referenced with that direction even when the controller dropped the relay in
     the very cycle it saw the edge (Home does). The switch closes at 0° turning CW and opens at
     0° turning CCW; it closes at the end of its arc turning CCW and opens there turning CW.
+    An edge happened somewhere between the scan before and this one: the angle is latched at
+    the midpoint, half the travel since the scan before past the edge (sure to ± that much;
+    the controllers approach again when that is too much, service/core/homing.py).
     """
 
     def __init__(self) -> None:
@@ -71,7 +77,8 @@ class RotateEstimator:
             self.turns += step / 360.0
         last, self._last_home = self._last_home, home
         if driven is not None and last is not None and home != last:
-            self._latch(0.0 if home == (driven is Direction.CW) else arc, homing)
+            edge = 0.0 if home == (driven is Direction.CW) else arc
+            self._latch(edge + self.velocity * dt / 2, homing)
 
     def drive(self, direction: Direction | None) -> None:
         """The direction this cycle's outputs drive until the next update."""
@@ -86,7 +93,7 @@ class RotateEstimator:
         frac = deg / 360.0
         keep = self.angle is not None and not restart
         self.turns = round(self.turns - frac) + frac if keep else frac
-        self.angle = deg
+        self.angle = deg % 360.0
 
 
 class AxisTracker:

@@ -1,0 +1,244 @@
+"""Calibration: each axis measures its reference at least twice and refuses when they disagree.
+
+The tilt latches its zero (the home switch's closing edge, approached from above) before and
+after a timed stroke up that gives the gain; the two zeros must agree within
+`tilt.repeat_tolerance_deg`. The rotate, once homed, turns two revolutions and times one from
+its closing edges and one from its opening edges; the two must agree within
+`rotate.repeat_tolerance_deg` of travel. Either refusal is `CALIBRATION_NOT_REPEATABLE`, with
+both values in the reason, never DONE. docs/homing.md has the sequences.
+"""
+
+from __future__ import annotations
+
+from enum import Enum, auto
+
+from schema.commands import Direction
+from schema.status import FaultCode
+from service.config.model import RotateSection, TiltSection
+from service.core.devices import (
+    RotateAxis,
+    RotateCalibration,
+    TiltAxis,
+    TiltCalibration,
+    TiltDirection,
+)
+from service.core.homing import Latch, RotateHome, TiltApproach, half_travel
+from service.core.motion import REVERSE_DWELL_S, Measurement, Outcome
+from service.core.plausibility import TiltSupervisor
+
+
+class TiltCalPhase(Enum):
+    FIRST = auto()
+    """Latch the zero (the home edge, from above)."""
+    SAMPLE_LOW = auto()
+    """Average the raw value at rest just below the edge."""
+    STROKE = auto()
+    """Drive up for `calibration_stroke_s` at the nominal speed."""
+    SAMPLE_TOP = auto()
+    """Average the raw value at the top (with the stroke: the gain)."""
+    SECOND = auto()
+    """Latch the zero again, coming down from the top."""
+
+
+class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
+    """Latch the zero, a timed stroke up at the nominal speed (gain), latch the zero again: the
+    offset is the mean of the two latches, which must agree. It ends at home."""
+
+    axis_name = "tilt"
+    target_deg = 0.0
+
+    def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
+        super().__init__(axis, cfg)
+        self.phase = TiltCalPhase.FIRST
+        self.homing: TiltApproach | None = TiltApproach(axis, cfg)
+        self.zeros: list[Latch] = []
+        self._samples: list[int] = []
+        self._low = 0.0
+        self._stroke_deg = 0.0
+        self._gain = 0.0
+        self._sup = TiltSupervisor(axis, cfg)
+        self.result: TiltCalibration | None = None
+        # Measure uncalibrated; a failed calibration puts the previous one back.
+        self._previous, axis.calibration = axis.calibration, None
+
+    def update(self, now: float) -> Outcome:
+        outcome = self._measure(now)
+        if outcome is Outcome.FAULT and self.result is None:
+            self.axis.calibration = self._previous
+        return outcome
+
+    def _measure(self, now: float) -> Outcome:
+        if self.homing is not None:  # FIRST or SECOND
+            outcome = self._step(self.homing, now)
+            if outcome is not Outcome.DONE:
+                return outcome
+            assert self.homing.latch is not None
+            self.zeros.append(self.homing.latch)
+            self.homing = None
+            if self.phase is TiltCalPhase.SECOND:
+                return self._compute()
+            self.phase, self._samples = TiltCalPhase.SAMPLE_LOW, []
+        if self.phase is TiltCalPhase.SAMPLE_LOW:
+            if self._sample():
+                self._low = sum(self._samples) / len(self._samples)
+                self.phase = TiltCalPhase.STROKE
+                self.timer.start(now, self.cfg.calibration_stroke_s)
+                self._sup.reset()
+                self.axis.tilt_one(TiltDirection.UP)
+            return Outcome.BUSY
+        if self.phase is TiltCalPhase.STROKE:
+            return self._stroke(now)
+        return self._top() if self._sample() else Outcome.BUSY  # SAMPLE_TOP
+
+    def _stroke(self, now: float) -> Outcome:
+        if self.timer.done(now):
+            self.axis.stop()
+            self._stroke_deg = self.cfg.nominal_speed_dps * self.timer.elapsed(now)
+            self.phase, self._samples = TiltCalPhase.SAMPLE_TOP, []
+            return Outcome.BUSY
+        fault = self._sup.check(now, TiltDirection.UP)
+        if fault is not None:
+            return self._fault(fault)
+        self.axis.tilt_one(TiltDirection.UP)
+        return Outcome.BUSY
+
+    def _sample(self) -> bool:
+        self._samples.append(self.axis.read_raw())
+        return len(self._samples) >= self.cfg.calibration_samples
+
+    def _top(self) -> Outcome:
+        """The gain from the stroke, checked; then down to latch the zero again."""
+        stroke_deg = self._stroke_deg
+        gain = (sum(self._samples) / len(self._samples) - self._low) / stroke_deg
+        lo, hi = self.cfg.gain_min_counts_per_deg, self.cfg.gain_max_counts_per_deg
+        if not lo <= gain <= hi:
+            return self._fail(
+                FaultCode.CALIBRATION_IMPLAUSIBLE,
+                f"tilt gain {gain:.2f} counts/° is outside {lo:g}..{hi:g}"
+                " (analog input not wired, frozen, or direction output inverted)",
+            )
+        if self.axis.is_home():
+            return self._fail(
+                FaultCode.TILT_HOME_STUCK,
+                f"tilt home switch still closed {stroke_deg:.1f}° above home (stuck closed)",
+            )
+        self._gain = gain
+        self.phase = TiltCalPhase.SECOND
+        self.homing = TiltApproach(self.axis, self.cfg, rest_s=REVERSE_DWELL_S)
+        return Outcome.BUSY
+
+    def _compute(self) -> Outcome:
+        first, second = (z.raw for z in self.zeros)
+        assert first is not None and second is not None
+        apart = abs(first - second) / self._gain
+        tol = self.cfg.repeat_tolerance_deg
+        if apart > tol:
+            return self._fail(
+                FaultCode.CALIBRATION_NOT_REPEATABLE,
+                f"tilt zero latched at {first:.1f} and then {second:.1f} counts, {apart:.2f}°"
+                f" apart (gain {self._gain:.2f} counts/°); they must agree within {tol:g}°"
+                " (a bouncing or loose home switch, or a noisy sensor)",
+            )
+        offset = (first + second) / 2
+        self.result = TiltCalibration(offset_counts=offset, gain_counts_per_deg=self._gain)
+        self.axis.calibration = self.result
+        return Outcome.DONE
+
+    def abandon(self) -> None:
+        self.halt()
+        if self.result is None:
+            self.axis.calibration = self._previous
+
+    def _start_over(self) -> None:
+        # An interrupted stroke measures nothing: start over with the first latch.
+        self.phase, self.zeros = TiltCalPhase.FIRST, []
+        self.homing = TiltApproach(self.axis, self.cfg, rest_s=REVERSE_DWELL_S)
+
+
+class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
+    """Home, then turn CW and time the revolution twice — closing edge to closing edge and
+    opening edge to opening edge — from edges latched within `latch_tolerance_deg`, and the
+    arc the switch stays closed. It ends on the closing edge (home)."""
+
+    axis_name = "rotate"
+    target_deg = 0.0
+
+    def __init__(self, axis: RotateAxis, cfg: RotateSection) -> None:
+        super().__init__(axis, cfg)
+        self.homing: RotateHome | None = RotateHome(axis, cfg)
+        self.edges: list[tuple[bool, Latch]] = []
+        """(closing, latch) of each switch edge passed since homing."""
+        self._last: tuple[float, bool] | None = None
+        self.result: RotateCalibration | None = None
+
+    def update(self, now: float) -> Outcome:
+        if self.homing is not None:
+            outcome = self._step(self.homing, now)
+            if outcome is not Outcome.DONE:
+                return outcome
+            self.homing = None
+            self.timer.start(now, self.cfg.revolution_timeout_s)
+        home = self.axis.is_home()
+        last, self._last = self._last, (now, home)
+        if last is not None and home != last[1]:
+            speed = self.cfg.nominal_speed_dps
+            self.edges.append((home, Latch(last[0], now, half_travel(speed, last[0], now))))
+            if home:
+                self.timer.start(now)
+                measured = self._measured()
+                if measured is not None:
+                    self.axis.stop()
+                    return measured
+        if self.timer.expired(now):
+            return self._fail(
+                FaultCode.ROTATE_HOME_TIMEOUT,
+                f"rotate home switch not seen within {self.cfg.revolution_timeout_s:g} s"
+                " while measuring a revolution",
+            )
+        self.axis.rotate_one(Direction.CW)
+        return Outcome.BUSY
+
+    def _measured(self) -> Outcome | None:
+        """At a closing edge: the result from the last two revolutions (opening, closing,
+        opening, closing edges, each latched well); None: turn on."""
+        closings = sum(1 for closing, _ in self.edges if closing)
+        last = self.edges[-4:]
+        tol = self.cfg.latch_tolerance_deg
+        if [c for c, _ in last] == [False, True, False, True] and all(
+            e.half_deg <= tol for _, e in last
+        ):
+            return self._finish(*(e for _, e in last))
+        if closings >= 1 + self.cfg.latch_attempts:
+            worst = max(e.half_deg for _, e in self.edges)
+            return self._fail(
+                FaultCode.HOME_EDGE_UNCERTAIN,
+                f"rotate switch edges not latched within ±{tol:g}° in {closings} revolutions"
+                f" (worst ±{worst:.2f}°: a loaded host stalling the scan, or a bouncing switch)",
+            )
+        return None
+
+    def _finish(self, open0: Latch, close1: Latch, open1: Latch, close2: Latch) -> Outcome:
+        by_closing, by_opening = close2.at - close1.at, open1.at - open0.at
+        revolution_s = (by_closing + by_opening) / 2
+        nominal_s = 360.0 / self.cfg.nominal_speed_dps
+        tol = self.cfg.speed_tolerance
+        if not nominal_s * (1 - tol) <= revolution_s <= nominal_s * (1 + tol):
+            return self._fail(
+                FaultCode.CALIBRATION_IMPLAUSIBLE,
+                f"one revolution took {revolution_s:.3f} s; expected {nominal_s:.3f} s"
+                f" ± {tol:.0%} from rotate.nominal_speed_dps",
+            )
+        apart = abs(by_closing - by_opening) / revolution_s * 360.0
+        if apart > self.cfg.repeat_tolerance_deg:
+            return self._fail(
+                FaultCode.CALIBRATION_NOT_REPEATABLE,
+                f"rotate revolution timed {by_closing:.3f} s between closing edges and"
+                f" {by_opening:.3f} s between opening edges, {apart:.2f}° of travel apart;"
+                f" they must agree within {self.cfg.repeat_tolerance_deg:g}°",
+            )
+        arc = (open1.at - close1.at) / revolution_s * 360.0
+        self.result = RotateCalibration(revolution_s=revolution_s, home_arc_deg=arc)
+        return Outcome.DONE
+
+    def _start_over(self) -> None:
+        self.homing, self.edges, self._last = RotateHome(self.axis, self.cfg), [], None
