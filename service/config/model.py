@@ -84,7 +84,7 @@ class RotateSection(_Section):
     latch_tolerance_deg: float = Field(default=0.5, gt=0, le=90)
     """The home edge is latched from the scans either side of it: half the travel between them
     (nominal or calibrated speed × gap / 2) may be at most this, or it is approached again."""
-    latch_attempts: int = Field(default=4, ge=1, le=20)
+    latch_attempts: int = Field(default=5, ge=1, le=20)
     """Approaches (or extra revolutions of a calibration) before `HOME_EDGE_UNCERTAIN`."""
     runup_s: float = Field(default=0.05, ge=0, le=10)
     """Backing off, the axis goes on this long past where the switch opened (the run-up)."""
@@ -116,7 +116,7 @@ class TiltSection(_Section):
     latch_tolerance_deg: float = Field(default=0.15, gt=0, le=10)
     """Half the travel between the scans either side of the home edge (nominal speed × gap
     / 2) may be at most this, or the edge is approached again."""
-    latch_attempts: int = Field(default=4, ge=1, le=20)
+    latch_attempts: int = Field(default=5, ge=1, le=20)
     """Approaches per latch before `HOME_EDGE_UNCERTAIN`."""
     runup_s: float = Field(default=0.3, ge=0, le=10)
     """Backing off, the tilt goes on up this long past where the switch opened: the run-up of
