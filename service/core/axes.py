@@ -110,6 +110,8 @@ class AxisTracker:
         # None: never published, so the first cycle publishes every axis once.
         self._last_status: dict[str, int | None] = {"rotate": None, "tilt": None}
         self._settling: set[str] = set()
+        self._tilt_cal: object = None
+        """The tilt calibration the last published tilt record was read through."""
         self.targets: dict[str, float | None] = {"rotate": None, "tilt": None}
         """Each axis' last move target (degrees), kept after the move ends or is stopped."""
         self._still: tuple[object, ...] | None = None
@@ -154,6 +156,8 @@ class AxisTracker:
         """The next `update` with the same inputs returns at once and `due` is empty: both
         samples are steady (`_unchanged`), nothing moves and no axis owes a settled record."""
         if not self._steady or self._still is None or self._settling:
+            return False
+        if self.devices.tilt.calibration is not self._tilt_cal:
             return False
         return all(not s.status & MOVING for s in self.samples.values())
 
@@ -266,20 +270,29 @@ class AxisTracker:
 
     def due(self, cycle: int) -> list[str]:
         """Axes to publish this cycle: every Nth cycle while moving, whenever the status bits
-        change (moving, drive enabled by the E-stop, fault), and once more the cycle after a
-        stop, so the last record says settled with zero velocity."""
+        change (moving, drive enabled by the E-stop, fault), once more the cycle after a stop,
+        so the last record says settled with zero velocity, and the tilt whenever its
+        calibration changed (entered by hand at rest: the same bits, another position)."""
         out = []
         every = self.config.bus.axis_every_cycles
+        recal = self.devices.tilt.calibration is not self._tilt_cal
         for name, sample in self.samples.items():
             moving = bool(sample.status & MOVING)
             last = self._last_status[name]
-            if (moving and cycle % every == 0) or sample.status != last or name in self._settling:
+            if (
+                (moving and cycle % every == 0)
+                or sample.status != last
+                or name in self._settling
+                or (recal and name == "tilt")
+            ):
                 out.append(name)
             if name in self._settling:
                 self._settling.discard(name)
             elif last is not None and last & MOVING and not moving:
                 self._settling.add(name)
             self._last_status[name] = sample.status
+        if "tilt" in out:
+            self._tilt_cal = self.devices.tilt.calibration
         return out
 
     def record(self, name: str, cycle: int, time: float) -> AxisRecord:

@@ -278,6 +278,8 @@ class ControlAPI:
         self.completions: list[Completion] = []
         """Notices produced and not yet taken by the scan loop (`take_completions`)."""
         self._saving: _Saving | None = None
+        self.save_ticket: SaveTicket | None = None
+        """The write of the calibration in use (None: nothing to write it to, or not yet)."""
         self.devices.stop_all()
 
     # The motion context and the controlling Rider, read-only from outside.
@@ -681,7 +683,9 @@ class ControlAPI:
         """Use `cal` from now on and persist it (the ticket of the write, if any)."""
         self.calibration = cal
         self.devices.tilt.calibration = cal.tilt
-        return self.on_calibrated(cal) if self.on_calibrated is not None else None
+        ticket = self.on_calibrated(cal) if self.on_calibrated is not None else None
+        self.save_ticket = ticket
+        return ticket
 
     def _calibrated(self, cal: Calibration, now: float) -> Ending | None:
         """Use `cal` now and persist it; it has ended once the write has (None until then)."""

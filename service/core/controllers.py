@@ -179,7 +179,7 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
 
     def resume(self, now: float) -> None:
         super().resume(now)
-        self.check.start(now)
+        self.check.resume(now)
         self._last = None
         if self.final is not None:
             self.final.resume(now)

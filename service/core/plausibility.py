@@ -164,12 +164,20 @@ class RevolutionCheck:
     def __init__(self, cfg: RotateSection, cal: RotateCalibration, direction: Direction) -> None:
         self.cfg, self.cal, self.direction = cfg, cal, direction
         self._last: float | None = None
-        self._edge_to_edge = False
-        """The last edge was a closing edge passed at speed (not the start of the step)."""
+        """The last closing edge, or when the step started or resumed (the overdue check)."""
+        self._since: float | None = None
+        """The last closing edge, or the step's start: None after a pause (a part revolution)."""
+        self._first = False
 
     def start(self, now: float) -> None:
-        """The step starts (or resumes after a pause): its first revolution may be shorter."""
-        self._last, self._edge_to_edge = now, False
+        """The step starts: its first revolution may be shorter by the home arc (it starts on
+        the switch, at either end of it)."""
+        self._last = self._since = now
+        self._first = True
+
+    def resume(self, now: float) -> None:
+        """After a pause: overdue counts from now; the part revolution is not judged early."""
+        self._last, self._since = now, None
 
     def overdue(self, now: float) -> Fault | None:
         late = self.cal.revolution_s * (1 + self.cfg.revolution_tolerance)
@@ -185,14 +193,17 @@ class RevolutionCheck:
 
     def edge(self, now: float) -> Fault | None:
         """A closing edge at `now`."""
-        last, full = self._last, self._edge_to_edge
-        self._last, self._edge_to_edge = now, True
-        early = self.cal.revolution_s * (1 - self.cfg.revolution_tolerance)
-        if last is None or not full or now - last >= early:
+        since, first = self._since, self._first
+        self._last = self._since = now
+        self._first = False
+        revolution = self.cal.revolution_s
+        if first:
+            revolution -= self.cal.home_arc_deg / self.cal.speed_dps
+        if since is None or now - since >= revolution * (1 - self.cfg.revolution_tolerance):
             return None
         return Fault(
             code=FaultCode.ROTATE_SPEED_IMPLAUSIBLE,
-            message=f"a revolution took {now - last:.3f} s turning {self.direction}; the"
+            message=f"a revolution took {now - since:.3f} s turning {self.direction}; the"
             f" calibration says {self.cal.revolution_s:.3f} s ± {self.cfg.revolution_tolerance:.0%}"
             " (wrong calibration, or a home switch that closes where it should not)",
             axis="rotate",

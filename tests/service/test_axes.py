@@ -11,6 +11,7 @@ from collections.abc import Callable
 import pytest
 
 from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
+from schema.calibration import CalibrationSet, TiltCalibrationSet
 from schema.commands import Command, Direction, RotateStep, Session, TiltStep
 from schema.status import MachineState as S
 from tests.rig import Rig, known_calibration
@@ -235,3 +236,25 @@ def test_samples_at_rest_still_follow_the_world() -> None:
     assert tilt.velocity_fb == 0.0 and rotate.velocity_fb == 0.0
     assert tilt.status & PnStatus.SETTLED
     assert tilt.position_fb == rig.loop.devices.tilt.read_position_degrees()  # as read now
+
+
+def test_a_calibration_entered_at_rest_republishes_the_tilt_record() -> None:
+    """Issue 37: the idle tilt record kept the old position (FastData pFb 0.000 while the status
+    said -0.1°) until the axis next moved; same bits, another position: published again."""
+    rig = homed_rig()
+    rig.step(200)  # long at rest: quiet cycles
+    before = latest(rig, "tilt")
+    cal = rig.control.calibration.tilt
+    assert cal is not None
+    entered = CalibrationSet(
+        transaction_id="c1",
+        tilt=TiltCalibrationSet(offset_counts=cal.offset_counts + 6, gain_counts_per_deg=40.0),
+    )
+    rig.control.enter_calibration(entered, rig.clock())
+    rig.step()
+    after = latest(rig, "tilt")
+    status = rig.loop.published.status
+    assert status is not None and status.tilt_deg is not None
+    assert after.cycle > before.cycle
+    assert after.position_fb == pytest.approx(before.position_fb - 6 / 40.0)
+    assert round(after.position_fb, 2) == status.tilt_deg
