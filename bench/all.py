@@ -11,6 +11,7 @@ from bench import (
     cost,
     estop,
     events_cost,
+    homing,
     loop_timing,
     pick,
     read_flood,
@@ -47,6 +48,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.throughput", throughput.run),
     ("bench.rider_cost", rider_cost.run),
     ("bench.read_flood", read_flood.run),
+    ("bench.homing", homing.run),
 ]
 
 

@@ -29,6 +29,7 @@ MODULES = [
     "throughput",
     "rider_cost",
     "read_flood",
+    "homing",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0
