@@ -142,10 +142,13 @@ def session(r: Rider, rng: random.Random, errors: Errors) -> None:
 
 
 def one_daemon(tmp: Path, index: int, plan: Plan, seed: int, errors: Errors) -> None:
-    """A daemon of its own and its runs (on a thread: a failure is kept for the caller)."""
+    """A daemon of its own and its runs (on a thread: a failure is kept for the caller).
+    Each in a directory of its own: `start_daemon` writes its Zenoh config there."""
     config = tmp / "machine-homing.toml"
+    home = tmp / f"h{index}"
+    home.mkdir()
     try:
-        daemon = start_daemon(tmp, f"h{index}", extra=["--config", str(config)])
+        daemon = start_daemon(home, f"h{index}", extra=["--config", str(config)])
         try:
             with daemon.rider(timeout=10.0) as r:
                 rng = random.Random(seed)

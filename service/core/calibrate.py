@@ -96,11 +96,8 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
             self._stroke_deg = self.cfg.nominal_speed_dps * self.timer.elapsed(now)
             self.phase, self._samples = TiltCalPhase.SAMPLE_TOP, []
             return Outcome.BUSY
-        fault = self._sup.check(now, TiltDirection.UP)
-        if fault is not None:
-            return self._fault(fault)
-        self.axis.tilt_one(TiltDirection.UP)
-        return Outcome.BUSY
+        fault = self._sup.drive(now, TiltDirection.UP)
+        return Outcome.BUSY if fault is None else self._fault(fault)
 
     def _sample(self) -> bool:
         self._samples.append(self.axis.read_raw())

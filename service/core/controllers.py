@@ -86,11 +86,8 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
             self.axis.stop()
             self._dir = None
             return Outcome.BUSY
-        fault = self._sup.check(now, self._dir)
-        if fault is not None:
-            return self._fault(fault)
-        self.axis.tilt_one(self._dir)
-        return Outcome.BUSY
+        fault = self._sup.drive(now, self._dir)
+        return Outcome.BUSY if fault is None else self._fault(fault)
 
     def halt(self) -> None:
         super().halt()

@@ -241,12 +241,8 @@ class TiltApproach(EdgeApproach[TiltAxis, TiltSection]):
         return self.cfg.home_timeout_s
 
     def _drive(self, now: float, away: bool) -> Outcome:
-        direction = TiltDirection.UP if away else TiltDirection.DOWN
-        fault = self._sup.check(now, direction)
-        if fault is not None:
-            return self._fault(fault)
-        self.axis.tilt_one(direction)
-        return Outcome.BUSY
+        fault = self._sup.drive(now, TiltDirection.UP if away else TiltDirection.DOWN)
+        return Outcome.BUSY if fault is None else self._fault(fault)
 
     def _moving(self) -> None:
         self._sup.reset()

@@ -49,6 +49,13 @@ class TiltSupervisor:
         self._last = None
         self._jumps.clear()
 
+    def drive(self, now: float, direction: TiltDirection) -> Fault | None:
+        """One cycle of drive `direction`, checked first: the fault that stops it, or None."""
+        fault = self.check(now, direction)
+        if fault is None:
+            self.axis.tilt_one(direction)
+        return fault
+
     def check(self, now: float, direction: TiltDirection) -> Fault | None:
         raw = self.axis.read_raw()
         return (

@@ -20,7 +20,7 @@ from schema.commands import REST_STATES, Reply
 from schema.status import FAULT_STATES, MachineState, Status
 from tests.procs import Daemon, running_daemon
 
-FAST_CONFIG = """\
+FAST_ROTATE = """\
 [rotate]
 nominal_speed_dps = 720.0
 home_arc_deg = 30.0
@@ -32,7 +32,12 @@ latch_tolerance_deg = 8.0
 repeat_tolerance_deg = 16.0
 runup_s = 0.02
 revolution_tolerance = 0.5
+"""
+"""The fast rotate (one revolution in 0.5 s), for a config whose tilt is another's."""
 
+FAST_CONFIG = (
+    FAST_ROTATE
+    + """
 [tilt]
 nominal_speed_dps = 90.0
 home_timeout_s = 3.0
@@ -65,6 +70,7 @@ rotate_speed_dps = 720.0
 home_arc_deg = 30.0
 tilt_speed_dps = 90.0
 """
+)
 
 SETTLED = REST_STATES | FAULT_STATES
 """States in which a motion command has ended, well or not."""

@@ -19,7 +19,7 @@ from schema.axes import TILT_AXIS_NUMBER
 from schema.commands import RotateStep, Session, TiltStep
 from schema.events import CalibrationEvent
 from schema.status import FaultCode, MachineState, Status
-from tests.integration.support import settle
+from tests.integration.support import FAST_ROTATE, settle
 from tests.procs import Daemon, free_port, running_daemon
 
 pytestmark = pytest.mark.integration
@@ -34,16 +34,7 @@ timeout_s = 1.0
 [tilt]
 calibration_stroke_s = 1.0
 
-[rotate]
-nominal_speed_dps = 720.0
-home_arc_deg = 30.0
-revolution_timeout_s = 2.0
-backoff_timeout_s = 1.0
-latch_tolerance_deg = 8.0
-repeat_tolerance_deg = 16.0
-runup_s = 0.02
-revolution_tolerance = 0.5
-
+{fast_rotate}
 [hal.sim]
 rotate_speed_dps = 720.0
 home_arc_deg = 30.0
@@ -61,7 +52,8 @@ REFUSED = (FaultCode.HOME_EDGE_UNCERTAIN, FaultCode.CALIBRATION_NOT_REPEATABLE)
 
 def config(tmp: Path, start_tilt: float = 12.0, extra: str = "") -> list[str]:
     path = tmp / "machine-homing.toml"
-    path.write_text(HOMING_CONFIG.format(start_tilt=start_tilt, extra=extra))
+    text = HOMING_CONFIG.format(fast_rotate=FAST_ROTATE, start_tilt=start_tilt, extra=extra)
+    path.write_text(text)
     return ["--config", str(path)]
 
 
