@@ -53,8 +53,8 @@ class SimStall(WireModel):
 
 
 class SimStalls(WireModel):
-    """`sim/stalls`: each scan stalls with `probability` for up to `max_s` (uniform), after
-    writing its outputs, the drives running on (a busy host); 0 ends it."""
+    """`sim/stalls`: each scan stalls with `probability` for up to `max_s` (uniform) before
+    writing its outputs, the old ones running on (a busy host); 0 ends it."""
 
     transaction_id: TransactionId | None = None
     probability: float = Field(default=0.0, ge=0.0, le=1.0)

@@ -81,13 +81,13 @@ class SimHal:
 
     def scan_outputs(self, outputs: Outputs) -> None:
         self.writes += 1
-        if outputs.ro != self._written.ro:
-            self._advance()
-            self._written = Outputs(ro={ch: bool(outputs.ro.get(ch, False)) for ch in self._relays})
-            self._apply(self._written)
-        # else the drive runs on these already: the next scan integrates up to then
         if self.stall_probability and self._sleep is not None:
-            self._stall(self._sleep)
+            self._stall(self._sleep)  # decided, not yet written: the old outputs run on
+        if outputs.ro == self._written.ro:
+            return  # the drive runs on these already: the next scan integrates up to then
+        self._advance()
+        self._written = Outputs(ro={ch: bool(outputs.ro.get(ch, False)) for ch in self._relays})
+        self._apply(self._written)
 
     def force_all_outputs_safe(self) -> None:
         self._advance()
@@ -142,8 +142,9 @@ class SimHal:
         f.rotate_stalled = f.tilt_stalled = False
 
     def stall_scans(self, probability: float, max_s: float) -> None:
-        """From now on each scan stalls with `probability`, for up to `max_s` (uniform), after
-        writing its outputs: the next cycle starts that much late, the drive running on."""
+        """From now on each scan stalls with `probability`, for up to `max_s` (uniform), before
+        writing its outputs (the old ones run on meanwhile): the outputs and the next cycle
+        come that much late, as when a host preempts the scan thread mid-cycle."""
         if not (0.0 <= probability <= 1.0 and 0.0 <= max_s <= 1.0):
             raise ValueError("stall probability must be in 0..1 and max_s in 0..1 s")
         self.stall_probability, self.stall_max_s = probability, max_s

@@ -116,6 +116,7 @@ class Rig:
             guard=self.guard,
         )
         self.loop = self.machine.loop
+        self.loop.clock = self.clock  # a scan stall before the write moves it (sim/hal.py)
         self.loop.quiet_cycles = quiet_cycles
         self.control = self.machine.control
         self.replies: list[Reply] = []

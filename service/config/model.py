@@ -223,7 +223,7 @@ class PhysicsParams(_Section):
     tilt_noise_counts: float = Field(default=0.0, ge=0, le=30000)
     """Analog noise from power-up (uniform ±counts); `sim/tilt_ai` changes it at run time."""
     scan_stall_probability: float = Field(default=0.0, ge=0, le=1)
-    """Each scan, the chance that the scan thread stalls after writing its outputs …"""
+    """Each scan, the chance that the scan thread stalls before writing its outputs …"""
     scan_stall_max_s: float = Field(default=0.0, ge=0, le=1)
     """… for a uniform random time up to this (`sim/stalls` changes both at run time)."""
 

@@ -66,9 +66,20 @@ class RotateEstimator:
         self._last_home: bool | None = None
         self._driven: Direction | None = None
 
-    def update(self, dt: float, home: bool, speed: float, arc: float, homing: bool = False) -> None:
-        """`homing`: a Home (or the homing of a calibration) runs, so an edge restarts the turn
-        count from the reference instead of continuing it."""
+    def update(
+        self,
+        dt: float,
+        home: bool,
+        speed: float,
+        arc: float,
+        homing: bool = False,
+        since_edge: float | None = None,
+    ) -> None:
+        """`dt`: the time since the last update's outputs were written; `since_edge`: from the
+        midpoint between the last two input scans to this update's outputs (default `dt / 2`:
+        outputs written as the inputs are read). `homing`: a Home (or the homing of a
+        calibration) runs, so an edge restarts the turn count from the reference instead of
+        continuing it."""
         driven = self._driven
         self.velocity = 0.0 if driven is None else (speed if driven is Direction.CW else -speed)
         if self.angle is not None and dt > 0:
@@ -78,7 +89,8 @@ class RotateEstimator:
         last, self._last_home = self._last_home, home
         if driven is not None and last is not None and home != last:
             edge = 0.0 if home == (driven is Direction.CW) else arc
-            self._latch(edge + self.velocity * dt / 2, homing)
+            late = dt / 2 if since_edge is None else since_edge
+            self._latch(edge + self.velocity * late, homing)
 
     def drive(self, direction: Direction | None) -> None:
         """The direction this cycle's outputs drive until the next update."""
@@ -104,6 +116,8 @@ class AxisTracker:
         self.live = live
         self.rotate = RotateEstimator()
         self._last_t: float | None = None
+        self._last_w: float | None = None
+        """When the last update's outputs were written (the rotate moves from write to write)."""
         self._tilt_prev: float | None = None
         self._state: MachineState | None = None
         self.samples: dict[str, AxisSample] = {}
@@ -128,10 +142,15 @@ class AxisTracker:
         fault_axis: str | None,
         rotate_cal: RotateCalibration | None,
         motion: Controller | None = None,
+        written: float | None = None,
     ) -> None:
-        """Sample both axes; `motion` is the controller owning an axis (running or held)."""
-        dt = 0.0 if self._last_t is None else now - self._last_t
-        self._last_t = now
+        """Sample both axes; `motion` is the controller owning an axis (running or held);
+        `written`: when this cycle's outputs were written (default `now`)."""
+        written = now if written is None else written
+        last_t = now if self._last_t is None else self._last_t
+        dt = now - last_t
+        moved_for = 0.0 if self._last_w is None else written - self._last_w
+        self._last_t, self._last_w = now, written
         if self._unchanged(state, fault_axis, rotate_cal, motion):
             return
         if state is MachineState.FAULT_HW and self._state is not MachineState.FAULT_HW:
@@ -143,8 +162,9 @@ class AxisTracker:
         enabled = 0 if state is MachineState.FAULT_ESTOP else DRIVE_ENABLED
         revs = motion if isinstance(motion, RotateRevolutions) else None
         homing = isinstance(motion, RotateHome | RotateCalibrate)
+        since_edge = written - (last_t + now) / 2
         self.samples["rotate"] = self._rotate(
-            dt, rotate_cal, holding == "rotate", enabled, revs, homing
+            (moved_for, since_edge), rotate_cal, holding == "rotate", enabled, revs, homing
         )
         if fault_axis == "rotate":
             self.samples["rotate"].status |= DRIVE_FAULT
@@ -163,7 +183,7 @@ class AxisTracker:
 
     def tick(self, now: float) -> None:
         """A quiet cycle (`at_rest` and every input as before): what `update` would do."""
-        self._last_t = now
+        self._last_t = self._last_w = now
 
     def _unchanged(
         self,
@@ -200,7 +220,7 @@ class AxisTracker:
 
     def _rotate(
         self,
-        dt: float,
+        times: tuple[float, float],
         cal: RotateCalibration | None,
         holding: bool,
         enabled: int,
@@ -212,7 +232,8 @@ class AxisTracker:
         if cal is not None:  # measured beats nominal
             speed, arc = cal.speed_dps, cal.home_arc_deg
         rotate, est = self.devices.rotate, self.rotate
-        est.update(dt, rotate.is_home(), speed, arc, homing)
+        moved_for, since_edge = times  # the drive's time, and from the edge to the write
+        est.update(moved_for, rotate.is_home(), speed, arc, homing, since_edge)
         driven = rotate.driven_direction()
         est.drive(driven)
         angle, target = est.angle, self.targets["rotate"]

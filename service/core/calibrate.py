@@ -22,7 +22,7 @@ from service.core.devices import (
     TiltCalibration,
     TiltDirection,
 )
-from service.core.homing import Latch, RotateHome, TiltApproach, half_travel
+from service.core.homing import Latch, RotateHome, TiltApproach, half_travel, line
 from service.core.motion import REVERSE_DWELL_S, Measurement, Outcome
 from service.core.plausibility import TiltSupervisor
 
@@ -30,19 +30,22 @@ from service.core.plausibility import TiltSupervisor
 class TiltCalPhase(Enum):
     FIRST = auto()
     """Latch the zero (the home edge, from above)."""
-    SAMPLE_LOW = auto()
-    """Average the raw value at rest just below the edge."""
+    REST = auto()
+    """Relay off before reversing."""
     STROKE = auto()
-    """Drive up for `calibration_stroke_s` at the nominal speed."""
-    SAMPLE_TOP = auto()
-    """Average the raw value at the top (with the stroke: the gain)."""
+    """Drive up for `calibration_stroke_s`; the gain from the analog's speed meanwhile."""
     SECOND = auto()
     """Latch the zero again, coming down from the top."""
 
 
 class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
-    """Latch the zero, a timed stroke up at the nominal speed (gain), latch the zero again: the
-    offset is the mean of the two latches, which must agree. It ends at home."""
+    """Latch the zero, a stroke up at the nominal speed (the gain: the analog's speed on the
+    line through the stroke's samples, over the nominal speed), latch the zero again: the
+    offset is the mean of the two latches, which must agree. It ends at home.
+
+    The gain is the slope of samples stamped with their scan's time, not the travel over a
+    timed stroke: a scan stalled before it writes the relay on or off lengthens or shortens
+    the stroke by the stall, not the speed."""
 
     axis_name = "tilt"
     target_deg = 0.0
@@ -52,9 +55,7 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
         self.phase = TiltCalPhase.FIRST
         self.homing: TiltApproach | None = TiltApproach(axis, cfg)
         self.zeros: list[Latch] = []
-        self._samples: list[int] = []
-        self._low = 0.0
-        self._stroke_deg = 0.0
+        self._samples: list[tuple[float, int]] = []
         self._gain = 0.0
         self._sup = TiltSupervisor(axis, cfg)
         self.result: TiltCalibration | None = None
@@ -77,44 +78,41 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
             self.homing = None
             if self.phase is TiltCalPhase.SECOND:
                 return self._compute()
-            self.phase, self._samples = TiltCalPhase.SAMPLE_LOW, []
-        if self.phase is TiltCalPhase.SAMPLE_LOW:
-            if self._sample():
-                self._low = sum(self._samples) / len(self._samples)
-                self.phase = TiltCalPhase.STROKE
-                self.timer.start(now, self.cfg.calibration_stroke_s)
-                self._sup.reset()
-                self.axis.tilt_one(TiltDirection.UP)
+            self.phase = TiltCalPhase.REST
+            self.timer.start(now, REVERSE_DWELL_S)
+        if self.phase is TiltCalPhase.REST:
+            if not self.timer.done(now):
+                return Outcome.BUSY
+            self.phase, self._samples = TiltCalPhase.STROKE, []
+            self.timer.start(now, self.cfg.calibration_stroke_s)
+            self._sup.reset()
+            self.axis.tilt_one(TiltDirection.UP)  # its scan was at rest: not a sample
             return Outcome.BUSY
-        if self.phase is TiltCalPhase.STROKE:
-            return self._stroke(now)
-        return self._top() if self._sample() else Outcome.BUSY  # SAMPLE_TOP
+        return self._stroke(now)
 
     def _stroke(self, now: float) -> Outcome:
+        self._samples.append((now, self.axis.read_raw()))  # moving since the write before
         if self.timer.done(now):
             self.axis.stop()
-            self._stroke_deg = self.cfg.nominal_speed_dps * self.timer.elapsed(now)
-            self.phase, self._samples = TiltCalPhase.SAMPLE_TOP, []
-            return Outcome.BUSY
+            return self._top()
         fault = self._sup.drive(now, TiltDirection.UP)
         return Outcome.BUSY if fault is None else self._fault(fault)
 
-    def _sample(self) -> bool:
-        self._samples.append(self.axis.read_raw())
-        return len(self._samples) >= self.cfg.calibration_samples
-
     def _top(self) -> Outcome:
         """The gain from the stroke, checked; then down to latch the zero again."""
-        stroke_deg = self._stroke_deg
-        gain = (sum(self._samples) / len(self._samples) - self._low) / stroke_deg
-        lo, hi = self.cfg.gain_min_counts_per_deg, self.cfg.gain_max_counts_per_deg
-        if not lo <= gain <= hi:
+        cfg = self.cfg
+        n = len(self._samples)
+        gain = line(self._samples)[2] / cfg.nominal_speed_dps
+        lo, hi = cfg.gain_min_counts_per_deg, cfg.gain_max_counts_per_deg
+        if n < cfg.calibration_samples or not lo <= gain <= hi:
             return self._fail(
                 FaultCode.CALIBRATION_IMPLAUSIBLE,
-                f"tilt gain {gain:.2f} counts/° is outside {lo:g}..{hi:g}"
-                " (analog input not wired, frozen, or direction output inverted)",
+                f"tilt gain {gain:.2f} counts/° from {n} samples is outside {lo:g}..{hi:g}, or"
+                f" fewer than {cfg.calibration_samples} samples (analog input not wired,"
+                " frozen, or direction output inverted)",
             )
         if self.axis.is_home():
+            stroke_deg = cfg.nominal_speed_dps * cfg.calibration_stroke_s
             return self._fail(
                 FaultCode.TILT_HOME_STUCK,
                 f"tilt home switch still closed {stroke_deg:.1f}° above home (stuck closed)",

@@ -892,7 +892,7 @@ TABLE: tuple[Rule, ...] = (
         _C.CALIBRATE_TILT,
         ALLOWED_STATES[_C.CALIBRATE_TILT],
         (S.CALIBRATING,),
-        "tilt: latch the zero, a timed stroke up (gain), latch it again; both must agree",
+        "tilt: latch the zero, a stroke up (gain), latch the zero again; both must agree",
     ),
     Rule(
         _C.CALIBRATE_ROTATE,

@@ -62,16 +62,21 @@ def half_travel(speed_dps: float, before: float | None, after: float) -> float:
     return math.inf if before is None else speed_dps * (after - before) / 2
 
 
-def raw_at(samples: Sequence[tuple[float, int]], t: float) -> float:
-    """The analog value at `t` on the least-squares line through `samples` (time, raw), taken
-    while the drive ran at one speed; a single sample is its own value."""
+def line(samples: Sequence[tuple[float, int]]) -> tuple[float, float, float]:
+    """The least-squares line through `samples` (time, raw), taken while the drive ran at one
+    speed: (mean time, mean raw, slope in counts/s; 0 when all are at one time)."""
     n = len(samples)
     mean_t = sum(s[0] for s in samples) / n
     mean_r = sum(s[1] for s in samples) / n
     var = sum((s[0] - mean_t) ** 2 for s in samples)
     if var == 0.0:
-        return mean_r
-    slope = sum((s[0] - mean_t) * (s[1] - mean_r) for s in samples) / var
+        return mean_t, mean_r, 0.0
+    return mean_t, mean_r, sum((s[0] - mean_t) * (s[1] - mean_r) for s in samples) / var
+
+
+def raw_at(samples: Sequence[tuple[float, int]], t: float) -> float:
+    """The analog value at `t` on the line through `samples` (one sample: its value)."""
+    mean_t, mean_r, slope = line(samples)
     return mean_r + slope * (t - mean_t)
 
 
