@@ -30,7 +30,7 @@ from bench.common import Child, Dist, Options, Section, Table, Target, main_for,
 from rider.client import CommandRefused, Rider
 from schema.commands import REST_STATES, RotateStep, Session, TiltStep
 from schema.status import FAULT_STATES, MachineState, Status
-from tests.procs import start_daemon
+from tests.procs import Daemon, start_daemon
 
 CONFIG = """\
 [loop]
@@ -65,6 +65,9 @@ class Errors:
     outcomes: Counter[str] = field(default_factory=Counter)
     failures: list[Exception] = field(default_factory=list)
     """What ended a daemon's runs early (a benchmark that cannot run says so)."""
+    daemons: list[Daemon] = field(default_factory=list)
+    """Every daemon started, so an interrupted benchmark stops them all."""
+    stop: threading.Event = field(default_factory=threading.Event)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def add(self, what: str, value: float) -> None:
@@ -149,10 +152,14 @@ def one_daemon(tmp: Path, index: int, plan: Plan, seed: int, errors: Errors) -> 
     home.mkdir()
     try:
         daemon = start_daemon(home, f"h{index}", extra=["--config", str(config)])
+        with errors.lock:
+            errors.daemons.append(daemon)
         try:
             with daemon.rider(timeout=10.0) as r:
                 rng = random.Random(seed)
                 for _ in range(plan.runs):
+                    if errors.stop.is_set():
+                        break
                     one_run(r, rng, errors, plan.full)
         finally:
             daemon.stop()
@@ -190,8 +197,18 @@ def condition(plan: Plan, burners: int, seed: int) -> tuple[Errors, float]:
             ]
             for t in threads:
                 t.start()
-            for t in threads:
-                t.join()
+            try:
+                for t in threads:
+                    t.join()
+            except BaseException:  # interrupted: stop every daemon, so each run's wait ends
+                errors.stop.set()
+                with errors.lock:
+                    started = list(errors.daemons)
+                for daemon in started:
+                    daemon.stop()
+                for t in threads:
+                    t.join(timeout=30.0)
+                raise
     if errors.failures:
         raise errors.failures[0]
     return errors, time.monotonic() - t0

@@ -88,9 +88,10 @@ class RotateSection(_Section):
     """Approaches (or extra revolutions of a calibration) before `HOME_EDGE_UNCERTAIN`."""
     runup_s: float = Field(default=0.05, ge=0, le=10)
     """Backing off, the axis goes on this long past where the switch opened (the run-up)."""
-    repeat_tolerance_deg: float = Field(default=1.0, gt=0, le=90)
+    repeat_tolerance_deg: float = Field(default=2.0, gt=0, le=90)
     """Calibration times the revolution twice (closing and opening edges): they may differ by
-    at most this many degrees of travel, or `CALIBRATION_NOT_REPEATABLE`."""
+    at most this many degrees of travel, or `CALIBRATION_NOT_REPEATABLE` (two timings from
+    edges each latched to ±`latch_tolerance_deg` may differ by 4 × that)."""
     revolution_tolerance: float = Field(default=0.1, gt=0, lt=1)
     """In a session each revolution takes the calibrated time ± this fraction, or the motion
     stops (`ROTATE_HOME_TIMEOUT` overdue, `ROTATE_SPEED_IMPLAUSIBLE` early)."""

@@ -10,7 +10,9 @@ both values in the reason, never DONE. docs/homing.md has the sequences.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from enum import Enum, auto
+from itertools import pairwise
 
 from schema.commands import Direction
 from schema.status import FaultCode
@@ -153,7 +155,9 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
 class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
     """Home, then turn CW and time the revolution twice — closing edge to closing edge and
     opening edge to opening edge — from edges latched within `latch_tolerance_deg`, and the
-    arc the switch stays closed. It ends on the closing edge (home)."""
+    arc the switch stays closed (a closing edge to the next opening). An edge seen across a
+    stall is not used: the turning goes on until each of the three has a pair of good edges,
+    `latch_attempts` revolutions more at most. It ends on a good closing edge (home)."""
 
     axis_name = "rotate"
     target_deg = 0.0
@@ -193,17 +197,33 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
         self.axis.rotate_one(Direction.CW)
         return Outcome.BUSY
 
+    def _good(self, latch: Latch) -> bool:
+        return latch.half_deg <= self.cfg.latch_tolerance_deg
+
+    def _pairs(self) -> tuple[Latch, Latch, Latch, Latch, Latch, Latch] | None:
+        """The latest well-latched (closing, closing), (opening, opening) one revolution apart
+        and (closing, next opening); None while one of them is missing."""
+        edges = self.edges
+        by_closing = self._latest(pairwise(e for c, e in edges if c))
+        by_opening = self._latest(pairwise(e for c, e in edges if not c))
+        arc = self._latest((a, b) for (ca, a), (cb, b) in pairwise(edges) if ca and not cb)
+        if by_closing is None or by_opening is None or arc is None:
+            return None
+        return (*by_closing, *by_opening, *arc)
+
+    def _latest(self, pairs: Iterable[tuple[Latch, Latch]]) -> tuple[Latch, Latch] | None:
+        good = [(a, b) for a, b in pairs if self._good(a) and self._good(b)]
+        return good[-1] if good else None
+
     def _measured(self) -> Outcome | None:
-        """At a closing edge: the result from the last two revolutions (opening, closing,
-        opening, closing edges, each latched well); None: turn on."""
+        """At a closing edge: the result, once measured and this edge is a good one to stop
+        on; None: turn on."""
+        pairs = self._pairs()
+        if pairs is not None and self._good(self.edges[-1][1]):
+            return self._finish(*pairs)
         closings = sum(1 for closing, _ in self.edges if closing)
-        last = self.edges[-4:]
-        tol = self.cfg.latch_tolerance_deg
-        if [c for c, _ in last] == [False, True, False, True] and all(
-            e.half_deg <= tol for _, e in last
-        ):
-            return self._finish(*(e for _, e in last))
-        if closings >= 1 + self.cfg.latch_attempts:
+        if closings >= 2 + self.cfg.latch_attempts:
+            tol = self.cfg.latch_tolerance_deg
             worst = max(e.half_deg for _, e in self.edges)
             return self._fail(
                 FaultCode.HOME_EDGE_UNCERTAIN,
@@ -212,8 +232,10 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
             )
         return None
 
-    def _finish(self, open0: Latch, close1: Latch, open1: Latch, close2: Latch) -> Outcome:
-        by_closing, by_opening = close2.at - close1.at, open1.at - open0.at
+    def _finish(
+        self, close1: Latch, close2: Latch, open1: Latch, open2: Latch, arc0: Latch, arc1: Latch
+    ) -> Outcome:
+        by_closing, by_opening = close2.at - close1.at, open2.at - open1.at
         revolution_s = (by_closing + by_opening) / 2
         nominal_s = 360.0 / self.cfg.nominal_speed_dps
         tol = self.cfg.speed_tolerance
@@ -231,7 +253,7 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
                 f" {by_opening:.3f} s between opening edges, {apart:.2f}° of travel apart;"
                 f" they must agree within {self.cfg.repeat_tolerance_deg:g}°",
             )
-        arc = (open1.at - close1.at) / revolution_s * 360.0
+        arc = (arc1.at - arc0.at) / revolution_s * 360.0
         self.result = RotateCalibration(revolution_s=revolution_s, home_arc_deg=arc)
         return Outcome.DONE
 
