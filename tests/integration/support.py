@@ -32,6 +32,7 @@ latch_tolerance_deg = 8.0
 repeat_tolerance_deg = 16.0
 runup_s = 0.02
 revolution_tolerance = 0.5
+settle_window_deg = 8.0  # settled within the latch's reach
 """
 """The fast rotate (one revolution in 0.5 s), for a config whose tilt is another's."""
 
