@@ -1,9 +1,9 @@
 """Calibration: each axis measures its reference at least twice and refuses when they disagree.
 
 The tilt latches its zero (the home switch's closing edge, approached from above) before and
-after a timed stroke up that gives the gain; the two zeros must agree within
-`tilt.repeat_tolerance_deg`. The rotate, once homed, turns two revolutions and times one from
-its closing edges and one from its opening edges; the two must agree within
+after a stroke up whose analog speed gives the gain; the two zeros must agree within
+`tilt.repeat_tolerance_deg`. The rotate, once homed, turns (two revolutions or more) and times
+the revolution from its closing edges and from its opening edges; the two must agree within
 `rotate.repeat_tolerance_deg` of travel. Either refusal is `CALIBRATION_NOT_REPEATABLE`, with
 both values in the reason, never DONE. docs/homing.md has the sequences.
 """
