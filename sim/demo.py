@@ -8,8 +8,8 @@ import time
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.status import MachineState
 from service.config.model import MachineConfig
-from service.core.loop import PendingCommand
 from service.core.machine import Machine
+from service.core.tasks import PendingCommand
 from sim.hal import SimHal
 
 log = logging.getLogger("demo")

@@ -1,14 +1,16 @@
 """What the machine publishes: status, IO, axes, completions, calibration, diagnostics, events.
 
-Every publication names this session (its source info), so a Rider drops samples of any other
-session that holds (or forges) this machine's keys. Publishers drop rather than block.
+`Publications` is the scan loop's sink (`service.core.sink.LoopSink`), made before the loop it
+serves and knowing nothing of it. Every publication names this session (its source info), so a
+Rider drops samples of any other session that holds (or forges) this machine's keys.
+Publishers drop rather than block.
 """
 
 from __future__ import annotations
 
 import itertools
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,7 +26,6 @@ from schema.io import IoValue
 from schema.status import Fault, FaultCode, MachineState, Status
 from service.adapters.eventlog import EventLog, StoredRow, row_payload
 from service.config.model import MachineConfig
-from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
 from service.threads import NamedThread
 
@@ -37,7 +38,6 @@ class Publications:
     """The machine's publishers; the loop's `LoopSink`."""
 
     session: zenoh.Session
-    loop: ScanLoop
     stats: CycleStats
     config: MachineConfig
     wall: Callable[[], float]
@@ -52,13 +52,14 @@ class Publications:
         self._diag_thread: threading.Thread | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._holder: zenoh.LivelinessToken | None = None
+        self._last: Status | None = None
+        """The status published last (the watchdog's trip is published as its successor)."""
 
-    def declare(self) -> list[Any]:
-        """Declare the publishers (data keys up front: a first publication never pays for a
-        declaration inside a scan cycle) and start the diag publisher; the caller undeclares."""
+    def declare(self, io_keys: Iterable[str]) -> list[Any]:
+        """Declare the publishers (data keys up front, `io_keys` the IO points' `io/<kind>/
+        <name>`: a first publication never pays for a declaration inside a scan cycle) and
+        start the diag publisher; the caller undeclares."""
         s, b = self.session, self.base
-        self.loop.completion_listeners.append(self.publish_completion)
-        self.loop.calibration_listeners.append(self.publish_calibration)
         drop = zenoh.CongestionControl.DROP
         self._status_pub = s.declare_publisher(
             f"{b}/status",
@@ -75,8 +76,8 @@ class Publications:
         self._events_pub = s.declare_publisher(f"{b}/events/*")
         if self.events is not None:
             self.events.subscribe(self._publish_events)
-        for point in self.loop.points.all():
-            self._publisher(f"{b}/io/{point.kind}/{point.name}")
+        for key in io_keys:
+            self._publisher(f"{b}/{key}")
         for axis in ("rotate", "tilt"):
             self._publisher(f"{b}/axis/{axis}")
         self._diag_thread = NamedThread(target=self._diag_loop, name="diag", daemon=True)
@@ -96,13 +97,14 @@ class Publications:
         self._data_pubs.clear()
 
     def publish_status(self, status: Status) -> None:
+        self._last = status
         # The source names this session: a Rider drops statuses of another holder of the id.
         self._status_pub.put(
             encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
         )
         if self._token is None:
             # Alive once there is a status to answer with: a Rider that sees the token and
-            # asks at once must get one (the loop sets `published.status` before this call).
+            # asks at once must get one (the loop publishes its records before this call).
             live = self.session.liveliness()
             self._holder = live.declare_token(machine_keys.holder_key(self.base, self.zid))
             self._token = live.declare_token(f"{self.base}/alive")
@@ -160,7 +162,7 @@ class Publications:
 
     def publish_watchdog_trip(self, stalled_s: float) -> None:
         """From the watchdog thread: tell everyone at once, the scan thread may be stuck."""
-        last = self.loop.published.status
+        last = self._last
         if last is None:
             return
         status = last.model_copy(
