@@ -96,6 +96,14 @@ _REST = (S.IDLE, S.WARNING_NOT_HOME, S.WARNING_NEEDS_CALIBRATION)
 """The rest state, in the order it is chosen: IDLE when calibrated and home, else the warning."""
 _C, _R, _E = Command, ReplyCode, Event
 
+
+def _to_rest(
+    trigger: Trigger, sources: set[MachineState] | frozenset[MachineState], does: str
+) -> Rule:
+    """A row that leads to the rest state, whichever it is now."""
+    return Rule(trigger, frozenset(sources), _REST, does, Pick.REST)
+
+
 HANDLING: dict[Command, Handling] = {
     _C.CALIBRATE_TILT: Handling(_R.RESP_CALIBRATION_ACCEPTED, moves=True),
     _C.CALIBRATE_ROTATE: Handling(_R.RESP_CALIBRATION_ACCEPTED, moves=True),
@@ -201,27 +209,15 @@ TABLE: tuple[Rule, ...] = (
         (S.FAULT_ESTOP,),
         "relays dropped in the same cycle, controller halted, latched",
     ),
-    Rule(
-        _E.MOTION_DONE,
-        frozenset({S.HOMING}),
-        _REST,
-        "both axes referenced; the rest state",
-        Pick.REST,
-    ),
-    Rule(
-        _E.MOTION_DONE,
-        frozenset({S.CALIBRATING}),
-        _REST,
-        "calibration in use; the rest state once it is saved",
-        Pick.REST,
+    _to_rest(_E.MOTION_DONE, {S.HOMING}, "both axes referenced; the rest state"),
+    _to_rest(
+        _E.MOTION_DONE, {S.CALIBRATING}, "calibration in use; the rest state once it is saved"
     ),
     Rule(_E.MOTION_DONE, frozenset({S.RUNNING}), (S.DONE,), "session complete"),
-    Rule(
+    _to_rest(
         _E.SAVED,
-        frozenset({S.CALIBRATING}),
-        _REST,
+        {S.CALIBRATING},
         "the calibration's write ended (its notice says whether it was saved)",
-        Pick.REST,
     ),
     Rule(
         _E.MOTION_FAULT,
@@ -243,12 +239,10 @@ TABLE: tuple[Rule, ...] = (
         "rider_loss.policy pause → PAUSED, stop → DONE (after rider_loss.grace_s)",
         Pick.POLICY,
     ),
-    Rule(
+    _to_rest(
         _E.CALIBRATION_ENTERED,
         REST_STATES - {S.DONE},
-        _REST,
         "a technician's values: the rest state (that axis not home until Home checks them)",
-        Pick.REST,
     ),
 )
 """The machine's behaviour, row by row: it chooses each target and allows each state change."""
