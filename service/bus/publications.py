@@ -98,10 +98,7 @@ class Publications:
 
     def publish_status(self, status: Status) -> None:
         self._last = status
-        # The source names this session: a Rider drops statuses of another holder of the id.
-        self._status_pub.put(
-            encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
-        )
+        self._put_status(status)
         if self._token is None:
             # Alive once there is a status to answer with: a Rider that sees the token and
             # asks at once must get one (the loop publishes its records before this call).
@@ -165,19 +162,14 @@ class Publications:
         last = self._last
         if last is None:
             return
-        status = last.model_copy(
-            update={
-                "state": MachineState.FAULT_HW,
-                "previous_state": last.state,
-                "fault": Fault(
-                    code=FaultCode.WATCHDOG,
-                    message=f"scan loop stalled for {stalled_s * 1000:.0f} ms;"
-                    " outputs forced safe by the watchdog",
-                ),
-                "seq": last.seq + 1,
-                "time": self.wall(),
-            }
+        message = (
+            f"scan loop stalled for {stalled_s * 1000:.0f} ms; outputs forced safe by the watchdog"
         )
+        fault = Fault(code=FaultCode.WATCHDOG, message=message)
+        self._put_status(faulted(last, fault, self.wall()))
+
+    def _put_status(self, status: Status) -> None:
+        # The source names this session: a Rider drops statuses of another holder of the id.
         self._status_pub.put(
             encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
         )
@@ -214,3 +206,10 @@ def subscribed(publisher: zenoh.Publisher) -> bool:
     `MatchingStatus`, which its type stubs call a bool)."""
     status: Any = publisher.matching_status
     return bool(getattr(status, "matching", status))
+
+
+def faulted(last: Status, fault: Fault, now: float, **also: object) -> Status:
+    """The status that follows `last` once `fault` has put the machine in FAULT_HW (the
+    watchdog's trip here, a dead daemon in the supervisor's bus); `also`: other fields."""
+    update = {"state": MachineState.FAULT_HW, "previous_state": last.state, "fault": fault}
+    return last.model_copy(update={**update, "seq": last.seq + 1, "time": now, **also})
