@@ -81,6 +81,7 @@ class ZenohBus(Publications):
         """Declare queryables and publishers, start the diag publisher; the liveliness token
         follows with the first status (`publish_status`)."""
         s = self.session
+        self.hold()
         self._declared += declare(s, self.base, self, self.routes)
         self._declared += self.declare()
         self._declared += self.presence.declare()
