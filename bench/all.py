@@ -14,6 +14,7 @@ from bench import (
     freeze,
     gateway,
     healthcheck,
+    homing,
     loop_timing,
     pick,
     read_flood,
@@ -55,6 +56,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.freeze", freeze.run),
     ("bench.healthcheck", healthcheck.run),
     ("bench.gateway", gateway.run),
+    ("bench.homing", homing.run),
 ]
 
 

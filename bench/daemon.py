@@ -6,6 +6,7 @@ import contextlib
 import functools
 import os
 import tempfile
+import tomllib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,12 +99,16 @@ def config_toml(
 
 
 @functools.cache
-def calibration_file() -> bytes:
-    """What the default simulator's calibration run stores (found once, with a fake clock)."""
+def calibration_file(config_toml: str = "") -> bytes:
+    """What a calibration run of the simulator stores (found once, with a fake clock): the
+    default machine's, or that of the machine `config_toml` describes. A daemon must run on
+    its own machine's calibration: the revolution check refuses another's revolution time."""
+    from service.config.model import MachineConfig
     from tests.rig import Rig
 
+    config = MachineConfig.model_validate(tomllib.loads(config_toml))
     with tempfile.TemporaryDirectory() as tmp:
-        rig = Rig(data_dir=Path(tmp))
+        rig = Rig(config=config, data_dir=Path(tmp))
         rig.calibrate()
         return (Path(tmp) / CALIBRATION_FILE).read_bytes()
 

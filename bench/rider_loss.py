@@ -112,7 +112,7 @@ def topology(tmp: Path, timeout_s: float) -> Iterator[tuple[Setup, Daemon]]:
     config.write_text(config.read_text().replace("timeout_s = 1.0", f"timeout_s = {timeout_s}"))
     data = tmp / "data-m1"
     data.mkdir()
-    (data / CALIBRATION_FILE).write_bytes(calibration_file())
+    (data / CALIBRATION_FILE).write_bytes(calibration_file(config.read_text()))
     with contextlib.ExitStack() as stack:
         try:
             pair: NsPair | None = stack.enter_context(veth_pair("rl"))

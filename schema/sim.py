@@ -52,6 +52,23 @@ class SimStall(WireModel):
     stalled: bool = True
 
 
+class SimStalls(WireModel):
+    """`sim/stalls`: each scan stalls with `probability` for up to `max_s` (uniform) before
+    writing its outputs, the old ones running on (a busy host); 0 ends it."""
+
+    transaction_id: TransactionId | None = None
+    probability: float = Field(default=0.0, ge=0.0, le=1.0)
+    max_s: float = Field(default=0.05, ge=0.0, le=1.0)
+
+
+class SimPlace(WireModel):
+    """`sim/place`: put an axis where a ride may be found in the morning (null: leave it)."""
+
+    transaction_id: TransactionId | None = None
+    tilt_deg: float | None = Field(default=None, ge=-90.0, le=180.0)
+    rotate_deg: float | None = Field(default=None, ge=-3600.0, le=3600.0)
+
+
 class SimClear(WireModel):
     """`sim/clear`: repair every injected fault (the E-stop stays as it is)."""
 
@@ -69,6 +86,14 @@ class SimWorldState(OpenWireModel):
     estop_pressed: bool
     relays: dict[str, bool]
     faults: dict[str, object]
+    tilt_home_closed: bool | None = None
+    """The tilt switch's contact (before a stuck fault), for comparing with what was read."""
+    rotate_home_closed: bool | None = None
+    tilt_zero_counts: float | None = None
+    """The analog value at the tilt switch's closing edge: what a tilt calibration's offset
+    should measure."""
+    stalled_s: float | None = None
+    """Time the injected scan stalls took so far."""
 
 
 SIM_REQUESTS: dict[str, type[WireModel]] = {
@@ -77,4 +102,6 @@ SIM_REQUESTS: dict[str, type[WireModel]] = {
     "tilt_ai": SimTiltSignal,
     "stall": SimStall,
     "clear": SimClear,
+    "stalls": SimStalls,
+    "place": SimPlace,
 }

@@ -28,10 +28,10 @@ class World(SimPort, Protocol):
 
 
 def sim_hal(config: MachineConfig) -> Hal:
-    """The simulator HAL, on the real clock."""
+    """The simulator HAL, on the real clock (an injected scan stall really sleeps)."""
     from sim.hal import SimHal
 
-    return SimHal(time.monotonic, config.hal.iomap, config.hal.sim)
+    return SimHal(time.monotonic, config.hal.iomap, config.hal.sim, sleep=time.sleep)
 
 
 def sim_port(hal: Hal) -> SimPort | None:

@@ -14,7 +14,9 @@ from schema.sim import (
     SimClear,
     SimEstop,
     SimHomeSwitch,
+    SimPlace,
     SimStall,
+    SimStalls,
     SimTiltSignal,
     SimWorldState,
     SwitchState,
@@ -75,6 +77,10 @@ def apply_fault(sim: SimHal, req: BaseModel) -> None:
         sim.set_tilt_noise(req.noise_counts)
     elif isinstance(req, SimStall):
         sim.stall(req.axis.value, req.stalled)
+    elif isinstance(req, SimStalls):
+        sim.stall_scans(req.probability, req.max_s)
+    elif isinstance(req, SimPlace):
+        sim.place(req.tilt_deg, req.rotate_deg)
     elif isinstance(req, SimClear):
         sim.clear_faults()
 
@@ -82,7 +88,7 @@ def apply_fault(sim: SimHal, req: BaseModel) -> None:
 def world_state(sim: SimHal, stamp: float) -> SimWorldState:
     """The simulated world as the `sim/world` reply reports it."""
     w = sim.world
-    f = w.faults
+    f, p = w.faults, w.params
     return SimWorldState(
         time=stamp,
         tilt_deg=w.tilt_deg,
@@ -97,5 +103,11 @@ def world_state(sim: SimHal, stamp: float) -> SimWorldState:
             "tilt_ai_noise_counts": f.tilt_ai_noise_counts,
             "rotate_stalled": f.rotate_stalled,
             "tilt_stalled": f.tilt_stalled,
+            "scan_stall_probability": sim.stall_probability,
+            "scan_stall_max_s": sim.stall_max_s,
         },
+        tilt_home_closed=w.tilt_switch.closed,
+        rotate_home_closed=w.rotate_switch.closed,
+        tilt_zero_counts=p.ai_offset_counts + p.ai_gain_counts_per_deg * p.tilt_home_deg,
+        stalled_s=sim.stalled_s,
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable
 
 from hal.base import Inputs, Outputs
@@ -14,6 +15,8 @@ class SimHal:
     """A `Hal` whose world advances on the loop's clock, so tests step it without sleeping.
 
     Fault injection is a plain API (`press_estop`, `stick_home`, `freeze_tilt_ai`, ...).
+    `sleep` is how a scan stall passes (`stall_scans`): `time.sleep` in the daemon, the fake
+    clock's `advance` in a test; None (a world stepped by someone else) never stalls.
     """
 
     def __init__(
@@ -21,17 +24,18 @@ class SimHal:
         clock: Callable[[], float],
         iomap: IoMap | None = None,
         params: PhysicsParams | None = None,
+        sleep: Callable[[float], object] | None = None,
     ) -> None:
         self._clock = clock
         self.iomap = iomap or IoMap()
         self.world = World(params=params or PhysicsParams())
         p = self.world.params
-        self.max_step_s = 0.5 * p.home_arc_deg / p.rotate_speed_dps
-        """The most the world advances between two looks at it: half the time the rotate axis
-        takes to cross its home switch. A scan thread that the host stalls for longer (a shared
-        CI machine: 30-100 ms now and then) pauses the simulated ride with it instead of letting
-        it turn past the switch unseen, which made a session turn 7 revolutions for 6 (a real
-        machine's watchdog trips long before; tests relax it for loaded hosts)."""
+        self._sleep = sleep
+        self._stalls = random.Random(p.seed + 1)
+        self.stall_probability = p.scan_stall_probability
+        self.stall_max_s = p.scan_stall_max_s
+        self.stalled_s = 0.0
+        """Time the injected scan stalls took so far."""
         self._last = clock()
         self._relays = self.iomap.channels(RELAY_OUTPUTS)
         self._written = Outputs(ro=dict.fromkeys(self._relays, False))
@@ -77,6 +81,8 @@ class SimHal:
 
     def scan_outputs(self, outputs: Outputs) -> None:
         self.writes += 1
+        if self.stall_probability and self._sleep is not None:
+            self._stall(self._sleep)  # decided, not yet written: the old outputs run on
         if outputs.ro == self._written.ro:
             return  # the drive runs on these already: the next scan integrates up to then
         self._advance()
@@ -128,20 +134,39 @@ class SimHal:
         setattr(self.world.faults, f"{_axis(axis)}_stalled", stalled)
 
     def clear_faults(self) -> None:
+        """Every injected fault repaired; the configured noise (`[hal.sim]`) stays."""
         f = self.world.faults
         f.rotate_home = f.tilt_home = None
         f.tilt_ai_frozen = False
-        f.tilt_ai_noise_counts = 0.0
+        f.tilt_ai_noise_counts = self.world.params.tilt_noise_counts
         f.rotate_stalled = f.tilt_stalled = False
 
+    def stall_scans(self, probability: float, max_s: float) -> None:
+        """From now on each scan stalls with `probability`, for up to `max_s` (uniform), before
+        writing its outputs (the old ones run on meanwhile): the outputs and the next cycle
+        come that much late, as when a host preempts the scan thread mid-cycle."""
+        if not (0.0 <= probability <= 1.0 and 0.0 <= max_s <= 1.0):
+            raise ValueError("stall probability must be in 0..1 and max_s in 0..1 s")
+        self.stall_probability, self.stall_max_s = probability, max_s
+
+    def place(self, tilt_deg: float | None = None, rotate_deg: float | None = None) -> None:
+        """Put the axes somewhere else (`World.place`), integrating up to now first."""
+        self._advance()
+        self.world.place(tilt_deg, rotate_deg)
+
     # -- internals ----------------------------------------------------------------------
+    def _stall(self, sleep: Callable[[float], object]) -> None:
+        if self._stalls.random() < self.stall_probability:
+            stall = self._stalls.uniform(0.0, self.stall_max_s)
+            self.stalled_s += stall
+            sleep(stall)
+
     def _advance(self) -> None:
         """Integrate up to now under the old outputs before they change."""
         now = self._clock()
         dt = now - self._last
         self._last = now
         world = self.world
-        dt = dt if dt < self.max_step_s else self.max_step_s
         drive = world.drive
         if drive.rotate_on or drive.tilt_on:
             world.step(dt)

@@ -3,6 +3,7 @@ world. Its parameters are the `[hal.sim]` section of machine.toml (`service.conf
 
 from __future__ import annotations
 
+import math
 import random
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -53,11 +54,32 @@ class WorldInputs:
 
 
 @dataclass
+class Switch:
+    """A home switch's contact as the world holds it: closed or open, with hysteresis (its
+    state changes only past the far side of the band) and bounce (after each change it reads
+    at random for `bounce_s`, from the moment the axis crossed the threshold)."""
+
+    closed: bool = False
+    changed_at: float = float("-inf")
+
+    def follow(self, closed: bool | None, at: float) -> None:
+        """The contact at a new position: True/False where the position decides, None inside
+        the hysteresis band (it keeps its state); `at` is when the threshold was crossed."""
+        if closed is not None and closed != self.closed:
+            self.closed, self.changed_at = closed, at
+
+    def bouncing(self, now: float, bounce_s: float) -> bool:
+        return now - self.changed_at < bounce_s
+
+
+@dataclass
 class World:
     """Positions of both axes, advanced by `step(dt)` under the current drive outputs.
 
     E-stop cuts drive power (as a safety relay does), so nothing moves while it is pressed,
-    whatever the outputs say.
+    whatever the outputs say. The tilt switch closes at `tilt_home_deg` going down and opens
+    `tilt_home_hysteresis_deg` higher going up; the rotate switch closes over its arc and opens
+    `rotate_home_hysteresis_deg` outside it.
     """
 
     params: PhysicsParams = field(default_factory=PhysicsParams)
@@ -67,45 +89,106 @@ class World:
     rotate_travel_deg: float = 0.0
     tilt_deg: float = 0.0
     time: float = 0.0
+    tilt_switch: Switch = field(default_factory=Switch)
+    rotate_switch: Switch = field(default_factory=Switch)
     _frozen_raw: int | None = None
     _rng: random.Random = field(default_factory=random.Random)
 
     def __post_init__(self) -> None:
-        self.rotate_deg = self.params.start_rotate_deg % 360.0
-        self.tilt_deg = self.params.start_tilt_deg
         self._rng.seed(self.params.seed)
+        self.faults.tilt_ai_noise_counts = self.params.tilt_noise_counts
+        self.place(self.params.start_tilt_deg, self.params.start_rotate_deg)
 
     @property
     def revolutions(self) -> float:
         """Signed revolutions travelled since start-up (CW positive)."""
         return self.rotate_travel_deg / 360.0
 
+    def place(self, tilt_deg: float | None = None, rotate_deg: float | None = None) -> None:
+        """Put the axes somewhere (a ride found there in the morning); a switch takes the
+        state its region gives (open inside a hysteresis band), without bouncing."""
+        p = self.params
+        if tilt_deg is not None:
+            self.tilt_deg = min(p.tilt_max_deg, max(p.tilt_min_deg, tilt_deg))
+            self.tilt_switch = Switch(self.tilt_deg <= p.tilt_home_deg)
+        if rotate_deg is not None:
+            self.rotate_deg = rotate_deg % 360.0
+            self.rotate_switch = Switch(self.rotate_deg < p.home_arc_deg)
+
     def step(self, dt: float) -> None:
         """Advance the mechanics by `dt` seconds."""
         if dt <= 0:
             return
+        t0 = self.time
         self.time += dt
         if self.faults.estop_pressed:
             return
         p = self.params
         if self.drive.rotate_on and not self.faults.rotate_stalled:
-            delta = p.rotate_speed_dps * dt * (-1.0 if self.drive.rotate_ccw else 1.0)
-            self.rotate_travel_deg += delta
-            self.rotate_deg = (self.rotate_deg + delta) % 360.0
+            v = p.rotate_speed_dps * (-1.0 if self.drive.rotate_ccw else 1.0)
+            start = self.rotate_deg
+            moved = math.copysign(self._unskipped(abs(v * dt)), v)
+            self.rotate_travel_deg += moved
+            self.rotate_deg = (start + moved) % 360.0
+            self._rotate_contact(start, v, t0)
         if self.drive.tilt_on and not self.faults.tilt_stalled:
-            delta = p.tilt_speed_dps * dt * (1.0 if self.drive.tilt_up else -1.0)
-            self.tilt_deg = min(p.tilt_max_deg, max(p.tilt_min_deg, self.tilt_deg + delta))
+            v = p.tilt_speed_dps * (1.0 if self.drive.tilt_up else -1.0)
+            start = self.tilt_deg
+            self.tilt_deg = min(p.tilt_max_deg, max(p.tilt_min_deg, start + v * dt))
+            self._tilt_contact(start, v, t0)
+
+    def _unskipped(self, travel: float) -> float:
+        """`travel` (degrees, unsigned), cut short in the middle of the home arc where it would
+        pass the whole switch between two scans (a host that stalled the scan): the simulated
+        rotate pauses there instead, so a session never turns a revolution too many. A real
+        ride would not pause (docs/homing.md); only a gap that long makes the difference."""
+        if self.rotate_switch.closed:
+            return travel
+        p = self.params
+        ccw = self.drive.rotate_ccw
+        to_close = (self.rotate_deg - p.home_arc_deg if ccw else -self.rotate_deg) % 360.0
+        if travel < to_close + p.home_arc_deg + p.rotate_home_hysteresis_deg:
+            return travel
+        return to_close + p.home_arc_deg / 2
+
+    def _tilt_contact(self, start: float, v: float, t0: float) -> None:
+        p, deg = self.params, self.tilt_deg
+        closes, opens = p.tilt_home_deg, p.tilt_home_deg + p.tilt_home_hysteresis_deg
+        state = True if deg <= closes else False if deg > opens else None
+        edge = closes if state else opens
+        self.tilt_switch.follow(state, t0 + (edge - start) / v)
+
+    def _rotate_contact(self, start: float, v: float, t0: float) -> None:
+        p, deg = self.params, self.rotate_deg
+        h, arc = p.rotate_home_hysteresis_deg, p.home_arc_deg
+        state = True if deg < arc else False if arc + h <= deg < 360.0 - h else None
+        if state is None or state == self.rotate_switch.closed:
+            return
+        # The threshold crossed: CW the switch closes at 0 and opens at arc + h; CCW it
+        # closes at arc and opens at -h.
+        edge = {(True, True): 360.0, (True, False): arc + h, (False, True): arc}.get(
+            (v > 0, state), 360.0 - h
+        )
+        travelled = (edge - start) % 360.0 if v > 0 else (start - edge) % 360.0
+        self.rotate_switch.follow(state, t0 + travelled / abs(v))
 
     def still(self) -> tuple[object, ...] | None:
         """Everything `sense` reads, while nothing changes by itself: no relay on (so `step`
-        moves nothing) and no noise (so `sense` draws nothing). None otherwise. Two equal
-        results mean `sense` reads exactly the same twice, so a scan may reuse its image."""
-        d, f = self.drive, self.faults
+        moves nothing), no noise and no bounce (so `sense` draws nothing). None otherwise.
+        Two equal results mean `sense` reads exactly the same twice, so a scan may reuse its
+        image."""
+        d, f, p = self.drive, self.faults, self.params
         if d.rotate_on or d.tilt_on or f.tilt_ai_noise_counts:
+            return None
+        if self.tilt_switch.bouncing(self.time, p.tilt_home_bounce_s):
+            return None
+        if self.rotate_switch.bouncing(self.time, p.rotate_home_bounce_s):
             return None
         return (
             self.rotate_deg,
             self.tilt_deg,
+            self.rotate_switch.closed,
+            self.tilt_switch.closed,
             f.estop_pressed,
             f.rotate_home,
             f.tilt_home,
@@ -116,14 +199,19 @@ class World:
     def sense(self) -> WorldInputs:
         """Read every sensor, faults applied."""
         p, f = self.params, self.faults
-        rotate_home = self.rotate_deg < p.home_arc_deg
-        tilt_home = self.tilt_deg <= p.tilt_home_deg
         return WorldInputs(
-            rotate_home=_switch(rotate_home, f.rotate_home),
-            tilt_home=_switch(tilt_home, f.tilt_home),
+            rotate_home=_switch(
+                self._contact(self.rotate_switch, p.rotate_home_bounce_s), f.rotate_home
+            ),
+            tilt_home=_switch(self._contact(self.tilt_switch, p.tilt_home_bounce_s), f.tilt_home),
             estop_pressed=f.estop_pressed,
             tilt_raw=self._tilt_raw(),
         )
+
+    def _contact(self, switch: Switch, bounce_s: float) -> bool:
+        if switch.bouncing(self.time, bounce_s):
+            return self._rng.random() < 0.5
+        return switch.closed
 
     def _tilt_raw(self) -> int:
         p, f = self.params, self.faults

@@ -97,7 +97,9 @@ class Rig:
         self.config = config or MachineConfig()
         self.clock = clock or FakeClock()
         self.period = self.config.loop.period_s
-        self.hal = SimHal(self.clock, self.config.hal.iomap, physics or self.config.hal.sim)
+        self.hal = SimHal(
+            self.clock, self.config.hal.iomap, physics or self.config.hal.sim, self.clock.advance
+        )
         self.sink = RecordingSink()
         self.transitions: list[Transition] = []
         self.store = CalibrationStore(data_dir, clock=self.clock) if data_dir else None
@@ -114,6 +116,7 @@ class Rig:
             guard=self.guard,
         )
         self.loop = self.machine.loop
+        self.loop.clock = self.clock  # a scan stall before the write moves it (sim/hal.py)
         self.loop.quiet_cycles = quiet_cycles
         self.control = self.machine.control
         self.replies: list[Reply] = []

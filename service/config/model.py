@@ -90,6 +90,20 @@ class RotateSection(_Section):
     backoff_timeout_s: float = Field(default=2.0, gt=0, le=60)
     speed_tolerance: float = Field(default=0.5, gt=0, lt=1)
     settle_window_deg: float = Field(default=2.0, gt=0, le=30)
+    latch_tolerance_deg: float = Field(default=0.5, gt=0, le=90)
+    """The home edge is latched from the scans either side of it: half the travel between them
+    (nominal or calibrated speed × gap / 2) may be at most this, or it is approached again."""
+    latch_attempts: int = Field(default=5, ge=1, le=20)
+    """Approaches (or extra revolutions of a calibration) before `HOME_EDGE_UNCERTAIN`."""
+    runup_s: float = Field(default=0.05, ge=0, le=10)
+    """Backing off, the axis goes on this long past where the switch opened (the run-up)."""
+    repeat_tolerance_deg: float = Field(default=2.0, gt=0, le=90)
+    """Calibration times the revolution twice (closing and opening edges): they may differ by
+    at most this many degrees of travel, or `CALIBRATION_NOT_REPEATABLE` (two timings from
+    edges each latched to ±`latch_tolerance_deg` may differ by 4 × that)."""
+    revolution_tolerance: float = Field(default=0.1, gt=0, lt=1)
+    """In a session each revolution takes the calibrated time ± this fraction, or the motion
+    stops (`ROTATE_HOME_TIMEOUT` overdue, `ROTATE_SPEED_IMPLAUSIBLE` early)."""
 
 
 class TiltSection(_Section):
@@ -109,6 +123,26 @@ class TiltSection(_Section):
     calibration_samples: int = Field(default=10, ge=1, le=1000)
     gain_min_counts_per_deg: float = Field(default=5.0, gt=0)
     gain_max_counts_per_deg: float = Field(default=500.0, gt=0)
+    latch_tolerance_deg: float = Field(default=0.15, gt=0, le=10)
+    """Half the travel between the scans either side of the home edge (nominal speed × gap
+    / 2) may be at most this, or the edge is approached again."""
+    latch_attempts: int = Field(default=5, ge=1, le=20)
+    """Approaches per latch before `HOME_EDGE_UNCERTAIN`."""
+    runup_s: float = Field(default=0.3, ge=0, le=10)
+    """Backing off, the tilt goes on up this long past where the switch opened: the run-up of
+    the next approach (at least `speed_window_s`, so the approach checks the speed)."""
+    backoff_timeout_s: float = Field(default=3.0, gt=0, le=600)
+    """The switch must open within this of backing off, or `TILT_HOME_STUCK`."""
+    repeat_tolerance_deg: float = Field(default=0.3, gt=0, le=10)
+    """Calibration latches the zero twice: they may differ by at most this, or
+    `CALIBRATION_NOT_REPEATABLE`."""
+    home_tolerance_deg: float = Field(default=0.5, gt=0, le=10)
+    """Home latches the edge again: by the calibration it must lie within ± this of 0°, or
+    `HOME_OFF_ZERO`."""
+    speed_window_s: float = Field(default=0.2, gt=0, le=60)
+    """While driven, the calibrated speed is measured over each window of this length …"""
+    speed_tolerance: float = Field(default=0.3, gt=0, lt=1)
+    """… and must be the nominal speed ± this fraction, or `TILT_SPEED_IMPLAUSIBLE`."""
 
 
 class RiderLossPolicy(StrEnum):
@@ -201,6 +235,19 @@ class PhysicsParams(_Section):
     start_rotate_deg: float = 137.0
     start_tilt_deg: float = 12.0
     seed: int = 1
+    tilt_home_hysteresis_deg: float = Field(default=0.0, ge=0, le=10)
+    """The tilt switch closes going down at `tilt_home_deg` and opens going up this much higher."""
+    rotate_home_hysteresis_deg: float = Field(default=0.0, ge=0, le=30)
+    """The rotate switch, once closed, opens only this far outside its arc (either side)."""
+    tilt_home_bounce_s: float = Field(default=0.0, ge=0, le=0.1)
+    """After each change the tilt switch reads at random for this long (contact bounce)."""
+    rotate_home_bounce_s: float = Field(default=0.0, ge=0, le=0.1)
+    tilt_noise_counts: float = Field(default=0.0, ge=0, le=30000)
+    """Analog noise from power-up (uniform ±counts); `sim/tilt_ai` changes it at run time."""
+    scan_stall_probability: float = Field(default=0.0, ge=0, le=1)
+    """Each scan, the chance that the scan thread stalls before writing its outputs …"""
+    scan_stall_max_s: float = Field(default=0.0, ge=0, le=1)
+    """… for a uniform random time up to this (`sim/stalls` changes both at run time)."""
 
 
 class HalSection(_Section):

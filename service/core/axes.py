@@ -15,8 +15,11 @@ from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStat
 from schema.commands import Direction
 from schema.status import MachineState
 from service.config.model import LiveConfig, MachineConfig
-from service.core.controllers import Controller, RotateCalibrate, RotateHome, RotateRevolutions
+from service.core.calibrate import RotateCalibrate
+from service.core.controllers import RotateRevolutions
 from service.core.devices import Devices, RotateCalibration, TiltDirection
+from service.core.homing import RotateHome
+from service.core.motion import Controller
 
 AXIS_NUMBERS = {"rotate": ROTATE_AXIS_NUMBER, "tilt": TILT_AXIS_NUMBER}
 # Plain ints: `IntFlag` arithmetic runs Python code in `enum`, several times a cycle.
@@ -49,6 +52,9 @@ class RotateEstimator:
     switch edge is referenced with that direction even when the controller dropped the relay in
     the very cycle it saw the edge (Home does). The switch closes at 0° turning CW and opens at
     0° turning CCW; it closes at the end of its arc turning CCW and opens there turning CW.
+    An edge happened somewhere between the scan before and this one: the angle is latched at
+    the midpoint, half the travel since the scan before past the edge (sure to ± that much;
+    the controllers approach again when that is too much, service/core/homing.py).
     """
 
     def __init__(self) -> None:
@@ -60,9 +66,20 @@ class RotateEstimator:
         self._last_home: bool | None = None
         self._driven: Direction | None = None
 
-    def update(self, dt: float, home: bool, speed: float, arc: float, homing: bool = False) -> None:
-        """`homing`: a Home (or the homing of a calibration) runs, so an edge restarts the turn
-        count from the reference instead of continuing it."""
+    def update(
+        self,
+        dt: float,
+        home: bool,
+        speed: float,
+        arc: float,
+        homing: bool = False,
+        since_edge: float | None = None,
+    ) -> None:
+        """`dt`: the time since the last update's outputs were written; `since_edge`: from the
+        midpoint between the last two input scans to this update's outputs (default `dt / 2`:
+        outputs written as the inputs are read). `homing`: a Home (or the homing of a
+        calibration) runs, so an edge restarts the turn count from the reference instead of
+        continuing it."""
         driven = self._driven
         self.velocity = 0.0 if driven is None else (speed if driven is Direction.CW else -speed)
         if self.angle is not None and dt > 0:
@@ -71,7 +88,9 @@ class RotateEstimator:
             self.turns += step / 360.0
         last, self._last_home = self._last_home, home
         if driven is not None and last is not None and home != last:
-            self._latch(0.0 if home == (driven is Direction.CW) else arc, homing)
+            edge = 0.0 if home == (driven is Direction.CW) else arc
+            late = dt / 2 if since_edge is None else since_edge
+            self._latch(edge + self.velocity * late, homing)
 
     def drive(self, direction: Direction | None) -> None:
         """The direction this cycle's outputs drive until the next update."""
@@ -86,7 +105,7 @@ class RotateEstimator:
         frac = deg / 360.0
         keep = self.angle is not None and not restart
         self.turns = round(self.turns - frac) + frac if keep else frac
-        self.angle = deg
+        self.angle = deg % 360.0
 
 
 class AxisTracker:
@@ -97,12 +116,16 @@ class AxisTracker:
         self.live = live
         self.rotate = RotateEstimator()
         self._last_t: float | None = None
+        self._last_w: float | None = None
+        """When the last update's outputs were written (the rotate moves from write to write)."""
         self._tilt_prev: float | None = None
         self._state: MachineState | None = None
         self.samples: dict[str, AxisSample] = {}
         # None: never published, so the first cycle publishes every axis once.
         self._last_status: dict[str, int | None] = {"rotate": None, "tilt": None}
         self._settling: set[str] = set()
+        self._tilt_cal: object = None
+        """The tilt calibration the last published tilt record was read through."""
         self.targets: dict[str, float | None] = {"rotate": None, "tilt": None}
         """Each axis' last move target (degrees), kept after the move ends or is stopped."""
         self._still: tuple[object, ...] | None = None
@@ -119,10 +142,15 @@ class AxisTracker:
         fault_axis: str | None,
         rotate_cal: RotateCalibration | None,
         motion: Controller | None = None,
+        written: float | None = None,
     ) -> None:
-        """Sample both axes; `motion` is the controller owning an axis (running or held)."""
-        dt = 0.0 if self._last_t is None else now - self._last_t
-        self._last_t = now
+        """Sample both axes; `motion` is the controller owning an axis (running or held);
+        `written`: when this cycle's outputs were written (default `now`)."""
+        written = now if written is None else written
+        last_t = now if self._last_t is None else self._last_t
+        dt = now - last_t
+        moved_for = 0.0 if self._last_w is None else written - self._last_w
+        self._last_t, self._last_w = now, written
         if self._unchanged(state, fault_axis, rotate_cal, motion):
             return
         if state is MachineState.FAULT_HW and self._state is not MachineState.FAULT_HW:
@@ -134,8 +162,9 @@ class AxisTracker:
         enabled = 0 if state is MachineState.FAULT_ESTOP else DRIVE_ENABLED
         revs = motion if isinstance(motion, RotateRevolutions) else None
         homing = isinstance(motion, RotateHome | RotateCalibrate)
+        since_edge = written - (last_t + now) / 2
         self.samples["rotate"] = self._rotate(
-            dt, rotate_cal, holding == "rotate", enabled, revs, homing
+            (moved_for, since_edge), rotate_cal, holding == "rotate", enabled, revs, homing
         )
         if fault_axis == "rotate":
             self.samples["rotate"].status |= DRIVE_FAULT
@@ -148,11 +177,13 @@ class AxisTracker:
         samples are steady (`_unchanged`), nothing moves and no axis owes a settled record."""
         if not self._steady or self._still is None or self._settling:
             return False
+        if self.devices.tilt.calibration is not self._tilt_cal:
+            return False
         return all(not s.status & MOVING for s in self.samples.values())
 
     def tick(self, now: float) -> None:
         """A quiet cycle (`at_rest` and every input as before): what `update` would do."""
-        self._last_t = now
+        self._last_t = self._last_w = now
 
     def _unchanged(
         self,
@@ -189,7 +220,7 @@ class AxisTracker:
 
     def _rotate(
         self,
-        dt: float,
+        times: tuple[float, float],
         cal: RotateCalibration | None,
         holding: bool,
         enabled: int,
@@ -201,7 +232,8 @@ class AxisTracker:
         if cal is not None:  # measured beats nominal
             speed, arc = cal.speed_dps, cal.home_arc_deg
         rotate, est = self.devices.rotate, self.rotate
-        est.update(dt, rotate.is_home(), speed, arc, homing)
+        moved_for, since_edge = times  # the drive's time, and from the edge to the write
+        est.update(moved_for, rotate.is_home(), speed, arc, homing, since_edge)
         driven = rotate.driven_direction()
         est.drive(driven)
         angle, target = est.angle, self.targets["rotate"]
@@ -259,20 +291,29 @@ class AxisTracker:
 
     def due(self, cycle: int) -> list[str]:
         """Axes to publish this cycle: every Nth cycle while moving, whenever the status bits
-        change (moving, drive enabled by the E-stop, fault), and once more the cycle after a
-        stop, so the last record says settled with zero velocity."""
+        change (moving, drive enabled by the E-stop, fault), once more the cycle after a stop,
+        so the last record says settled with zero velocity, and the tilt whenever its
+        calibration changed (entered by hand at rest: the same bits, another position)."""
         out = []
         every = self.config.bus.axis_every_cycles
+        recal = self.devices.tilt.calibration is not self._tilt_cal
         for name, sample in self.samples.items():
             moving = bool(sample.status & MOVING)
             last = self._last_status[name]
-            if (moving and cycle % every == 0) or sample.status != last or name in self._settling:
+            if (
+                (moving and cycle % every == 0)
+                or sample.status != last
+                or name in self._settling
+                or (recal and name == "tilt")
+            ):
                 out.append(name)
             if name in self._settling:
                 self._settling.discard(name)
             elif last is not None and last & MOVING and not moving:
                 self._settling.add(name)
             self._last_status[name] = sample.status
+        if "tilt" in out:
+            self._tilt_cal = self.devices.tilt.calibration
         return out
 
     def record(self, name: str, cycle: int, time: float) -> AxisRecord:

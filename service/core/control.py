@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import TYPE_CHECKING
 
-from schema.calibration import CalibrationSet, CalibrationSource
+from schema.calibration import CalibrationSet
 from schema.commands import (
     ALLOWED_STATES,
     DEFAULT_SESSION,
@@ -45,26 +45,19 @@ from schema.status import (
 )
 from service.config.model import LiveConfig, MachineConfig, RiderLossPolicy
 from service.core.admission import admit
-from service.core.controllers import (
-    Chain,
-    Controller,
-    Outcome,
-    RotateCalibrate,
-    RotateHome,
-    SessionRun,
-    TiltCalibrate,
-    TiltHome,
-)
-from service.core.devices import Calibration, Devices, RotateCalibration, TiltCalibration
+from service.core.calibrate import RotateCalibrate, TiltCalibrate
+from service.core.controllers import SessionRun
+from service.core.devices import Calibration, Devices
+from service.core.homing import RotateHome, TiltHome
+from service.core.manual import manual_calibration
+from service.core.motion import Chain, Controller, Outcome
 from service.errors import (
-    BadRequest,
     DuplicateId,
     EstopActive,
     InvalidSession,
     MachineError,
     NotCalibrated,
     NotHome,
-    ParamOutOfRange,
     WrongState,
 )
 
@@ -285,6 +278,8 @@ class ControlAPI:
         self.completions: list[Completion] = []
         """Notices produced and not yet taken by the scan loop (`take_completions`)."""
         self._saving: _Saving | None = None
+        self.save_ticket: SaveTicket | None = None
+        """The write of the calibration in use (None: nothing to write it to, or not yet)."""
         self.devices.stop_all()
 
     # The motion context and the controlling Rider, read-only from outside.
@@ -385,7 +380,9 @@ class ControlAPI:
         return TiltHome(self.devices.tilt, self.config.tilt)
 
     def _rotate_home(self) -> Controller:
-        return RotateHome(self.devices.rotate, self.config.rotate)
+        cal = self.calibration.rotate
+        speed = cal.speed_dps if cal is not None else None
+        return RotateHome(self.devices.rotate, self.config.rotate, speed)
 
     def _start(self, request: CommandRequest, now: float) -> None:
         """The seed's Session(): CheckCalibrate, CheckHome, CheckSession, then run. A check
@@ -401,7 +398,7 @@ class ControlAPI:
             self._notify(motion, Ending(outcome, error.message, error.code.value), now)
             raise error
         assert self.calibration.rotate is not None  # checked complete above
-        run = SessionRun(session, self.devices, self.config, self.calibration.rotate.home_arc_deg)
+        run = SessionRun(session, self.devices, self.config, self.calibration.rotate)
         why = f"Start session {session.name!r}"
         self.begin(request, Plan(Command.START, S.RUNNING, run, self._session_done, why, run), now)
 
@@ -660,6 +657,9 @@ class ControlAPI:
                 " is under way (or its calibration is being saved); Stop it first"
             )
         cal = manual_calibration(values, self.config, self.calibration, now + self.wall_offset)
+        # Not trusted until a Home has checked it with a measured move (docs/homing.md).
+        self.refs.tilt &= values.tilt is None
+        self.refs.rotate &= values.rotate is None
         ticket = self._use(cal)
         if self.state in REST_STATES and self.state is not S.DONE:
             self._set_state(self._rest_state(), now, "calibration entered by hand")
@@ -669,7 +669,9 @@ class ControlAPI:
         """Use `cal` from now on and persist it (the ticket of the write, if any)."""
         self.calibration = cal
         self.devices.tilt.calibration = cal.tilt
-        return self.on_calibrated(cal) if self.on_calibrated is not None else None
+        ticket = self.on_calibrated(cal) if self.on_calibrated is not None else None
+        self.save_ticket = ticket
+        return ticket
 
     def _calibrated(self, cal: Calibration, now: float) -> Ending | None:
         """Use `cal` now and persist it; it has ended once the write has (None until then)."""
@@ -850,39 +852,6 @@ class ControlAPI:
         )
 
 
-def manual_calibration(
-    values: CalibrationSet, config: MachineConfig, current: Calibration, wall: float
-) -> Calibration:
-    """`current` with a technician's values (source manual, entered at `wall`), checked
-    against the same plausible ranges a measurement must meet."""
-    if values.tilt is None and values.rotate is None:
-        raise BadRequest("give tilt values, rotate values or both", "/tilt")
-    manual = CalibrationSource.MANUAL
-    tilt, rotate = current.tilt, current.rotate
-    if values.tilt is not None:
-        t = values.tilt
-        lo, hi = config.tilt.gain_min_counts_per_deg, config.tilt.gain_max_counts_per_deg
-        if not lo <= t.gain_counts_per_deg <= hi:
-            raise ParamOutOfRange(
-                f"tilt gain {t.gain_counts_per_deg:g} counts/° is outside this machine's"
-                f" plausible {lo:g}..{hi:g} (tilt.gain_min/max_counts_per_deg)",
-                "/tilt/gain_counts_per_deg",
-            )
-        tilt = TiltCalibration(t.offset_counts, t.gain_counts_per_deg, manual, wall)
-    if values.rotate is not None:
-        r = values.rotate
-        nominal = 360.0 / config.rotate.nominal_speed_dps
-        tol = config.rotate.speed_tolerance
-        if not nominal * (1 - tol) <= r.revolution_s <= nominal * (1 + tol):
-            raise ParamOutOfRange(
-                f"revolution time {r.revolution_s:g} s is outside {nominal:.3f} s ± {tol:.0%}"
-                " (rotate.nominal_speed_dps, rotate.speed_tolerance)",
-                "/rotate/revolution_s",
-            )
-        rotate = RotateCalibration(r.revolution_s, r.home_arc_deg, manual, wall)
-    return Calibration(tilt=tilt, rotate=rotate)
-
-
 # --------------------------------------------------------------------------------- table
 _ANY = frozenset(S)
 _REST = (S.IDLE, S.WARNING_NOT_HOME, S.WARNING_NEEDS_CALIBRATION)
@@ -909,15 +878,15 @@ TABLE: tuple[Rule, ...] = (
         _C.CALIBRATE_TILT,
         ALLOWED_STATES[_C.CALIBRATE_TILT],
         (S.CALIBRATING,),
-        "tilt home, a timed stroke up (offset and gain), home again",
+        "tilt: latch the zero, a stroke up (gain), latch the zero again; both must agree",
     ),
     Rule(
         _C.CALIBRATE_ROTATE,
         ALLOWED_STATES[_C.CALIBRATE_ROTATE],
         (S.CALIBRATING,),
-        "tilt home, rotate home, then time one revolution",
+        "tilt home, rotate home, then time the revolution twice; both must agree",
     ),
-    Rule(_C.HOME, ALLOWED_STATES[_C.HOME], (S.HOMING,), "tilt home, then rotate home"),
+    Rule(_C.HOME, ALLOWED_STATES[_C.HOME], (S.HOMING,), "tilt, then rotate: each edge latched"),
     Rule(
         _C.START,
         ALLOWED_STATES[_C.START],
@@ -1006,7 +975,8 @@ TABLE: tuple[Rule, ...] = (
         _E.MOTION_FAULT,
         MOTION_STATES,
         (S.FAULT_HW,),
-        "sensor timeout, stuck switch, implausible measurement: outputs off, references lost",
+        "sensor timeout, stuck switch, implausible speed or measurement, an edge not latched,"
+        " calibration not repeatable: outputs off, references lost",
     ),
     Rule(
         _E.FAULT,
@@ -1024,7 +994,7 @@ TABLE: tuple[Rule, ...] = (
         _E.CALIBRATION_ENTERED,
         REST_STATES - {S.DONE},
         _REST,
-        "a technician's values: the rest state",
+        "a technician's values: the rest state (that axis not home until Home checks them)",
     ),
 )
 """The machine's behaviour, row by row: the command guard and the docs read it; the tests

@@ -139,7 +139,8 @@ the machine id (the checks are answered in every state).
 
 Rest states, where a new motion may begin: {rest}.
 "The rest state" is IDLE when both axes are calibrated and home, else
-WARNING_NEEDS_CALIBRATION or WARNING_NOT_HOME.
+WARNING_NEEDS_CALIBRATION or WARNING_NOT_HOME. How each axis homes and calibrates, the
+tolerances and the fault codes of a motion: [homing.md](homing.md).
 
 ```mermaid
 {mermaid()}```

@@ -413,10 +413,15 @@ class EventRecorder:
         self._storage_seen = now
 
     def _calibrations(self, control: ControlAPI, emit: Emit) -> None:
+        """A calibration change, once its write has ended: `persisted` says how it went."""
         cal = control.calibration
         old = self._calibration
         if cal is old:
             return
+        ticket = control.save_ticket
+        if ticket is not None and not ticket.done:
+            return  # not settled: the loop looks again each cycle until the disk answers
+        persisted = self.persisted if ticket is None else ticket.problem is None
         self._calibration = cal
         for axis in ("tilt", "rotate"):
             before, after = getattr(old, axis, None), getattr(cal, axis)
@@ -426,7 +431,7 @@ class EventRecorder:
                         axis=axis,
                         old=dataclasses.asdict(before) if before is not None else None,
                         new=dataclasses.asdict(after) if after is not None else None,
-                        persisted=self.persisted,
+                        persisted=persisted,
                     )
                 )
 

@@ -297,6 +297,10 @@ class ScanLoop:
         """Quiet cycles run."""
         self._rest: _Rest | None = None
         self._commands_seen = self._tasks_seen = 0
+        self.clock: Callable[[], float] | None = None
+        """The clock `now` is read from, when it is a real one: the output write is stamped on
+        it, so the rotate's dead reckoning counts the time a cycle took from its input scan to
+        its relays (docs/homing.md). None: outputs are written at `now` (a fake clock)."""
         self.sink: LoopSink = NullSink() if sink is None else _sink(sink, self)
 
     @property
@@ -359,10 +363,11 @@ class ScanLoop:
         published; then whether the next cycles may be quiet ones."""
         self.control.update(now)
         self.hal.scan_outputs(self.image.outputs)
+        written = now if self.clock is None else self.clock()
         # The events and log lines of commands answered since the last cycle, outputs written.
         self.recorder.release()
         self._observe(now)
-        self._publish(now)
+        self._publish(now, written)
         commands, tasks = self.commands_handled, self.tasks_run
         if self.quiet_cycles and commands == self._commands_seen and tasks == self._tasks_seen:
             self._rest = self._at_rest()
@@ -567,16 +572,20 @@ class ScanLoop:
         self.hal.force_all_outputs_safe()
 
     # ---------------------------------------------------------------------------- publish
-    def _publish(self, now: float) -> None:
+    def _publish(self, now: float, written: float | None = None) -> None:
+        """`written`: when this cycle's outputs were written (default: now, or the clock's)."""
         wall = now + self.wall_offset
         control = self.control
         fault = control.fault
+        if written is None:
+            written = now if self.clock is None else self.clock()
         self.axes.update(
             now,
             control.state,
             fault.axis if fault else None,
             control.calibration.rotate,
             control.motion(),
+            written,
         )
         due = self.axes.due(self.cycle)
         if due:

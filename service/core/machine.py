@@ -38,9 +38,11 @@ class Machine:
         events: EventSink | None = None,
         guard: GuardedHal | None = None,
         warnings: list[str] | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         """`config`: fixed, or live (online parameters); `events` receives the event history
-        (`service/core/events.py`) and must never block; `warnings` start in the status."""
+        (`service/core/events.py`) and must never block; `warnings` start in the status;
+        `clock`: the real clock the runner reads `now` from (`ScanLoop.clock`)."""
         hal.force_all_outputs_safe()
         self.live = config if isinstance(config, LiveConfig) else LiveConfig(config)
         self.hal = hal
@@ -72,6 +74,7 @@ class Machine:
         self.loop = ScanLoop(
             hal, self.control, sink=sink, started_at=now, guard=guard, recorder=self.recorder
         )
+        self.loop.clock = clock
 
 
 def _both(

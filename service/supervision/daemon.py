@@ -315,6 +315,7 @@ class Daemon:
             guard=hal,
             warnings=registry.warnings,
             sink=lambda loop: self._make_bus(session, loop, registry),
+            clock=clock,
         )
         self.loop = machine.loop
         self.runner = RealtimeRunner(

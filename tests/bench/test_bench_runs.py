@@ -34,6 +34,7 @@ MODULES = [
     "freeze",
     "healthcheck",
     "gateway",
+    "homing",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0

@@ -60,7 +60,7 @@ def test_relays_from_the_image_drive_the_physics(
 ) -> None:
     write_bit(image, "O_1", True)  # rotate relay, direction CW (O_2 off)
     sim.step()  # picks the relay up at this moment
-    clock.advance(0.05)  # within the world's step bound (`SimHal.max_step_s`)
+    clock.advance(0.05)
     sim.step()
     assert sim.world.rotate_deg == pytest.approx(137.0 + 0.05 * PARAMS.rotate_speed_dps)
     assert sim.relays()["O_1"] is True
@@ -72,7 +72,7 @@ def test_a_relay_counts_from_the_step_that_saw_it(
     # The loop writes at t0, the sim's next step is at t0 + dt: the axis moved the whole dt.
     write_bit(image, "O_3", True)  # tilt relay
     write_bit(image, "O_4", True)  # tilt up
-    clock.advance(0.05)  # within the world's step bound (`SimHal.max_step_s`)
+    clock.advance(0.05)
     sim.step()
     assert sim.world.tilt_deg == pytest.approx(12.0 + 0.05 * PARAMS.tilt_speed_dps)
     assert read_word(image, "InputValue_1") == raw_tilt(12.0 + 0.05 * PARAMS.tilt_speed_dps)

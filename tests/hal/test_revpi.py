@@ -237,8 +237,15 @@ _ids = itertools.count(1)
 class RevPiRide:
     """The machine on `RevPiHal`, with `ProcImgSim` as the world, on one fake clock."""
 
-    def __init__(self, directory: Path, iomap: IoMap = MAP, configrsc: str = CONFIG) -> None:
-        self.config = MachineConfig().with_overrides(hal={"iomap": iomap.model_dump()})
+    def __init__(
+        self,
+        directory: Path,
+        iomap: IoMap = MAP,
+        configrsc: str = CONFIG,
+        physics: dict[str, float] | None = None,
+    ) -> None:
+        hal = {"iomap": iomap.model_dump(), "sim": physics or {}}
+        self.config = MachineConfig().with_overrides(hal=hal)
         self.image = make_image(directory)
         self.clock = FakeClock()
         self.period = self.config.loop.period_s
@@ -315,6 +322,24 @@ def test_full_session_through_the_process_image(ride: RevPiRide) -> None:
     assert {"O_1", "O_3", "O_4"} <= seen_on  # rotate relay, tilt relay, tilt up
     assert relay_byte(ride.image) == 0
     assert ride.hal.read_estop() is False
+
+
+def test_a_seat_below_its_switch_calibrates_to_the_true_zero_through_the_image(
+    tmp_path: Path,
+) -> None:
+    """Issue 37: from a -5° rest (the switch already closed) the offset came out 994 for 1200.
+    Backed off, then latched at the edge approached from above, through the process image."""
+    ride = RevPiRide(tmp_path, physics={"start_tilt_deg": -5.0, "tilt_home_hysteresis_deg": 0.5})
+    try:
+        ride.step()
+        assert ride.sim.world.tilt_switch.closed
+        _finish(ride, Command.CALIBRATE_TILT, MachineState.CALIBRATING)
+        tilt = ride.control.calibration.tilt
+        assert tilt is not None, ride.control.fault
+        p = ride.config.hal.sim
+        assert abs(tilt.offset_counts - p.ai_offset_counts) / p.ai_gain_counts_per_deg <= 0.25
+    finally:
+        ride.close()
 
 
 def test_estop_drops_the_relays_in_the_same_cycle(ride: RevPiRide) -> None:

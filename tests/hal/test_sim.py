@@ -9,7 +9,7 @@ import pytest
 
 from hal.base import Hal, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from service.config.model import PhysicsParams
+from service.config.model import MachineConfig, PhysicsParams
 from sim.hal import SimHal
 from sim.physics import SwitchFault, World
 from tests.rig import FakeClock
@@ -151,7 +151,7 @@ def test_motion_is_integrated_under_the_outputs_that_were_on() -> None:
     """A write first accounts for the time the old outputs were on, then applies the new ones."""
     sim = Sim()
     sim.set(rotate=True)
-    sim.clock.advance(0.05)  # within `max_step_s`: a stall longer than that pauses the world
+    sim.clock.advance(0.05)
     sim.set(rotate=False)
     assert sim.world.rotate_travel_deg == pytest.approx(0.05 * PARAMS.rotate_speed_dps)
     sim.clock.advance(1.0)
@@ -338,38 +338,66 @@ def test_world_ignores_non_positive_time_steps() -> None:
     assert world.time == 0.0
 
 
-def test_a_stalled_scan_never_lets_the_world_jump_past_the_home_switch() -> None:
-    sim = Sim(PhysicsParams(start_rotate_deg=350.0, home_arc_deg=10.0))
-    sim.set(rotate=True)
+@pytest.mark.parametrize("ccw", [False, True], ids=["cw", "ccw"])
+def test_a_stalled_scan_never_lets_the_world_jump_past_the_home_switch(ccw: bool) -> None:
+    start = 20.0 if ccw else 350.0  # 10° short of the switch either way
+    sim = Sim(PhysicsParams(start_rotate_deg=start, home_arc_deg=10.0))
+    sim.set(rotate=True, rotate_ccw=ccw)
     sim.clock.advance(1.0)  # the host stalled the scan thread for 1 s: 90° at 90°/s
     sim.hal.scan_inputs()
-    assert sim.world.revolutions * 360.0 == pytest.approx(5.0)  # half the arc's time, no more
+    # It pauses in the middle of the arc, the switch closed: seen, not jumped over.
+    assert abs(sim.world.revolutions) * 360.0 == pytest.approx(15.0)
+    assert sim.world.rotate_deg == pytest.approx(5.0)
     seen = [s["rotate_home"] for s in sim.run(20.0 / PARAMS.rotate_speed_dps)]
-    assert rising_edges([False, *seen]) == 1  # the switch is seen closing, not jumped over
+    assert seen[0] and rising_edges(seen) == 0
+
+
+def test_a_stall_short_of_skipping_the_switch_moves_the_whole_gap() -> None:
+    """A real ride turns on while the scan is late: the world integrates the whole gap, the
+    tilt always, the rotate wherever it cannot pass its whole home switch unseen."""
+    sim = Sim(PhysicsParams(start_rotate_deg=100.0, start_tilt_deg=10.0))
+    sim.set(rotate=True, tilt=True, tilt_up=True)
+    sim.clock.advance(0.5)
+    sim.hal.scan_inputs()
+    assert sim.world.rotate_deg == pytest.approx(145.0)
+    assert sim.world.tilt_deg == pytest.approx(17.5)
 
 
 def test_a_session_on_a_stalling_host_turns_exactly_its_revolutions() -> None:
     """Once per revolution, just before the switch, the scan comes 300 ms late (27° at 90°/s,
     past the whole 10° home arc): the session still ends on its third closing edge, three
-    revolutions on, not four or more."""
+    revolutions on, not four or more. That last edge, seen across the stall, is approached
+    again from the defined side (the final approach, not stalled), so the angle reported at
+    the end is the world's."""
     from schema.commands import Command
     from schema.status import MachineState
+    from service.core.controllers import RotateRevolutions
     from tests.rig import Rig
 
     rig = Rig().ready()
     start = rig.hal.world.revolutions
     assert rig.send(Command.START).success
-    stalls = 0
+    stalls, finals = 0, 0
     for _ in range(20_000):
-        if rig.state is MachineState.DONE:
+        if rig.state is not MachineState.RUNNING:
             break
-        approaching = rig.hal.world.rotate_deg > 358.0 and rig.hal.world.drive.rotate_on
+        revs = rig.control.motion()
+        counting = isinstance(revs, RotateRevolutions) and revs.final is None
+        finals += isinstance(revs, RotateRevolutions) and revs.final is not None
+        approaching = (
+            counting and rig.hal.world.rotate_deg > 358.0 and rig.hal.world.drive.rotate_on
+        )
         stalls += approaching
         rig.clock.advance(0.3 if approaching else rig.period)
         rig.loop.step(rig.clock())
     assert stalls >= 3
-    assert rig.state is MachineState.DONE
+    assert rig.state is MachineState.DONE, rig.control.fault
+    assert finals > 0
     assert rig.hal.world.revolutions - start == pytest.approx(3.0, abs=0.02)
+    angle = rig.loop.axes.rotate.angle
+    assert angle is not None
+    error = (angle - rig.hal.world.rotate_deg + 180.0) % 360.0 - 180.0
+    assert abs(error) <= MachineConfig().rotate.latch_tolerance_deg
 
 
 def world_state(world: World) -> tuple[object, ...]:

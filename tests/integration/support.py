@@ -20,19 +20,37 @@ from schema.commands import REST_STATES, Reply
 from schema.status import FAULT_STATES, MachineState, Status
 from tests.procs import Daemon, running_daemon
 
-FAST_CONFIG = """\
+FAST_ROTATE = """\
 [rotate]
 nominal_speed_dps = 720.0
 home_arc_deg = 30.0
 revolution_timeout_s = 2.0
 backoff_timeout_s = 1.0
+# One 10 ms scan is 7.2° here: the latch tolerances follow the speed (docs/homing.md), and a
+# revolution of 0.5 s may take half again as long on a host that stalls the scan.
+latch_tolerance_deg = 8.0
+repeat_tolerance_deg = 16.0
+runup_s = 0.02
+revolution_tolerance = 0.5
+settle_window_deg = 8.0  # settled within the latch's reach
+"""
+"""The fast rotate (one revolution in 0.5 s), for a config whose tilt is another's."""
 
+FAST_CONFIG = (
+    FAST_ROTATE
+    + """
 [tilt]
 nominal_speed_dps = 90.0
 home_timeout_s = 3.0
 move_timeout_margin_s = 1.0
 calibration_stroke_s = 0.4
 follow_window_s = 0.3
+# One 10 ms scan is 0.9° here.
+latch_tolerance_deg = 1.5
+repeat_tolerance_deg = 3.0
+home_tolerance_deg = 3.0
+runup_s = 0.12
+speed_window_s = 0.1
 
 [loop]
 # A shared 2-core host stalls the scan thread for tens of ms now and then; 3 periods (the
@@ -53,6 +71,7 @@ rotate_speed_dps = 720.0
 home_arc_deg = 30.0
 tilt_speed_dps = 90.0
 """
+)
 
 SETTLED = REST_STATES | FAULT_STATES
 """States in which a motion command has ended, well or not."""

@@ -30,8 +30,9 @@ S = MachineState
 FIRST_RUN = [
     "daemon_start",
     # CalibrateTilt, CalibrateRotate: the new values are in use (and being written) while
-    # the state stays CALIBRATING until the write is done; then Home
-    *["command", "state", "calibration", "state", "completion"] * 2,
+    # the state stays CALIBRATING until the write is done; the calibration is recorded once
+    # the write has ended, saying how it went (issue 37); then Home
+    *["command", "state", "state", "completion", "calibration"] * 2,
     *["command", "state", "state", "completion"],
     # the default session, to DONE
     *["command", "state", "session_started", "state", "session_ended", "completion"],

@@ -62,6 +62,8 @@ SIM_FAULTS: dict[str, dict[str, Any]] = {
     "tilt_ai": {"frozen": True},
     "stall": {"axis": "tilt"},
     "clear": {},
+    "stalls": {"probability": 1.0, "max_s": 0.05},
+    "place": {"tilt_deg": 50.0, "rotate_deg": 10.0},
 }
 
 

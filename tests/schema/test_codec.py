@@ -61,7 +61,9 @@ from schema.sim import (
     SimClear,
     SimEstop,
     SimHomeSwitch,
+    SimPlace,
     SimStall,
+    SimStalls,
     SimTiltSignal,
     SimWorldState,
     SwitchState,
@@ -229,6 +231,8 @@ SAMPLES: list[BaseModel] = [
     SimHomeSwitch(axis=SimAxis.ROTATE),
     SimTiltSignal(frozen=True, noise_counts=12.5),
     SimStall(axis=SimAxis.ROTATE, stalled=False),
+    SimStalls(probability=0.05, max_s=0.05),
+    SimPlace(tilt_deg=-5.0),
     SimClear(),
     SimWorldState(
         time=1.0,

@@ -8,13 +8,18 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import pytest
+
 from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
+from schema.calibration import CalibrationSet, TiltCalibrationSet
 from schema.commands import Command, Direction, RotateStep, Session, TiltStep
 from schema.status import MachineState as S
 from tests.rig import Rig, known_calibration
 
 ROTATE_TOL_DEG = 2.0
 """The documented tracking tolerance (docs/fastdata.md): one cycle of travel plus drift."""
+ROTATE_STEP_DEG = 0.9
+"""One cycle's travel (90°/s, 10 ms): an edge is latched within half of it either way."""
 
 
 def rotate_error(rig: Rig, record: AxisRecord) -> float:
@@ -80,7 +85,9 @@ def test_rotate_tracks_the_world_through_a_whole_session() -> None:
     # Positions cover the whole circle, not a stuck 0.0.
     assert max(r.position_fb for r in moving) > 300 and min(r.position_fb for r in moving) < 60
     end = latest(rig, "rotate")
-    assert end.pn_status & PnStatus.SETTLED and end.drive_fb == 3.0  # three turns from home
+    # Three turns from home, latched midway between the scans either side of the last edge.
+    assert end.pn_status & PnStatus.SETTLED
+    assert end.drive_fb == pytest.approx(3.0, abs=ROTATE_STEP_DEG / 360)
 
 
 def test_rotate_tracks_across_pause_and_resume() -> None:
@@ -110,7 +117,7 @@ def test_rotate_tracks_across_estop_and_resume() -> None:
     rig.step()
     assert rig.send(Command.RESUME).success
     run_checking(rig, lambda: rig.state is S.DONE)
-    assert latest(rig, "rotate").drive_fb == 3.0
+    assert latest(rig, "rotate").drive_fb == pytest.approx(3.0, abs=ROTATE_STEP_DEG / 360)
 
 
 def test_ccw_revolutions_track_and_end_settled_at_the_arc() -> None:
@@ -229,3 +236,25 @@ def test_samples_at_rest_still_follow_the_world() -> None:
     assert tilt.velocity_fb == 0.0 and rotate.velocity_fb == 0.0
     assert tilt.status & PnStatus.SETTLED
     assert tilt.position_fb == rig.loop.devices.tilt.read_position_degrees()  # as read now
+
+
+def test_a_calibration_entered_at_rest_republishes_the_tilt_record() -> None:
+    """Issue 37: the idle tilt record kept the old position (FastData pFb 0.000 while the status
+    said -0.1°) until the axis next moved; same bits, another position: published again."""
+    rig = homed_rig()
+    rig.step(200)  # long at rest: quiet cycles
+    before = latest(rig, "tilt")
+    cal = rig.control.calibration.tilt
+    assert cal is not None
+    entered = CalibrationSet(
+        transaction_id="c1",
+        tilt=TiltCalibrationSet(offset_counts=cal.offset_counts + 6, gain_counts_per_deg=40.0),
+    )
+    rig.control.enter_calibration(entered, rig.clock())
+    rig.step()
+    after = latest(rig, "tilt")
+    status = rig.loop.published.status
+    assert status is not None and status.tilt_deg is not None
+    assert after.cycle > before.cycle
+    assert after.position_fb == pytest.approx(before.position_fb - 6 / 40.0)
+    assert round(after.position_fb, 2) == status.tilt_deg

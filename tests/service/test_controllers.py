@@ -6,15 +6,9 @@ import pytest
 
 from schema.commands import Command
 from schema.status import MachineState
-from service.core.controllers import (
-    Chain,
-    HomePhase,
-    RotateCalibrate,
-    RotateHome,
-    TiltCalibrate,
-    TiltCalPhase,
-    Timeout,
-)
+from service.core.calibrate import RotateCalibrate, TiltCalibrate, TiltCalPhase
+from service.core.homing import Phase, RotateHome
+from service.core.motion import Chain, Timeout
 from tests.rig import Rig, known_calibration, rig_in
 
 S = MachineState
@@ -50,7 +44,7 @@ def test_timeout_start_can_set_a_new_limit_and_stop_disarms_it() -> None:
 
 def test_rotate_home_backs_off_the_switch_dwells_then_seeks() -> None:
     rig = rig_in(S.IDLE)  # both axes on their home switches
-    seen: list[HomePhase] = []
+    seen: list[Phase] = []
     assert rig.send(C.HOME).success
 
     def record() -> bool:
@@ -61,7 +55,7 @@ def test_rotate_home_backs_off_the_switch_dwells_then_seeks() -> None:
 
     rig.run_until(record)
     assert rig.state is S.IDLE, rig.control.fault
-    assert seen == [HomePhase.BACKOFF, HomePhase.DWELL, HomePhase.SEEK]
+    assert seen == [Phase.BACKOFF, Phase.RUNUP, Phase.DWELL, Phase.SEEK]
 
 
 def test_a_paused_tilt_stroke_measures_again_from_home() -> None:
@@ -74,7 +68,8 @@ def test_a_paused_tilt_stroke_measures_again_from_home() -> None:
     assert rig.send(C.PAUSE).success
     rig.step(1000)  # far longer than any window
     assert rig.send(C.RESUME).success
-    assert cal.phase is TiltCalPhase.HOME  # the interrupted stroke is thrown away
+    assert cal.phase is TiltCalPhase.FIRST  # the interrupted stroke is thrown away
+    assert not cal.zeros
     rig.run_to_state(S.WARNING_NEEDS_CALIBRATION, S.FAULT_HW)
     assert rig.control.fault is None
     tilt, expected = rig.control.calibration.tilt, known_calibration().tilt

@@ -117,8 +117,10 @@ CASES = [
     # Stuck closed while seeking looks exactly like arriving home; stuck before Home is caught.
     FaultCase("rotate-home-closed-homing", nothing, stick("rotate", CLOSED), ROT_TIMEOUT, BACKOFF,
               "rotate", homing_rotate),
-    FaultCase("rotate-home-closed-session", session_step(1), stick("rotate", CLOSED), ROT_TIMEOUT,
-              REV, "rotate"),
+    # Mid-revolution a switch stuck closed is an edge far too early for the calibrated
+    # revolution (RevolutionCheck): caught at once.
+    FaultCase("rotate-home-closed-session", session_step(1), stick("rotate", CLOSED),
+              frozenset({F.ROTATE_SPEED_IMPLAUSIBLE}), REV, "rotate"),
     FaultCase("tilt-home-open-homing", nothing, stick("tilt", OPEN),
               frozenset({F.TILT_HOME_TIMEOUT, F.TILT_NOT_FOLLOWING}), TILT_HOME, "tilt", homing),
     FaultCase("tilt-home-closed-session", Rig.home, stick("tilt", CLOSED), HOME_STUCK,

@@ -10,11 +10,14 @@ from pathlib import Path
 
 import pytest
 
+from schema.calibration import CalibrationSet, TiltCalibrationSet
 from schema.commands import Command
+from schema.events import CalibrationEvent
 from schema.params import ParamSet
 from schema.status import MachineState
 from service.config.model import MachineConfig
 from service.core.devices import Calibration, RotateCalibration, TiltCalibration
+from service.core.events import ListEventSink
 from service.core.params import ParamRegistry
 from service.core.persist import (
     CALIBRATION_FILE,
@@ -65,6 +68,33 @@ def test_a_failed_calibration_save_is_a_warning_and_the_older_file_goes(
     restarted = Rig(data_dir=tmp_path)
     assert restarted.control.calibration == Calibration()  # not the older one
     assert restarted.state is S.WARNING_NEEDS_CALIBRATION
+
+
+def calibration_events(sink: ListEventSink) -> list[CalibrationEvent]:
+    return [d for d, _, _ in sink.events if isinstance(d, CalibrationEvent)]
+
+
+@pytest.mark.parametrize("disk", ["full", "fine"])
+def test_the_history_says_whether_a_calibration_was_saved(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, disk: str
+) -> None:
+    """Issue 37: a calibration whose save failed was recorded `persisted=True`. The event now
+    waits for the write to end, measured or entered by hand."""
+    sink = ListEventSink()
+    rig = Rig(data_dir=tmp_path, events=sink)
+    if disk == "full":
+        monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
+    assert rig.send(Command.CALIBRATE_TILT).success
+    rig.run_until(lambda: rig.state is not S.CALIBRATING)
+    cal = rig.control.calibration.tilt
+    assert cal is not None
+    entered = TiltCalibrationSet(offset_counts=cal.offset_counts + 4, gain_counts_per_deg=40.0)
+    rig.control.enter_calibration(CalibrationSet(transaction_id="c1", tilt=entered), rig.clock())
+    rig.run_until(lambda: len(calibration_events(sink)) == 2, max_s=5)
+    measured, manual = calibration_events(sink)
+    assert measured.new is not None and manual.new is not None
+    assert (measured.new["source"], manual.new["source"]) == ("measured", "manual")
+    assert measured.persisted is manual.persisted is (disk == "fine")
 
 
 def test_a_later_good_save_clears_the_warning(

@@ -1,0 +1,217 @@
+"""Plausibility while moving: what the sensors say must agree with what the axis is known to do.
+
+The tilt is relay-driven at a nominal speed, so over each window of drive its analog position,
+read through the calibration, must move at that speed (within a tolerance): a 15°/s axis that
+"moves" 1.5°/s has a wrong gain or a broken sensor, and motion stops within one window of
+travel. The rotate has no sensor between its home edges, so each revolution (closing edge to
+closing edge) must take the calibrated time (within a tolerance). docs/homing.md gives the
+bounds in degrees.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+from schema.commands import Direction
+from schema.status import Fault, FaultCode
+from service.config.model import RotateSection, TiltSection
+from service.core.devices import RotateCalibration, TiltAxis, TiltDirection
+from service.core.motion import Timeout
+
+
+class TiltSupervisor:
+    """Checks the analog position while the tilt is driven: it must follow, at the nominal
+    speed, and not jump.
+
+    Following: over each `follow_window_s` the raw value must move at least `follow_min_counts`
+    the driven way (either way before calibration tells the sign). Speed: over each
+    `speed_window_s` a calibrated position must move at the nominal speed ± `speed_tolerance`.
+    Noise: a change between two samples larger than the drive can cause is a jump; too many
+    within a second is a fault.
+    """
+
+    def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
+        self.axis, self.cfg = axis, cfg
+        self._window = Timeout(cfg.follow_window_s)
+        self._window_raw = 0
+        self._speed = Timeout(cfg.speed_window_s)
+        self._speed_raw = 0
+        self._half_raw: int | None = None
+        self.speed_windows = 0
+        """Speed windows judged since the last `reset` (with or without a calibration)."""
+        self._last: tuple[float, int] | None = None
+        self._jumps: deque[float] = deque()
+
+    def reset(self) -> None:
+        self._window.stop()
+        self._speed.stop()
+        self.speed_windows = 0
+        self._last = None
+        self._jumps.clear()
+
+    def drive(self, now: float, direction: TiltDirection) -> Fault | None:
+        """One cycle of drive `direction`, checked first: the fault that stops it, or None."""
+        fault = self.check(now, direction)
+        if fault is None:
+            self.axis.tilt_one(direction)
+        return fault
+
+    def check(self, now: float, direction: TiltDirection) -> Fault | None:
+        raw = self.axis.read_raw()
+        return (
+            self._check_noise(now, raw)
+            or self._check_speed(now, raw, direction)
+            or self._check_follow(now, raw, direction)
+        )
+
+    def _check_follow(self, now: float, raw: int, direction: TiltDirection) -> Fault | None:
+        if not self._window.started:
+            self._window.start(now)
+            self._window_raw = raw
+            return None
+        if not self._window.done(now):
+            return None
+        moved = raw - self._window_raw
+        if not self._followed(moved, direction):
+            return Fault(
+                code=FaultCode.TILT_NOT_FOLLOWING,
+                message=f"tilt position moved {moved:+d} counts in {self._window.elapsed(now):.2f}"
+                f" s while driven {direction}; expected at least {self.cfg.follow_min_counts}",
+                axis="tilt",
+            )
+        self._window.start(now)
+        self._window_raw = raw
+        return None
+
+    def _followed(self, moved: int, direction: TiltDirection) -> bool:
+        cal = self.axis.calibration
+        if cal is None:
+            return abs(moved) >= self.cfg.follow_min_counts
+        sign = 1.0 if (direction is TiltDirection.UP) == (cal.gain_counts_per_deg > 0) else -1.0
+        return moved * sign >= self.cfg.follow_min_counts
+
+    def _check_speed(self, now: float, raw: int, direction: TiltDirection) -> Fault | None:
+        """A window's speed by the calibration against the nominal one. A sensor that did not
+        follow at all is the follow check's to name (TILT_NOT_FOLLOWING)."""
+        if not self._speed.started:
+            self._speed.start(now)
+            self._speed_raw, self._half_raw = raw, None
+            return None
+        if not self._speed.done(now):
+            if self._half_raw is None and 2 * self._speed.elapsed(now) >= self.cfg.speed_window_s:
+                self._half_raw = raw
+            return None
+        moved, dt = raw - self._speed_raw, self._speed.elapsed(now)
+        lately = raw - (self._half_raw if self._half_raw is not None else self._speed_raw)
+        self._speed.start(now)
+        self._speed_raw, self._half_raw = raw, None
+        self.speed_windows += 1
+        cal = self.axis.calibration
+        if cal is None or not self._followed(moved, direction):
+            return None
+        if not self._followed(lately, direction):
+            return self._stopped(lately, direction)  # a stall or an end stop, not a gain
+        cfg = self.cfg
+        deg = abs(moved / cal.gain_counts_per_deg)
+        speed, nominal, tol = deg / dt, cfg.nominal_speed_dps, cfg.speed_tolerance
+        if nominal * (1 - tol) <= speed <= nominal * (1 + tol):
+            return None
+        cause = (
+            "the drive is slow or blocked, the calibration's gain is too large, or the sensor"
+            " reads too little"
+            if speed < nominal
+            else "the calibration's gain is too small, or the sensor jumps"
+        )
+        return Fault(
+            code=FaultCode.TILT_SPEED_IMPLAUSIBLE,
+            message=f"tilt moved {deg:.2f}° in {dt:.2f} s by its calibration ({speed:.1f}°/s,"
+            f" gain {cal.gain_counts_per_deg:g} counts/°) while driven {direction} at a nominal"
+            f" {nominal:g}°/s ± {tol:.0%}: {cause}",
+            axis="tilt",
+        )
+
+    def _stopped(self, moved: int, direction: TiltDirection) -> Fault:
+        return Fault(
+            code=FaultCode.TILT_NOT_FOLLOWING,
+            message=f"tilt position stopped following: moved {moved:+d} counts in the last"
+            f" {self.cfg.speed_window_s / 2:.2f} s while driven {direction}; expected at least"
+            f" {self.cfg.follow_min_counts} (drive stalled or blocked, or the sensor stuck)",
+            axis="tilt",
+        )
+
+    def _check_noise(self, now: float, raw: int) -> Fault | None:
+        last, self._last = self._last, (now, raw)
+        if last is None:
+            return None
+        dt = max(now - last[0], 0.0)
+        cal = self.axis.calibration
+        gain = abs(cal.gain_counts_per_deg) if cal else self.cfg.gain_max_counts_per_deg
+        possible = 1.5 * self.cfg.nominal_speed_dps * gain * dt + self.cfg.noise_jump_counts
+        if abs(raw - last[1]) <= possible:
+            return None
+        self._jumps.append(now)
+        while self._jumps and now - self._jumps[0] > 1.0:
+            self._jumps.popleft()
+        if len(self._jumps) > self.cfg.noise_max_jumps:
+            return Fault(
+                code=FaultCode.TILT_SIGNAL_NOISY,
+                message=f"tilt position jumped more than the drive can move {len(self._jumps)}"
+                " times within 1 s (noisy or broken analog signal)",
+                axis="tilt",
+            )
+        return None
+
+
+class RevolutionCheck:
+    """Each revolution of a session against the calibrated one: a closing edge must come within
+    `revolution_tolerance` of the calibrated revolution time after the one before. Overdue is a
+    missed edge, a stuck-open switch or a slow drive; early (edge to edge) is a wrong
+    calibration or a switch that closes where it should not."""
+
+    def __init__(self, cfg: RotateSection, cal: RotateCalibration, direction: Direction) -> None:
+        self.cfg, self.cal, self.direction = cfg, cal, direction
+        self._last: float | None = None
+        """The last closing edge, or when the step started or resumed (the overdue check)."""
+        self._since: float | None = None
+        """The last closing edge, or the step's start: None after a pause (a part revolution)."""
+        self._first = False
+
+    def start(self, now: float) -> None:
+        """The step starts: its first revolution may be shorter by the home arc (it starts on
+        the switch, at either end of it)."""
+        self._last = self._since = now
+        self._first = True
+
+    def resume(self, now: float) -> None:
+        """After a pause: overdue counts from now; the part revolution is not judged early."""
+        self._last, self._since = now, None
+
+    def overdue(self, now: float) -> Fault | None:
+        late = self.cal.revolution_s * (1 + self.cfg.revolution_tolerance)
+        if self._last is None or now - self._last <= late:
+            return None
+        return Fault(
+            code=FaultCode.ROTATE_HOME_TIMEOUT,
+            message=f"rotate home switch not seen within {late:.2f} s turning {self.direction}"
+            f" (the calibrated revolution {self.cal.revolution_s:.3f} s +"
+            f" {self.cfg.revolution_tolerance:.0%}): missed edge, stuck open, or drive slow",
+            axis="rotate",
+        )
+
+    def edge(self, now: float) -> Fault | None:
+        """A closing edge at `now`."""
+        since, first = self._since, self._first
+        self._last = self._since = now
+        self._first = False
+        revolution = self.cal.revolution_s
+        if first:
+            revolution -= self.cal.home_arc_deg / self.cal.speed_dps
+        if since is None or now - since >= revolution * (1 - self.cfg.revolution_tolerance):
+            return None
+        return Fault(
+            code=FaultCode.ROTATE_SPEED_IMPLAUSIBLE,
+            message=f"a revolution took {now - since:.3f} s turning {self.direction}; the"
+            f" calibration says {self.cal.revolution_s:.3f} s ± {self.cfg.revolution_tolerance:.0%}"
+            " (wrong calibration, or a home switch that closes where it should not)",
+            axis="rotate",
+        )
