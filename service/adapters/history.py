@@ -434,11 +434,21 @@ class _Pipe:
     def __init__(self) -> None:
         self._out = os.fdopen(1, "wb", buffering=0, closefd=False)
         self._lock = threading.Lock()
+        self.gone = False
+        """The daemon closed its end (it was killed): nothing more to tell it."""
 
     def send(self, message: list[Any]) -> None:
+        """To the daemon, while it listens. Once it is gone a write is no failure of the
+        history's: the rows were written (a killed daemon's history process counted the batch
+        it had just written as lost, and the next start recorded a false `storage_failed`)."""
         data = msgpack.packb(message, use_bin_type=True)
         with self._lock:
-            _write_all(self._out, data)
+            if self.gone:
+                return
+            try:
+                _write_all(self._out, data)
+            except BrokenPipeError:
+                self.gone = True
 
 
 class _LogStream:
