@@ -1,5 +1,6 @@
-"""The import graph keeps its arrows: schema ← hal ← service ← sim, rider ← schema; nothing in
-production imports the simulator wing but its one door; Zenoh only at the edges; no cycles."""
+"""The import graph keeps its arrows: schema ← hal ← service, hal ← sim, rider ← schema; the
+simulator is a HAL backend found by name (`hal.backends`), imported by nothing outside sim/;
+Zenoh only at the edges; no cycles."""
 
 from __future__ import annotations
 
@@ -16,13 +17,10 @@ MAY_IMPORT = {
     "schema": set(),
     "hal": {"schema"},
     "service": {"hal", "schema"},
-    "sim": {"hal", "schema", "service"},
+    "sim": {"hal", "schema"},
     "rider": {"schema"},
 }
-"""Which of our packages each package may import (besides itself)."""
-
-SIM_DOOR = "service/simwing.py"
-"""The composition point: the only production module that imports `sim` (lazily)."""
+"""Which of our packages each package may import (besides itself), at the top or on use."""
 
 ZENOH_MODULES = (
     "service/bus/",
@@ -63,8 +61,6 @@ def test_every_package_imports_only_down_its_arrows() -> None:
         for name, line in imports(path):
             top = name.split(".", 1)[0]
             if top in PACKAGES and top != own and top not in MAY_IMPORT[own]:
-                if top == "sim" and rel(path) == SIM_DOOR:
-                    continue
                 wrong.append(f"{rel(path)}:{line} imports {name} ({own} may not import {top})")
     assert not wrong, "\n".join(wrong)
 
@@ -79,25 +75,11 @@ def test_zenoh_is_imported_only_by_the_bus_and_the_rider_client() -> None:
     assert not wrong, wrong
 
 
-def test_the_simulator_wing_has_one_door_and_it_opens_on_use() -> None:
-    door = REPO / SIM_DOOR
-    tree = ast.parse(door.read_text())
-    top_level = [
-        node
-        for node in tree.body
-        if isinstance(node, ast.Import | ast.ImportFrom)
-        for name in imports_of(node)
-        if name.split(".", 1)[0] == "sim"
-    ]
-    assert not top_level, "service/simwing.py must import sim inside its functions only"
+def test_nothing_outside_the_simulator_imports_it() -> None:
+    """The code that runs never imports the code that simulates: the daemon, the supervisor
+    and the config reach it by name (`hal.backends.backend("sim")`, tests/hal/test_backends.py)."""
     users = {rel(p) for p in modules() for name, _ in imports(p) if name.split(".")[0] == "sim"}
-    assert {u for u in users if not u.startswith("sim/")} == {SIM_DOOR}
-
-
-def imports_of(node: ast.Import | ast.ImportFrom) -> list[str]:
-    if isinstance(node, ast.Import):
-        return [a.name for a in node.names]
-    return [node.module or ""]
+    assert {u for u in users if not u.startswith("sim/")} == set()
 
 
 def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -124,15 +106,12 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 
 def package_graph() -> dict[str, set[str]]:
-    """Edges between our packages; the door's own imports of `sim` run on use only, after both
-    packages have loaded, so they close no cycle."""
+    """Edges between our packages."""
     graph: dict[str, set[str]] = {p: set() for p in PACKAGES}
     for path in modules():
         own = rel(path).split("/", 1)[0]
         for name, _ in imports(path):
             top = name.split(".", 1)[0]
-            if top == "sim" and rel(path) == SIM_DOOR:
-                continue
             if top in PACKAGES and top != own:
                 graph[own].add(top)
     return graph
