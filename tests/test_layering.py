@@ -1,35 +1,44 @@
-"""The import graph keeps its arrows: schema ← hal ← service, hal ← sim, rider ← schema; the
-simulator is a HAL backend found by name (`hal.backends`), imported by nothing outside sim/;
-Zenoh only at the edges; no cycles."""
+"""The import graph keeps its arrows: schema ← hal ← service, hal ← sim, rider ← schema, and
+common (what daemon and Rider share off the wire) beside schema; schema holds wire models on
+pydantic, msgpack and the standard library alone; the simulator is a HAL backend found by name
+(`hal.backends`), imported by nothing outside sim/; Zenoh only at the edges; no cycles."""
 
 from __future__ import annotations
 
 import ast
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-PACKAGES = ("schema", "hal", "service", "sim", "rider")
+PACKAGES = ("schema", "common", "hal", "service", "sim", "rider")
 
 MAY_IMPORT = {
     "schema": set(),
+    "common": set(),
     "hal": {"schema"},
-    "service": {"hal", "schema"},
+    "service": {"hal", "schema", "common"},
     "sim": {"hal", "schema"},
-    "rider": {"schema"},
+    "rider": {"schema", "common"},
 }
 """Which of our packages each package may import (besides itself), at the top or on use."""
 
+SCHEMA_LIBRARIES = {"pydantic", "msgpack"}
+"""Besides the standard library, all the wire schema may import: any client in Python can
+read our messages with these two."""
+
 ZENOH_MODULES = (
     "service/bus/",
+    "common/zenoh_session.py",
     "rider/client.py",
     "rider/discovery.py",
     "rider/gateway/bus.py",
 )
-"""Where `zenoh` may be imported: the machine's bus and the Rider's client side (the plant
-gateway's own session included)."""
+"""Where `zenoh` may be imported: the machine's bus, the Rider's client side (the plant
+gateway's own session included), and the one module both sides open their sessions with (the
+config from zenoh.json5, the secrets, the runtime: written once, not once per side)."""
 
 
 def modules() -> Iterator[Path]:
@@ -62,6 +71,18 @@ def test_every_package_imports_only_down_its_arrows() -> None:
             top = name.split(".", 1)[0]
             if top in PACKAGES and top != own and top not in MAY_IMPORT[own]:
                 wrong.append(f"{rel(path)}:{line} imports {name} ({own} may not import {top})")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_schema_imports_only_pydantic_msgpack_and_the_standard_library() -> None:
+    wrong = [
+        f"{rel(path)}:{line} imports {name}"
+        for path in sorted((REPO / "schema").rglob("*.py"))
+        for name, line in imports(path)
+        if (top := name.split(".", 1)[0]) != "schema"
+        and top not in SCHEMA_LIBRARIES
+        and top not in sys.stdlib_module_names
+    ]
     assert not wrong, "\n".join(wrong)
 
 

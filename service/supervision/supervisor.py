@@ -31,9 +31,9 @@ from enum import Enum
 from pathlib import Path
 from typing import Any, Protocol
 
+from common.credentials import MACHINE, CredentialError, env_name
 from hal.backends import World, backend
 from hal.base import HalConfigError, HalError
-from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.bus.supervisor import (
