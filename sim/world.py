@@ -50,14 +50,13 @@ class SimWorld:
     ) -> None:
         """`spawn` makes the thread the world runs on (the supervisor's names itself for the
         OS)."""
-        self.procimg = procimg
-        self.configrsc = configrsc
-        """The image and the piCtory config the daemon's RevPi backend opens on this world."""
         self.period = period_s
-        self._spawn = spawn
         self._clock = clock
         self._lock = threading.Lock()
         self._sim = ProcImgSim(iomap, procimg, configrsc, clock, params)
+        self.procimg, self.configrsc = procimg, configrsc
+        """The image and the piCtory config the daemon's RevPi backend opens on this world."""
+        self._spawn = spawn
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.failures = 0
