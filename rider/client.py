@@ -28,6 +28,9 @@ import msgpack
 import zenoh
 from pydantic import BaseModel, ValidationError
 
+from common.credentials import RIDER, CredentialError, login, zenoh_settings
+from common.runtime import first_session_on, unreadable_layout
+from common.threadstate import keeping_state
 from rider.discovery import (
     MOTION_SETTLE_S,
     PROBE_TIMEOUT_S,
@@ -63,7 +66,6 @@ from schema.commands import (
     StartRequest,
 )
 from schema.completion import Completion
-from schema.credentials import RIDER, CredentialError, login, zenoh_settings
 from schema.diag import CycleDiag
 from schema.errors import Error, ErrorCode
 from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
@@ -78,10 +80,8 @@ from schema.rider import (
     login_ok,
     rider_id,
 )
-from schema.runtime import first_session_on, unreadable_layout
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
-from schema.threadstate import keeping_state
 
 M = TypeVar("M", bound=BaseModel)
 

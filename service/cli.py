@@ -288,7 +288,7 @@ def _main(argv: list[str] | None) -> int:
 
         return export_events(args, args.data_dir or Path(config.data_dir))
     if args.cmd == "demo" or getattr(args, "once_session", False):
-        from service.simwing import run_demo
+        from service.demo import run_demo
 
         return run_demo(config, speed=args.speed)
     from service.supervision.daemon import DaemonOptions, run_daemon

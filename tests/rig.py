@@ -13,7 +13,7 @@ from schema.commands import Command, Reply, Session, StartRequest, TiltStep
 from schema.commands import CommandRequest as Req
 from schema.io import IoValue
 from schema.status import MachineState, Status
-from service.config.model import MachineConfig, PhysicsParams
+from service.config.model import MachineConfig
 from service.core.control import Transition
 from service.core.devices import Calibration
 from service.core.events import EventSink
@@ -22,6 +22,7 @@ from service.core.machine import Machine
 from service.core.persist import CalibrationStore
 from service.core.watchdog import GuardedHal
 from sim.hal import SimHal
+from sim.settings import PhysicsParams
 
 
 class FakeClock:
@@ -97,9 +98,8 @@ class Rig:
         self.config = config or MachineConfig()
         self.clock = clock or FakeClock()
         self.period = self.config.loop.period_s
-        self.hal = SimHal(
-            self.clock, self.config.hal.iomap, physics or self.config.hal.sim, self.clock.advance
-        )
+        physics = physics or PhysicsParams.model_validate(self.config.hal.sim)
+        self.hal = SimHal(self.clock, self.config.hal.iomap, physics, self.clock.advance)
         self.sink = RecordingSink()
         self.transitions: list[Transition] = []
         self.store = CalibrationStore(data_dir, clock=self.clock) if data_dir else None

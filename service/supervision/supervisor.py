@@ -31,8 +31,9 @@ from enum import Enum
 from pathlib import Path
 from typing import Any, Protocol
 
+from common.credentials import MACHINE, CredentialError, env_name
+from hal.backends import World, backend
 from hal.base import HalConfigError, HalError
-from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.bus.supervisor import (
@@ -46,10 +47,10 @@ from service.config.validate import finding_line
 from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
 from service.core.runner import SUPERVISOR_PID_ENV
 from service.signals import SignalThread
-from service.simwing import World, sim_world
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
 from service.supervision.outputguard import OutputGuard, Stall
+from service.supervision.simport import sim_port
 from service.threads import NamedThread
 
 log = logging.getLogger("machine.supervisor")
@@ -194,7 +195,7 @@ class Supervisor:
                     return exc.code
                 stack.callback(self._close_session, session)
                 self.bus = SupervisorBus(
-                    session, self.config, world=self.world, on_presence=self._on_presence
+                    session, self.config, world=sim_port(self.world), on_presence=self._on_presence
                 )
                 stack.callback(self.bus.close)
                 stack.callback(self._force_safe)
@@ -273,11 +274,12 @@ class Supervisor:
 
         self.dir.mkdir(parents=True, exist_ok=True)
         config = self.config
-        if config.hal.backend is HalBackend.SIM:
-            self.world, procimg, configrsc = sim_world(
-                config, self.dir, self.options.world_period_s
-            )
-            revpi = {"procimg": procimg, "configrsc": configrsc}
+        hal = config.hal
+        self.world = backend(hal.backend).world(
+            hal.iomap, hal.settings(), self.dir, self.options.world_period_s, NamedThread
+        )
+        if self.world is not None:  # a simulated world: the child drives it as a RevPi
+            revpi = {"procimg": self.world.procimg, "configrsc": self.world.configrsc}
             config = config.with_overrides(hal={"backend": HalBackend.REVPI, "revpi": revpi})
         rp = config.hal.revpi
         self.safe = RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc)  # opens safe

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from common.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
 from hal.revpi import check_revpi_io
-from schema.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
 from service.bus.supervisor import child_config, requires_credentials, router_config
 from service.config.model import HalBackend, MachineConfig
 from service.supervision.supervisor import Backoff, describe_exit, to_toml

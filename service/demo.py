@@ -1,16 +1,18 @@
-"""`machine demo`: one whole session on the simulator in the terminal, no network needed."""
+"""`machine demo`: one whole session on the simulator in the terminal, no network needed.
+
+The simulator is the HAL backend named `sim` (`hal.backends`), on a simulated clock."""
 
 from __future__ import annotations
 
 import logging
 import time
 
+from hal.backends import NoBackend, backend
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.status import MachineState
-from service.config.model import MachineConfig
+from service.config.model import HalBackend, MachineConfig
 from service.core.loop import PendingCommand
 from service.core.machine import Machine
-from sim.hal import SimHal
 
 log = logging.getLogger("demo")
 
@@ -26,7 +28,11 @@ class _SimClock:
 def run_demo(config: MachineConfig, speed: float = 1.0, max_sim_s: float = 300.0) -> int:
     """Calibrate, home and run the default session; `speed` 0 means as fast as possible."""
     clock = _SimClock()
-    hal = SimHal(clock, config.hal.iomap, config.hal.sim)
+    sim = backend(HalBackend.SIM)
+    hal = sim.open(config.hal.iomap, config.hal.sim, clock, None)
+    world = sim.simulator(hal)
+    if world is None:
+        raise NoBackend(f"the HAL backend {HalBackend.SIM.value!r} simulates nothing")
     machine = Machine(config, hal, now=clock())
     loop, control = machine.loop, machine.control
     period = config.loop.period_s
@@ -57,7 +63,7 @@ def run_demo(config: MachineConfig, speed: float = 1.0, max_sim_s: float = 300.0
             loop.step(clock.t)
             if clock.t >= next_report:
                 next_report += 1.0
-                w = hal.world
+                w = world.world(clock.t)
                 log.info(
                     "event=progress t=%.1f state=%s tilt_deg=%.1f rotate_deg=%.0f revolutions=%.2f",
                     clock.t,
