@@ -375,38 +375,44 @@ def main(
     hosts = HostPolicy.serving(args.host, args.port, args.allowed_host)
     app = create_app(rider, monitor=args.monitor, hosts=hosts)
     ui: UiState = app.state.ui
-    loop_holder: list[asyncio.AbstractEventLoop] = []
-
-    def on_exit() -> None:
-        # Ends every event stream at once, so uvicorn's graceful shutdown is not held up.
-        if loop_holder:
-            loop_holder[0].call_soon_threadsafe(ui.hub.close)
-
-    cfg = uvicorn.Config(
-        app,
-        log_level=args.log_level,
-        access_log=False,
-        timeout_graceful_shutdown=2,
-        lifespan="on",
-    )
-    server = _Server(cfg, on_exit)
     mode = "monitor" if args.monitor else "operator"
     print(f"rider ui: http://{args.host}:{args.port}/ ({mode})", file=sys.stderr, flush=True)
     print(f"rider ui: answers to {hosts}", file=sys.stderr, flush=True)
-
-    async def serve() -> None:
-        loop_holder.append(asyncio.get_running_loop())
-        await server.serve(sockets=[sock])
-
     try:
-        asyncio.run(serve())
+        started = _serve(app, ui.hub, sock, args.log_level)
     finally:
         sock.close()
     if ui.bridge is not None and ui.bridge.running:
         # An open Zenoh session hangs interpreter exit: end the process, bounded.
         log.error("event=ui_exit_forced reason=session_close_hung")
         os._exit(EXIT_FAILED)
-    return EXIT_OK if server.started else EXIT_FAILED
+    return EXIT_OK if started else EXIT_FAILED
+
+
+def _serve(app: Starlette, hub: Hub, sock: socket.socket, log_level: str) -> bool:
+    """Serve `app` on `sock` until SIGTERM/SIGINT; whether the server had started."""
+    loop_holder: list[asyncio.AbstractEventLoop] = []
+
+    def on_exit() -> None:
+        # Ends every event stream at once, so uvicorn's graceful shutdown is not held up.
+        if loop_holder:
+            loop_holder[0].call_soon_threadsafe(hub.close)
+
+    cfg = uvicorn.Config(
+        app,
+        log_level=log_level,
+        access_log=False,
+        timeout_graceful_shutdown=2,
+        lifespan="on",
+    )
+    server = _Server(cfg, on_exit)
+
+    async def serve() -> None:
+        loop_holder.append(asyncio.get_running_loop())
+        await server.serve(sockets=[sock])
+
+    asyncio.run(serve())
+    return server.started
 
 
 def _host_rule(text: str) -> HostRule:
