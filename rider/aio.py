@@ -8,13 +8,14 @@ import asyncio
 import threading
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Concatenate, Generic, ParamSpec, TypedDict, TypeVar, Unpack, overload
+from typing import Concatenate, Generic, ParamSpec, Self, TypedDict, TypeVar, Unpack, overload
 
 from rider.blocking import Rider
 
 P = ParamSpec("P")
 R = TypeVar("R")
 T = TypeVar("T")
+F = TypeVar("F", bound=Callable[..., object])
 
 
 class Options(TypedDict, total=False):
@@ -30,62 +31,63 @@ class Options(TypedDict, total=False):
     zenoh_threads: int
 
 
-class InThread(Generic[P, R]):
-    """A `Rider` method as an `AsyncRider` coroutine method: the same parameters and result,
-    run in a worker thread (`asyncio.to_thread`)."""
+class Mirror(Generic[F]):
+    """A `Rider` method as an `AsyncRider` method: read on an AsyncRider, it is `bind` of that
+    AsyncRider's `sync` Rider (read on the class, the descriptor itself)."""
 
-    def __init__(self, method: Callable[Concatenate[Rider, P], R]) -> None:
-        self.method = method
+    def __init__(self, method: Callable[..., object]) -> None:
         self.__doc__ = method.__doc__
+        self.name = getattr(method, "__name__", "")
 
     @overload
-    def __get__(self, owner: None, kind: type[AsyncRider]) -> InThread[P, R]: ...
+    def __get__(self, owner: None, kind: type[AsyncRider]) -> Self: ...
 
     @overload
-    def __get__(self, owner: AsyncRider, kind: type[AsyncRider]) -> Callable[P, Awaitable[R]]: ...
+    def __get__(self, owner: AsyncRider, kind: type[AsyncRider]) -> F: ...
 
-    def __get__(
-        self, owner: AsyncRider | None, kind: type[AsyncRider]
-    ) -> InThread[P, R] | Callable[P, Awaitable[R]]:
+    def __get__(self, owner: AsyncRider | None, kind: type[AsyncRider]) -> Self | F:
         if owner is None:
             return self
-        method, rider = self.method, owner.sync
+        bound = self.bind(owner.sync)
+        bound.__name__, bound.__doc__ = self.name, self.__doc__
+        return bound
+
+    def bind(self, rider: Rider) -> F:
+        raise NotImplementedError
+
+
+class InThread(Mirror[Callable[P, Awaitable[R]]]):
+    """A `Rider` method as a coroutine method: the same parameters and result, run in a worker
+    thread (`asyncio.to_thread`)."""
+
+    def __init__(self, method: Callable[Concatenate[Rider, P], R]) -> None:
+        super().__init__(method)
+        self.method = method
+
+    def bind(self, rider: Rider) -> Callable[P, Awaitable[R]]:
+        method = self.method
 
         async def call(*args: P.args, **kwargs: P.kwargs) -> R:
             return await asyncio.to_thread(method, rider, *args, **kwargs)
 
-        call.__name__, call.__doc__ = method.__name__, method.__doc__
         return call
 
 
-class StreamInThread(Generic[P, T]):
-    """A `Rider` method that returns an iterator as an `AsyncRider` method that returns an
-    async iterator: the same parameters, the iterator run on a thread of its own that feeds
-    the event loop (and stops at its next item once the consumer or the loop has gone)."""
+class StreamInThread(Mirror[Callable[P, AsyncIterator[T]]]):
+    """A `Rider` method that returns an iterator as one that returns an async iterator: the
+    same parameters, the iterator run on a thread of its own that feeds the event loop (and
+    stops at its next item once the consumer or the loop has gone)."""
 
     def __init__(self, method: Callable[Concatenate[Rider, P], Iterator[T]]) -> None:
+        super().__init__(method)
         self.method = method
-        self.__doc__ = method.__doc__
 
-    @overload
-    def __get__(self, owner: None, kind: type[AsyncRider]) -> StreamInThread[P, T]: ...
-
-    @overload
-    def __get__(
-        self, owner: AsyncRider, kind: type[AsyncRider]
-    ) -> Callable[P, AsyncIterator[T]]: ...
-
-    def __get__(
-        self, owner: AsyncRider | None, kind: type[AsyncRider]
-    ) -> StreamInThread[P, T] | Callable[P, AsyncIterator[T]]:
-        if owner is None:
-            return self
-        method, rider = self.method, owner.sync
+    def bind(self, rider: Rider) -> Callable[P, AsyncIterator[T]]:
+        method, name = self.method, f"rider-{self.name}"
 
         def call(*args: P.args, **kwargs: P.kwargs) -> AsyncIterator[T]:
-            return _stream(lambda: method(rider, *args, **kwargs), f"rider-{method.__name__}")
+            return _stream(lambda: method(rider, *args, **kwargs), name)
 
-        call.__name__, call.__doc__ = method.__name__, method.__doc__
         return call
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 import zenoh
 
@@ -32,9 +32,42 @@ from schema.params import ParamValue
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 
+T = TypeVar("T")
+
+
+class FromLink(Generic[T]):
+    """A `Rider` attribute that is its link's (the session and the options every part reads
+    there), read-only: `session`, `rider_id`, `login`, `timeout`, …"""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, rider: None, kind: type) -> FromLink[T]: ...
+
+    @overload
+    def __get__(self, rider: Rider, kind: type | None = None) -> T: ...
+
+    def __get__(self, rider: Rider | None, kind: type | None = None) -> T | FromLink[T]:
+        if rider is None:
+            return self
+        value: T = getattr(rider.link, self.name)
+        return value
+
 
 class Rider:
     """A synchronous Rider session; use as a context manager so the session always closes."""
+
+    session: FromLink[zenoh.Session] = FromLink()
+    rider_id: FromLink[str] = FromLink()
+    """This Rider's id, `<login>/<zid>` (its keys: `rider/<rider_id>/…`); "" until open."""
+    login: FromLink[str] = FromLink()
+    """The login this Rider's keys are under (`rider/<login>/<zid>/…`)."""
+    key_prefix: FromLink[str] = FromLink()
+    timeout: FromLink[float] = FromLink()
+    retries: FromLink[int] = FromLink()
+    supervise: FromLink[bool] = FromLink()
+    zenoh_threads: FromLink[int] = FromLink()
 
     def __init__(  # noqa: PLR0913 - the machine, then keyword-only options
         self,
@@ -92,40 +125,6 @@ class Rider:
         """Why nothing answers, when this session has no link at all ("" when it has one)."""
         return self.link.no_link_hint()
 
-    @property
-    def session(self) -> zenoh.Session:
-        return self.link.session
-
-    @property
-    def rider_id(self) -> str:
-        """This Rider's id, `<login>/<zid>` (its keys: `rider/<rider_id>/…`); "" until open."""
-        return self.link.rider_id
-
-    @property
-    def login(self) -> str:
-        """The login this Rider's keys are under (`rider/<login>/<zid>/…`)."""
-        return self.link.login
-
-    @property
-    def key_prefix(self) -> str:
-        return self.link.key_prefix
-
-    @property
-    def timeout(self) -> float:
-        return self.link.timeout
-
-    @property
-    def retries(self) -> int:
-        return self.link.retries
-
-    @property
-    def supervise(self) -> bool:
-        return self.link.supervise
-
-    @property
-    def zenoh_threads(self) -> int:
-        return self.link.zenoh_threads
-
     # --------------------------------------------------------------------------- machines
     @property
     def machine_id(self) -> str:
@@ -137,11 +136,6 @@ class Rider:
     def base(self) -> str:
         return self._machines.base
 
-    @property
-    def discovery(self) -> Discovery | None:
-        """What the default-machine lookup saw (None when a machine was named)."""
-        return self._machines.discovery
-
     def pick_machine(self, *, motion: bool = False) -> str:
         """The machine named, else the default one (looked up once, then kept)."""
         return self._machines.pick(motion=motion)
@@ -151,6 +145,11 @@ class Rider:
         `NoMachine`, `AmbiguousMachine` (several), or `UnsureMachine` (never settled).
         `motion` waits longer (`MOTION_SETTLE_S`) before a command may move a ride."""
         return self._machines.resolve(motion=motion)
+
+    @property
+    def discovery(self) -> Discovery | None:
+        """What the default-machine lookup saw (None when a machine was named)."""
+        return self._machines.discovery
 
     def machines(self, with_status: bool = True) -> Listing[MachineInfo]:
         """Machines alive on the network (their liveliness tokens), with state and uptime.

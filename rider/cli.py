@@ -14,21 +14,12 @@ import argparse
 import math
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 from rider.blocking import Rider
-from rider.errors import (
-    AmbiguousMachine,
-    BadCredentials,
-    BadRuntime,
-    CommandRefused,
-    DuplicateMachine,
-    LinkLost,
-    MachineTimeout,
-    NoMachine,
-    RiderError,
-)
+from rider.errors import CommandRefused, DuplicateMachine, RiderError
 from rider.exits import (
     EXIT_AMBIGUOUS,
     EXIT_DUPLICATE,
@@ -37,11 +28,14 @@ from rider.exits import (
     EXIT_OK,
     EXIT_REFUSED,
     EXIT_USAGE,
+    EXITS,
     UsageError,
 )
 from rider.link import env_connect
 from rider.subcommands import live, motion, reads, settings
 from rider.text import printable
+
+N = TypeVar("N", int, float)
 
 __all__ = [
     "EXIT_AMBIGUOUS",
@@ -78,17 +72,6 @@ its handler (`args.func`)."""
 OWN_OPTIONS = ("fastdata", "ui", "gateway")
 """Sub-commands that parse their own options (rider/fastdata.py, rider/ui/app.py,
 rider/gateway/cli.py)."""
-
-EXITS: tuple[tuple[type[Exception] | tuple[type[Exception], ...], int], ...] = (
-    ((UsageError, BadCredentials, BadRuntime), EXIT_USAGE),
-    (CommandRefused, EXIT_REFUSED),
-    (AmbiguousMachine, EXIT_AMBIGUOUS),
-    (LinkLost, EXIT_LINK_LOST),
-    (DuplicateMachine, EXIT_DUPLICATE),
-    ((MachineTimeout, NoMachine), EXIT_NO_REPLY),
-    (RiderError, EXIT_REFUSED),
-)
-"""The exit code of each error that ends a command (the first that matches)."""
 
 ZENOH_THREADS_MAX = 64
 """As the daemon's `bus.zenoh_threads`."""
@@ -142,26 +125,27 @@ def _machine_id(text: str) -> str:
     return text
 
 
-def _positive_s(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
-    return value
+def _checked(read: Callable[[str], N], ok: Callable[[N], bool], what: str) -> Callable[[str], N]:
+    """An option's type: `read(text)` where `ok`, else "'text' is not `what`" (bad usage)."""
+
+    def value_of(text: str) -> N:
+        try:
+            value = read(text)
+        except ValueError:
+            value = None
+        if value is None or not ok(value):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}")
+        return value
+
+    return value_of
 
 
-def _zenoh_threads(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= ZENOH_THREADS_MAX:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a thread count from 0 (Zenoh's own layout) to {ZENOH_THREADS_MAX}"
-        )
-    return value
+_positive_s = _checked(float, lambda s: math.isfinite(s) and s > 0, "a positive number of seconds")
+_zenoh_threads = _checked(
+    int,
+    lambda n: 0 <= n <= ZENOH_THREADS_MAX,
+    f"a thread count from 0 (Zenoh's own layout) to {ZENOH_THREADS_MAX}",
+)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -41,14 +41,9 @@ class Commands:
         self._keys.clear()
 
     def command(
-        self,
-        command: Command,
-        request: CommandRequest | None = None,
-        *,
-        check: bool = True,
-        timeout: float | None = None,
+        self, command: Command, request: CommandRequest | None, check: bool, timeout: float | None
     ) -> Reply:
-        """Send one command; raises `CommandRefused` on an error reply when `check`."""
+        """Send one command (`Rider.command`)."""
         # A command may move a ride: a default machine is looked up with more certainty.
         self.machines.pick(motion=True)
         retries = self.link.retries

@@ -7,6 +7,7 @@ import contextlib
 import queue
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 import zenoh
 
@@ -34,16 +35,14 @@ def transaction_of(transaction: str | Reply) -> str:
     return tid
 
 
+@dataclass
 class Completions:
     """Completion notices of this Rider's machine, and waits on its state."""
 
-    def __init__(
-        self, machines: Machines, transport: Transport, subscriptions: Subscriptions, reads: Reads
-    ) -> None:
-        self.machines = machines
-        self.transport = transport
-        self.subscriptions = subscriptions
-        self.reads = reads
+    machines: Machines
+    transport: Transport
+    subscriptions: Subscriptions
+    reads: Reads
 
     def done(self, transaction: str | Reply, timeout: float | None = None) -> Completion | None:
         """How the motion `transaction` ended; None while it is under way (`Rider.done`)."""
@@ -67,12 +66,11 @@ class Completions:
     def wait_done(
         self,
         transaction: str | Reply,
-        timeout: float = 600.0,
-        *,
-        on_status: Callable[[Status], None] | None = None,
-        on_silence: Callable[[float], None] | None = None,
-        quiet_s: float = 3.0,
-        link_limit: float | None = None,
+        timeout: float,
+        on_status: Callable[[Status], None] | None,
+        on_silence: Callable[[float], None] | None,
+        quiet_s: float,
+        link_limit: float | None,
     ) -> Completion:
         """Block until the completion notice of `transaction` and return it (`Rider.wait_done`
         says how)."""

@@ -9,6 +9,7 @@ import logging
 import queue
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -25,16 +26,14 @@ from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
 log = logging.getLogger("rider.client")  # one logger for the whole client, as before its split
 
 
+@dataclass
 class Events:
     """The event history of this Rider's machine (or of every machine, with the id `*`)."""
 
-    def __init__(
-        self, link: Link, machines: Machines, transport: Transport, subscriptions: Subscriptions
-    ) -> None:
-        self.link = link
-        self.machines = machines
-        self.transport = transport
-        self.subscriptions = subscriptions
+    link: Link
+    machines: Machines
+    transport: Transport
+    subscriptions: Subscriptions
 
     def pages(self, query: EventQuery | None = None) -> list[EventPage]:
         """Every page of the history `query` selects (`Rider.event_pages`)."""

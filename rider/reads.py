@@ -4,6 +4,7 @@ the simulator's world) and the settings it writes there (calibration by hand, pa
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Any
 
 from rider.commands import Commands
@@ -25,13 +26,13 @@ from schema.sim import SimWorldState
 from schema.status import Status
 
 
+@dataclass
 class Reads:
     """Reads and settings on this Rider's machine."""
 
-    def __init__(self, machines: Machines, transport: Transport, commands: Commands) -> None:
-        self.machines = machines
-        self.transport = transport
-        self.commands = commands
+    machines: Machines
+    transport: Transport
+    commands: Commands
 
     def status(self, timeout: float | None = None) -> Status:
         return self.transport.get_one(f"{self.machines.base}/status", None, Status, timeout)
@@ -62,13 +63,9 @@ class Reads:
         return self.transport.get_one(key, None, CalibrationRecord, None)
 
     def set_calibration(
-        self,
-        *,
-        tilt: TiltCalibrationSet | None = None,
-        rotate: RotateCalibrationSet | None = None,
+        self, tilt: TiltCalibrationSet | None, rotate: RotateCalibrationSet | None
     ) -> CalibrationRecord:
-        """Enter calibration values by hand (recorded as manual; refused while moving);
-        returns the record once the machine has saved them (`CommandRefused` otherwise)."""
+        """Enter calibration values by hand (`Rider.set_calibration`)."""
         req = CalibrationSet(
             transaction_id=self.commands.new_transaction_id(),
             timecode=time.time(),

@@ -85,13 +85,10 @@ class Subscriptions:
         self,
         keys: Iterable[str],
         on_update: Callable[[Update], None],
-        on_presence: Callable[[bool], None] | None = None,
+        on_presence: Callable[[bool], None] | None,
     ) -> Subscription:
-        """Call `on_update` with each decoded publication on `keys` (under this machine, e.g.
-        `status`, `io/**`, `diag/cycle`) and `on_presence` with the machine's liveliness
-        (True at once if it is alive now). Both run on Zenoh's network thread, in the order the
-        machine published (a status before the notice that follows it): hand off, never block.
-        """
+        """Decoded publications to `on_update`, the machine's presence to `on_presence`, on
+        Zenoh's thread (`Rider.subscribe`)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:

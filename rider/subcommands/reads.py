@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from pydantic import TypeAdapter, ValidationError
 
@@ -21,17 +23,43 @@ from rider.formats import (
     fmt_status,
 )
 from rider.subcommands import Subparsers
+from schema.axes import AxisRecord
 from schema.commands import CheckResult, TransactionId
 from schema.completion import Outcome
 
+T = TypeVar("T")
+
 
 def add_status(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    sub.add_parser("status", help="the machine's status").set_defaults(func=status)
+    _reading(sub, "status", "the machine's status", Rider.status, fmt_status)
 
 
-def status(args: argparse.Namespace, rider: Rider) -> int:
-    emit(rider.status(), args.json, fmt_status)
-    return EXIT_OK
+def add_io(sub: Subparsers[argparse.ArgumentParser]) -> None:
+    _reading(sub, "io", "all IO points", Rider.io, fmt_io)
+
+
+def add_axes(sub: Subparsers[argparse.ArgumentParser]) -> None:
+    _reading(sub, "axes", "the latest axis records", Rider.axes, _fmt_axes)
+
+
+def _fmt_axes(records: list[AxisRecord]) -> str:
+    return "\n".join(fmt_axis(a) for a in records)
+
+
+def _reading(
+    sub: Subparsers[argparse.ArgumentParser],
+    name: str,
+    text: str,
+    read: Callable[[Rider], T],
+    human: Callable[[T], str],
+) -> None:
+    """`rider NAME`: what `read` gets from the machine, printed by `human` (or as JSON)."""
+
+    def handler(args: argparse.Namespace, rider: Rider) -> int:
+        emit(read(rider), args.json, human)
+        return EXIT_OK
+
+    sub.add_parser(name, help=text).set_defaults(func=handler)
 
 
 def add_check(sub: Subparsers[argparse.ArgumentParser]) -> None:
@@ -46,24 +74,6 @@ def check(args: argparse.Namespace, rider: Rider) -> int:
     )
     emit(result, args.json, lambda r: fmt_check(args.what, r))
     return EXIT_OK if result.ok else EXIT_REFUSED
-
-
-def add_io(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    sub.add_parser("io", help="all IO points").set_defaults(func=io)
-
-
-def io(args: argparse.Namespace, rider: Rider) -> int:
-    emit(rider.io(), args.json, fmt_io)
-    return EXIT_OK
-
-
-def add_axes(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    sub.add_parser("axes", help="the latest axis records").set_defaults(func=axes)
-
-
-def axes(args: argparse.Namespace, rider: Rider) -> int:
-    emit(rider.axes(), args.json, lambda rs: "\n".join(fmt_axis(a) for a in rs))
-    return EXIT_OK
 
 
 def add_diag(sub: Subparsers[argparse.ArgumentParser]) -> None:
