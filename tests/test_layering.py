@@ -26,8 +26,16 @@ SIM_DOOR = "service/simwing.py"
 
 ZENOH_MODULES = (
     "service/bus/",
-    "rider/client.py",
+    "rider/blocking.py",
+    "rider/completions.py",
     "rider/discovery.py",
+    "rider/events.py",
+    "rider/link.py",
+    "rider/machines.py",
+    "rider/pinning.py",
+    "rider/replies.py",
+    "rider/subscriptions.py",
+    "rider/transport.py",
     "rider/gateway/bus.py",
 )
 """Where `zenoh` may be imported: the machine's bus and the Rider's client side (the plant
