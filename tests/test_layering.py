@@ -32,8 +32,16 @@ read our messages with these two."""
 ZENOH_MODULES = (
     "service/bus/",
     "common/zenoh_session.py",
-    "rider/client.py",
+    "rider/blocking.py",
+    "rider/completions.py",
     "rider/discovery.py",
+    "rider/events.py",
+    "rider/link.py",
+    "rider/machines.py",
+    "rider/pinning.py",
+    "rider/replies.py",
+    "rider/subscriptions.py",
+    "rider/transport.py",
     "rider/gateway/bus.py",
 )
 """Where `zenoh` may be imported: the machine's bus, the Rider's client side (the plant
