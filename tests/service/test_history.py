@@ -23,7 +23,9 @@ from schema.commands import Command, CommandRequest, Reply, ReplyCode
 from schema.events import CommandEvent, EventQuery, StorageEvent, WatchdogEvent
 from schema.status import MachineState
 from service.adapters import history
-from service.adapters.eventlog import EVENTS_FILE, StoredRow, connect, read_page
+from service.adapters.eventdb import StoredRow, connect
+from service.adapters.eventlog import EVENTS_FILE
+from service.adapters.eventread import read_page
 from service.adapters.history import HistoryProcess
 from service.config.model import EventsSection
 from service.core.events import CommandFacts, Held, LogLine
