@@ -60,7 +60,6 @@ SPLITTING_HERE = (
     "service/core/persist.py",
     "service/supervision/supervisor.py",
     "service/cli.py",
-    "hal/revpi.py",
     "schema/events.py",
 )
 
