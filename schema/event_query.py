@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime
+from typing import TypeVar
 
 from schema.event_models import Event, EventKind
 
@@ -95,18 +96,16 @@ def selector_params(text: str) -> dict[str, str]:
     return params
 
 
+_T = TypeVar("_T", int, float)
+
 MAX_INT = 2**63 - 1
 """The largest seq, limit or count a query may name (SQLite's INTEGER)."""
 
 
 def _int(params: Mapping[str, str], name: str, minimum: int = 0) -> int | None:
-    text = params.get(name)
-    if text is None or text == "":
+    value = _parsed(params, name, int, "an integer")
+    if value is None:
         return None
-    try:
-        value = int(text)
-    except ValueError:
-        raise QueryError(name, f"{name} must be an integer, got {text!r}") from None
     if value < minimum:
         raise QueryError(name, f"{name} must be at least {minimum}, got {value}")
     if value > MAX_INT:
@@ -115,16 +114,24 @@ def _int(params: Mapping[str, str], name: str, minimum: int = 0) -> int | None:
 
 
 def _float(params: Mapping[str, str], name: str) -> float | None:
+    value = _parsed(params, name, float, "Unix seconds")
+    if value is not None and math.isnan(value):
+        raise QueryError(name, f"{name} must be Unix seconds, got {params[name]!r}")
+    return value
+
+
+def _parsed(
+    params: Mapping[str, str], name: str, parse: Callable[[str], _T], what: str
+) -> _T | None:
+    """Parameter `name` parsed (None when absent or empty); a `QueryError` that says `what`
+    it must be when it does not parse."""
     text = params.get(name)
     if text is None or text == "":
         return None
     try:
-        value = float(text)
+        return parse(text)
     except ValueError:
-        raise QueryError(name, f"{name} must be Unix seconds, got {text!r}") from None
-    if math.isnan(value):
-        raise QueryError(name, f"{name} must be Unix seconds, got {text!r}")
-    return value
+        raise QueryError(name, f"{name} must be {what}, got {text!r}") from None
 
 
 AGE_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0, "w": 7 * 86400.0}
