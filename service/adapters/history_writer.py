@@ -4,6 +4,7 @@ counters and its log lines (service/adapters/history.py has the daemon's side)."
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -100,7 +101,10 @@ class _Writer(EventLog):
         super()._write(batch)
         self._in_flight = 0
         rows, self._wrote[:] = list(self._wrote), []
-        self.pipe.send([WROTE, rows, self.status()])
+        # A daemon killed before this write: the rows are stored all the same (not lost), and
+        # the end of its pipe ends this process.
+        with contextlib.suppress(BrokenPipeError):
+            self.pipe.send([WROTE, rows, self.status()])
 
     def status(self) -> list[Any]:
         """Its counters, and how many of the daemon's events are settled: written, dropped or
