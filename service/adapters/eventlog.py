@@ -391,7 +391,7 @@ class EventLog:
 
     def _pace(self) -> None:
         """Between two chunks of a batch's inserts: nothing here (the history's own process
-        gives way to the daemon's threads, service/adapters/history.py)."""
+        gives way to the daemon's threads, service/adapters/history_writer.py)."""
 
     def _fail(self, error: str, lost: int, exc: BaseException | None = None) -> None:
         """`lost` events not written: counted, recorded as `storage_failed` once writing works,
