@@ -1,5 +1,5 @@
-"""The event history's SQLite file: its table, a connection to it, one writer at a time, and a
-file that is no event log set aside."""
+"""The event history's SQLite file: its table and rows, a connection to it, one writer at a time,
+a batch written in one transaction, and a file that is no event log set aside."""
 
 from __future__ import annotations
 
@@ -14,8 +14,6 @@ from pathlib import Path
 
 from schema.codec import dump_json
 from schema.events import KnownDetails
-
-EVENTS_FILE = "events.db"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
