@@ -25,26 +25,32 @@ class _SimClock:
         return self.t
 
 
-def run_demo(config: MachineConfig, speed: float = 1.0, max_sim_s: float = 300.0) -> int:
-    """Calibrate, home and run the default session; `speed` 0 means as fast as possible."""
-    clock = _SimClock()
-    sim = backend(HalBackend.SIM)
-    hal = sim.open(config.hal.iomap, config.hal.sim, clock, None)
-    world = sim.simulator(hal)
-    if world is None:
-        raise NoBackend(f"the HAL backend {HalBackend.SIM.value!r} simulates nothing")
-    machine = Machine(config, hal, now=clock())
-    loop, control = machine.loop, machine.control
-    period = config.loop.period_s
-    replies: list[Reply] = []
+class _Demo:
+    """The machine on the simulator, stepped on a clock of its own."""
 
-    def send(command: Command) -> Reply:
+    def __init__(self, config: MachineConfig, speed: float, max_sim_s: float) -> None:
+        self.clock = _SimClock()
+        sim = backend(HalBackend.SIM)
+        self.hal = sim.open(config.hal.iomap, config.hal.sim, self.clock, None)
+        world = sim.simulator(self.hal)
+        if world is None:
+            raise NoBackend(f"the HAL backend {HalBackend.SIM.value!r} simulates nothing")
+        self.world = world
+        self.machine = Machine(config, self.hal, now=self.clock())
+        self.loop, self.control = self.machine.loop, self.machine.control
+        self.period = config.loop.period_s
+        self.speed, self.max_sim_s = speed, max_sim_s
+        self.replies: list[Reply] = []
+
+    def send(self, command: Command) -> Reply:
         model = StartRequest if command is Command.START else CommandRequest
-        loop.inbox.put(
-            PendingCommand(command, model(transaction_id=f"demo-{command.key}"), replies.append)
+        self.loop.inbox.put(
+            PendingCommand(
+                command, model(transaction_id=f"demo-{command.key}"), self.replies.append
+            )
         )
-        loop.service_inbox(clock())
-        reply = replies[-1]
+        self.loop.service_inbox(self.clock())
+        reply = self.replies[-1]
         log.info(
             "event=reply command=%s success=%s code=%s state=%s",
             command,
@@ -54,37 +60,46 @@ def run_demo(config: MachineConfig, speed: float = 1.0, max_sim_s: float = 300.0
         )
         return reply
 
-    def run_while(busy: set[MachineState]) -> None:
+    def run_while(self, busy: set[MachineState]) -> None:
+        clock = self.clock
         next_report = clock.t
-        while control.state in busy:
-            if clock.t > max_sim_s:
-                raise TimeoutError(f"demo did not finish within {max_sim_s} simulated seconds")
-            clock.t += period
-            loop.step(clock.t)
+        while self.control.state in busy:
+            if clock.t > self.max_sim_s:
+                raise TimeoutError(f"demo did not finish within {self.max_sim_s} simulated seconds")
+            clock.t += self.period
+            self.loop.step(clock.t)
             if clock.t >= next_report:
                 next_report += 1.0
-                w = world.world(clock.t)
-                log.info(
-                    "event=progress t=%.1f state=%s tilt_deg=%.1f rotate_deg=%.0f revolutions=%.2f",
-                    clock.t,
-                    control.state,
-                    w.tilt_deg,
-                    w.rotate_deg,
-                    w.revolutions,
-                )
-            if speed > 0:
-                time.sleep(period / speed)
+                self._report()
+            if self.speed > 0:
+                time.sleep(self.period / self.speed)
 
-    loop.step(clock.t)
+    def _report(self) -> None:
+        w = self.world.world(self.clock.t)
+        log.info(
+            "event=progress t=%.1f state=%s tilt_deg=%.1f rotate_deg=%.0f revolutions=%.2f",
+            self.clock.t,
+            self.control.state,
+            w.tilt_deg,
+            w.rotate_deg,
+            w.revolutions,
+        )
+
+
+def run_demo(config: MachineConfig, speed: float = 1.0, max_sim_s: float = 300.0) -> int:
+    """Calibrate, home and run the default session; `speed` 0 means as fast as possible."""
+    demo = _Demo(config, speed, max_sim_s)
+    control, clock = demo.control, demo.clock
+    demo.loop.step(clock.t)
     motion = {MachineState.CALIBRATING, MachineState.HOMING, MachineState.RUNNING}
     for command in (Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE, Command.HOME, Command.START):
-        if not send(command).success:
+        if not demo.send(command).success:
             return 1
-        run_while(motion)
+        demo.run_while(motion)
         if control.state is MachineState.FAULT_HW:
             log.error("event=fault detail=%r", control.fault)
             return 1
-    progress = loop.build_status(clock.t).session
+    progress = demo.loop.build_status(clock.t).session
     log.info("event=finished state=%s session=%s", control.state, progress)
-    hal.close()
+    demo.hal.close()
     return 0 if control.state is MachineState.DONE else 1

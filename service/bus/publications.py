@@ -22,7 +22,9 @@ from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, MachineState, Status
-from service.adapters.eventlog import EventLog, StoredRow, row_payload
+from service.adapters.eventdb import StoredRow
+from service.adapters.eventlog import EventLog
+from service.adapters.eventread import row_payload
 from service.config.model import MachineConfig
 from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
