@@ -52,6 +52,7 @@ RUN set -eu; \
 
 COPY pyproject.toml README.md ./
 COPY schema/ schema/
+COPY common/ common/
 COPY hal/ hal/
 COPY service/ service/
 COPY sim/ sim/

@@ -35,6 +35,7 @@ from service.core.runner import RealtimeRunner, slice_process, tune_thread
 from service.core.tasks import LoopCall, PendingCommand
 from service.core.timing import CycleStats
 from sim.hal import SimHal
+from sim.settings import PhysicsParams
 
 PERIOD_S = 0.010
 COMMAND_RATE = 500.0
@@ -96,7 +97,7 @@ def _toggle(hal: SimHal, pressed: bool) -> Callable[[ScanLoop, float], None]:
 def one_run(mode: str, seconds: float, directory: Path) -> Result:
     config = MachineConfig()
     clock = time.monotonic
-    hal = SimHal(clock, config.hal.iomap, config.hal.sim)
+    hal = SimHal(clock, config.hal.iomap, PhysicsParams.model_validate(config.hal.sim))
     events: EventLog | None = None
     blocker: sqlite3.Connection | None = None
     if mode != "off":

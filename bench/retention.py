@@ -25,7 +25,8 @@ from bench.common import Options, Section, Table, Target, main_for, ms
 from schema.codec import dump_json
 from schema.events import CommandEvent, EstopEvent, FaultEvent, KnownDetails, RiderEvent
 from schema.status import MachineState
-from service.adapters.eventlog import EVENTS_FILE, connect
+from service.adapters.eventdb import connect
+from service.adapters.eventlog import EVENTS_FILE
 from service.adapters.replay import recall
 from service.adapters.retention import SAFETY_KINDS, prune, used_bytes
 from service.config.model import EventsSection

@@ -97,7 +97,29 @@ def _number(text: str) -> object:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="machine", description=__doc__)
     sub = parser.add_subparsers(dest="cmd", required=True)
+    _add_run_and_supervise(sub)
+    val = sub.add_parser("validate", help="check a machine config and print every finding")
+    _add_config_args(val)
+    _add_hal_args(val)
+    _add_override_args(val)
+    val.add_argument("--json", action="store_true", help="print the findings as JSON")
+    _add_credentials(sub)
+    _add_events(sub)
+    sch = sub.add_parser("schema", help="write the wire contract as JSON Schema (+ keys.json)")
+    sch.add_argument(
+        "directory",
+        nargs="?",
+        type=Path,
+        default=Path("schema/json"),
+        help="where to write it (default schema/json)",
+    )
+    demo = sub.add_parser("demo", help="same as `run --sim --once-session`")
+    _add_config_args(demo)
+    demo.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    return parser
 
+
+def _add_run_and_supervise(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     run = sub.add_parser("run", help="run the machine daemon")
     _add_run_args(run)
     run.add_argument(
@@ -122,12 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
         " 1 s, or 3 watchdog limits when that is longer)",
     )
 
-    val = sub.add_parser("validate", help="check a machine config and print every finding")
-    _add_config_args(val)
-    _add_hal_args(val)
-    _add_override_args(val)
-    val.add_argument("--json", action="store_true", help="print the findings as JSON")
 
+def _add_credentials(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     cred = sub.add_parser("credentials", help="make the Zenoh login files of the ACL profiles")
     cred_sub = cred.add_subparsers(dest="cred_cmd", required=True)
     init = cred_sub.add_parser(
@@ -144,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     init.add_argument("--force", action="store_true", help="replace existing files")
 
+
+def _add_events(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ev = sub.add_parser("events", help="the event history, offline (reads <data_dir>/events.db)")
     evs = ev.add_subparsers(dest="events_cmd", required=True)
     exp = evs.add_parser("export", help="write events as CSV or JSON lines")
@@ -154,20 +174,6 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--kind", action="append", default=[], help="only these kinds (repeatable)")
     exp.add_argument("--format", choices=["csv", "jsonl"], default="jsonl")
     exp.add_argument("--output", "-o", type=Path, help="file to write (default: stdout)")
-
-    sch = sub.add_parser("schema", help="write the wire contract as JSON Schema (+ keys.json)")
-    sch.add_argument(
-        "directory",
-        nargs="?",
-        type=Path,
-        default=Path("schema/json"),
-        help="where to write it (default schema/json)",
-    )
-
-    demo = sub.add_parser("demo", help="same as `run --sim --once-session`")
-    _add_config_args(demo)
-    demo.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
-    return parser
 
 
 def load_config(
@@ -288,7 +294,7 @@ def _main(argv: list[str] | None) -> int:
 
         return export_events(args, args.data_dir or Path(config.data_dir))
     if args.cmd == "demo" or getattr(args, "once_session", False):
-        from service.simwing import run_demo
+        from service.demo import run_demo
 
         return run_demo(config, speed=args.speed)
     from service.supervision.daemon import DaemonOptions, run_daemon

@@ -9,6 +9,7 @@ from __future__ import annotations
 from pydantic import BaseModel
 
 from schema.codec import DecodeError, decode_raw, sniff_format, validate
+from schema.errors import Error, ErrorCode
 from schema.sim import (
     SIM_REQUESTS,
     SimClear,
@@ -21,7 +22,6 @@ from schema.sim import (
     SimWorldState,
     SwitchState,
 )
-from service.errors import Rejected, UnknownCommand
 from sim.hal import SimHal
 from sim.physics import SwitchFault
 
@@ -30,20 +30,20 @@ WORLD = "world"
 
 
 def decode_request(what: str, data: bytes, encoding: str | None) -> BaseModel:
-    """The fault request for `sim/<what>`; `MachineError` for an unknown key or a bad payload."""
+    """The fault request for `sim/<what>`; `DecodeError` (its wire `Error`) for an unknown key
+    (UNKNOWN_COMMAND) or a bad payload."""
     model = SIM_REQUESTS.get(what)
     if model is None:
         known = ", ".join([*SIM_REQUESTS, WORLD])
-        raise UnknownCommand(f"unknown sim key {what!r}; known: {known}")
+        message = f"unknown sim key {what!r}; known: {known}"
+        raise DecodeError(Error(code=ErrorCode.UNKNOWN_COMMAND, message=message))
     body = data or b"{}"  # every field of a fault request has a default but the few required
-    try:
-        return validate(model, decode_raw(body, sniff_format(body, encoding)))
-    except DecodeError as exc:
-        raise Rejected(exc.error) from None
+    return validate(model, decode_raw(body, sniff_format(body, encoding)))
 
 
 class HalSim:
-    """The simulator HAL as the bus's `SimPort` (applied on the scan thread, which owns it)."""
+    """The simulator HAL's fault injection (`hal.backends.Simulator`; the bus applies it on the
+    scan thread, which owns the HAL)."""
 
     def __init__(self, sim: SimHal) -> None:
         self.sim = sim

@@ -7,8 +7,8 @@ from collections.abc import Callable
 
 from hal.base import Inputs, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from service.config.model import PhysicsParams
 from sim.physics import SwitchFault, World, WorldInputs
+from sim.settings import PhysicsParams
 
 
 class SimHal:

@@ -1,5 +1,5 @@
 """The ride's physics, with fault injection: shared by the simulator HAL and the process-image
-world. Its parameters are the `[hal.sim]` section of machine.toml (`service.config.model`)."""
+world. Its parameters are the `[hal.sim]` section of machine.toml (`sim.settings`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import random
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from service.config.model import PhysicsParams
+from sim.settings import PhysicsParams
 
 INT16_MIN, INT16_MAX = -32768, 32767
 

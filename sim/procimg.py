@@ -14,9 +14,9 @@ from hal.base import HalError, Outputs
 from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap
 from hal.pictory import read_config
 from hal.revpi import bind_ios, open_modio, raise_for_errors
-from service.config.model import PhysicsParams
 from sim.hal import SimHal
 from sim.physics import World
+from sim.settings import PhysicsParams
 
 
 class ProcImgSim:

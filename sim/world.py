@@ -17,10 +17,9 @@ from pydantic import BaseModel
 from hal.base import HalError
 from hal.iomap import IoMap
 from schema.sim import SimWorldState
-from service.config.model import PhysicsParams
-from service.threads import NamedThread
 from sim import faults as simfaults
 from sim.procimg import ProcImgSim
+from sim.settings import PhysicsParams
 
 log = logging.getLogger(__name__)
 
@@ -47,17 +46,23 @@ class SimWorld:
         params: PhysicsParams,
         period_s: float,
         clock: Callable[[], float] = time.monotonic,
+        spawn: Callable[..., threading.Thread] = threading.Thread,
     ) -> None:
+        """`spawn` makes the thread the world runs on (the supervisor's names itself for the
+        OS)."""
         self.period = period_s
         self._clock = clock
         self._lock = threading.Lock()
         self._sim = ProcImgSim(iomap, procimg, configrsc, clock, params)
+        self.procimg, self.configrsc = procimg, configrsc
+        """The image and the piCtory config the daemon's RevPi backend opens on this world."""
+        self._spawn = spawn
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.failures = 0
 
     def start(self) -> None:
-        self._thread = NamedThread(target=self._run, name="sim-world", daemon=True)
+        self._thread = self._spawn(target=self._run, name="sim-world", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:

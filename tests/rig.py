@@ -15,7 +15,7 @@ from schema.commands import CommandRequest as Req
 from schema.completion import Completion
 from schema.io import IoValue
 from schema.status import MachineState, Status
-from service.config.model import MachineConfig, PhysicsParams
+from service.config.model import MachineConfig
 from service.core.devices import Calibration
 from service.core.events import EventSink
 from service.core.machine import Machine
@@ -24,6 +24,7 @@ from service.core.statemachine import Transition
 from service.core.tasks import PendingCommand
 from service.core.watchdog import GuardedHal
 from sim.hal import SimHal
+from sim.settings import PhysicsParams
 
 
 class FakeClock:
@@ -107,9 +108,8 @@ class Rig:
         self.config = config or MachineConfig()
         self.clock = clock or FakeClock()
         self.period = self.config.loop.period_s
-        self.hal = SimHal(
-            self.clock, self.config.hal.iomap, physics or self.config.hal.sim, self.clock.advance
-        )
+        physics = physics or PhysicsParams.model_validate(self.config.hal.sim)
+        self.hal = SimHal(self.clock, self.config.hal.iomap, physics, self.clock.advance)
         self.sink = RecordingSink()
         self.transitions: list[Transition] = []
         self.store = CalibrationStore(data_dir, clock=self.clock) if data_dir else None

@@ -1,37 +1,52 @@
-"""The import graph keeps its arrows: schema ← hal ← service ← sim, rider ← schema; nothing in
-production imports the simulator wing but its one door; Zenoh only at the edges; no cycles."""
+"""The import graph keeps its arrows: schema ← hal ← service, hal ← sim, rider ← schema, and
+common (what daemon and Rider share off the wire) beside schema; schema holds wire models on
+pydantic, msgpack and the standard library alone; the simulator is a HAL backend found by name
+(`hal.backends`), imported by nothing outside sim/; Zenoh only at the edges; no cycles."""
 
 from __future__ import annotations
 
 import ast
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-PACKAGES = ("schema", "hal", "service", "sim", "rider")
+PACKAGES = ("schema", "common", "hal", "service", "sim", "rider")
 
 MAY_IMPORT = {
     "schema": set(),
+    "common": set(),
     "hal": {"schema"},
-    "service": {"hal", "schema"},
-    "sim": {"hal", "schema", "service"},
-    "rider": {"schema"},
+    "service": {"hal", "schema", "common"},
+    "sim": {"hal", "schema"},
+    "rider": {"schema", "common"},
 }
-"""Which of our packages each package may import (besides itself)."""
+"""Which of our packages each package may import (besides itself), at the top or on use."""
 
-SIM_DOOR = "service/simwing.py"
-"""The composition point: the only production module that imports `sim` (lazily)."""
+SCHEMA_LIBRARIES = {"pydantic", "msgpack"}
+"""Besides the standard library, all the wire schema may import: any client in Python can
+read our messages with these two."""
 
 ZENOH_MODULES = (
     "service/bus/",
-    "rider/client.py",
+    "common/zenoh_session.py",
+    "rider/blocking.py",
+    "rider/completions.py",
     "rider/discovery.py",
+    "rider/events.py",
+    "rider/link.py",
+    "rider/machines.py",
+    "rider/pinning.py",
+    "rider/replies.py",
+    "rider/subscriptions.py",
+    "rider/transport.py",
     "rider/gateway/bus.py",
 )
-"""Where `zenoh` may be imported: the machine's bus and the Rider's client side (the plant
-gateway's own session included)."""
+"""Where `zenoh` may be imported: the machine's bus, the Rider's client side (the plant
+gateway's own session included), and the one module both sides open their sessions with (the
+config from zenoh.json5, the secrets, the runtime: written once, not once per side)."""
 
 
 def modules() -> Iterator[Path]:
@@ -63,9 +78,19 @@ def test_every_package_imports_only_down_its_arrows() -> None:
         for name, line in imports(path):
             top = name.split(".", 1)[0]
             if top in PACKAGES and top != own and top not in MAY_IMPORT[own]:
-                if top == "sim" and rel(path) == SIM_DOOR:
-                    continue
                 wrong.append(f"{rel(path)}:{line} imports {name} ({own} may not import {top})")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_schema_imports_only_pydantic_msgpack_and_the_standard_library() -> None:
+    wrong = [
+        f"{rel(path)}:{line} imports {name}"
+        for path in sorted((REPO / "schema").rglob("*.py"))
+        for name, line in imports(path)
+        if (top := name.split(".", 1)[0]) != "schema"
+        and top not in SCHEMA_LIBRARIES
+        and top not in sys.stdlib_module_names
+    ]
     assert not wrong, "\n".join(wrong)
 
 
@@ -79,25 +104,11 @@ def test_zenoh_is_imported_only_by_the_bus_and_the_rider_client() -> None:
     assert not wrong, wrong
 
 
-def test_the_simulator_wing_has_one_door_and_it_opens_on_use() -> None:
-    door = REPO / SIM_DOOR
-    tree = ast.parse(door.read_text())
-    top_level = [
-        node
-        for node in tree.body
-        if isinstance(node, ast.Import | ast.ImportFrom)
-        for name in imports_of(node)
-        if name.split(".", 1)[0] == "sim"
-    ]
-    assert not top_level, "service/simwing.py must import sim inside its functions only"
+def test_nothing_outside_the_simulator_imports_it() -> None:
+    """The code that runs never imports the code that simulates: the daemon, the supervisor
+    and the config reach it by name (`hal.backends.backend("sim")`, tests/hal/test_backends.py)."""
     users = {rel(p) for p in modules() for name, _ in imports(p) if name.split(".")[0] == "sim"}
-    assert {u for u in users if not u.startswith("sim/")} == {SIM_DOOR}
-
-
-def imports_of(node: ast.Import | ast.ImportFrom) -> list[str]:
-    if isinstance(node, ast.Import):
-        return [a.name for a in node.names]
-    return [node.module or ""]
+    assert {u for u in users if not u.startswith("sim/")} == set()
 
 
 def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -124,15 +135,12 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 
 def package_graph() -> dict[str, set[str]]:
-    """Edges between our packages; the door's own imports of `sim` run on use only, after both
-    packages have loaded, so they close no cycle."""
+    """Edges between our packages."""
     graph: dict[str, set[str]] = {p: set() for p in PACKAGES}
     for path in modules():
         own = rel(path).split("/", 1)[0]
         for name, _ in imports(path):
             top = name.split(".", 1)[0]
-            if top == "sim" and rel(path) == SIM_DOOR:
-                continue
             if top in PACKAGES and top != own:
                 graph[own].add(top)
     return graph

@@ -43,23 +43,12 @@ KEYS = ("status", "io/**", "axis/**", "diag/cycle")
 class MachineLink(Rider):
     """A Rider for one machine on the gateway's own session: the client's command path, its
     replies and its pinning of the one session that holds the machine's id, without a session
-    (or a heartbeat) of its own. Each OPC UA session supervises under its own Rider id."""
+    (or a heartbeat) of its own. Each OPC UA session supervises under its own Rider id.
+    `close` undeclares this machine's keys; the session is the gateway's."""
 
     def __init__(self, session: zenoh.Session, machine_id: str, *, prefix: str, timeout: float):
         super().__init__(machine_id, key_prefix=prefix, timeout=timeout, supervise=False)
-        self._session = session
-        self.rider_id = str(session.zid())
-        self._attachment = f"rider={self.rider_id}".encode()
-
-    def close(self) -> None:
-        """Undeclare this machine's keys; the session is the gateway's."""
-        session, self._session = self._session, None
-        if session is not None:
-            for key_expr in self._keys.values():
-                with contextlib.suppress(zenoh.ZError):
-                    session.undeclare(key_expr)
-        self._keys.clear()
-        self._command_keys.clear()
+        self.link.borrow(session)
 
 
 @dataclass

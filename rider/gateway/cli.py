@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rider.client import BadCredentials, BadRuntime, MachineTimeout
+from rider.exits import own_options
 from rider.gateway.security import BadUsers, read_certificates, read_users
 from rider.gateway.server import Gateway, Options
 
@@ -139,13 +140,9 @@ def main(
     zenoh_threads: int = 1,
 ) -> int:
     """Serve until SIGTERM/SIGINT; the Zenoh session is closed before returning."""
-    try:
-        args = build_parser().parse_args(list(argv))
-    except SystemExit as exc:
-        return EXIT_OK if exc.code == 0 else EXIT_USAGE
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s %(message)s"
-    )
+    args = own_options(build_parser(), argv)
+    if isinstance(args, int):
+        return args
     # asyncua logs every session and call at INFO; the gateway's own lines say what matters.
     logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger().level))
     if os.environ.get("RIDER_ZENOH_USER") == "monitor" and not args.monitor:

@@ -26,7 +26,7 @@ from prometheus_client import (
     start_http_server,
 )
 
-from rider.client import NoMachine
+from rider.client import NoMachine, rider_login
 from rider.gateway.alarms import alarm_of
 from rider.gateway.bus import Attached, Deliver, GatewayBus
 from rider.gateway.methods import Commander, add_methods
@@ -84,6 +84,7 @@ class Gateway:
             self._declare_rider,
             lambda: open_session_keys(self.server.iserver),
             options.session_timeout_s,
+            login=rider_login(),
         )
         self.commander = Commander(self._send, self.supervisor.rider_for, options.read_only)
 

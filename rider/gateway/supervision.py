@@ -1,7 +1,8 @@
 """Each commanding OPC UA session supervises its motions like a Rider does.
 
 The first command of an operator session declares a Rider of its own on the bus — a liveliness
-token `rider/<key>/alive` and the deadman heartbeat `rider/<key>/heartbeat` — and names that
+token `rider/<login>/<key>/alive` and the deadman heartbeat `rider/<login>/<key>/heartbeat` (its
+Zenoh login and a key of the session's own) — and names that
 Rider in every command it sends. Both end when the session ends:
 
 - the client closes its session (with or without Stop): the token goes, the machine applies
@@ -22,6 +23,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from rider.gateway.security import Caller
+from schema.rider import rider_id
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +48,12 @@ class Supervisor:
         open_sessions: Callable[[], set[str]],
         session_timeout: float,
         clock: Callable[[], float] = time.monotonic,
+        login: str = "anonymous",
     ) -> None:
+        """`login`: the gateway's Zenoh login, the first part of its Riders' ids
+        (`<login>/<key>`, schema.rider): the machine refuses a bare key (schema 1)."""
         self._declare = declare
+        self._login = login
         self._open_sessions = open_sessions
         self.session_timeout = session_timeout
         self._clock = clock
@@ -59,13 +65,14 @@ class Supervisor:
         return len(self._riders)
 
     async def rider_for(self, caller: Caller) -> str:
-        """The caller's Rider id, declared on first use."""
+        """The caller's Rider id (`<login>/<key>`), declared on first use."""
+        rider = rider_id(self._login, caller.key)
         async with self._lock:
             if caller.key not in self._riders:
-                handle = await asyncio.to_thread(self._declare, caller.key)
+                handle = await asyncio.to_thread(self._declare, rider)
                 self._riders[caller.key] = (caller, handle)
-                log.info("event=opcua_rider_declared rider=%s user=%s", caller.key, caller.name)
-        return caller.key
+                log.info("event=opcua_rider_declared rider=%s user=%s", rider, caller.name)
+        return rider
 
     def gone(self) -> list[str]:
         """The Riders whose session closed or went quiet past the session timeout."""

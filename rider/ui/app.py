@@ -40,7 +40,8 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
         f"`rider ui` needs the ui extra: pip install 'ride-machine[ui]' (missing {exc.name})"
     ) from exc
 
-from rider.client import BadReply, MachineTimeout, Rider, RiderError
+from rider.client import MachineTimeout, Rider, RiderError
+from rider.exits import own_options
 from rider.text import printable, shown
 from rider.ui.bridge import Bridge, NotReady
 from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, event_tone, ui_config
@@ -208,13 +209,19 @@ async def command(request: Request) -> Response:
         return _error(503, "NOT_READY", "the UI server is starting")
     try:
         reply = await asyncio.to_thread(bridge.command, info.command, session)
-    except NotReady as exc:
-        return _error(503, "NOT_READY", str(exc))
-    except MachineTimeout as exc:
-        return _error(504, "NO_REPLY", str(exc))
-    except (BadReply, RiderError) as exc:
-        return _error(502, "BAD_REPLY", str(exc))
+    except RiderError as exc:
+        return _failed(exc)
     return _reply(reply, info.label)
+
+
+def _failed(exc: RiderError) -> Response:
+    """What the Rider raised, as the page's error: 503 while it has no session yet, 504 when
+    the machine did not answer, 502 for anything else (a bad reply, a broken session)."""
+    if isinstance(exc, NotReady):
+        return _error(503, "NOT_READY", str(exc))
+    if isinstance(exc, MachineTimeout):
+        return _error(504, "NO_REPLY", str(exc))
+    return _error(502, "BAD_REPLY", str(exc))
 
 
 async def history(request: Request) -> Response:
@@ -232,12 +239,8 @@ async def history(request: Request) -> Response:
         return _error(503, "NOT_READY", "the UI server is starting")
     try:
         found = await asyncio.to_thread(bridge.events, query)
-    except NotReady as exc:
-        return _error(503, "NOT_READY", str(exc))
-    except MachineTimeout as exc:
-        return _error(504, "NO_REPLY", str(exc))
-    except (BadReply, RiderError) as exc:
-        return _error(502, "BAD_REPLY", str(exc))
+    except RiderError as exc:
+        return _failed(exc)
     rows = [
         {
             "seq": e.seq,
@@ -352,13 +355,9 @@ def main(
     zenoh_threads: int = 1,
 ) -> int:
     """Serve until SIGTERM/SIGINT; the Rider session is closed before returning."""
-    try:
-        args = build_parser().parse_args(list(argv))
-    except SystemExit as exc:
-        return EXIT_OK if exc.code == 0 else EXIT_USAGE
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s %(message)s"
-    )
+    args = own_options(build_parser(), argv)
+    if isinstance(args, int):
+        return args
     try:
         sock = _listen(args.host, args.port)
     except OSError as exc:
@@ -375,38 +374,44 @@ def main(
     hosts = HostPolicy.serving(args.host, args.port, args.allowed_host)
     app = create_app(rider, monitor=args.monitor, hosts=hosts)
     ui: UiState = app.state.ui
-    loop_holder: list[asyncio.AbstractEventLoop] = []
-
-    def on_exit() -> None:
-        # Ends every event stream at once, so uvicorn's graceful shutdown is not held up.
-        if loop_holder:
-            loop_holder[0].call_soon_threadsafe(ui.hub.close)
-
-    cfg = uvicorn.Config(
-        app,
-        log_level=args.log_level,
-        access_log=False,
-        timeout_graceful_shutdown=2,
-        lifespan="on",
-    )
-    server = _Server(cfg, on_exit)
     mode = "monitor" if args.monitor else "operator"
     print(f"rider ui: http://{args.host}:{args.port}/ ({mode})", file=sys.stderr, flush=True)
     print(f"rider ui: answers to {hosts}", file=sys.stderr, flush=True)
-
-    async def serve() -> None:
-        loop_holder.append(asyncio.get_running_loop())
-        await server.serve(sockets=[sock])
-
     try:
-        asyncio.run(serve())
+        started = _serve(app, ui.hub, sock, args.log_level)
     finally:
         sock.close()
     if ui.bridge is not None and ui.bridge.running:
         # An open Zenoh session hangs interpreter exit: end the process, bounded.
         log.error("event=ui_exit_forced reason=session_close_hung")
         os._exit(EXIT_FAILED)
-    return EXIT_OK if server.started else EXIT_FAILED
+    return EXIT_OK if started else EXIT_FAILED
+
+
+def _serve(app: Starlette, hub: Hub, sock: socket.socket, log_level: str) -> bool:
+    """Serve `app` on `sock` until SIGTERM/SIGINT; whether the server had started."""
+    loop_holder: list[asyncio.AbstractEventLoop] = []
+
+    def on_exit() -> None:
+        # Ends every event stream at once, so uvicorn's graceful shutdown is not held up.
+        if loop_holder:
+            loop_holder[0].call_soon_threadsafe(hub.close)
+
+    cfg = uvicorn.Config(
+        app,
+        log_level=log_level,
+        access_log=False,
+        timeout_graceful_shutdown=2,
+        lifespan="on",
+    )
+    server = _Server(cfg, on_exit)
+
+    async def serve() -> None:
+        loop_holder.append(asyncio.get_running_loop())
+        await server.serve(sockets=[sock])
+
+    asyncio.run(serve())
+    return server.started
 
 
 def _host_rule(text: str) -> HostRule:

@@ -13,7 +13,7 @@ import secrets
 from pathlib import Path
 
 from schema.rider import login_ok
-from service.core.persist import atomic_write
+from service.core.atomic import atomic_write
 
 IDENTITIES = ("machine", "rider", "monitor")
 """The ACL subjects of zenoh/acl.json5 and zenoh/tls.json5, by user name."""

@@ -10,36 +10,39 @@ Crash safety: WAL with `synchronous=NORMAL` keeps every committed batch across a
 process (a power cut may lose the last batches, never the database). What a SIGKILL loses is
 what was still queued or in the batch being written: at most `queue_capacity + batch_max`
 events, in practice the last millisecond or so (tests/service/test_eventlog_crash.py measures it).
+
+The file and its SQL are in service/adapters/eventdb.py, reading and the reader thread in
+service/adapters/eventread.py, retention in service/adapters/retention.py.
 """
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
-import json
 import logging
 import os
-import queue
 import sqlite3
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
-from schema.codec import dump_json, pack
 from schema.diag import EventsDiag
-from schema.events import (
-    DroppedEvent,
-    Event,
-    EventKind,
-    EventPage,
-    EventQuery,
-    KnownDetails,
-    StorageEvent,
+from schema.events import DroppedEvent, EventKind, EventPage, EventQuery, KnownDetails, StorageEvent
+from service.adapters.eventdb import (
+    BUSY_TIMEOUT_S,
+    WRITER_WAIT_S,
+    Row,
+    StoredRow,
+    as_row,
+    claim_writer,
+    connect,
+    file_bytes,
+    insert,
+    open_log,
+    stored,
 )
-from service.adapters.retention import prune
+from service.adapters.eventread import Reader
+from service.adapters.retention import prune_and_vacuum
 from service.adapters.unwritten import Unwritten
 from service.config.model import EventsSection
 from service.core.events import Held
@@ -48,247 +51,17 @@ from service.threads import NamedThread
 log = logging.getLogger(__name__)
 
 EVENTS_FILE = "events.db"
-MAX_PAGE_BYTES = 256 * 1024
-"""A reply page stops growing past this many bytes of event JSON (and says `more`)."""
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS events (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT,
-    time REAL NOT NULL,
-    cycle INTEGER,
-    machine_id TEXT NOT NULL,
-    kind TEXT NOT NULL,
-    details TEXT NOT NULL
-);
-CREATE INDEX IF NOT EXISTS events_time ON events(time);
-CREATE INDEX IF NOT EXISTS events_kind ON events(kind, seq);
-"""
-
-
-_TABLE_COLUMNS = ["seq", "time", "cycle", "machine_id", "kind", "details"]
-_INSERT = "INSERT INTO events (time, cycle, machine_id, kind, details) VALUES (?, ?, ?, ?, ?)"
-
-BUSY_TIMEOUT_S = 1.0
-"""How long a write or read waits for a database another process holds locked before it
-counts as failed: short, so a locked file can never hold up start-up or the shutdown deadline."""
-
-
-WRITER_WAIT_S = 5.0
-"""How long a log's writer waits at start for the one before it to let go (`claim_writer`):
-the history process of a killed daemon still writes what it was sent, for milliseconds."""
-WRITER_POLL_S = 0.01
-
 
 COALESCE_S = 0.02
 """How long the writer gathers events after the first one before writing them in one batch."""
-
-WRITE_CHUNK = 16
-"""Rows inserted per `executemany` of a batch (all in its one transaction), `_pace` between."""
 
 DEFER_MAX = 1024
 """Commands' held records (`defer`) queued at most: they are objects the garbage collector
 scans, where a queued event is text; beyond this (a stalled disk) the scan thread makes them."""
 
-
-class ForeignDatabase(sqlite3.DatabaseError):
-    """A SQLite file whose `events` table is not ours (another program's, or an old layout)."""
-
-
-# ---------------------------------------------------------------------------------- reading
-def connect(path: Path) -> sqlite3.Connection:
-    """A connection in WAL mode with the table in place (creating the file if needed)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    conn = sqlite3.connect(
-        path, timeout=BUSY_TIMEOUT_S, check_same_thread=False, isolation_level=None
-    )
-    try:
-        columns = [row[1] for row in conn.execute("PRAGMA table_info(events)").fetchall()]
-        if columns and columns != _TABLE_COLUMNS:
-            raise ForeignDatabase(f"its events table has the columns {columns}")
-        # auto_vacuum must be chosen before the first table exists; later it is a no-op.
-        conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
-        conn.execute("PRAGMA journal_mode=WAL")
-        conn.execute("PRAGMA synchronous=NORMAL")
-        conn.execute("PRAGMA journal_size_limit=4194304")
-        conn.executescript(_SCHEMA)
-    except BaseException:
-        conn.close()
-        raise
-    return conn
-
-
-def claim_writer(path: Path, wait_s: float) -> tuple[int | None, str | None]:
-    """One writer per log: an exclusive `flock` on `<path>.writer`, which holds the holder's
-    pid, waited for up to `wait_s`. The file descriptor (closed: let go), and None or, when
-    another process still holds it after the wait, who does (the log is written anyway, so
-    that no event is lost, and that is said). (None, None) where no lock file can be made."""
-    lock = path.with_name(path.name + ".writer")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-    except OSError:
-        return None, None  # a read-only place: writing will say what is wrong
-    deadline = time.monotonic() + wait_s
-    while True:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            pass  # held: wait, below
-        except OSError:  # a file system without locks (ENOLCK): written unlocked, as before
-            os.close(fd)
-            return None, None
-        else:
-            with contextlib.suppress(OSError):  # a full disk: held all the same, only unnamed
-                os.ftruncate(fd, 0)
-                os.pwrite(fd, str(os.getpid()).encode(), 0)
-            return fd, None
-        if time.monotonic() < deadline:
-            time.sleep(WRITER_POLL_S)
-            continue
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-        os.close(fd)
-        return None, (
-            f"{path} is still written by another process (pid {holder}) after"
-            f" {wait_s:g} s; writing beside it, so events of the two may interleave"
-        )
-
-
-def unusable(exc: BaseException) -> bool:
-    """Whether `exc` says the file is not a usable event log at all (garbage, a damaged
-    image, another schema), as opposed to a passing problem (locked, disk full, read-only)."""
-    return isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, sqlite3.OperationalError)
-
-
-def set_aside(path: Path, stamp: float) -> Path:
-    """Rename an unusable log (with its WAL and shared-memory files) out of the way, kept for
-    whoever wants to look at it: `events.db.bad-<UTC time>`."""
-    suffix = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(stamp))
-    aside = path.with_name(f"{path.name}.bad-{suffix}")
-    n = 1
-    while aside.exists():
-        n += 1
-        aside = path.with_name(f"{path.name}.bad-{suffix}-{n}")
-    os.rename(path, aside)
-    for extra in ("-wal", "-shm"):
-        with contextlib.suppress(FileNotFoundError):
-            os.rename(f"{path}{extra}", f"{aside}{extra}")
-    return aside
-
-
-def connect_readonly(path: Path) -> sqlite3.Connection:
-    """Read an existing log (the offline export); never creates or changes the file."""
-    if not path.is_file():
-        raise FileNotFoundError(f"no event log at {path}")
-    return sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0, check_same_thread=False)
-
-
-StoredRow = tuple[int, float, int | None, str, str, str]
-"""An event as stored: seq, time, cycle, machine_id, kind, and its details as JSON text."""
-
-
-def row_event(row: StoredRow) -> Event:
-    return Event.model_validate(_row_fields(row))
-
-
-def row_payload(row: StoredRow) -> bytes:
-    """The msgpack bytes of `row_event(row)` (`encode`'s), made from the stored row without
-    building the model: the writer publishes every event it commits, one per command under a
-    command stream, and the model's validation and serialisation were most of that work."""
-    return pack(_row_fields(row))
-
-
-def _row_fields(row: StoredRow) -> dict[str, Any]:
-    """A stored row as the `Event`'s fields, in the model's order (its wire order)."""
-    seq, when, cycle, machine_id, kind, details = row
-    return {
-        "seq": seq,
-        "time": when,
-        "cycle": cycle,
-        "machine_id": machine_id,
-        "kind": kind,
-        "details": json.loads(details),
-    }
-
-
-def _where(q: EventQuery) -> tuple[str, list[object]]:
-    clauses: list[str] = []
-    args: list[object] = []
-    for column, op, value in (
-        ("seq", ">=", q.since),
-        ("seq", "<=", q.until),
-        ("time", ">=", q.since_time),
-        ("time", "<=", q.until_time),
-    ):
-        if value is not None:
-            clauses.append(f"{column} {op} ?")
-            args.append(value)
-    if q.kinds:
-        clauses.append(f"kind IN ({','.join('?' * len(q.kinds))})")
-        args.extend(q.kinds)
-    return (" WHERE " + " AND ".join(clauses)) if clauses else "", args
-
-
-_COLUMNS = "SELECT seq, time, cycle, machine_id, kind, details FROM events"
-
-
-def read_page(conn: sqlite3.Connection, machine_id: str, q: EventQuery, page_max: int) -> EventPage:
-    """One bounded page: at most `page_max` events and about `MAX_PAGE_BYTES` of them."""
-    where, args = _where(q)
-    limit = min(q.limit or page_max, page_max)
-    if q.last is not None:
-        n = min(q.last, page_max)
-        rows = conn.execute(f"{_COLUMNS}{where} ORDER BY seq DESC LIMIT ?", [*args, n]).fetchall()
-        rows.reverse()
-        more = False
-    else:
-        sql = f"{_COLUMNS}{where} ORDER BY seq LIMIT ?"
-        rows = conn.execute(sql, [*args, limit + 1]).fetchall()
-        more = len(rows) > limit
-        rows = rows[:limit]
-    events: list[Event] = []
-    size = 0
-    for row in rows:
-        size += len(row[5]) + 64
-        if events and size > MAX_PAGE_BYTES:
-            more = True
-            break
-        events.append(row_event(row))
-    [(first, last)] = conn.execute("SELECT MIN(seq), MAX(seq) FROM events").fetchall()
-    next_since = events[-1].seq + 1 if more and events else None
-    return EventPage(
-        machine_id=machine_id,
-        events=events,
-        more=more,
-        next_since=next_since,
-        first_seq=first,
-        last_seq=last,
-    )
-
-
-def iter_events(conn: sqlite3.Connection, q: EventQuery, chunk: int = 1000) -> Iterator[Event]:
-    """Every matching event, oldest first, read in chunks (the offline export)."""
-    since = q.since
-    while True:
-        page_q = EventQuery(
-            since=since,
-            until=q.until,
-            since_time=q.since_time,
-            until_time=q.until_time,
-            kinds=q.kinds,
-        )
-        where, args = _where(page_q)
-        rows = conn.execute(f"{_COLUMNS}{where} ORDER BY seq LIMIT ?", [*args, chunk]).fetchall()
-        for row in rows:
-            yield row_event(row)
-        if len(rows) < chunk:
-            return
-        since = rows[-1][0] + 1
-
-
-# ---------------------------------------------------------------------------------- writing
 Listener = Callable[[list[StoredRow]], None]
-"""Called with each committed batch, as stored (`row_event` makes a row an `Event`, `row_payload`
-its wire bytes)."""
+"""Called with each committed batch, as stored (eventread's `row_event` makes a row an `Event`,
+`row_payload` its wire bytes)."""
 
 
 class EventLog:
@@ -311,7 +84,7 @@ class EventLog:
         self.settings = settings
         self.wall = wall
         self.capacity = settings.queue_capacity
-        self._items: deque[_Row | Held] = deque()
+        self._items: deque[Row | Held] = deque()
         self._deferred = 0
         """`Held` records among `_items`."""
         self._lock = threading.Lock()
@@ -322,8 +95,13 @@ class EventLog:
         self._listeners: list[Listener] = []
         self._conn: sqlite3.Connection | None = None
         self._writer: threading.Thread | None = None
-        self._reads: queue.Queue[_ReadJob] = queue.Queue(maxsize=32)
-        self._reader: threading.Thread | None = None
+        self._reader = Reader(
+            path,
+            machine_id,
+            settings.page_max,
+            stopping=lambda: self._stopping,
+            catch_up=self._catch_up,
+        )
         self.written = 0
         self.dropped = 0
         self.lost = 0
@@ -368,38 +146,28 @@ class EventLog:
     def _start_threads(self) -> None:
         self._writer = NamedThread(target=self._run, name="eventlog", daemon=True)
         self._writer.start()
-        self._reader = NamedThread(target=self._serve_reads, name="eventlog-read", daemon=True)
         self._reader.start()
 
     def _open_or_replace(self) -> None:
-        try:
-            self._open()
-        except (sqlite3.Error, OSError) as exc:
-            self._conn = None
-            if unusable(exc):
-                self._replace(exc)
-            else:
-                self._fail(f"cannot open {self.path}: {exc}", 0)
-
-    def _open(self) -> None:
-        self._conn = connect(self.path)
-        # fetchall: a cursor left open would hold a read transaction for good.
-        last = "SELECT kind FROM events ORDER BY seq DESC LIMIT 1"
-        rows = self._conn.execute(last).fetchall()
-        if rows:
-            self.previous_stop_clean = rows[0][0] == EventKind.DAEMON_STOP
-
-    def _replace(self, exc: BaseException) -> None:
-        """Keep an unusable file aside and start a new log, recorded as its first event."""
-        try:
-            aside = set_aside(self.path, self.wall())
-            self._open()
-        except (sqlite3.Error, OSError) as again:
-            self._conn = None
-            self._fail(f"cannot open {self.path}: {exc}; cannot replace it: {again}", 0)
+        """Open the log (`open_log`): a file that is no event log is kept aside for a new one,
+        which records that first; one that cannot open is said, its events counted as lost."""
+        opened = open_log(self.path, self.wall())
+        self._conn = opened.conn
+        if opened.last_kind is not None:
+            self.previous_stop_clean = opened.last_kind == EventKind.DAEMON_STOP
+        if opened.aside is None:
+            if opened.error is not None:
+                self._fail(opened.error, 0)
             return
-        error = f"{self.path} was not a usable event log ({exc}); kept as {aside.name}"
-        log.error("event=events_db_set_aside path=%s aside=%s error=%r", self.path, aside, str(exc))
+        error = (
+            f"{self.path} was not a usable event log ({opened.error}); kept as {opened.aside.name}"
+        )
+        log.error(
+            "event=events_db_set_aside path=%s aside=%s error=%r",
+            self.path,
+            opened.aside,
+            opened.error,
+        )
         self.failures += 1
         self.last_error = error
         self._failure = (error, 0)
@@ -409,9 +177,9 @@ class EventLog:
         thread still waiting on a locked file is left behind, it is a daemon thread)."""
         deadline = time.monotonic() + timeout
         self._stop()
-        for thread in (self._writer, self._reader):
-            if thread is not None:
-                thread.join(max(0.0, deadline - time.monotonic()))
+        if self._writer is not None:
+            self._writer.join(max(0.0, deadline - time.monotonic()))
+        self._reader.join(max(0.0, deadline - time.monotonic()))
         writer_done = self._writer is None or not self._writer.is_alive()
         if writer_done:
             self._spill()
@@ -428,13 +196,10 @@ class EventLog:
         with self._lock:
             queued = list(self._items)
             self._items.clear()
-        lost = self.dropped - self._dropped_recorded
-        lost += self._unwritten.hold([item for item in queued if not isinstance(item, Held)])
-        lost += sum(isinstance(item, Held) for item in queued)
-        error = None
-        if self._failure is not None:
-            error, failed = self._failure
-            lost += failed
+        rows = [item for item in queued if not isinstance(item, Held)]
+        error, failed = self._failure or (None, 0)
+        lost = self.dropped - self._dropped_recorded + len(queued) - len(rows) + failed
+        lost += self._unwritten.hold(rows)
         self._unwritten.spill(lost, error or (f"{lost} events not written" if lost else None))
 
     def _stop(self) -> None:
@@ -444,9 +209,7 @@ class EventLog:
             self._stopping = True
         self._wake.set()
         self._hurry.set()
-        if self._reader is not None:
-            with contextlib.suppress(queue.Full):
-                self._reads.put_nowait(lambda conn, error: None)
+        self._reader.stop()
 
     def subscribe(self, listener: Listener) -> None:
         """Call `listener` (on the writer thread) with every batch once it is committed."""
@@ -458,7 +221,7 @@ class EventLog:
 
         Queued as plain text and numbers, which the garbage collector never scans: a queue
         filled by a stalled disk must not make the scan thread's collections longer."""
-        row = _row(details, time, cycle)
+        row = as_row(details, time, cycle)
         with self._lock:
             if len(self._items) >= self.capacity or self._stopping:
                 self.dropped += 1
@@ -467,7 +230,7 @@ class EventLog:
         if not self._wake.is_set():  # set() takes a Condition's lock: once per batch is enough
             self._wake.set()
 
-    def put_rows(self, rows: list[_Row]) -> None:
+    def put_rows(self, rows: list[Row]) -> None:
         """Queue events already made (kind, details JSON, wall time, cycle), in order; those
         beyond the queue's capacity are dropped and counted, as `emit` does."""
         with self._lock:
@@ -527,7 +290,7 @@ class EventLog:
     # ---------------------------------------------------------------------------- thread
     _busy = False
 
-    def _take(self) -> list[_Row]:
+    def _take(self) -> list[Row]:
         """The next batch, held records made into its events in their place."""
         with self._lock:
             n = min(len(self._items), self.settings.batch_max)
@@ -537,7 +300,7 @@ class EventLog:
                 self._wake.clear()
             if self._deferred:
                 self._deferred -= sum(isinstance(item, Held) for item in batch)
-        rows: list[_Row] = []
+        rows: list[Row] = []
         for item in batch:
             if isinstance(item, Held):
                 self._make(item, rows)
@@ -545,11 +308,11 @@ class EventLog:
                 rows.append(item)
         return rows
 
-    def _make(self, held: Held, rows: list[_Row]) -> None:
+    def _make(self, held: Held, rows: list[Row]) -> None:
         """A held record's events into `rows` (and its log line written)."""
 
         def add(details: KnownDetails, time: float, cycle: int | None) -> None:
-            rows.append(_row(details, time, cycle))
+            rows.append(as_row(details, time, cycle))
 
         try:
             held.write(add)
@@ -568,7 +331,7 @@ class EventLog:
     def _run(self) -> None:
         while True:
             self._gather(min(1.0, self.settings.prune_every_s))
-            batch: list[_Row] = []
+            batch: list[Row] = []
             try:
                 batch = self._take()
                 # Held safety events are tried again every wait (at most 1 s), events or not.
@@ -587,7 +350,7 @@ class EventLog:
                 if self._stopping and not self._items:
                     return
 
-    def _write(self, batch: list[_Row]) -> None:
+    def _write(self, batch: list[Row]) -> None:
         now = self.wall()
         extra: list[KnownDetails] = []
         if self._failure is not None:
@@ -597,7 +360,7 @@ class EventLog:
         if dropped:
             extra.append(DroppedEvent(count=dropped))
         held = self._unwritten.take()
-        items = [_row(d, now, None) for d in extra] + held + batch
+        items = [as_row(d, now, None) for d in extra] + held + batch
         conn = self._conn
         if conn is None:
             conn = self._reopen()
@@ -607,31 +370,19 @@ class EventLog:
             return
         machine_id = self.machine_id
         try:
-            conn.execute("BEGIN")
-            for at in range(0, len(items), WRITE_CHUNK):
-                chunk = items[at : at + WRITE_CHUNK]
-                conn.executemany(_INSERT, [(w, c, machine_id, k, d) for k, d, w, c in chunk])
-                self._pace()
-            # One transaction holds the write lock: AUTOINCREMENT numbered the batch in a row.
-            [(last,)] = conn.execute("SELECT last_insert_rowid()").fetchall()
-            conn.execute("COMMIT")
+            last = insert(conn, machine_id, items, self._pace)
         except sqlite3.Error as exc:
-            if conn.in_transaction:
-                with contextlib.suppress(sqlite3.Error):  # the disk that failed the write
-                    conn.execute("ROLLBACK")
             # The safety record waits in memory for the next write; the rest is lost.
             self._fail(str(exc), self._unwritten.hold(held + batch))
             return
         self._failure = None
         self._dropped_recorded += dropped
         self.written += len(items)
-        if not self._listeners:
-            return
-        first = last - len(items) + 1
-        rows: list[StoredRow] = [
-            (first + i, when, cycle, machine_id, kind, details)
-            for i, (kind, details, when, cycle) in enumerate(items)
-        ]
+        if self._listeners:
+            self._publish(stored(last, machine_id, items))
+
+    def _publish(self, rows: list[StoredRow]) -> None:
+        """The rows just written, to every listener (on the writer's thread)."""
         for listener in self._listeners:
             try:
                 listener(rows)
@@ -640,7 +391,7 @@ class EventLog:
 
     def _pace(self) -> None:
         """Between two chunks of a batch's inserts: nothing here (the history's own process
-        gives way to the daemon's threads, service/adapters/history.py)."""
+        gives way to the daemon's threads, service/adapters/history_writer.py)."""
 
     def _fail(self, error: str, lost: int, exc: BaseException | None = None) -> None:
         """`lost` events not written: counted, recorded as `storage_failed` once writing works,
@@ -670,13 +421,10 @@ class EventLog:
         """Drop what retention says (service/adapters/retention.py): routine events by age and
         the file's size, the safety record by its own age and size."""
         self._prune_due = self.wall() + self.settings.prune_every_s
-        conn = self._conn
-        if conn is None:
+        if self._conn is None:
             return
         try:
-            prune(conn, self.settings, self.wall(), self._write_queued)
-            conn.execute("PRAGMA incremental_vacuum")
-            conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            prune_and_vacuum(self._conn, self.settings, self.wall(), self._write_queued)
         except sqlite3.Error as exc:
             log.warning("event=events_prune_failed error=%r", str(exc))
 
@@ -685,60 +433,18 @@ class EventLog:
         if batch:
             self._write(batch)
 
-    def file_bytes(self) -> int:
-        """The database file and its WAL on disk."""
-        total = 0
-        for suffix in ("", "-wal"):
-            with contextlib.suppress(OSError):  # not there (yet): counts as empty
-                total += os.path.getsize(f"{self.path}{suffix}")
-        return total
-
     # ----------------------------------------------------------------------------- reads
     def read(
         self, q: EventQuery, respond: Callable[[EventPage], None], fail: Callable[[str], None]
     ) -> bool:
         """Answer `q` on the reader thread (`fail` with the reason if the database cannot be
         read); False, and nothing queued, when the reader is busy."""
+        return self._reader.read(q, respond, fail)
 
-        def job(conn: sqlite3.Connection | None, error: str | None) -> None:
-            if conn is None:
-                fail(error or "event log unavailable")
-                return
-            try:
-                page = read_page(conn, self.machine_id, q, self.settings.page_max)
-            except Exception as exc:  # noqa: BLE001 - the reader thread must answer the next query too
-                fail(f"event log read failed: {exc}")
-                return
-            respond(page)
-
-        try:
-            self._reads.put_nowait(job)
-        except queue.Full:
-            return False
-        return True
-
-    def _serve_reads(self) -> None:
-        conn: sqlite3.Connection | None = None
-        try:
-            while True:
-                job = self._reads.get()
-                if self._stopping:
-                    return
-                if self._unsettled():
-                    self.flush(BUSY_TIMEOUT_S)  # a reader sees every event emitted before it asked
-                error = None
-                if conn is None:
-                    try:
-                        conn = connect(self.path)
-                    except (sqlite3.Error, OSError) as exc:
-                        error = f"cannot open {self.path}: {exc}"
-                        # A full disk or a read-only mount: the history is still readable.
-                        with contextlib.suppress(sqlite3.Error, OSError):
-                            conn = connect_readonly(self.path)
-                job(conn, error)
-        finally:
-            if conn is not None:
-                conn.close()
+    def _catch_up(self) -> None:
+        """Before a read: what was emitted before it written (for at most the busy timeout)."""
+        if self._unsettled():
+            self.flush(BUSY_TIMEOUT_S)
 
     def diag(self) -> EventsDiag:
         return EventsDiag(
@@ -748,17 +454,5 @@ class EventLog:
             lost=self.lost,
             failures=self.failures,
             last_error=self.last_error,
-            file_bytes=self.file_bytes(),
+            file_bytes=file_bytes(self.path),
         )
-
-
-_Row = tuple[str, str, float, int | None]
-"""A queued event: kind, details as JSON, wall time, scan cycle."""
-
-
-def _row(details: KnownDetails, time: float, cycle: int | None) -> _Row:
-    """An event as queued: plain text and numbers (see `EventLog.emit`)."""
-    return (details.kind, dump_json(details), time, cycle)
-
-
-_ReadJob = Callable[[sqlite3.Connection | None, str | None], None]

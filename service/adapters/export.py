@@ -18,7 +18,9 @@ from pathlib import Path
 from typing import TextIO
 
 from schema.events import Event, describe, query_of
-from service.adapters.eventlog import EVENTS_FILE, connect_readonly, iter_events
+from service.adapters.eventdb import connect_readonly
+from service.adapters.eventlog import EVENTS_FILE
+from service.adapters.eventread import iter_events
 
 EXIT_OK = 0
 EXIT_FAILED = 1

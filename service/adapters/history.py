@@ -9,7 +9,8 @@ woken command thread at once instead of after the writer's time slice.
 
 `HistoryProcess` is an `EventLog` whose writer thread only sends: what the scan loop and the
 commands queue (`emit`, `defer`) goes down a pipe, a batch at a time, as msgpack, to
-`python -m service.adapters.history`. That process makes the events (a command's
+`python -m service.adapters.history` (its code: service/adapters/history_writer.py; the
+messages: service/adapters/history_pipe.py). That process makes the events (a command's
 `CommandEvent` and its log line from its `CommandFacts`) and writes them with an `EventLog` of
 its own: the same batches, retention, failure handling and `storage_failed` records. It sends
 back what it wrote (the bus publishes it), its counters and its log lines (written to the
@@ -27,7 +28,6 @@ import contextlib
 import itertools
 import logging
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -35,69 +35,37 @@ import time
 from pathlib import Path
 from typing import Any
 
-import msgpack
-
-from schema.codec import dump_json
 from schema.diag import EventsDiag
-from service.adapters.eventlog import (
-    EventLog,
-    StoredRow,
-    _Row,
-    _row,
+from service.adapters.eventdb import Row
+from service.adapters.eventlog import EventLog
+from service.adapters.history_pipe import (
+    BATCH,
+    FAILED,
+    FLUSH,
+    FLUSHED,
+    LOG,
+    WROTE,
+    Item,
+    batch_items,
+    encode,
+    messages,
+    rows_in,
+    write_all,
 )
 from service.config.model import EventsSection
-from service.core.events import COMMAND_LOG, CommandFacts, Held, LogLine
-from service.logfmt import flush_logs, info, put_text, setup_logging
-from service.threads import NamedThread, name_os_thread
+from service.core.events import Held
+from service.logfmt import put_text
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
-
-# daemon → history process
-_BATCH, _FLUSH, _FAILED = 0, 1, 2
-# history process → daemon
-_WROTE, _FLUSHED, _LOG = 0, 1, 2
-# an item of a batch
-_MADE, _COMMAND = 0, 1
 
 RESPAWN_S = 1.0
 """A history process that ended is started again after this long; one that keeps ending
 within `STEADY_S` of its start waits twice as long each time, up to `RESPAWN_MAX_S`."""
 RESPAWN_MAX_S = 30.0
 STEADY_S = 10.0
-SLICE_S = 0.0001
-"""The history process gives way (`sched_yield`) after this much work at a time."""
-READ_BYTES = 1 << 16
 PYTHON = sys.executable
 """The interpreter the history process runs on: the daemon's own."""
-
-_Item = tuple[Any, ...]
-"""`(_MADE, kind, details JSON, wall, cycle)` or `(_COMMAND, wall, cycle, facts, logged)`."""
-
-
-def _rows_in(entry: _Row | Held) -> int:
-    return len(entry.rows) if isinstance(entry, Held) else 1
-
-
-def _items(entry: _Row | Held) -> list[_Item]:
-    """What the history process needs of a queued event or a command's held record: plain
-    values. A held record's own events are made here only when they are not a command's."""
-    if not isinstance(entry, Held):
-        kind, text, wall, cycle = entry
-        return [(_MADE, kind, text, wall, cycle)]
-    then = entry.then
-    logged = then.facts if isinstance(then, LogLine) else None
-    out: list[_Item] = []
-    for row in entry.rows:
-        if isinstance(row, CommandFacts):
-            out.append((_COMMAND, entry.wall, entry.cycle, row, row is logged))
-            if row is logged:
-                then = None
-        else:
-            details = row() if callable(row) else row
-            out.append((_MADE, details.kind, dump_json(details), entry.wall, entry.cycle))
-    if then is not None:  # a line that is not its command's own: written here
-        then()
-    return out
 
 
 class HistoryProcess(EventLog):
@@ -128,7 +96,7 @@ class HistoryProcess(EventLog):
         self._pending_failure: tuple[str, int] | None = None
         self._flushes: dict[int, threading.Event] = {}
         self._tokens = itertools.count(1)
-        self._retry: list[_Item] = []
+        self._retry: list[Item] = []
         """A batch whose send found the process gone (no reader: none of it was taken), for
         the next process; only the writer thread changes it."""
 
@@ -183,7 +151,7 @@ class HistoryProcess(EventLog):
         if self._pending_failure is not None:
             error, lost = self._pending_failure
             self._pending_failure = None
-            self._send(proc, [_FAILED, error, lost])
+            self._send(proc, [FAILED, error, lost])
         return True
 
     def close(self, timeout: float = 2.0) -> None:
@@ -207,8 +175,7 @@ class HistoryProcess(EventLog):
                 proc.wait()
         if self._receiver is not None:  # it counts what a killed process had not written
             self._receiver.join(max(0.5, deadline - time.monotonic()))
-        if self._reader is not None:
-            self._reader.join(max(0.0, deadline - time.monotonic()))
+        self._reader.join(max(0.0, deadline - time.monotonic()))
 
     # ---------------------------------------------------------------------------- sending
     def _run(self) -> None:
@@ -219,7 +186,7 @@ class HistoryProcess(EventLog):
                 with self._lock:
                     if not self._stopping:
                         continue
-                    rest = sum(_rows_in(entry) for entry in self._items) + len(self._retry)
+                    rest = sum(rows_in(entry) for entry in self._items) + len(self._retry)
                     self._items.clear()
                     self._retry = []
                 if rest:
@@ -264,15 +231,15 @@ class HistoryProcess(EventLog):
             return False
         return self._spawn()
 
-    def _send_batch(self, batch: list[_Row | Held], dropped: int) -> None:
+    def _send_batch(self, batch: list[Row | Held], dropped: int) -> None:
         items, self._retry = self._retry, []
         for entry in batch:
             try:
-                items.extend(_items(entry))
+                items.extend(batch_items(entry))
             except Exception as exc:  # noqa: BLE001 - one bad record must not stop the batch
                 self._lose(1, f"event making failed: {exc!r}", exc)
         proc = self._proc
-        if proc is None or not self._send(proc, [_BATCH, dropped, items]):
+        if proc is None or not self._send(proc, [BATCH, dropped, items]):
             # It ended before the receiver saw it go: these wait for the next process, as
             # events emitted after it went do (its unconfirmed ones are counted lost there).
             self._retry = items
@@ -290,13 +257,13 @@ class HistoryProcess(EventLog):
             self._lose(len(items), "the event writer process ended")
 
     def _send(self, proc: subprocess.Popen[bytes], message: list[Any]) -> bool:
-        data = msgpack.packb(message, use_bin_type=True)
+        data = encode(message)
         with self._send_lock:
             pipe = proc.stdin
             if pipe is None:
                 return False
             try:
-                _write_all(pipe, data)
+                write_all(pipe, data)
             except (OSError, ValueError):  # ended, or closed by `close`
                 return False
         return True
@@ -315,7 +282,7 @@ class HistoryProcess(EventLog):
         token = next(self._tokens)
         done = self._flushes[token] = threading.Event()
         try:
-            if not self._send(proc, [_FLUSH, token]):
+            if not self._send(proc, [FLUSH, token]):
                 return False
             return done.wait(max(0.0, deadline - time.monotonic())) and proc is self._proc
         finally:
@@ -327,13 +294,9 @@ class HistoryProcess(EventLog):
     # -------------------------------------------------------------------------- receiving
     def _receive(self, proc: subprocess.Popen[bytes]) -> None:
         assert proc.stdout is not None
-        fd = proc.stdout.fileno()
-        unpacker = msgpack.Unpacker(raw=False, use_list=False)
         try:
-            while data := os.read(fd, READ_BYTES):
-                unpacker.feed(data)
-                for message in unpacker:
-                    self._handle(proc, message)
+            for message in messages(proc.stdout.fileno()):
+                self._handle(proc, message)
         except Exception as exc:  # a garbled pipe ends this process
             log.error("event=events_process_garbled error=%r", str(exc), exc_info=exc)
             proc.kill()
@@ -342,18 +305,18 @@ class HistoryProcess(EventLog):
 
     def _handle(self, proc: subprocess.Popen[bytes], message: tuple[Any, ...]) -> None:
         tag = message[0]
-        if tag == _WROTE:
+        if tag == WROTE:
             _, rows, status = message
             self._status(proc, status)
             if rows:
-                self._publish(rows)
-        elif tag == _FLUSHED:
+                self._publish(list(rows))
+        elif tag == FLUSHED:
             _, token, status = message
             self._status(proc, status)
             done = self._flushes.get(token)
             if done is not None:
                 done.set()
-        elif tag == _LOG:
+        elif tag == LOG:
             put_text(message[1])
 
     def _status(self, proc: subprocess.Popen[bytes], status: tuple[Any, ...]) -> None:
@@ -369,14 +332,6 @@ class HistoryProcess(EventLog):
                 self.last_error = last_error
             self._child_dropped = dropped
             self._settled = settled
-
-    def _publish(self, rows: tuple[StoredRow, ...]) -> None:
-        listed = list(rows)
-        for listener in self._listeners:
-            try:
-                listener(listed)
-            except Exception as exc:  # noqa: BLE001 - a publishing failure loses no stored event
-                log.warning("event=events_publish_failed error=%r", str(exc))
 
     def _ended(self, proc: subprocess.Popen[bytes], code: int) -> None:
         """The process is gone: what it had not confirmed is lost (unless it ended cleanly
@@ -419,143 +374,8 @@ class HistoryProcess(EventLog):
         return d.model_copy(update={"dropped": self.dropped + self._child_dropped})
 
 
-def _write_all(out: Any, data: bytes) -> None:
-    """All of `data` to an unbuffered pipe, however many writes it takes."""
-    view = memoryview(data)
-    while view:
-        n = out.write(view)
-        view = view[n or 0 :]
-
-
-# -------------------------------------------------------------------- the history process
-class _Pipe:
-    """Messages to the daemon on this process's stdout, from any of its threads."""
-
-    def __init__(self) -> None:
-        self._out = os.fdopen(1, "wb", buffering=0, closefd=False)
-        self._lock = threading.Lock()
-
-    def send(self, message: list[Any]) -> None:
-        data = msgpack.packb(message, use_bin_type=True)
-        with self._lock:
-            _write_all(self._out, data)
-
-
-class _LogStream:
-    """Where the log writer of the history process writes: back to the daemon."""
-
-    def __init__(self, pipe: _Pipe) -> None:
-        self.pipe = pipe
-
-    def write(self, text: str) -> None:
-        self.pipe.send([_LOG, text])
-
-    def flush(self) -> None:
-        pass
-
-
-class _Writer(EventLog):
-    """The `EventLog` of the history process: after each write, its rows and counters go
-    back to the daemon."""
-
-    def __init__(self, pipe: _Pipe, path: Path, machine_id: str, settings: EventsSection) -> None:
-        super().__init__(path, machine_id, settings)
-        self.pipe = pipe
-        self.received = 0
-        self.forwarded = 0
-        """Of `dropped`, those the daemon dropped (it counts them itself)."""
-        self._wrote: list[StoredRow] = []
-        self.subscribe(self._wrote.extend)
-        self._in_flight = 0
-        """Rows of the batch being written."""
-
-    def receive(self, rows: list[_Row], dropped: int) -> None:
-        with self._lock:
-            self.received += len(rows)
-            self.dropped += dropped
-            self.forwarded += dropped
-        self.put_rows(rows)
-
-    def record_failure(self, error: str, lost: int) -> None:
-        """A failure the daemon saw (an earlier process ended): written with the next batch."""
-        with self._lock:
-            self._failure = (error, lost)
-
-    def _pace(self) -> None:
-        os.sched_yield()  # between a batch's chunks of inserts, as `_make` between events
-
-    def _take(self) -> list[_Row]:
-        batch = super()._take()
-        self._in_flight = len(batch)
-        return batch
-
-    def _write(self, batch: list[_Row]) -> None:
-        super()._write(batch)
-        self._in_flight = 0
-        rows, self._wrote[:] = list(self._wrote), []
-        self.pipe.send([_WROTE, rows, self.status()])
-
-    def status(self) -> list[Any]:
-        """Its counters, and how many of the daemon's events are settled: written, dropped or
-        counted lost (those neither queued nor in the batch being written)."""
-        with self._lock:
-            settled = self.received - len(self._items) - self._in_flight
-            own_dropped = self.dropped - self.forwarded
-        return [self.written, self.lost, self.failures, self.last_error, own_dropped, settled]
-
-
-def _make(items: tuple[_Item, ...]) -> list[_Row]:
-    """A batch's events as rows; a command's event and its log line made here."""
-    rows: list[_Row] = []
-    start = time.perf_counter()
-    for item in items:
-        if item[0] == _MADE:
-            _, kind, details, wall, cycle = item
-            rows.append((kind, details, wall, cycle))
-        else:
-            _, wall, cycle, values, logged = item
-            facts = CommandFacts(*values)
-            rows.append(_row(facts(), wall, cycle))
-            if logged:
-                info(COMMAND_LOG, facts.log_line())
-        if time.perf_counter() - start >= SLICE_S:
-            os.sched_yield()  # a woken thread of the daemon runs now, not after a time slice
-            start = time.perf_counter()
-    return rows
-
-
-def main(argv: list[str]) -> int:
-    """`python -m service.adapters.history PATH MACHINE_ID SETTINGS_JSON LEVEL`: reads
-    batches on stdin until it closes, then writes what it has and exits."""
-    # The daemon decides when this process ends (it closes the pipe): a Ctrl-C or a TERM sent
-    # to the daemon's process group must not cut the history short of the daemon's last events.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    name_os_thread("history")  # `top`, `ps -L`: not one more `python`
-    path, machine_id, settings, level = argv
-    pipe = _Pipe()
-    setup_logging(level, stream=_LogStream(pipe))
-    writer = _Writer(pipe, Path(path), machine_id, EventsSection.model_validate_json(settings))
-    writer.start()
-    unpacker = msgpack.Unpacker(raw=False, use_list=False)
-    try:
-        while data := os.read(0, READ_BYTES):
-            unpacker.feed(data)
-            for message in unpacker:
-                tag = message[0]
-                if tag == _BATCH:
-                    writer.receive(_make(message[2]), message[1])
-                elif tag == _FLUSH:
-                    writer.flush()
-                    pipe.send([_FLUSHED, message[1], writer.status()])
-                elif tag == _FAILED:
-                    writer.record_failure(message[1], message[2])
-    finally:
-        writer.close(timeout=10.0)
-        flush_logs()
-    return 0
-
-
 if __name__ == "__main__":
+    from service.adapters.history_writer import main
+
     code = main(sys.argv[1:])
     os._exit(code)  # everything is written: no interpreter teardown for the daemon to wait on

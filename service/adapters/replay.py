@@ -33,7 +33,7 @@ from schema.completion import Completion
 from schema.errors import ErrorCode
 from schema.events import CompletionEvent
 from schema.status import MachineState
-from service.adapters.eventlog import WRITER_WAIT_S, claim_writer, connect_readonly
+from service.adapters.eventdb import WRITER_WAIT_S, claim_writer, connect_readonly
 
 log = logging.getLogger(__name__)
 

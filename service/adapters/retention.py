@@ -89,6 +89,15 @@ def prune(
         between()
 
 
+def prune_and_vacuum(
+    conn: sqlite3.Connection, settings: EventsSection, now: float, between: Callable[[], None]
+) -> None:
+    """`prune`, then the freed pages given back to the file system and the WAL truncated."""
+    prune(conn, settings, now, between)
+    conn.execute("PRAGMA incremental_vacuum")
+    conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+
+
 def used_bytes(conn: sqlite3.Connection) -> int:
     """Bytes of the database in use (free pages not counted)."""
     page = conn.execute("PRAGMA page_size").fetchone()[0]

@@ -24,6 +24,7 @@ import os
 from collections import deque
 from pathlib import Path
 
+from service.adapters.eventdb import Row
 from service.adapters.retention import SAFETY_KINDS
 
 log = logging.getLogger(__name__)
@@ -32,9 +33,6 @@ HELD_MAX = 10_000
 """Safety events held in memory at most while the database refuses them (about 3 MB)."""
 RESERVE_BYTES = 256 * 1024
 """The file that takes the unwritten at the stop: a few hundred safety events."""
-
-Row = tuple[str, str, float, int | None]
-"""An event as queued: kind, details as JSON, wall time, scan cycle (eventlog's `_Row`)."""
 
 
 class Unwritten:

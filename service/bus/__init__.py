@@ -20,7 +20,8 @@ Python state), `session` (config, open, close), `node` (the daemon's bus), `supe
 supervisor's), `exposure`.
 """
 
-from schema.runtime import use_runtime
+from common.runtime import use_runtime
+from common.zenoh_session import file_config, open_session
 from service.bus.commands import LOCK_TIMEOUT_S
 from service.bus.injection import SimPort
 from service.bus.node import ZenohBus
@@ -28,14 +29,7 @@ from service.bus.presence import holders_of
 from service.bus.publications import Publications
 from service.bus.reads import ConfigChecker
 from service.bus.request import ENCODINGS, Request, reply_format
-from service.bus.session import (
-    DEFAULT_LISTEN,
-    Session,
-    close_session,
-    file_config,
-    open_session,
-    zenoh_config,
-)
+from service.bus.session import DEFAULT_LISTEN, Session, close_session, zenoh_config
 from service.bus.writes import ParamService
 
 __all__ = [

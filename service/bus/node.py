@@ -83,6 +83,7 @@ class ZenohBus:
         """Declare queryables and publishers, start the diag publisher; the liveliness token
         follows with the first status (`Publications.publish_status`)."""
         s = self.session
+        self.publications.hold()
         self._declared += declare(s, self.base, self, self.routes)
         self._declared += self.publications.declare(self.io_keys)
         self._declared += self.presence.declare()

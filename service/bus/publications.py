@@ -24,7 +24,9 @@ from schema.completion import Completion
 from schema.diag import CycleDiag
 from schema.io import IoValue
 from schema.status import Fault, FaultCode, MachineState, Status
-from service.adapters.eventlog import EventLog, StoredRow, row_payload
+from service.adapters.eventdb import StoredRow
+from service.adapters.eventlog import EventLog
+from service.adapters.eventread import row_payload
 from service.config.model import MachineConfig
 from service.core.timing import CycleStats
 from service.threads import NamedThread
@@ -102,9 +104,14 @@ class Publications:
         if self._token is None:
             # Alive once there is a status to answer with: a Rider that sees the token and
             # asks at once must get one (the loop publishes its records before this call).
-            live = self.session.liveliness()
-            self._holder = live.declare_token(machine_keys.holder_key(self.base, self.zid))
-            self._token = live.declare_token(f"{self.base}/alive")
+            self._token = self.session.liveliness().declare_token(f"{self.base}/alive")
+
+    def hold(self) -> None:
+        """Declare this session the holder of the id, before any queryable: a Rider that gets
+        a reply from it and asks who holds the id finds it (a restarted daemon's first reply
+        came before its holder token: `DuplicateMachine` on a loaded host)."""
+        key = machine_keys.holder_key(self.base, self.zid)
+        self._holder = self.session.liveliness().declare_token(key)
 
     def _source(self) -> zenoh.SourceInfo:
         """Names this session on a publication. The sequence number only counts."""

@@ -1,4 +1,5 @@
-"""Opening and closing the Zenoh session: its config from zenoh.json5, endpoints, secrets."""
+"""The daemon's Zenoh session: its config (`common.zenoh_session`, with the stations' access
+control) and a bounded close; it opens with `common.zenoh_session.open_session`."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ from pathlib import Path
 
 import zenoh
 
-from schema.credentials import MACHINE, zenoh_settings
-from schema.runtime import unreadable_layout
+from common.zenoh_session import LOCAL_ENDPOINT, MACHINE_SIDE
+from common.zenoh_session import zenoh_config as shared_config
 from service.bus.stations import expand, without_role
 from service.threads import NamedThread
 
@@ -19,35 +20,16 @@ log = logging.getLogger(__name__)
 Session = zenoh.Session
 """The session type, for modules outside this package (they never import `zenoh` themselves)."""
 
-DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+DEFAULT_LISTEN = LOCAL_ENDPOINT
 """Without --listen or a config file: this host only (beyond it, use an authenticated profile)."""
-
-
-def file_config(path: Path | None) -> zenoh.Config:
-    """The zenoh.json5 at `path` as it is, or Zenoh's defaults without one."""
-    return zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
 
 
 def zenoh_config(
     path: Path | None, listen: list[str] | None = None, connect: list[str] | None = None
 ) -> zenoh.Config:
-    """The session config: the shared zenoh.json5 (or Zenoh's defaults), endpoints replaced."""
-    conf = file_config(path)
-    if path is None:
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("listen/endpoints", json.dumps([DEFAULT_LISTEN]))
-        # As zenoh.json5: explicit endpoints only. Zenoh's own default (multicast scouting on)
-        # would join any peer on the LAN, and another machine with this id would refuse us.
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        # Read-only, as in zenoh.json5: Riders' default-machine lookup reads our summary there.
-        conf.insert_json5("adminspace", "{enabled: true, permissions: {read: true, write: false}}")
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(listen))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(connect))
-    # Secrets come from files named in the environment, never from the image or this file.
-    for setting, value in zenoh_settings(MACHINE).items():
-        conf.insert_json5(setting, value)
+    """The daemon's session config (`common.zenoh_session`: the shared zenoh.json5 or Zenoh's
+    defaults, endpoints replaced, secrets), its access control expanded per station."""
+    conf = shared_config(MACHINE_SIDE, path, listen or None, connect)
     acl = json.loads(conf.get_json("access_control") or "null")
     if isinstance(acl, dict) and acl.get("enabled"):
         # A rule per station login for the Riders' own keys (service/bus/stations.py).
@@ -61,17 +43,6 @@ def zenoh_config(
                 " nothing (add a station's login to the `rider` subject's usernames)",
             )
     return conf
-
-
-def open_session(conf: zenoh.Config) -> zenoh.Session:
-    """The session; a `ZENOH_RUNTIME` Zenoh cannot read (it panics) is a `ValueError` that
-    names it, not a crash."""
-    try:
-        return zenoh.open(conf)
-    except BaseException as exc:
-        if (unreadable := unreadable_layout(exc)) is None:
-            raise
-        raise ValueError(unreadable) from None
 
 
 def close_session(session: zenoh.Session, timeout: float = 3.0) -> bool:

@@ -19,6 +19,7 @@ from typing import Any
 
 import zenoh
 
+from common.zenoh_session import file_config
 from schema import keys as machine_keys
 from schema.codec import DecodeError, Format, decode, encode
 from schema.completion import Completion, Outcome
@@ -29,7 +30,7 @@ from service.bus.publications import faulted
 from service.bus.reads import latest, matching
 from service.bus.request import Request
 from service.bus.routes import Route, declare
-from service.bus.session import file_config, zenoh_config
+from service.bus.session import zenoh_config
 from service.config.model import MachineConfig
 from service.errors import NotAvailable
 

@@ -5,11 +5,13 @@ from __future__ import annotations
 import tomllib
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, Protocol, cast
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from hal.backends import settings_of
 from hal.iomap import IoMap
+from hal.revpibackend import RevPiSettings
 from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
 
 Int32 = Annotated[int, Field(ge=INT32_MIN, le=INT32_MAX)]
@@ -208,53 +210,44 @@ class HalBackend(StrEnum):
     REVPI = "revpi"
 
 
-class RevPiSection(_Section):
-    """Where revpimodio2 finds the process image and the piCtory config."""
+class SimView(Protocol):
+    """What the config's own check reads of `[hal.sim]` (`validate._simulator`)."""
 
-    procimg: str = "/dev/piControl0"
-    configrsc: str | None = None
-    hw_watchdog: bool = False
-    """Toggle the base module's hardware watchdog bit from the scan loop (RevPi Connect: a
-    MAX6370 that power-cycles the box after 60 s without a toggle, once its WD jumper is
-    removed; docs/revpi.md). Off by default: an armed watchdog resets the box while nothing
-    toggles it (updates, a stopped daemon)."""
+    @property
+    def rotate_speed_dps(self) -> float: ...
+
+    @property
+    def home_arc_deg(self) -> float: ...
+
+    @property
+    def tilt_max_deg(self) -> float: ...
 
 
-class PhysicsParams(_Section):
-    """`[hal.sim]`: the simulated machine's mechanics (read by the `sim` package; the controller
-    must not know the AI gain/offset)."""
+# `[hal.sim]` is validated by the model the backend named `sim` registers (`sim.settings`),
+# found by the one lookup: the config never imports the simulator. To mypy it is the few
+# fields the check reads; at run time pydantic sees (and documents) the registered model.
+if TYPE_CHECKING:
+    SimSettings = SimView
+else:
+    SimSettings = settings_of(HalBackend.SIM)
 
-    rotate_speed_dps: float = Field(default=90.0, gt=0, le=3600)
-    home_arc_deg: float = Field(default=10.0, gt=0, lt=180)
-    tilt_speed_dps: float = Field(default=15.0, gt=0, le=360)
-    tilt_min_deg: float = -5.0
-    tilt_max_deg: float = 95.0
-    tilt_home_deg: float = Field(default=0.0, ge=-5, le=10)
-    ai_offset_counts: float = 1200.0
-    ai_gain_counts_per_deg: float = 40.0
-    start_rotate_deg: float = 137.0
-    start_tilt_deg: float = 12.0
-    seed: int = 1
-    tilt_home_hysteresis_deg: float = Field(default=0.0, ge=0, le=10)
-    """The tilt switch closes going down at `tilt_home_deg` and opens going up this much higher."""
-    rotate_home_hysteresis_deg: float = Field(default=0.0, ge=0, le=30)
-    """The rotate switch, once closed, opens only this far outside its arc (either side)."""
-    tilt_home_bounce_s: float = Field(default=0.0, ge=0, le=0.1)
-    """After each change the tilt switch reads at random for this long (contact bounce)."""
-    rotate_home_bounce_s: float = Field(default=0.0, ge=0, le=0.1)
-    tilt_noise_counts: float = Field(default=0.0, ge=0, le=30000)
-    """Analog noise from power-up (uniform ±counts); `sim/tilt_ai` changes it at run time."""
-    scan_stall_probability: float = Field(default=0.0, ge=0, le=1)
-    """Each scan, the chance that the scan thread stalls before writing its outputs …"""
-    scan_stall_max_s: float = Field(default=0.0, ge=0, le=1)
-    """… for a uniform random time up to this (`sim/stalls` changes both at run time)."""
+
+def _sim_default() -> SimSettings:
+    """`[hal.sim]` left out: the registered model's defaults."""
+    return cast("SimSettings", settings_of(HalBackend.SIM)())
 
 
 class HalSection(_Section):
     backend: HalBackend = HalBackend.SIM
     iomap: IoMap = IoMap()
-    sim: PhysicsParams = PhysicsParams()
-    revpi: RevPiSection = RevPiSection()
+    sim: SimSettings = Field(default_factory=_sim_default)
+    revpi: RevPiSettings = RevPiSettings()
+
+    def settings(self) -> object:
+        """The `[hal.<backend>]` table of the backend that runs (each backend validates its
+        own: `hal.backends.Backend.open`)."""
+        table: object = getattr(self, self.backend.value)
+        return table
 
 
 class FastDataSection(_Section):

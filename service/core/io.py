@@ -26,12 +26,18 @@ class ProcessImage:
 
 
 @dataclass(frozen=True, slots=True)
-class DI:
-    """A digital input."""
+class _Point:
+    """One logical IO point: its signal's name, the channel it is wired to, the image."""
 
     name: str
     channel: str
     image: ProcessImage
+
+
+@dataclass(frozen=True, slots=True)
+class DI(_Point):
+    """A digital input."""
+
     kind = IoKind.DI
 
     @property
@@ -40,12 +46,9 @@ class DI:
 
 
 @dataclass(frozen=True, slots=True)
-class AI:
+class AI(_Point):
     """An analog input in raw counts."""
 
-    name: str
-    channel: str
-    image: ProcessImage
     kind = IoKind.AI
 
     @property
@@ -54,12 +57,9 @@ class AI:
 
 
 @dataclass(frozen=True, slots=True)
-class RO:
+class RO(_Point):
     """A relay output; setting it changes the image, the HAL writes it at the cycle's end."""
 
-    name: str
-    channel: str
-    image: ProcessImage
     kind = IoKind.RO
 
     @property

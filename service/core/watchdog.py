@@ -19,13 +19,12 @@ outside (`service.core.beat`, `service.supervision.outputguard`).
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 
 from hal.base import Hal, Inputs, Outputs
 from service.core.beat import BeatWriter
-from service.threads import NamedThread
+from service.threads import TimedThread
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +89,7 @@ class GuardedHal:
         self.inner.close()
 
 
-class Watchdog:
+class Watchdog(TimedThread):
     """Trips when `heartbeat()` has not moved for `periods` periods (but never less than
     `min_s`: at very short periods a fixed floor keeps ordinary OS hiccups from tripping it)
     while an output is energised; with every output off it only says so.
@@ -111,6 +110,7 @@ class Watchdog:
         beat_at: Callable[[], float] | None = None,
         finished: Callable[[], bool] | None = None,
     ) -> None:
+        super().__init__("watchdog")
         self.heartbeat = heartbeat
         self.finished = finished
         """True once the loop has left its cycle for good (a stop, a failure): beats end on
@@ -126,21 +126,6 @@ class Watchdog:
         self.tripped_at: float | None = None
         self._said = False
         """The stall under way (outputs off) was logged by the thread."""
-        self._gate = threading.Lock()
-        self._gate.acquire()  # held until `stop()`: a timed acquire is the watchdog's sleep
-        self._stopped = False
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        self._thread = NamedThread(target=self._run, name="watchdog", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        if not self._stopped:
-            self._stopped = True
-            self._gate.release()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
 
     def _run(self) -> None:
         # Armed once the first cycles have completed: before them the outputs are safe
@@ -149,9 +134,8 @@ class Watchdog:
         last_change = self.clock()
         armed = False
         wait = self.period
-        # One raw lock per wake-up, where `Event.wait` builds a `Condition` waiter each time
-        # (a wake-up per limit, ~25 a second at 10 ms: bench.cost).
-        while not self._gate.acquire(True, wait):
+        # A wake-up per limit, ~25 a second at 10 ms: `TimedThread.sleep` (bench.cost).
+        while self.sleep(wait):
             wait = self.period
             if self.finished is not None and self.finished():
                 return

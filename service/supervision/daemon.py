@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hal.backends import backend
 from hal.base import Hal, HalConfigError, HalError
 from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
 from service import bus as zbus
@@ -23,7 +24,7 @@ from service.adapters.history import HistoryProcess
 from service.adapters.replay import Recalled, recall
 from service.bus.exposure import warn_if_exposed
 from service.config.load import check_candidate
-from service.config.model import HalBackend, MachineConfig
+from service.config.model import MachineConfig
 from service.config.validate import Category, finding_line, one_error
 from service.core.beat import BeatWriter, beat_from_env
 from service.core.machine import Machine
@@ -47,8 +48,8 @@ from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
 from service.signals import SignalThread
-from service.simwing import sim_hal, sim_port
 from service.supervision.malloc import bound_malloc_arenas
+from service.supervision.simport import sim_port
 from service.threads import name_callback_threads
 
 log = logging.getLogger("machine")
@@ -68,13 +69,10 @@ class DaemonOptions:
 
 
 def make_hal(config: MachineConfig, clock: object) -> Hal:
-    """The configured backend; the simulator by default."""
-    if config.hal.backend is HalBackend.REVPI:
-        from hal.revpi import RevPiHal
-
-        rp = config.hal.revpi
-        return RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc, hw_watchdog=rp.hw_watchdog)
-    return sim_hal(config)
+    """The configured backend, found by name (`hal.backends`); the simulator by default. On
+    the real clock: an injected scan stall really sleeps."""
+    hal = config.hal
+    return backend(hal.backend).open(hal.iomap, hal.settings(), time.monotonic, time.sleep)
 
 
 def open_hal(config: MachineConfig, clock: object, source: str = "machine") -> Hal | None:
@@ -324,7 +322,7 @@ class Daemon:
             self.port,
             publications,
             io_keys=[f"io/{p.kind}/{p.name}" for p in machine.points.all()],
-            sim=sim_port(self.raw_hal),
+            sim=sim_port(backend(self.config.hal.backend).simulator(self.raw_hal)),
             sim_elsewhere=self.supervised,
             params=registry,
             check_config=lambda candidate: check_candidate(registry.config, candidate),

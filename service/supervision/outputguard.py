@@ -16,7 +16,6 @@ microseconds of reaching the limit (plus this thread's wake-up on a busy host).
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ from typing import Protocol
 
 from service.core.beat import Beat, BeatReader
 from service.core.runner import SCHED_SLICE_NS, set_sched_slice
-from service.threads import NamedThread
+from service.threads import TimedThread
 
 log = logging.getLogger("machine.supervisor")
 
@@ -53,7 +52,7 @@ class Stall:
     energised: bool
 
 
-class OutputGuard:
+class OutputGuard(TimedThread):
     """Watches the shared record on a thread of its own; `on_trip` hears of a danger it made
     safe, `on_hang` of a scan stopped past `hang_s` (both on this thread: never block)."""
 
@@ -68,6 +67,7 @@ class OutputGuard:
         after_safe: Callable[[], None] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
+        super().__init__("output-guard")
         self.reader = reader
         self.outputs = outputs
         self.on_trip = on_trip
@@ -80,26 +80,11 @@ class OutputGuard:
         self.stalls = 0
         self._stall: Stall | None = None
         self._hung_reported: int | None = None
-        self._gate = threading.Lock()
-        self._gate.acquire()  # held until `stop()`: a timed acquire is this thread's sleep
-        self._stopped = False
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        self._thread = NamedThread(target=self._run, name="output-guard", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        if not self._stopped:
-            self._stopped = True
-            self._gate.release()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
 
     def _run(self) -> None:
         set_sched_slice(SCHED_SLICE_NS)  # wake at once beside a busy neighbour (runner.py)
         wait = IDLE_LOOK_S
-        while not self._gate.acquire(True, wait):
+        while self.sleep(wait):
             wait = self.look(self.reader.read(), self.clock_ns())
 
     def look(self, beat: Beat, now_ns: int) -> float:

@@ -14,25 +14,22 @@ it; on a Revolution Pi the supervisor writes the safe image to the real process 
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import queue
-import re
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass
-from enum import Enum
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
+from common.credentials import MACHINE, CredentialError, env_name
+from hal.backends import World, backend
 from hal.base import HalConfigError, HalError
-from schema.credentials import MACHINE, CredentialError, env_name
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.bus.supervisor import (
@@ -46,10 +43,12 @@ from service.config.validate import finding_line
 from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
 from service.core.runner import SUPERVISOR_PID_ENV
 from service.signals import SignalThread
-from service.simwing import World, sim_world
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
 from service.supervision.outputguard import OutputGuard, Stall
+from service.supervision.restarts import Backoff, Child, Event, Kind, describe_exit
+from service.supervision.simport import sim_port
+from service.supervision.toml_out import to_toml, write_private
 from service.threads import NamedThread
 
 log = logging.getLogger("machine.supervisor")
@@ -91,59 +90,6 @@ class SupervisorOptions:
     `HANG_S`, or three watchdog limits when that is longer."""
     world_period_s: float = 0.005
     log_level: str = "info"
-
-
-class Backoff:
-    """0.5 s, 1 s, 2 s, … up to a maximum; back to the start after a stable run."""
-
-    def __init__(self, first_s: float, most_s: float) -> None:
-        self.first = first_s
-        self.most = most_s
-        self._next = first_s
-
-    def delay(self, lived_s: float | None, stable_s: float) -> float:
-        if lived_s is not None and lived_s >= stable_s:
-            self._next = self.first
-        delay = self._next
-        self._next = min(self._next * 2, self.most)
-        return delay
-
-
-class Kind(Enum):
-    EXITED = "exited"
-    PRESENCE = "presence"
-    HUNG = "hung"
-    STOP = "stop"
-
-
-@dataclass(frozen=True)
-class Event:
-    kind: Kind
-    generation: int = 0
-    code: int = 0
-    present: bool = False
-    stall: Stall | None = None
-
-
-@dataclass
-class Child:
-    proc: subprocess.Popen[bytes]
-    generation: int
-    started: float
-    up_since: float | None = None
-    down: bool = False
-
-
-def describe_exit(code: int) -> str:
-    if code < 0:
-        try:
-            name = signal.Signals(-code).name
-        except ValueError:
-            name = f"signal {-code}"
-        return f"the daemon was killed by {name}"
-    if code == 0:
-        return "the daemon exited (code 0) without being asked to"
-    return f"the daemon exited with code {code}"
 
 
 class Supervisor:
@@ -194,7 +140,7 @@ class Supervisor:
                     return exc.code
                 stack.callback(self._close_session, session)
                 self.bus = SupervisorBus(
-                    session, self.config, world=self.world, on_presence=self._on_presence
+                    session, self.config, world=sim_port(self.world), on_presence=self._on_presence
                 )
                 stack.callback(self.bus.close)
                 stack.callback(self._force_safe)
@@ -273,11 +219,12 @@ class Supervisor:
 
         self.dir.mkdir(parents=True, exist_ok=True)
         config = self.config
-        if config.hal.backend is HalBackend.SIM:
-            self.world, procimg, configrsc = sim_world(
-                config, self.dir, self.options.world_period_s
-            )
-            revpi = {"procimg": procimg, "configrsc": configrsc}
+        hal = config.hal
+        self.world = backend(hal.backend).world(
+            hal.iomap, hal.settings(), self.dir, self.options.world_period_s, NamedThread
+        )
+        if self.world is not None:  # a simulated world: the child drives it as a RevPi
+            revpi = {"procimg": self.world.procimg, "configrsc": self.world.configrsc}
             config = config.with_overrides(hal={"backend": HalBackend.REVPI, "revpi": revpi})
         rp = config.hal.revpi
         self.safe = RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc)  # opens safe
@@ -287,8 +234,8 @@ class Supervisor:
 
     def _write_child_files(self, config: MachineConfig, zenoh_json: str) -> None:
         data = config.model_dump(mode="json", by_alias=True, exclude_none=True)
-        _write_private(self.dir / "machine.toml", to_toml(data))
-        _write_private(self.dir / "zenoh-child.json5", zenoh_json)
+        write_private(self.dir / "machine.toml", to_toml(data))
+        write_private(self.dir / "zenoh-child.json5", zenoh_json)
 
     def _start_guard(self) -> OutputGuard:
         """The output guard: outputs safe when the child's scan stops (outputguard.py)."""
@@ -523,46 +470,3 @@ def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: Supervi
     # default action) before its last log lines are written.
     supervisor.signals_after = signal.SIG_IGN
     return supervisor.run()
-
-
-# ------------------------------------------------------------------------------ TOML out
-_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
-
-
-def to_toml(data: Mapping[str, Any], prefix: str = "") -> str:
-    """A TOML document of plain data (None values left out), for the child's config file."""
-    lines: list[str] = []
-    tables: list[tuple[str, Mapping[str, Any]]] = []
-    for key, value in data.items():
-        if value is None:
-            continue
-        if isinstance(value, Mapping):
-            tables.append((f"{prefix}.{_key(key)}" if prefix else _key(key), value))
-        else:
-            lines.append(f"{_key(key)} = {_value(value)}")
-    parts = ["\n".join(lines)] if lines else []
-    parts += [f"[{name}]\n{to_toml(table, name)}" for name, table in tables]
-    return "\n\n".join(p for p in parts if p.strip()) + "\n"
-
-
-def _key(key: str) -> str:
-    return key if _BARE_KEY.match(key) else json.dumps(key)
-
-
-def _value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # a JSON string is a TOML basic string
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_value(v) for v in value) + "]"
-    raise TypeError(f"no TOML form for {type(value).__name__}")
-
-
-def _write_private(path: Path, text: str) -> None:
-    """Owner-only: the child's zenoh config may carry what the user's file carries."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)

@@ -471,12 +471,16 @@ def test_the_build_context_makes_a_complete_wheel(tmp_path: Path) -> None:
         names = set(z.namelist())
         (entry_points,) = [n for n in names if n.endswith("entry_points.txt")]
         scripts = z.read(entry_points).decode()
-    packages = ("schema/", "hal/", "service/", "rider/")
+    packages = ("schema/", "common/", "hal/", "service/", "sim/", "rider/")
     wanted = {f for f in files if f.startswith(packages) and not f.endswith(".pyc")}
     assert wanted - names == set()
     assert any(n.startswith("rider/ui/static/") for n in names)
     for name, module in spec.entry_points().items():
         assert f"{name} = {module}:main" in scripts
+    # The HAL backends are found by name through these (hal/backends.py): the image's
+    # `machine supervise --sim` finds none without them.
+    for name, target in spec.pyproject()["project"]["entry-points"]["ride_machine.hal"].items():
+        assert f"{name} = {target}" in scripts
 
 
 def test_dockerfile_passes_hadolint() -> None:

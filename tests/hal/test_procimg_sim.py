@@ -10,9 +10,9 @@ import pytest
 from hal.base import HalError, Outputs
 from hal.iomap import IoMap
 from hal.revpi import RevPiConfigError, RevPiHal
-from service.config.model import PhysicsParams
 from sim.physics import SwitchFault
 from sim.procimg import ProcImgSim
+from sim.settings import PhysicsParams
 from tests.fixtures.revpi import (
     CONFIG_RSC,
     address,

@@ -9,9 +9,10 @@ import pytest
 
 from hal.base import Hal, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from service.config.model import MachineConfig, PhysicsParams
+from service.config.model import MachineConfig
 from sim.hal import SimHal
 from sim.physics import SwitchFault, World
+from sim.settings import PhysicsParams
 from tests.rig import FakeClock
 
 DT = 0.01

@@ -103,7 +103,7 @@ def test_the_machine_refuses_a_session_name_that_is_not_printable(machine: Daemo
         data = request.model_dump(mode="json")
         data["session"]["name"] = HOSTILE
         with pytest.raises(CommandRefused) as refused:
-            r._get_one(f"{r.base}/cmd/start", pack(data), StartRequest, None)
+            r.transport.get_one(f"{r.base}/cmd/start", pack(data), StartRequest, None)
     assert refused.value.error.code is ErrorCode.BAD_PAYLOAD
     assert refused.value.error.path == "/session/name"
 

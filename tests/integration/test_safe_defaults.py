@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from schema.credentials import RIDER, zenoh_settings
+from common.credentials import RIDER, zenoh_settings
 from service.adapters.credentials import DICTIONARY, IDENTITIES, password_file
 from tests.netns import NetnsUnavailable, veth_pair
 from tests.procs import REPO, START_TIMEOUT_S, free_port, machine_cmd, stop_process

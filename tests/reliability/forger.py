@@ -19,9 +19,9 @@ import time
 
 import zenoh
 
+from common.credentials import RIDER, zenoh_settings
 from schema.codec import Format, encode
 from schema.commands import Reply, ReplyCode
-from schema.credentials import RIDER, zenoh_settings
 from schema.status import MachineState, SessionProgress, Status
 
 FAKE_TX = "forged"

@@ -24,7 +24,6 @@ from schema.codec import DecodeError, Format, decode_raw, sniff_format, validate
 from schema.commands import REQUEST_MODELS, Command
 from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
-from service.errors import MachineError
 from sim import faults as simfaults
 
 
@@ -181,7 +180,7 @@ def _decodes(model: Any, data: bytes, encoding: str | None) -> bool:
 def _sim_decodes(what: str, data: bytes, encoding: str | None) -> bool:
     try:
         simfaults.decode_request(what, data, encoding)
-    except MachineError:
+    except DecodeError:
         return False
     return True
 

@@ -16,9 +16,9 @@ from typing import Any
 
 import zenoh
 
+from common.credentials import MACHINE, RIDER, env_name
 from rider.client import Rider
 from schema.codec import Format, decode
-from schema.credentials import MACHINE, RIDER, env_name
 from schema.status import Status
 from service.adapters.credentials import DICTIONARY, IDENTITIES, init_credentials, password_file
 from tests.integration.support import STEP_TIMEOUT_S, write_fast_config

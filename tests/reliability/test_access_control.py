@@ -23,11 +23,11 @@ from typing import Any
 import pytest
 import zenoh
 
+from common.credentials import MACHINE, RIDER, env_name
 from rider.client import Rider
 from schema.calibration import CalibrationSet, TiltCalibrationSet
 from schema.codec import Format, decode, encode, pack
 from schema.commands import Command, CommandRequest, Reply, StartRequest
-from schema.credentials import MACHINE, RIDER, env_name
 from schema.errors import ErrorCode
 from schema.events import EventQuery
 from schema.params import ParamSet

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from schema.credentials import MACHINE, RIDER, env_name
+from common.credentials import MACHINE, RIDER, env_name
 from schema.events import EventQuery, RiderEvent
 from schema.status import MachineState
 from service.adapters.credentials import DICTIONARY, identities, init_credentials, password_file

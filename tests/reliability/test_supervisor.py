@@ -17,11 +17,11 @@ from pathlib import Path
 
 import pytest
 
+from common.credentials import MACHINE, RIDER, env_name
 from rider.client import CommandRefused, Rider
 from schema.codec import Format, encode
 from schema.commands import REST_STATES, Reply, RotateStep, Session, TiltStep
 from schema.completion import Completion, Outcome
-from schema.credentials import MACHINE, RIDER, env_name
 from schema.errors import ErrorCode
 from schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests.fixtures.revpi import CONFIG_RSC, address

@@ -9,11 +9,12 @@ from pathlib import Path
 
 import pytest
 
+from common.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
 from hal.revpi import check_revpi_io
-from schema.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
 from service.bus.supervisor import child_config, requires_credentials, router_config
 from service.config.model import HalBackend, MachineConfig
-from service.supervision.supervisor import Backoff, describe_exit, to_toml
+from service.supervision.restarts import Backoff, describe_exit
+from service.supervision.toml_out import to_toml
 from sim.world import CONFIG_RSC
 from tests.reliability.support import ACL_PROFILE
 

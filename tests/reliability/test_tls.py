@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from common.credentials import MACHINE, RIDER, env_name
 from rider.client import MachineTimeout, Rider
 from schema.commands import REST_STATES, Reply, RotateStep, Session, TiltStep
-from schema.credentials import MACHINE, RIDER, env_name
 from schema.status import FAULT_STATES, MachineState, Status
 from tests.procs import Daemon
 from tests.reliability.support import (

@@ -215,9 +215,9 @@ def test_async_watch_ends_cleanly_once_its_event_loop_is_gone(machine: Daemon) -
 
 
 def test_the_pinned_holder_and_its_supervisor_may_answer_and_no_one_else() -> None:
-    from rider.client import _Holders
+    from rider.client import Holders
 
-    known = _Holders()
+    known = Holders()
     known.update("holder", "a", True)
     assert known.pinned == "a"
     known.update("supervisor", "s", True)
@@ -244,11 +244,11 @@ def test_the_machine_a_key_is_under_is_remembered_within_a_bound() -> None:
         "machine": None,
     }
     for _ in range(2):  # computed, then remembered: the same answers
-        assert {key: rider._machine_in(key) for key in cases} == cases
+        assert {key: rider.transport.pins.machine_in(key) for key in cases} == cases
     for i in range(3 * KEY_CACHE):
-        assert rider._machine_in(f"machine/m{i}/status") == f"m{i}"
-        assert len(rider._machine_of) <= KEY_CACHE
-    assert rider._machine_in("machine/*/status") is None
+        assert rider.transport.pins.machine_in(f"machine/m{i}/status") == f"m{i}"
+        assert len(rider.transport.pins._machine_of) <= KEY_CACHE
+    assert rider.transport.pins.machine_in("machine/*/status") is None
 
 
 def test_subscribe_drops_samples_of_any_session_but_the_machine(

@@ -2,10 +2,10 @@
 queryable records each request and answers what the test tells it to.
 
 The Rider packs its own requests without a model and reads the usual reply in one unpack and
-one validation (rider/client.py `_own_request`, `_decode_ok`); these pin that the bytes are the
-model's, that every reply is still validated (a broken or hostile one is `BadReply`, an error
-`Reply` is `CommandRefused`), and that a replier allowed once is looked at again once the
-machine's holders change.
+one validation (rider/commands.py `_own_request`, rider/replies.py `decode_ok`); these pin
+that the bytes are the model's, that every reply is still validated (a broken or hostile one
+is `BadReply`, an error `Reply` is `CommandRefused`), and that a replier allowed once is
+looked at again once the machine's holders change.
 """
 
 from __future__ import annotations
@@ -146,7 +146,7 @@ def test_a_commands_request_is_the_models_encoding_byte_for_byte(
             request = CommandRequest.model_validate(fields)  # a valid request, as it was
             assert encode(request) == payload  # the model's own bytes: order, types, all
             assert list(fields) == ["transaction_id", "timecode", "rider", "valid_for"]
-            assert request.transaction_id.startswith(f"{r._tag}-")
+            assert request.transaction_id.startswith(f"{r._commands.tag}-")
             assert request.rider == (r.rider_id if supervise else None)
             assert request.valid_for == min(timeout * (retries + 1), VALID_FOR_MAX_S)
             assert isinstance(fields["valid_for"], float)
@@ -266,7 +266,7 @@ def test_a_replier_allowed_once_is_looked_at_again_when_the_holders_change(
 ) -> None:
     with rider_for(scripted, tmp_path) as r:
         r.check_home()  # first contact: the scripted machine names no holder, its reply pins it
-        known = r._holders["m1"]
+        known = r.transport.pins.known["m1"]
         pinned = known.pinned
         assert pinned is not None and known.allowed is not None
         for _ in range(3):

@@ -12,10 +12,10 @@ import threading
 
 import pytest
 
+from common import runtime
+from common.runtime import RUNTIME_ENV, runtime_layout
 from rider import cli
 from rider.client import MachineTimeout, Rider
-from schema import runtime
-from schema.runtime import RUNTIME_ENV, runtime_layout
 from tests.procs import REPO, free_port
 from tests.service.test_zenoh_runtime import run_child, runtimes
 

@@ -20,11 +20,11 @@ from typing import Any
 import pytest
 import zenoh
 
+from common import threadstate
+from common.runtime import RUNTIME_ENV, use_runtime
+from common.zenoh_session import open_session
 from rider.client import _direct as riders_direct
-from schema import threadstate
-from schema.runtime import RUNTIME_ENV, use_runtime
 from service.bus.callbacks import direct
-from service.bus.session import open_session
 from tests.procs import REPO, free_port
 
 KEY = "test/callbacks/echo"

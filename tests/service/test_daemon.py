@@ -14,7 +14,9 @@ from pathlib import Path
 import pytest
 
 from schema.events import DaemonStopEvent, EventQuery
-from service.adapters.eventlog import EVENTS_FILE, connect_readonly, iter_events
+from service.adapters.eventdb import connect_readonly
+from service.adapters.eventlog import EVENTS_FILE
+from service.adapters.eventread import iter_events
 from service.config.model import MachineConfig
 from service.core.loop import ScanLoop
 from service.core.runner import set_timer_slack, timer_slack

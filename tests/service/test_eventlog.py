@@ -31,18 +31,10 @@ from schema.events import (
     QueryError,
     StorageEvent,
 )
-from service.adapters import eventlog
-from service.adapters.eventlog import (
-    BUSY_TIMEOUT_S,
-    EVENTS_FILE,
-    EventLog,
-    StoredRow,
-    connect,
-    iter_events,
-    read_page,
-    row_event,
-    row_payload,
-)
+from service.adapters import eventdb, eventlog
+from service.adapters.eventdb import BUSY_TIMEOUT_S, StoredRow, connect
+from service.adapters.eventlog import EVENTS_FILE, EventLog
+from service.adapters.eventread import iter_events, read_page, row_event, row_payload
 from service.adapters.history import HistoryProcess
 from service.adapters.retention import used_bytes
 from service.config.model import EventsSection
@@ -264,7 +256,7 @@ def test_a_batch_that_fails_unexpectedly_is_counted_lost_and_the_writer_goes_on(
     write = EventLog._write
     batches: list[int] = []
 
-    def failing_once(self: EventLog, batch: list[eventlog._Row]) -> None:
+    def failing_once(self: EventLog, batch: list[eventdb.Row]) -> None:
         batches.append(len(batch))
         if len(batches) == 1:
             raise RuntimeError("bug in a batch")
@@ -643,7 +635,7 @@ def test_a_file_system_without_locks_is_written_unlocked(
     def no_locks(fd: int, operation: int) -> None:
         raise OSError(errno.ENOLCK, "No locks available")
 
-    monkeypatch.setattr(eventlog.fcntl, "flock", no_locks)
+    monkeypatch.setattr(eventdb.fcntl, "flock", no_locks)
     log = open_log(tmp_path / EVENTS_FILE)  # no exception: the machine runs on
     try:
         log.emit_now(note(1.0))
@@ -680,7 +672,7 @@ def test_a_writer_waits_for_the_one_before_it_to_let_go(
 
 def test_a_writer_still_held_after_its_wait_writes_anyway_and_says_by_whom(tmp_path: Path) -> None:
     path = tmp_path / EVENTS_FILE
-    fd, busy = eventlog.claim_writer(path, 0.0)  # another writer, here: this process
+    fd, busy = eventdb.claim_writer(path, 0.0)  # another writer, here: this process
     assert fd is not None and busy is None
     try:
         log = EventLog(path, "m1", EventsSection(), writer_wait_s=0.05)

@@ -23,8 +23,11 @@ from schema.commands import Command, CommandRequest, Reply, ReplyCode
 from schema.events import CommandEvent, EventQuery, StorageEvent, WatchdogEvent
 from schema.status import MachineState
 from service.adapters import history
-from service.adapters.eventlog import EVENTS_FILE, StoredRow, connect, read_page
+from service.adapters.eventdb import StoredRow, connect
+from service.adapters.eventlog import EVENTS_FILE
+from service.adapters.eventread import read_page
 from service.adapters.history import HistoryProcess
+from service.adapters.history_writer import _Pipe, _Writer
 from service.config.model import EventsSection
 from service.core.events import CommandFacts, Held, LogLine
 
@@ -239,3 +242,37 @@ def test_a_process_that_cannot_start_is_retried_with_a_growing_pause(
         assert log._respawn_s > history.RESPAWN_S
     finally:
         log.close()
+
+
+class _GonePipe(_Pipe):
+    """The pipe to a daemon that was killed: every message breaks."""
+
+    def __init__(self) -> None:
+        self.tries = 0
+
+    def send(self, message: list[object]) -> None:
+        self.tries += 1
+        raise BrokenPipeError(32, "Broken pipe")
+
+
+def test_rows_written_after_the_daemon_died_are_kept_not_counted_lost(tmp_path: Path) -> None:
+    """A daemon killed before its history process wrote its last rows: they are stored, and
+    the next start records no `storage_failed` for them (only the report back failed)."""
+    pipe = _GonePipe()
+    writer = _Writer(pipe, tmp_path / EVENTS_FILE, "m1", EventsSection())
+    writer.start()
+    try:
+        writer.receive([("watchdog_trip", '{"kind":"watchdog_trip","stalled_s":0.1}', T0, 1)], 0)
+        assert writer.flush()
+    finally:
+        writer.close()
+    assert pipe.tries >= 1  # it did try to tell the daemon
+    assert writer.lost == 0 and writer.failures == 0 and writer.last_error is None
+    again = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    again.start()
+    try:
+        again.emit_now(WatchdogEvent(stalled_s=0.2))
+        assert again.flush()
+        assert stored(again) == [WatchdogEvent(stalled_s=0.1), WatchdogEvent(stalled_s=0.2)]
+    finally:
+        again.close()

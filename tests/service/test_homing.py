@@ -12,10 +12,11 @@ import pytest
 from schema.calibration import CalibrationSet, RotateCalibrationSet, TiltCalibrationSet
 from schema.commands import Command, RotateStep, Session
 from schema.status import FaultCode, MachineState
-from service.config.model import MachineConfig, PhysicsParams
+from service.config.model import MachineConfig
 from service.core.calibrate import RotateCalibrate, TiltCalibrate
 from service.core.controllers import RotateRevolutions, TiltMove
 from service.core.homing import Phase, RotateHome, TiltApproach
+from sim.settings import PhysicsParams
 from tests.rig import Rig, known_calibration
 
 S = MachineState

@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 
 from schema.commands import Command, RotateStep, Session, TiltStep
 from schema.status import FaultCode, MachineState
-from service.config.model import MachineConfig, PhysicsParams
+from service.config.model import MachineConfig
 from service.core.devices import Calibration
+from sim.settings import PhysicsParams
 from tests.rig import Rig, known_calibration
 
 S = MachineState

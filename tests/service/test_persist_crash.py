@@ -15,18 +15,10 @@ import pytest
 from schema.params import ParamSet
 from schema.status import MachineState
 from service.config.model import MachineConfig
+from service.core.atomic import atomic_write, keep_aside, load_json, remove_stale_temps
 from service.core.devices import Calibration
 from service.core.params import ParamRegistry
-from service.core.persist import (
-    CALIBRATION_FILE,
-    PARAMS_FILE,
-    CalibrationStore,
-    ParamStore,
-    atomic_write,
-    keep_aside,
-    load_json,
-    remove_stale_temps,
-)
+from service.core.persist import CALIBRATION_FILE, PARAMS_FILE, CalibrationStore, ParamStore
 from tests.rig import Rig
 from tests.service import persist_crash_writer as writer
 from tests.service.crash import CrashServer

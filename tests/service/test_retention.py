@@ -23,7 +23,9 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import MachineState
-from service.adapters.eventlog import EVENTS_FILE, EventLog, connect, read_page
+from service.adapters.eventdb import connect
+from service.adapters.eventlog import EVENTS_FILE, EventLog
+from service.adapters.eventread import read_page
 from service.adapters.retention import SAFETY_KINDS, safety_bytes, used_bytes
 from service.config.model import EventsSection
 

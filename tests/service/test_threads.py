@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,7 @@ from service.threads import (
     CALLBACK_THREAD,
     OS_NAME_MAX,
     NamedThread,
+    TimedThread,
     name_callback_threads,
     name_os_thread,
     os_name,
@@ -75,3 +77,34 @@ def test_zenoh_pythons_callback_threads_are_named_from_outside() -> None:
         other.join(5.0)
     assert comm == CALLBACK_THREAD
     assert untouched != CALLBACK_THREAD
+
+
+class _Looker(TimedThread):
+    """Looks once per (long) sleep; counts its looks and whether its loop has ended."""
+
+    def __init__(self, every_s: float) -> None:
+        super().__init__("looker")
+        self.every_s = every_s
+        self.looks = 0
+        self.ended = threading.Event()
+
+    def _run(self) -> None:
+        while self.sleep(self.every_s):
+            self.looks += 1
+        self.ended.set()
+
+
+def test_a_timed_thread_sleeps_between_looks_and_stop_ends_its_sleep_at_once() -> None:
+    looker = _Looker(every_s=0.01)
+    looker.start()
+    deadline = time.monotonic() + 10.0
+    while looker.looks < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert looker.looks >= 3  # it wakes after each sleep
+    sleeper = _Looker(every_s=60.0)
+    sleeper.start()
+    sleeper.stop()  # waits at most 2 s: a sleep of 60 s not cut short fails here
+    looker.stop()
+    assert sleeper.ended.is_set() and looker.ended.is_set()
+    assert sleeper.looks == 0
+    assert not sleeper.sleep(60.0)  # stopped: returns at once

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from schema.runtime import RUNTIME_ENV, runtime_layout
+from common.runtime import RUNTIME_ENV, runtime_layout
 from service.config.model import BusSection
 from service.supervision.daemon import EXIT_FAILED
 from tests.procs import REPO, free_port, running_daemon, start_daemon
@@ -20,8 +20,8 @@ from tests.procs import REPO, free_port, running_daemon, start_daemon
 CHILD = """
 import os, sys
 import zenoh
-from schema.runtime import use_runtime
-from service.bus.session import open_session
+from common.runtime import use_runtime
+from common.zenoh_session import open_session
 applied = use_runtime(int(sys.argv[1]))
 def config(**endpoints):
     conf = zenoh.Config()

@@ -1,7 +1,6 @@
 """Python thread states kept on threads Python did not start (Zenoh's), between callbacks.
 
-Not a wire concern: it lives here because the daemon's bus and the Rider's client both run
-callbacks on Zenoh's threads, and this is the one package both import (without `zenoh`).
+The daemon's bus and the Rider's client both run callbacks on Zenoh's threads.
 
 pyo3 enters Python on such a thread with `PyGILState_Ensure` and leaves with
 `PyGILState_Release`; with no thread state kept between the two, each call builds a new one

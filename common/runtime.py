@@ -1,7 +1,7 @@
 """Zenoh's runtime layout (`ZENOH_RUNTIME`), for the daemon's bus and for the Rider alike.
 
-Not a wire concern: it lives here because both lay out Zenoh's threads the same way, and this
-is the one package both import (without `zenoh`).
+Both lay out Zenoh's threads the same way (`common.zenoh_session.open_session` for a
+library's first session, `use_runtime` for the daemon, for good).
 
 Zenoh reads `ZENOH_RUNTIME` (RON) once per process, when its first session opens; later
 sessions share that runtime. Zenoh's default is five runtimes with six threads (receive 2,

@@ -1,0 +1,119 @@
+"""Opening a Zenoh session the way this project does, for the daemon and the Rider alike.
+
+The config: the shared zenoh.json5 (or Zenoh's defaults, made private), the caller's endpoints,
+and the side's secrets from files its environment names (`common.credentials`). Opening it:
+Zenoh's runtime laid out first where the caller asks (`common.runtime`), and a layout Zenoh
+cannot read said as an error that names it, not a crash. What differs between the two sides
+is their `Side`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from common.credentials import MACHINE, RIDER, zenoh_settings
+from common.runtime import first_session_on, unreadable_layout
+
+LOCAL_ENDPOINT = "tcp/127.0.0.1:7447"
+"""Where the daemon listens and a Rider connects without a config file or endpoints: this host
+only (beyond it, use an authenticated profile)."""
+
+
+@dataclass(frozen=True)
+class Side:
+    """How one side sets up its sessions, beyond what both do."""
+
+    credentials: str
+    """Whose secrets (`MACHINE` or `RIDER` in `common.credentials`)."""
+    without_file: Mapping[str, str] = field(default_factory=dict)
+    """Settings (config path → JSON5) without a zenoh.json5."""
+    always: Mapping[str, str] = field(default_factory=dict)
+    """Settings whatever the file says."""
+    default_connect: tuple[str, ...] = ()
+    """Connect here when neither the caller nor the file names an endpoint."""
+
+
+MACHINE_SIDE = Side(
+    MACHINE,
+    without_file={
+        "listen/endpoints": json.dumps([LOCAL_ENDPOINT]),
+        # Read-only, as in zenoh.json5: Riders' default-machine lookup reads our summary there.
+        "adminspace": "{enabled: true, permissions: {read: true, write: false}}",
+    },
+)
+"""The daemon: it listens (on this host by default)."""
+
+RIDER_SIDE = Side(
+    RIDER,
+    # A Rider's own admin space stays off: the default-machine lookup reads other nodes' (and
+    # zenoh 1.10's token/link-state handlers can wedge a session, rider/discovery.py).
+    always={"adminspace/enabled": "false"},
+    default_connect=(LOCAL_ENDPOINT,),
+)
+"""A Rider: it connects out (to this host's daemon by default) and listens only when asked, so
+it never takes the daemon's port when both run on one host."""
+
+
+class UnreadableRuntime(ValueError):
+    """`ZENOH_RUNTIME` in the environment is a layout Zenoh cannot read (it panics)."""
+
+
+def file_config(path: Path | None) -> zenoh.Config:
+    """The zenoh.json5 at `path` as it is, or Zenoh's defaults without one."""
+    return zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+
+
+def zenoh_config(
+    side: Side,
+    path: Path | None,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+) -> zenoh.Config:
+    """`side`'s session config: the shared zenoh.json5 (or Zenoh's defaults), `listen`
+    replacing its listen endpoints (`[]`: none; None keeps them), `connect` its connect
+    endpoints (when not empty); `CredentialError` when the side's secrets cannot be used."""
+    conf = file_config(path)
+    if path is None:
+        conf.insert_json5("mode", '"peer"')
+        # As zenoh.json5: explicit endpoints only. Zenoh's own default (multicast scouting on)
+        # would join any peer on the LAN, and another machine with this id would refuse us.
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        _insert(conf, side.without_file)
+    if listen is not None:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    elif side.default_connect and not json.loads(conf.get_json("connect/endpoints") or "[]"):
+        conf.insert_json5("connect/endpoints", json.dumps(list(side.default_connect)))
+    # Secrets come from files named in the environment, never from the image or this file.
+    _insert(conf, zenoh_settings(side.credentials))
+    _insert(conf, side.always)
+    return conf
+
+
+def open_session(conf: zenoh.Config, zenoh_threads: int | None = None) -> zenoh.Session:
+    """The session. With `zenoh_threads` (a library: the Rider), the process's first session
+    lays out Zenoh's runtime on that many worker threads (`first_session_on`; 0: Zenoh's own);
+    None: the process laid it out already (the daemon: `use_runtime`). A `ZENOH_RUNTIME` Zenoh
+    cannot read is `UnreadableRuntime`, naming it."""
+    layout: contextlib.AbstractContextManager[object] = (
+        contextlib.nullcontext() if zenoh_threads is None else first_session_on(zenoh_threads)
+    )
+    with layout:
+        try:
+            return zenoh.open(conf)
+        except BaseException as exc:
+            if (unreadable := unreadable_layout(exc)) is None:
+                raise
+            raise UnreadableRuntime(unreadable) from None
+
+
+def _insert(conf: zenoh.Config, settings: Mapping[str, str]) -> None:
+    for setting, value in settings.items():
+        conf.insert_json5(setting, value)

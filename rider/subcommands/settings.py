@@ -1,0 +1,171 @@
+"""`rider calibration [set …]`, `rider params list|get|set|reset` and `rider sim FAULT`: what
+an operator sets on the machine (and, on a simulator, the faults it injects)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+from pydantic import ValidationError
+
+from rider.blocking import Rider
+from rider.exits import EXIT_OK, UsageError
+from rider.formats import emit, fmt_calibration, fmt_param
+from rider.subcommands import Subparsers
+from schema.calibration import RotateCalibrationSet, TiltCalibrationSet
+
+
+def add_calibration(sub: Subparsers[argparse.ArgumentParser]) -> None:
+    cb = sub.add_parser("calibration", help="calibration values; `set` enters them by hand")
+    cb.set_defaults(func=calibration)
+    cbs = cb.add_subparsers(dest="calibration_cmd")
+    cs = cbs.add_parser("set", help="enter values by hand (recorded as manual)")
+    cs.add_argument("--tilt-offset", type=float, help="tilt offset in raw counts (at 0°)")
+    cs.add_argument("--tilt-gain", type=float, help="tilt gain in counts per degree")
+    cs.add_argument("--rotate-revolution-s", type=float, help="one revolution, seconds")
+    cs.add_argument("--rotate-home-arc", type=float, help="home-switch arc, degrees")
+    cs.set_defaults(func=set_calibration)
+
+
+def calibration(args: argparse.Namespace, rider: Rider) -> int:
+    """`rider calibration`: the values, and how and when each axis got them."""
+    emit(rider.calibration(), args.json, fmt_calibration)
+    return EXIT_OK
+
+
+def set_calibration(args: argparse.Namespace, rider: Rider) -> int:
+    """`rider calibration set …`: enter the values by hand."""
+    try:
+        tilt, rotate = _calibration_values(args)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        raise UsageError(f"calibration value: {first['msg']}") from exc
+    record = rider.set_calibration(tilt=tilt, rotate=rotate)
+    emit(record, args.json, fmt_calibration)
+    return EXIT_OK
+
+
+def _calibration_values(
+    args: argparse.Namespace,
+) -> tuple[TiltCalibrationSet | None, RotateCalibrationSet | None]:
+    tilt = rotate = None
+    if args.tilt_offset is not None or args.tilt_gain is not None:
+        if args.tilt_offset is None or args.tilt_gain is None:
+            raise UsageError("give both --tilt-offset and --tilt-gain")
+        tilt = TiltCalibrationSet(
+            offset_counts=args.tilt_offset, gain_counts_per_deg=args.tilt_gain
+        )
+    if args.rotate_revolution_s is not None or args.rotate_home_arc is not None:
+        if args.rotate_revolution_s is None or args.rotate_home_arc is None:
+            raise UsageError("give both --rotate-revolution-s and --rotate-home-arc")
+        rotate = RotateCalibrationSet(
+            revolution_s=args.rotate_revolution_s, home_arc_deg=args.rotate_home_arc
+        )
+    if tilt is None and rotate is None:
+        raise UsageError("give the tilt values, the rotate values, or both")
+    return tilt, rotate
+
+
+def add_params(sub: Subparsers[argparse.ArgumentParser]) -> None:
+    pr = sub.add_parser("params", help="online parameters")
+    prs = pr.add_subparsers(dest="params_cmd", required=True)
+    prs.add_parser("list").set_defaults(func=list_params)
+    g = prs.add_parser("get")
+    g.add_argument("name")
+    g.set_defaults(func=get_param)
+    s = prs.add_parser("set")
+    s.add_argument("name")
+    s.add_argument("value", help="JSON value (number, true/false, or a string)")
+    s.add_argument("--persist", action="store_true", help="keep it across restarts")
+    s.set_defaults(func=set_param)
+    r = prs.add_parser("reset")
+    r.add_argument("name")
+    r.set_defaults(func=reset_param)
+
+
+def list_params(args: argparse.Namespace, rider: Rider) -> int:
+    emit(rider.params(), args.json, lambda vs: "\n".join(fmt_param(p) for p in vs))
+    return EXIT_OK
+
+
+def get_param(args: argparse.Namespace, rider: Rider) -> int:
+    emit(rider.param(args.name), args.json, fmt_param)
+    return EXIT_OK
+
+
+def set_param(args: argparse.Namespace, rider: Rider) -> int:
+    value = rider.set_param(args.name, _parse_value(args.value), persist=args.persist)
+    emit(value, args.json, fmt_param)
+    return EXIT_OK
+
+
+def reset_param(args: argparse.Namespace, rider: Rider) -> int:
+    emit(rider.reset_param(args.name), args.json, fmt_param)
+    return EXIT_OK
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def add_sim(sub: Subparsers[argparse.ArgumentParser]) -> None:
+    sim_parser = sub.add_parser("sim", help="simulator fault injection")
+    sim_parser.add_argument(
+        "fault", choices=["estop", "release", "home", "tilt_ai", "stall", "clear", "world"]
+    )
+    sim_parser.add_argument(
+        "args", nargs="*", help="e.g. `home rotate open`, `tilt_ai frozen`, `stall tilt`"
+    )
+    sim_parser.set_defaults(func=sim)
+
+
+SIM_MAX_ARGS = {"home": 2, "tilt_ai": 2, "stall": 2}
+"""Words each `rider sim` fault takes (none for the others)."""
+
+
+def _tilt_ai_args(words: list[str]) -> tuple[bool, float]:
+    """`frozen` and/or a noise amplitude in counts; anything else is a typo, not "no fault"."""
+    frozen, noise = False, 0.0
+    for word in words:
+        if word == "frozen":
+            frozen = True
+            continue
+        try:
+            noise = float(word)
+        except ValueError:
+            noise = math.nan
+        if not (math.isfinite(noise) and noise >= 0):
+            raise UsageError(f"sim tilt_ai: {word!r} is neither `frozen` nor a noise in counts")
+    return frozen, noise
+
+
+def sim(args: argparse.Namespace, rider: Rider) -> int:
+    f, a = args.fault, args.args
+    if len(a) > SIM_MAX_ARGS.get(f, 0):
+        raise UsageError(f"sim {f}: unexpected {' '.join(a[SIM_MAX_ARGS.get(f, 0) :])!r}")
+    if f == "stall" and len(a) > 1 and a[1] not in ("on", "off"):
+        raise UsageError(f"sim stall: {a[1]!r} is neither `on` nor `off`")
+    try:
+        if f == "estop":
+            world = rider.sim("estop", pressed=True)
+        elif f == "release":
+            world = rider.sim("estop", pressed=False)
+        elif f == "home":
+            stuck = a[1] if len(a) > 1 and a[1] != "none" else None
+            world = rider.sim("home", axis=a[0], stuck=stuck)
+        elif f == "tilt_ai":
+            frozen, noise = _tilt_ai_args(a)
+            world = rider.sim("tilt_ai", frozen=frozen, noise_counts=noise)
+        elif f == "stall":
+            world = rider.sim("stall", axis=a[0], stalled=not (len(a) > 1 and a[1] == "off"))
+        else:
+            world = rider.sim(f)
+    except IndexError as exc:
+        raise UsageError(f"sim {f}: missing argument") from exc
+    emit(world, args.json, lambda w: w.model_dump_json(indent=2))
+    return EXIT_OK

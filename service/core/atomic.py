@@ -1,0 +1,153 @@
+"""Files that must survive a crash: atomic writes, loads that never crash the daemon, a bad or
+stale file kept aside (never over an earlier one), and a directory probed for writing."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
+    """Write temp file, fsync, rename over `path`, fsync the directory: never a torn file.
+
+    The file is created with `mode` (less what the umask removes): 0o600 keeps a secret
+    unreadable to others from the first byte on."""
+    if not path.parent.is_dir():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fsync_dir(path.parent.parent)  # the new directory's own entry must survive too
+    tmp = _temp_name(path, os.getpid(), threading.get_ident())
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)  # less under a umask
+        try:
+            view = memoryview(data)
+            while view:
+                written = os.write(fd, view)
+                view = view[written:]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        # A full disk or an interrupt must not leave the half-written temp file behind.
+        tmp.unlink(missing_ok=True)
+        raise
+    fsync_dir(path.parent)
+
+
+def fsync_dir(path: Path) -> None:
+    dir_fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def _temp_name(path: Path, pid: int, tid: int) -> Path:
+    return path.with_name(f".{path.name}.{pid}.{tid}.tmp")
+
+
+def remove_stale_temps(path: Path) -> list[Path]:
+    """Delete temp files that writers of `path` left behind when they died mid-write."""
+    removed = []
+    for tmp in path.parent.glob(f".{path.name}.*.*.tmp"):
+        pid_text = tmp.name[len(path.name) + 2 :].split(".", 1)[0]
+        if not pid_text.isdigit() or _alive(int(pid_text)):
+            continue
+        tmp.unlink(missing_ok=True)
+        removed.append(tmp)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's process: not ours to judge
+    return True
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """What a load found: the data (None = use defaults) and a warning if something was wrong."""
+
+    data: dict[str, Any] | None
+    warning: str | None = None
+    kept_as: Path | None = None
+
+
+def load_json(path: Path) -> Loaded:
+    """Read a JSON object; a corrupt file is moved aside (`.corrupt-<time>`) and reported.
+
+    Temp files left by writers that died mid-write are removed first (the file itself is whole).
+    """
+    if path.parent.is_dir():
+        remove_stale_temps(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return Loaded(None)
+    except OSError as exc:
+        return Loaded(None, f"{path}: unreadable ({exc.strerror}); using defaults")
+    try:
+        data = json.loads(raw)
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object, found {type(data).__name__}")
+    except (ValueError, RecursionError) as exc:
+        kept = keep_aside(path)
+        return Loaded(
+            None, f"{path}: corrupt ({str(exc)[:120]}); kept as {kept.name}; using defaults", kept
+        )
+    return Loaded(data)
+
+
+def keep_aside(path: Path, tag: str = "corrupt") -> Path:
+    """Rename a file out of the way as `<name>.<tag>-<time>`, never over an earlier one."""
+    stamp = time.strftime("%Y%m%dT%H%M%S")
+    n = 0
+    while True:
+        kept = path.with_name(f"{path.name}.{tag}-{stamp}" + (f"-{n}" if n else ""))
+        if not kept.exists():
+            break
+        n += 1
+    os.replace(path, kept)
+    return kept
+
+
+def retire(path: Path) -> Path | None:
+    """Move `path` aside as `<name>.stale-<time>` so it is never loaded again (None: no file)."""
+    if not path.exists():
+        return None
+    stale = keep_aside(path, "stale")  # a rename needs no data blocks: it works on a full disk
+    with contextlib.suppress(OSError):
+        fsync_dir(path.parent)
+    return stale
+
+
+def probe_writable(data_dir: Path) -> OSError | None:
+    """None if a file can be created, written, synced and removed in `data_dir` (made if
+    missing); otherwise the error. A read-only mount or a full disk fails here."""
+    probe = data_dir / f".probe-{os.getpid()}"
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, b"probe\n")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        probe.unlink()
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+        return exc
+    return None

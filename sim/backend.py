@@ -1,0 +1,41 @@
+"""The simulator as a HAL backend: registered as `sim` in pyproject.toml (`hal.backends`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hal.backends import Clock, Simulator, Sleep, Spawn, World
+from hal.base import Hal
+from hal.iomap import IoMap
+from sim.settings import PhysicsParams
+
+
+class SimBackend:
+    """`SimHal` on the loop's clock, or the world behind a process image for the supervisor."""
+
+    settings = PhysicsParams
+
+    # The physics and the world are imported on use: the config reads `settings` in every
+    # process, on hardware too, and a hardware daemon never loads the simulator.
+    def open(self, iomap: IoMap, settings: object, clock: Clock, sleep: Sleep | None) -> Hal:
+        from sim.hal import SimHal
+
+        return SimHal(clock, iomap, PhysicsParams.model_validate(settings), sleep=sleep)
+
+    def simulator(self, hal: Hal) -> Simulator | None:
+        from sim.faults import HalSim
+        from sim.hal import SimHal
+
+        return HalSim(hal) if isinstance(hal, SimHal) else None
+
+    def world(
+        self, iomap: IoMap, settings: object, directory: Path, period_s: float, spawn: Spawn
+    ) -> World | None:
+        from sim.world import CONFIG_RSC, SimWorld, make_image
+
+        procimg = make_image(directory / "procimg")
+        params = PhysicsParams.model_validate(settings)
+        return SimWorld(iomap, procimg, str(CONFIG_RSC), params, period_s, spawn=spawn)
+
+
+BACKEND = SimBackend()

@@ -1,0 +1,106 @@
+"""HAL backends by name: the one lookup finds the simulator and the RevPi, the config validates
+each backend's table with the model it registers, and the simulator's refusals reach the bus
+as the wire errors they were."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+
+from hal.backends import Backend, NoBackend, backend
+from hal.base import Hal
+from hal.iomap import IoMap
+from hal.revpibackend import RevPiSettings
+from schema.errors import ErrorCode
+from schema.sim import SimEstop, SimWorldState
+from service.config.load import load_data
+from service.config.model import HalBackend, HalSection, MachineConfig
+from service.errors import Rejected
+from service.supervision.simport import sim_port
+from sim.settings import PhysicsParams
+from tests.rig import FakeClock
+
+
+def test_every_configurable_backend_is_registered_with_its_table() -> None:
+    for name in HalBackend:
+        found = backend(name)
+        assert isinstance(found, Backend)
+        assert HalSection.model_fields[name.value].annotation is found.settings
+    assert backend(HalBackend.SIM).settings is PhysicsParams
+    assert backend(HalBackend.REVPI).settings is RevPiSettings
+
+
+def test_an_unknown_backend_is_refused_by_name() -> None:
+    with pytest.raises(NoBackend, match=r"no HAL backend 'ethercat' .*revpi, sim"):
+        backend("ethercat")
+
+
+def test_the_config_checks_hal_sim_with_the_registered_model() -> None:
+    config, report = load_data({"hal": {"sim": {"rotate_speed_dps": 0, "wings": 2}}})
+    assert config is None
+    paths = {f.path for f in report.findings}
+    assert {"/hal/sim/rotate_speed_dps", "/hal/sim/wings"} <= paths
+    config, report = load_data({"hal": {"sim": {"seed": 7}}})
+    assert config is not None and report.ok
+    assert config.hal.sim == PhysicsParams(seed=7)
+    assert config.hal.settings() is config.hal.sim
+
+
+def test_the_simulator_opens_safe_and_injects_faults() -> None:
+    clock = FakeClock()
+    config = MachineConfig()
+    sim = backend(HalBackend.SIM)
+    hal = sim.open(config.hal.iomap, config.hal.sim, clock, None)
+    assert isinstance(hal, Hal)
+    assert not hal.read_estop()
+    faults = sim.simulator(hal)
+    assert faults is not None
+    faults.apply(faults.decode("estop", b'{"pressed": true}', "application/json"))
+    assert hal.read_estop()
+    world = faults.world(12.5)
+    assert isinstance(world, SimWorldState)
+    assert world.estop_pressed and world.time == 12.5 and not any(world.relays.values())
+
+
+def test_hardware_has_no_simulator(tmp_path: Path) -> None:
+    revpi = backend(HalBackend.REVPI)
+    opened = backend(HalBackend.SIM).open(IoMap(), PhysicsParams(), FakeClock(), None)
+    assert revpi.simulator(opened) is None  # not one of its own: nothing to inject into
+    assert revpi.world(IoMap(), RevPiSettings(), tmp_path, 0.01, threading.Thread) is None
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_world_runs_on_the_thread_it_is_given(tmp_path: Path) -> None:
+    made: list[str] = []
+
+    def spawn(**kwargs: object) -> threading.Thread:
+        made.append(str(kwargs["name"]))
+        return threading.Thread(**kwargs)  # type: ignore[arg-type]
+
+    world = backend(HalBackend.SIM).world(IoMap(), PhysicsParams(), tmp_path, 0.01, spawn)
+    assert world is not None
+    assert Path(world.procimg).parent == tmp_path and Path(world.configrsc).is_file()
+    world.start()
+    try:
+        assert made == ["sim-world"]
+        world.apply(SimEstop(pressed=True))
+        world.step_now()
+        assert world.world(0.0).estop_pressed
+    finally:
+        world.stop()
+
+
+def test_a_simulator_refusal_reaches_the_bus_as_its_wire_error() -> None:
+    hal = backend(HalBackend.SIM).open(IoMap(), PhysicsParams(), FakeClock(), None)
+    port = sim_port(backend(HalBackend.SIM).simulator(hal))
+    assert port is not None
+    with pytest.raises(Rejected) as unknown:
+        port.decode("fly", b"{}", None)
+    assert unknown.value.code is ErrorCode.UNKNOWN_COMMAND
+    assert unknown.value.message.startswith("unknown sim key 'fly'; known: estop, ")
+    with pytest.raises(Rejected) as bad:
+        port.decode("estop", b'{"pressed": "maybe"}', "application/json")
+    assert (bad.value.code, bad.value.path) == (ErrorCode.BAD_PAYLOAD, "/pressed")
+    assert sim_port(None) is None
