@@ -29,9 +29,10 @@ from schema.commands import Command, CommandRequest, Reply
 from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.history import HistoryProcess
 from service.config.model import EventsSection, MachineConfig
-from service.core.loop import LoopCall, PendingCommand, ScanLoop
+from service.core.loop import ScanLoop
 from service.core.machine import Machine
 from service.core.runner import RealtimeRunner, slice_process, tune_thread
+from service.core.tasks import LoopCall, PendingCommand
 from service.core.timing import CycleStats
 from sim.hal import SimHal
 from sim.settings import PhysicsParams

@@ -11,8 +11,8 @@ from hal.backends import NoBackend, backend
 from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.status import MachineState
 from service.config.model import HalBackend, MachineConfig
-from service.core.loop import PendingCommand
 from service.core.machine import Machine
+from service.core.tasks import PendingCommand
 
 log = logging.getLogger("demo")
 

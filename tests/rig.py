@@ -9,17 +9,19 @@ from pathlib import Path
 from typing import Any
 
 from schema.axes import AxisRecord
+from schema.calibration import CalibrationRecord
 from schema.commands import Command, Reply, Session, StartRequest, TiltStep
 from schema.commands import CommandRequest as Req
+from schema.completion import Completion
 from schema.io import IoValue
 from schema.status import MachineState, Status
 from service.config.model import MachineConfig
-from service.core.control import Transition
 from service.core.devices import Calibration
 from service.core.events import EventSink
-from service.core.loop import PendingCommand
 from service.core.machine import Machine
 from service.core.persist import CalibrationStore
+from service.core.statemachine import Transition
+from service.core.tasks import PendingCommand
 from service.core.watchdog import GuardedHal
 from sim.hal import SimHal
 from sim.settings import PhysicsParams
@@ -40,12 +42,14 @@ class FakeClock:
 
 
 class RecordingSink:
-    """Keeps everything the loop publishes."""
+    """Keeps everything the loop publishes; each notice with the status published before it."""
 
     def __init__(self) -> None:
         self.statuses: list[Status] = []
         self.io: list[IoValue] = []
         self.axes: list[AxisRecord] = []
+        self.completions: list[tuple[Completion, Status | None]] = []
+        self.calibrations: list[CalibrationRecord] = []
 
     def publish_status(self, status: Status) -> None:
         self.statuses.append(status)
@@ -55,6 +59,12 @@ class RecordingSink:
 
     def publish_axes(self, records: list[AxisRecord]) -> None:
         self.axes.extend(records)
+
+    def publish_completion(self, notice: Completion) -> None:
+        self.completions.append((notice, self.statuses[-1] if self.statuses else None))
+
+    def publish_calibration(self, record: CalibrationRecord) -> None:
+        self.calibrations.append(record)
 
 
 class MemoryStore:
@@ -118,6 +128,7 @@ class Rig:
         self.loop = self.machine.loop
         self.loop.clock = self.clock  # a scan stall before the write moves it (sim/hal.py)
         self.loop.quiet_cycles = quiet_cycles
+        self.loop.verify_quiet = True  # each quiet cycle checked against a fresh snapshot
         self.control = self.machine.control
         self.replies: list[Reply] = []
         self.step()

@@ -13,7 +13,8 @@ import threading
 import time
 from typing import Any, cast
 
-from service.core.loop import Inbox, ScanLoop
+from service.core.inbox import Inbox
+from service.core.loop import ScanLoop
 from service.core.runner import (
     SCHED_SLICE_NS,
     TIMER_SLACK_NS,

@@ -7,8 +7,10 @@ cycles, under the loop's lock (one writer at a time; the next cycle still reads 
 handles E-stop before any output changes) and is answered from the same thread: no hand-off.
 It never waits there: while the scan holds the lock, the command waits on a thread of its own
 (`commands.Deferred`), in arrival order.
-Other work for the machine goes to the scan thread through the `Inbox`. Read-only queries
-(status, IO, axes, diagnostics) are answered from the latest published records without
+The bus sees the loop only through its port (`service.core.port.LoopPort`): a command between
+cycles, any other work as a task for the scan thread (`service.core.tasks`), the published
+records as one immutable value; the loop publishes through the bus's `Publications`, its sink.
+Read-only queries (status, IO, axes, diagnostics) are answered from those records without
 touching state. Publishers drop rather than block under congestion.
 
 Modules by role: `request` (one query, one reply function), `routes` (the table and the
@@ -24,6 +26,7 @@ from service.bus.commands import LOCK_TIMEOUT_S
 from service.bus.injection import SimPort
 from service.bus.node import ZenohBus
 from service.bus.presence import holders_of
+from service.bus.publications import Publications
 from service.bus.reads import ConfigChecker
 from service.bus.request import ENCODINGS, Request, reply_format
 from service.bus.session import DEFAULT_LISTEN, Session, close_session, zenoh_config
@@ -35,6 +38,7 @@ __all__ = [
     "LOCK_TIMEOUT_S",
     "ConfigChecker",
     "ParamService",
+    "Publications",
     "Request",
     "Session",
     "SimPort",

@@ -21,8 +21,9 @@ from schema.commands import REQUEST_MODELS, Command, CommandRequest, Reply
 from service.bus.request import Request, sender_of
 from service.bus.routes import Handler, Route, Wildcard
 from service.core.admission import watchable
-from service.core.control import HANDLING
-from service.core.loop import PendingCommand, ScanLoop
+from service.core.port import LoopPort
+from service.core.statemachine import HANDLING
+from service.core.tasks import PendingCommand
 from service.errors import BadRequest, Busy, MachineError, UnknownCommand, WildcardCommand
 from service.threads import NamedThread
 
@@ -95,11 +96,9 @@ def command_route(handler: Handler, keys: tuple[str, ...] = (), *, direct: bool 
 class Commands:
     """The `cmd/**` route of one machine."""
 
-    def __init__(self, base: str, loop: ScanLoop, clock: Callable[[], float]) -> None:
+    def __init__(self, base: str, port: LoopPort) -> None:
         self.base = base
-        self.loop = loop
-        self.clock = clock
-        """The scan loop's clock (the runner's), for commands run between cycles."""
+        self.port = port
         self._commands = {
             f"{base}/cmd/{c.key}": (c, zenoh.KeyExpr(f"{base}/cmd/{c.key}")) for c in Command
         }
@@ -128,11 +127,9 @@ class Commands:
             watchable(command, body)  # a supervisor of schema 1 could not be watched
         sender = sender_of(request.query)
         if not self.deferred.pending:
-            reply = self.loop.execute_between_cycles(
-                command, body, self.clock, sender=sender, timeout=None
-            )
+            reply = self.port.execute(command, body, sender=sender, timeout=None)
             if reply is not None:
-                request.reply(reply, key_expr, self.loop.transactions.wire(reply))
+                request.reply(reply, key_expr, self.port.wire(reply))
                 return
 
         wait = functools.partial(self._wait, request, command, body, sender, key_expr)
@@ -152,15 +149,13 @@ class Commands:
         `dispatch` would (away from it)."""
 
         def respond(reply: Reply) -> None:
-            request.reply(reply, key_expr, self.loop.transactions.wire(reply))
+            request.reply(reply, key_expr, self.port.wire(reply))
 
         try:
-            reply = self.loop.execute_between_cycles(
-                command, body, self.clock, sender=sender, timeout=LOCK_TIMEOUT_S
-            )
+            reply = self.port.execute(command, body, sender=sender, timeout=LOCK_TIMEOUT_S)
             if reply is not None:
                 respond(reply)
-            elif not self.loop.inbox.put(PendingCommand(command, body, respond, sender)):
+            elif not self.port.submit(PendingCommand(command, body, respond, sender)):
                 raise Busy("command queue full; retry later")
         except MachineError as exc:
             request.refuse(exc)

@@ -1,16 +1,16 @@
-"""One machine on Zenoh: its route table, publications and presence, declared together."""
+"""One machine on Zenoh: its route table, publications and presence, declared together.
+
+Built after the scan loop, from what the loop offers other threads (`LoopPort`) and the sink the
+loop publishes to (`Publications`, made before the loop): the bus never reads the loop itself.
+"""
 
 from __future__ import annotations
 
 import logging
-import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
-import zenoh
-
 from schema.status import MachineState
-from service.adapters.eventlog import EventLog
 from service.bus.commands import Commands
 from service.bus.injection import Injection, SimPort
 from service.bus.presence import Presence
@@ -18,44 +18,42 @@ from service.bus.publications import Publications
 from service.bus.reads import ConfigChecker, Reads
 from service.bus.request import Request
 from service.bus.routes import Route, declare
-from service.bus.writes import ParamService, Writes, on_loop
-from service.config.model import MachineConfig
-from service.core.loop import ScanLoop
-from service.core.timing import CycleStats
+from service.bus.writes import ParamService, Writes, on_scan_thread
+from service.core.port import LoopPort
 
 log = logging.getLogger("service.bus")
 
 
-class ZenohBus(Publications):
-    """Puts one machine on Zenoh under `<key_prefix>/<id>`; implements the loop's `LoopSink`."""
+class ZenohBus:
+    """Puts one machine on Zenoh under `<key_prefix>/<id>`: its queryables and presence over
+    the loop's port, its publications through the loop's sink."""
 
-    def __init__(  # noqa: PLR0913 - four parts, then keyword-only options
+    def __init__(
         self,
-        session: zenoh.Session,
-        loop: ScanLoop,
-        stats: CycleStats,
-        config: MachineConfig,
+        port: LoopPort,
+        publications: Publications,
         *,
+        io_keys: Iterable[str],
         sim: SimPort | None = None,
         params: ParamService | None = None,
         check_config: ConfigChecker | None = None,
-        wall: Callable[[], float] = time.time,
-        clock: Callable[[], float] = time.monotonic,
-        events: EventLog | None = None,
         sim_elsewhere: bool = False,
     ) -> None:
-        """`sim_elsewhere`: another session (the supervisor) answers `sim/**` for this machine."""
-        super().__init__(session, loop, stats, config, wall, events)
-        self.clock = clock
-        """The scan loop's clock (the runner's), for commands run between cycles."""
-        self.presence = Presence(session, loop, config, clock)
-        b = self.base
+        """`publications`: the loop's sink, with the session, config and diagnostics they
+        share; `io_keys`: the IO points' keys (`io/<kind>/<name>`), declared up front;
+        `sim_elsewhere`: another session (the supervisor) answers `sim/**` for this machine."""
+        self.port = port
+        self.publications = pubs = publications
+        self.session = session = pubs.session
+        config, events = pubs.config, pubs.events
+        self.base = b = config.key_base
+        self.wall = wall = pubs.wall
+        self.io_keys = tuple(io_keys)
+        self.presence = Presence(session, port, config)
         routes: list[Route] = [
-            *Commands(b, loop, clock).routes(),
-            *Reads(b, loop, self.diag, check_config=check_config, events=events).routes(),
-            *Writes(
-                b, loop, stats, self.diag, config.machine.id, wall, params=params, events=events
-            ).routes(),
+            *Commands(b, port).routes(),
+            *Reads(b, port, pubs.diag, check_config=check_config, events=events).routes(),
+            *Writes(b, port, pubs.stats, pubs.diag, wall, params=params, events=events).routes(),
         ]
         # Declared without a simulator too: `sim/*` on real hardware answers NOT_AVAILABLE
         # at once instead of leaving the caller to time out (a supervisor answers for its child).
@@ -66,31 +64,34 @@ class ZenohBus(Publications):
 
     def state(self) -> MachineState | None:
         """`Host`: the state a refusal states (the last one published)."""
-        status = self.loop.published.status
+        status = self.port.snapshot().status
         return status.state if status is not None else None
 
     def _on_scan_thread(self, request: Request, fn: Callable[[], None]) -> None:
-        on_loop(self.loop, request, lambda loop, now: fn())
+        on_scan_thread(self.port, request, fn)
 
     @property
     def others(self) -> set[str]:
         """Other sessions that hold this machine's id: duplicates."""
         return self.presence.others
 
+    def publish_watchdog_trip(self, stalled_s: float) -> None:
+        """From the watchdog thread: FAULT_HW at once, the scan thread may be stuck."""
+        self.publications.publish_watchdog_trip(stalled_s)
+
     def start(self) -> None:
         """Declare queryables and publishers, start the diag publisher; the liveliness token
-        follows with the first status (`publish_status`)."""
+        follows with the first status (`Publications.publish_status`)."""
         s = self.session
-        self.hold()
+        self.publications.hold()
         self._declared += declare(s, self.base, self, self.routes)
-        self._declared += self.declare()
+        self._declared += self.publications.declare(self.io_keys)
         self._declared += self.presence.declare()
-        self.loop.beats = self.presence
         log.info("event=bus_started base=%s zid=%s", self.base, s.zid())
 
     def close(self) -> None:
         """Undeclare everything (the session itself is closed by its owner)."""
-        self.undeclare()
+        self.publications.undeclare()
         for entity in reversed(self._declared):
             entity.undeclare()
         self._declared.clear()

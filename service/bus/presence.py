@@ -1,25 +1,23 @@
 """Who else is on the bus: other holders of this machine's id, and the Riders' presence and
-heartbeats. Callbacks only record what they saw; the scan loop judges it."""
+heartbeats. Callbacks only hand the loop what they saw (through its port: a heartbeat, a task for
+the scan thread); the scan loop judges it."""
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
 
 from schema import rider as rider_keys
-from schema.events import RiderEvent
 from service.bus.callbacks import direct
 from service.config.model import MachineConfig
-from service.core.loop import LoopCall, ScanLoop
+from service.core.port import LoopPort
+from service.core.tasks import Duplicates, RiderPresence
 
 log = logging.getLogger(__name__)
 
-MAX_RIDERS = 1024
-"""Riders whose heartbeat the bus keeps track of at once."""
 ID_PROBE_S = 1.0
 """Bound of the start-up liveliness query for this machine's id. It returns as soon as every
 connected peer has answered (no wait at all for a lone daemon); the bound only matters on a
@@ -48,16 +46,14 @@ def holders_of(session: zenoh.Session, base: str, timeout: float = ID_PROBE_S) -
 
 @dataclass
 class Presence:
-    """Duplicates of this machine's id, and the Riders alive; `RiderBeats` for the loop."""
+    """Duplicates of this machine's id, and the Riders alive and beating."""
 
     session: zenoh.Session
-    loop: ScanLoop
+    port: LoopPort
     config: MachineConfig
-    clock: Callable[[], float]
     others: set[str] = field(default_factory=set)
     """Other sessions that hold this machine's id (its `holder/<zid>` token): duplicates."""
     riders_alive: set[str] = field(default_factory=set)
-    _beats: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.base = self.config.key_base
@@ -90,23 +86,13 @@ class Presence:
         else:
             self.others.discard(zid)
             log.warning("event=duplicate_gone id=%s other_session=%s", self.config.machine.id, zid)
-        others = tuple(sorted(self.others))
-
-        def update(loop: ScanLoop, now: float) -> None:
-            loop.control.duplicate_id(others, self.zid, now)
-
-        self.loop.inbox.put(LoopCall(update))
+        self.port.submit(Duplicates(tuple(sorted(self.others)), self.zid))
 
     def _on_heartbeat(self, sample: zenoh.Sample) -> None:
         """Only the arrival time is kept (one dict write): the scan loop judges it."""
         rider = rider_keys.rider_of(str(sample.key_expr))
-        # Bounded: a flood of made-up Rider ids cannot grow this without end.
-        if rider is not None and (rider in self._beats or len(self._beats) < MAX_RIDERS):
-            self._beats[rider] = self.clock()
-
-    def last_heartbeat(self, rider: str) -> float | None:
-        """`RiderBeats` for the scan loop: when `rider`'s heartbeat last arrived."""
-        return self._beats.get(rider)
+        if rider is not None:
+            self.port.heartbeat(rider)
 
     def _on_rider(self, sample: zenoh.Sample) -> None:
         rider = rider_keys.rider_of(str(sample.key_expr))
@@ -117,26 +103,5 @@ class Presence:
             self.riders_alive.add(rider)
         else:
             self.riders_alive.discard(rider)
-            self._beats.pop(rider, None)
-
-        def update(loop: ScanLoop, now: float) -> None:
-            control = loop.control
-            if control.controller_rider != rider:
-                return
-            policy = self.config.rider_loss.policy
-            acted = False
-            if alive:
-                control.rider_back()
-            elif acted := control.rider_lost(now):
-                log.warning("event=rider_lost rider=%s policy=%s", rider, policy)
-            # Through the recorder: after what it holds (the events of commands answered
-            # since the last cycle), before the state change this causes.
-            kind = "rider_returned" if alive else "rider_lost"
-            # Left at rest (the end of `rider start --wait`) or lost while its motion runs.
-            mid_motion = acted or control.is_moving()
-            event = RiderEvent(
-                kind=kind, rider=rider, policy=str(policy), acted=acted, mid_motion=mid_motion
-            )
-            loop.recorder.emit(event, now)
-
-        self.loop.inbox.put(LoopCall(update))
+            self.port.rider_gone(rider)
+        self.port.submit(RiderPresence(rider, alive))

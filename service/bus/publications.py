@@ -1,14 +1,16 @@
 """What the machine publishes: status, IO, axes, completions, calibration, diagnostics, events.
 
-Every publication names this session (its source info), so a Rider drops samples of any other
-session that holds (or forges) this machine's keys. Publishers drop rather than block.
+`Publications` is the scan loop's sink (`service.core.sink.LoopSink`), made before the loop it
+serves and knowing nothing of it. Every publication names this session (its source info), so a
+Rider drops samples of any other session that holds (or forges) this machine's keys.
+Publishers drop rather than block.
 """
 
 from __future__ import annotations
 
 import itertools
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +28,6 @@ from service.adapters.eventdb import StoredRow
 from service.adapters.eventlog import EventLog
 from service.adapters.eventread import row_payload
 from service.config.model import MachineConfig
-from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
 from service.threads import NamedThread
 
@@ -39,7 +40,6 @@ class Publications:
     """The machine's publishers; the loop's `LoopSink`."""
 
     session: zenoh.Session
-    loop: ScanLoop
     stats: CycleStats
     config: MachineConfig
     wall: Callable[[], float]
@@ -54,13 +54,14 @@ class Publications:
         self._diag_thread: threading.Thread | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._holder: zenoh.LivelinessToken | None = None
+        self._last: Status | None = None
+        """The status published last (the watchdog's trip is published as its successor)."""
 
-    def declare(self) -> list[Any]:
-        """Declare the publishers (data keys up front: a first publication never pays for a
-        declaration inside a scan cycle) and start the diag publisher; the caller undeclares."""
+    def declare(self, io_keys: Iterable[str]) -> list[Any]:
+        """Declare the publishers (data keys up front, `io_keys` the IO points' `io/<kind>/
+        <name>`: a first publication never pays for a declaration inside a scan cycle) and
+        start the diag publisher; the caller undeclares."""
         s, b = self.session, self.base
-        self.loop.completion_listeners.append(self.publish_completion)
-        self.loop.calibration_listeners.append(self.publish_calibration)
         drop = zenoh.CongestionControl.DROP
         self._status_pub = s.declare_publisher(
             f"{b}/status",
@@ -77,8 +78,8 @@ class Publications:
         self._events_pub = s.declare_publisher(f"{b}/events/*")
         if self.events is not None:
             self.events.subscribe(self._publish_events)
-        for point in self.loop.points.all():
-            self._publisher(f"{b}/io/{point.kind}/{point.name}")
+        for key in io_keys:
+            self._publisher(f"{b}/{key}")
         for axis in ("rotate", "tilt"):
             self._publisher(f"{b}/axis/{axis}")
         self._diag_thread = NamedThread(target=self._diag_loop, name="diag", daemon=True)
@@ -98,13 +99,11 @@ class Publications:
         self._data_pubs.clear()
 
     def publish_status(self, status: Status) -> None:
-        # The source names this session: a Rider drops statuses of another holder of the id.
-        self._status_pub.put(
-            encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
-        )
+        self._last = status
+        self._put_status(status)
         if self._token is None:
             # Alive once there is a status to answer with: a Rider that sees the token and
-            # asks at once must get one (the loop sets `published.status` before this call).
+            # asks at once must get one (the loop publishes its records before this call).
             self._token = self.session.liveliness().declare_token(f"{self.base}/alive")
 
     def hold(self) -> None:
@@ -167,22 +166,17 @@ class Publications:
 
     def publish_watchdog_trip(self, stalled_s: float) -> None:
         """From the watchdog thread: tell everyone at once, the scan thread may be stuck."""
-        last = self.loop.published.status
+        last = self._last
         if last is None:
             return
-        status = last.model_copy(
-            update={
-                "state": MachineState.FAULT_HW,
-                "previous_state": last.state,
-                "fault": Fault(
-                    code=FaultCode.WATCHDOG,
-                    message=f"scan loop stalled for {stalled_s * 1000:.0f} ms;"
-                    " outputs forced safe by the watchdog",
-                ),
-                "seq": last.seq + 1,
-                "time": self.wall(),
-            }
+        message = (
+            f"scan loop stalled for {stalled_s * 1000:.0f} ms; outputs forced safe by the watchdog"
         )
+        fault = Fault(code=FaultCode.WATCHDOG, message=message)
+        self._put_status(faulted(last, fault, self.wall()))
+
+    def _put_status(self, status: Status) -> None:
+        # The source names this session: a Rider drops statuses of another holder of the id.
         self._status_pub.put(
             encode(status), source_info=zenoh.SourceInfo(self._status_pub.id, status.seq)
         )
@@ -219,3 +213,10 @@ def subscribed(publisher: zenoh.Publisher) -> bool:
     `MatchingStatus`, which its type stubs call a bool)."""
     status: Any = publisher.matching_status
     return bool(getattr(status, "matching", status))
+
+
+def faulted(last: Status, fault: Fault, now: float, **also: object) -> Status:
+    """The status that follows `last` once `fault` has put the machine in FAULT_HW (the
+    watchdog's trip here, a dead daemon in the supervisor's bus); `also`: other fields."""
+    update = {"state": MachineState.FAULT_HW, "previous_state": last.state, "fault": fault}
+    return last.model_copy(update={**update, "seq": last.seq + 1, "time": now, **also})

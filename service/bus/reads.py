@@ -19,7 +19,7 @@ from schema.findings import Findings
 from service.adapters.eventlog import EventLog
 from service.bus.request import Request, put
 from service.bus.routes import Handler, Route
-from service.core.loop import ScanLoop
+from service.core.port import LoopPort
 from service.errors import (
     BadKey,
     BadRequest,
@@ -70,15 +70,15 @@ class Reads:
     """The daemon's read-only routes."""
 
     base: str
-    loop: ScanLoop
+    port: LoopPort
     diag: Callable[[], CycleDiag]
     check_config: ConfigChecker | None = None
     events: EventLog | None = None
 
     def routes(self) -> list[Route]:
-        b, published = self.base, self.loop.published
+        b, port = self.base, self.port
         routes = [
-            Route("status", latest(f"{b}/status", lambda: published.status), direct=True),
+            Route("status", latest(f"{b}/status", lambda: port.snapshot().status), direct=True),
             Route("io/**", self.io, direct=True),
             Route("axis/**", self.axes, direct=True),
             Route("diag/cycle", self.cycle),  # sorts the stats window: not on Zenoh's thread
@@ -86,7 +86,7 @@ class Reads:
             Route("done/**", self.done, direct=True),
             Route(
                 "calibration",
-                latest(f"{b}/calibration", lambda: published.calibration),
+                latest(f"{b}/calibration", lambda: port.snapshot().calibration),
                 direct=True,
             ),
         ]
@@ -95,11 +95,11 @@ class Reads:
         return routes
 
     def io(self, request: Request) -> None:
-        points = self.loop.published.io.values()
+        points = self.port.snapshot().io.values()
         matching(request, self.base, [(f"io/{p.kind}/{p.name}", p) for p in points])
 
     def axes(self, request: Request) -> None:
-        records = self.loop.published.axes.values()
+        records = self.port.snapshot().axes.values()
         matching(request, self.base, [(f"axis/{r.axis}", r) for r in records])
 
     def cycle(self, request: Request) -> None:
@@ -115,14 +115,14 @@ class Reads:
     def done(self, request: Request) -> None:
         """How a motion ended: its notice, IN_PROGRESS while it runs, or UNKNOWN_TRANSACTION;
         a wildcard (`done/**`) gets every notice the machine remembers."""
-        log = self.loop.completions
         if request.wild:
-            matching(request, self.base, [(f"done/{n.transaction_id}", n) for n in log.recent()])
+            notices = self.port.notices()
+            matching(request, self.base, [(f"done/{n.transaction_id}", n) for n in notices])
             return
         key = request.key
         tid = key[len(f"{self.base}/done/") :]
         request.transaction_id = tid
-        found = log.lookup(tid)
+        found = self.port.notice(tid)
         if isinstance(found, Completion):
             request.reply(found)
         elif found is not None:
@@ -171,6 +171,6 @@ class Reads:
 
         # The events of commands answered since the last cycle are written with the next one:
         # hand them over first, so the page has every command answered before it was asked.
-        self.loop.release_records(HISTORY_LOCK_TIMEOUT_S)
+        self.port.release_records(HISTORY_LOCK_TIMEOUT_S)
         if not events.read(q, respond, fail):
             raise Busy("event reader busy; retry later")

@@ -26,6 +26,7 @@ from schema.completion import Completion, Outcome
 from schema.status import Fault, FaultCode, MachineState, Status
 from service.bus.commands import command_route
 from service.bus.injection import Injection, SimPort
+from service.bus.publications import faulted
 from service.bus.reads import latest, matching
 from service.bus.request import Request
 from service.bus.routes import Route, declare
@@ -237,18 +238,10 @@ class SupervisorBus:
                 time=now,
                 heartbeat_s=self.config.bus.heartbeat_s,
             )
-        return last.model_copy(
-            update={
-                "state": MachineState.FAULT_HW,
-                "previous_state": last.state,
-                "session": None,
-                "fault": fault,
-                "motion": None,
-                "seq": last.seq + 1,
-                "time": now,
-                "uptime_s": 0.0,
-                "heartbeat_s": self.config.bus.heartbeat_s,  # republish() keeps this period
-            }
+        # `republish()` keeps this heartbeat period.
+        period = self.config.bus.heartbeat_s
+        return faulted(
+            last, fault, now, session=None, motion=None, uptime_s=0.0, heartbeat_s=period
         )
 
     def _last_status(self) -> Status | None:

@@ -18,9 +18,10 @@ from service.adapters.eventlog import EventLog
 from service.bus.reads import matching
 from service.bus.request import Request, sender_of
 from service.bus.routes import Route, Wildcard
-from service.core.loop import LoopCall, ScanLoop, calibration_record
 from service.core.persist import SaveTicket
+from service.core.port import LoopPort
 from service.core.safety import is_safety
+from service.core.tasks import EnterCalibration, OnScanThread
 from service.core.timing import CycleStats
 from service.errors import BadRequest, Busy, MachineError, Rejected, StorageFailed
 from service.threads import NamedThread
@@ -41,13 +42,14 @@ class ParamService(Protocol):
     def set(self, name: str, req: ParamSet, *, moving: bool, now: float) -> ParamValue: ...
 
 
-def on_loop(loop: ScanLoop, request: Request, fn: Callable[[ScanLoop, float], None]) -> None:
-    """Run `fn` on the scan thread; it answers `request` there (or is refused if it never runs)."""
+def on_scan_thread(port: LoopPort, request: Request, fn: Callable[[], None]) -> None:
+    """Run `fn` on the scan thread, between or within cycles; it answers `request` there (or
+    `request` is refused if it never runs)."""
 
     def rejected(error: Error) -> None:
         request.refuse(Rejected(error))
 
-    if not loop.inbox.put(LoopCall(fn, rejected)):
+    if not port.submit(OnScanThread(fn, rejected)):
         raise Busy("command queue full; retry later")
 
 
@@ -56,10 +58,9 @@ class Writes:
     """The daemon's write routes other than commands."""
 
     base: str
-    loop: ScanLoop
+    port: LoopPort
     stats: CycleStats
     diag: Callable[[], CycleDiag]
-    machine_id: str
     wall: Callable[[], float]
     params: ParamService | None = None
     events: EventLog | None = None
@@ -95,11 +96,11 @@ class Writes:
     def reset(self, request: Request) -> None:
         """Reply with the counters as they were, then reset them, on the scan thread."""
 
-        def reset(loop: ScanLoop, now: float) -> None:
+        def reset() -> None:
             request.reply(self.diag())
             self.stats.reset(self.wall())
 
-        on_loop(self.loop, request, reset)
+        on_scan_thread(self.port, request, reset)
 
     def param(self, request: Request) -> None:
         params = self.params
@@ -118,7 +119,7 @@ class Writes:
         old = params.get(name)
         record = functools.partial(self._record, old, req, sender_of(request.query))
         try:
-            value = params.set(name, req, moving=self.loop.control.is_moving(), now=self.wall())
+            value = params.set(name, req, moving=self.port.moving(), now=self.wall())
         except MachineError as exc:
             if is_safety(old.name):  # every try at a safety setting is on the record
                 record(old.default if req.reset else req.value, False, exc.message)
@@ -164,14 +165,9 @@ class Writes:
             )
         req = request.decode(CalibrationSet)
 
-        def enter(loop: ScanLoop, now: float) -> None:
-            try:
-                ticket = loop.control.enter_calibration(req, now)
-            except MachineError as exc:
-                request.refuse(exc)
-                return
-            record = calibration_record(loop.control.calibration, self.machine_id, now)
-            record = record.model_copy(update={"time": self.wall()})
+        def entered(record: CalibrationRecord, ticket: SaveTicket | None) -> None:
+            """On the scan thread: the values are in use; a short-lived thread answers once
+            they are saved (the scan thread never waits for the disk)."""
             log.info(
                 "event=calibration_entered tx=%s timecode=%s tilt=%s rotate=%s",
                 req.transaction_id,
@@ -179,7 +175,7 @@ class Writes:
                 req.tilt is not None,
                 req.rotate is not None,
             )
-            # The scan thread never waits for the disk: a short-lived thread answers.
+            record = record.model_copy(update={"time": self.wall()})
             NamedThread(
                 target=_answer_saved,
                 args=(request, record, ticket),
@@ -187,7 +183,8 @@ class Writes:
                 daemon=True,
             ).start()
 
-        on_loop(self.loop, request, enter)
+        if not self.port.submit(EnterCalibration(req, entered, request.refuse)):
+            raise Busy("command queue full; retry later")
 
 
 def _answer_saved(request: Request, record: CalibrationRecord, ticket: SaveTicket | None) -> None:

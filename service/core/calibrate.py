@@ -25,7 +25,7 @@ from service.core.devices import (
     TiltDirection,
 )
 from service.core.homing import Latch, RotateHome, TiltApproach, half_travel, line
-from service.core.motion import REVERSE_DWELL_S, Measurement, Outcome
+from service.core.motion import REVERSE_DWELL_S, Measurement, Step
 from service.core.plausibility import TiltSupervisor
 
 
@@ -64,17 +64,17 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
         # Measure uncalibrated; a failed calibration puts the previous one back.
         self._previous, axis.calibration = axis.calibration, None
 
-    def update(self, now: float) -> Outcome:
-        outcome = self._measure(now)
-        if outcome is Outcome.FAULT and self.result is None:
+    def update(self, now: float) -> Step:
+        step = self._measure(now)
+        if step is Step.FAULT and self.result is None:
             self.axis.calibration = self._previous
-        return outcome
+        return step
 
-    def _measure(self, now: float) -> Outcome:
+    def _measure(self, now: float) -> Step:
         if self.homing is not None:  # FIRST or SECOND
-            outcome = self._step(self.homing, now)
-            if outcome is not Outcome.DONE:
-                return outcome
+            step = self._step(self.homing, now)
+            if step is not Step.DONE:
+                return step
             assert self.homing.latch is not None
             self.zeros.append(self.homing.latch)
             self.homing = None
@@ -84,23 +84,23 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
             self.timer.start(now, REVERSE_DWELL_S)
         if self.phase is TiltCalPhase.REST:
             if not self.timer.done(now):
-                return Outcome.BUSY
+                return Step.BUSY
             self.phase, self._samples = TiltCalPhase.STROKE, []
             self.timer.start(now, self.cfg.calibration_stroke_s)
             self._sup.reset()
             self.axis.tilt_one(TiltDirection.UP)  # its scan was at rest: not a sample
-            return Outcome.BUSY
+            return Step.BUSY
         return self._stroke(now)
 
-    def _stroke(self, now: float) -> Outcome:
+    def _stroke(self, now: float) -> Step:
         self._samples.append((now, self.axis.read_raw()))  # moving since the write before
         if self.timer.done(now):
             self.axis.stop()
             return self._top()
         fault = self._sup.drive(now, TiltDirection.UP)
-        return Outcome.BUSY if fault is None else self._fault(fault)
+        return Step.BUSY if fault is None else self._fault(fault)
 
-    def _top(self) -> Outcome:
+    def _top(self) -> Step:
         """The gain from the stroke, checked; then down to latch the zero again."""
         cfg = self.cfg
         n = len(self._samples)
@@ -122,9 +122,9 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
         self._gain = gain
         self.phase = TiltCalPhase.SECOND
         self.homing = TiltApproach(self.axis, self.cfg, rest_s=REVERSE_DWELL_S)
-        return Outcome.BUSY
+        return Step.BUSY
 
-    def _compute(self) -> Outcome:
+    def _compute(self) -> Step:
         first, second = (z.raw for z in self.zeros)
         assert first is not None and second is not None
         apart = abs(first - second) / self._gain
@@ -139,7 +139,7 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
         offset = (first + second) / 2
         self.result = TiltCalibration(offset_counts=offset, gain_counts_per_deg=self._gain)
         self.axis.calibration = self.result
-        return Outcome.DONE
+        return Step.DONE
 
     def abandon(self) -> None:
         self.halt()
@@ -170,11 +170,11 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
         self._last: tuple[float, bool] | None = None
         self.result: RotateCalibration | None = None
 
-    def update(self, now: float) -> Outcome:
+    def update(self, now: float) -> Step:
         if self.homing is not None:
-            outcome = self._step(self.homing, now)
-            if outcome is not Outcome.DONE:
-                return outcome
+            step = self._step(self.homing, now)
+            if step is not Step.DONE:
+                return step
             self.homing = None
             self.timer.start(now, self.cfg.revolution_timeout_s)
         home = self.axis.is_home()
@@ -195,7 +195,7 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
                 " while measuring a revolution",
             )
         self.axis.rotate_one(Direction.CW)
-        return Outcome.BUSY
+        return Step.BUSY
 
     def _good(self, latch: Latch) -> bool:
         return latch.half_deg <= self.cfg.latch_tolerance_deg
@@ -215,7 +215,7 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
         good = [(a, b) for a, b in pairs if self._good(a) and self._good(b)]
         return good[-1] if good else None
 
-    def _measured(self) -> Outcome | None:
+    def _measured(self) -> Step | None:
         """At a closing edge: the result, once measured and this edge is a good one to stop
         on; None: turn on."""
         pairs = self._pairs()
@@ -234,7 +234,7 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
 
     def _finish(
         self, close1: Latch, close2: Latch, open1: Latch, open2: Latch, arc0: Latch, arc1: Latch
-    ) -> Outcome:
+    ) -> Step:
         by_closing, by_opening = close2.at - close1.at, open2.at - open1.at
         revolution_s = (by_closing + by_opening) / 2
         nominal_s = 360.0 / self.cfg.nominal_speed_dps
@@ -255,7 +255,7 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
             )
         arc = (arc1.at - arc0.at) / revolution_s * 360.0
         self.result = RotateCalibration(revolution_s=revolution_s, home_arc_deg=arc)
-        return Outcome.DONE
+        return Step.DONE
 
     def _start_over(self) -> None:
         self.homing, self.edges, self._last = RotateHome(self.axis, self.cfg), [], None

@@ -13,7 +13,7 @@ from schema.status import FaultCode, SessionProgress
 from service.config.model import MachineConfig, RotateSection, TiltSection
 from service.core.devices import Devices, RotateAxis, RotateCalibration, TiltAxis, TiltDirection
 from service.core.homing import RotateHome, half_travel
-from service.core.motion import AxisController, Chain, Controller, Outcome
+from service.core.motion import AxisController, Chain, Controller, Step
 from service.core.plausibility import RevolutionCheck, TiltSupervisor
 
 
@@ -30,7 +30,7 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
         self._dir: TiltDirection | None = None
         self._corrections = 0
 
-    def update(self, now: float) -> Outcome:
+    def update(self, now: float) -> Step:
         pos = self.axis.read_position_degrees()
         if pos is None:
             return self._fail(FaultCode.TILT_TIMEOUT, "tilt is not calibrated")
@@ -47,7 +47,7 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
                 return settled
         return self._drive(now, err)
 
-    def _stuck(self, now: float, pos: float) -> Outcome | None:
+    def _stuck(self, now: float, pos: float) -> Step | None:
         """Too slow, or the home switch still closed well above home: FAULT."""
         if self.timer.expired(now):
             return self._fail(
@@ -62,11 +62,11 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
             )
         return None
 
-    def _settle(self, err: float) -> Outcome | None:
+    def _settle(self, err: float) -> Step | None:
         """Stopped: DONE within tolerance, else the way to correct (None), or FAULT after
         too many corrections."""
         if abs(err) <= self.cfg.tolerance_deg:
-            return Outcome.DONE
+            return Step.DONE
         self._corrections += 1
         if self._corrections > self.MAX_CORRECTIONS:
             return self._fail(
@@ -77,7 +77,7 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
         self._sup.reset()
         return None
 
-    def _drive(self, now: float, err: float) -> Outcome:
+    def _drive(self, now: float, err: float) -> Step:
         assert self._dir is not None
         reached = abs(err) <= self.cfg.tolerance_deg / 2 or (
             err <= 0 if self._dir is TiltDirection.UP else err >= 0
@@ -85,9 +85,9 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
         if reached:
             self.axis.stop()
             self._dir = None
-            return Outcome.BUSY
+            return Step.BUSY
         fault = self._sup.drive(now, self._dir)
-        return Outcome.BUSY if fault is None else self._fault(fault)
+        return Step.BUSY if fault is None else self._fault(fault)
 
     def halt(self) -> None:
         super().halt()
@@ -129,7 +129,7 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
         self.final: RotateHome | None = None
         """The final approach, when the last edge was seen across a stall."""
 
-    def update(self, now: float) -> Outcome:
+    def update(self, now: float) -> Step:
         if self.final is not None:
             return self._step(self.final, now)
         home = self.axis.is_home()
@@ -160,14 +160,14 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
         if fault is not None:
             return self._fault(fault)
         self.axis.rotate_one(self.direction)
-        return Outcome.BUSY
+        return Step.BUSY
 
-    def _last_edge(self, now: float, before: float | None) -> Outcome:
+    def _last_edge(self, now: float, before: float | None) -> Step:
         if half_travel(self.cal.speed_dps, before, now) <= self.cfg.latch_tolerance_deg:
-            return Outcome.DONE
+            return Step.DONE
         self.final = RotateHome(self.axis, self.cfg, self.cal.speed_dps)
         self.target_deg = 0.0
-        return Outcome.BUSY
+        return Step.BUSY
 
     def halt(self) -> None:
         super().halt()

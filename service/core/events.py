@@ -31,9 +31,9 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import Fault, MachineState
-from service.core.control import ControlAPI, Transition
 from service.core.controllers import SessionRun
 from service.core.devices import Calibration
+from service.core.statemachine import Snapshot, StateMachine, Transition
 from service.logfmt import info
 
 S = MachineState
@@ -216,12 +216,12 @@ class EventRecorder:
 
     # --------------------------------------------------------------------------- inputs
     def transition(self, t: Transition) -> None:
-        """`ControlAPI.on_transition`: kept until the next `observe`, so causes come first."""
+        """`StateMachine.on_transition`: kept until the next `observe`, so causes come first."""
         self._transitions.append(t)
 
     def command(
         self,
-        control: ControlAPI,
+        control: StateMachine,
         command: Command,
         request: CommandRequest,
         reply: Reply,
@@ -271,13 +271,13 @@ class EventRecorder:
         self._notices.append(notice)
 
     # -------------------------------------------------------------------------- compare
-    def observe(self, control: ControlAPI, now: float) -> None:
+    def observe(self, control: StateMachine, now: float) -> None:
         """Emit what changed since the last look (after what is held)."""
         self.release()
         wall = now + self.wall_offset
         self._compare(control, wall, self._emitter(wall), None)
 
-    def _compare(self, control: ControlAPI, wall: float, emit: Emit, cause: Lazy | None) -> None:
+    def _compare(self, control: StateMachine, wall: float, emit: Emit, cause: Lazy | None) -> None:
         """Emit, in this order: E-stop input changes, the command, the transitions, then
         their consequences (latch, faults, sessions, completions, calibration)."""
         if not self._seen:
@@ -304,22 +304,21 @@ class EventRecorder:
         self._calibrations(control, emit)
         self._storage(control, emit)
 
-    def settled(self, control: ControlAPI) -> bool:
-        """Another `release` and `observe` of `control` as it is now would emit nothing:
-        nothing held, no transition or notice waiting, and the snapshot matches it
-        (`ScanLoop`'s quiet cycles)."""
-        storage = control.storage
-        run = control.session_run
+    def settled(self, now: Snapshot) -> bool:
+        """Another `release` and `observe` of the machine as `now` shows it would emit
+        nothing: nothing held, no transition or notice waiting, and what this recorder last
+        saw matches it (`ScanLoop`'s quiet cycles)."""
+        run = now.session
         return (
             self._seen
             and not self._held
             and not self._transitions
             and not self._notices
-            and self._estop == control.devices.safety.is_estop_active()
-            and self._latched == control.estop_latched
-            and self._fault == control.fault
-            and self._calibration is control.calibration
-            and (storage is None or storage.version == self._storage_version)
+            and self._estop == now.estop_active
+            and self._latched == now.estop_latched
+            and self._fault == now.fault
+            and self._calibration is now.calibration
+            and now.storage == self._storage_version
             and (run is None or (self._session is not None and self._session.run is run))
         )
 
@@ -331,14 +330,14 @@ class EventRecorder:
 
         return emit
 
-    def _baseline(self, control: ControlAPI) -> None:
+    def _baseline(self, control: StateMachine) -> None:
         self._seen = True
         self._estop = False  # an E-stop pressed at power-up is recorded as pressed
         self._latched = control.estop_latched
         self._fault = control.fault
         self._calibration = control.calibration
 
-    def _faults(self, control: ControlAPI, emit: Emit) -> None:
+    def _faults(self, control: StateMachine, emit: Emit) -> None:
         fault = control.fault
         if fault == self._fault:
             return
@@ -355,7 +354,7 @@ class EventRecorder:
                 )
             )
 
-    def _session_started(self, control: ControlAPI, wall: float, emit: Emit) -> None:
+    def _session_started(self, control: StateMachine, wall: float, emit: Emit) -> None:
         run = control.session_run
         if run is None or (self._session is not None and self._session.run is run):
             return
@@ -401,7 +400,7 @@ class EventRecorder:
                 )
             )
 
-    def _storage(self, control: ControlAPI, emit: Emit) -> None:
+    def _storage(self, control: StateMachine, emit: Emit) -> None:
         """A calibration or parameter write to data_dir that failed (each problem once)."""
         storage = control.storage
         if storage is None or storage.version == self._storage_version:
@@ -412,7 +411,7 @@ class EventRecorder:
             emit(StorageEvent(what="data_dir", error=problem))
         self._storage_seen = now
 
-    def _calibrations(self, control: ControlAPI, emit: Emit) -> None:
+    def _calibrations(self, control: StateMachine, emit: Emit) -> None:
         """A calibration change, once its write has ended: `persisted` says how it went."""
         cal = control.calibration
         old = self._calibration

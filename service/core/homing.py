@@ -29,7 +29,7 @@ from service.core.motion import (
     AxisController,
     AxisT,
     CfgT,
-    Outcome,
+    Step,
 )
 from service.core.plausibility import TiltSupervisor
 
@@ -120,7 +120,7 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
     def _seek_limit(self) -> float:
         raise NotImplementedError
 
-    def _drive(self, now: float, away: bool) -> Outcome:
+    def _drive(self, now: float, away: bool) -> Step:
         """Drive away from the switch (back off) or toward it (seek) for one cycle."""
         raise NotImplementedError
 
@@ -137,8 +137,8 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
     def _ran_up(self) -> bool:
         return True
 
-    def _accept(self, latch: Latch) -> Outcome:
-        return Outcome.DONE
+    def _accept(self, latch: Latch) -> Step:
+        return Step.DONE
 
     def _stuck_closed(self, now: float) -> Fault:
         raise NotImplementedError
@@ -153,7 +153,7 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
         if phase in (Phase.BACKOFF, Phase.SEEK):
             self._moving()
 
-    def update(self, now: float) -> Outcome:
+    def update(self, now: float) -> Step:
         home = self.axis.is_home()
         if self.phase is Phase.START:
             if self._limits[Phase.REST]:
@@ -162,7 +162,7 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
                 self._enter(Phase.BACKOFF if home else Phase.SEEK, now)
         if self.phase in (Phase.REST, Phase.DWELL):
             if not self.timer.done(now):
-                return Outcome.BUSY
+                return Step.BUSY
             self._enter(Phase.BACKOFF if home else Phase.SEEK, now)
         if self.phase is Phase.BACKOFF:
             if not home:
@@ -175,16 +175,16 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
             return self._seek(now, home)
         return self._drive(now, away=True)
 
-    def _run_up(self, now: float, home: bool) -> Outcome:
+    def _run_up(self, now: float, home: bool) -> Step:
         if not self.timer.done(now):
             return self._drive(now, away=True)
         if home:  # closed again after opening, well past its hysteresis
             return self._fault(self._stuck_closed(now))
         self.axis.stop()
         self._enter(Phase.DWELL, now)
-        return Outcome.BUSY
+        return Step.BUSY
 
-    def _seek(self, now: float, home: bool) -> Outcome:
+    def _seek(self, now: float, home: bool) -> Step:
         if not home:
             if self.timer.expired(now):
                 return self._fault(self._not_found())
@@ -208,7 +208,7 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
                 " switch)",
             )
         self._enter(Phase.DWELL, now)  # then back off (the switch is closed) and approach again
-        return Outcome.BUSY
+        return Step.BUSY
 
     def _problem(self, latch: Latch | None) -> str | None:
         """Why `latch` cannot be trusted; None: it can."""
@@ -245,9 +245,9 @@ class TiltApproach(EdgeApproach[TiltAxis, TiltSection]):
     def _seek_limit(self) -> float:
         return self.cfg.home_timeout_s
 
-    def _drive(self, now: float, away: bool) -> Outcome:
+    def _drive(self, now: float, away: bool) -> Step:
         fault = self._sup.drive(now, TiltDirection.UP if away else TiltDirection.DOWN)
-        return Outcome.BUSY if fault is None else self._fault(fault)
+        return Step.BUSY if fault is None else self._fault(fault)
 
     def _moving(self) -> None:
         self._sup.reset()
@@ -294,14 +294,14 @@ class TiltHome(TiltApproach):
     """Home: the approach, then (calibrated) the edge must lie within `home_tolerance_deg` of the
     calibrated zero."""
 
-    def _accept(self, latch: Latch) -> Outcome:
+    def _accept(self, latch: Latch) -> Step:
         cal = self.axis.calibration
         if cal is None or latch.raw is None:
-            return Outcome.DONE
+            return Step.DONE
         deg = (latch.raw - cal.offset_counts) / cal.gain_counts_per_deg
         tol = self.cfg.home_tolerance_deg
         if abs(deg) <= tol:
-            return Outcome.DONE
+            return Step.DONE
         return self._fail(
             FaultCode.HOME_OFF_ZERO,
             f"tilt home edge at {deg:+.2f}° by the calibration (raw {latch.raw:.1f}, offset"
@@ -328,9 +328,9 @@ class RotateHome(EdgeApproach[RotateAxis, RotateSection]):
     def _seek_limit(self) -> float:
         return self.cfg.revolution_timeout_s
 
-    def _drive(self, now: float, away: bool) -> Outcome:
+    def _drive(self, now: float, away: bool) -> Step:
         self.axis.rotate_one(Direction.CCW if away else Direction.CW)
-        return Outcome.BUSY
+        return Step.BUSY
 
     def _moving(self) -> None:
         self._last = None

@@ -1,4 +1,4 @@
-"""The assembled core: HAL → process image → devices → ControlAPI → scan loop."""
+"""The assembled core: HAL → process image → devices → state machine → scan loop."""
 
 from __future__ import annotations
 
@@ -7,12 +7,14 @@ from collections.abc import Callable
 
 from hal.base import Hal
 from service.config.model import LiveConfig, MachineConfig
-from service.core.control import ControlAPI, Transition
 from service.core.devices import Calibration, Devices
 from service.core.events import EventRecorder, EventSink, NullEventSink
 from service.core.io import IoPoints, ProcessImage
-from service.core.loop import LoopSink, ScanLoop, SinkFactory
+from service.core.loop import ScanLoop
 from service.core.persist import CalibrationStore
+from service.core.sink import LoopSink
+from service.core.statemachine import StateMachine, Transition
+from service.core.statemachine.deadman import Heartbeats
 from service.core.watchdog import GuardedHal
 
 log = logging.getLogger("machine")
@@ -33,16 +35,19 @@ class Machine:
         now: float,
         wall_offset: float = 0.0,
         store: CalibrationStore | None = None,
-        sink: LoopSink | SinkFactory | None = None,
+        sink: LoopSink | None = None,
+        beats: Heartbeats | None = None,
         on_transition: Callable[[Transition], None] | None = log_transition,
         events: EventSink | None = None,
         guard: GuardedHal | None = None,
         warnings: list[str] | None = None,
         clock: Callable[[], float] | None = None,
     ) -> None:
-        """`config`: fixed, or live (online parameters); `events` receives the event history
-        (`service/core/events.py`) and must never block; `warnings` start in the status;
-        `clock`: the real clock the runner reads `now` from (`ScanLoop.clock`)."""
+        """`config`: fixed, or live (online parameters); `sink` gets what the loop publishes;
+        `beats` records the Riders' heartbeats (the bus feeds it through the loop's port);
+        `events` receives the event history (`service/core/events.py`) and must never block;
+        `warnings` start in the status; `clock`: the real clock the runner reads `now` from
+        (`ScanLoop.clock`)."""
         hal.force_all_outputs_safe()
         self.live = config if isinstance(config, LiveConfig) else LiveConfig(config)
         self.hal = hal
@@ -61,7 +66,7 @@ class Machine:
         self.recorder = EventRecorder(
             events or NullEventSink(), wall_offset=wall_offset, persisted=store is not None
         )
-        self.control = ControlAPI(
+        self.control = StateMachine(
             devices=self.devices,
             live=self.live,
             calibration=calibration,
@@ -72,7 +77,13 @@ class Machine:
             warnings=[*found, *(warnings or [])],
         )
         self.loop = ScanLoop(
-            hal, self.control, sink=sink, started_at=now, guard=guard, recorder=self.recorder
+            hal,
+            self.control,
+            sink=sink,
+            started_at=now,
+            guard=guard,
+            recorder=self.recorder,
+            beats=beats,
         )
         self.loop.clock = clock
 

@@ -1,4 +1,4 @@
-"""What every controller is made of: the outcome of a cycle, the timeout window, the base
+"""What every controller is made of: the `Step` a cycle ends in, the timeout window, the base
 classes, and the chain that runs controllers one after another.
 
 Controllers are non-blocking: each `update(now)` looks at the inputs and sets the outputs once.
@@ -19,7 +19,10 @@ from service.config.model import RotateSection, TiltSection
 from service.core.devices import RotateAxis, TiltAxis
 
 
-class Outcome(Enum):
+class Step(Enum):
+    """What one `update` of a controller came to (a motion's own ending is a completion
+    notice's `schema.completion.Outcome`)."""
+
     BUSY = auto()
     DONE = auto()
     FAULT = auto()
@@ -78,7 +81,7 @@ class Controller:
     def __init__(self) -> None:
         self.fault: Fault | None = None
 
-    def update(self, now: float) -> Outcome:
+    def update(self, now: float) -> Step:
         raise NotImplementedError
 
     def halt(self) -> None:
@@ -95,20 +98,20 @@ class Controller:
         """The controller doing the work now."""
         return self
 
-    def _fault(self, fault: Fault) -> Outcome:
+    def _fault(self, fault: Fault) -> Step:
         self.halt()
         self.fault = fault
-        return Outcome.FAULT
+        return Step.FAULT
 
-    def _fail(self, code: FaultCode, message: str) -> Outcome:
+    def _fail(self, code: FaultCode, message: str) -> Step:
         return self._fault(Fault(code=code, message=message, axis=self.axis_name or None))
 
-    def _step(self, sub: Controller, now: float) -> Outcome:
+    def _step(self, sub: Controller, now: float) -> Step:
         """Run a sub-controller for one cycle; its fault is this controller's."""
-        outcome = sub.update(now)
-        if outcome is Outcome.FAULT:
+        step = sub.update(now)
+        if step is Step.FAULT:
             self.fault = sub.fault
-        return outcome
+        return step
 
 
 AxisT = TypeVar("AxisT", RotateAxis, TiltAxis)
@@ -158,16 +161,16 @@ class Chain(Controller):
         self.index = 0
         self.current: Controller | None = None
 
-    def update(self, now: float) -> Outcome:
+    def update(self, now: float) -> Step:
         while self.index < len(self._factories):
             if self.current is None:
                 self.current = self._factories[self.index]()
-            outcome = self._step(self.current, now)
-            if outcome is not Outcome.DONE:
-                return outcome
+            step = self._step(self.current, now)
+            if step is not Step.DONE:
+                return step
             self.current = None
             self.index += 1
-        return Outcome.DONE
+        return Step.DONE
 
     def halt(self) -> None:
         if self.current is not None:

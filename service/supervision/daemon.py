@@ -27,10 +27,10 @@ from service.config.load import check_candidate
 from service.config.model import MachineConfig
 from service.config.validate import Category, finding_line, one_error
 from service.core.beat import BeatWriter, beat_from_env
-from service.core.loop import ScanLoop
 from service.core.machine import Machine
 from service.core.params import ParamRegistry
 from service.core.persist import BackgroundWriter, CalibrationStore, ParamStore
+from service.core.port import LoopPort
 from service.core.runner import (
     SUPERVISOR_PID_ENV,
     LoopFailed,
@@ -43,6 +43,7 @@ from service.core.runner import (
     tune_thread,
 )
 from service.core.safety import in_effect
+from service.core.statemachine.deadman import Heartbeats
 from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
@@ -204,8 +205,7 @@ class Daemon:
         name_callback_threads()  # zenoh-python's callback threads, for `top -H`
         _on_exit(stack, "wind_down", self._wind_down)  # while the bus is up: last answers
         self._start_watchdog(stack, hal)
-        loop = self.loop
-        if (beat := HeartbeatFile.from_env(lambda: loop.cycle)) is not None:  # healthcheck
+        if (beat := HeartbeatFile.from_env(self.port.cycle)) is not None:  # healthcheck
             _on_exit(stack, "heartbeat_file", beat.stop)
             beat.start()
         if self.config.fastdata.enabled:
@@ -252,10 +252,7 @@ class Daemon:
 
     def _remember(self, recalled: Recalled) -> None:
         """A repeat of a transaction answered before this start gets that answer again."""
-        for tid, command, packed in recalled.replies:
-            self.loop.transactions.remember(tid, command, packed)
-        for notice in recalled.completions:
-            self.loop.completions.record(notice)
+        self.loop.remember(recalled.replies, recalled.completions)
         log.info(
             "event=transactions_recalled commands=%d completions=%d since=%s",
             len(recalled.replies),
@@ -301,8 +298,11 @@ class Daemon:
         registry: ParamRegistry,
         session: zbus.Session,
     ) -> None:
-        """The machine, its runner, and the bus it publishes to, each given what it uses."""
+        """The machine, its runner, and the bus, each given what it uses: the loop publishes
+        through the bus's publications (made first), the bus reaches the loop through its port
+        (made after it)."""
         config, clock = self.config, self.clock
+        publications = zbus.Publications(session, self.stats, config, time.time, self.events)
         machine = Machine(
             registry.live,
             hal,
@@ -312,10 +312,21 @@ class Daemon:
             events=self.events,
             guard=hal,
             warnings=registry.warnings,
-            sink=lambda loop: self._make_bus(session, loop, registry),
+            sink=publications,
+            beats=Heartbeats(),
             clock=clock,
         )
         self.loop = machine.loop
+        self.port = LoopPort(machine.loop, clock)
+        self.bus = zbus.ZenohBus(
+            self.port,
+            publications,
+            io_keys=[f"io/{p.kind}/{p.name}" for p in machine.points.all()],
+            sim=sim_port(backend(self.config.hal.backend).simulator(self.raw_hal)),
+            sim_elsewhere=self.supervised,
+            params=registry,
+            check_config=lambda candidate: check_candidate(registry.config, candidate),
+        )
         self.runner = RealtimeRunner(
             self.loop,
             config.loop.period_s,
@@ -328,23 +339,6 @@ class Daemon:
             self.beat.start(config.loop.watchdog_limit_s)
         if self._stop_asked:  # a signal during setup: serve no cycle
             self.runner.stop()
-
-    def _make_bus(
-        self, session: zbus.Session, loop: ScanLoop, registry: ParamRegistry
-    ) -> zbus.ZenohBus:
-        """The loop's sink: the Zenoh adapter, which answers queries from that loop."""
-        self.bus = zbus.ZenohBus(
-            session,
-            loop,
-            self.stats,
-            self.config,
-            sim=sim_port(backend(self.config.hal.backend).simulator(self.raw_hal)),
-            sim_elsewhere=self.supervised,
-            params=registry,
-            check_config=lambda candidate: check_candidate(registry.config, candidate),
-            events=self.events,
-        )
-        return self.bus
 
     def _start_watchdog(self, stack: contextlib.ExitStack, hal: GuardedHal) -> None:
         loop, runner = self.config.loop, self.runner
@@ -364,12 +358,12 @@ class Daemon:
         watchdog.start()
 
     def _start_fastdata(self, stack: contextlib.ExitStack, registry: ParamRegistry) -> None:
-        loop, fd = self.loop, self.config.fastdata
+        fd, port = self.config.fastdata, self.port
         server = FastDataServer(
-            lambda: loop.published.axes,
+            lambda: port.snapshot().axes,
             fd.host,
             fd.port,
-            cycle=lambda: loop.cycle,
+            cycle=port.cycle,
             registers=lambda: user_registers(registry.config),
         )
         _on_exit(stack, "fastdata", server.close)

@@ -19,8 +19,8 @@ from schema.commands import Command, CommandRequest, Reply, StartRequest
 from schema.findings import Finding, Severity
 from schema.status import MachineState
 from service.config.model import MachineConfig
-from service.core.loop import PendingCommand
 from service.core.machine import Machine
+from service.core.tasks import PendingCommand
 from sim.procimg import ProcImgSim
 from tests.fixtures.revpi import (
     CONFIG_RSC,

@@ -24,6 +24,7 @@ from service.bus import commands
 from service.bus.commands import Commands, Deferred
 from service.bus.routes import declare
 from service.core.events import ListEventSink
+from service.core.port import LoopPort
 from tests.rig import Rig
 from tests.service.test_bus_routes import Host
 
@@ -45,7 +46,7 @@ def session() -> Iterator[zenoh.Session]:
 def machine(session: zenoh.Session) -> Iterator[tuple[Rig, Commands, ListEventSink]]:
     sink = ListEventSink()
     rig = Rig(events=sink)
-    bus = Commands(BASE, rig.loop, rig.clock)
+    bus = Commands(BASE, LoopPort(rig.loop, rig.clock))
     declared = declare(session, BASE, Host(), bus.routes())
     yield rig, bus, sink
     for entity in declared:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from schema.commands import Command
@@ -23,14 +23,10 @@ class Heard:
     """Every notice, with the last status published before it (to pin the order)."""
 
     rig: Rig
-    notices: list[tuple[Completion, Status | None]] = field(default_factory=list)
 
-    def __post_init__(self) -> None:
-        self.rig.loop.completion_listeners.append(self._heard)
-
-    def _heard(self, notice: Completion) -> None:
-        statuses = self.rig.sink.statuses
-        self.notices.append((notice, statuses[-1] if statuses else None))
+    @property
+    def notices(self) -> list[tuple[Completion, Status | None]]:
+        return self.rig.sink.completions
 
     def of(self, tid: str) -> list[Completion]:
         return [n for n, _ in self.notices if n.transaction_id == tid]

@@ -12,7 +12,7 @@ from schema.commands import ALLOWED_STATES, CheckResult, Command, ReplyCode
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
 from service.config.model import MachineConfig
-from service.core.control import HANDLING, TABLE, Event, allowed_states, edges
+from service.core.statemachine import HANDLING, TABLE, Event, allowed_states, edges
 from tests.rig import BAD_SESSION, Rig, known_calibration, rig_in
 
 S = MachineState

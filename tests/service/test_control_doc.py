@@ -9,7 +9,7 @@ import pytest
 from schema.commands import Command
 from schema.status import MachineState
 from service.core import control_doc
-from service.core.control import Event
+from service.core.statemachine import Event
 
 
 def test_readme_and_states_page_match_the_transition_table() -> None:

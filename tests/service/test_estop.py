@@ -11,7 +11,7 @@ from schema.commands import Command, CommandRequest, Reply
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
 from service.config.model import MachineConfig
-from service.core.loop import PendingCommand
+from service.core.tasks import PendingCommand
 from tests.rig import Rig, known_calibration, rig_in
 
 S = MachineState

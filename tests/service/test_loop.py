@@ -15,10 +15,12 @@ from schema.errors import Error, ErrorCode
 from schema.params import ParamSet
 from schema.status import MachineState
 from service.config.model import MachineConfig
-from service.core.loop import Inbox, LoopCall, PendingCommand, ScanLoop, Wake
+from service.core.inbox import Inbox, Wake
+from service.core.loop import ScanLoop
 from service.core.machine import Machine
 from service.core.params import ParamRegistry
 from service.core.persist import ParamStore
+from service.core.tasks import LoopCall, PendingCommand
 from sim.hal import SimHal
 from tests.rig import FakeClock, Rig, known_calibration, rig_in
 

@@ -20,12 +20,12 @@ import pytest
 from hal.iomap import Signal
 from schema.calibration import CalibrationSet
 from schema.commands import REQUEST_MODELS, Command, Reply
-from schema.completion import Completion
 from schema.events import RiderEvent, StorageEvent
 from schema.status import MachineState
 from service.config.model import MachineConfig
 from service.core.events import ListEventSink
-from service.core.loop import LoopCall, PendingCommand, ScanLoop
+from service.core.loop import ScanLoop
+from service.core.tasks import LoopCall, PendingCommand
 from sim.physics import SwitchFault
 from tests.rig import Rig, known_calibration
 
@@ -60,9 +60,7 @@ class Twins:
         self.beats = (Beats(), Beats())
         self.full.loop.beats, self.fast.loop.beats = self.beats
         self.rigs = (self.full, self.fast)
-        self.notices: tuple[list[Completion], list[Completion]] = ([], [])
-        for rig, notices in zip(self.rigs, self.notices, strict=True):
-            rig.loop.completion_listeners.append(notices.append)
+        self.notices = (self.full.sink.completions, self.fast.sink.completions)
 
     def both(self, act: Callable[[Rig], object]) -> list[object]:
         """Do the same thing to both, between the same two cycles."""
@@ -345,7 +343,7 @@ def test_a_refused_start_that_changes_no_state_still_sends_its_notice() -> None:
     assert not reply.success
     assert twins.fast.state is state  # the same state, yet a notice is due
     twins.step()
-    assert [n.transaction_id for n in twins.notices[1]] == ["start"]
+    assert [n.transaction_id for n, _ in twins.notices[1]] == ["start"]
     twins.step(100)
     twins.compare_all()
 
@@ -402,6 +400,28 @@ def test_a_command_run_from_a_callback_between_cycles_is_seen_by_the_next_cycle(
     )
     assert replies[0] == replies[1]
     twins.step()
-    assert [n.transaction_id for n in twins.notices[1]] == ["cb"]
+    assert [n.transaction_id for n, _ in twins.notices[1]] == ["cb"]
     twins.step(100)
     twins.compare_all()
+
+
+def test_a_quiet_cycle_is_checked_against_a_fresh_snapshot_of_the_machine() -> None:
+    """What lets a cycle be quiet (nothing called the machine: `StateMachine.changes`) is
+    checked in every test against the snapshot a full cycle would take: a change made behind
+    the machine's back is caught in the next cycle, not published late or never."""
+    twins = Twins(calibration=known_calibration())
+    twins.home()
+    quiet_streak(twins)
+    fast = twins.fast
+    fast.control.duplicate_of = ("elsewhere",)  # not through a method: `changes` stays put
+    with pytest.raises(AssertionError, match="was quiet, but"):
+        fast.step(200)  # the next quiet one (a status heartbeat may come first)
+    # Through the machine's own method the same change ends the quiet streak, as it should.
+    twins = Twins(calibration=known_calibration())
+    quiet_streak(twins)
+    fast = twins.fast
+    quiet = fast.loop.quiet
+    fast.control.duplicate_id(("elsewhere",), "me", fast.clock())
+    fast.step()
+    assert fast.loop.quiet == quiet
+    assert fast.sink.statuses[-1].fault is not None

@@ -12,8 +12,8 @@ import pytest
 from schema.commands import Command, Reply, StartRequest
 from schema.diag import TimingStats
 from schema.status import FaultCode, MachineState
-from service.core.loop import PendingCommand
 from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
+from service.core.tasks import PendingCommand
 from service.core.timing import SORT_CHUNK, CycleStats, percentiles
 from service.core.watchdog import Watchdog
 from tests.rig import FakeClock, Rig, known_calibration

@@ -16,8 +16,8 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, ru
 from schema.commands import REQUEST_MODELS, Command, Direction, Reply, ReplyCode
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
-from service.core.control import edges
-from service.core.loop import PendingCommand
+from service.core.statemachine import edges
+from service.core.tasks import PendingCommand
 from sim.physics import SwitchFault
 from tests.rig import Rig, known_calibration
 

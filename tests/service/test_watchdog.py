@@ -10,9 +10,10 @@ import pytest
 from schema.commands import Command, CommandRequest
 from schema.status import FaultCode, MachineState
 from service.config.model import MachineConfig
-from service.core.loop import LoopCall, PendingCommand, ScanLoop
+from service.core.loop import ScanLoop
 from service.core.machine import Machine
 from service.core.runner import RealtimeRunner
+from service.core.tasks import LoopCall, PendingCommand
 from service.core.timing import CycleStats
 from service.core.watchdog import ARM_AFTER_CYCLES, GuardedHal, Watchdog
 from sim.hal import SimHal

@@ -1,0 +1,101 @@
+"""`LoopPort`: the scan loop as every other thread sees it (the bus's Zenoh callbacks, its
+reader threads, the fast-data server). Nothing else of the loop is theirs to read.
+
+Commands run between two cycles under the loop's lock (`execute`); any other work is a task
+for the scan thread (`submit`); what the loop published is one immutable value (`snapshot`);
+a Rider's heartbeat is one write into the record the deadman reads (`heartbeat`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from schema.commands import Command, CommandRequest, Reply
+from schema.completion import Completion
+from schema.status import MotionRef
+from service.core.inbox import Task
+from service.core.loop import ScanLoop
+from service.core.sink import Published
+
+MOVING_LOCK_TIMEOUT_S = 0.5
+"""How long `moving` waits for a cycle in progress; past it (a stalled loop) it says moving."""
+
+
+class LoopPort:
+    """What another thread may ask of the scan loop; safe from any thread."""
+
+    def __init__(self, loop: ScanLoop, clock: Callable[[], float]) -> None:
+        """`clock`: the loop's clock (the runner's), read for commands run between cycles."""
+        self._loop = loop
+        self._clock = clock
+
+    def execute(
+        self,
+        command: Command,
+        request: CommandRequest,
+        *,
+        sender: str | None,
+        timeout: float | None,
+    ) -> Reply | None:
+        """Run a command now, between two cycles (`ScanLoop.execute_between_cycles`): None
+        while it cannot (`timeout=None` and a cycle in progress, before the first scan, after
+        shutdown: `submit` it instead); a BUSY reply for a loop stalled past `timeout`."""
+        loop = self._loop
+        return loop.execute_between_cycles(
+            command, request, self._clock, sender=sender, timeout=timeout
+        )
+
+    def wire(self, reply: Reply) -> bytes | None:
+        """`reply` as the msgpack bytes made when it was recorded, if it is the reply recorded
+        last (one serialisation per command); None: encode it afresh."""
+        return self._loop.transactions.wire(reply)
+
+    def submit(self, task: Task) -> bool:
+        """Queue work for the scan thread (service/core/tasks.py); False when the queue is
+        full or the loop has stopped."""
+        return self._loop.inbox.put(task)
+
+    def snapshot(self) -> Published:
+        """The latest published records (status, calibration, IO, axes), as one value."""
+        return self._loop.published
+
+    def notice(self, transaction_id: str) -> Completion | MotionRef | None:
+        """How a motion ended; the motion itself while it runs; None if unknown."""
+        return self._loop.completions.lookup(transaction_id)
+
+    def notices(self) -> list[Completion]:
+        """Every remembered completion notice, oldest first."""
+        return self._loop.completions.recent()
+
+    def moving(self, timeout: float = MOVING_LOCK_TIMEOUT_S) -> bool:
+        """Motion under way or resumable, read between two cycles; True for a loop stalled
+        past `timeout` (what is locked while moving stays locked)."""
+        loop = self._loop
+        if not loop.lock.acquire(timeout=timeout):
+            return True
+        try:
+            return loop.control.is_moving()
+        finally:
+            loop.lock.release()
+
+    def release_records(self, timeout: float) -> None:
+        """Hand the event history what the loop holds for its next cycle (a history read then
+        sees every command answered before it); skipped for a loop stalled past `timeout`."""
+        self._loop.release_records(timeout)
+
+    def heartbeat(self, rider: str) -> None:
+        """`rider`'s heartbeat arrived now, on the loop's clock: for the deadman to judge
+        (nothing to record without the loop's heartbeat record: an in-process rig)."""
+        beats = self._loop.beats
+        if beats is not None:
+            beats.beat(rider, self._clock())
+
+    def rider_gone(self, rider: str) -> None:
+        """`rider`'s token went: its heartbeats are history."""
+        beats = self._loop.beats
+        if beats is not None:
+            beats.forget(rider)
+
+    def cycle(self) -> int:
+        """The number of the last scan cycle."""
+        return self._loop.cycle

@@ -1,0 +1,123 @@
+"""`Snapshot`: the state machine at one moment, as one frozen value compared with `==`.
+
+It holds everything the status shows of the machine and everything else the next cycle acts
+on; the scan loop builds the status from it, publishes when it differs from the last one, and
+lets a cycle be quiet while nothing could make it differ (service/core/loop.py). A field the
+status needs is read from here, so it cannot be left out of the comparison.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from schema.status import AxesFlags, EstopInfo, Fault, MachineState, Status
+from service.core.controllers import SessionRun
+from service.core.devices import Calibration
+from service.core.statemachine.context import Motion
+
+if TYPE_CHECKING:
+    from service.core.statemachine.machine import StateMachine
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """What the status shows (first) and what else a cycle acts on (last)."""
+
+    state: MachineState
+    previous_state: MachineState | None
+    fault: Fault | None
+    estop_active: bool
+    """The E-stop input as scanned."""
+    estop_latched: bool
+    calibration: Calibration
+    home_tilt: bool
+    """Referenced and on its home switch now."""
+    home_rotate: bool
+    session: SessionRun | None
+    """The session under way or last run (the status shows its progress)."""
+    step: int | None
+    revolutions: int | None
+    motion: Motion | None
+    """The motion whose completion notice is still due."""
+    rider_connected: bool
+    warnings: tuple[str, ...]
+    rider_warning: str | None
+    storage: int
+    """The data dir's health version: its warnings are part of the status."""
+    rider: str | None
+    """The controlling Rider, whose heartbeats the deadman judges."""
+    resume_to: MachineState | None
+    estop_from: MachineState | None
+    duplicate_of: tuple[str, ...]
+
+
+def snapshot_of(m: StateMachine) -> Snapshot:
+    """`m` now: a full cycle takes one (the quiet ones rely on `StateMachine.changes`)."""
+    drive, watch, refs, devices = m.drive, m.watch, m.refs, m.devices
+    run = drive.session_run
+    storage = m.storage
+    return Snapshot(
+        state=m.state,
+        previous_state=m.previous_state,
+        fault=m.fault,
+        estop_active=devices.safety.is_estop_active(),
+        estop_latched=drive.estop_latched,
+        calibration=m.calibration,
+        home_tilt=refs.tilt and devices.tilt.is_home(),
+        home_rotate=refs.rotate and devices.rotate.is_home(),
+        session=run,
+        step=run.index if run is not None else None,
+        revolutions=run.revolutions_done() if run is not None else None,
+        motion=m.action,
+        rider_connected=watch.connected,
+        warnings=tuple(m.warnings),
+        rider_warning=watch.warning,
+        storage=storage.version if storage is not None else 0,
+        rider=watch.id,
+        resume_to=drive.resume_to,
+        estop_from=drive.estop_from,
+        duplicate_of=m.duplicate_of,
+    )
+
+
+def status_of(  # noqa: PLR0913 - the status's own fields besides the machine's
+    shown: Snapshot,
+    *,
+    machine_id: str,
+    storage_warnings: list[str],
+    tilt_deg: float | None,
+    rotate_deg: float | None,
+    seq: int,
+    cycle: int,
+    time: float,
+    uptime_s: float,
+    heartbeat_s: float,
+) -> Status:
+    """The status of the machine as `shown`, with what else it reports (the data dir's
+    warnings, positions, times): every field of the machine's own comes from `shown`, so none
+    can change without the comparison of two snapshots noticing."""
+    cal, run, motion = shown.calibration, shown.session, shown.motion
+    warnings = list(shown.warnings)
+    if shown.rider_warning:
+        warnings.append(shown.rider_warning)
+    return Status(
+        machine_id=machine_id,
+        state=shown.state,
+        previous_state=shown.previous_state,
+        session=run.progress() if run is not None else None,
+        warnings=warnings + storage_warnings,
+        fault=shown.fault,
+        estop=EstopInfo(active=shown.estop_active, latched=shown.estop_latched),
+        calibrated={"tilt": cal.tilt is not None, "rotate": cal.rotate is not None},
+        homed=AxesFlags(tilt=shown.home_tilt, rotate=shown.home_rotate),
+        tilt_deg=tilt_deg,
+        rotate_deg=rotate_deg,
+        rider_connected=shown.rider_connected,
+        motion=motion.ref() if motion is not None else None,
+        seq=seq,
+        cycle=cycle,
+        time=time,
+        uptime_s=uptime_s,
+        heartbeat_s=heartbeat_s,
+    )

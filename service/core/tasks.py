@@ -1,0 +1,151 @@
+"""The work other threads hand the scan thread (`LoopPort.submit`): what each does there.
+
+The bus builds these from what it heard and never reaches into the loop itself: each task runs
+on the scan thread with the loop (`run`), or is refused if it never can (`reject`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from schema.calibration import CalibrationRecord, CalibrationSet
+from schema.commands import Command, CommandRequest, Reply
+from schema.errors import Error
+from schema.events import RiderEvent
+from service.core.sink import calibration_record
+from service.errors import MachineError, Rejected
+
+if TYPE_CHECKING:
+    from service.core.loop import ScanLoop
+    from service.core.persist import SaveTicket
+
+log = logging.getLogger("machine")
+
+
+@dataclass
+class PendingCommand:
+    """A decoded command waiting for the scan thread; `respond` sends its one reply."""
+
+    command: Command
+    request: CommandRequest
+    respond: Callable[[Reply], None]
+    sender: str | None = None
+    """The sending session's id, for the event history (the Rider attaches it)."""
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        self.respond(loop.execute(self.command, self.request, now, sender=self.sender))
+
+    def reject(self, error: Error) -> None:
+        self.respond(
+            Reply.failure(
+                error,
+                transaction_id=self.request.transaction_id,
+                command=self.command.value,
+                timecode=time.time(),
+                request_timecode=self.request.timecode,
+            )
+        )
+
+
+@dataclass
+class LoopCall:
+    """Any work with the loop itself on the scan thread (tests, benchmarks, the demo)."""
+
+    fn: Callable[[ScanLoop, float], None]
+    on_reject: Callable[[Error], None] | None = None
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        self.fn(loop, now)
+
+    def reject(self, error: Error) -> None:
+        if self.on_reject is not None:
+            self.on_reject(error)
+
+
+@dataclass
+class OnScanThread:
+    """Work that must not race a cycle but reads nothing of the loop (a diagnostics reset, a
+    simulator fault)."""
+
+    fn: Callable[[], None]
+    on_reject: Callable[[Error], None]
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        self.fn()
+
+    def reject(self, error: Error) -> None:
+        self.on_reject(error)
+
+
+@dataclass
+class Duplicates:
+    """Other sessions hold this machine's id (`others`; empty: alone again)."""
+
+    others: tuple[str, ...]
+    own: str
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        loop.control.duplicate_id(self.others, self.own, now)
+
+    def reject(self, error: Error) -> None:
+        pass  # the daemon is stopping: nothing moves any more
+
+
+@dataclass
+class RiderPresence:
+    """A Rider's liveliness token came or went; only the controlling Rider's matters."""
+
+    rider: str
+    alive: bool
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        control = loop.control
+        if control.controller_rider != self.rider:
+            return
+        policy = loop.config.rider_loss.policy
+        acted = False
+        if self.alive:
+            control.rider_back()
+        elif acted := control.rider_lost(now):
+            log.warning("event=rider_lost rider=%s policy=%s", self.rider, policy)
+        rider_event(loop, "rider_returned" if self.alive else "rider_lost", self.rider, acted, now)
+
+    def reject(self, error: Error) -> None:
+        pass
+
+
+@dataclass
+class EnterCalibration:
+    """A technician's calibration values: used at once; `done` gets the record and the
+    ticket of its write, `refused` the reason it was not taken."""
+
+    values: CalibrationSet
+    done: Callable[[CalibrationRecord, SaveTicket | None], None]
+    refused: Callable[[MachineError], None]
+
+    def run(self, loop: ScanLoop, now: float) -> None:
+        try:
+            ticket = loop.control.enter_calibration(self.values, now)
+        except MachineError as exc:
+            self.refused(exc)
+            return
+        self.done(calibration_record(loop.control.calibration, loop.config.machine.id, now), ticket)
+
+    def reject(self, error: Error) -> None:
+        self.refused(Rejected(error))
+
+
+def rider_event(loop: ScanLoop, kind: str, rider: str, acted: bool, now: float) -> None:
+    """A Rider came back or was lost (`acted`: the policy paused or stopped it), into the
+    history through the recorder: after what it holds (the events of commands answered since
+    the last cycle), before the state change this causes."""
+    # Left at rest (the end of `rider start --wait`) or lost while its motion runs; after a
+    # stop only `acted` tells.
+    mid_motion = acted or loop.control.is_moving()
+    policy = str(loop.config.rider_loss.policy)
+    event = RiderEvent(kind=kind, rider=rider, policy=policy, acted=acted, mid_motion=mid_motion)
+    loop.recorder.emit(event, now)
