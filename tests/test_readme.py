@@ -53,6 +53,11 @@ def test_readme_has_the_examples_this_test_runs() -> None:
     assert set(outputs()) <= set(quick_start_rider_lines())
 
 
+def test_the_readme_is_a_front_door_not_a_manual() -> None:
+    """At most 150 lines: what it is, the two commands, an example, the layout, links."""
+    assert len(README.splitlines()) <= 150
+
+
 @pytest.mark.integration
 def test_quick_start_rider_commands_work_in_order(tmp_path: Path) -> None:
     config = write_fast_config(tmp_path)
