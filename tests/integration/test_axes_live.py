@@ -9,6 +9,8 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
+
 from rider.client import Rider
 from rider.fastdata import FastDataClient
 from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
@@ -99,7 +101,7 @@ def test_positions_bits_and_registers_through_zenoh_and_udp(tmp_path: Path) -> N
         rec = rotate_fast(fast)
         # Four turns, latched midway between the scans either side of the last edge: within
         # the fast rotate's latch tolerance (8°) of it (docs/homing.md).
-        assert rec.pnStatus & PnStatus.SETTLED and rec.cCmd == 4.0
+        assert rec.pnStatus & PnStatus.SETTLED and rec.cCmd == pytest.approx(4.0, abs=1e-9)
         assert abs(rec.cFb - 4.0) <= 8.0 / 360
         (tilt,) = fast.query([TILT_AXIS_NUMBER]).axes
         assert tilt.pCmd == 20.0 and tilt.cCmd != tilt.pCmd  # target in degrees and in counts
