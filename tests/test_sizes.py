@@ -34,12 +34,12 @@ backend, the Rider): emptied once they merge."""
 
 TESTS_TO_FOLD = (
     "tests/hal/test_revpi.py",
-    "tests/hal/test_sim.py",
+    "tests/sim/test_sim.py",
     "tests/schema/test_codec.py",
     "tests/schema/test_codec_bytes.py",
-    "tests/service/test_eventlog.py",
-    "tests/service/test_runner.py",
-    "tests/service/test_watchdog.py",
+    "tests/service/adapters/test_eventlog.py",
+    "tests/service/core/test_runner.py",
+    "tests/service/core/test_watchdog.py",
     "tests/integration/test_axes_live.py",
     "tests/integration/test_duplicate_id.py",
     "tests/integration/test_events.py",

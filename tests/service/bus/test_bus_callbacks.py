@@ -83,7 +83,7 @@ def scenario(how: str, threads: int) -> Counts:
 def run_child(how: str, threads: int = 1) -> Counts:
     environ = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
     proc = subprocess.run(
-        [sys.executable, "-m", "tests.service.test_bus_callbacks", how, str(threads)],
+        [sys.executable, "-m", "tests.service.bus.test_bus_callbacks", how, str(threads)],
         cwd=REPO,
         capture_output=True,
         text=True,
