@@ -20,10 +20,10 @@ import pytest
 from common.credentials import MACHINE, RIDER, env_name
 from rider.client import CommandRefused, Rider
 from schema.codec import Format, encode
-from schema.commands import REST_STATES, Reply, RotateStep, Session, TiltStep
+from schema.commands import Reply, RotateStep, Session, TiltStep
 from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
-from schema.status import FAULT_STATES, FaultCode, MachineState, Status
+from schema.status import FaultCode, MachineState, Status
 from tests.fixtures.revpi import CONFIG_RSC, address
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
@@ -31,13 +31,13 @@ from tests.reliability.support import (
     StatusFeed,
     make_identities,
     rider_as,
+    settle,
     start_machine,
     supervisor_child,
 )
 
 pytestmark = pytest.mark.integration
 
-SETTLED = REST_STATES | FAULT_STATES
 LONG_RIDE = Session(name="long", steps=[TiltStep(degrees=30.0), RotateStep(revolutions=40)])
 """Twenty seconds of rotation at the fast config: the daemon dies in the middle of it."""
 RELAYS = ("O_1", "O_2", "O_3", "O_4")
@@ -50,11 +50,6 @@ def supervised(tmp_path: Path) -> Iterator[Daemon]:
         yield daemon
     finally:
         daemon.stop()
-
-
-def settle(feed: StatusFeed, reply: Reply) -> Status:
-    assert reply.success, reply
-    return feed.until(lambda s: s.time >= reply.timecode and s.state in SETTLED)
 
 
 def ride_until_rotating(r: Rider, feed: StatusFeed) -> Reply:
