@@ -117,31 +117,42 @@ def test_a_session_runs_across_two_namespaces(site: Site) -> None:
         outsider.status()
 
 
-def test_a_pulled_cable_pauses_the_session_by_the_riders_heartbeat(site: Site) -> None:
-    """No FIN, no RST, and a Rider on Zenoh's default 10 s lease (no --zenoh-config): only its
-    deadman heartbeat (`rider_loss.timeout_s`, 1 s in the fast test config) can notice."""
+def start_driver(site: Site) -> subprocess.Popen[str]:
+    """A Rider in namespace b on Zenoh's default lease (its --zenoh-config dropped) riding a
+    long session."""
     d = site.daemon
     steps = ("--revolutions", "40", "alive", "prepare", "start", "running", "hold")
     driver_cmd = [*rider_proc.command(d.endpoint, d.zenoh_config, d.machine_id, *steps)]
     at = driver_cmd.index("--zenoh-config")
     del driver_cmd[at : at + 2]
-    driver = subprocess.Popen(
+    return subprocess.Popen(
         site.in_b(*driver_cmd),
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
         cwd=REPO,
     )
+
+
+def wait_holding(site: Site, driver: subprocess.Popen[str]) -> None:
+    """Until the driver reports its `hold` step (the session running); every step error-free."""
+    assert driver.stdout is not None
+    for line in driver.stdout:
+        record = json.loads(line)
+        assert "error" not in record, record
+        if record["step"] == "hold":
+            break
+    else:
+        raise AssertionError(f"driver ended early:\n{site.daemon.log()}")
+
+
+def test_a_pulled_cable_pauses_the_session_by_the_riders_heartbeat(site: Site) -> None:
+    """No FIN, no RST, and a Rider on Zenoh's default 10 s lease (no --zenoh-config): only its
+    deadman heartbeat (`rider_loss.timeout_s`, 1 s in the fast test config) can notice."""
+    driver = start_driver(site)
     watcher: subprocess.Popen[str] | None = None
     try:
-        assert driver.stdout is not None
-        for line in driver.stdout:
-            record = json.loads(line)
-            assert "error" not in record, record
-            if record["step"] == "hold":
-                break
-        else:
-            raise AssertionError(f"driver ended early:\n{site.daemon.log()}")
+        wait_holding(site, driver)
         # A watcher beside the machine, in namespace a, sees what the pulled cable does.
         watcher = subprocess.Popen(
             site.in_a(
