@@ -145,6 +145,12 @@ class Daemon:
         return stop_process(self.proc, sig)
 
 
+def child_pids(pid: int) -> list[int]:
+    """The pids of the children of process `pid` (pgrep -P), bounded."""
+    done = run_bounded(["pgrep", "-P", str(pid)], timeout=10)
+    return [int(child) for child in done.stdout.split()]
+
+
 def machine_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "service.cli", *args]
 

@@ -19,7 +19,7 @@ from schema.codec import Format, decode
 from schema.events import Event, EventPage
 from schema.status import MachineState, Status
 from service.adapters.eventlog import EVENTS_FILE
-from tests.integration.support import fast_args, prepare, settle
+from tests.integration.support import fast_args, one_reply, prepare, settle
 from tests.procs import (
     REPO,
     Daemon,
@@ -71,12 +71,7 @@ def raw_page(daemon: Daemon, selector: str) -> EventPage:
     conf = zenoh.Config.from_file(str(daemon.zenoh_config))
     conf.insert_json5("connect/endpoints", json.dumps([daemon.endpoint]))
     with zenoh.open(conf) as session:
-        deadline = time.monotonic() + 10.0
-        while True:
-            replies = [r.ok for r in session.get(selector, timeout=5.0) if r.ok is not None]
-            if replies or time.monotonic() > deadline:
-                break
-        [sample] = replies
+        sample = one_reply(session, selector)
         assert str(sample.encoding).startswith("application/json")
         return EventPage.model_validate_json(sample.payload.to_bytes())
 

@@ -22,7 +22,7 @@ from schema.status import MachineState, Status
 from tests.integration import rider_proc
 from tests.integration.support import STEP_TIMEOUT_S, fast_args
 from tests.netns import NetnsUnavailable, NsPair, unavailable_reason, veth_pair
-from tests.procs import REPO, Daemon, rider_cmd, start_daemon
+from tests.procs import REPO, Daemon, rider_cmd, run_bounded, start_daemon
 
 pytestmark = [
     pytest.mark.integration,
@@ -83,13 +83,8 @@ def reports(output: str) -> dict[str, dict[str, Any]]:
 
 
 def test_a_session_runs_across_two_namespaces(site: Site) -> None:
-    run = subprocess.run(
-        site.in_b(*site.rider_proc("alive", "prepare", "start", "done")),
-        capture_output=True,
-        text=True,
-        timeout=RUN_TIMEOUT_S,
-        cwd=REPO,
-        check=False,
+    run = run_bounded(
+        site.in_b(*site.rider_proc("alive", "prepare", "start", "done")), RUN_TIMEOUT_S
     )
     assert run.returncode == 0, f"{run.stdout}\n{run.stderr}\n{site.daemon.log()}"
     steps = reports(run.stdout)
@@ -98,14 +93,7 @@ def test_a_session_runs_across_two_namespaces(site: Site) -> None:
     assert done.session is not None and done.session.revolutions_done == 3
     assert steps["done"]["revolutions"] == pytest.approx(3.0, abs=0.1)
 
-    cli = subprocess.run(
-        site.in_b(*site.rider_cli("--json", "status")),
-        capture_output=True,
-        text=True,
-        timeout=RUN_TIMEOUT_S,
-        cwd=REPO,
-        check=False,
-    )
+    cli = run_bounded(site.in_b(*site.rider_cli("--json", "status")), RUN_TIMEOUT_S)
     assert cli.returncode == 0, cli.stderr
     assert Status.model_validate_json(cli.stdout).state is MachineState.DONE
 

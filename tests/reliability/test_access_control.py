@@ -34,7 +34,7 @@ from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
 from schema.status import MachineState
 from tests.integration import rider_proc
-from tests.integration.support import relays_off
+from tests.integration.support import raw_get, relays_off
 from tests.procs import REPO, Daemon, free_port, stop_process
 from tests.reliability.forger import FORGED_SEQ
 from tests.reliability.support import (
@@ -279,14 +279,7 @@ def test_a_peer_with_valid_credentials_cannot_pose_as_the_machine(
                 feed.close()
             assert all(s.seq < FORGED_SEQ for s in samples), samples
             start = encode(StartRequest(transaction_id=f"forgery-{who}"))
-            replies = list(
-                r.session.get(
-                    f"{r.base}/cmd/start",
-                    payload=start,
-                    encoding=Format.MSGPACK.value,
-                    timeout=DENIED_WAIT_S,
-                )
-            )
+            replies = raw_get(r, "cmd/start", start, Format.MSGPACK, DENIED_WAIT_S)
             status_repliers = {
                 str(rep.replier_id.zid)
                 for rep in r.session.get(f"{r.base}/status", timeout=DENIED_WAIT_S)

@@ -24,7 +24,7 @@ from schema.commands import Reply, RotateStep, Session, TiltStep
 from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
 from schema.status import FaultCode, MachineState, Status
-from tests.fixtures.revpi import CONFIG_RSC, address
+from tests import freeze
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
     ACL_PROFILE,
@@ -40,7 +40,6 @@ pytestmark = pytest.mark.integration
 
 LONG_RIDE = Session(name="long", steps=[TiltStep(degrees=30.0), RotateStep(revolutions=40)])
 """Twenty seconds of rotation at the fast config: the daemon dies in the middle of it."""
-RELAYS = ("O_1", "O_2", "O_3", "O_4")
 
 
 @pytest.fixture
@@ -80,13 +79,7 @@ def daemon_died(status: Status) -> bool:
 
 def image_relays(daemon: Daemon) -> dict[str, bool]:
     """The relay bits in the supervisor's process-image file, read without revpimodio2."""
-    image = (daemon.data_dir / "supervisor" / "procimg").read_bytes()
-    out = {}
-    for name in RELAYS:
-        byte, bit = address(name, CONFIG_RSC)
-        assert bit is not None
-        out[name] = bool(image[byte] >> bit & 1)
-    return out
+    return freeze.image_relays(daemon.data_dir)
 
 
 def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(
