@@ -51,7 +51,7 @@ schema: $(STAMP)
 	$(BIN)/machine schema schema/json
 
 ## Regenerate the README's state table and docs/states.md from the transition table
-## (service/core/statemachine/table.py TABLE); tests/service/test_control_doc.py fails while they differ.
+## (service/core/statemachine/table.py TABLE); tests/service/core/test_control_doc.py fails while they differ.
 states: $(STAMP)
 	$(BIN)/python -m service.core.control_doc
 

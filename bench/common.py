@@ -14,7 +14,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -344,7 +344,7 @@ def save(section: Section, opts: Options) -> None:
 
 
 def main_for(
-    prog: str, description: str, run: Callable[[Options], Section], argv: list[str] | None
+    prog: str, description: str, run: Callable[[Options], Section], argv: list[str] | None = None
 ) -> int:
     """The `python -m bench.<name>` entry point shared by every benchmark."""
     argv = sys.argv[1:] if argv is None else argv
@@ -352,6 +352,40 @@ def main_for(
     with interrupts_as_exceptions():
         save(measure(run, opts, command_line(prog, argv)), opts)
     return 0
+
+
+def main_quiet(
+    prog: str, description: str, run: Callable[[Options], Section], argv: list[str] | None = None
+) -> int:
+    """`main_for`, where an interrupt ends the benchmark with exit 1 and no traceback."""
+    with contextlib.suppress(KeyboardInterrupt):
+        return main_for(prog, description, run, argv)
+    return 1
+
+
+def main_or_child(
+    prog: str,
+    description: str,
+    run: Callable[[Options], Section],
+    argv: list[str] | None,
+    children: Mapping[str, Callable[[list[str]], int]],
+) -> int:
+    """`main_for`, unless the first argument names one of the benchmark's child processes
+    (`python -m bench.<name> <child> …`, started by the benchmark itself): then that child."""
+    argv = sys.argv[1:] if argv is None else argv
+    child = children.get(argv[0]) if argv else None
+    if child is not None:
+        return child(argv[1:])
+    return main_for(prog, description, run, argv)
+
+
+def child_parser(prog: str, *, connect: str = "store") -> argparse.ArgumentParser:
+    """The options every benchmark child process takes: where to connect, which Zenoh config
+    (`connect="append"`: several endpoints)."""
+    parser = argparse.ArgumentParser(prog=prog)
+    parser.add_argument("--connect", action=connect, required=True)
+    parser.add_argument("--zenoh-config", type=Path, required=True)
+    return parser
 
 
 def measure_and_save(run: Callable[[], Section], out: Path | None, command: str) -> None:

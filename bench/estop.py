@@ -254,9 +254,5 @@ def run(opts: Options) -> Section:
     return section
 
 
-def main(argv: list[str] | None = None) -> int:
-    return main_for("bench.estop", __doc__ or "", run, argv)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_for("bench.estop", __doc__ or "", run))

@@ -13,7 +13,6 @@ alternated in the same run so the host's load hits them alike:
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import sqlite3
 import sys
@@ -24,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.common import Options, Section, Table, Target, main_for, ms
+from bench.common import Options, Section, Table, Target, main_quiet, ms
 from schema.commands import Command, CommandRequest, Reply
 from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.history import HistoryProcess
@@ -246,11 +245,5 @@ def _merge(rs: list[Result]) -> Result:
     )
 
 
-def main(argv: list[str] | None = None) -> int:
-    with contextlib.suppress(KeyboardInterrupt):
-        return main_for("bench.events_cost", __doc__ or "", run, argv)
-    return 1
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_quiet("bench.events_cost", __doc__ or "", run))

@@ -136,9 +136,5 @@ def _pct(share: float) -> str:
     return f"{share * 100:.1f} %"
 
 
-def main(argv: list[str] | None = None) -> int:
-    return main_for("bench.healthcheck", __doc__ or "", run, argv)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_for("bench.healthcheck", __doc__ or "", run))

@@ -95,9 +95,5 @@ def _site_rows(n: int) -> list[tuple[str, Dist]]:
         ]
 
 
-def main(argv: list[str] | None = None) -> int:
-    return main_for("bench.pick", __doc__ or "", run, argv)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_for("bench.pick", __doc__ or "", run))

@@ -14,7 +14,6 @@ trips, and the daemon's cycle counters (`diag/reset` before, `diag/cycle` after)
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import itertools
 import sys
@@ -31,8 +30,9 @@ from bench.common import (
     Section,
     Table,
     Target,
+    child_parser,
     command_request,
-    main_for,
+    main_or_child,
     ms,
     only_reply,
     python_module,
@@ -246,16 +246,16 @@ def run(opts: Options) -> Section:
     return section
 
 
+def flooder_main(argv: list[str]) -> int:
+    parser = child_parser("bench.read_flood flooder")
+    parser.add_argument("--key", required=True)
+    args = parser.parse_args(argv)
+    return flooder(args.connect, args.zenoh_config, args.key)
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["flooder"]:
-        parser = argparse.ArgumentParser(prog="bench.read_flood flooder")
-        parser.add_argument("--connect", required=True)
-        parser.add_argument("--zenoh-config", type=Path, required=True)
-        parser.add_argument("--key", required=True)
-        args = parser.parse_args(argv[1:])
-        return flooder(args.connect, args.zenoh_config, args.key)
-    return main_for("bench.read_flood", __doc__ or "", run, argv)
+    children = {"flooder": flooder_main}
+    return main_or_child("bench.read_flood", __doc__ or "", run, argv, children)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.common import Options, Section, Table, Target, main_for, ms
+from bench.common import Options, Section, Table, Target, main_quiet, ms
 from schema.codec import dump_json
 from schema.events import CommandEvent, EstopEvent, FaultEvent, KnownDetails, RiderEvent
 from schema.status import MachineState
@@ -186,11 +186,5 @@ def run(opts: Options) -> Section:
     return section
 
 
-def main(argv: list[str] | None = None) -> int:
-    with contextlib.suppress(KeyboardInterrupt):
-        return main_for("bench.retention", __doc__ or "", run, argv)
-    return 1
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_quiet("bench.retention", __doc__ or "", run))

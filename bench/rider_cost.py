@@ -167,9 +167,5 @@ def _cells(c: Costs) -> tuple[str, str, str]:
     return f"{c.thread:.1f}", f"{c.process:.1f}", f"{c.wall:.1f}"
 
 
-def main(argv: list[str] | None = None) -> int:
-    return main_for("bench.rider_cost", __doc__ or "", run, argv)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_for("bench.rider_cost", __doc__ or "", run))

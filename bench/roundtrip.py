@@ -7,7 +7,6 @@ process of its own, so all of them see the same machine noise.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import itertools
 import json
@@ -27,8 +26,9 @@ from bench.common import (
     Section,
     Table,
     Target,
+    child_parser,
     command_request,
-    main_for,
+    main_or_child,
     ms,
     only_reply,
     python_module,
@@ -353,17 +353,16 @@ def _ms_unit(seconds: float) -> str:
     return f"{ms(seconds)} ms"
 
 
+def worker_main(argv: list[str]) -> int:
+    parser = child_parser("bench.roundtrip worker")
+    parser.add_argument("--zenoh-threads", type=int, required=True)
+    parser.add_argument("--warmup", type=int, required=True)
+    args = parser.parse_args(argv)
+    return worker(args.connect, args.zenoh_config, args.zenoh_threads, args.warmup)
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["worker"]:
-        parser = argparse.ArgumentParser(prog="bench.roundtrip worker")
-        parser.add_argument("--connect", required=True)
-        parser.add_argument("--zenoh-config", type=Path, required=True)
-        parser.add_argument("--zenoh-threads", type=int, required=True)
-        parser.add_argument("--warmup", type=int, required=True)
-        args = parser.parse_args(argv[1:])
-        return worker(args.connect, args.zenoh_config, args.zenoh_threads, args.warmup)
-    return main_for("bench.roundtrip", __doc__ or "", run, argv)
+    return main_or_child("bench.roundtrip", __doc__ or "", run, argv, {"worker": worker_main})
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ from schema.codec import Format, decode, pack
 from schema.commands import REST_STATES, Command, Reply, RotateStep, Session, TiltStep
 from schema.diag import CycleDiag
 from schema.status import FAULT_STATES, FaultCode, MachineState, Status
+from tests.integration.support import raw_get
 from tests.procs import Daemon
 from tests.reliability.support import StatusFeed, start_machine, supervisor_child
 
@@ -101,14 +102,7 @@ class Tally:
 
 def _raw_command(rider: Rider, suffix: str, payload: bytes) -> None:
     """One command query outside the typed client; raises like `Rider.command` does."""
-    replies = list(
-        rider.session.get(
-            f"{rider.base}/cmd/{suffix}",
-            payload=payload,
-            encoding=Format.MSGPACK.value,
-            timeout=REPLY_TIMEOUT_S,
-        )
-    )
+    replies = raw_get(rider, f"cmd/{suffix}", payload, Format.MSGPACK, REPLY_TIMEOUT_S)
     if not replies:
         raise MachineTimeout(f"no reply from cmd/{suffix}")
     sample = replies[0].ok if replies[0].ok is not None else replies[0].err

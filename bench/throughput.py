@@ -9,7 +9,6 @@ are reset before and read after each of its phases (`diag/reset`, `diag/cycle`).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import itertools
 import json
@@ -26,8 +25,9 @@ from bench.common import (
     Section,
     Table,
     Target,
+    child_parser,
     command_request,
-    main_for,
+    main_or_child,
     python_module,
     run_lines,
     thread_cpu,
@@ -270,16 +270,15 @@ def run(opts: Options) -> Section:
     return section
 
 
+def worker_main(argv: list[str]) -> int:
+    parser = child_parser("bench.throughput worker", connect="append")
+    parser.add_argument("--name", required=True)
+    args = parser.parse_args(argv)
+    return worker(args.connect, args.zenoh_config, args.name)
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["worker"]:
-        parser = argparse.ArgumentParser(prog="bench.throughput worker")
-        parser.add_argument("--connect", action="append", required=True)
-        parser.add_argument("--zenoh-config", type=Path, required=True)
-        parser.add_argument("--name", required=True)
-        args = parser.parse_args(argv[1:])
-        return worker(args.connect, args.zenoh_config, args.name)
-    return main_for("bench.throughput", __doc__ or "", run, argv)
+    return main_or_child("bench.throughput", __doc__ or "", run, argv, {"worker": worker_main})
 
 
 if __name__ == "__main__":

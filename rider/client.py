@@ -49,7 +49,7 @@ from rider.link import (
     rider_login,
     zenoh_config,
 )
-from rider.link import direct as _direct  # tests/service/test_bus_callbacks.py compares it
+from rider.link import direct as _direct  # tests/service/bus/test_bus_callbacks.py compares it
 from rider.machines import DISCOVERY_MIN_S, MachineInfo
 from rider.pinning import KEY_CACHE, Holders
 from rider.replies import Update

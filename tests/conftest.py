@@ -1,9 +1,11 @@
 from __future__ import annotations
 
 import random
+from pathlib import Path
 
 import pytest
 
+from tests.fixtures.revpi import make_image
 from tests.rig import Rig
 
 
@@ -81,6 +83,13 @@ def rig() -> Rig:
 @pytest.fixture
 def ready_rig() -> Rig:
     return Rig().ready()
+
+
+@pytest.fixture
+def image(tmp_path: Path) -> str:
+    """A fresh process-image file beside the piCtory fixture (tests/fixtures/revpi), for the
+    RevPi backend and the process-image simulator."""
+    return make_image(tmp_path)
 
 
 @pytest.fixture

@@ -24,7 +24,15 @@ from schema.commands import Session, TiltStep
 from schema.status import FaultCode, MachineState, Status
 from service.core.persist import CALIBRATION_FILE
 from tests.fixtures.revpi import CONFIG_RSC, address
-from tests.procs import REPO, Daemon, free_port, machine_cmd, stop_process, write_zenoh_config
+from tests.procs import (
+    REPO,
+    Daemon,
+    child_pids,
+    free_port,
+    machine_cmd,
+    stop_process,
+    write_zenoh_config,
+)
 
 HOOKS = REPO / "tests" / "fixtures" / "freeze"
 RELAYS = ("O_1", "O_2", "O_3", "O_4")
@@ -140,15 +148,9 @@ def child_of(supervisor: Daemon, timeout: float = 20.0) -> int:
     """The pid of the supervisor's daemon child, once there is exactly one."""
     deadline = time.monotonic() + timeout
     while True:
-        out = subprocess.run(
-            ["pgrep", "-P", str(supervisor.proc.pid)],
-            check=False,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        ).stdout.split()
+        out = child_pids(supervisor.proc.pid)
         if len(out) == 1:
-            return int(out[0])
+            return out[0]
         if time.monotonic() > deadline:
             raise TimeoutError(f"expected one child of the supervisor, found {out}")
         time.sleep(0.05)

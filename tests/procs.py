@@ -120,11 +120,13 @@ class Daemon:
 
     def cli(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
         """`rider … ARGS` against this daemon (its endpoint, config and id), bounded."""
-        cmd = rider_cmd("--connect", self.endpoint, "--zenoh-config", str(self.zenoh_config))
-        cmd += ["--machine", self.machine_id, *args]
-        return subprocess.run(
-            cmd, check=False, capture_output=True, text=True, timeout=timeout, cwd=REPO
-        )
+        return self.run_rider("--machine", self.machine_id, *args, timeout=timeout)
+
+    def run_rider(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+        """`rider --connect ENDPOINT --zenoh-config CONFIG ARGS` against this daemon, no machine
+        named (the README's way), bounded."""
+        linked = ("--connect", self.endpoint, "--zenoh-config", str(self.zenoh_config))
+        return run_rider(*linked, *args, timeout=timeout)
 
     def log(self) -> str:
         return self.log_path.read_text() if self.log_path.exists() else ""
@@ -143,12 +145,38 @@ class Daemon:
         return stop_process(self.proc, sig)
 
 
+def child_pids(pid: int) -> list[int]:
+    """The pids of the children of process `pid` (pgrep -P), bounded."""
+    done = run_bounded(["pgrep", "-P", str(pid)], timeout=10)
+    return [int(child) for child in done.stdout.split()]
+
+
 def machine_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "service.cli", *args]
 
 
 def rider_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "rider.cli", *args]
+
+
+def run_rider(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    """`rider ARGS` from the repository, its output captured, bounded."""
+    return run_bounded(rider_cmd(*args), timeout=timeout)
+
+
+def run_machine(
+    *args: str, cwd: Path = REPO, env: dict[str, str] | None = None, timeout: float = 60.0
+) -> subprocess.CompletedProcess[str]:
+    """`machine ARGS` in `cwd` (with only `env`, when given), its output captured, bounded."""
+    return run_bounded(machine_cmd(*args), timeout=timeout, cwd=cwd, env=env)
+
+
+def run_bounded(
+    cmd: list[str], timeout: float, cwd: Path = REPO, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        cmd, check=False, capture_output=True, text=True, timeout=timeout, cwd=cwd, env=env
+    )
 
 
 def start_daemon(  # noqa: PLR0913 - keyword options of one test helper, each defaulted

@@ -5,14 +5,13 @@ from __future__ import annotations
 import os
 import re
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
 from tests.integration.support import write_fast_config
-from tests.procs import REPO, rider_cmd, running_daemon
+from tests.procs import REPO, rider_cmd, run_bounded, running_daemon
 
 README = (REPO / "README.md").read_text()
 BLOCK = re.compile(r"```(\w+)\n(.*?)```", re.S)
@@ -66,15 +65,8 @@ def test_quick_start_rider_commands_work_in_order(tmp_path: Path) -> None:
         printed: dict[str, str] = {}
         for line in quick_start_rider_lines():
             args = shlex.split(line)[1:]
-            done = subprocess.run(
-                rider_cmd("--zenoh-config", str(daemon.zenoh_config), *args),
-                check=False,
-                capture_output=True,
-                text=True,
-                timeout=RUN_TIMEOUT_S,
-                env=env,
-                cwd=REPO,
-            )
+            linked = rider_cmd("--zenoh-config", str(daemon.zenoh_config), *args)
+            done = run_bounded(linked, timeout=RUN_TIMEOUT_S, env=env)
             assert done.returncode == 0, f"{line}: {done.stderr}{done.stdout}"
             printed[line] = done.stdout
         with daemon.rider() as r:
@@ -94,13 +86,8 @@ def test_python_example_runs_a_session(tmp_path: Path) -> None:
         code = code.replace(
             'Rider("m1", ', f'Rider("m1", zenoh_config_path=Path({str(daemon.zenoh_config)!r}), '
         )
-        done = subprocess.run(
-            [sys.executable, "-c", "from pathlib import Path\n" + code],
-            check=False,
-            capture_output=True,
-            text=True,
-            timeout=RUN_TIMEOUT_S,
-            cwd=REPO,
+        done = run_bounded(
+            [sys.executable, "-c", "from pathlib import Path\n" + code], timeout=RUN_TIMEOUT_S
         )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "DONE 3"

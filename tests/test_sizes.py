@@ -1,6 +1,6 @@
 """The size rule (STYLE.md): no module over 500 lines, no class over 400, no function over 60,
 anywhere outside bench/ (no Python file here is generated: schema/json and docs/states.md are
-not Python). `python -m tests.test_sizes` lists every file over a limit, exceptions included."""
+not Python), with no exceptions. `python -m tests.test_sizes` lists every file over a limit."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import ast
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
-from fnmatch import fnmatch
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -18,40 +17,6 @@ LEFT_OUT = ("bench",)
 MODULE_MAX = 500
 CLASS_MAX = 400
 FUNCTION_MAX = 60
-
-BEING_SPLIT = (
-    "service/simwing.py",
-    "rider/client.py",
-    "rider/cli.py",
-    "rider/ui/*",
-    "rider/gateway/*",
-    "schema/runtime.py",
-    "schema/threadstate.py",
-    "schema/credentials.py",
-)
-"""Files other engineers of issue 38 are restructuring while this rule went in (the simulator
-backend, the Rider): emptied once they merge."""
-
-TESTS_TO_FOLD = (
-    "tests/hal/test_revpi.py",
-    "tests/hal/test_sim.py",
-    "tests/schema/test_codec.py",
-    "tests/schema/test_codec_bytes.py",
-    "tests/service/test_eventlog.py",
-    "tests/service/test_runner.py",
-    "tests/service/test_watchdog.py",
-    "tests/integration/test_axes_live.py",
-    "tests/integration/test_duplicate_id.py",
-    "tests/integration/test_events.py",
-    "tests/integration/test_netns.py",
-    "tests/site/test_default_pick.py",
-    "tests/site/test_outage.py",
-    "tests/ui/test_page.py",
-)
-"""Test files over a limit: split or shortened when the tests are made to mirror the code
-(issue 38, item 5), not while the code they pin moves."""
-
-KNOWN = BEING_SPLIT + TESTS_TO_FOLD
 
 
 @dataclass(frozen=True)
@@ -96,16 +61,12 @@ def oversized(path: Path, root: Path = REPO) -> Iterator[Over]:
             yield Over(rel, node.lineno, f"{kind} {node.name}", size, limit)
 
 
-def known(path: str) -> bool:
-    return any(fnmatch(path, pattern) for pattern in KNOWN)
-
-
 def everything_over() -> list[Over]:
     return [over for path in python_files() for over in oversized(path)]
 
 
 def test_no_module_class_or_function_is_over_its_limit() -> None:
-    found = [str(over) for over in everything_over() if not known(over.path)]
+    found = [str(over) for over in everything_over()]
     assert not found, "past the size rule (STYLE.md):\n" + "\n".join(found)
 
 
@@ -121,14 +82,11 @@ def test_the_rule_sees_a_long_function_class_and_module(tmp_path: Path) -> None:
 
 
 def main() -> int:
-    """Every file over a limit, known or not; then the known exceptions no longer over one
-    (to leave the list)."""
+    """Every module, class and function over its limit (there are no exceptions)."""
     found = everything_over()
     for over in found:
-        print(over, "(known)" if known(over.path) else "")
-    for pattern in KNOWN:
-        if not any(fnmatch(o.path, pattern) for o in found):
-            print(f"{pattern}: over no limit: may leave the known exceptions")
+        print(over)
+    print(f"{len(found)} over a limit")
     return 0
 
 

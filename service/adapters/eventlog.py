@@ -9,7 +9,8 @@ queries, so neither Zenoh's callback thread nor the scan thread ever waits on th
 Crash safety: WAL with `synchronous=NORMAL` keeps every committed batch across a killed
 process (a power cut may lose the last batches, never the database). What a SIGKILL loses is
 what was still queued or in the batch being written: at most `queue_capacity + batch_max`
-events, in practice the last millisecond or so (tests/service/test_eventlog_crash.py measures it).
+events, in practice the last millisecond or so (tests/service/adapters/test_eventlog_crash.py
+measures it).
 
 The file and its SQL are in service/adapters/eventdb.py, reading and the reader thread in
 service/adapters/eventread.py, retention in service/adapters/retention.py.

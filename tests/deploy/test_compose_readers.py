@@ -93,6 +93,15 @@ def _shebang_python(path: str) -> str:
 READERS = readers()
 
 
+@pytest.fixture(params=READERS or [None], ids=lambda r: r.label if r else "none")
+def reader(request: pytest.FixtureRequest) -> Reader:
+    """Each compose implementation installed; the test skips when there is none."""
+    if request.param is None:
+        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
+    found: Reader = request.param
+    return found
+
+
 @pytest.fixture
 def project(tmp_path: Path) -> Path:
     """compose.yaml's files in a project directory, with the logins made as the docs say."""
@@ -183,11 +192,9 @@ def engine_view(reader: Reader, root: Path) -> tuple[set[str], dict[str, list[st
 
 
 @contextlib.contextmanager
-def ui_stand_in(root: Path) -> Iterator[int]:
-    """An HTTP server answering /api/config as the UI does (200), on a free port."""
-    (root / "www" / "api").mkdir(parents=True)
-    (root / "www" / "api" / "config").write_text("{}")
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=root / "www")
+def serving(directory: Path) -> Iterator[int]:
+    """A threaded HTTP server of the files in `directory` on a free loopback port; its port."""
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=directory)
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
@@ -196,6 +203,24 @@ def ui_stand_in(root: Path) -> Iterator[int]:
     finally:
         server.shutdown()
         server.server_close()
+
+
+@contextlib.contextmanager
+def ui_stand_in(root: Path) -> Iterator[int]:
+    """An HTTP server answering /api/config as the UI does (200), on a free port."""
+    (root / "www" / "api").mkdir(parents=True)
+    (root / "www" / "api" / "config").write_text("{}")
+    with serving(root / "www") as port:
+        yield port
+
+
+def python_bin(project: Path) -> Path:
+    """A bin/ beside the project whose `python` is this interpreter (the healthchecks run
+    `python`)."""
+    bin_dir = project.parent / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "python").symlink_to(sys.executable)
+    return bin_dir
 
 
 def run_here(argv: list[str], mapping: dict[str, str], path: Path) -> int:
@@ -209,17 +234,12 @@ def run_here(argv: list[str], mapping: dict[str, str], path: Path) -> int:
     return subprocess.run(mapped, capture_output=True, timeout=30, env=env, check=False).returncode
 
 
-@pytest.mark.parametrize("reader", READERS or [None], ids=lambda r: r.label if r else "none")
 def test_every_compose_implementation_passes_the_healthchecks_on_intact(
-    reader: Reader | None, project: Path
+    reader: Reader, project: Path
 ) -> None:
-    if reader is None:
-        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
     started, checks = engine_view(reader, project)
     assert started == {"machine", "rider"}, f"{reader.label} starts {started} by default"
-    bin_dir = project.parent / "bin"
-    bin_dir.mkdir()
-    (bin_dir / "python").symlink_to(sys.executable)
+    bin_dir = python_bin(project)
     heartbeat = project.parent / "machine.heartbeat"
     heartbeat.touch()
     with ui_stand_in(project) as port:
@@ -230,12 +250,9 @@ def test_every_compose_implementation_passes_the_healthchecks_on_intact(
     assert run_here(checks["machine"], mapping, bin_dir) != 0
 
 
-@pytest.mark.parametrize("reader", READERS or [None], ids=lambda r: r.label if r else "none")
 def test_every_compose_implementation_keeps_the_router_entrypoint_and_mounts(
-    reader: Reader | None, project: Path
+    reader: Reader, project: Path
 ) -> None:
-    if reader is None:
-        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
     files = ("compose.yaml", "docker/compose.router.yaml")
     script = str(project / "docker" / "zenohd-start.sh")
     if reader.kind == "podman-compose":
@@ -256,33 +273,19 @@ def metrics_stand_in(root: Path) -> Iterator[int]:
     """An HTTP server answering /metrics (200) as the gateway does, on a free port."""
     (root / "metrics-www").mkdir()
     (root / "metrics-www" / "metrics").write_text("up 1\n")
-    handler = functools.partial(
-        http.server.SimpleHTTPRequestHandler, directory=root / "metrics-www"
-    )
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield server.server_address[1]
-    finally:
-        server.shutdown()
-        server.server_close()
+    with serving(root / "metrics-www") as port:
+        yield port
 
 
-@pytest.mark.parametrize("reader", READERS or [None], ids=lambda r: r.label if r else "none")
 def test_every_compose_implementation_passes_the_gateway_healthcheck_on_intact(
-    reader: Reader | None, project: Path
+    reader: Reader, project: Path
 ) -> None:
-    if reader is None:
-        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
     files = ("compose.yaml", "docker/compose.gateway.yaml")
     if reader.kind == "podman-compose":
         check = podman_health(podman_runs(reader, project, *files)["gateway"])
     else:
         check = docker_health(docker_config(reader, project, *files)["gateway"])
-    bin_dir = project.parent / "bin"
-    bin_dir.mkdir()
-    (bin_dir / "python").symlink_to(sys.executable)
+    bin_dir = python_bin(project)
     with metrics_stand_in(project) as port:
         mapping = {"127.0.0.1:9464": f"127.0.0.1:{port}"}
         assert run_here(check, mapping, bin_dir) == 0, check

@@ -15,14 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
-from types import FrameType
 
 import zenoh
+
+from tests.site.router import stop_on_signals
 
 LEVELS = ("off", "error", "warn", "info", "debug", "trace")
 
@@ -47,13 +46,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--cfg", action="append", default=[], metavar="KEY:VALUE", help="as zenohd: one setting"
     )
     args = p.parse_args(args_in)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop = stop_on_signals()
     conf = zenoh.Config.from_file(str(args.config))
     for setting in args.cfg:
         key, _, value = setting.partition(":")

@@ -15,22 +15,15 @@ from service.supervision.daemon import DaemonOptions, open_hal
 from service.supervision.supervisor import Supervisor, SupervisorOptions
 from tests.fixtures.revpi import CONFIG_RSC, make_image
 from tests.fixtures.revpi.corpus import path
-from tests.procs import machine_cmd
+from tests.procs import run_machine
 
 pytest.importorskip("revpimodio2")
 ROOT = Path(__file__).parents[2]
 
 
 def machine(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        machine_cmd(*args),
-        cwd=ROOT,
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin", "HOME": str(cwd)},
-    )
+    env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin", "HOME": str(cwd)}
+    return run_machine(*args, cwd=ROOT, env=env)
 
 
 def toml(tmp_path: Path, backend: str, configrsc: str, iomap: str = "") -> Path:

@@ -18,7 +18,8 @@ from schema.findings import Finding, Severity
 from schema.status import MachineState
 from tests.fixtures.revpi import IMAGE_BYTES, address, load, make_image, write_config
 from tests.fixtures.revpi.corpus import LAYOUTS, path, render
-from tests.hal.test_revpi import RevPiRide, errors
+from tests.hal.test_revpi import RevPiRide
+from tests.hal.test_revpi_findings import errors
 
 pytest.importorskip("revpimodio2")
 

@@ -30,7 +30,7 @@ from rider.client import Rider, RiderError
 from schema.codec import Format, decode
 from schema.commands import Reply, RotateStep, Session, TiltStep
 from schema.status import MachineState, Status
-from tests.integration.support import STEP_TIMEOUT_S, prepare, wait_revolutions
+from tests.integration.support import STEP_TIMEOUT_S, prepare, relays_off, wait_revolutions
 from tests.procs import REPO, Daemon
 
 STEPS = ("alive", "prepare", "start", "running", "done", "hold")
@@ -84,6 +84,20 @@ def kill_until_paused(
     proc.wait(STEP_TIMEOUT_S)
     paused = observer.wait_for({MachineState.PAUSED}, bound)
     return paused, time.monotonic() - killed_at
+
+
+def assert_loss_pauses(
+    proc: subprocess.Popen[str], observer: Rider, bound: float, what: str
+) -> Status:
+    """The supervising Rider `proc` SIGKILLed mid-ride: the machine goes from RUNNING to
+    PAUSED within `bound`, its Rider gone and every relay off. Prints how long it took."""
+    assert observer.status().state is MachineState.RUNNING
+    paused, took = kill_until_paused(proc, observer, bound)
+    print(f"{what}: killed -> PAUSED in {took:.2f} s")
+    assert paused.previous_state is MachineState.RUNNING
+    assert not paused.rider_connected
+    assert relays_off(observer)
+    return paused
 
 
 def report(step: str, **fields: Any) -> None:

@@ -14,8 +14,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 
 from rider.client import Rider
+from schema.codec import Format
 from schema.commands import REST_STATES, Reply
 from schema.status import FAULT_STATES, MachineState, Status
 from tests.procs import Daemon, running_daemon
@@ -113,6 +115,30 @@ def module_machine(name: str) -> Any:
             yield daemon
 
     return machine
+
+
+def one_reply(session: zenoh.Session, selector: str, timeout: float = 10.0) -> zenoh.Sample:
+    """The one ok reply to `selector`, asked again while none comes (a daemon not yet seen by
+    a fresh session), within `timeout`."""
+    deadline = time.monotonic() + timeout
+    while True:
+        replies = [r.ok for r in session.get(selector, timeout=5.0) if r.ok is not None]
+        if replies or time.monotonic() > deadline:
+            break
+    [sample] = replies
+    return sample
+
+
+def raw_get(
+    rider: Rider, key: str, payload: bytes | str, fmt: Format, timeout: float
+) -> list[zenoh.Reply]:
+    """Every reply to one query on the machine's `key` outside the typed client (the payload
+    as given, its encoding `fmt`), as any Zenoh client could send it."""
+    return list(
+        rider.session.get(
+            f"{rider.base}/{key}", payload=payload, encoding=fmt.value, timeout=timeout
+        )
+    )
 
 
 def settle(rider: Rider, reply: Reply, timeout: float = STEP_TIMEOUT_S) -> Status:

@@ -5,7 +5,6 @@ One daemon on the fast simulator with FastData on; then a restart on the same da
 
 from __future__ import annotations
 
-import subprocess
 import time
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from schema.commands import Direction, RotateStep, Session, TiltStep
 from schema.fastdata import USER_REGISTER_LENGTH, FastAxisData
 from schema.status import MachineState
 from tests.integration.support import FAST_CONFIG, STEP_TIMEOUT_S, prepare, settle
-from tests.procs import REPO, Daemon, free_port, rider_cmd, running_daemon
+from tests.procs import Daemon, free_port, running_daemon
 
 SESSION = Session(
     name="live",
@@ -43,16 +42,24 @@ def rotate_zenoh(rider: Rider) -> AxisRecord:
 
 
 def set_register(daemon: Daemon, *args: str) -> None:
-    cmd = rider_cmd("--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config))
-    done = subprocess.run(
-        [*cmd, "fastdata", *args],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=REPO,
-        check=False,
-    )
+    done = daemon.run_rider("fastdata", *args)
     assert done.returncode == 0, done.stderr
+
+
+def sample_moving(fast: FastDataClient) -> list[FastAxisData]:
+    """The rotate axis's records while it moves. Sampled until past 1.5 turns with 40 samples,
+    or until the 4 turns (about 2 s) are over: the 1.5 turns alone (0.75 s) hold 40 samples
+    only while a poll takes under 19 ms, which a loaded host does not promise."""
+    moving: list[FastAxisData] = []
+    deadline = time.monotonic() + STEP_TIMEOUT_S
+    while time.monotonic() < deadline and not (len(moving) >= 40 and moving[-1].cFb > 1.5):
+        rec = rotate_fast(fast)
+        if rec.pnStatus & PnStatus.MOVING:
+            moving.append(rec)
+        elif moving:
+            break  # the rotation is over
+        time.sleep(0.01)  # polls a UDP server: there is no event to wait on
+    return moving
 
 
 def test_positions_bits_and_registers_through_zenoh_and_udp(tmp_path: Path) -> None:
@@ -75,18 +82,7 @@ def test_positions_bits_and_registers_through_zenoh_and_udp(tmp_path: Path) -> N
         assert rider.status().rotate_deg is not None
 
         reply = rider.start(SESSION)
-        moving: list[FastAxisData] = []
-        deadline = time.monotonic() + STEP_TIMEOUT_S
-        # Sampled until past 1.5 turns with 40 samples, or until the 4 turns (about 2 s) are
-        # over: the 1.5 turns alone (0.75 s) hold 40 samples only while a poll takes under
-        # 19 ms, which a loaded host does not promise.
-        while time.monotonic() < deadline and not (len(moving) >= 40 and moving[-1].cFb > 1.5):
-            rec = rotate_fast(fast)
-            if rec.pnStatus & PnStatus.MOVING:
-                moving.append(rec)
-            elif moving:
-                break  # the rotation is over
-            time.sleep(0.01)  # polls a UDP server: there is no event to wait on
+        moving = sample_moving(fast)
         zen = rotate_zenoh(rider)
         end = settle(rider, reply)
         assert end.state is MachineState.DONE, end

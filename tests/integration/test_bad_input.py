@@ -27,6 +27,7 @@ from tests.procs import (
     free_port,
     machine_cmd,
     rider_cmd,
+    run_machine,
     stop_process,
     wait_alive,
     write_zenoh_config,
@@ -209,14 +210,7 @@ def test_bad_overrides_are_findings_and_do_not_start(
         assert run.returncode == 2, (command, run.stderr)
         assert line in run.stderr and "Traceback" not in run.stderr
         assert not data.exists()  # refused before anything opened
-    validate = subprocess.run(
-        machine_cmd("validate", *args),
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=REPO,
-    )
+    validate = run_machine("validate", *args)
     assert validate.returncode == 2
     path = line.split(" at ")[1].rstrip(":")
     assert path in validate.stdout  # the same check, the same finding

@@ -16,7 +16,7 @@ from schema.calibration import CalibrationRecord, CalibrationSource
 from schema.codec import Format, decode
 from schema.status import MachineState, Status
 from tests.integration.support import fast_args
-from tests.procs import REPO, Daemon, rider_cmd, running_daemon
+from tests.procs import Daemon, running_daemon
 
 pytestmark = pytest.mark.integration
 
@@ -27,10 +27,7 @@ MANUAL += ["--rotate-home-arc", "30"]
 
 
 def rider(daemon: Daemon, *args: str) -> subprocess.CompletedProcess[str]:
-    cmd = rider_cmd("--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config))
-    return subprocess.run(
-        [*cmd, *args], capture_output=True, text=True, timeout=CLI_TIMEOUT_S, cwd=REPO, check=False
-    )
+    return daemon.run_rider(*args, timeout=CLI_TIMEOUT_S)
 
 
 def session_for(daemon: Daemon) -> zenoh.Session:

@@ -7,9 +7,8 @@ joined by a router) both stop with DUPLICATE_ID; a Rider that hears both raises
 from __future__ import annotations
 
 import contextlib
-import json
+import signal
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -27,19 +26,19 @@ from schema.sim import SimWorldState
 from schema.status import FaultCode, MachineState, Status
 from tests.integration import rider_proc
 from tests.integration.support import STEP_TIMEOUT_S, fast_args
-from tests.procs import REPO, Daemon, free_port, rider_cmd, start_daemon, stop_process
+from tests.procs import REPO, Daemon, run_rider, start_daemon
+from tests.site.stand import Router
 
 pytestmark = pytest.mark.integration
 
 M = TypeVar("M", bound=BaseModel)
 DUPLICATE = FaultCode.DUPLICATE_ID
 
-ROUTER_CONFIG = """{{
+ROUTER_CONFIG = """{
   mode: "router",
-  connect: {{ endpoints: {endpoints} }},
-  scouting: {{ multicast: {{ enabled: false }}, gossip: {{ enabled: true }} }},
-  transport: {{ link: {{ tx: {{ lease: 1000, keep_alive: 4 }} }} }},
-}}
+  scouting: { multicast: { enabled: false }, gossip: { enabled: true } },
+  transport: { link: { tx: { lease: 1000, keep_alive: 4 } } },
+}
 """
 GOSSIP_CONFIG = """{
   mode: "peer",
@@ -82,16 +81,13 @@ def daemon_in(tmp: Path, name: str, *extra: str) -> Iterator[Daemon]:
 def router_between(tmp: Path, *daemons: Daemon) -> Iterator[str]:
     """A Zenoh router that connects to each daemon: the segments joined. Yields its endpoint."""
     config = tmp / "bridge.json5"
-    config.write_text(ROUTER_CONFIG.format(endpoints=json.dumps([d.endpoint for d in daemons])))
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    cmd = [sys.executable, "-m", "tests.site.router", "--config", str(config), "--listen", endpoint]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=REPO)
+    config.write_text(ROUTER_CONFIG)
+    router = Router(config, tmp, connect=[d.endpoint for d in daemons])
+    router.start()
     try:
-        assert proc.stdout is not None
-        assert "ready" in json.loads(proc.stdout.readline())
-        yield endpoint
+        yield router.endpoint
     finally:
-        stop_process(proc)
+        router.kill(signal.SIGTERM)
 
 
 def own(daemon: Daemon, key: str, model: type[M], payload: bytes | None = None) -> M:
@@ -147,20 +143,31 @@ def test_a_second_daemon_with_a_live_id_refuses_to_start(tmp_path: Path) -> None
             assert r.check_home().ok is False
 
 
+def riding(*daemons: Daemon) -> list[subprocess.Popen[str]]:
+    """One Rider process per daemon, each riding the long session (`LONG`) on its segment."""
+    return [
+        subprocess.Popen(
+            [*rider_proc.command(d.endpoint, d.zenoh_config, "m1", *LONG)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+        )
+        for d in daemons
+    ]
+
+
+def rider_hearing(a: Daemon, b: Daemon, *args: str) -> subprocess.CompletedProcess[str]:
+    """`rider ARGS` linked to both daemons, as a Rider on the joined network is."""
+    linked = ("--connect", a.endpoint, "--connect", b.endpoint)
+    return run_rider(*linked, "--zenoh-config", str(a.zenoh_config), *args)
+
+
 def test_two_segments_joined_at_runtime_both_stop_with_duplicate_id(tmp_path: Path) -> None:
     with daemon_in(tmp_path, "a") as a, daemon_in(tmp_path, "b") as b:
         zids = sorted([zid_of(a), zid_of(b)])
         # Each segment alone: each machine rides a long session for its own Rider.
-        riders = [
-            subprocess.Popen(
-                [*rider_proc.command(d.endpoint, d.zenoh_config, "m1", *LONG)],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                text=True,
-                cwd=REPO,
-            )
-            for d in (a, b)
-        ]
+        riders = riding(a, b)
         try:
             for child in riders:
                 rider_proc.read_step(child, "hold")
@@ -184,32 +191,10 @@ def test_two_segments_joined_at_runtime_both_stop_with_duplicate_id(tmp_path: Pa
                 with pytest.raises(DuplicateMachine) as caught:
                     r.status()
                 assert sorted(caught.value.sessions) == zids
-            cli = rider_cmd(
-                "--connect",
-                a.endpoint,
-                "--connect",
-                b.endpoint,
-                "--zenoh-config",
-                str(a.zenoh_config),
-            )
-            done = subprocess.run(
-                [*cli, "--machine", "m1", "start"],
-                check=False,
-                capture_output=True,
-                text=True,
-                timeout=60,
-                cwd=REPO,
-            )
+            done = rider_hearing(a, b, "--machine", "m1", "start")
             assert done.returncode == EXIT_DUPLICATE, done.stderr
             assert all(z in done.stderr for z in zids), done.stderr
-            listed = subprocess.run(
-                [*cli, "machines"],
-                check=False,
-                capture_output=True,
-                text=True,
-                timeout=60,
-                cwd=REPO,
-            )
+            listed = rider_hearing(a, b, "machines")
             assert listed.returncode == EXIT_DUPLICATE, listed
             assert "CONFLICT" in listed.stdout and all(z in listed.stdout for z in zids)
             # One of them goes: the other is alone, takes commands again, and moved nothing.

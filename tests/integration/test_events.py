@@ -19,8 +19,15 @@ from schema.codec import Format, decode
 from schema.events import Event, EventPage
 from schema.status import MachineState, Status
 from service.adapters.eventlog import EVENTS_FILE
-from tests.integration.support import fast_args, prepare, settle
-from tests.procs import REPO, Daemon, machine_cmd, rider_cmd, start_daemon, stop_process
+from tests.integration.support import fast_args, one_reply, prepare, settle
+from tests.procs import (
+    REPO,
+    Daemon,
+    rider_cmd,
+    run_machine,
+    start_daemon,
+    stop_process,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -50,10 +57,7 @@ FIRST_RUN = [
 
 
 def rider_cli(daemon: Daemon, *args: str) -> subprocess.CompletedProcess[str]:
-    cmd = rider_cmd("--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config))
-    return subprocess.run(
-        [*cmd, *args], capture_output=True, text=True, timeout=CLI_TIMEOUT_S, cwd=REPO, check=False
-    )
+    return daemon.run_rider(*args, timeout=CLI_TIMEOUT_S)
 
 
 def cli_events(daemon: Daemon, *args: str) -> list[dict[str, Any]]:
@@ -67,12 +71,7 @@ def raw_page(daemon: Daemon, selector: str) -> EventPage:
     conf = zenoh.Config.from_file(str(daemon.zenoh_config))
     conf.insert_json5("connect/endpoints", json.dumps([daemon.endpoint]))
     with zenoh.open(conf) as session:
-        deadline = time.monotonic() + 10.0
-        while True:
-            replies = [r.ok for r in session.get(selector, timeout=5.0) if r.ok is not None]
-            if replies or time.monotonic() > deadline:
-                break
-        [sample] = replies
+        sample = one_reply(session, selector)
         assert str(sample.encoding).startswith("application/json")
         return EventPage.model_validate_json(sample.payload.to_bytes())
 
@@ -94,8 +93,9 @@ def drive_first_run(r: Rider) -> None:
     r.sim("clear")
 
 
-def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> None:  # noqa: PLR0915 - one end-to-end story across restarts
-    extra = fast_args(tmp_path)
+def first_run_followed(tmp_path: Path, extra: list[str]) -> list[dict[str, Any]]:
+    """The first run (`drive_first_run`, a refused Pause, a parameter write, a clean stop) with
+    `rider events --follow` beside it; what the follower saw."""
     daemon = start_daemon(tmp_path, extra=extra)
     follow = Follower(daemon)
     try:
@@ -111,6 +111,12 @@ def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> Non
     finally:
         followed = follow.stop()
         daemon.stop(signal.SIGKILL)
+    return followed
+
+
+def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> None:
+    extra = fast_args(tmp_path)
+    followed = first_run_followed(tmp_path, extra)
 
     # A restart (clean), then a kill and another restart on the same data_dir.
     daemon = start_daemon(tmp_path, extra=extra)
@@ -154,22 +160,10 @@ def test_a_ride_its_faults_and_restarts_read_back_exactly(tmp_path: Path) -> Non
         assert summary["ride_time_s"] > 0
 
         # Offline: the export reads the database file itself.
-        export = subprocess.run(
-            machine_cmd(
-                "events",
-                "export",
-                "--data-dir",
-                str(daemon.data_dir),
-                "--format",
-                "jsonl",
-                "--kind",
-                "session_ended",
-            ),
-            capture_output=True,
-            text=True,
+        export = run_machine(
+            *("events", "export", "--data-dir", str(daemon.data_dir)),
+            *("--format", "jsonl", "--kind", "session_ended"),
             timeout=CLI_TIMEOUT_S,
-            cwd=REPO,
-            check=False,
         )
         assert export.returncode == 0, export.stderr
         ended = [Event.model_validate_json(line) for line in export.stdout.splitlines()]

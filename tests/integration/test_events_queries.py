@@ -14,6 +14,7 @@ import zenoh
 
 from schema.commands import Reply
 from schema.events import EventPage
+from tests.integration.support import one_reply
 from tests.procs import Daemon, running_daemon
 
 pytestmark = pytest.mark.integration
@@ -21,12 +22,7 @@ pytestmark = pytest.mark.integration
 
 def ask(session: zenoh.Session, selector: str) -> tuple[str, bytes]:
     """The one reply's encoding and payload (retried while the daemon is not yet seen)."""
-    deadline = time.monotonic() + 10.0
-    while True:
-        replies = [r.ok for r in session.get(selector, timeout=5.0) if r.ok is not None]
-        if replies or time.monotonic() > deadline:
-            break
-    [sample] = replies
+    sample = one_reply(session, selector)
     return str(sample.encoding), sample.payload.to_bytes()
 
 

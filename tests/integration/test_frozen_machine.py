@@ -47,11 +47,8 @@ def machine(tmp_path: Path) -> Iterator[Daemon]:
 
 def cli(daemon: Daemon, *args: str) -> tuple[subprocess.CompletedProcess[str], float]:
     """`rider ARGS` against the daemon's endpoint, no machine named (the README's way)."""
-    cmd = rider_cmd("--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config))
     t0 = time.monotonic()
-    done = subprocess.run(
-        [*cmd, *args], check=False, capture_output=True, text=True, timeout=60, cwd=REPO
-    )
+    done = daemon.run_rider(*args)
     return done, time.monotonic() - t0
 
 

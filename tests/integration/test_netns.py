@@ -22,7 +22,7 @@ from schema.status import MachineState, Status
 from tests.integration import rider_proc
 from tests.integration.support import STEP_TIMEOUT_S, fast_args
 from tests.netns import NetnsUnavailable, NsPair, unavailable_reason, veth_pair
-from tests.procs import REPO, Daemon, rider_cmd, start_daemon
+from tests.procs import REPO, Daemon, rider_cmd, run_bounded, start_daemon
 
 pytestmark = [
     pytest.mark.integration,
@@ -83,13 +83,8 @@ def reports(output: str) -> dict[str, dict[str, Any]]:
 
 
 def test_a_session_runs_across_two_namespaces(site: Site) -> None:
-    run = subprocess.run(
-        site.in_b(*site.rider_proc("alive", "prepare", "start", "done")),
-        capture_output=True,
-        text=True,
-        timeout=RUN_TIMEOUT_S,
-        cwd=REPO,
-        check=False,
+    run = run_bounded(
+        site.in_b(*site.rider_proc("alive", "prepare", "start", "done")), RUN_TIMEOUT_S
     )
     assert run.returncode == 0, f"{run.stdout}\n{run.stderr}\n{site.daemon.log()}"
     steps = reports(run.stdout)
@@ -98,14 +93,7 @@ def test_a_session_runs_across_two_namespaces(site: Site) -> None:
     assert done.session is not None and done.session.revolutions_done == 3
     assert steps["done"]["revolutions"] == pytest.approx(3.0, abs=0.1)
 
-    cli = subprocess.run(
-        site.in_b(*site.rider_cli("--json", "status")),
-        capture_output=True,
-        text=True,
-        timeout=RUN_TIMEOUT_S,
-        cwd=REPO,
-        check=False,
-    )
+    cli = run_bounded(site.in_b(*site.rider_cli("--json", "status")), RUN_TIMEOUT_S)
     assert cli.returncode == 0, cli.stderr
     assert Status.model_validate_json(cli.stdout).state is MachineState.DONE
 
@@ -117,31 +105,42 @@ def test_a_session_runs_across_two_namespaces(site: Site) -> None:
         outsider.status()
 
 
-def test_a_pulled_cable_pauses_the_session_by_the_riders_heartbeat(site: Site) -> None:
-    """No FIN, no RST, and a Rider on Zenoh's default 10 s lease (no --zenoh-config): only its
-    deadman heartbeat (`rider_loss.timeout_s`, 1 s in the fast test config) can notice."""
+def start_driver(site: Site) -> subprocess.Popen[str]:
+    """A Rider in namespace b on Zenoh's default lease (its --zenoh-config dropped) riding a
+    long session."""
     d = site.daemon
     steps = ("--revolutions", "40", "alive", "prepare", "start", "running", "hold")
     driver_cmd = [*rider_proc.command(d.endpoint, d.zenoh_config, d.machine_id, *steps)]
     at = driver_cmd.index("--zenoh-config")
     del driver_cmd[at : at + 2]
-    driver = subprocess.Popen(
+    return subprocess.Popen(
         site.in_b(*driver_cmd),
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
         cwd=REPO,
     )
+
+
+def wait_holding(site: Site, driver: subprocess.Popen[str]) -> None:
+    """Until the driver reports its `hold` step (the session running); every step error-free."""
+    assert driver.stdout is not None
+    for line in driver.stdout:
+        record = json.loads(line)
+        assert "error" not in record, record
+        if record["step"] == "hold":
+            break
+    else:
+        raise AssertionError(f"driver ended early:\n{site.daemon.log()}")
+
+
+def test_a_pulled_cable_pauses_the_session_by_the_riders_heartbeat(site: Site) -> None:
+    """No FIN, no RST, and a Rider on Zenoh's default 10 s lease (no --zenoh-config): only its
+    deadman heartbeat (`rider_loss.timeout_s`, 1 s in the fast test config) can notice."""
+    driver = start_driver(site)
     watcher: subprocess.Popen[str] | None = None
     try:
-        assert driver.stdout is not None
-        for line in driver.stdout:
-            record = json.loads(line)
-            assert "error" not in record, record
-            if record["step"] == "hold":
-                break
-        else:
-            raise AssertionError(f"driver ended early:\n{site.daemon.log()}")
+        wait_holding(site, driver)
         # A watcher beside the machine, in namespace a, sees what the pulled cable does.
         watcher = subprocess.Popen(
             site.in_a(

@@ -9,14 +9,13 @@ refused `BAD_PAYLOAD` at `/rider` with what to do; its reads, checks and Stop wo
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 
 import pytest
 
 from schema.codec import Format, decode, encode
 from schema.commands import Command, CommandRequest, Reply
 from schema.errors import ErrorCode
-from tests.integration.support import fast_daemon
+from tests.integration.support import module_machine
 from tests.procs import Daemon
 
 pytestmark = pytest.mark.integration
@@ -24,10 +23,7 @@ pytestmark = pytest.mark.integration
 REPLY_TIMEOUT_S = 10.0
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("old-rider")) as daemon:
-        yield daemon
+machine = module_machine("old-rider")
 
 
 def ask(daemon: Daemon, command: Command, **fields: object) -> Reply:

@@ -43,14 +43,7 @@ def args_for(daemon: Daemon, *args: str) -> list[str]:
 
 def rider(daemon: Daemon, *args: str) -> subprocess.CompletedProcess[str]:
     """Run `rider …` against `daemon`, bounded."""
-    return subprocess.run(
-        args_for(daemon, *args),
-        capture_output=True,
-        text=True,
-        timeout=CLI_TIMEOUT_S,
-        cwd=REPO,
-        check=False,
-    )
+    return daemon.run_rider(*args, timeout=CLI_TIMEOUT_S)
 
 
 def background(daemon: Daemon, *args: str) -> subprocess.Popen[str]:

@@ -13,6 +13,7 @@ import pytest
 
 from common.credentials import RIDER, zenoh_settings
 from service.adapters.credentials import DICTIONARY, IDENTITIES, password_file
+from tests import procs
 from tests.netns import NetnsUnavailable, veth_pair
 from tests.procs import REPO, START_TIMEOUT_S, free_port, machine_cmd, stop_process
 from tests.reliability.support import ACL_PROFILE
@@ -87,14 +88,7 @@ def test_listening_beyond_loopback_without_a_login_warns_how_to_turn_it_on(tmp_p
 
 def test_credentials_init_makes_files_an_acl_daemon_starts_with(tmp_path: Path) -> None:
     secrets = tmp_path / "secrets"
-    done = subprocess.run(
-        machine_cmd("credentials", "init", str(secrets)),
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=REPO,
-        check=False,
-    )
+    done = procs.run_machine("credentials", "init", str(secrets))
     assert done.returncode == 0, done.stderr
     files = [password_file(secrets, u) for u in IDENTITIES] + [secrets / DICTIONARY]
     assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in files)
@@ -108,14 +102,7 @@ def test_credentials_init_makes_files_an_acl_daemon_starts_with(tmp_path: Path) 
     assert zenoh_settings(RIDER, env)["transport/auth/usrpwd/password"] == f'"{lines["rider"]}"'
     assert len(set(lines.values())) == len(IDENTITIES)  # one password each
 
-    again = subprocess.run(
-        machine_cmd("credentials", "init", str(secrets)),
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=REPO,
-        check=False,
-    )
+    again = procs.run_machine("credentials", "init", str(secrets))
     assert again.returncode == 1 and "exists already" in again.stderr
     assert (
         dict(line.split(":", 1) for line in (secrets / DICTIONARY).read_text().splitlines())

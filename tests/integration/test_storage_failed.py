@@ -96,15 +96,20 @@ def test_full_disk_calibration_and_parameter_are_not_reported_saved(tmp_path: Pa
         finally:
             daemon.stop()
         (mount / "filler").unlink()  # room again: the restart finds no older calibration
-        daemon = machine_on(tmp_path, data)
-        try:
-            with daemon.rider() as r:
-                after = r.status()
-        finally:
-            daemon.stop()
+        after = status_after_restart(tmp_path, data)
     assert after.state is MachineState.WARNING_NEEDS_CALIBRATION
     assert not after.calibrated.tilt and not after.calibrated.rotate
     assert storage_warnings(after) == []
+
+
+def status_after_restart(tmp_path: Path, data: Path) -> Status:
+    """The first status of a daemon started again on `data`, then stopped."""
+    daemon = machine_on(tmp_path, data)
+    try:
+        with daemon.rider() as r:
+            return r.status()
+    finally:
+        daemon.stop()
 
 
 def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: Path) -> None:
@@ -129,12 +134,7 @@ def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: 
         finally:
             daemon.stop()
         assert (data / CALIBRATION_FILE).read_bytes() == calibration_to_json(OLD, 1.0)
-        daemon = machine_on(tmp_path, data)
-        try:
-            with daemon.rider() as r:
-                after = r.status()
-        finally:
-            daemon.stop()
+        after = status_after_restart(tmp_path, data)
     assert not after.calibrated.tilt  # the older file is still there, still not trusted
     assert storage_warnings(after)
 

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator
 
 import pytest
 
 from schema.codec import Format
 from schema.status import MachineState
-from tests.integration.support import fast_daemon, states_over
+from tests.integration.support import module_machine, raw_get, states_over
 from tests.procs import Daemon
 
 pytestmark = pytest.mark.integration
@@ -24,10 +23,7 @@ pytestmark = pytest.mark.integration
 REPLY_TIMEOUT_S = 10.0
 
 
-@pytest.fixture(scope="module")
-def machine(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with fast_daemon(tmp_path_factory.mktemp("timecode")) as daemon:
-        yield daemon
+machine = module_machine("timecode")
 
 
 def home_with(daemon: Daemon, tid: str, timecode: float) -> tuple[dict[str, object], bool]:
@@ -35,14 +31,7 @@ def home_with(daemon: Daemon, tid: str, timecode: float) -> tuple[dict[str, obje
     whether the machine went HOMING."""
     body = json.dumps({"transaction_id": tid, "timecode": timecode, "valid_for": 5})
     with daemon.rider(supervise=False) as r:
-        replies = list(
-            r.session.get(
-                f"{r.base}/cmd/home?format=json",
-                payload=body,
-                encoding=Format.JSON.value,
-                timeout=REPLY_TIMEOUT_S,
-            )
-        )
+        replies = raw_get(r, "cmd/home?format=json", body, Format.JSON, REPLY_TIMEOUT_S)
         assert len(replies) == 1 and replies[0].ok is not None, replies
         reply: dict[str, object] = json.loads(replies[0].ok.payload.to_string())
         # Ten cycles after the reply: a Home taken would show HOMING by then.

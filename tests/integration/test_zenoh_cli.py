@@ -23,7 +23,7 @@ from schema.io import IoValue
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, module_machine, settle, states_over
-from tests.procs import REPO, Daemon, stop_process
+from tests.procs import REPO, Daemon, run_bounded, stop_process
 
 pytestmark = [
     pytest.mark.integration,
@@ -173,19 +173,15 @@ def zenoh_cli(daemon: Daemon, *args: str) -> list[str]:
 
 def test_msgpack_decoder_reads_replies_without_format_json(machine: Daemon) -> None:
     """The plugin (rider/zenoh_codec.py, an entry point of the package) reads msgpack replies."""
-    done = subprocess.run(
-        zenoh_cli(machine, "get", "-s", f"{BASE}/status", "--decoder", "msgpack"),
-        capture_output=True,
-        text=True,
-        timeout=CLI_TIMEOUT_S,
-        check=False,
+    done = run_bounded(
+        zenoh_cli(machine, "get", "-s", f"{BASE}/status", "--decoder", "msgpack"), CLI_TIMEOUT_S
     )
     (status,) = replies(done)
     assert Status.model_validate(status).machine_id == "m1"
 
 
 def test_msgpack_encoder_sends_a_command_the_machine_reads(machine: Daemon) -> None:
-    done = subprocess.run(
+    done = run_bounded(
         zenoh_cli(
             machine,
             "get",
@@ -198,10 +194,7 @@ def test_msgpack_encoder_sends_a_command_the_machine_reads(machine: Daemon) -> N
             "--decoder",
             "msgpack",
         ),
-        capture_output=True,
-        text=True,
-        timeout=CLI_TIMEOUT_S,
-        check=False,
+        CLI_TIMEOUT_S,
     )
     (reply,) = replies(done)
     parsed = Reply.model_validate(reply)

@@ -19,10 +19,19 @@ import zenoh
 from common.credentials import MACHINE, RIDER, env_name
 from rider.client import Rider
 from schema.codec import Format, decode
-from schema.status import Status
+from schema.commands import REST_STATES, Reply
+from schema.status import FAULT_STATES, Status
 from service.adapters.credentials import DICTIONARY, IDENTITIES, init_credentials, password_file
 from tests.integration.support import STEP_TIMEOUT_S, write_fast_config
-from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, machine_cmd, write_zenoh_config
+from tests.procs import (
+    REPO,
+    START_TIMEOUT_S,
+    Daemon,
+    child_pids,
+    free_port,
+    machine_cmd,
+    write_zenoh_config,
+)
 
 PROFILES = REPO / "zenoh"
 ACL_PROFILE = PROFILES / "acl.json5"
@@ -203,15 +212,9 @@ def secured_machine(
 
 def supervisor_child(daemon: Daemon) -> int:
     """The pid of the daemon child of a `machine supervise` process."""
-    out = subprocess.run(
-        ["pgrep", "-P", str(daemon.proc.pid)],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=10,
-    ).stdout.split()
+    out = child_pids(daemon.proc.pid)
     assert len(out) == 1, f"expected one child of the supervisor, found {out}"
-    return int(out[0])
+    return out[0]
 
 
 # ---------------------------------------------------------------------------------- waits
@@ -249,6 +252,16 @@ class StatusFeed:
 
     def close(self) -> None:
         self._sub.undeclare()
+
+
+SETTLED = REST_STATES | FAULT_STATES
+"""States a command's motion ends in."""
+
+
+def settle(feed: StatusFeed, reply: Reply) -> Status:
+    """The first status after `reply` (an accepted command) in a state its motion ends in."""
+    assert reply.success, reply
+    return feed.until(lambda s: s.time >= reply.timecode and s.state in SETTLED)
 
 
 def wait_status(

@@ -34,7 +34,7 @@ from schema.params import ParamSet
 from schema.sim import SIM_REQUESTS
 from schema.status import MachineState
 from tests.integration import rider_proc
-from tests.integration.support import relays_off
+from tests.integration.support import raw_get
 from tests.procs import REPO, Daemon, free_port, stop_process
 from tests.reliability.forger import FORGED_SEQ
 from tests.reliability.support import (
@@ -279,14 +279,7 @@ def test_a_peer_with_valid_credentials_cannot_pose_as_the_machine(
                 feed.close()
             assert all(s.seq < FORGED_SEQ for s in samples), samples
             start = encode(StartRequest(transaction_id=f"forgery-{who}"))
-            replies = list(
-                r.session.get(
-                    f"{r.base}/cmd/start",
-                    payload=start,
-                    encoding=Format.MSGPACK.value,
-                    timeout=DENIED_WAIT_S,
-                )
-            )
+            replies = raw_get(r, "cmd/start", start, Format.MSGPACK, DENIED_WAIT_S)
             status_repliers = {
                 str(rep.replier_id.zid)
                 for rep in r.session.get(f"{r.base}/status", timeout=DENIED_WAIT_S)
@@ -338,12 +331,8 @@ def test_a_monitor_cannot_keep_a_killed_rider_alive(
             forger(daemon, ids.env(RIDER, "monitor"), "--token", f"rider/{victim_id}/alive"),
             session_as(daemon, ids.env(RIDER, "rider")) as observer,
         ):
-            assert observer.status().state is MachineState.RUNNING
-            paused, took = rider_proc.kill_until_paused(victim, observer, LOSS_BOUND_S)
-            print(f"forged token, {command}: killed -> PAUSED in {took:.2f} s")
-            assert paused.previous_state is MachineState.RUNNING
-            assert not paused.rider_connected
-            assert relays_off(observer)
+            what = f"forged token, {command}"
+            rider_proc.assert_loss_pauses(victim, observer, LOSS_BOUND_S, what)
     finally:
         daemon.stop()
 

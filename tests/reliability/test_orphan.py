@@ -15,14 +15,9 @@ from tests.procs import REPO, free_port, machine_cmd, write_zenoh_config
 TIMEOUT_S = 30.0
 
 
-def test_die_with_parent_checks_the_parent_is_still_there() -> None:
-    assert die_with_parent(os.getppid())
-    assert not die_with_parent(os.getppid() + 999_999)
-
-
-def test_daemon_refuses_to_run_when_its_supervisor_is_gone(tmp_path: Path) -> None:
-    env = {**os.environ, SUPERVISOR_PID_ENV: "1"}  # init is not our parent
-    cmd = machine_cmd(
+def sim_daemon_cmd(tmp_path: Path) -> list[str]:
+    """`machine run --sim` on a free loopback port with its own data dir and Zenoh config."""
+    return machine_cmd(
         "run",
         "--sim",
         "--zenoh-config",
@@ -32,6 +27,16 @@ def test_daemon_refuses_to_run_when_its_supervisor_is_gone(tmp_path: Path) -> No
         "--data-dir",
         str(tmp_path / "data"),
     )
+
+
+def test_die_with_parent_checks_the_parent_is_still_there() -> None:
+    assert die_with_parent(os.getppid())
+    assert not die_with_parent(os.getppid() + 999_999)
+
+
+def test_daemon_refuses_to_run_when_its_supervisor_is_gone(tmp_path: Path) -> None:
+    env = {**os.environ, SUPERVISOR_PID_ENV: "1"}  # init is not our parent
+    cmd = sim_daemon_cmd(tmp_path)
     done = subprocess.run(
         cmd, env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S, check=False
     )
@@ -41,16 +46,7 @@ def test_daemon_refuses_to_run_when_its_supervisor_is_gone(tmp_path: Path) -> No
 
 def test_daemon_gets_sigterm_when_its_parent_dies(tmp_path: Path) -> None:
     """A parent that starts the daemon the way the supervisor does, then is SIGKILLed."""
-    daemon = machine_cmd(
-        "run",
-        "--sim",
-        "--zenoh-config",
-        str(write_zenoh_config(tmp_path)),
-        "--listen",
-        f"tcp/127.0.0.1:{free_port()}",
-        "--data-dir",
-        str(tmp_path / "data"),
-    )
+    daemon = sim_daemon_cmd(tmp_path)
     parent = f"""
 import os, subprocess, sys
 env = {{**os.environ, {SUPERVISOR_PID_ENV!r}: str(os.getpid())}}

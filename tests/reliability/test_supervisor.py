@@ -20,27 +20,26 @@ import pytest
 from common.credentials import MACHINE, RIDER, env_name
 from rider.client import CommandRefused, Rider
 from schema.codec import Format, encode
-from schema.commands import REST_STATES, Reply, RotateStep, Session, TiltStep
+from schema.commands import Reply, RotateStep, Session, TiltStep
 from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
-from schema.status import FAULT_STATES, FaultCode, MachineState, Status
-from tests.fixtures.revpi import CONFIG_RSC, address
+from schema.status import FaultCode, MachineState, Status
+from tests import freeze
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
     ACL_PROFILE,
     StatusFeed,
     make_identities,
     rider_as,
+    settle,
     start_machine,
     supervisor_child,
 )
 
 pytestmark = pytest.mark.integration
 
-SETTLED = REST_STATES | FAULT_STATES
 LONG_RIDE = Session(name="long", steps=[TiltStep(degrees=30.0), RotateStep(revolutions=40)])
 """Twenty seconds of rotation at the fast config: the daemon dies in the middle of it."""
-RELAYS = ("O_1", "O_2", "O_3", "O_4")
 
 
 @pytest.fixture
@@ -50,11 +49,6 @@ def supervised(tmp_path: Path) -> Iterator[Daemon]:
         yield daemon
     finally:
         daemon.stop()
-
-
-def settle(feed: StatusFeed, reply: Reply) -> Status:
-    assert reply.success, reply
-    return feed.until(lambda s: s.time >= reply.timecode and s.state in SETTLED)
 
 
 def ride_until_rotating(r: Rider, feed: StatusFeed) -> Reply:
@@ -85,13 +79,7 @@ def daemon_died(status: Status) -> bool:
 
 def image_relays(daemon: Daemon) -> dict[str, bool]:
     """The relay bits in the supervisor's process-image file, read without revpimodio2."""
-    image = (daemon.data_dir / "supervisor" / "procimg").read_bytes()
-    out = {}
-    for name in RELAYS:
-        byte, bit = address(name, CONFIG_RSC)
-        assert bit is not None
-        out[name] = bool(image[byte] >> bit & 1)
-    return out
+    return freeze.image_relays(daemon.data_dir)
 
 
 def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(

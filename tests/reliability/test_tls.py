@@ -13,8 +13,8 @@ import pytest
 
 from common.credentials import MACHINE, RIDER, env_name
 from rider.client import MachineTimeout, Rider
-from schema.commands import REST_STATES, Reply, RotateStep, Session, TiltStep
-from schema.status import FAULT_STATES, MachineState, Status
+from schema.commands import RotateStep, Session, TiltStep
+from schema.status import MachineState
 from tests.procs import Daemon
 from tests.reliability.support import (
     RIDER_VARIABLES,
@@ -26,12 +26,12 @@ from tests.reliability.support import (
     make_identities,
     make_tls,
     rider_as,
+    settle,
     start_machine,
 )
 
 pytestmark = pytest.mark.integration
 
-SETTLED = REST_STATES | FAULT_STATES
 RIDE = Session(name="tls-ride", steps=[TiltStep(degrees=20.0), RotateStep(revolutions=2)])
 
 
@@ -70,11 +70,6 @@ def machine(
         yield daemon
     finally:
         daemon.stop()
-
-
-def settle(feed: StatusFeed, reply: Reply) -> Status:
-    assert reply.success, reply
-    return feed.until(lambda s: s.time >= reply.timecode and s.state in SETTLED)
 
 
 def test_calibrate_home_and_a_session_to_done_over_tls(

@@ -17,7 +17,7 @@ from common.runtime import RUNTIME_ENV, runtime_layout
 from rider import cli
 from rider.client import MachineTimeout, Rider
 from tests.procs import REPO, free_port
-from tests.service.test_zenoh_runtime import run_child, runtimes
+from tests.service.supervision.test_zenoh_runtime import run_child, runtimes
 
 CHILD = """
 import os, subprocess, sys, time

@@ -33,6 +33,11 @@ def replies() -> list[Reply]:
     """Every shape a command reply takes: each success code, each check result, each error
     code (with and without a path), no state, no ids, echoed and non-finite timecodes, text
     that JSON and msgpack escape differently."""
+    return success_replies() + error_replies() + odd_timecode_replies()
+
+
+def success_replies() -> list[Reply]:
+    """Each success code, then each check result."""
     shapes: list[Reply] = []
     for code in ReplyCode:
         if code is ReplyCode.RESP_ERROR:
@@ -60,6 +65,12 @@ def replies() -> list[Reply]:
                 result=CheckResult(ok=ok, tilt=tilt, rotate=rotate),
             )
         )
+    return shapes
+
+
+def error_replies() -> list[Reply]:
+    """Each error code with and without a path, no state, no ids, escaped text."""
+    shapes: list[Reply] = []
     for i, code in enumerate(ErrorCode):
         shapes.append(
             Reply.failure(
@@ -79,6 +90,12 @@ def replies() -> list[Reply]:
                 timecode=0.0,
             )
         )
+    return shapes
+
+
+def odd_timecode_replies() -> list[Reply]:
+    """Non-finite, negative-zero and extreme timecodes, echoed."""
+    shapes: list[Reply] = []
     for odd in (math.inf, -math.inf, math.nan, -0.0, 1e308, 5e-324):
         shapes.append(
             Reply(

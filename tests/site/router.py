@@ -35,12 +35,9 @@ def router_config(path: Path, listen: list[str], connect: list[str] | None = Non
     return conf
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="router", description=__doc__)
-    p.add_argument("--config", type=Path, required=True, help="the router's json5 config")
-    p.add_argument("--listen", action="append", default=[], help="listen endpoint")
-    p.add_argument("--connect", action="append", default=[], help="endpoint it dials itself")
-    args = p.parse_args(argv)
+def stop_on_signals() -> threading.Event:
+    """An event SIGTERM and SIGINT set, instead of ending the process: a stand-in router then
+    closes its session and exits 0."""
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -48,6 +45,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    return stop
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="router", description=__doc__)
+    p.add_argument("--config", type=Path, required=True, help="the router's json5 config")
+    p.add_argument("--listen", action="append", default=[], help="listen endpoint")
+    p.add_argument("--connect", action="append", default=[], help="endpoint it dials itself")
+    args = p.parse_args(argv)
+    stop = stop_on_signals()
     conf = router_config(args.config, args.listen, args.connect)
     with zenoh.open(conf) as session:
         listen = json.loads(conf.get_json("listen/endpoints"))

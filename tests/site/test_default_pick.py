@@ -132,18 +132,10 @@ def quantile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(len(ordered) * q))] if ordered else float("nan")
 
 
-@pytest.mark.integration
-def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Site) -> None:
+def start_appearer(stand: Site, b_port: int) -> subprocess.Popen[str]:
+    """Machine `b` appearing and going on its cadence (tests/site/appearer.py), beside `a`."""
     a = stand.daemons["a"]
-    b_port = free_port()
-    ends = {
-        "peer@a": (a.endpoint, PEER_CONFIG),
-        "peer@b": (f"tcp/127.0.0.1:{b_port}", PEER_CONFIG),
-        "client@router": (stand.router.endpoint, stand.client_config),
-        "peer@router": (stand.router.endpoint, PEER_CONFIG),
-    }
-    kinds = list(ends)
-    appearer = subprocess.Popen(
+    return subprocess.Popen(
         [
             *[sys.executable, "-m", "tests.site.appearer", "--id", "b"],
             *["--peer-config", str(PEER_CONFIG), "--client-config", str(stand.client_config)],
@@ -155,7 +147,11 @@ def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Si
         text=True,
         cwd=REPO,
     )
-    lines = Lines(appearer)
+
+
+def run_trials(ends: dict[str, tuple[str, Path]]) -> list[Trial]:
+    """`TRIALS` lookups by `WORKERS` threads, endpoint by endpoint, within `TRIALS_MAX_S`."""
+    kinds = list(ends)
     trials: list[Trial] = []
     lock = threading.Lock()
     counter = iter(range(TRIALS))
@@ -172,14 +168,55 @@ def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Si
             with lock:
                 trials.append(trial)
 
+    threads = [threading.Thread(target=worker, daemon=True) for _ in range(WORKERS)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(max(0.0, deadline - time.monotonic()))
+    return trials
+
+
+def report(
+    summary: dict[str, object], trials: list[Trial], timeline: object, appearances: object
+) -> None:
+    """Print the trials' summary with their outcomes and lookup times; dump everything to the
+    file `PICK_DUMP` names, when it does."""
+    summary["unsure"] = sum(1 for t in trials if t.outcome.startswith("unsure"))
+    summary["outcomes"] = dict(Counter(t.outcome.split()[0] for t in trials))
+    for motion, name in ((False, "read"), (True, "command")):
+        times = [t.lookup_s for t in trials if t.motion is motion and t.outcome in ("a", "several")]
+        summary[f"{name}_lookup_s"] = {
+            "p50": round(quantile(times, 0.5), 3),
+            "p90": round(quantile(times, 0.9), 3),
+        }
+    print(f"\ndefault-pick {json.dumps(summary)}")
+    if os.environ.get("PICK_DUMP"):
+        dump = {
+            "summary": summary,
+            "timeline": timeline,
+            "appearer": appearances,
+            "trials": [t.__dict__ for t in trials],
+        }
+        Path(os.environ["PICK_DUMP"]).write_text(json.dumps(dump, default=str))
+
+
+@pytest.mark.integration
+def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Site) -> None:
+    a = stand.daemons["a"]
+    b_port = free_port()
+    ends = {
+        "peer@a": (a.endpoint, PEER_CONFIG),
+        "peer@b": (f"tcp/127.0.0.1:{b_port}", PEER_CONFIG),
+        "client@router": (stand.router.endpoint, stand.client_config),
+        "peer@router": (stand.router.endpoint, PEER_CONFIG),
+    }
+    kinds = list(ends)
+    appearer = start_appearer(stand, b_port)
+    lines = Lines(appearer)
     try:
         lines.wait_for('"up"')
-        threads = [threading.Thread(target=worker, daemon=True) for _ in range(WORKERS)]
         began = time.monotonic()
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(max(0.0, deadline - time.monotonic()))
+        trials = run_trials(ends)
         took = time.monotonic() - began
     finally:
         stop_process(appearer)
@@ -212,24 +249,8 @@ def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Si
         "b_alive_throughout": sum(caught.values()),
         "b_gone_throughout": sum(map(b_gone_throughout, trials)),
         "wrong": len(wrong),
-        "unsure": sum(1 for t in trials if t.outcome.startswith("unsure")),
-        "outcomes": dict(Counter(t.outcome.split()[0] for t in trials)),
     }
-    for motion, name in ((False, "read"), (True, "command")):
-        times = [t.lookup_s for t in trials if t.motion is motion and t.outcome in ("a", "several")]
-        summary[f"{name}_lookup_s"] = {
-            "p50": round(quantile(times, 0.5), 3),
-            "p90": round(quantile(times, 0.9), 3),
-        }
-    print(f"\ndefault-pick {json.dumps(summary)}")
-    if os.environ.get("PICK_DUMP"):
-        dump = {
-            "summary": summary,
-            "timeline": timeline,
-            "appearer": appearances,
-            "trials": [t.__dict__ for t in trials],
-        }
-        Path(os.environ["PICK_DUMP"]).write_text(json.dumps(dump, default=str))
+    report(summary, trials, timeline, appearances)
     assert len(trials) == TRIALS, f"only {len(trials)} trials in {TRIALS_MAX_S:g} s"
     # Half of what b's cadence gives over the trials' time: faster lookups race fewer of them.
     assert len(timeline) >= took / B_CYCLE_S / 2, "b hardly appeared: the trials raced nothing"

@@ -28,6 +28,7 @@ from schema.commands import (
     Session,
     TiltStep,
 )
+from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 from tests.integration.support import (
     STEP_TIMEOUT_S,
@@ -76,6 +77,52 @@ def local_rider(stand: Site, machine_id: str) -> Rider:
     return daemon.rider(supervise=False, timeout=2.0)
 
 
+def start_sessions(riders: dict[str, Rider]) -> dict[str, SimWorldState]:
+    """Each machine prepared, then riding `SESSION` past its first revolution; the worlds
+    before the start."""
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(prepare, riders.values()))
+    before = {mid: r.sim("world") for mid, r in riders.items()}
+    started = {mid: r.start(SESSION) for mid, r in riders.items()}
+    for mid, r in riders.items():
+        assert started[mid].code is ReplyCode.RESP_START_ACCEPTED
+        wait_revolutions(r, started[mid], 1)
+    return before
+
+
+def outage_resumes(riders: dict[str, Rider]) -> dict[str, CommandRequest]:
+    """One Resume request per machine, stamped now: sent during the outage, retried after."""
+    return {
+        mid: CommandRequest(
+            transaction_id=f"outage-resume-{mid}", timecode=time.time(), rider=r.rider_id
+        )
+        for mid, r in riders.items()
+    }
+
+
+def resume_to_done_once(
+    riders: dict[str, Rider],
+    resumes: dict[str, CommandRequest],
+    before: dict[str, SimWorldState],
+) -> None:
+    """The Resume sent during the outage, retried: each session finishes its revolutions, and
+    the same request again is answered with the recorded reply."""
+    for mid, r in riders.items():
+        first = r.command(Command.RESUME, resumes[mid])
+        assert first.code is ReplyCode.RESP_RESUMED, (mid, first)
+        done = r.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=first.timecode)
+        assert done.session is not None
+        assert done.session.revolutions_done == done.session.revolutions_total == REVOLUTIONS
+        travelled = r.sim("world").revolutions - before[mid].revolutions
+        assert travelled == pytest.approx(REVOLUTIONS, abs=REVOLUTION_SLACK), mid
+        assert relays_off(r)
+        # Once more with the same id: the recorded reply, not a second Resume (which DONE
+        # would refuse).
+        again = r.command(Command.RESUME, resumes[mid])
+        assert again == first
+        assert r.status().state is MachineState.DONE
+
+
 def test_router_lost_mid_session_pauses_and_a_retried_resume_finishes_it_once(
     xy: Site,
 ) -> None:
@@ -86,13 +133,7 @@ def test_router_lost_mid_session_pauses_and_a_retried_resume_finishes_it_once(
     ):
         riders = {"x": cx, "y": cy}
         wait_tokens(local.follow_machines(0.2), {"x": True}, START_TIMEOUT_S)
-        with ThreadPoolExecutor(2) as pool:
-            list(pool.map(prepare, riders.values()))
-        before = {mid: r.sim("world") for mid, r in riders.items()}
-        started = {mid: r.start(SESSION) for mid, r in riders.items()}
-        for mid, r in riders.items():
-            assert started[mid].code is ReplyCode.RESP_START_ACCEPTED
-            wait_revolutions(r, started[mid], 1)
+        before = start_sessions(riders)
 
         killed_at = time.monotonic()
         xy.router.kill()
@@ -105,12 +146,7 @@ def test_router_lost_mid_session_pauses_and_a_retried_resume_finishes_it_once(
         held = local.sim("world")
 
         # Sent during the outage: no route, no reply, and it reaches no machine.
-        resumes = {
-            mid: CommandRequest(
-                transaction_id=f"outage-resume-{mid}", timecode=time.time(), rider=r.rider_id
-            )
-            for mid, r in riders.items()
-        }
+        resumes = outage_resumes(riders)
         for mid, r in riders.items():
             with pytest.raises(MachineTimeout):
                 r.command(Command.RESUME, resumes[mid])
@@ -136,20 +172,7 @@ def test_router_lost_mid_session_pauses_and_a_retried_resume_finishes_it_once(
             f" router process started -> x and y listed again in {listed_s * 1000:.0f} ms"
         )
 
-        for mid, r in riders.items():
-            first = r.command(Command.RESUME, resumes[mid])
-            assert first.code is ReplyCode.RESP_RESUMED, (mid, first)
-            done = r.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=first.timecode)
-            assert done.session is not None
-            assert done.session.revolutions_done == done.session.revolutions_total == REVOLUTIONS
-            travelled = r.sim("world").revolutions - before[mid].revolutions
-            assert travelled == pytest.approx(REVOLUTIONS, abs=REVOLUTION_SLACK), mid
-            assert relays_off(r)
-            # Once more with the same id: the recorded reply, not a second Resume (which DONE
-            # would refuse).
-            again = r.command(Command.RESUME, resumes[mid])
-            assert again == first
-            assert r.status().state is MachineState.DONE
+        resume_to_done_once(riders, resumes, before)
 
 
 def test_without_the_router_a_client_fails_clearly_and_a_client_daemon_exits(

@@ -49,9 +49,8 @@ def history_has(page: Any, predicate: str) -> bool:
     return bool(page.evaluate(f"riderUI.ui.history.some(s => {predicate})"))
 
 
-def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(  # noqa: PLR0915 - one browser session walks the whole page
-    page: Any, ui: UiServer, fast_daemon: Daemon
-) -> None:
+def fresh_then_start_refused(page: Any, ui: UiServer) -> None:
+    """Stages 01-02: a fresh machine asks for calibration and refuses a Start."""
     open_page(page, ui)
     state_is(page, "WARNING_NEEDS_CALIBRATION")
     expect(page.locator("#state-card")).to_have_attribute("data-tone", "warn")
@@ -71,6 +70,10 @@ def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(  # noqa: P
     expect(result).to_have_attribute("data-ok", "false")
     shot(page, "02-start-refused-not-calibrated")
 
+
+def calibrate_then_home(page: Any) -> None:
+    """Stages 03-05: both calibrations to their completion notices, then Home."""
+    result = page.locator("#cmd-result")
     page.click("#cmd-calibrate-tilt")
     expect(page.locator("#calibrated")).to_have_text("tilt ✔ rotate ✘", timeout=RIDE_S)
     # The page waits for the completion notice of its own transaction, not for a state.
@@ -92,6 +95,10 @@ def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(  # noqa: P
     expect(page.locator("#state-card")).to_have_attribute("data-tone", "ok")
     shot(page, "05-homed")
 
+
+def run_the_default_session(page: Any) -> None:
+    """Stages 06-07: the default session from Start to DONE, tilt and history plotted."""
+    result = page.locator("#cmd-result")
     page.select_option("#session-select", "default")
     page.click("#cmd-start")
     confirm(page, "Default: tilt 45°, 3 revolutions CW")
@@ -112,6 +119,9 @@ def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(  # noqa: P
     expect(page.locator("#banner-fault")).to_be_hidden()
     shot(page, "07-done")
 
+
+def estop_pressed_released_and_pressed_again(page: Any, fast_daemon: Daemon) -> None:
+    """Stages 08-09: the E-stop in, let go (latched), and in again under the Home dialog."""
     lamp = page.locator("#io-estop")
     level_before = lamp.get_attribute("data-on")
     with fast_daemon.rider() as r:
@@ -139,6 +149,15 @@ def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(  # noqa: P
         confirm(page, "Home both axes?")
         expect(page.locator("#cmd-result")).to_have_text("Home not sent: E-stop active")
         state_is(page, "FAULT_ESTOP")
+
+
+def test_operator_calibrates_homes_runs_a_session_and_sees_the_estop(
+    page: Any, ui: UiServer, fast_daemon: Daemon
+) -> None:
+    fresh_then_start_refused(page, ui)
+    calibrate_then_home(page)
+    run_the_default_session(page)
+    estop_pressed_released_and_pressed_again(page, fast_daemon)
 
 
 def test_a_command_refused_in_the_wrong_state_shows_the_machine_error(

@@ -11,7 +11,7 @@ from service.config.load import load
 from service.config.model import HalBackend, MachineConfig
 from service.config.validate import Category
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 EXAMPLE = ROOT / "machine.toml"
 DOC = ROOT / "docs" / "config.md"
 

@@ -102,16 +102,7 @@ class Harness:
         self.clock = TickingClock()
         guarded = stall_limit is not None
         self.rig = Rig(calibration=known_calibration(), clock=self.clock, guarded=guarded)
-        if homed or running:
-            self.rig.home()
-        if running:
-            assert self.rig.send(Command.START).success
-            self.rig.run_until(self.rig.relays_on)
-        if estopped:
-            self.rig.hal.press_estop()
-            self.rig.step(3)
-            self.rig.hal.release_estop()
-            self.rig.step(3)
+        self._arrange(homed=homed, running=running, estopped=estopped)
         loop = self.rig.loop
         self.wake = FakeWake(self.clock, oversleep)
         loop.inbox.wake = self.wake  # type: ignore[assignment]
@@ -129,6 +120,32 @@ class Harness:
         self.ends: list[float] = []
         self.seen: list[tuple[MachineState, bool]] = []
         """(state, any relay on) at the start of each cycle: what the previous cycle left."""
+        self._observe(cycles, cost, fail, fail_after_step)
+        self.t0 = self.clock.t
+
+    def _arrange(self, *, homed: bool, running: bool, estopped: bool) -> None:
+        """The rig to the scenario's start: homed, mid-session, or after an E-stop let go."""
+        if homed or running:
+            self.rig.home()
+        if running:
+            assert self.rig.send(Command.START).success
+            self.rig.run_until(self.rig.relays_on)
+        if estopped:
+            self.rig.hal.press_estop()
+            self.rig.step(3)
+            self.rig.hal.release_estop()
+            self.rig.step(3)
+
+    def _observe(
+        self,
+        cycles: int,
+        cost: Callable[[int], float],
+        fail: Callable[[int], bool],
+        fail_after_step: bool,
+    ) -> None:
+        """Wrap the loop's step: record each cycle's start and end, advance the clock by its
+        cost, inject its failure, and stop the runner after `cycles`."""
+        loop = self.rig.loop
         real_step = loop.step
 
         def step(now: float) -> None:
@@ -148,7 +165,6 @@ class Harness:
                     self.runner.stop()
 
         loop.step = step  # type: ignore[method-assign]
-        self.t0 = self.clock.t
 
     def run(self) -> None:
         self.runner.run()

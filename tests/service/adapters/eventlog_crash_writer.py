@@ -17,7 +17,7 @@ from pathlib import Path
 from schema.events import DaemonStopEvent
 from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.config.model import EventsSection
-from tests.service.persist_crash_writer import _say, serve
+from tests.service.core.persist_crash_writer import _say, serve
 
 PACE_S = 0.0002
 """Seconds between events: thousands per second, far busier than a real ride."""

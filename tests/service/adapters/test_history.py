@@ -1,7 +1,7 @@
 """The event history in a process of its own: what only `HistoryProcess` does.
 
 What it shares with the in-thread `EventLog` (order, seq, listeners, drops, retention, set-aside
-files, a full disk) is tested on both in tests/service/test_eventlog.py.
+files, a full disk) is tested on both in tests/service/adapters/test_eventlog.py.
 """
 
 from __future__ import annotations

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import threading
 from collections.abc import Callable
@@ -25,7 +24,7 @@ from common.runtime import RUNTIME_ENV, use_runtime
 from common.zenoh_session import open_session
 from rider.client import _direct as riders_direct
 from service.bus.callbacks import direct
-from tests.procs import REPO, free_port
+from tests.procs import free_port, run_bounded
 
 KEY = "test/callbacks/echo"
 CALLS = 12
@@ -82,15 +81,8 @@ def scenario(how: str, threads: int) -> Counts:
 
 def run_child(how: str, threads: int = 1) -> Counts:
     environ = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
-    proc = subprocess.run(
-        [sys.executable, "-m", "tests.service.test_bus_callbacks", how, str(threads)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=environ,
-        check=False,
-    )
+    child = [sys.executable, "-m", "tests.service.bus.test_bus_callbacks", how, str(threads)]
+    proc = run_bounded(child, timeout=60, env=environ)
     assert proc.returncode == 0, proc.stderr
     counts: Counts = json.loads(proc.stdout.splitlines()[-1])
     return counts

@@ -1,7 +1,8 @@
 """Random command / fault / E-stop / time sequences over thousands of cycles, invariants checked
 after every cycle (hypothesis stateful testing).
 
-`STATEFUL_PROFILE=thorough python -m pytest tests/service/test_stateful.py` runs a longer search.
+`STATEFUL_PROFILE=thorough python -m pytest tests/service/core/test_stateful.py` runs a longer
+search.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from service.core.devices import Calibration
 from service.core.params import ParamRegistry
 from service.core.persist import CALIBRATION_FILE, PARAMS_FILE, CalibrationStore, ParamStore
 from tests.rig import Rig
-from tests.service import persist_crash_writer as writer
+from tests.service.core import persist_crash_writer as writer
 from tests.service.crash import CrashServer
 
 KILLS = 200

@@ -12,7 +12,7 @@ from service.config.model import MachineConfig
 from service.core.completions import CompletionLog
 from sim.physics import SwitchFault
 from tests.rig import BAD_SESSION, Rig, known_calibration
-from tests.service.test_persist_failure import SlowStore
+from tests.service.core.test_persist_failure import SlowStore
 
 S = MachineState
 C = Command

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -79,42 +80,58 @@ def test_a_command_between_cycles_finds_the_watchdog_fault_first(path: str) -> N
     assert len(faults) == 1 and "watchdog" in faults[0].reason
 
 
-def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:  # noqa: PLR0915 - a real runner thread: start, stall, trip, recover
+class Threaded:
+    """A machine on the simulator run by a real runner thread, its watchdog wired as the daemon
+    wires it; `stalled` holds what each trip measured, `tripped` is set by the first."""
+
+    def __init__(self) -> None:
+        self.config = MachineConfig().with_overrides(loop={"period_s": 0.005})
+        period = self.config.loop.period_s
+        self.hal = SimHal(time.monotonic, self.config.hal.iomap, self.config.hal.sim)
+        guard = GuardedHal(self.hal)
+        self.machine = Machine(
+            self.config, guard, now=time.monotonic(), on_transition=None, guard=guard
+        )
+        self.loop: ScanLoop = self.machine.loop
+        self.runner = RealtimeRunner(self.loop, period, CycleStats(period))
+        self.tripped = threading.Event()
+        self.stalled: list[float] = []
+        self.dog = Watchdog(
+            lambda: self.runner.heartbeat,
+            guard,
+            period,
+            3,
+            on_trip=self.on_trip,
+            beat_at=lambda: self.runner.beat_at,  # as the daemon wires it
+        )
+
+    def on_trip(self, stalled_s: float) -> None:
+        self.stalled.append(stalled_s)
+        self.tripped.set()
+
+    def seen(self, condition: Callable[[ScanLoop], bool]) -> threading.Event:
+        """An event the scan thread sets in the first cycle where `condition` holds."""
+        seen = threading.Event()
+
+        def check(lp: ScanLoop, now: float) -> None:
+            if condition(lp):
+                seen.set()
+            else:
+                lp.inbox.put(LoopCall(check))
+
+        self.loop.inbox.put(LoopCall(check))
+        return seen
+
+
+def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     """A real runner thread blocked inside a cycle: the watchdog trips and outputs drop."""
-    config = MachineConfig().with_overrides(loop={"period_s": 0.005})
-    hal = SimHal(time.monotonic, config.hal.iomap, config.hal.sim)
-    guard = GuardedHal(hal)
-    machine = Machine(config, guard, now=time.monotonic(), on_transition=None, guard=guard)
-    loop: ScanLoop = machine.loop
-    stats = CycleStats(config.loop.period_s)
-    runner = RealtimeRunner(loop, config.loop.period_s, stats)
-    tripped = threading.Event()
-    stalled: list[float] = []
-
-    def on_trip(stalled_s: float) -> None:
-        stalled.append(stalled_s)
-        tripped.set()
-
-    dog = Watchdog(
-        lambda: runner.heartbeat,
-        guard,
-        config.loop.period_s,
-        3,
-        on_trip=on_trip,
-        beat_at=lambda: runner.beat_at,  # as the daemon wires it
-    )
+    threaded = Threaded()
+    hal, loop, runner, dog = threaded.hal, threaded.loop, threaded.runner, threaded.dog
     replies: list[object] = []
     loop.inbox.put(
         PendingCommand(Command.HOME, CommandRequest(transaction_id="h1"), replies.append)
     )
-    moving = threading.Event()
     release = threading.Event()
-
-    def watch_relays(lp: ScanLoop, now: float) -> None:
-        if hal.outputs.any_on() and runner.heartbeat >= ARM_AFTER_CYCLES:
-            moving.set()  # relays on, and the watchdog armed
-        else:
-            lp.inbox.put(LoopCall(watch_relays))
 
     def block(lp: ScanLoop, now: float) -> None:
         release.wait(WAIT_S)  # a controller stuck in a blocking call
@@ -123,30 +140,25 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:  # noqa: PLR0915
     thread.start()
     dog.start()
     try:
-        loop.inbox.put(LoopCall(watch_relays))
+        # relays on, and the watchdog armed
+        moving = threaded.seen(
+            lambda lp: hal.outputs.any_on() and runner.heartbeat >= ARM_AFTER_CYCLES
+        )
         assert moving.wait(WAIT_S), "homing never energised a relay"
         loop.inbox.put(LoopCall(block))
-        assert tripped.wait(WAIT_S), "watchdog did not trip"
+        assert threaded.tripped.wait(WAIT_S), "watchdog did not trip"
         assert not hal.outputs.any_on()
-        assert stalled[0] >= 3 * config.loop.period_s
+        assert threaded.stalled[0] >= 3 * threaded.config.loop.period_s
     finally:
         release.set()
-        seen = threading.Event()
-
-        def faulted(lp: ScanLoop, now: float) -> None:
-            if lp.control.state is MachineState.FAULT_HW:
-                seen.set()
-            else:
-                lp.inbox.put(LoopCall(faulted))
-
-        loop.inbox.put(LoopCall(faulted))
+        seen = threaded.seen(lambda lp: lp.control.state is MachineState.FAULT_HW)
         got_fault = seen.wait(WAIT_S)
         dog.stop()
         runner.stop()
         thread.join(WAIT_S)
     assert got_fault
-    assert machine.control.fault is not None
-    assert machine.control.fault.code is FaultCode.WATCHDOG
+    assert threaded.machine.control.fault is not None
+    assert threaded.machine.control.fault.code is FaultCode.WATCHDOG
     assert not hal.outputs.any_on()
     assert not thread.is_alive()
 

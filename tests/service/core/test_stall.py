@@ -2,7 +2,7 @@
 fault; one that stops with a relay on drops the outputs in the cycle it is seen and ends in
 FAULT_HW (WATCHDOG), never in a motion timeout the lost time would otherwise look like.
 
-The runner runs on simulated time (tests/service/test_runner.py's harness): a stall between two
+The runner runs on simulated time (tests/service/core/test_runner.py's harness): a stall between two
 cycles is a wait that oversleeps; a stall inside one is a cycle that takes that long.
 """
 
@@ -12,7 +12,7 @@ import pytest
 
 from schema.commands import Command
 from schema.status import FaultCode, MachineState
-from tests.service.test_runner import Harness
+from tests.service.core.test_runner import Harness
 
 LIMIT = 0.1
 STALL = 0.5

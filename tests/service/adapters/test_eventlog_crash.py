@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from service.adapters.eventlog import EVENTS_FILE
-from tests.service import eventlog_crash_writer as writer
+from tests.service.adapters import eventlog_crash_writer as writer
 from tests.service.crash import CrashServer
 
 KILLS = 200

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +13,7 @@ from schema.findings import Finding, Severity
 from service.config.load import load
 from service.config.model import MachineConfig
 from service.config.validate import semantic_findings, validate_data
+from tests.procs import run_machine
 
 E, W = Severity.ERROR, Severity.WARNING
 
@@ -234,14 +234,7 @@ BAD_PATHS = ["/loop/bogus", "/loop/period_s", "/rotate/revolution_timeout_s", "/
 
 
 def machine(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "service.cli", *args],
-        cwd=cwd,
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    return run_machine(*args, cwd=cwd)
 
 
 @pytest.fixture

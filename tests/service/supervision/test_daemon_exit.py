@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import subprocess
 import sys
 
-from tests.procs import REPO
+from tests.procs import run_bounded
 
 SCRIPT = """
 import time
@@ -28,14 +27,7 @@ print("not reached", flush=True)
 
 
 def test_exit_deadline_forces_outputs_safe_then_ends_the_process() -> None:
-    done = subprocess.run(
-        [sys.executable, "-c", SCRIPT],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    done = run_bounded([sys.executable, "-c", SCRIPT], timeout=60)
     assert done.returncode == 1
     assert done.stdout.split() == ["safe", "True"]
     assert "event=shutdown_stuck" in done.stderr

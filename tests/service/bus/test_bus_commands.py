@@ -26,7 +26,7 @@ from service.bus.routes import declare
 from service.core.events import ListEventSink
 from service.core.port import LoopPort
 from tests.rig import Rig
-from tests.service.test_bus_routes import Host
+from tests.service.bus.test_bus_routes import Host
 
 BASE = "machine/c1"
 _ids = itertools.count()

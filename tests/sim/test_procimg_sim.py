@@ -16,7 +16,6 @@ from sim.settings import PhysicsParams
 from tests.fixtures.revpi import (
     CONFIG_RSC,
     address,
-    make_image,
     read_bit,
     read_word,
     write_bit,
@@ -25,11 +24,6 @@ from tests.rig import FakeClock
 
 CONFIG = str(CONFIG_RSC)
 PARAMS = PhysicsParams()  # starts at rotate 137°, tilt 12°: neither switch closed
-
-
-@pytest.fixture
-def image(tmp_path: Path) -> str:
-    return make_image(tmp_path)
 
 
 @pytest.fixture
