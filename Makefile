@@ -55,18 +55,21 @@ schema: $(STAMP)
 states: $(STAMP)
 	$(BIN)/python -m service.core.control_doc
 
-## Install, then lint, type-check and run the whole test suite.
+## Install, then lint, type-check and run the whole test suite: two pytest-xdist workers, each
+## taking a whole test file at a time (a file's tests share fixtures and daemons).
+## PARALLEL= runs it in one process.
+PARALLEL ?= -n 2 --dist loadfile
 test: $(STAMP) browser prometheus js
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(PARALLEL)
 
 ## The whole suite beside one CPU-bound process per core, as a busy CI host runs it;
 ## ORDER=reverse or ORDER=random (random:SEED to repeat one) changes the order of the tests.
 ORDER ?= normal
 test-under-load: $(STAMP) browser js
-	$(BIN)/python -m tests.under_load --order $(ORDER)
+	$(BIN)/python -m tests.under_load $(PARALLEL) --order $(ORDER)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
@@ -79,7 +82,7 @@ bench: $(STAMP)
 ## Refresh the lock files (requirements/README.md) after a range in pyproject.toml changed;
 ## `make lock UPGRADE=1` also takes the newest releases within the ranges.
 LOCK = $(BIN)/pip-compile --quiet --generate-hashes --allow-unsafe --strip-extras \
-	--no-emit-index-url $(if $(UPGRADE),--upgrade)
+	--no-emit-index-url --no-emit-find-links $(if $(UPGRADE),--upgrade)
 lock: $(STAMP)
 	$(BIN)/python -m pip install --quiet "pip-tools>=7.5,<8"
 	$(LOCK) --extra dev --extra revpi --extra ui --extra gateway --all-build-deps \

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import os
 import random
 from pathlib import Path
 
@@ -13,6 +14,8 @@ def pytest_configure(config: pytest.Config) -> None:
     order = str(config.getoption("--order"))
     if order not in ("normal", "reverse") and not order.startswith("random"):
         raise pytest.UsageError(f"--order: {order!r} is not normal, reverse or random[:SEED]")
+    if order.startswith("random"):
+        _seed(config)  # before pytest-xdist starts its workers
     _configure_zenoh()
 
 
@@ -48,11 +51,18 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 def _seed(config: pytest.Config) -> str:
-    """The random order's seed: given (`random:SEED`) or drawn once per run."""
+    """The random order's seed: given (`random:SEED`) or drawn once per run. The run's
+    pytest-xdist workers collect in the same order: they inherit the seed drawn first, at
+    configure time, through the environment."""
     if _SEED not in config.stash:
         order = str(config.getoption("--order"))
-        config.stash[_SEED] = order.partition(":")[2] or str(random.randrange(10**6))
+        drawn = os.environ.get(SEED_ENV) or str(random.randrange(10**6))
+        config.stash[_SEED] = order.partition(":")[2] or drawn
+        os.environ[SEED_ENV] = config.stash[_SEED]
     return config.stash[_SEED]
+
+
+SEED_ENV = "RIDE_TEST_ORDER_SEED"
 
 
 _SEED = pytest.StashKey[str]()
