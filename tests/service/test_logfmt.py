@@ -37,8 +37,10 @@ class _Stalled(io.StringIO):
     def __init__(self) -> None:
         super().__init__()
         self.go = threading.Event()
+        self.entered = threading.Event()
 
     def write(self, text: str) -> int:
+        self.entered.set()
         assert self.go.wait(10.0), "never released"
         return super().write(text)
 
@@ -72,6 +74,10 @@ def test_a_line_says_what_its_arguments_were_when_it_was_logged() -> None:
 def test_a_stalled_reader_never_blocks_the_logger_and_the_lost_lines_are_counted() -> None:
     lines, stream = LineQueue(capacity=100), _Stalled()
     logger, writer = _logger(lines, stream)
+    # The reader stops with the writer inside its write (on a busy host the writer could
+    # otherwise take a second batch before it blocks: the loss is then told in two parts).
+    logger.info("event=first")
+    assert stream.entered.wait(10.0)
     started = time.monotonic()
     for i in range(1000):
         logger.info("event=n i=%d", i)
