@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from rider.client import Rider
-from schema.status import FaultCode, MachineState
+from schema.status import MachineState
 from tests.freeze import LIMIT_S, Freeze, ride_and_freeze, start_supervised, stop
 from tests.procs import Daemon
 
@@ -43,6 +43,7 @@ def test_a_frozen_daemon_has_its_relays_dropped_at_the_watchdog_limit(
     supervised: tuple[Daemon, Rider], kind: Freeze
 ) -> None:
     supervisor, rider = supervised
+    trips = supervisor.log().count("event=output_guard_trip")
     outcome = ride_and_freeze(supervisor, rider, kind)
     assert outcome.off_s is not None, "the relays stayed on"
     assert outcome.off_s <= OFF_BOUND_S, outcome
@@ -54,6 +55,8 @@ def test_a_frozen_daemon_has_its_relays_dropped_at_the_watchdog_limit(
     log = supervisor.log()
     assert "event=daemon_down" in log
     assert "scan loop stopped cycling" in log
+    if kind in OWN_RELAYS_HELD:  # the daemon could not drop them: the guard did, and says so
+        assert log.count("event=output_guard_trip") > trips, log[-3000:]
     print(f"\n{kind}: relays off {outcome.off_s * 1e3:.1f} ms, tilt +{outcome.overrun_deg:.2f}°")
 
 
@@ -61,10 +64,6 @@ TILT_BOUND_DEG = 15.0 * OFF_BOUND_S
 """The tilt's travel in `OFF_BOUND_S` at its nominal speed."""
 
 
-def test_the_guard_reports_a_stall_it_acted_on(supervised: tuple[Daemon, Rider]) -> None:
-    """After the freezes above: the guard's trips are in the supervisor's log, each with the
-    stall it saw (a SIGSTOPped or GIL-held daemon cannot drop its own relays)."""
-    supervisor, _ = supervised
-    log = supervisor.log()
-    assert log.count("event=output_guard_trip") >= 2, log[-3000:]
-    assert FaultCode.DAEMON_DIED.value in log or "daemon_down" in log
+OWN_RELAYS_HELD = (Freeze.SIGSTOP, Freeze.GIL)
+"""Freezes in which the daemon's own watchdog thread cannot run either (a blocked system call
+releases the GIL: the in-process watchdog may drop the relays before the guard looks)."""
