@@ -345,7 +345,9 @@ def test_retention_keeps_the_database_under_max_mb(tmp_path: Path, kind: type[Ev
         with connect(log.path) as conn:
             assert used_bytes(conn) <= 1024 * 1024
             [(kept,)] = conn.execute("SELECT COUNT(*) FROM events").fetchall()
-        assert kept > 500  # pruned down to the limit, not emptied
+        # Pruned down to the limit, not emptied: a prune leaves 90 % of the limit (~480 of these
+        # rows), and the rows written after the last prune add to that.
+        assert kept > 400
         got = page(log, last=1)
         assert got.first_seq is not None and got.first_seq > 1  # the oldest are gone
         assert got.events[-1].seq >= 3000  # the newest are kept, seq never reused
