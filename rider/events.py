@@ -26,6 +26,13 @@ from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
 log = logging.getLogger("rider.client")  # one logger for the whole client, as before its split
 
 
+@dataclass(frozen=True)
+class Back:
+    """A machine's liveliness token (re)appeared: what it wrote out of sight is to be read."""
+
+    machine_id: str
+
+
 @dataclass
 class Events:
     """The event history of this Rider's machine (or of every machine, with the id `*`)."""
@@ -65,24 +72,44 @@ class Events:
         """The history `query` selects, then each new event as it is written; None after each
         quiet `timeout` (`Rider.follow_events`)."""
         query = query or EventQuery()
-        q: queue.Queue[zenoh.Sample] = queue.Queue(maxsize=65536)
+        q: queue.Queue[zenoh.Sample | Back] = queue.Queue(maxsize=65536)
 
         def on_sample(sample: zenoh.Sample) -> None:
             with contextlib.suppress(queue.Full):
                 q.put_nowait(sample)
 
-        with self.subscriptions.declare(("events/*",), on_sample):
+        def on_token(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:  # `<prefix>/<id>/alive`
+                with contextlib.suppress(queue.Full):
+                    q.put_nowait(Back(str(sample.key_expr).rsplit("/", 2)[-2]))
+
+        with self.subscriptions.declare(("events/*",), on_sample, on_token):
             seen: dict[str, int] = {}  # the newest seq received per machine, of any kind
             for event in self.events(query):
                 seen[event.machine_id] = event.seq
                 yield event
             while True:
                 try:
-                    sample = q.get(timeout=timeout)
+                    item = q.get(timeout=timeout)
                 except queue.Empty:
                     yield None
                     continue
-                yield from self._arrived(sample, seen, query)
+                if isinstance(item, Back):
+                    yield from self._caught_up(item.machine_id, seen, query)
+                else:
+                    yield from self._arrived(item, seen, query)
+
+    def _caught_up(self, machine_id: str, seen: dict[str, int], query: EventQuery) -> list[Event]:
+        """A machine back in sight (restarted, or its link back): what it wrote meanwhile, from
+        its history. A gap is otherwise seen only at the next live event, which may be long in
+        coming (a restart's events all published before this Rider's link came back)."""
+        newest = seen.get(machine_id)
+        if newest is None:
+            return []
+        out = self._missed(machine_id, newest + 1, None, query)
+        if out:
+            seen[machine_id] = max(newest, *(e.seq for e in out))
+        return out
 
     def _arrived(
         self, sample: zenoh.Sample, seen: dict[str, int], query: EventQuery
@@ -105,13 +132,16 @@ class Events:
             out.append(event)
         return out
 
-    def _missed(self, machine_id: str, first: int, last: int, query: EventQuery) -> list[Event]:
-        """The events `query` selects among seq `first`..`last` of one machine, read from its
-        history; none (with a warning) if it cannot be read."""
+    def _missed(
+        self, machine_id: str, first: int, last: int | None, query: EventQuery
+    ) -> list[Event]:
+        """The events `query` selects among seq `first`..`last` (None: the newest) of one
+        machine, read from its history; none (with a warning) if it cannot be read."""
+        until = query.until if last is None else min(last, query.until or last)
         gap = dataclasses.replace(
             query,
             since=max(first, query.since or 0),
-            until=last if query.until is None else min(last, query.until),
+            until=until,
             limit=None,
             last=None,
         )
@@ -119,7 +149,7 @@ class Events:
             pages = self._pages_from(f"{self.link.key_prefix}/{machine_id}", gap)
         except RiderError as exc:
             log.warning(
-                "event=events_gap_unread machine=%s first=%d last=%d error=%r",
+                "event=events_gap_unread machine=%s first=%d last=%s error=%r",
                 machine_id,
                 first,
                 last,

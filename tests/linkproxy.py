@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import subprocess
 import sys
 import threading
 
@@ -44,6 +45,21 @@ def main(argv: list[str]) -> int:
         upstream.settimeout(None)
         for a, b in ((client, upstream), (upstream, client)):
             threading.Thread(target=pump, args=(a, b), daemon=True).start()
+
+
+def start(port: int, target: str, timeout: float = 30.0) -> subprocess.Popen[str]:
+    """This proxy in a process of its own, on `port` to 127.0.0.1:`target`, once it listens."""
+    from tests.procs import REPO, LineReader
+
+    link = subprocess.Popen(
+        [sys.executable, "-m", "tests.linkproxy", str(port), target],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+    )
+    assert link.stdout is not None
+    assert LineReader(link.stdout).line(timeout) == "ready"
+    return link
 
 
 if __name__ == "__main__":

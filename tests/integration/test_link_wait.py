@@ -13,7 +13,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from schema.status import MachineState
+from tests import linkproxy
 from tests.integration.support import STEP_TIMEOUT_S, fast_daemon, prepare, states_over
 from tests.procs import REPO, Daemon, LineReader, free_port, rider_cmd, stop_process
 
@@ -43,16 +43,8 @@ def proxy(tmp_path: Path) -> Iterator[tuple[Daemon, subprocess.Popen[str], int]]
     """A fast daemon and a link proxy to it; both stopped whatever happens."""
     with fast_daemon(tmp_path) as daemon:
         port = free_port()
-        target = daemon.endpoint.rsplit(":", 1)[1]
-        link = subprocess.Popen(
-            [sys.executable, "-m", "tests.linkproxy", str(port), target],
-            stdout=subprocess.PIPE,
-            text=True,
-            cwd=REPO,
-        )
+        link = linkproxy.start(port, daemon.endpoint.rsplit(":", 1)[1], STEP_TIMEOUT_S)
         try:
-            assert link.stdout is not None
-            assert LineReader(link.stdout).line(STEP_TIMEOUT_S) == "ready"
             yield daemon, link, port
         finally:
             os.kill(link.pid, signal.SIGCONT)
