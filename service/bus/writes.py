@@ -94,11 +94,13 @@ class Writes:
         return routes
 
     def reset(self, request: Request) -> None:
-        """Reply with the counters as they were, then reset them, on the scan thread."""
+        """Reply with the counters as they were, reset on the scan thread before the reply
+        leaves (a read sent on the reply's heels sees the reset, not the counters before it)."""
 
         def reset() -> None:
-            request.reply(self.diag())
+            before = self.diag()
             self.stats.reset(self.wall())
+            request.reply(before)
 
         on_scan_thread(self.port, request, reset)
 
