@@ -27,7 +27,7 @@ import yaml
 from schema.status import MachineState, Status
 from tests.deploy import spec
 from tests.integration.support import write_fast_config
-from tests.procs import REPO, free_port, rider_cmd
+from tests.procs import REPO, free_port, rider_cmd, run_bounded
 
 ENGINE = shutil.which("podman")
 DOCKER = "/usr/bin/docker" if Path("/usr/bin/docker").exists() else shutil.which("docker")
@@ -149,14 +149,8 @@ SPOILED = ("CALIBRATION_NOT_REPEATABLE", "HOME_EDGE_UNCERTAIN")
 def run_rider(
     endpoint: str, *args: str, env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        rider_cmd("--connect", endpoint, "--machine", "m1", *args),
-        capture_output=True,
-        text=True,
-        timeout=STEP_TIMEOUT_S,
-        env={**os.environ, **(env or {})},
-        check=False,
-    )
+    cmd = rider_cmd("--connect", endpoint, "--machine", "m1", *args)
+    return run_bounded(cmd, timeout=STEP_TIMEOUT_S, env={**os.environ, **(env or {})})
 
 
 def rider(endpoint: str, *args: str, env: dict[str, str] | None = None) -> str:
