@@ -59,6 +59,10 @@ COALESCE_S = 0.02
 DEFER_MAX = 1024
 """Commands' held records (`defer`) queued at most: they are objects the garbage collector
 scans, where a queued event is text; beyond this (a stalled disk) the scan thread makes them."""
+STOP_BUSY_TIMEOUT_S = 0.2
+"""Once stopping, how long a write waits for a database another process holds: the stop has a
+deadline (the daemon ends the history process at it), and what is not written by then goes
+into the file the next start writes (service/adapters/unwritten.py), safety events first."""
 
 Listener = Callable[[list[StoredRow]], None]
 """Called with each committed batch, as stored (eventread's `row_event` makes a row an `Event`,
@@ -333,6 +337,7 @@ class EventLog:
         while True:
             self._gather(min(1.0, self.settings.prune_every_s))
             batch: list[Row] = []
+            failures = self.failures
             try:
                 batch = self._take()
                 # Held safety events are tried again every wait (at most 1 s), events or not.
@@ -342,13 +347,17 @@ class EventLog:
                 self._fail(f"event writer failed: {exc!r}", len(batch), exc)
             finally:
                 self._busy = False
-            if self.wall() >= self._prune_due:
+            gave_up = self._stopping and self.failures > failures
+            if self.wall() >= self._prune_due and not self._stopping:
                 try:
                     self._prune()
                 except Exception as exc:  # noqa: BLE001 - nor one bad prune
                     self._fail(f"event prune failed: {exc!r}", 0, exc)
             with self._lock:
-                if self._stopping and not self._items:
+                # A write that failed in the stop (a locked or full disk) is not tried again:
+                # waiting on it would pass the stop's deadline, and the process killed there
+                # spills nothing; `close` puts the rest, safety events kept, in the file.
+                if self._stopping and (not self._items or gave_up):
                     return
 
     def _write(self, batch: list[Row]) -> None:
@@ -371,6 +380,8 @@ class EventLog:
             return
         machine_id = self.machine_id
         try:
+            if self._stopping:
+                conn.execute(f"PRAGMA busy_timeout = {int(STOP_BUSY_TIMEOUT_S * 1000)}")
             last = insert(conn, machine_id, items, self._pace)
         except sqlite3.Error as exc:
             # The safety record waits in memory for the next write; the rest is lost.

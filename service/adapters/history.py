@@ -282,7 +282,7 @@ class HistoryProcess(EventLog):
         token = next(self._tokens)
         done = self._flushes[token] = threading.Event()
         try:
-            if not self._send(proc, [FLUSH, token]):
+            if not self._send(proc, [FLUSH, token, max(0.0, deadline - time.monotonic())]):
                 return False
             return done.wait(max(0.0, deadline - time.monotonic())) and proc is self._proc
         finally:

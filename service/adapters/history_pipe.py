@@ -13,7 +13,8 @@ from schema.codec import dump_json
 from service.adapters.eventdb import Row
 from service.core.events import CommandFacts, Held, LogLine
 
-# daemon → history process
+# daemon → history process (`[FLUSH, token, timeout_s]`: the daemon waits no longer for the
+# answer, so the process answers by then, written or not, and reads the pipe again)
 BATCH, FLUSH, FAILED = 0, 1, 2
 # history process → daemon
 WROTE, FLUSHED, LOG = 0, 1, 2

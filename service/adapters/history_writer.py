@@ -154,7 +154,9 @@ def main(argv: list[str]) -> int:
             if tag == BATCH:
                 writer.receive(_make(message[2]), message[1])
             elif tag == FLUSH:
-                writer.flush()
+                # No longer than the daemon waits: a locked disk must not keep this thread
+                # from the pipe's end, which starts the stop (and its spill of the unwritten).
+                writer.flush(timeout=float(message[2]) if len(message) > 2 else 5.0)
                 pipe.send([FLUSHED, message[1], writer.status()])
             elif tag == FAILED:
                 writer.record_failure(message[1], message[2])

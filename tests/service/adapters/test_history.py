@@ -10,6 +10,7 @@ import contextlib
 import logging
 import os
 import signal
+import sqlite3
 import subprocess
 import threading
 import time
@@ -20,11 +21,11 @@ import pytest
 
 from bench.common import children
 from schema.commands import Command, CommandRequest, Reply, ReplyCode
-from schema.events import CommandEvent, EventQuery, StorageEvent, WatchdogEvent
+from schema.events import CommandEvent, EstopEvent, EventQuery, StorageEvent, WatchdogEvent
 from schema.status import MachineState
 from service.adapters import history
 from service.adapters.eventdb import StoredRow, connect
-from service.adapters.eventlog import EVENTS_FILE
+from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.eventread import read_page
 from service.adapters.history import HistoryProcess
 from service.adapters.history_writer import _Pipe, _Writer
@@ -276,3 +277,41 @@ def test_rows_written_after_the_daemon_died_are_kept_not_counted_lost(tmp_path: 
         assert stored(again) == [WatchdogEvent(stalled_s=0.1), WatchdogEvent(stalled_s=0.2)]
     finally:
         again.close()
+
+
+def test_a_stop_on_a_locked_database_leaves_the_e_stop_for_the_next_start(tmp_path: Path) -> None:
+    """The daemon's stop (a flush, then `close` with its deadline) while another process locks
+    the history: the process must end before the deadline, or it is killed before it keeps
+    the E-stop it could not write. It was, about one stop in ten (a flush that waited longer
+    than the daemon, a prune and a write each waiting a second on the lock)."""
+    path = tmp_path / EVENTS_FILE
+    log = HistoryProcess(path, "m1", EventsSection(prune_every_s=0.1))
+    log.start()
+    blocker = sqlite3.connect(path, timeout=0.1, isolation_level=None)
+    try:
+        log.emit(WatchdogEvent(stalled_s=0.0), T0, 0)
+        assert log.flush()
+        blocker.execute("BEGIN EXCLUSIVE")
+        log.emit(EstopEvent(kind="estop_pressed", state=MachineState.RUNNING), T0 + 1, 1)
+        deadline = time.monotonic() + 10.0
+        while log.diag().failures == 0:  # the E-stop's write failed: it is held
+            assert time.monotonic() < deadline, "the locked database was never tried"
+            time.sleep(0.05)
+        routine = CommandEvent(command="CheckHome", accepted=False, code="BUSY", message="-")
+        log.emit(routine, T0 + 2, 2)  # in the daemon_stop's place: lost, and counted
+        log.flush(timeout=1.0)  # the daemon's wind-down
+        log.close()
+        assert not log._cut_short, "killed at the deadline: what it held was lost"
+    finally:
+        blocker.close()
+    again = EventLog(path, "m1", EventsSection())
+    again.start()
+    try:
+        assert again.flush()
+        events = read_page(connect(path), "m1", EventQuery(), 100).events
+    finally:
+        again.close()
+    kinds = [e.kind for e in events]
+    assert "estop_pressed" in kinds, kinds
+    failed = [e.details for e in events if isinstance(e.details, StorageEvent)]
+    assert failed and "in the previous run" in failed[0].error
