@@ -27,6 +27,9 @@ CONFIG_RSC = Path(__file__).with_name("config.rsc")
 """The piCtory config (Core + DIO + AIO) the simulated world is wired by."""
 IMAGE_BYTES = 4096
 """The size of piControl's process image."""
+LATE_S = 0.03
+"""A step this much later than planned is counted and logged: the daemon saw the field's
+sensors unchanged that long (piControl on a real RevPi is never late so)."""
 
 
 def make_image(path: Path) -> str:
@@ -60,6 +63,10 @@ class SimWorld:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.failures = 0
+        self.late_steps = 0
+        """Steps later than `LATE_S` (a loaded host kept this thread from running)."""
+        self.longest_late_s = 0.0
+        self._late_logged = -1.0e9
 
     def start(self) -> None:
         self._thread = self._spawn(target=self._run, name="sim-world", daemon=True)
@@ -96,6 +103,7 @@ class SimWorld:
     def _run(self) -> None:
         deadline = self._clock()
         while not self._stop.is_set():
+            self._late(self._clock() - deadline)
             with self._lock:
                 self._step()
             deadline += self.period
@@ -104,6 +112,24 @@ class SimWorld:
                 deadline = self._clock()  # fell behind (a loaded host): no burst of steps
                 delay = 0.0
             self._stop.wait(delay)
+
+    def _late(self, late_s: float) -> None:
+        """Count and log a step later than `LATE_S`: a fault the daemon raised meanwhile (a
+        tilt that did not follow) may be the simulated field's, not the daemon's."""
+        if late_s <= LATE_S:
+            return
+        self.late_steps += 1
+        self.longest_late_s = max(self.longest_late_s, late_s)
+        now = self._clock()
+        if now - self._late_logged < 1.0:  # at most once a second on a host that stays busy
+            return
+        self._late_logged = now
+        log.warning(
+            "event=sim_world_late late_s=%.3f late_steps=%d (the simulated sensors stood still"
+            " that long)",
+            late_s,
+            self.late_steps,
+        )
 
     def _step(self) -> None:
         if self._sim.closed:

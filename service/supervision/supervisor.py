@@ -41,7 +41,7 @@ from service.bus.supervisor import (
 from service.config.model import HalBackend, MachineConfig
 from service.config.validate import finding_line
 from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
-from service.core.runner import SUPERVISOR_PID_ENV
+from service.core.runner import SCHED_SLICE_NS, SUPERVISOR_PID_ENV, set_sched_slice
 from service.signals import SignalThread
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
@@ -69,6 +69,17 @@ class SafeOutputs(Protocol):
     def force_all_outputs_safe(self) -> None: ...
 
     def close(self) -> None: ...
+
+
+class FieldThread(NamedThread):
+    """The simulated world's thread: it plays the field's IO, which real hardware updates
+    whatever the host does, so it asks for the scan thread's short time slice (a wake-up
+    preempts a busy neighbour at once). A world late on a loaded host left a sensor reading
+    unchanged for a whole check window, and the daemon rightly faulted the tilt."""
+
+    def run(self) -> None:
+        set_sched_slice(SCHED_SLICE_NS)
+        super().run()
 
 
 @dataclass(frozen=True)
@@ -221,7 +232,7 @@ class Supervisor:
         config = self.config
         hal = config.hal
         self.world = backend(hal.backend).world(
-            hal.iomap, hal.settings(), self.dir, self.options.world_period_s, NamedThread
+            hal.iomap, hal.settings(), self.dir, self.options.world_period_s, FieldThread
         )
         if self.world is not None:  # a simulated world: the child drives it as a RevPi
             revpi = {"procimg": self.world.procimg, "configrsc": self.world.configrsc}

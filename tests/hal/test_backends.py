@@ -4,6 +4,7 @@ as the wire errors they were."""
 
 from __future__ import annotations
 
+import logging
 import threading
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from service.config.model import HalBackend, HalSection, MachineConfig
 from service.errors import Rejected
 from service.supervision.simport import sim_port
 from sim.settings import PhysicsParams
+from sim.world import CONFIG_RSC, SimWorld, make_image
 from tests.rig import FakeClock
 
 
@@ -104,3 +106,26 @@ def test_a_simulator_refusal_reaches_the_bus_as_its_wire_error() -> None:
         port.decode("estop", b'{"pressed": "maybe"}', "application/json")
     assert (bad.value.code, bad.value.path) == (ErrorCode.BAD_PAYLOAD, "/pressed")
     assert sim_port(None) is None
+
+
+def test_a_late_step_of_the_world_is_counted_and_said_at_most_once_a_second(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The supervised simulator's field stood still while its thread waited on a loaded host,
+    and the daemon faulted a tilt that did not follow: the supervisor's log says so now."""
+    clock = FakeClock()
+    world = SimWorld(
+        IoMap(), make_image(tmp_path / "procimg"), str(CONFIG_RSC), PhysicsParams(), 0.005, clock
+    )
+    try:
+        with caplog.at_level(logging.WARNING, logger="sim.world"):
+            world._late(0.01)  # within LATE_S: a step as planned
+            world._late(0.08)
+            world._late(0.05)  # the same second: counted, not said again
+            clock.advance(1.5)
+            world._late(0.04)
+    finally:
+        world.stop()
+    assert (world.late_steps, world.longest_late_s) == (3, 0.08)
+    said = [r.getMessage() for r in caplog.records if "sim_world_late" in r.getMessage()]
+    assert len(said) == 2 and "late_s=0.080 late_steps=1" in said[0], said

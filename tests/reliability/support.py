@@ -9,6 +9,7 @@ import queue
 import secrets
 import signal
 import subprocess
+import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,19 +237,20 @@ class StatusFeed:
             raise AssertionError(f"no status within {timeout:g} s") from None
 
     def until(self, pred: object, timeout: float = STEP_TIMEOUT_S) -> Status:
-        """The first status for which `pred(status)` holds (bounded)."""
+        """The first status for which `pred(status)` holds, within `timeout` in all (statuses
+        that keep coming and never match, a heartbeat of a faulted machine, end it too)."""
         assert callable(pred)
-        seen: list[Status] = []
+        deadline = time.monotonic() + timeout
+        last: Status | None = None
         while True:
             try:
-                status = self._q.get(timeout=timeout)
+                status = self._q.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
-                last = seen[-1] if seen else None
                 message = f"no matching status within {timeout:g} s; last {last}"
                 raise AssertionError(message) from None
             if pred(status):
                 return status
-            seen.append(status)
+            last = status
 
     def close(self) -> None:
         self._sub.undeclare()
