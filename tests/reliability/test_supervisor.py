@@ -13,6 +13,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -23,7 +24,7 @@ from schema.codec import Format, encode
 from schema.commands import Reply, RotateStep, Session, TiltStep
 from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
-from schema.status import FaultCode, MachineState, Status
+from schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests import freeze
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
@@ -51,22 +52,35 @@ def supervised(tmp_path: Path) -> Iterator[Daemon]:
         daemon.stop()
 
 
-def ride_until_rotating(r: Rider, feed: StatusFeed) -> Reply:
-    """Calibrate what is missing, home, start the long ride; return while the rotate relay is on."""
+def ride_until_rotating(r: Rider, feed: StatusFeed, daemon: Daemon, tries: int = 3) -> Reply:
+    """Calibrate what is missing, home, start the long ride; return while the rotate relay is on.
+
+    Again (home, start) when the ride faulted because the simulated field stood still: the
+    supervisor's world thread, late on a loaded host, left the tilt's sensor unchanged for a
+    check window, and the daemon rightly stopped the tilt. The supervisor's log says so
+    (`sim_world_late`); any other fault fails the test."""
     status = r.status()
     if not status.calibrated.tilt:
         settle(feed, r.calibrate_tilt())
     if not status.calibrated.rotate:
         settle(feed, r.calibrate_rotate())
-    assert settle(feed, r.home()).state is MachineState.IDLE
-    reply = r.start(LONG_RIDE)
-    feed.until(
-        lambda s: (
-            s.time >= reply.timecode and s.session is not None and s.session.revolutions_done >= 1
-        )
-    )
-    assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
-    return reply
+    for _ in range(tries):
+        assert settle(feed, r.home()).state is MachineState.IDLE
+        reply = r.start(LONG_RIDE)
+        going = feed.until(partial(_rotating_or_faulted, since=reply.timecode))
+        if going.state not in FAULT_STATES:
+            assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
+            return reply
+        assert going.fault is not None and going.fault.code is FaultCode.TILT_NOT_FOLLOWING, going
+        assert "event=sim_world_late" in daemon.log_path.read_text(), going
+    raise AssertionError(f"the simulated world was late in {tries} rides in a row")
+
+
+def _rotating_or_faulted(status: Status, since: float) -> bool:
+    if status.time < since:
+        return False
+    session = status.session
+    return (session is not None and session.revolutions_done >= 1) or (status.state in FAULT_STATES)
 
 
 def daemon_died(status: Status) -> bool:
@@ -88,7 +102,7 @@ def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
         try:
-            ride = ride_until_rotating(r, feed)
+            ride = ride_until_rotating(r, feed, supervised)
             ended: list[Completion] = []
             waiter = threading.Thread(target=lambda: ended.append(r.wait_done(ride, 30.0)))
             waiter.start()
@@ -131,7 +145,7 @@ def test_frozen_daemon_is_caught_by_its_liveliness_and_replaced(supervised: Daem
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
         try:
-            ride_until_rotating(r, feed)
+            ride_until_rotating(r, feed, supervised)
             child = supervisor_child(supervised)
             t_stop = time.monotonic()
             os.kill(child, signal.SIGSTOP)  # alive, holding its relays, answering nothing
@@ -152,7 +166,7 @@ def test_sigterm_stops_the_child_cleanly_and_leaves_outputs_safe(supervised: Dae
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
         try:
-            ride_until_rotating(r, feed)
+            ride_until_rotating(r, feed, supervised)
         finally:
             feed.close()
         # Still riding (this Rider is connected, so no rider-loss pause): relays on in the image.
