@@ -137,7 +137,8 @@ class Events:
     ) -> list[Event]:
         """The events `query` selects among seq `first`..`last` (None: the newest) of one
         machine, read from its history; none (with a warning) if it cannot be read."""
-        until = query.until if last is None else min(last, query.until or last)
+        bounds = [b for b in (last, query.until) if b is not None]
+        until = min(bounds) if bounds else None
         gap = dataclasses.replace(
             query,
             since=max(first, query.since or 0),

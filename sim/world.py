@@ -103,7 +103,8 @@ class SimWorld:
     def _run(self) -> None:
         deadline = self._clock()
         while not self._stop.is_set():
-            self._late(self._clock() - deadline)
+            now = self._clock()
+            self._late(now, now - deadline)
             with self._lock:
                 self._step()
             deadline += self.period
@@ -113,14 +114,13 @@ class SimWorld:
                 delay = 0.0
             self._stop.wait(delay)
 
-    def _late(self, late_s: float) -> None:
+    def _late(self, now: float, late_s: float) -> None:
         """Count and log a step later than `LATE_S`: a fault the daemon raised meanwhile (a
         tilt that did not follow) may be the simulated field's, not the daemon's."""
         if late_s <= LATE_S:
             return
         self.late_steps += 1
         self.longest_late_s = max(self.longest_late_s, late_s)
-        now = self._clock()
         if now - self._late_logged < 1.0:  # at most once a second on a host that stays busy
             return
         self._late_logged = now

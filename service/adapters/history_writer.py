@@ -156,7 +156,7 @@ def main(argv: list[str]) -> int:
             elif tag == FLUSH:
                 # No longer than the daemon waits: a locked disk must not keep this thread
                 # from the pipe's end, which starts the stop (and its spill of the unwritten).
-                writer.flush(timeout=float(message[2]) if len(message) > 2 else 5.0)
+                writer.flush(timeout=float(message[2]))
                 pipe.send([FLUSHED, message[1], writer.status()])
             elif tag == FAILED:
                 writer.record_failure(message[1], message[2])

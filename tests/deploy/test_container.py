@@ -26,7 +26,7 @@ import yaml
 
 from schema.status import MachineState, Status
 from tests.deploy import spec
-from tests.integration.support import write_fast_config
+from tests.integration.support import SPOILED, write_fast_config
 from tests.procs import REPO, free_port, rider_cmd, run_bounded
 
 ENGINE = shutil.which("podman")
@@ -140,10 +140,6 @@ def calibrate(endpoint: str, axis: str, tries: int = 3) -> None:
             return
         assert any(code in done.stdout for code in SPOILED), done.stdout + done.stderr
     rider(endpoint, "calibrate", axis, "--wait")
-
-
-SPOILED = ("CALIBRATION_NOT_REPEATABLE", "HOME_EDGE_UNCERTAIN")
-"""The refusals of a measurement that a stalled scan spoiled: the machine said so, not DONE."""
 
 
 def run_rider(

@@ -119,11 +119,10 @@ def test_a_late_step_of_the_world_is_counted_and_said_at_most_once_a_second(
     )
     try:
         with caplog.at_level(logging.WARNING, logger="sim.world"):
-            world._late(0.01)  # within LATE_S: a step as planned
-            world._late(0.08)
-            world._late(0.05)  # the same second: counted, not said again
-            clock.advance(1.5)
-            world._late(0.04)
+            world._late(clock(), 0.01)  # within LATE_S: a step as planned
+            world._late(clock(), 0.08)
+            world._late(clock(), 0.05)  # the same second: counted, not said again
+            world._late(clock.advance(1.5), 0.04)
     finally:
         world.stop()
     assert (world.late_steps, world.longest_late_s) == (3, 0.08)

@@ -26,6 +26,7 @@ from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
 from schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests import freeze
+from tests.integration.support import SPOILED
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
     ACL_PROFILE,
@@ -52,31 +53,13 @@ def supervised(tmp_path: Path) -> Iterator[Daemon]:
         daemon.stop()
 
 
-WORLD_LATE_FAULTS = frozenset(
-    {
-        FaultCode.TILT_NOT_FOLLOWING,
-        FaultCode.CALIBRATION_NOT_REPEATABLE,
-        FaultCode.HOME_EDGE_UNCERTAIN,
-    }
-)
-"""The daemon's right answers to a field that stood still or moved in jumps."""
-
-
-REFUSED_MEASUREMENTS = frozenset(
-    {FaultCode.CALIBRATION_NOT_REPEATABLE, FaultCode.HOME_EDGE_UNCERTAIN}
-)
-"""A calibration the daemon refused because two latches disagreed: at 720°/s in the fast
-config 16° is 22 ms, which a stall of the scan or of the simulated world on a loaded host
-exceeds (tests/deploy/test_container.py tries again on these too)."""
-
-
 def ride_until_rotating(r: Rider, feed: StatusFeed, daemon: Daemon, tries: int = 3) -> Reply:
     """Calibrate what is missing, home, start the long ride; return while the rotate relay is on.
 
-    Again (calibrate, or home and start) when the daemon refused or faulted because the
-    simulated field stood still (`WORLD_LATE_FAULTS`): the
+    Calibrates again after a refusal a stall caused (`SPOILED`). Rides again (home, start)
+    when the ride faulted `TILT_NOT_FOLLOWING` because the simulated field stood still: the
     supervisor's world thread, late on a loaded host, left the tilt's sensor unchanged for a
-    check window, and the daemon rightly stopped the tilt. The supervisor's log says so
+    check window, and the daemon rightly stopped the tilt. The supervisor's log must say so
     (`sim_world_late`); any other fault fails the test."""
     for _ in range(2 + tries):  # each axis once, and again after a refusal the late world caused
         status = r.status()
@@ -85,7 +68,7 @@ def ride_until_rotating(r: Rider, feed: StatusFeed, daemon: Daemon, tries: int =
         calibrate = r.calibrate_rotate if status.calibrated.tilt else r.calibrate_tilt
         done = settle(feed, calibrate())
         if done.state in FAULT_STATES:  # a measurement a stall spoiled: the right refusal
-            assert done.fault is not None and done.fault.code in REFUSED_MEASUREMENTS, done
+            assert done.fault is not None and done.fault.code in SPOILED, done
     for _ in range(tries):
         assert settle(feed, r.home()).state is MachineState.IDLE
         reply = r.start(LONG_RIDE)
@@ -93,7 +76,7 @@ def ride_until_rotating(r: Rider, feed: StatusFeed, daemon: Daemon, tries: int =
         if going.state not in FAULT_STATES:
             assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
             return reply
-        assert going.fault is not None and going.fault.code in WORLD_LATE_FAULTS, going
+        assert going.fault is not None and going.fault.code is FaultCode.TILT_NOT_FOLLOWING, going
         assert "event=sim_world_late" in daemon.log_path.read_text(), going
     raise AssertionError(f"the simulated world was late in {tries} rides in a row")
 
