@@ -17,7 +17,11 @@ peers by gossip and connects to them one by one, and their liveliness tokens arr
    us, so the router's clients are out of sight) — and, for a client Rider, which gossip never
    links to peers, such a peer too — is asked directly, through a short client session
    (`probe`) to the address the node dialed it at: which machine tokens it knows (a router knows
-   every machine of its site). One it cannot ask makes the lookup unsure (`Discovery.unseen`);
+   every machine of its site). So is a router this session reached that is linked to a peer
+   this session is not linked to: a router passes no peer's tokens on to a peer session (zenoh
+   1.x expects peers to link to each other), and gossip may not have linked us yet on a busy
+   host, or never will (a peer that does not listen). One it cannot ask makes the lookup unsure
+   (`Discovery.unseen`);
 5. never settled within `limit` seconds: unsure too. The caller refuses (exit 4) when unsure.
 
 Only `@/<zid>/<whatami>` is read from other nodes. zenoh 1.10's admin handlers for tokens,
@@ -109,6 +113,16 @@ class Listing(list[T]):
 
 
 @dataclass(frozen=True)
+class _Router:
+    """A router whose summary this session read: its peers, and where to ask it."""
+
+    zid: str
+    peers: frozenset[str]
+    addresses: tuple[str, ...]
+    """Where this session dialed it, then where it says it listens."""
+
+
+@dataclass(frozen=True)
 class _Neighbour:
     """A session some reached node has: who, what it is, and where that node dialed it."""
 
@@ -127,11 +141,13 @@ def discover(
     limit: float = LIMIT_S,
     probe: Probe | None = None,
     links_peers: bool = True,
+    peer: bool = True,
 ) -> Discovery:
     """The machines alive on the network `session` is connected to, after discovery settled.
     `probe` asks nodes out of sight (step 4); without it they make the lookup unsure.
     `links_peers`: this session links to the peers gossip names (a peer with gossip on); a
-    client does not, so a peer behind a node it reached is out of sight too."""
+    client does not, so a peer behind a node it reached is out of sight too. `peer`: this
+    session is a peer, to which a router passes on no other peer's tokens."""
     changes: queue.Queue[_Change] = queue.Queue()
 
     def on_token(sample: zenoh.Sample) -> None:
@@ -142,11 +158,12 @@ def discover(
     start = time.monotonic()
     own = str(session.zid())
     neighbours: list[_Neighbour] = []
+    routers: list[_Router] = []
     reached: set[str] = set()
     sub: Any = session.liveliness().declare_subscriber(f"{prefix}/*/alive", on_token, history=True)
     try:
         while _quiet(session, prefix, changes, seen, settle, start + limit):
-            neighbours, answered = _neighbours(session)
+            neighbours, routers, answered = _neighbours(session)
             seen.nodes_read = len(answered)
             reached = seen.links | answered | {own}
             seen.unlinked = {
@@ -162,6 +179,8 @@ def discover(
     if seen.settled:
         kinds = {"router"} if links_peers else {"router", "peer"}
         _probe_hidden(neighbours, kinds, reached, seen, prefix, probe)
+        if peer:
+            _probe_brokers(routers, reached, seen, prefix, probe)
     seen.waited_s = time.monotonic() - start
     return seen
 
@@ -268,21 +287,37 @@ def _admin(session: zenoh.Session, key: str) -> list[zenoh.Sample]:
     return list(got)
 
 
-def _neighbours(session: zenoh.Session) -> tuple[list[_Neighbour], set[str]]:
+def _neighbours(session: zenoh.Session) -> tuple[list[_Neighbour], list[_Router], set[str]]:
     """The sessions of every peer or client node this session's queries reach (`@/*/*`: each
-    node's own summary), and the nodes that answered (queries and tokens are routed between
-    us). A reached router's sessions are left out: it routes their tokens to us itself."""
+    node's own summary), the routers among those nodes, and the nodes that answered (queries
+    and tokens are routed between us). A reached router's sessions are not neighbours: it
+    routes its clients' tokens to us itself (its peers': `_probe_brokers`)."""
     found: list[_Neighbour] = []
+    routers: dict[str, dict[str, Any]] = {}
     answered: set[str] = set()
+    own = str(session.zid())
+    dialed: dict[str, str] = {}
     for sample in _admin(session, "@/*/*"):
         with contextlib.suppress(ValueError, UnicodeDecodeError):
             info = json.loads(sample.payload.to_string())
             if isinstance(info, dict) and isinstance(info.get("sessions"), list):
                 _, zid, whatami = str(sample.key_expr).split("/")[:3]
                 answered.add(zid)
-                if whatami != "router":
-                    found += _sessions(info)
-    return found, answered
+                if whatami == "router":
+                    routers[zid] = info
+                    continue
+                sessions = _sessions(info)
+                found += sessions
+                if zid == own:
+                    dialed = {n.zid: n.dialed for n in sessions if n.dialed}
+    return found, [_router(z, info, dialed.get(z)) for z, info in routers.items()], answered
+
+
+def _router(zid: str, info: dict[str, Any], dialed: str | None) -> _Router:
+    """A router's summary; `dialed`: where this session connected to it, if it did."""
+    peers = frozenset(n.zid for n in _sessions(info) if n.whatami == "peer")
+    listens = [str(loc) for loc in info.get("locators") or []]
+    return _Router(zid, peers, tuple(a for a in (dialed, *listens) if a))
 
 
 def _sessions(info: dict[str, Any]) -> list[_Neighbour]:
@@ -325,6 +360,29 @@ def _probe_hidden(
             seen.unseen.append(f"{n.whatami} {zid} at {endpoint}")
         elif (ids := _probe_tokens(probe, endpoint, prefix)) is None:
             seen.unseen.append(f"{n.whatami} {zid} at {endpoint} (did not answer)")
+        else:
+            seen.probed.add(endpoint)
+            seen.alive |= ids
+
+
+def _probe_brokers(
+    routers: list[_Router], reached: set[str], seen: Discovery, prefix: str, probe: Probe | None
+) -> None:
+    """Step 4 for a router this session is linked to: a peer it is linked to that this session
+    is not (gossip has not linked it yet, or it does not listen) holds tokens the router does
+    not pass on to a peer session, so the router is asked as a client, where this session
+    dialed it, else where it says it listens."""
+    for router in routers:
+        if router.zid not in seen.links or not router.peers - reached:
+            continue
+        if not router.addresses:
+            seen.unseen.append(f"router {router.zid} (linked to peers; no address to ask it at)")
+            continue
+        endpoint = router.addresses[0]
+        if probe is None:
+            seen.unseen.append(f"router {router.zid} at {endpoint} (linked to peers)")
+        elif (ids := _probe_tokens(probe, endpoint, prefix)) is None:
+            seen.unseen.append(f"router {router.zid} at {endpoint} (did not answer)")
         else:
             seen.probed.add(endpoint)
             seen.alive |= ids

@@ -216,11 +216,14 @@ class Link:
         opening)."""
         return self.timeout - (time.monotonic() - self._opened_at)
 
+    def is_peer(self) -> bool:
+        """This session is a peer (Zenoh's default mode), not a client."""
+        return bool(json.loads(self.conf.get_json("mode") or '"peer"') == "peer")
+
     def links_peers(self) -> bool:
         """A peer with gossip on links to the peers gossip names; a client never does."""
-        mode = json.loads(self.conf.get_json("mode") or '"peer"')
         gossip = json.loads(self.conf.get_json("scouting/gossip/enabled") or "true")
-        return bool(mode == "peer" and gossip is not False)
+        return self.is_peer() and gossip is not False
 
     def probe(self, endpoint: str) -> zenoh.Session:
         """A short client session to one router (this Rider's config and credentials), for

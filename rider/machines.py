@@ -91,6 +91,7 @@ class Machines:
             limit=max(DISCOVERY_MIN_S, self.link.time_left()),
             probe=self.link.probe,
             links_peers=self.link.links_peers(),
+            peer=self.link.is_peer(),
         )
         return self.discovery
 

@@ -14,7 +14,9 @@ from rider.discovery import (
     _apply,
     _Change,
     _Neighbour,
+    _probe_brokers,
     _probe_hidden,
+    _router,
     _sessions,
 )
 
@@ -76,6 +78,57 @@ def test_a_router_that_dialed_the_node_has_no_known_address_so_the_lookup_is_uns
     _probe_hidden(_sessions(summary), {"router"}, {"aa"}, seen, "machine", None)
     assert seen.unseen == ["router rr (it connected to a node this Rider reached)"]
     assert "out of sight: router rr" in seen.describe()
+
+
+ROUTER_SUMMARY: dict[str, Any] = {
+    "zid": "rr",
+    "locators": ["tcp/10.0.0.1:7447"],
+    "sessions": [
+        # daemon a (a peer) dialed the router, and so did this Rider
+        {"peer": "aa", "whatami": "peer", "links": [{"src": "tcp/10.0.0.1:7447"}]},
+        {"peer": "me", "whatami": "peer", "links": [{"src": "tcp/10.0.0.1:7447"}]},
+        {"peer": "cc", "whatami": "client", "links": [{"src": "tcp/10.0.0.1:7447"}]},
+    ],
+}
+
+
+def test_a_reached_router_with_a_peer_not_linked_yet_is_asked_as_a_client() -> None:
+    """A router passes no peer's token to a peer Rider (zenoh 1.x: peers link to each other):
+    a peer Rider that gossip has not linked to `aa` yet asks the router, where it dialed it
+    (tests/site/test_default_pick.py asks a real one)."""
+    asked: list[str] = []
+
+    def probe(endpoint: str) -> Any:
+        asked.append(endpoint)
+        raise zenoh.ZError("no answer")
+
+    router = _router("rr", ROUTER_SUMMARY, "tcp/router.example:7447")
+    seen = Discovery(links={"rr"}, settled=True)
+    _probe_brokers([router], {"rr", "me"}, seen, "machine", probe)
+    assert asked == ["tcp/router.example:7447"]
+    assert seen.unseen == ["router rr at tcp/router.example:7447 (did not answer)"]
+    assert not seen.sure
+
+
+def test_a_router_that_dialed_this_session_is_asked_where_it_listens() -> None:
+    asked: list[str] = []
+
+    def probe(endpoint: str) -> Any:
+        asked.append(endpoint)
+        raise zenoh.ZError("no answer")
+
+    seen = Discovery(links={"rr"}, settled=True)
+    _probe_brokers([_router("rr", ROUTER_SUMMARY, None)], {"rr", "me"}, seen, "machine", probe)
+    assert asked == ["tcp/10.0.0.1:7447"]
+
+
+def test_a_router_whose_peers_are_all_linked_is_not_asked() -> None:
+    def probe(endpoint: str) -> Any:
+        raise AssertionError("asked a router whose peers this session is linked to")
+
+    seen = Discovery(links={"rr", "aa"}, settled=True)
+    _probe_brokers([_router("rr", ROUTER_SUMMARY, None)], {"rr", "aa", "me"}, seen, "m", probe)
+    assert seen.sure
 
 
 @pytest.mark.parametrize(

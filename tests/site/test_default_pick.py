@@ -65,6 +65,8 @@ class Trial:
     outcome: str  # a machine id, "several", "unsure", "none", "unreachable" or "error …"
     zid: str = ""
     """The Rider session's id (names it in another lookup's "out of sight" list)."""
+    seen: str = ""
+    """What its discovery saw (`rider.discovery.Discovery`): a "none" is told by it."""
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +81,7 @@ def look_up(kind: str, endpoint: str, config: Path, motion: bool = False) -> Tri
     (the appearer's clock) around the whole session."""
     start = time.time()
     lookup_s = 0.0
+    seen = ""
     if kind == "peer@b" and not listening(endpoint):  # b is away, or a client
         return Trial(kind, motion, start, time.time(), lookup_s, "unreachable")
     r = Rider(None, connect=[endpoint], zenoh_config_path=config, timeout=2.0).open()
@@ -93,11 +96,12 @@ def look_up(kind: str, endpoint: str, config: Path, motion: bool = False) -> Tri
         except NoMachine:
             outcome = "none"
         lookup_s = time.monotonic() - t0
+        seen = repr(r.discovery)
     except Exception as exc:  # noqa: BLE001 - a trial that breaks is reported, never hidden
         outcome = f"error {exc!r}"
     finally:
         r.close()
-    return Trial(kind, motion, start, time.time(), lookup_s, outcome, r.rider_id)
+    return Trial(kind, motion, start, time.time(), lookup_s, outcome, r.rider_id, seen)
 
 
 def listening(endpoint: str) -> bool:
@@ -257,6 +261,23 @@ def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Si
     assert all(caught.values()), f"some endpoint never met b alive: {caught}"
     assert wrong == [], wrong[:10]
     assert missed_a == [], missed_a[:10]
+
+
+@pytest.mark.integration
+def test_a_peer_rider_at_the_router_sees_a_peer_machine_it_is_not_linked_to(
+    stand: Site, tmp_path: Path
+) -> None:
+    """Run 17's "no machine" while `a` was up: a router passes a peer machine's token on to no
+    peer session (zenoh 1.x leaves peers to link to each other), and on a busy host gossip had
+    not linked the Rider to `a` when discovery settled. With gossip off it never does: the
+    lookup asks the router as a client and finds `a`, every time."""
+    text = PEER_CONFIG.read_text()
+    assert "gossip: { enabled: true }" in text
+    no_gossip = tmp_path / "no-gossip.json5"
+    no_gossip.write_text(text.replace("gossip: { enabled: true }", "gossip: { enabled: false }"))
+    router = stand.router.endpoint
+    outcomes = [look_up("peer@router", router, no_gossip).outcome for _ in range(ISSUE_TRIES // 4)]
+    assert outcomes == ["a"] * (ISSUE_TRIES // 4), outcomes
 
 
 @pytest.mark.integration
