@@ -46,6 +46,7 @@ from service.signals import SignalThread
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
 from service.supervision.outputguard import OutputGuard, Stall
+from service.supervision.procstate import describe, threads
 from service.supervision.restarts import Backoff, Child, Event, Kind, describe_exit
 from service.supervision.simport import sim_port
 from service.supervision.toml_out import to_toml, write_private
@@ -353,8 +354,10 @@ class Supervisor:
         child = self.child
         if stall is None or child is None or child.down or child.proc.pid != stall.pid:
             return None
+        seen = threads(child.proc.pid)
         with contextlib.suppress(ProcessLookupError):
             child.proc.kill()
+        log.error("event=child_threads pid=%d when=hung threads=%r", stall.pid, describe(seen))
         energised = "energised, made safe at the watchdog limit" if stall.energised else "off"
         self._went_down(
             child,
@@ -370,6 +373,7 @@ class Supervisor:
     def _freeze(self, child: Child, reason: str) -> None:
         """A child that is gone from the bus: outputs safe first, then find out why, then kill."""
         self._force_safe()
+        first = threads(child.proc.pid)
         try:
             code = child.proc.wait(timeout=0.1)  # a crash closes its link before the exit shows
         except subprocess.TimeoutExpired:
@@ -377,7 +381,15 @@ class Supervisor:
             try:
                 child.proc.wait(timeout=self.options.exit_grace_s)
             except subprocess.TimeoutExpired:
+                # where its threads were then and since, for the log: why it stopped answering
+                last = threads(child.proc.pid)
                 child.proc.kill()
+                log.error(
+                    "event=child_threads pid=%d when=gone_from_bus threads=%r since=%r",
+                    child.proc.pid,
+                    describe(first),
+                    describe(last, first),
+                )
                 child.proc.wait(timeout=self.options.stop_timeout_s)
             return
         self._went_down(child, describe_exit(code))

@@ -9,6 +9,7 @@ up not home, with its calibration.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import threading
 import time
@@ -164,6 +165,10 @@ def test_frozen_daemon_is_caught_by_its_liveliness_and_replaced(supervised: Daem
         assert back.state is MachineState.WARNING_NOT_HOME, back
     with pytest.raises(ProcessLookupError):
         os.kill(child, 0)  # the frozen process was killed, not left behind
+    # the log says where its threads were as it was killed: every one stopped, as the kernel says
+    said = next(x for x in supervised.log().splitlines() if f"child_threads pid={child} " in x)
+    states = set(re.findall(r"[^ ';]+:([A-Za-z])(?::\S+)? ran=", said.split(" since=")[0]))
+    assert states == {"T"}, said
     print(f"\nSIGSTOP → FAULT_HW seen {t_down - t_stop:.2f} s (the Zenoh lease is 1 s)")
 
 
