@@ -37,24 +37,32 @@ from service.errors import NotAvailable
 log = logging.getLogger(__name__)
 
 
+ZENOH_LEASE_MS = 10_000
+"""Zenoh's own lease where a config sets none."""
+
+
 def router_config(
-    path: Path | None, listen: list[str], connect: list[str], private: str
+    path: Path | None, listen: list[str], connect: list[str], private: str, hang_s: float = 0.0
 ) -> zenoh.Config:
-    """The daemon's own session config, as a router that also listens on `private`."""
+    """The daemon's own session config, as a router that also listens on `private`; its lease
+    at least `hang_s` (`lease_at_least`)."""
     conf = zenoh_config(path, listen, connect)
     endpoints = json.loads(conf.get_json("listen/endpoints") or "[]")
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("listen/endpoints", json.dumps([*endpoints, private]))
+    lease_at_least(conf, hang_s)
     return conf
 
 
-def child_config(path: Path | None, private: str) -> str:
-    """The daemon child's Zenoh config (JSON): a client of the supervisor's private endpoint.
+def child_config(path: Path | None, private: str, hang_s: float = 0.0) -> str:
+    """The daemon child's Zenoh config (JSON): a client of the supervisor's private endpoint,
+    its lease at least `hang_s` (`lease_at_least`).
 
     A client listens nowhere, so nobody reaches the daemon but through the router, where the
     access control is enforced; the child itself runs none (it would deny its only link).
     """
     conf = file_config(path)
+    lease_at_least(conf, hang_s)
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([private]))
     conf.insert_json5("listen/endpoints", "[]")
@@ -62,6 +70,19 @@ def child_config(path: Path | None, private: str) -> str:
     conf.insert_json5("transport/auth/usrpwd/dictionary_file", "null")
     conf.insert_json5("scouting/multicast/enabled", "false")
     return str(conf)
+
+
+def lease_at_least(conf: zenoh.Config, hang_s: float) -> None:
+    """A lease of at least `hang_s`, the supervisor's own limit for a frozen daemon (`--hang`).
+
+    Each end of a link drops it after the other end's lease without a word from it, so both
+    the router and the child need it: with the shipped profiles' 1 s lease, a daemon that
+    `--hang 3` lets wake up from a 1.5 s freeze was dropped from the bus (its token gone) and
+    killed all the same; the router's dropped the child, or the child dropped the router's
+    link as it woke. A longer lease only slows how fast a Rider notices the supervisor itself
+    gone, and only where `--hang` is longer than the lease."""
+    lease_ms = json.loads(conf.get_json("transport/link/tx/lease") or str(ZENOH_LEASE_MS))
+    conf.insert_json5("transport/link/tx/lease", json.dumps(max(lease_ms, round(hang_s * 1e3))))
 
 
 def requires_credentials(conf: zenoh.Config) -> bool:

@@ -160,7 +160,7 @@ class Supervisor:
                 stack.callback(self.guard.stop)
                 stack.callback(self._stop_child)
                 started = True
-                zenoh_json = child_config(self.zenoh.zenoh_config, self.private)
+                zenoh_json = child_config(self.zenoh.zenoh_config, self.private, self.hang_s)
                 self._write_child_files(child_cfg, zenoh_json)
                 self.bus.start()
                 log.info(
@@ -200,7 +200,11 @@ class Supervisor:
         when Zenoh cannot open it."""
         try:
             conf = router_config(
-                self.zenoh.zenoh_config, self.zenoh.listen, self.zenoh.connect, self.private
+                self.zenoh.zenoh_config,
+                self.zenoh.listen,
+                self.zenoh.connect,
+                self.private,
+                self.hang_s,
             )
             if requires_credentials(conf) and not os.environ.get(env_name(MACHINE, "USER")):
                 log.error(
@@ -249,6 +253,11 @@ class Supervisor:
         write_private(self.dir / "machine.toml", to_toml(data))
         write_private(self.dir / "zenoh-child.json5", zenoh_json)
 
+    @property
+    def hang_s(self) -> float:
+        """How long a daemon may stay frozen before it is killed (`--hang`)."""
+        return self.options.hang_s or max(HANG_S, 3 * self.config.loop.watchdog_limit_s)
+
     def _start_guard(self) -> OutputGuard:
         """The output guard: outputs safe when the child's scan stops (outputguard.py)."""
         assert self.safe is not None
@@ -257,7 +266,7 @@ class Supervisor:
             self.safe,
             on_trip=self._on_guard_trip,
             on_hang=lambda stall: self.events.put(Event(Kind.HUNG, stall=stall)),
-            hang_s=self.options.hang_s or max(HANG_S, 3 * self.config.loop.watchdog_limit_s),
+            hang_s=self.hang_s,
             after_safe=self.world.step_now if self.world is not None else None,
         )
         guard.start()

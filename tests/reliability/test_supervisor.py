@@ -27,7 +27,7 @@ from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
 from schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests import freeze
-from tests.integration.support import SPOILED
+from tests.integration.support import SPOILED, STEP_TIMEOUT_S
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
     ACL_PROFILE,
@@ -169,7 +169,30 @@ def test_frozen_daemon_is_caught_by_its_liveliness_and_replaced(supervised: Daem
     said = next(x for x in supervised.log().splitlines() if f"child_threads pid={child} " in x)
     states = set(re.findall(r"[^ ';]+:([A-Za-z])(?::\S+)? ran=", said.split(" since=")[0]))
     assert states == {"T"}, said
-    print(f"\nSIGSTOP → FAULT_HW seen {t_down - t_stop:.2f} s (the Zenoh lease is 1 s)")
+    print(f"\nSIGSTOP → FAULT_HW seen {t_down - t_stop:.2f} s (--hang is 3 s here)")
+
+
+def test_a_daemon_frozen_for_less_than_the_hang_limit_wakes_up_and_stays(
+    supervised: Daemon,
+) -> None:
+    """`--hang` is the limit (3 s here: three of the fast config's 1 s watchdog limits), not the
+    profile's 1 s lease: a daemon SIGSTOPped for 1.5 s wakes up on the bus, the same process,
+    and answers. Before, one end of its link dropped it at the lease and it was killed and
+    replaced (run 14: a daemon a loaded host stopped whole for over a second)."""
+    with supervised.rider(timeout=3.0) as r:
+        before = r.status().state
+        child = supervisor_child(supervised)
+        os.kill(child, signal.SIGSTOP)
+        time.sleep(1.5)  # the freeze: longer than the lease, shorter than --hang
+        os.kill(child, signal.SIGCONT)
+        deadline = time.monotonic() + STEP_TIMEOUT_S
+        while f"daemon_resumed pid={child}" not in supervised.log():
+            assert time.monotonic() < deadline, supervised.log()[-2000:]
+            time.sleep(0.05)
+        assert r.status().state is before
+    assert supervisor_child(supervised) == child
+    log = supervised.log()
+    assert "event=daemon_down" not in log and "event=child_threads" not in log, log[-2000:]
 
 
 def test_sigterm_stops_the_child_cleanly_and_leaves_outputs_safe(supervised: Daemon) -> None:

@@ -79,6 +79,18 @@ def test_router_keeps_the_profile_and_adds_the_private_endpoint(tmp_path: Path) 
     assert requires_credentials(conf)
 
 
+@pytest.mark.parametrize(("hang_s", "lease_ms"), [(0.0, 1000), (1.0, 1000), (3.0, 3000)])
+def test_both_ends_of_the_childs_link_wait_at_least_the_hang_limit(
+    hang_s: float, lease_ms: int
+) -> None:
+    """The profile's 1 s lease stands unless `--hang` is longer: a daemon frozen for less than
+    `--hang` stays on the bus, whichever end of its link would have dropped it."""
+    child = json.loads(child_config(ACL_PROFILE, PRIVATE, hang_s))
+    router = router_config(ACL_PROFILE, [], [], PRIVATE, hang_s)
+    assert child["transport"]["link"]["tx"]["lease"] == lease_ms
+    assert json.loads(router.get_json("transport/link/tx/lease")) == lease_ms
+
+
 def test_the_packaged_picto_config_fits_the_default_io_map(tmp_path: Path) -> None:
     rsc = CONFIG_RSC
     image = tmp_path / "procimg"
