@@ -101,6 +101,7 @@ class Presence:
         alive = sample.kind == zenoh.SampleKind.PUT
         if alive:
             self.riders_alive.add(rider)
+            self.port.rider_back(rider)
         else:
             self.riders_alive.discard(rider)
             self.port.rider_gone(rider)

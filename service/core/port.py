@@ -96,6 +96,12 @@ class LoopPort:
         if beats is not None:
             beats.forget(rider)
 
+    def rider_back(self, rider: str) -> None:
+        """`rider`'s token is there (again): its heartbeats count."""
+        beats = self._loop.beats
+        if beats is not None:
+            beats.returned(rider)
+
     def cycle(self) -> int:
         """The number of the last scan cycle."""
         return self._loop.cycle

@@ -113,16 +113,30 @@ class Heartbeats:
     def __init__(self, limit: int = MAX_RIDERS) -> None:
         self.limit = limit
         self._at: dict[str, float] = {}
+        self._gone: dict[str, None] = {}
+        """Riders whose token went (oldest first): a heartbeat of theirs that arrives after
+        it is one the token's going overtook, not a sign of life."""
 
     def beat(self, rider: str, at: float) -> None:
         """`rider`'s heartbeat arrived at `at`; a flood of made-up ids cannot grow this
-        without end."""
+        without end. One from a Rider whose token has gone is ignored: a heartbeat sent just
+        before it closed can arrive after its token's going (another priority, another
+        queue) and made the deadman take it back, then lose it a second time (run 21)."""
+        if rider in self._gone:
+            return
         if rider in self._at or len(self._at) < self.limit:
             self._at[rider] = at
 
     def forget(self, rider: str) -> None:
-        """Its token went: its heartbeats are history."""
+        """Its token went: its heartbeats are history until the token is back."""
         self._at.pop(rider, None)
+        self._gone[rider] = None
+        if len(self._gone) > self.limit:
+            del self._gone[next(iter(self._gone))]
+
+    def returned(self, rider: str) -> None:
+        """Its token is back (a link that came back): its heartbeats count again."""
+        self._gone.pop(rider, None)
 
     def last_heartbeat(self, rider: str) -> float | None:
         return self._at.get(rider)

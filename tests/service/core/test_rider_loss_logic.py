@@ -14,6 +14,8 @@ from service.config.model import MachineConfig
 from service.core.events import ListEventSink
 from service.core.params import ParamRegistry
 from service.core.persist import ParamStore
+from service.core.statemachine.deadman import Heartbeats
+from service.core.tasks import RiderPresence
 from service.errors import ParamOutOfRange
 from tests.rig import Rig
 
@@ -203,3 +205,36 @@ def test_a_rider_silent_mid_motion_is_recorded_as_lost_mid_motion(policy: str, a
     rig.step(round(0.5 / rig.period))
     [gone] = _departures(sink)
     assert (gone.acted, gone.mid_motion) == (acted, True)
+
+
+def test_a_heartbeat_that_arrives_after_the_riders_token_went_brings_nothing_back() -> None:
+    """A heartbeat sent just before the Rider closed can arrive after its token's going
+    (another priority, another queue): it is no sign of life. It made the deadman take the
+    Rider back and lose it a second time, one more `rider_lost` in the history (run 21)."""
+    sink = ListEventSink()
+    rig = Rig(MachineConfig().with_overrides(rider_loss={"timeout_s": 0.3}), events=sink).ready()
+    beats = Heartbeats()
+    rig.loop.beats = beats
+    assert rig.send(Command.HOME, rider="r1").success
+    while rig.state is S.HOMING:
+        beats.beat("r1", rig.clock())
+        rig.step(5)
+    beats.forget("r1")  # the token went (LoopPort.rider_gone), then the task runs
+    RiderPresence("r1", alive=False).run(rig.loop, rig.clock())
+    beats.beat("r1", rig.clock())  # the overtaken heartbeat
+    rig.step(round(1.0 / rig.period))
+    assert not rig.control.rider_connected
+    assert [(e.rider, e.acted) for e in _departures(sink)] == [("r1", False)]
+    beats.returned("r1")  # its token is back: its heartbeats count again
+    beats.beat("r1", rig.clock())
+    rig.step()
+    assert rig.control.rider_connected
+
+
+def test_the_riders_gone_are_remembered_within_a_bound() -> None:
+    beats = Heartbeats(limit=2)
+    for rider in ("a", "b", "c"):
+        beats.forget(rider)
+    beats.beat("a", 1.0)  # the oldest forgotten first: a counts again
+    beats.beat("c", 1.0)
+    assert (beats.last_heartbeat("a"), beats.last_heartbeat("c")) == (1.0, None)
