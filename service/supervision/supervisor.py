@@ -199,13 +199,8 @@ class Supervisor:
         """The router session; refused (2) without the credentials its profile needs, (1)
         when Zenoh cannot open it."""
         try:
-            conf = router_config(
-                self.zenoh.zenoh_config,
-                self.zenoh.listen,
-                self.zenoh.connect,
-                self.private,
-                self.hang_s,
-            )
+            z = self.zenoh
+            conf = router_config(z.zenoh_config, z.listen, z.connect, self.private, self.hang_s)
             if requires_credentials(conf) and not os.environ.get(env_name(MACHINE, "USER")):
                 log.error(
                     "event=supervisor_no_credentials detail=%r",
