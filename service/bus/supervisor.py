@@ -75,12 +75,12 @@ def child_config(path: Path | None, private: str, hang_s: float = 0.0) -> str:
 def lease_at_least(conf: zenoh.Config, hang_s: float) -> None:
     """A lease of at least `hang_s`, the supervisor's own limit for a frozen daemon (`--hang`).
 
-    Each end of a link drops it after the other end's lease without a word from it, so both
-    the router and the child need it: with the shipped profiles' 1 s lease, a daemon that
-    `--hang 3` lets wake up from a 1.5 s freeze was dropped from the bus (its token gone) and
-    killed all the same; the router's dropped the child, or the child dropped the router's
-    link as it woke. A longer lease only slows how fast a Rider notices the supervisor itself
-    gone, and only where `--hang` is longer than the lease."""
+    Each end of a link drops it after the other end's lease without a word from it, so the
+    router and the child both need it: with the shipped profiles' 1 s lease, a daemon that
+    `--hang 3` lets wake up from a 1.5 s freeze left the bus all the same (the router dropped
+    it, or it dropped the router's link as it woke), and its token's going killed it. A longer
+    lease only slows how fast a Rider notices the supervisor itself gone, and only where
+    `--hang` is longer than the lease."""
     lease_ms = json.loads(conf.get_json("transport/link/tx/lease") or str(ZENOH_LEASE_MS))
     conf.insert_json5("transport/link/tx/lease", json.dumps(max(lease_ms, round(hang_s * 1e3))))
 
