@@ -353,16 +353,10 @@ def _probe_hidden(
         if n.whatami in kinds and n.zid not in reached and (n.zid not in hidden or n.dialed):
             hidden[n.zid] = n
     for zid, n in sorted(hidden.items()):
-        endpoint = n.dialed
-        if endpoint is None:
+        if n.dialed is None:
             seen.unseen.append(f"{n.whatami} {zid} (it connected to a node this Rider reached)")
-        elif probe is None:
-            seen.unseen.append(f"{n.whatami} {zid} at {endpoint}")
-        elif (ids := _probe_tokens(probe, endpoint, prefix)) is None:
-            seen.unseen.append(f"{n.whatami} {zid} at {endpoint} (did not answer)")
         else:
-            seen.probed.add(endpoint)
-            seen.alive |= ids
+            _ask(f"{n.whatami} {zid} at {n.dialed}", n.dialed, "", seen, prefix, probe)
 
 
 def _probe_brokers(
@@ -378,14 +372,22 @@ def _probe_brokers(
         if not router.addresses:
             seen.unseen.append(f"router {router.zid} (linked to peers; no address to ask it at)")
             continue
-        endpoint = router.addresses[0]
-        if probe is None:
-            seen.unseen.append(f"router {router.zid} at {endpoint} (linked to peers)")
-        elif (ids := _probe_tokens(probe, endpoint, prefix)) is None:
-            seen.unseen.append(f"router {router.zid} at {endpoint} (did not answer)")
-        else:
-            seen.probed.add(endpoint)
-            seen.alive |= ids
+        at = router.addresses[0]
+        _ask(f"router {router.zid} at {at}", at, " (linked to peers)", seen, prefix, probe)
+
+
+def _ask(
+    label: str, endpoint: str, unasked: str, seen: Discovery, prefix: str, probe: Probe | None
+) -> None:
+    """Ask the node at `endpoint` for its machine tokens (into `seen.alive`); one that could
+    not be asked (`label`, and `unasked` when there was no probe) goes into `seen.unseen`."""
+    if probe is None:
+        seen.unseen.append(label + unasked)
+    elif (ids := _probe_tokens(probe, endpoint, prefix)) is None:
+        seen.unseen.append(f"{label} (did not answer)")
+    else:
+        seen.probed.add(endpoint)
+        seen.alive |= ids
 
 
 def _probe_tokens(probe: Probe, endpoint: str, prefix: str) -> set[str] | None:

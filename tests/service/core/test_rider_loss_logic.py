@@ -79,29 +79,20 @@ def test_resume_by_another_rider_clears_the_rider_lost_warning() -> None:
     assert rig.control.controller_rider == "r2"
 
 
-class Beats:
-    """The bus's heartbeat record as data: arrival times on the rig's clock."""
-
-    def __init__(self) -> None:
-        self.at: dict[str, float] = {}
-
-    def last_heartbeat(self, rider: str) -> float | None:
-        return self.at.get(rider)
-
-
-def _supervised(timeout_s: float = 0.5, grace_s: float = 0.0) -> tuple[Rig, Beats]:
+def _supervised(timeout_s: float = 0.5, grace_s: float = 0.0) -> tuple[Rig, Heartbeats]:
+    """A ride started by r1, its heartbeats (arrival times on the rig's clock) judged."""
     cfg = MachineConfig().with_overrides(rider_loss={"timeout_s": timeout_s, "grace_s": grace_s})
     rig = Rig(cfg).ready()
-    beats = Beats()
+    beats = Heartbeats()
     rig.loop.beats = beats
     assert rig.send(Command.START, rider="r1").success
     return rig, beats
 
 
-def _beat_for(rig: Rig, beats: Beats, seconds: float, every: float = 0.1) -> None:
+def _beat_for(rig: Rig, beats: Heartbeats, seconds: float, every: float = 0.1) -> None:
     end = rig.clock() + seconds
     while rig.clock() < end:
-        beats.at["r1"] = rig.clock()
+        beats.beat("r1", rig.clock())
         rig.step(round(every / rig.period))
 
 
@@ -115,7 +106,8 @@ def test_a_beating_rider_keeps_the_ride_running() -> None:
 def test_a_silent_heartbeat_pauses_within_the_timeout_and_two_cycles() -> None:
     rig, beats = _supervised(timeout_s=0.5)
     _beat_for(rig, beats, 1.0)
-    last = beats.at["r1"]
+    last = beats.last_heartbeat("r1")
+    assert last is not None
     took = rig.run_to_state(S.PAUSED, max_s=2.0)
     assert rig.clock() - last <= 0.5 + 2 * rig.period
     assert took > 0
@@ -178,15 +170,21 @@ def _departures(sink: ListEventSink) -> list[RiderEvent]:
     return [e for e, _, _ in sink.events if isinstance(e, RiderEvent) and e.kind == "rider_lost"]
 
 
-def test_a_rider_silent_after_its_motion_ended_left_at_rest() -> None:
-    """`rider start --wait` ends its session after DONE: the record says nothing was moving."""
+def _homed_by_a_beating_rider() -> tuple[Rig, Heartbeats, ListEventSink]:
+    """r1 sent Home and beat until it was done (timeout 0.3 s); the events recorded."""
     sink = ListEventSink()
     rig = Rig(MachineConfig().with_overrides(rider_loss={"timeout_s": 0.3}), events=sink).ready()
-    beats = Beats()
+    beats = Heartbeats()
     rig.loop.beats = beats
     assert rig.send(Command.HOME, rider="r1").success
     while rig.state is S.HOMING:
         _beat_for(rig, beats, 0.2)
+    return rig, beats, sink
+
+
+def test_a_rider_silent_after_its_motion_ended_left_at_rest() -> None:
+    """`rider start --wait` ends its session after DONE: the record says nothing was moving."""
+    rig, _, sink = _homed_by_a_beating_rider()
     assert rig.state is S.IDLE
     rig.step(round(0.5 / rig.period))  # silent now
     assert not rig.control.rider_connected
@@ -201,7 +199,7 @@ def test_a_rider_silent_mid_motion_is_recorded_as_lost_mid_motion(policy: str, a
     cfg = MachineConfig().with_overrides(rider_loss={"timeout_s": 0.3, "policy": policy})
     rig = Rig(cfg, events=sink).ready()
     assert rig.send(Command.START, rider="r1").success
-    rig.loop.beats = Beats()  # it never beats
+    rig.loop.beats = Heartbeats()  # it never beats
     rig.step(round(0.5 / rig.period))
     [gone] = _departures(sink)
     assert (gone.acted, gone.mid_motion) == (acted, True)
@@ -211,14 +209,7 @@ def test_a_heartbeat_that_arrives_after_the_riders_token_went_brings_nothing_bac
     """A heartbeat sent just before the Rider closed can arrive after its token's going
     (another priority, another queue): it is no sign of life. It made the deadman take the
     Rider back and lose it a second time, one more `rider_lost` in the history (run 21)."""
-    sink = ListEventSink()
-    rig = Rig(MachineConfig().with_overrides(rider_loss={"timeout_s": 0.3}), events=sink).ready()
-    beats = Heartbeats()
-    rig.loop.beats = beats
-    assert rig.send(Command.HOME, rider="r1").success
-    while rig.state is S.HOMING:
-        beats.beat("r1", rig.clock())
-        rig.step(5)
+    rig, beats, sink = _homed_by_a_beating_rider()
     beats.forget("r1")  # the token went (LoopPort.rider_gone), then the task runs
     RiderPresence("r1", alive=False).run(rig.loop, rig.clock())
     beats.beat("r1", rig.clock())  # the overtaken heartbeat
