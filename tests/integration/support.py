@@ -150,13 +150,18 @@ def settle(rider: Rider, reply: Reply, timeout: float = STEP_TIMEOUT_S) -> Statu
     return rider.wait_for(SETTLED, timeout, after=reply.timecode)
 
 
-def prepare(rider: Rider) -> Status:
-    """Calibrate what is not calibrated, then home; the machine ends IDLE."""
+def prepare(rider: Rider, tries: int = 3) -> Status:
+    """Calibrate what is not calibrated, then home; the machine ends IDLE. A calibration a
+    stall spoiled (`SPOILED`, the machine's right refusal) is tried again, up to `tries` times."""
     status = rider.status()
-    if not status.calibrated.tilt:
-        settle(rider, rider.calibrate_tilt())
-    if not status.calibrated.rotate:
-        settle(rider, rider.calibrate_rotate())
+    for axis, calibrate in (("tilt", rider.calibrate_tilt), ("rotate", rider.calibrate_rotate)):
+        for _ in range(tries):
+            if getattr(status.calibrated, axis):
+                break
+            status = settle(rider, calibrate())
+            if status.state in FAULT_STATES:
+                assert status.fault is not None and status.fault.code in SPOILED, status
+        assert getattr(status.calibrated, axis), status
     status = settle(rider, rider.home())
     assert status.state is MachineState.IDLE, status
     return status
