@@ -200,10 +200,8 @@ def test_a_daemon_frozen_for_less_than_the_hang_limit_wakes_up_and_stays(
         os.kill(child, signal.SIGSTOP)
         time.sleep(1.5)  # the freeze: longer than the lease, shorter than --hang
         os.kill(child, signal.SIGCONT)
-        deadline = time.monotonic() + STEP_TIMEOUT_S
-        while f"daemon_resumed pid={child}" not in supervised.log():
-            assert time.monotonic() < deadline, supervised.log()[-2000:]
-            time.sleep(0.05)
+        resumed = supervised.has_logged(f"daemon_resumed pid={child}", STEP_TIMEOUT_S)
+        assert resumed, supervised.log()[-2000:]
         assert r.status().state is before
     assert supervisor_child(supervised) == child
     log = supervised.log()
