@@ -94,6 +94,12 @@ class SimWorldState(OpenWireModel):
     should measure."""
     stalled_s: float | None = None
     """Time the injected scan stalls took so far."""
+    late_steps: int | None = None
+    """Steps of a world on its own thread (`machine supervise --sim`) that came later than
+    planned, so far: the daemon read the field's sensors unchanged meanwhile. None for the
+    embedded simulator, which the scan steps itself and which is never late."""
+    longest_late_s: float | None = None
+    """The latest of those steps, seconds behind its plan."""
 
 
 SIM_REQUESTS: dict[str, type[WireModel]] = {

@@ -94,7 +94,10 @@ class SimWorld:
 
     def world(self, stamp: float) -> SimWorldState:
         with self._lock:
-            return simfaults.world_state(self._sim.ride, stamp)
+            state = simfaults.world_state(self._sim.ride, stamp)
+            return state.model_copy(
+                update={"late_steps": self.late_steps, "longest_late_s": self.longest_late_s}
+            )
 
     def relays(self) -> dict[str, bool]:
         with self._lock:

@@ -112,7 +112,8 @@ def test_a_late_step_of_the_world_is_counted_and_said_at_most_once_a_second(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """The supervised simulator's field stood still while its thread waited on a loaded host,
-    and the daemon faulted a tilt that did not follow: the supervisor's log says so now."""
+    and the daemon faulted a tilt that did not follow: the supervisor's log says so now, and
+    the world's state counts it (a test tells the rig's lateness from the daemon's fault)."""
     clock = FakeClock()
     world = SimWorld(
         IoMap(), make_image(tmp_path / "procimg"), str(CONFIG_RSC), PhysicsParams(), 0.005, clock
@@ -123,8 +124,10 @@ def test_a_late_step_of_the_world_is_counted_and_said_at_most_once_a_second(
             world._late(clock(), 0.08)
             world._late(clock(), 0.05)  # the same second: counted, not said again
             world._late(clock.advance(1.5), 0.04)
+        state = world.world(clock())
     finally:
         world.stop()
     assert (world.late_steps, world.longest_late_s) == (3, 0.08)
+    assert (state.late_steps, state.longest_late_s) == (3, 0.08)  # `sim/world` tells a test
     said = [r.getMessage() for r in caplog.records if "sim_world_late" in r.getMessage()]
     assert len(said) == 2 and "late_s=0.080 late_steps=1" in said[0], said

@@ -27,14 +27,13 @@ from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
 from schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests import freeze
-from tests.integration.support import SPOILED, STEP_TIMEOUT_S
+from tests.integration.support import STEP_TIMEOUT_S, Rig
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
     ACL_PROFILE,
     StatusFeed,
     make_identities,
     rider_as,
-    settle,
     start_machine,
     supervisor_child,
 )
@@ -54,41 +53,23 @@ def supervised(tmp_path: Path) -> Iterator[Daemon]:
         daemon.stop()
 
 
-def ride_until_rotating(r: Rider, feed: StatusFeed, daemon: Daemon, tries: int = 3) -> Reply:
+def ride_until_rotating(r: Rider, feed: StatusFeed, tries: int = 3) -> Reply:
     """Calibrate what is missing, home, start the long ride; return while the rotate relay is on.
 
-    Calibrates again after a refusal a stall caused (`SPOILED`). Rides again (home, start)
-    when the ride faulted `TILT_NOT_FOLLOWING` because the simulated field stood still: the
-    supervisor's world thread, late on a loaded host, left the tilt's sensor unchanged for a
-    check window, and the daemon rightly stopped the tilt. The same lateness during the tilt's
-    calibration stroke spoils its gain (a slope over time), and the rotate's calibration, which
-    drives the tilt, then finds it too fast (`TILT_SPEED_IMPLAUSIBLE`): the tilt is calibrated
-    again. The supervisor's log must say the world was late (`sim_world_late`); any other fault
+    Rides again after a fault the loaded host caused (`Rig`): the supervisor's world thread,
+    late, left the tilt's sensor unchanged for a check window (`TILT_NOT_FOLLOWING`), or did so
+    during the tilt's calibration stroke, whose gain then made the tilt too fast
+    (`TILT_SPEED_IMPLAUSIBLE`); the world must have counted the late step. Any other fault
     fails the test."""
-    redo_tilt = False
-    for _ in range(2 + tries):  # each axis once, and again after a refusal the late world caused
-        status = r.status()
-        if status.calibrated.tilt and status.calibrated.rotate and not redo_tilt:
-            break
-        tilt = redo_tilt or not status.calibrated.tilt
-        redo_tilt = False
-        done = settle(feed, r.calibrate_tilt() if tilt else r.calibrate_rotate())
-        if done.state not in FAULT_STATES:
-            continue
-        assert done.fault is not None, done
-        if done.fault.code not in SPOILED:  # a measurement a stall spoiled: the right refusal
-            assert done.fault.code is FaultCode.TILT_SPEED_IMPLAUSIBLE, done
-            assert "event=sim_world_late" in daemon.log_path.read_text(), done
-            redo_tilt = True
+    rig = Rig(r)
     for _ in range(tries):
-        assert settle(feed, r.home()).state is MachineState.IDLE
+        rig.prepare()
         reply = r.start(LONG_RIDE)
         going = feed.until(partial(_rotating_or_faulted, since=reply.timecode))
         if going.state not in FAULT_STATES:
             assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
             return reply
-        assert going.fault is not None and going.fault.code is FaultCode.TILT_NOT_FOLLOWING, going
-        assert "event=sim_world_late" in daemon.log_path.read_text(), going
+        rig.excuse(going)
     raise AssertionError(f"the simulated world was late in {tries} rides in a row")
 
 
@@ -118,7 +99,7 @@ def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
         try:
-            ride = ride_until_rotating(r, feed, supervised)
+            ride = ride_until_rotating(r, feed)
             ended: list[Completion] = []
             waiter = threading.Thread(target=lambda: ended.append(r.wait_done(ride, 30.0)))
             waiter.start()
@@ -166,7 +147,7 @@ def test_frozen_daemon_is_caught_and_replaced(supervised: Daemon) -> None:
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
         try:
-            ride_until_rotating(r, feed, supervised)
+            ride_until_rotating(r, feed)
             child = supervisor_child(supervised)
             t_stop = time.monotonic()
             os.kill(child, signal.SIGSTOP)  # alive, holding its relays, answering nothing
@@ -212,7 +193,7 @@ def test_sigterm_stops_the_child_cleanly_and_leaves_outputs_safe(supervised: Dae
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
         try:
-            ride_until_rotating(r, feed, supervised)
+            ride_until_rotating(r, feed)
         finally:
             feed.close()
         # Still riding (this Rider is connected, so no rider-loss pause): relays on in the image.

@@ -15,6 +15,7 @@ from common.credentials import MACHINE, RIDER, env_name
 from rider.client import MachineTimeout, Rider
 from schema.commands import RotateStep, Session, TiltStep
 from schema.status import MachineState
+from tests.integration.support import prepare
 from tests.procs import Daemon
 from tests.reliability.support import (
     RIDER_VARIABLES,
@@ -79,10 +80,8 @@ def test_calibrate_home_and_a_session_to_done_over_tls(
     with rider_as(machine, rider_env, timeout=5.0) as r:
         feed = StatusFeed(r)
         try:
-            assert settle(feed, r.calibrate_tilt()).calibrated.tilt
-            status = settle(feed, r.calibrate_rotate())
+            status = prepare(r)  # calibrated, homed; a refusal a stall spoiled is measured again
             assert status.calibrated.tilt and status.calibrated.rotate
-            assert settle(feed, r.home()).state is MachineState.IDLE
             reply = r.start(RIDE)
             assert reply.state is MachineState.RUNNING
             done = settle(feed, reply)
