@@ -1,5 +1,9 @@
 """The machine's memory of completion notices: the recent ones by transaction id, and the
-motion still under way, readable from the bus thread (a late Rider asks how its command ended)."""
+motion still under way, readable from the bus thread (a late Rider asks how its command ended).
+
+A notice is answered only once it is published, after the status its motion ended with: a
+command serviced between two cycles (a Stop) ends a motion at once, and a Rider that got the
+notice then and asked for the status found the one before it (FAULT_ESTOP after "STOPPED")."""
 
 from __future__ import annotations
 
@@ -18,11 +22,27 @@ class CompletionLog:
         self._lock = threading.Lock()
         self._notices: OrderedDict[str, Completion] = OrderedDict()
         self._active: MotionRef | None = None
+        self._held: dict[str, MotionRef] = {}
+        """Motions that ended, whose notices wait for their status: still under way here."""
+
+    def hold(self, notice: Completion) -> None:
+        """`notice` is taken but not yet published: its motion is answered as under way until
+        `record`."""
+        ref = MotionRef(
+            transaction_id=notice.transaction_id,
+            command=notice.command,
+            started_at=notice.started_at,
+        )
+        with self._lock:
+            self._held[notice.transaction_id] = ref
+            if self._active is not None and self._active.transaction_id == notice.transaction_id:
+                self._active = None
 
     def record(self, notice: Completion) -> None:
         with self._lock:
             self._notices[notice.transaction_id] = notice
             self._notices.move_to_end(notice.transaction_id)
+            self._held.pop(notice.transaction_id, None)
             if len(self._notices) > self.capacity:
                 self._notices.popitem(last=False)
             if self._active is not None and self._active.transaction_id == notice.transaction_id:
@@ -34,12 +54,16 @@ class CompletionLog:
             self._active = motion
 
     def lookup(self, transaction_id: str) -> Completion | MotionRef | None:
-        """The notice; the motion itself while it has not ended; None if unknown (never a
-        motion, forgotten, or from before the daemon started)."""
+        """The notice; the motion itself while it has not ended, or while its notice waits for
+        its status; None if unknown (never a motion, forgotten, or from before the daemon
+        started)."""
         with self._lock:
             notice = self._notices.get(transaction_id)
             if notice is not None:
                 return notice
+            held = self._held.get(transaction_id)
+            if held is not None:
+                return held
             active = self._active
         if active is not None and active.transaction_id == transaction_id:
             return active

@@ -61,7 +61,7 @@ class Publisher:
         control = self.control
         notices = control.take_completions()
         for notice in notices:
-            self.completions.record(notice)
+            self.completions.hold(notice)  # answered once published, after its status
             self.recorder.completion(notice)
         self.unpublished += notices
         motion = control.action
@@ -128,6 +128,7 @@ class Publisher:
                 notice.state,
                 notice.reason,
             )
+            self.completions.record(notice)
             self.sink.publish_completion(notice)
 
     def status(self, now: float, cycle: int, shown: Snapshot | None = None) -> Status:

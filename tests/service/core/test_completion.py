@@ -135,6 +135,29 @@ def test_pause_and_resume_do_not_end_a_motion_and_stop_ends_it_stopped() -> None
     assert rig.sink.statuses[-1].motion is None
 
 
+def test_a_notice_is_answered_only_with_the_status_it_ended_with() -> None:
+    """A Stop serviced between two cycles ends the motion at once; until the cycle that
+    publishes the status it ended with, `done/<tid>` still answers it as under way. Run 35: a
+    `start --wait` on a loaded host asked for its notice in that gap, got STOPPED, then asked
+    for the status and printed FAULT_ESTOP, the one before the Stop."""
+    rig, heard = ready()
+    log = rig.loop.completions
+    assert rig.send(C.START, transaction_id="s1").success
+    rig.step(30)
+    estop_pulse(rig, held=5, after=1)
+    assert rig.send(C.STOP).success  # as the runner services it: between two cycles
+    held = log.lookup("s1")
+    assert isinstance(held, MotionRef) and held.command == "Start"  # IN_PROGRESS still
+    assert "s1" not in [n.transaction_id for n in log.recent()]
+    assert rig.loop.published.status is not None
+    assert rig.loop.published.status.state is S.FAULT_ESTOP  # what a status query answers now
+    rig.step()
+    notice = log.lookup("s1")
+    assert isinstance(notice, Completion) and notice.outcome is Outcome.STOPPED
+    assert rig.loop.published.status.state is notice.state is S.DONE
+    assert heard.one("s1") == notice
+
+
 def test_an_estopped_motion_that_is_resumed_ends_done() -> None:
     rig, heard = ready()
     assert rig.send(C.START, transaction_id="s1").success
