@@ -199,10 +199,22 @@ class RevolutionCheck:
         )
 
     def edge(self, now: float) -> Fault | None:
-        """A closing edge at `now`."""
-        since, first = self._since, self._first
+        """A closing edge at `now`. Late is judged here too, not only by `overdue` between
+        edges: a scan stalled across the moment a revolution became overdue (and across an
+        edge it hid) saw no cycle in which to call it so, and counted one revolution for two."""
+        last, since, first = self._last, self._since, self._first
+        overdue = self.overdue(now)
         self._last = self._since = now
         self._first = False
+        if overdue is not None and last is not None:
+            return overdue.model_copy(
+                update={
+                    "message": f"a revolution took {now - last:.3f} s turning {self.direction}:"
+                    f" longer than the calibrated {self.cal.revolution_s:.3f} s +"
+                    f" {self.cfg.revolution_tolerance:.0%}, so a home edge may have passed"
+                    " unseen (the scan stalled while the rotate turned), or the drive is slow"
+                }
+            )
         revolution = self.cal.revolution_s
         if first:
             revolution -= self.cal.home_arc_deg / self.cal.speed_dps

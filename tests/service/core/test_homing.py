@@ -5,6 +5,7 @@ through a real daemon."""
 
 from __future__ import annotations
 
+import tomllib
 from collections.abc import Callable
 
 import pytest
@@ -17,12 +18,15 @@ from service.core.calibrate import RotateCalibrate, TiltCalibrate
 from service.core.controllers import RotateRevolutions, TiltMove
 from service.core.homing import Phase, RotateHome, TiltApproach
 from sim.settings import PhysicsParams
+from tests.integration.support import FAST_CONFIG
 from tests.rig import Rig, known_calibration
 
 S = MachineState
 C = Command
 F = FaultCode
 CONFIG = MachineConfig()
+FAST = MachineConfig.model_validate(tomllib.loads(FAST_CONFIG.format(heartbeat_s=0.2)))
+"""The integration tests' fast simulator (720°/s, a 1 s watchdog)."""
 GAIN = CONFIG.hal.sim.ai_gain_counts_per_deg
 ZERO = CONFIG.hal.sim.ai_offset_counts
 TILT_SCAN_DEG = CONFIG.tilt.nominal_speed_dps * CONFIG.loop.period_s
@@ -317,3 +321,29 @@ def test_rotate_home_never_latches_the_edge_across_a_stall() -> None:
     angle = rig.loop.axes.rotate.angle
     assert angle is not None
     assert abs((angle - world.rotate_deg + 180) % 360 - 180) <= CONFIG.rotate.latch_tolerance_deg
+
+
+def test_a_revolution_hidden_by_two_stalls_is_a_fault_never_done() -> None:
+    """Run 38 (a loaded host, the tests' fast config: 720°/s, a 1 s watchdog): a session ended
+    DONE with 3 revolutions counted and 4 turned. One stall from the switch carried the rotate
+    past the next arc; a second, before a cycle could call the revolution overdue, ended in the
+    arc after: one revolution counted for two. The edge itself now judges the revolution late."""
+    rig = Rig(config=FAST)
+    rig.calibrate()
+    rig.home()
+    world = rig.hal.world
+    before = world.revolutions
+    assert rig.send(
+        C.START, session=Session(steps=[RotateStep(revolutions=3)]).model_dump()
+    ).success
+    step = rig.control.controller
+    rig.run_until(lambda: isinstance(step.current, RotateRevolutions) and step.current.done == 1)
+    assert world.rotate_switch.closed
+    for stall in (0.56, 0.45):  # from the arc past the next one; then on into the one after
+        rig.clock.advance(stall)
+        rig.step()
+    rig.run_to_state(S.FAULT_HW, S.DONE, max_s=10)
+    fault = rig.control.fault
+    assert fault is not None and fault.code is F.ROTATE_HOME_TIMEOUT, (fault, world.revolutions)
+    assert "passed unseen" in fault.message
+    assert world.revolutions - before == pytest.approx(3.0, abs=0.1)  # stopped at the edge
