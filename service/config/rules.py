@@ -90,6 +90,23 @@ def _scan_period(config: MachineConfig) -> Iterator[Finding]:
             limit_deg=rotate.home_arc_deg / 2,
             other="/rotate/home_arc_deg",
         )
+    # A stalled scan leaves the relays as they were until the watchdog drops them: the rotate
+    # may turn that far unseen. Past its whole arc a home edge can pass between two scans; the
+    # revolution is then found late (ROTATE_HOME_TIMEOUT), not counted wrong, but it stops.
+    unseen = rotate.nominal_speed_dps * config.loop.watchdog_limit_s
+    if step <= rotate.home_arc_deg / 2 < unseen / 2:  # once: a scan too slow is said above
+        yield warning(
+            Category.SCAN_PERIOD,
+            "/loop/watchdog_periods",
+            f"a scan stalled up to the {config.loop.watchdog_limit_s:g} s watchdog limit lets"
+            f" the rotate turn {unseen:g}° with its relay on, more than its"
+            f" {rotate.home_arc_deg:g}° home arc: a stall can hide a home edge, and the ride"
+            " then stops with ROTATE_HOME_TIMEOUT",
+            value=config.loop.watchdog_limit_s,
+            travel_deg=unseen,
+            limit_deg=rotate.home_arc_deg,
+            other="/rotate/home_arc_deg",
+        )
     # The tilt stops on the first scan past its target; a step wider than the settle
     # window overshoots it every time.
     tstep = tilt.nominal_speed_dps * period

@@ -124,6 +124,16 @@ def test_home_arc_check_holds_exactly_at_half_the_arc() -> None:
     assert finding.path == "/loop/period_s" and "5.1°" in finding.message
 
 
+def test_a_watchdog_that_lets_the_rotate_pass_its_arc_is_a_warning() -> None:
+    """Run 38: with the tests' 1 s watchdog at 720°/s a stalled scan let the rotate turn two
+    revolutions unseen. The defaults (0.1 s at 90°/s: 9° of a 10° arc) hold."""
+    finding = only({"loop": {"watchdog_periods": 100}})  # 1 s at 90°/s: 90°
+    assert (finding.severity, finding.path) == (W, "/loop/watchdog_periods")
+    assert "turn 90° with its relay on, more than its 10° home arc" in finding.message
+    config, _ = validate_data({"loop": {"watchdog_periods": 100}})
+    assert config is not None  # a warning: the daemon starts
+
+
 def test_simulator_checks_are_skipped_on_real_hardware() -> None:
     config, report = validate_data(
         {"hal": {"backend": "revpi", "sim": {"rotate_speed_dps": 200.0}}}
