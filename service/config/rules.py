@@ -90,23 +90,6 @@ def _scan_period(config: MachineConfig) -> Iterator[Finding]:
             limit_deg=rotate.home_arc_deg / 2,
             other="/rotate/home_arc_deg",
         )
-    # A stalled scan leaves the relays as they were until the watchdog drops them: the rotate
-    # may turn that far unseen. Past its whole arc a home edge can pass between two scans; the
-    # revolution is then found late (ROTATE_HOME_TIMEOUT), not counted wrong, but it stops.
-    unseen = rotate.nominal_speed_dps * config.loop.watchdog_limit_s
-    if step <= rotate.home_arc_deg / 2 < unseen / 2:  # once: a scan too slow is said above
-        yield warning(
-            Category.SCAN_PERIOD,
-            "/loop/watchdog_periods",
-            f"a scan stalled up to the {config.loop.watchdog_limit_s:g} s watchdog limit lets"
-            f" the rotate turn {unseen:g}° with its relay on, more than its"
-            f" {rotate.home_arc_deg:g}° home arc: a stall can hide a home edge, and the ride"
-            " then stops with ROTATE_HOME_TIMEOUT",
-            value=config.loop.watchdog_limit_s,
-            travel_deg=unseen,
-            limit_deg=rotate.home_arc_deg,
-            other="/rotate/home_arc_deg",
-        )
     # The tilt stops on the first scan past its target; a step wider than the settle
     # window overshoots it every time.
     tstep = tilt.nominal_speed_dps * period
@@ -131,6 +114,27 @@ def _scan_period(config: MachineConfig) -> Iterator[Finding]:
             step_deg=tstep,
             limit_deg=tilt.tolerance_deg,
             other="/tilt/tolerance_deg",
+        )
+
+
+def _watchdog_reach(config: MachineConfig) -> Iterator[Finding]:
+    """A stalled scan leaves the relays as they were until the watchdog drops them: the rotate
+    may turn that far unseen. Past its whole arc a home edge can pass between two scans; the
+    revolution is then found late (ROTATE_HOME_TIMEOUT), not counted wrong, but it stops."""
+    rotate, limit = config.rotate, config.loop.watchdog_limit_s
+    step = rotate.nominal_speed_dps * config.loop.period_s
+    unseen = rotate.nominal_speed_dps * limit
+    if step <= rotate.home_arc_deg / 2 < unseen / 2:  # once: a scan too slow is _scan_period's
+        yield warning(
+            Category.SCAN_PERIOD,
+            "/loop/watchdog_periods",
+            f"a scan stalled up to the {limit:g} s watchdog limit lets the rotate turn"
+            f" {unseen:g}° with its relay on, more than its {rotate.home_arc_deg:g}° home arc:"
+            " a stall can hide a home edge, and the ride then stops with ROTATE_HOME_TIMEOUT",
+            value=limit,
+            travel_deg=unseen,
+            limit_deg=rotate.home_arc_deg,
+            other="/rotate/home_arc_deg",
         )
 
 
@@ -324,6 +328,15 @@ def semantic_findings(config: MachineConfig) -> list[Finding]:
     out: list[Finding] = []
     for check in (_io_conflicts(config.hal.iomap), _ranges(config), _scan_period(config)):
         out.extend(check)
-    for rule in (_timeouts, _calibration, _simulator, _session, _bus, _rider_loss, _events):
+    for rule in (
+        _watchdog_reach,
+        _timeouts,
+        _calibration,
+        _simulator,
+        _session,
+        _bus,
+        _rider_loss,
+        _events,
+    ):
         out.extend(rule(config))
     return out

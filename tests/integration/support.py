@@ -164,7 +164,7 @@ def late_steps(rider: Rider) -> int:
     return rider.sim("world").late_steps or 0
 
 
-class Rig:
+class Preparation:
     """Brings a machine to IDLE, calibrated and homed, through the faults a loaded host causes
     (and no other): a refusal a stall spoiled (`SPOILED`) is measured again; a tilt fault while
     the simulated world was late (`TILT_LATE_WORLD`) calibrates the tilt again."""
@@ -209,8 +209,8 @@ class Rig:
 
 def prepare(rider: Rider, tries: int = 4) -> Status:
     """Calibrate what is not calibrated, then home, through the faults a loaded host causes
-    (`Rig`); the machine ends IDLE."""
-    return Rig(rider).prepare(tries)
+    (`Preparation`); the machine ends IDLE."""
+    return Preparation(rider).prepare(tries)
 
 
 def wait_revolutions(

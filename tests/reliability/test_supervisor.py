@@ -27,7 +27,7 @@ from schema.completion import Completion, Outcome
 from schema.errors import ErrorCode
 from schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests import freeze
-from tests.integration.support import STEP_TIMEOUT_S, Rig
+from tests.integration.support import STEP_TIMEOUT_S, Preparation
 from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import (
     ACL_PROFILE,
@@ -56,20 +56,20 @@ def supervised(tmp_path: Path) -> Iterator[Daemon]:
 def ride_until_rotating(r: Rider, feed: StatusFeed, tries: int = 3) -> Reply:
     """Calibrate what is missing, home, start the long ride; return while the rotate relay is on.
 
-    Rides again after a fault the loaded host caused (`Rig`): the supervisor's world thread,
-    late, left the tilt's sensor unchanged for a check window (`TILT_NOT_FOLLOWING`), or did so
-    during the tilt's calibration stroke, whose gain then made the tilt too fast
+    Rides again after a fault the loaded host caused (`Preparation`): the supervisor's world
+    thread, late, left the tilt's sensor unchanged for a check window (`TILT_NOT_FOLLOWING`), or
+    did so during the tilt's calibration stroke, whose gain then made the tilt too fast
     (`TILT_SPEED_IMPLAUSIBLE`); the world must have counted the late step. Any other fault
     fails the test."""
-    rig = Rig(r)
+    ready = Preparation(r)
     for _ in range(tries):
-        rig.prepare()
+        ready.prepare()
         reply = r.start(LONG_RIDE)
         going = feed.until(partial(_rotating_or_faulted, since=reply.timecode))
         if going.state not in FAULT_STATES:
             assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
             return reply
-        rig.excuse(going)
+        ready.excuse(going)
     raise AssertionError(f"the simulated world was late in {tries} rides in a row")
 
 
