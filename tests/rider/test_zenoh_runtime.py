@@ -71,8 +71,10 @@ def test_a_rider_runs_zenoh_on_one_thread_and_leaves_no_variable_behind() -> Non
 
 def test_zero_keeps_zenohs_own_layout() -> None:
     after, inherited, names = child(0)
+    # The query and its reply ran through Zenoh's own receive and transmit runtimes, so a
+    # thread of each has run and named itself; its other workers may not have yet on a loaded
+    # host (run 41 read `rx-1` still under its creator's name), so they are not asked for.
     assert {"rx", "tx"} <= runtimes(names)
-    assert "rx-1" in names  # Zenoh's two receive threads
     assert (after, inherited) == ("None", "None")
 
 
@@ -80,7 +82,7 @@ def test_a_session_opened_before_keeps_its_layout() -> None:
     """The process's first session fixed the runtime (Zenoh's own here): the Rider changes
     nothing, and sets nothing."""
     after, inherited, names = child(1, first="other")
-    assert "rx-1" in names
+    assert {"rx", "tx"} <= runtimes(names)  # Zenoh's own runtimes, not one `app` thread
     assert (after, inherited) == ("None", "None")
 
 

@@ -89,8 +89,9 @@ def test_one_zenoh_thread_runs_every_runtime() -> None:
 def test_zero_keeps_zenohs_own_layout() -> None:
     applied, layout, names = child(0)
     assert (applied, layout) == ("None", "None")
+    # Zenoh's own receive and transmit runtimes served the round trip (a thread of each has run
+    # and named itself); not `rx-1`, which a loaded host may not have run yet (run 41).
     assert {"rx", "tx"} <= runtimes(names)
-    assert "rx-1" in names  # Zenoh's two receive threads
 
 
 def test_the_operators_zenoh_runtime_wins_and_is_named() -> None:
