@@ -106,12 +106,18 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
         n = len(self._samples)
         gain = line(self._samples)[2] / cfg.nominal_speed_dps
         lo, hi = cfg.gain_min_counts_per_deg, cfg.gain_max_counts_per_deg
-        if n < cfg.calibration_samples or not lo <= gain <= hi:
+        if n < cfg.calibration_samples:  # a sample each scan: the scan stalled, not the sensor
+            return self._fail(
+                FaultCode.CALIBRATION_NOT_REPEATABLE,
+                f"tilt stroke of {cfg.calibration_stroke_s:g} s measured in {n} scans, fewer than"
+                f" {cfg.calibration_samples}: the scan stalled during it (a loaded host);"
+                " calibrate again",
+            )
+        if not lo <= gain <= hi:
             return self._fail(
                 FaultCode.CALIBRATION_IMPLAUSIBLE,
-                f"tilt gain {gain:.2f} counts/° from {n} samples is outside {lo:g}..{hi:g}, or"
-                f" fewer than {cfg.calibration_samples} samples (analog input not wired,"
-                " frozen, or direction output inverted)",
+                f"tilt gain {gain:.2f} counts/° from {n} samples is outside {lo:g}..{hi:g}"
+                " (analog input not wired, frozen, or direction output inverted)",
             )
         if self.axis.is_home():
             stroke_deg = cfg.nominal_speed_dps * cfg.calibration_stroke_s

@@ -187,12 +187,18 @@ class Preparation:
     def _attempt(self) -> Status:
         rider = self.rider
         status = rider.status()
+        # Each step from whatever state the last attempt left (a fault): the machine takes
+        # a calibration or a Home from there.
         if self._redo_tilt or not status.calibrated.tilt:
             self._tilt_late, self._redo_tilt = late_steps(rider), False
             status = settle(rider, rider.calibrate_tilt())
-        if status.state not in FAULT_STATES and not status.calibrated.rotate:
+            if status.state in FAULT_STATES:
+                return status
+        if not status.calibrated.rotate:
             status = settle(rider, rider.calibrate_rotate())
-        return status if status.state in FAULT_STATES else settle(rider, rider.home())
+            if status.state in FAULT_STATES:
+                return status
+        return settle(rider, rider.home())
 
     def excuse(self, status: Status) -> None:
         """Asserts that `status` faulted for the loaded host, not for the daemon; the next

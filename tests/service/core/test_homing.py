@@ -347,3 +347,20 @@ def test_a_revolution_hidden_by_two_stalls_is_a_fault_never_done() -> None:
     assert fault is not None and fault.code is F.ROTATE_HOME_TIMEOUT, (fault, world.revolutions)
     assert "passed unseen" in fault.message
     assert world.revolutions - before == pytest.approx(3.0, abs=0.1)  # stopped at the edge
+
+
+def test_a_tilt_stroke_the_scan_stalled_through_is_refused_as_spoiled() -> None:
+    """Run 42: a stall took most of a 0.4 s calibration stroke, which then had 2 samples (one
+    a scan) and was refused as if the sensor were unwired (`CALIBRATION_IMPLAUSIBLE`). Too few
+    scans is the scan's fault: the refusal says so, and is one a stall causes."""
+    rig = Rig(config=FAST)
+    assert rig.send(C.CALIBRATE_TILT).success
+    cal = rig.control.controller
+    assert isinstance(cal, TiltCalibrate)
+    rig.run_until(lambda: cal.phase.name == "STROKE")
+    rig.step()
+    rig.clock.advance(0.35)
+    rig.run_until(lambda: rig.state is not S.CALIBRATING)
+    fault = rig.control.fault
+    assert fault is not None and fault.code is F.CALIBRATION_NOT_REPEATABLE, fault
+    assert "the scan stalled" in fault.message and "calibrate again" in fault.message
