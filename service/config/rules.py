@@ -124,7 +124,8 @@ def _watchdog_reach(config: MachineConfig) -> Iterator[Finding]:
     rotate, limit = config.rotate, config.loop.watchdog_limit_s
     step = rotate.nominal_speed_dps * config.loop.period_s
     unseen = rotate.nominal_speed_dps * limit
-    if step <= rotate.home_arc_deg / 2 < unseen / 2:  # once: a scan too slow is _scan_period's
+    # Once: a scan too slow for the arc is `_scan_period`'s error already.
+    if step <= rotate.home_arc_deg / 2 and unseen > rotate.home_arc_deg:
         yield warning(
             Category.SCAN_PERIOD,
             "/loop/watchdog_periods",
