@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -200,6 +200,28 @@ class Preparation:
                 return status
         return settle(rider, rider.home())
 
+    def ride(
+        self,
+        start: Callable[[], Reply],
+        going: Callable[[Reply], Status],
+        started: Reply | None = None,
+        tries: int = 3,
+    ) -> tuple[Reply, Status]:
+        """Prepare, `start` a session and wait until it is `going` (a status, or a fault that
+        ended it), riding again after a fault the loaded host caused (`excuse`): the session
+        that got going and its status. `started`: a session already started after a `prepare`,
+        its first try."""
+        for _ in range(tries):
+            if started is None:
+                self.prepare()
+                started = start()
+            status = going(started)
+            if status.state not in FAULT_STATES:
+                return started, status
+            self.excuse(status)
+            started = None
+        raise AssertionError(f"the simulated world was late in {tries} rides in a row")
+
     def excuse(self, status: Status) -> None:
         """Asserts that `status` faulted for the loaded host, not for the daemon; the next
         `prepare` then calibrates the tilt again if its gain may be spoiled."""
@@ -223,12 +245,23 @@ def wait_revolutions(
     rider: Rider, reply: Reply, done: int, timeout: float = STEP_TIMEOUT_S
 ) -> Status:
     """Wait until the session `reply` started has completed `done` revolutions."""
+    status = until_revolutions(rider, reply, done, timeout)
+    assert status.state not in SETTLED, f"session ended early: {status}"
+    return status
+
+
+def until_revolutions(
+    rider: Rider, reply: Reply, done: int, timeout: float = STEP_TIMEOUT_S
+) -> Status:
+    """The status once the session `reply` started has completed `done` revolutions, or the
+    rest or fault state that ended it before."""
     deadline = time.monotonic() + timeout
     for update in rider.watch(("status",), timeout=timeout):
         if isinstance(update, Status) and update.time >= reply.timecode:
             if update.session is not None and update.session.revolutions_done >= done:
                 return update
-            assert update.state not in SETTLED, f"session ended early: {update}"
+            if update.state in SETTLED:
+                return update
         assert time.monotonic() < deadline, f"no {done} revolutions in {timeout:g} s"
     raise AssertionError(f"status went quiet before {done} revolutions")
 

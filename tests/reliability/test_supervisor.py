@@ -61,16 +61,13 @@ def ride_until_rotating(r: Rider, feed: StatusFeed, tries: int = 3) -> Reply:
     did so during the tilt's calibration stroke, whose gain then made the tilt too fast
     (`TILT_SPEED_IMPLAUSIBLE`); the world must have counted the late step. Any other fault
     fails the test."""
-    ready = Preparation(r)
-    for _ in range(tries):
-        ready.prepare()
-        reply = r.start(LONG_RIDE)
-        going = feed.until(partial(_rotating_or_faulted, since=reply.timecode))
-        if going.state not in FAULT_STATES:
-            assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
-            return reply
-        ready.excuse(going)
-    raise AssertionError(f"the simulated world was late in {tries} rides in a row")
+    reply, _ = Preparation(r).ride(
+        lambda: r.start(LONG_RIDE),
+        lambda reply: feed.until(partial(_rotating_or_faulted, since=reply.timecode)),
+        tries=tries,
+    )
+    assert r.sim("world").relays["O_1"], "the rotate relay is on mid-ride"
+    return reply
 
 
 def _rotating_or_faulted(status: Status, since: float) -> bool:
