@@ -175,18 +175,27 @@ class RevolutionCheck:
         self._since: float | None = None
         """The last closing edge, or the step's start: None after a pause (a part revolution)."""
         self._first = False
+        self._seen: float | None = None
+        """The last cycle that looked (`overdue`), for the gaps between them."""
+        self._gap = 0.0
+        """The longest gap between two cycles since the last edge (a stalled scan)."""
 
     def start(self, now: float) -> None:
         """The step starts: its first revolution may be shorter by the home arc (it starts on
         the switch, at either end of it)."""
-        self._last = self._since = now
+        self._last = self._since = self._seen = now
         self._first = True
+        self._gap = 0.0
 
     def resume(self, now: float) -> None:
         """After a pause: overdue counts from now; the part revolution is not judged early."""
-        self._last, self._since = now, None
+        self._last, self._since, self._seen, self._gap = now, None, now, 0.0
 
     def overdue(self, now: float) -> Fault | None:
+        """Called every cycle: a revolution that took too long, or None."""
+        if self._seen is not None:
+            self._gap = max(self._gap, now - self._seen)
+        self._seen = now
         late = self.cal.revolution_s * (1 + self.cfg.revolution_tolerance)
         if self._last is None or now - self._last <= late:
             return None
@@ -194,8 +203,21 @@ class RevolutionCheck:
             code=FaultCode.ROTATE_HOME_TIMEOUT,
             message=f"rotate home switch not seen within {late:.2f} s turning {self.direction}"
             f" (the calibrated revolution {self.cal.revolution_s:.3f} s +"
-            f" {self.cfg.revolution_tolerance:.0%}): missed edge, stuck open, or drive slow",
+            f" {self.cfg.revolution_tolerance:.0%}): missed edge, stuck open, or drive slow"
+            + self._stalled(),
             axis="rotate",
+        )
+
+    def _stalled(self) -> str:
+        """What the scan's own longest gap since the last edge says: a gap as long as the home
+        switch stays closed can have hidden its edge (a loop watchdog limit that lets a scan
+        stall so long: `machine validate` warns of it)."""
+        closed_s = self.cal.home_arc_deg / self.cal.speed_dps
+        if self._gap < closed_s:
+            return ""
+        return (
+            f"; the scan stalled {self._gap:.3f} s meanwhile, as long as the home switch stays"
+            f" closed ({closed_s:.3f} s), so its edge may have passed unseen"
         )
 
     def edge(self, now: float) -> Fault | None:
@@ -204,15 +226,17 @@ class RevolutionCheck:
         edge it hid) saw no cycle in which to call it so, and counted one revolution for two."""
         last, since, first = self._last, self._since, self._first
         overdue = self.overdue(now)
+        stalled = self._stalled()
         self._last = self._since = now
         self._first = False
+        self._gap = 0.0
         if overdue is not None and last is not None:
             return overdue.model_copy(
                 update={
                     "message": f"a revolution took {now - last:.3f} s turning {self.direction}:"
                     f" longer than the calibrated {self.cal.revolution_s:.3f} s +"
                     f" {self.cfg.revolution_tolerance:.0%}, so a home edge may have passed"
-                    " unseen (the scan stalled while the rotate turned), or the drive is slow"
+                    f" unseen, or the drive is slow{stalled}"
                 }
             )
         revolution = self.cal.revolution_s

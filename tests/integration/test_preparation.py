@@ -16,8 +16,12 @@ from schema.commands import Reply, ReplyCode
 from schema.status import AxesFlags, Fault, FaultCode, MachineState, Status
 from tests.integration.support import Preparation
 
-Outcome = tuple[str, MachineState, FaultCode | None, int]
-"""A command, the state that settles it, its fault, and the late steps the world counts then."""
+Outcome = (
+    tuple[str, MachineState, FaultCode | None, int]
+    | tuple[str, MachineState, FaultCode | None, int, str]
+)
+"""A command, the state that settles it, its fault, the late steps the world counts then, and
+what the fault's message adds to its code."""
 
 
 class Scripted:
@@ -37,11 +41,11 @@ class Scripted:
         )
 
     def command(self, name: str) -> Reply:
-        expected, state, code, late = next(self.script)
+        expected, state, code, late, *said = next(self.script)
         assert name == expected, f"{name} where the script has {expected}"
         self.calls.append(name)
         self.late += late
-        fault = None if code is None else Fault(code=code, message=code.value)
+        fault = None if code is None else Fault(code=code, message=code.value + "".join(said))
         self.now = self.now.model_copy(update={"state": state, "fault": fault})
         return Reply(
             transaction_id=None, command=name, timecode=0.0, success=True, code=ReplyCode.RESP_CHECK
@@ -92,11 +96,28 @@ def test_a_session_that_faulted_while_the_world_was_late_calibrates_the_tilt_and
     assert machine.calls == ["home", "start", "calibrate_tilt", "home", "start"]
 
 
+@pytest.mark.parametrize(("said", "late"), [("; the scan stalled 0.300 s meanwhile", 0), ("", 1)])
+def test_a_home_edge_a_stall_hid_homes_and_rides_again(said: str, late: int) -> None:
+    """Run 46: the supervised ride faulted ROTATE_HOME_TIMEOUT; the daemon names its own stall,
+    the world counts its own lateness; either lets the ride go again (no new calibration)."""
+    machine = Scripted(
+        [
+            ("home", IDLE, None, 0),
+            ("start", FAULT, FaultCode.ROTATE_HOME_TIMEOUT, late, said),
+            ("home", IDLE, None, 0),
+            ("start", RUNNING, None, 0),
+        ]
+    )
+    assert ride(machine).state is RUNNING
+    assert machine.calls == ["home", "start", "home", "start"]
+
+
 @pytest.mark.parametrize(
     ("code", "late", "said"),
     [
         (FaultCode.TILT_SPEED_IMPLAUSIBLE, 0, "the simulated world was never late"),
-        (FaultCode.ROTATE_HOME_TIMEOUT, 1, "ROTATE_HOME_TIMEOUT"),
+        (FaultCode.ROTATE_HOME_TIMEOUT, 0, "neither the scan nor the world stalled"),
+        (FaultCode.ROTATE_SPEED_IMPLAUSIBLE, 1, "ROTATE_SPEED_IMPLAUSIBLE"),
     ],
 )
 def test_any_other_fault_of_a_session_fails_the_test(code: FaultCode, late: int, said: str) -> None:

@@ -11,12 +11,14 @@ from collections.abc import Callable
 import pytest
 
 from schema.calibration import CalibrationSet, RotateCalibrationSet, TiltCalibrationSet
-from schema.commands import Command, RotateStep, Session
+from schema.commands import Command, Direction, RotateStep, Session
 from schema.status import FaultCode, MachineState
 from service.config.model import MachineConfig
 from service.core.calibrate import RotateCalibrate, TiltCalibrate
 from service.core.controllers import RotateRevolutions, TiltMove
+from service.core.devices import RotateCalibration
 from service.core.homing import Phase, RotateHome, TiltApproach
+from service.core.plausibility import RevolutionCheck
 from sim.settings import PhysicsParams
 from tests.integration.support import FAST_CONFIG
 from tests.rig import Rig, known_calibration
@@ -364,3 +366,24 @@ def test_a_tilt_stroke_the_scan_stalled_through_is_refused_as_spoiled() -> None:
     fault = rig.control.fault
     assert fault is not None and fault.code is F.CALIBRATION_NOT_REPEATABLE, fault
     assert "the scan stalled" in fault.message and "calibrate again" in fault.message
+
+
+@pytest.mark.parametrize(("gap_s", "stall_named"), [(0.02, False), (0.05, True), (0.3, True)])
+def test_an_overdue_revolution_names_a_stall_of_the_scan_that_could_hide_its_edge(
+    gap_s: float, stall_named: bool
+) -> None:
+    """Run 46 (a loaded host, `machine supervise`, the fast config): a ride faulted
+    ROTATE_HOME_TIMEOUT. At 720°/s the home switch is closed 0.042 s a turn; a scan stalled that
+    long can miss it, and the supervised world (not the scan) moves the rotate. The fault now
+    says so, with the stall it measured; a scan that never stalled so long is not blamed."""
+    cal = RotateCalibration(revolution_s=0.5, home_arc_deg=30.0)
+    check = RevolutionCheck(FAST.rotate, cal, Direction.CW)
+    check.start(0.0)
+    now, fault = 0.0, None
+    while fault is None:
+        now += gap_s if 0.1 <= now < 0.1 + FAST.loop.period_s else FAST.loop.period_s
+        fault = check.overdue(now)
+    assert fault.code is F.ROTATE_HOME_TIMEOUT
+    assert ("the scan stalled" in fault.message) is stall_named, fault.message
+    if stall_named:
+        assert f"stalled {gap_s:.3f} s" in fault.message and "(0.042 s)" in fault.message
