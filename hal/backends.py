@@ -64,6 +64,11 @@ class World(Simulator, Protocol):
         """One step at once (so the world has seen outputs just dropped)."""
         ...
 
+    def follow_scans(self, scans: Callable[[], int]) -> None:
+        """`scans()`: the daemon's completed scans (its beat's count), for a world that waits
+        for a scan to see a switch the embedded world would not let a stall hide."""
+        ...
+
 
 @runtime_checkable
 class Backend(Protocol):

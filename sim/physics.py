@@ -92,6 +92,9 @@ class World:
     tilt_switch: Switch = field(default_factory=Switch)
     rotate_switch: Switch = field(default_factory=Switch)
     _frozen_raw: int | None = None
+    hold_in_arc: bool = False
+    """Set by the supervised world while the daemon's scan has not yet seen the rotate's home
+    switch closed: the rotate turns on only to the middle of the arc (`_held`)."""
     _rng: random.Random = field(default_factory=random.Random)
 
     def __post_init__(self) -> None:
@@ -127,7 +130,7 @@ class World:
         if self.drive.rotate_on and not self.faults.rotate_stalled:
             v = p.rotate_speed_dps * (-1.0 if self.drive.rotate_ccw else 1.0)
             start = self.rotate_deg
-            moved = math.copysign(self._unskipped(abs(v * dt)), v)
+            moved = math.copysign(self._held(self._unskipped(abs(v * dt))), v)
             self.rotate_travel_deg += moved
             self.rotate_deg = (start + moved) % 360.0
             self._rotate_contact(start, v, t0)
@@ -150,6 +153,15 @@ class World:
         if travel < to_close + p.home_arc_deg + p.rotate_home_hysteresis_deg:
             return travel
         return to_close + p.home_arc_deg / 2
+
+    def _held(self, travel: float) -> float:
+        """`travel` (degrees, unsigned), cut at the middle of the home arc while `hold_in_arc`
+        and the switch is closed: the supervised world's pause for a scan that stalled across
+        the arc, as `_unskipped` is the embedded world's (a real ride would not pause)."""
+        if not (self.hold_in_arc and self.rotate_switch.closed):
+            return travel
+        ahead = (self.params.home_arc_deg / 2 - self.rotate_deg + 180.0) % 360.0 - 180.0
+        return min(travel, max(0.0, -ahead if self.drive.rotate_ccw else ahead))
 
     def _tilt_contact(self, start: float, v: float, t0: float) -> None:
         p, deg = self.params, self.tilt_deg

@@ -30,6 +30,10 @@ IMAGE_BYTES = 4096
 LATE_S = 0.03
 """A step this much later than planned is counted and logged: the daemon saw the field's
 sensors unchanged that long (piControl on a real RevPi is never late so)."""
+ARC_HOLD_MAX_S = 0.5
+"""How long the rotate may wait in its home arc for the daemon's scan to see the switch closed
+(`SimWorld.follow_scans`): long enough for the scan stalls of a loaded host, short of a frozen
+daemon, which the world lets turn on as a real ride would."""
 
 
 def make_image(path: Path) -> str:
@@ -67,6 +71,10 @@ class SimWorld:
         """Steps later than `LATE_S` (a loaded host kept this thread from running)."""
         self.longest_late_s = 0.0
         self._late_logged = -1.0e9
+        self._scans: Callable[[], int] | None = None
+        self._closed_at: tuple[float, int] | None = None
+        """When the image first showed the rotate's home switch closed, and the daemon's
+        completed scans then."""
 
     def start(self) -> None:
         self._thread = self._spawn(target=self._run, name="sim-world", daemon=True)
@@ -83,6 +91,16 @@ class SimWorld:
         """One step at once, e.g. so the world has seen outputs the supervisor just dropped."""
         with self._lock:
             self._step()
+
+    def follow_scans(self, scans: Callable[[], int]) -> None:
+        """Hold the rotate in its home arc (at its middle) until a scan that began after the
+        image showed the switch closed has completed (`scans()` passed the count then by two),
+        for up to `ARC_HOLD_MAX_S`. At the tests' 720°/s the switch is closed 0.042 s a turn,
+        less than a loaded host stalls a scan: the embedded world, stepped by the scan, never
+        lets a stall hide the edge (`World._unskipped`), and this world now does not either.
+        A real ride does not wait; its watchdog limit is shorter than its arc (machine
+        validate)."""
+        self._scans = scans
 
     def decode(self, what: str, payload: bytes, encoding: str | None) -> BaseModel:
         return simfaults.decode_request(what, payload, encoding)
@@ -137,6 +155,8 @@ class SimWorld:
     def _step(self) -> None:
         if self._sim.closed:
             return
+        world = self._sim.world
+        world.hold_in_arc = self._holding()
         try:
             self._sim.step()
         except HalError as exc:
@@ -145,3 +165,13 @@ class SimWorld:
                 log.error("event=sim_world_step_failed error=%r", str(exc))
         else:
             self.failures = 0
+            if not world.rotate_switch.closed:
+                self._closed_at = None
+            elif self._closed_at is None and self._scans is not None:
+                self._closed_at = (self._clock(), self._scans())
+
+    def _holding(self) -> bool:
+        if self._closed_at is None or self._scans is None:
+            return False
+        since, scans = self._closed_at
+        return self._clock() - since < ARC_HOLD_MAX_S and self._scans() < scans + 2

@@ -235,6 +235,7 @@ class Supervisor:
             hal.iomap, hal.settings(), self.dir, self.options.world_period_s, FieldThread
         )
         if self.world is not None:  # a simulated world: the child drives it as a RevPi
+            self.world.follow_scans(lambda: self.beat.read().cycles)
             revpi = {"procimg": self.world.procimg, "configrsc": self.world.configrsc}
             config = config.with_overrides(hal={"backend": HalBackend.REVPI, "revpi": revpi})
         rp = config.hal.revpi

@@ -22,6 +22,7 @@ from service.errors import Rejected
 from service.supervision.simport import sim_port
 from sim.settings import PhysicsParams
 from sim.world import CONFIG_RSC, SimWorld, make_image
+from tests.fixtures.revpi import address
 from tests.rig import FakeClock
 
 
@@ -131,3 +132,44 @@ def test_a_late_step_of_the_world_is_counted_and_said_at_most_once_a_second(
     assert (state.late_steps, state.longest_late_s) == (3, 0.08)  # `sim/world` tells a test
     said = [r.getMessage() for r in caplog.records if "sim_world_late" in r.getMessage()]
     assert len(said) == 2 and "late_s=0.080 late_steps=1" in said[0], said
+
+
+def test_the_supervised_world_holds_the_rotate_in_its_arc_until_a_scan_has_seen_it(
+    tmp_path: Path,
+) -> None:
+    """Run 46 (a loaded host, the tests' 720°/s, a 30° arc: 0.042 s closed a turn): the scan
+    stalled across the arc, missed the edge, and a supervised ride stopped ROTATE_HOME_TIMEOUT.
+    The world now waits in the middle of the arc until a scan that began after the switch
+    closed has completed, as the embedded world does by construction; never longer than
+    `ARC_HOLD_MAX_S` (a frozen daemon's rotate turns on, as a real ride's would)."""
+    clock = FakeClock()
+    params = PhysicsParams(rotate_speed_dps=720.0, home_arc_deg=30.0, start_rotate_deg=350.0)
+    image = make_image(tmp_path / "procimg")
+    world = SimWorld(IoMap(), image, str(CONFIG_RSC), params, 0.005, clock)
+    scans = [7]
+    world.follow_scans(lambda: scans[0])
+    byte, bit = address("O_1", CONFIG_RSC)  # the rotate relay, on
+    assert bit is not None
+    with open(image, "r+b") as f:
+        f.seek(byte)
+        f.write(bytes([1 << bit]))
+    try:
+
+        def run(seconds: float) -> float:
+            for _ in range(round(seconds / 0.005)):
+                clock.advance(0.005)
+                world.step_now()
+            return world.world(clock()).rotate_deg
+
+        assert run(0.03) == pytest.approx(11.6, abs=0.1)  # closed at 0° (0.014 s), turning on
+        assert run(0.1) == pytest.approx(15.0)  # held mid-arc: the daemon has not scanned
+        scans[0] = 8  # a scan that may have read the image before it closed
+        assert run(0.1) == pytest.approx(15.0)
+        scans[0] = 9  # one that began after: it saw the switch closed
+        assert run(0.01) == pytest.approx(22.2, abs=0.1)  # and the world turns on
+        # The next arc, 0.47 s on; the daemon stalls from here: held for ARC_HOLD_MAX_S only.
+        assert run(0.5) == pytest.approx(15.0)
+        assert run(0.4) == pytest.approx(15.0)
+        assert run(0.2) > 60.0  # a frozen daemon's rotate turns on (the freeze tests' hazard)
+    finally:
+        world.stop()
