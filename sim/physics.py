@@ -155,12 +155,16 @@ class World:
         return to_close + p.home_arc_deg / 2
 
     def _held(self, travel: float) -> float:
-        """`travel` (degrees, unsigned), cut at the middle of the home arc while `hold_in_arc`
-        and the switch is closed: the supervised world's pause for a scan that stalled across
-        the arc, as `_unskipped` is the embedded world's (a real ride would not pause)."""
+        """`travel` (degrees, unsigned), cut short of the far end of the home arc while
+        `hold_in_arc` and the switch is closed: the supervised world's pause for a scan that
+        stalled across the arc, as `_unskipped` is the embedded world's (a real ride would not
+        pause). Only a scan stalled for most of the arc's time meets it."""
         if not (self.hold_in_arc and self.rotate_switch.closed):
             return travel
-        ahead = (self.params.home_arc_deg / 2 - self.rotate_deg + 180.0) % 360.0 - 180.0
+        arc = self.params.home_arc_deg
+        margin = min(1.0, arc / 4)
+        stop = margin if self.drive.rotate_ccw else arc - margin
+        ahead = (stop - self.rotate_deg + 180.0) % 360.0 - 180.0
         return min(travel, max(0.0, -ahead if self.drive.rotate_ccw else ahead))
 
     def _tilt_contact(self, start: float, v: float, t0: float) -> None:

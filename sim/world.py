@@ -93,11 +93,11 @@ class SimWorld:
             self._step()
 
     def follow_scans(self, scans: Callable[[], int]) -> None:
-        """Hold the rotate in its home arc (at its middle) until a scan that began after the
-        image showed the switch closed has completed (`scans()` passed the count then by two),
-        for up to `ARC_HOLD_MAX_S`. At the tests' 720°/s the switch is closed 0.042 s a turn,
-        less than a loaded host stalls a scan: the embedded world, stepped by the scan, never
-        lets a stall hide the edge (`World._unskipped`), and this world now does not either.
+        """Hold the rotate in its home arc (1° short of its far end) until a scan that began
+        after the image showed the switch closed has completed (`scans()` passed the count then
+        by two), for up to `ARC_HOLD_MAX_S`. At the tests' 720°/s the switch is closed 0.042 s
+        a turn, less than a loaded host stalls a scan: the embedded world, stepped by the scan,
+        never lets a stall hide the edge (`World._unskipped`), and this world now does not either.
         A real ride does not wait; its watchdog limit is shorter than its arc (machine
         validate)."""
         self._scans = scans

@@ -139,7 +139,7 @@ def test_the_supervised_world_holds_the_rotate_in_its_arc_until_a_scan_has_seen_
 ) -> None:
     """Run 46 (a loaded host, the tests' 720°/s, a 30° arc: 0.042 s closed a turn): the scan
     stalled across the arc, missed the edge, and a supervised ride stopped ROTATE_HOME_TIMEOUT.
-    The world now waits in the middle of the arc until a scan that began after the switch
+    The world now waits at the far end of the arc until a scan that began after the switch
     closed has completed, as the embedded world does by construction; never longer than
     `ARC_HOLD_MAX_S` (a frozen daemon's rotate turns on, as a real ride's would)."""
     clock = FakeClock()
@@ -162,14 +162,14 @@ def test_the_supervised_world_holds_the_rotate_in_its_arc_until_a_scan_has_seen_
             return world.world(clock()).rotate_deg
 
         assert run(0.03) == pytest.approx(11.6, abs=0.1)  # closed at 0° (0.014 s), turning on
-        assert run(0.1) == pytest.approx(15.0)  # held mid-arc: the daemon has not scanned
+        assert run(0.1) == pytest.approx(29.0)  # held at the arc's end: the daemon has not scanned
         scans[0] = 8  # a scan that may have read the image before it closed
-        assert run(0.1) == pytest.approx(15.0)
+        assert run(0.1) == pytest.approx(29.0)
         scans[0] = 9  # one that began after: it saw the switch closed
-        assert run(0.01) == pytest.approx(22.2, abs=0.1)  # and the world turns on
-        # The next arc, 0.47 s on; the daemon stalls from here: held for ARC_HOLD_MAX_S only.
-        assert run(0.5) == pytest.approx(15.0)
-        assert run(0.4) == pytest.approx(15.0)
+        assert run(0.01) == pytest.approx(36.2, abs=0.1)  # and the world turns on
+        # The next arc, 0.45 s on; the daemon stalls from here: held for ARC_HOLD_MAX_S only.
+        assert run(0.5) == pytest.approx(29.0)
+        assert run(0.4) == pytest.approx(29.0)
         assert run(0.2) > 60.0  # a frozen daemon's rotate turns on (the freeze tests' hazard)
     finally:
         world.stop()
