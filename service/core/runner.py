@@ -148,6 +148,7 @@ class RealtimeRunner:
             self.beat_at = end
             self.heartbeat += 1
             if shared is not None:
+                shared.cycles = self.heartbeat  # the supervised world waits on scans (sim/world)
                 shared.beat_ns = int(end * 1e9)  # one store: what the supervisor watches
 
     def _sleep_until(self, deadline: float) -> bool:

@@ -29,6 +29,7 @@ from typing import Any
 import pytest
 
 from rider.cli import EXIT_OK
+from schema.commands import RotateStep, Session
 from schema.status import MachineState, Status
 from service.adapters.credentials import init_credentials
 from tests.deploy import spec
@@ -252,8 +253,14 @@ def test_compose_stack_runs_a_session_to_done_and_stops_safely(stack: Stack) -> 
     assert probe.returncode == 0, stack.explain("ui_probe", probe)
 
     # `docker compose stop` in the middle of a ride: SIGTERM, outputs safe, exit 0 in time.
+    # A ride long enough that a watcher started after it, on a loaded host, still finds it
+    # RUNNING (the default session, 3 revolutions at the fast config, had ended: run 48).
+    long_ride = stack.tmp / "long-ride.json"
+    long_ride.write_text(
+        Session(name="long", steps=[RotateStep(revolutions=100)]).model_dump_json()
+    )
     stack.rider("home", "--wait")
-    stack.rider("start")
+    stack.rider("start", "--session", str(long_ride))
     stack.rider("watch", "--keys", "status", "--until", "RUNNING", "--for", "30")
     grace = spec.seconds(stack.svc("machine")["stop_grace_period"])
     machine.proc.send_signal(signal.SIGTERM)

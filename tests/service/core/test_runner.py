@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import random
 from array import array
 from collections.abc import Callable
@@ -12,6 +13,7 @@ import pytest
 from schema.commands import Command, Reply, StartRequest
 from schema.diag import TimingStats
 from schema.status import FaultCode, MachineState
+from service.core.beat import BeatReader, BeatWriter, create_beat_fd
 from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
 from service.core.tasks import PendingCommand
 from service.core.timing import SORT_CHUNK, CycleStats, percentiles
@@ -96,6 +98,7 @@ class Harness:
         oversleep: float = 0.0,
         stall_limit: float | None = None,
         estopped: bool = False,
+        beat: BeatWriter | None = None,
     ) -> None:
         """`stall_limit`: the watchdog limit, with the watchdog's latch between the loop and
         the HAL and its `after_stall` judging the runner's stalls (as the daemon wires it)."""
@@ -108,7 +111,13 @@ class Harness:
         loop.inbox.wake = self.wake  # type: ignore[assignment]
         self.stats = CycleStats(PERIOD, window=100, now=self.clock())
         self.runner = RealtimeRunner(
-            loop, PERIOD, self.stats, spin_s=spin_s, clock=self.clock, stall_limit_s=stall_limit
+            loop,
+            PERIOD,
+            self.stats,
+            spin_s=spin_s,
+            clock=self.clock,
+            stall_limit_s=stall_limit,
+            beat=beat,
         )
         self.watchdog: Watchdog | None = None
         if self.rig.guard is not None and stall_limit is not None:
@@ -199,6 +208,23 @@ def test_cycles_start_on_absolute_deadlines() -> None:
     # Between cycles it sleeps (one wait per cycle), it does not spin.
     assert len(h.wake.waits) == 299
     assert all(w == pytest.approx(PERIOD - 0.002, abs=50 * TICK) for w in h.wake.waits)
+
+
+def test_each_cycle_stamps_its_count_and_its_end_in_the_supervisors_record() -> None:
+    """The supervisor watches the end of the last cycle (its hang limit, the output guard);
+    its simulated world waits on the count (a scan that has seen the home switch closed)."""
+    fd = create_beat_fd()
+    writer, reader = BeatWriter(fd), BeatReader(fd)
+    try:
+        h = Harness(20, beat=writer)
+        h.run()
+        beat = reader.read()
+    finally:
+        writer.close()
+        reader.close()
+        os.close(fd)
+    assert beat.cycles == h.runner.heartbeat == 20
+    assert beat.beat_ns == int(h.runner.beat_at * 1e9)
 
 
 def test_varying_execution_time_does_not_drift_the_schedule() -> None:
