@@ -94,7 +94,7 @@ class World:
     _frozen_raw: int | None = None
     hold_in_arc: bool = False
     """Set by the supervised world while the daemon's scan has not yet seen the rotate's home
-    switch closed: the rotate turns on only to the middle of the arc (`_held`)."""
+    switch closed: the rotate turns on only to 1° short of the arc's far end (`_held`)."""
     _rng: random.Random = field(default_factory=random.Random)
 
     def __post_init__(self) -> None:
