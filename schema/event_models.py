@@ -34,6 +34,7 @@ class EventKind(StrEnum):
     RIDER_LOST = "rider_lost"
     RIDER_RETURNED = "rider_returned"
     WATCHDOG_TRIP = "watchdog_trip"
+    CLOCK_SET = "clock_set"
     DAEMON_START = "daemon_start"
     DAEMON_STOP = "daemon_stop"
     STORAGE_FAILED = "storage_failed"
@@ -166,6 +167,16 @@ class WatchdogEvent(OpenWireModel):
     stalled_s: float
 
 
+class ClockEvent(OpenWireModel):
+    """The host's wall clock was set while the daemon ran (NTP's first sync on a Revolution Pi,
+    which has no battery clock; a hand-set date; a virtual machine resumed): wall times, and the
+    timecodes commands are checked against, follow it from this event on."""
+
+    kind: Literal["clock_set"] = "clock_set"
+    step_s: float
+    """How far the wall clock moved against the scan's steady clock (positive: forward)."""
+
+
 class DaemonStartEvent(OpenWireModel):
     kind: Literal["daemon_start"] = "daemon_start"
     pid: int
@@ -213,6 +224,7 @@ KnownDetails = Annotated[
     | ParamEvent
     | RiderEvent
     | WatchdogEvent
+    | ClockEvent
     | DaemonStartEvent
     | DaemonStopEvent
     | StorageEvent

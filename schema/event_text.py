@@ -10,6 +10,7 @@ from schema.base import OpenWireModel
 from schema.departure import departure_text
 from schema.event_models import (
     CalibrationEvent,
+    ClockEvent,
     CommandEvent,
     CompletionEvent,
     DaemonStartEvent,
@@ -137,6 +138,8 @@ def describe(details: Details) -> str:  # noqa: C901, PLR0911, PLR0912 - one bra
         return f"rider {d.rider}" + (f" policy={d.policy} acted={d.acted}" if d.policy else "")
     if isinstance(d, WatchdogEvent):
         return f"scan loop stalled {d.stalled_s * 1000:.0f} ms"
+    if isinstance(d, ClockEvent):
+        return f"host clock set {d.step_s:+.3f} s (wall times follow it from here)"
     if isinstance(d, DaemonStartEvent):
         clean = "" if d.previous_stop_clean is not False else " (previous run did not stop cleanly)"
         return f"pid {d.pid} hal={d.hal} period={d.period_s * 1000:g} ms{clean}"

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from hal.base import Hal
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
+from schema.events import ClockEvent
 from schema.status import Fault, FaultCode, Status
 from service.config.model import LiveConfig, MachineConfig
 from service.core.axes import AxisTracker
@@ -92,7 +93,6 @@ class ScanLoop:
         self.started_at = started_at
         self.cycle = 0
         self.commands_handled = 0
-        self.wall_offset = control.wall_offset
         self._max_tasks = config.loop.max_commands_per_cycle
         self.lock = threading.Lock()
         """One writer at a time: held by the runner for a cycle (and for queued tasks between
@@ -118,6 +118,19 @@ class ScanLoop:
     def config(self) -> MachineConfig:
         """The running config (online parameters change it at a cycle boundary)."""
         return self.live.current
+
+    @property
+    def wall_offset(self) -> float:
+        """Wall time is `now + wall_offset`: the state machine's, which every part reads."""
+        return self.control.wall_offset
+
+    def set_wall_offset(self, offset: float, now: float) -> None:
+        """The host's clock was set: wall times from `now` on are `now + offset` (the runner
+        follows the host's clock, `RealtimeRunner`); the step is logged and recorded."""
+        step = offset - self.control.wall_offset
+        self.control.wall_offset = self.recorder.wall_offset = offset
+        log.warning("event=clock_set step_s=%.3f", step)
+        self.recorder.emit(ClockEvent(step_s=round(step, 6)), now)
 
     @property
     def published(self) -> Published:

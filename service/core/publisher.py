@@ -40,7 +40,6 @@ class Publisher:
         self.sink = sink
         self.recorder = recorder
         self.started_at = started_at
-        self.wall_offset = control.wall_offset
         self.io_changes = IoChanges(points)
         self.published = Published()
         """The latest records, replaced whole (never changed) when any of them changes."""
@@ -54,6 +53,11 @@ class Publisher:
         self._seq = 0
         self._calibration_seen: object = None
         self._active_tid: str | None = None
+
+    @property
+    def wall_offset(self) -> float:
+        """Wall time is `now + wall_offset` (the state machine's: it follows the host's clock)."""
+        return self.control.wall_offset
 
     def collect(self) -> None:
         """Take the machine's new notices into the log and the history; they are published

@@ -47,6 +47,12 @@ _SCHED_ATTR_CALLS = {
     "i686": (351, 352),
 }
 """`sched_setattr(2)` and `sched_getattr(2)` by machine (no C library wraps them)."""
+CLOCK_STEP_S = 0.01
+"""A change of the host's wall clock against the steady clock larger than this is a step the
+machine's wall times follow (`RealtimeRunner`'s `wall`); NTP's slewing moves both clocks alike."""
+WALL_READ_MAX_S = 0.001
+"""Both clocks read within this, or the sample is left for the next cycle (the thread was
+preempted between the reads, which would look like a step)."""
 PR_SET_TIMERSLACK = 29
 PR_GET_TIMERSLACK = 30
 PR_SET_PDEATHSIG = 1
@@ -76,10 +82,15 @@ class RealtimeRunner:
         clock: Callable[[], float] = time.monotonic,
         stall_limit_s: float | None = None,
         beat: BeatWriter | None = None,
+        wall: Callable[[], float] | None = None,
     ) -> None:
         """`stall_limit_s`: a cycle that starts this long after the previous one ended is a
         stall, judged by `on_stall` before the cycle runs. `beat`: the record a supervisor
-        watches from its own process, stamped after every cycle."""
+        watches from its own process, stamped after every cycle. `wall`: the host's wall
+        clock, compared with `clock` before every cycle: when it was set (NTP's first sync on a
+        Revolution Pi, which has no battery clock; a resumed virtual machine) the loop's wall
+        times follow it (`ScanLoop.set_wall_offset`), or every motion command's timecode would
+        be judged against the clock the daemon started with."""
         self.loop = loop
         self.period = period_s
         self.stats = stats
@@ -99,6 +110,7 @@ class RealtimeRunner:
         self.on_stall: Callable[[float, float], bool] | None = None
         """`(now, stalled_s) -> tripped`, on the scan thread (the watchdog's `after_stall`)."""
         self.beat = beat
+        self.wall = wall
 
     def stop(self) -> None:
         self._stopping = True
@@ -121,11 +133,14 @@ class RealtimeRunner:
         lock = loop.lock
         limit = self.stall_limit if self.stall_limit is not None else float("inf")
         shared = self.beat.rec if self.beat is not None else None
+        wall = self.wall
         deadline = clock()  # first scan at once: commands need a real input image
         consecutive = 0
         while self._sleep_until(deadline):
             with lock:
                 start = clock()
+                if wall is not None:
+                    self._follow_wall(wall, start)
                 if start - self.beat_at > limit:  # stopped between cycles
                     self._stalled(start, start - self.beat_at)
                 try:
@@ -150,6 +165,17 @@ class RealtimeRunner:
             if shared is not None:
                 shared.cycles = self.heartbeat  # the supervised world waits on scans (sim/world)
                 shared.beat_ns = int(end * 1e9)  # one store: what the supervisor watches
+
+    def _follow_wall(self, wall: Callable[[], float], now: float) -> None:
+        clock = self.clock
+        before = clock()
+        at = wall()
+        after = clock()
+        if after - before > WALL_READ_MAX_S:
+            return
+        offset = at - (before + after) / 2
+        if abs(offset - self.loop.wall_offset) > CLOCK_STEP_S:
+            self.loop.set_wall_offset(offset, now)
 
     def _sleep_until(self, deadline: float) -> bool:
         """Wait for the deadline on the inbox's event, serving commands as they come; the

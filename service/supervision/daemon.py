@@ -334,6 +334,7 @@ class Daemon:
             spin_s=config.loop.spin_s,
             stall_limit_s=config.loop.watchdog_limit_s,
             beat=self.beat,
+            wall=time.time,  # the host's clock can be set while the daemon runs (NTP)
         )
         if self.beat is not None:
             self.beat.start(config.loop.watchdog_limit_s)

@@ -7,6 +7,7 @@ from pydantic import BaseModel
 from schema.diag import EventsDiag
 from schema.events import (
     CalibrationEvent,
+    ClockEvent,
     CommandEvent,
     CompletionEvent,
     DaemonStartEvent,
@@ -65,6 +66,7 @@ DETAILS: list[BaseModel] = [
     RiderEvent(kind="rider_lost", rider="abc", policy="pause", acted=True),
     RiderEvent(kind="rider_lost", rider="abd", policy="pause", acted=False, mid_motion=False),
     WatchdogEvent(stalled_s=0.25),
+    ClockEvent(step_s=11.6),
     DaemonStartEvent(pid=42, hal="sim", period_s=0.01, previous_stop_clean=False),
     DaemonStopEvent(reason="signal SIGTERM", exit_code=0),
     StorageEvent(what="events", error="disk I/O error", lost=3),

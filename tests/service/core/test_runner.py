@@ -12,8 +12,10 @@ import pytest
 
 from schema.commands import Command, Reply, StartRequest
 from schema.diag import TimingStats
+from schema.events import ClockEvent
 from schema.status import FaultCode, MachineState
 from service.core.beat import BeatReader, BeatWriter, create_beat_fd
+from service.core.events import ListEventSink
 from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
 from service.core.tasks import PendingCommand
 from service.core.timing import SORT_CHUNK, CycleStats, percentiles
@@ -99,6 +101,7 @@ class Harness:
         stall_limit: float | None = None,
         estopped: bool = False,
         beat: BeatWriter | None = None,
+        wall: Callable[[], float] | None = None,
     ) -> None:
         """`stall_limit`: the watchdog limit, with the watchdog's latch between the loop and
         the HAL and its `after_stall` judging the runner's stalls (as the daemon wires it)."""
@@ -118,6 +121,7 @@ class Harness:
             clock=self.clock,
             stall_limit_s=stall_limit,
             beat=beat,
+            wall=wall,
         )
         self.watchdog: Watchdog | None = None
         if self.rig.guard is not None and stall_limit is not None:
@@ -315,6 +319,61 @@ def test_a_command_is_answered_when_it_arrives_not_at_the_next_deadline() -> Non
     assert h.seen[after + 1] == (S.RUNNING, True)
     assert_on_grid(h)  # the early wake did not shift the schedule
     assert h.rig.state is S.RUNNING
+
+
+def test_the_machines_wall_time_follows_the_host_clock_when_it_is_set(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A Revolution Pi has no battery clock: NTP sets the host's clock after the daemon started
+    (CI saw a resumed virtual machine do the same, 11.6 s). A Rider sends the timecode of the
+    set clock; measured against the clock the daemon started with, its Start was refused
+    BAD_TIMECODE (11.6 s ahead) until a restart, and every event and status carried the old
+    time."""
+    step_at, step = 0.1, 11.6
+    clock: list[TickingClock] = []
+
+    def wall() -> float:  # the host's clock: the rig's wall time (offset 0), set at `step_at`
+        t = clock[0].t
+        return t + (step if t - start >= step_at else 0.0)
+
+    h = Harness(40, homed=True, wall=wall)
+    clock.append(h.clock)
+    start = h.clock.t
+    sink = ListEventSink()
+    h.rig.loop.recorder.sink = sink
+    replies: list[Reply] = []
+
+    def put() -> None:  # sent with the host's clock, as a Rider on it does
+        request = StartRequest(transaction_id="clock-1", timecode=wall(), valid_for=5.0)
+        h.rig.loop.inbox.put(PendingCommand(Command.START, request, replies.append))
+
+    h.wake.arrivals.append((start + 0.2, put))
+    with caplog.at_level(logging.WARNING, logger="machine"):
+        h.run()
+
+    assert replies[0].success, replies[0].error
+    assert replies[0].request_timecode is not None
+    assert replies[0].timecode == pytest.approx(replies[0].request_timecode, abs=1e-3)
+    assert h.rig.loop.wall_offset == pytest.approx(step, abs=1e-3)
+    status = h.rig.sink.statuses[-1]  # published by a cycle after the Start, on the set clock
+    assert start + 0.2 + step <= status.time <= h.clock.t + step
+    steps = [(d, t) for d, t, _ in sink.events if isinstance(d, ClockEvent)]
+    assert len(steps) == 1, steps  # one step, recorded once, at the cycle that saw it
+    assert steps[0][0].step_s == pytest.approx(step, abs=1e-3)
+    assert steps[0][1] - start == pytest.approx(step_at + step, abs=PERIOD + 1e-3)
+    assert [r.getMessage() for r in caplog.records if "clock_set" in r.getMessage()] == [
+        "event=clock_set step_s=11.600"
+    ]
+    assert_on_grid(h)  # the scan's own clock never moved
+
+
+def test_a_wall_clock_that_is_never_set_is_never_followed() -> None:
+    h = Harness(50, wall=lambda: h.clock.t + 0.004)  # 4 ms apart: the reads' noise, no step
+    sink = ListEventSink()
+    h.rig.loop.recorder.sink = sink
+    h.run()
+    assert h.rig.loop.wall_offset == 0.0
+    assert not [d for d, _, _ in sink.events if isinstance(d, ClockEvent)]
 
 
 def test_stop_wakes_a_waiting_runner_at_once() -> None:
