@@ -79,12 +79,6 @@ class BeatWriter(BeatRecord):
         rec.limit_ns = round(limit_s * 1e9)
         rec.pid = os.getpid()
 
-    def beat(self, now_s: float) -> None:
-        """After a cycle ended at `now_s` (time.monotonic); one store the reader acts on."""
-        rec = self.rec
-        rec.cycles += 1
-        rec.beat_ns = int(now_s * 1e9)
-
     def finish(self) -> None:
         self.rec.finished = 1
 
