@@ -24,7 +24,7 @@ import sqlite3
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from schema.diag import EventsDiag
@@ -46,7 +46,7 @@ from service.adapters.eventread import Reader
 from service.adapters.retention import prune_and_vacuum
 from service.adapters.unwritten import Unwritten
 from service.config.model import EventsSection
-from service.core.events import Held
+from service.core.events import Held, LogLine
 from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
@@ -69,6 +69,27 @@ Listener = Callable[[list[StoredRow]], None]
 `row_payload` its wire bytes)."""
 
 
+def made_here(held: Held) -> list[Row | str]:
+    """A held record made on the caller's thread: its events as rows, then its command's log
+    line as text, to be written in its place (any other `then` is called now)."""
+    line, held.then = held.then, None
+    rows: list[Row | str] = []
+    held.write(lambda details, wall, cycle: rows.append(as_row(details, wall, cycle)))
+    if isinstance(line, LogLine):
+        rows.append(line.facts.log_line())
+    elif line is not None:
+        line()
+    return rows
+
+
+def without_lines(items: Sequence[Row | Held | str]) -> list[Row | Held]:
+    """`items` less the log lines among them, which are written now (late, but not lost)."""
+    for item in items:
+        if isinstance(item, str):
+            LogLine.write(item)
+    return [item for item in items if not isinstance(item, str)]
+
+
 class EventLog:
     """The writer (and reader) of the event history; `emit` never blocks."""
 
@@ -89,7 +110,7 @@ class EventLog:
         self.settings = settings
         self.wall = wall
         self.capacity = settings.queue_capacity
-        self._items: deque[Row | Held] = deque()
+        self._items: deque[Row | Held | str] = deque()  # str: a log line (`defer`)
         self._deferred = 0
         """`Held` records among `_items`."""
         self._lock = threading.Lock()
@@ -199,7 +220,7 @@ class EventLog:
         """At the stop: what is unwritten (held safety events, events lost or dropped and not
         yet recorded) into the file the next start reads (service/adapters/unwritten.py)."""
         with self._lock:
-            queued = list(self._items)
+            queued = without_lines(self._items)
             self._items.clear()
         rows = [item for item in queued if not isinstance(item, Held)]
         error, failed = self._failure or (None, 0)
@@ -235,32 +256,31 @@ class EventLog:
         if not self._wake.is_set():  # set() takes a Condition's lock: once per batch is enough
             self._wake.set()
 
-    def put_rows(self, rows: list[Row]) -> None:
-        """Queue events already made (kind, details JSON, wall time, cycle), in order; those
-        beyond the queue's capacity are dropped and counted, as `emit` does."""
+    def put_rows(self, rows: Sequence[Row | str]) -> None:
+        """Queue events already made, and log lines in their place, in order; events beyond
+        the queue's capacity are dropped and counted, as `emit` does (lines, written now)."""
         with self._lock:
             room = 0 if self._stopping else max(0, self.capacity - len(self._items))
             self._items.extend(rows[:room])
-            self.dropped += max(0, len(rows) - room)
+            self.dropped += len(without_lines(rows[room:]))
         if not self._wake.is_set():
             self._wake.set()
 
     def defer(self, held: Held) -> bool:
-        """Queue a command's held record, made (events and log line) on the writer thread in
-        its place among the events: a command stream's events are made off both the command's
-        and the scan thread's path. False (made by the caller, its events queued or counted as
-        dropped as any) before the writer runs, once it stops, or with the queue full."""
+        """Queue a command's held record, made (events, log line) on the writer thread in its
+        place, off the command's and the scan thread's path; past `DEFER_MAX`, its events are
+        made here and its line queued in its place. False (the caller makes it) before the
+        writer runs, once it stops, or with the queue full."""
         with self._lock:
-            if (
-                self._writer is None
-                or self._stopping
-                or len(self._items) >= self.capacity
-                or self._deferred >= DEFER_MAX
-            ):
+            if self._writer is None or self._stopping or len(self._items) >= self.capacity:
                 return False
-            self._items.append(held)
-            self._deferred += 1
-        if not self._wake.is_set():
+            queued = self._deferred < DEFER_MAX
+            if queued:
+                self._items.append(held)
+                self._deferred += 1
+        if not queued:
+            self.put_rows(made_here(held))
+        elif not self._wake.is_set():
             self._wake.set()
         return True
 
@@ -309,6 +329,8 @@ class EventLog:
         for item in batch:
             if isinstance(item, Held):
                 self._make(item, rows)
+            elif isinstance(item, str):
+                LogLine.write(item)
             else:
                 rows.append(item)
         return rows

@@ -231,7 +231,7 @@ class HistoryProcess(EventLog):
             return False
         return self._spawn()
 
-    def _send_batch(self, batch: list[Row | Held], dropped: int) -> None:
+    def _send_batch(self, batch: list[Row | Held | str], dropped: int) -> None:
         items, self._retry = self._retry, []
         for entry in batch:
             try:

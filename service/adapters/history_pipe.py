@@ -19,21 +19,27 @@ BATCH, FLUSH, FAILED = 0, 1, 2
 # history process → daemon
 WROTE, FLUSHED, LOG = 0, 1, 2
 # an item of a batch
-MADE, COMMAND = 0, 1
+MADE, COMMAND, LINE = 0, 1, 2
 
 READ_BYTES = 1 << 16
 
 Item = tuple[Any, ...]
-"""`(MADE, kind, details JSON, wall, cycle)` or `(COMMAND, wall, cycle, facts, logged)`."""
+"""`(MADE, kind, details JSON, wall, cycle)`, `(COMMAND, wall, cycle, facts, logged)`, or
+`(LINE, text)`: a command's log line whose events the daemon made (`EventLog.defer`)."""
 
 
-def rows_in(entry: Row | Held) -> int:
+def rows_in(entry: Row | Held | str) -> int:
+    if isinstance(entry, str):
+        return 0  # a log line, no event
     return len(entry.rows) if isinstance(entry, Held) else 1
 
 
-def batch_items(entry: Row | Held) -> list[Item]:
-    """What the history process needs of a queued event or a command's held record: plain
-    values. A held record's own events are made here only when they are not a command's."""
+def batch_items(entry: Row | Held | str) -> list[Item]:
+    """What the history process needs of a queued event, a command's held record or a log
+    line: plain values. A held record's own events are made here only when they are not a
+    command's."""
+    if isinstance(entry, str):
+        return [(LINE, entry)]  # written by the process in its place, as its own lines are
     if not isinstance(entry, Held):
         kind, text, wall, cycle = entry
         return [(MADE, kind, text, wall, cycle)]

@@ -19,6 +19,7 @@ from service.adapters.history_pipe import (
     FAILED,
     FLUSH,
     FLUSHED,
+    LINE,
     LOG,
     MADE,
     WROTE,
@@ -123,6 +124,8 @@ def _make(items: tuple[Item, ...]) -> list[Row]:
         if item[0] == MADE:
             _, kind, details, wall, cycle = item
             rows.append((kind, details, wall, cycle))
+        elif item[0] == LINE:
+            info(COMMAND_LOG, item[1])
         else:
             _, wall, cycle, values, logged = item
             facts = CommandFacts(*values)

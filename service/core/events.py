@@ -157,6 +157,11 @@ class LogLine:
     def __call__(self) -> None:
         info(COMMAND_LOG, self.facts.log_line())
 
+    @staticmethod
+    def write(text: str) -> None:
+        """A line made earlier (`facts.log_line()`), written now in its place."""
+        info(COMMAND_LOG, text)
+
 
 Lazy = KnownDetails | CommandFacts | Callable[[], KnownDetails]
 """An event, or what makes it when it is written (a command's own event: off its reply's path)."""

@@ -5,11 +5,14 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from schema.commands import Command, CommandRequest, Reply, ReplyCode
 from schema.events import EventPage, EventQuery, ParamEvent
+from schema.status import MachineState
 from service.adapters.eventdb import connect
 from service.adapters.eventlog import EventLog
 from service.adapters.eventread import read_page
 from service.config.model import EventsSection
+from service.core.events import CommandFacts
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""
@@ -29,3 +32,25 @@ def open_log(path: Path, kind: type[EventLog] = EventLog, **settings: object) ->
 def page(log: EventLog, **criteria: object) -> EventPage:
     with connect(log.path) as conn:
         return read_page(conn, "m1", EventQuery(**criteria), log.settings.page_max)  # type: ignore[arg-type]
+
+
+def facts(tid: str, *, repeat: bool = False) -> CommandFacts:
+    """An accepted Home's facts, as the recorder keeps them for its event and log line."""
+    request = CommandRequest(transaction_id=tid, timecode=T0, rider="r1")
+    reply = Reply(
+        transaction_id=tid,
+        request_timecode=T0,
+        command=Command.HOME.value,
+        timecode=T0,
+        success=True,
+        code=ReplyCode.RESP_HOME_ACCEPTED,
+        state=MachineState.HOMING,
+    )
+    return CommandFacts.of(Command.HOME, request, reply, None, repeat)
+
+
+def command_tids(text: str) -> list[str]:
+    """The transaction ids of the command log lines in `text`, in their order."""
+    return [
+        line.split(" tx=", 1)[1].split()[0] for line in text.splitlines() if "event=command" in line
+    ]

@@ -5,6 +5,7 @@ process of its own (`HistoryProcess`, `[events] process = true`, the default).""
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import threading
 from pathlib import Path
@@ -28,9 +29,16 @@ from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.eventread import iter_events, row_event, row_payload
 from service.adapters.retention import used_bytes
 from service.config.model import EventsSection
-from service.core.events import Held
+from service.core.events import Held, LogLine
 from tests.schema.event_samples import DETAILS
-from tests.service.adapters.eventlog_support import T0, note, open_log, page
+from tests.service.adapters.eventlog_support import (
+    T0,
+    command_tids,
+    facts,
+    note,
+    open_log,
+    page,
+)
 
 
 def test_written_events_read_back_in_order_with_seq_time_and_cycle(any_log: EventLog) -> None:
@@ -157,11 +165,14 @@ def test_a_held_record_is_made_on_the_writer_in_its_place_among_the_events(
     assert any_log.queued == 0
 
 
-def test_defer_is_refused_before_start_after_close_and_past_its_bound(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+def test_defer_is_refused_before_start_and_after_close_and_past_its_bound_made_in_order(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """Refused, the caller makes the record itself (`held.write(log.emit)`); nothing is lost
-    and the order stays."""
+    """Refused, the caller makes the record itself (`held.write(log.emit)`). Past its bound the
+    log makes the record's events on the caller's thread and queues its log line in its place:
+    nothing is lost and the order of events and lines stays (run 51: the lines of the records
+    past the bound were written ahead of those still queued)."""
+    caplog.set_level(logging.INFO, logger="machine")
     monkeypatch.setattr(eventlog, "DEFER_MAX", 2)
     log = EventLog(tmp_path / EVENTS_FILE, "m1", EventsSection())
     assert not log.defer(Held([], T0, 0, None))  # no writer yet
@@ -175,14 +186,27 @@ def test_defer_is_refused_before_start_after_close_and_past_its_bound(
     try:
         assert log.defer(Held([note(0.0)], T0, 0, hold_the_writer))
         assert stuck.wait(5.0)  # the writer is making it: the next ones wait in the queue
-        records = [Held([note(float(i))], T0 + i, i, None) for i in (1, 2, 3)]
-        taken = [log.defer(h) for h in records]
-        assert taken == [True, True, False]
-        records[2].write(log.emit)  # what the recorder does with a refused one
+        commands = [facts(f"t{i}") for i in (1, 2, 3, 4)]
+        records = [
+            Held([note(float(i)), c], T0 + i, i, LogLine(c)) for i, c in enumerate(commands, 1)
+        ]
+        assert [log.defer(h) for h in records] == [True] * 4
+        assert command_tids(caplog.text) == []  # none written ahead of those queued
         go.set()
         assert log.flush()
-        stalls = [e.details.new for e in page(log).events]  # type: ignore[union-attr]
-        assert stalls == [0.0, 1.0, 2.0, 3.0]
+        made = [e.details for e in page(log).events]
+        assert [d.transaction_id if d.kind == "command" else d.new for d in made] == [  # type: ignore[union-attr]
+            0.0,
+            1.0,
+            "t1",
+            2.0,
+            "t2",
+            3.0,
+            "t3",
+            4.0,
+            "t4",
+        ]
+        assert command_tids(caplog.text) == ["t1", "t2", "t3", "t4"]
     finally:
         go.set()
         log.close()

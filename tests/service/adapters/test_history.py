@@ -20,10 +20,9 @@ from pathlib import Path
 import pytest
 
 from bench.common import children
-from schema.commands import Command, CommandRequest, Reply, ReplyCode
 from schema.events import CommandEvent, EstopEvent, EventQuery, StorageEvent, WatchdogEvent
 from schema.status import MachineState
-from service.adapters import history
+from service.adapters import eventlog, history
 from service.adapters.eventdb import StoredRow, connect
 from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.eventread import read_page
@@ -31,6 +30,7 @@ from service.adapters.history import HistoryProcess
 from service.adapters.history_writer import _Pipe, _Writer
 from service.config.model import EventsSection
 from service.core.events import CommandFacts, Held, LogLine
+from tests.service.adapters.eventlog_support import command_tids, facts
 
 T0 = time.time()
 
@@ -56,20 +56,6 @@ def history_processes() -> list[int]:
 def stored(log: HistoryProcess) -> list[object]:
     with connect(log.path) as conn:
         return [e.details for e in read_page(conn, "m1", EventQuery(), 500).events]
-
-
-def facts(tid: str, *, repeat: bool = False) -> CommandFacts:
-    request = CommandRequest(transaction_id=tid, timecode=T0, rider="r1")
-    reply = Reply(
-        transaction_id=tid,
-        request_timecode=T0,
-        command=Command.HOME.value,
-        timecode=T0,
-        success=True,
-        code=ReplyCode.RESP_HOME_ACCEPTED,
-        state=MachineState.HOMING,
-    )
-    return CommandFacts.of(Command.HOME, request, reply, None, repeat)
 
 
 def test_a_commands_event_and_log_line_are_made_in_the_history_process(
@@ -118,6 +104,50 @@ def _made_there(
     assert "level=info logger=machine event=command tx=t1 command=Home rider=r1" in line
     assert line.endswith("code=RESP_HOME_ACCEPTED state=HOMING")
     assert log.written == 4 and log.lost == 0
+
+
+def test_past_its_bound_a_commands_log_line_still_follows_the_ones_queued_before_it(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A process that falls behind a command stream (run 51: 1,500 CheckHome beside two
+    CPU-bound processes): the records past `DEFER_MAX` are made by the daemon, and their log
+    lines used to be written at once, ahead of the lines still queued (1486..1500, then 1..)."""
+    monkeypatch.setattr(eventlog, "DEFER_MAX", 2)
+    caplog.set_level(logging.INFO)  # the process logs at the daemon's level
+    log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
+    log.start()
+    stuck, go = threading.Event(), threading.Event()
+
+    def hold_the_sender() -> None:  # a line that is not a command's: run as the batch is made
+        stuck.set()
+        go.wait(5.0)
+
+    try:
+        assert log.defer(Held([WatchdogEvent(stalled_s=0.0)], T0, 0, hold_the_sender))
+        assert stuck.wait(5.0)
+        commands = [facts(f"t{i}") for i in range(1, 6)]
+        assert all(log.defer(Held([c], T0 + i, i, LogLine(c))) for i, c in enumerate(commands))
+        assert command_tids(capfd.readouterr().err) == []  # none ahead of those queued
+        go.set()
+        assert log.flush()
+        err, deadline = "", time.monotonic() + 5.0
+        while err.count("event=command") < 5 and time.monotonic() < deadline:
+            time.sleep(0.02)  # written by the process's log writer, then relayed
+            err += capfd.readouterr().err
+        assert command_tids(err) == ["t1", "t2", "t3", "t4", "t5"]
+        assert [getattr(e, "transaction_id", None) for e in stored(log)[1:]] == [
+            "t1",
+            "t2",
+            "t3",
+            "t4",
+            "t5",
+        ]
+    finally:
+        go.set()
+        log.close()
 
 
 def test_listeners_get_the_rows_the_process_wrote(log: HistoryProcess) -> None:
