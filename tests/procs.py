@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import select
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -85,11 +87,53 @@ class LineReader:
         return text.decode()
 
 
+PORTS = (20_000, 32_000)
+"""Where the tests' listeners are placed: below Linux's ephemeral range (32768-60999), which the
+kernel hands to outgoing connections. A port the kernel chose for a listener (bind to 0) comes
+from that range, and on a busy run another test's connection could take it before the daemon
+bound it (run 51: a daemon's `Address already in use`)."""
+PORT_CLAIMS = Path(tempfile.gettempdir()) / "ride-test-ports"
+"""One file per port handed out: two test processes (xdist workers, a benchmark's children)
+never get the same port while either may still use it."""
+PORT_CLAIM_S = 900.0
+"""After this a claim is stale (its holder is long done) and the port may be handed out again."""
+_pick = random.SystemRandom()
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
+    """A port on 127.0.0.1 that nothing listens on and no other test process was given."""
+    PORT_CLAIMS.mkdir(exist_ok=True)
+    for _ in range(1000):
+        port = _pick.randrange(*PORTS)
+        if not _claim(port):
+            continue
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue  # something outside the tests listens there: its claim stays
         return port
+    raise RuntimeError(f"no free port in {PORTS} (claims in {PORT_CLAIMS})")
+
+
+def _claim(port: int) -> bool:
+    """Claim `port` for this process: its file made, or a stale one taken over (a rename has
+    one winner)."""
+    path = PORT_CLAIMS / str(port)
+    for _ in range(2):
+        try:
+            os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            return True
+        except FileExistsError:
+            try:
+                if time.time() - path.stat().st_mtime < PORT_CLAIM_S:
+                    return False
+                stale = path.with_name(f"{port}.{os.getpid()}")
+                os.rename(path, stale)
+                stale.unlink()
+            except FileNotFoundError:
+                return False  # another process took it over first
+    return False
 
 
 def write_zenoh_config(directory: Path) -> Path:
