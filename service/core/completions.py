@@ -1,9 +1,11 @@
 """The machine's memory of completion notices: the recent ones by transaction id, and the
 motion still under way, readable from the bus thread (a late Rider asks how its command ended).
 
-A notice is answered only once it is published, after the status its motion ended with: a
-command serviced between two cycles (a Stop) ends a motion at once, and a Rider that got the
-notice then and asked for the status found the one before it (FAULT_ESTOP after "STOPPED")."""
+A notice is answered only once the status its motion ended with is the published one (what a
+status query answers), just before the two are published: a command serviced between two
+cycles (a Stop) ends a motion at once, and a Rider that got the notice then and asked for the
+status found the one before it (FAULT_ESTOP after "STOPPED"); a Rider that heard that status
+and asked for the notice at once is not told the motion is under way."""
 
 from __future__ import annotations
 

@@ -108,6 +108,8 @@ class Publisher:
         if status is not old.status or calibration is not old.calibration or records or changed:
             # Set before the publications: a Rider that hears one and asks finds it.
             self.published = Published(status, calibration, io, axes)
+        for notice in self.unpublished:  # a status query now finds the status they ended with
+            self.completions.record(notice)  # so `done/<tid>` answers them (published below)
         sink = self.sink
         if records:
             sink.publish_axes(records)

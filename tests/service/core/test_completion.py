@@ -135,6 +135,27 @@ def test_pause_and_resume_do_not_end_a_motion_and_stop_ends_it_stopped() -> None
     assert rig.sink.statuses[-1].motion is None
 
 
+def test_a_notice_is_answered_as_soon_as_the_status_it_ended_with_is_published() -> None:
+    """Run 52: a Rider that heard the status IDLE after a Home and asked `done/<tid>` at once
+    was told IN_PROGRESS: a loaded host had preempted the scan thread between the status's
+    publication and the notice's. From the status on, the notice is answered."""
+    rig = Rig(calibration=known_calibration())
+    heard = Heard(rig)
+    log = rig.loop.completions
+    answers: list[tuple[S, object]] = []
+    publish = rig.sink.publish_status
+
+    def and_ask(status: Status) -> None:  # a Rider that heard it asks at once
+        publish(status)
+        answers.append((status.state, log.lookup("h1")))
+
+    rig.sink.publish_status = and_ask  # type: ignore[method-assign]
+    assert rig.send(C.HOME, transaction_id="h1").success
+    notice = heard.wait("h1")
+    assert answers[-1] == (S.IDLE, notice)  # not the motion still under way
+    assert all(isinstance(a, MotionRef) for state, a in answers[:-1] if state is S.HOMING)
+
+
 def test_a_notice_is_answered_only_with_the_status_it_ended_with() -> None:
     """A Stop serviced between two cycles ends the motion at once; until the cycle that
     publishes the status it ended with, `done/<tid>` still answers it as under way. Run 35: a
