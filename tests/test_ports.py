@@ -24,7 +24,8 @@ def test_ports_are_below_the_ephemeral_range_and_each_is_given_once(claims: Path
     ports = [procs.free_port() for _ in range(200)]
     assert len(set(ports)) == 200
     assert all(procs.PORTS[0] <= p < procs.PORTS[1] < low for p in ports)
-    assert sorted(int(f.name) for f in claims.iterdir()) == sorted(ports)
+    claimed = {int(f.name) for f in claims.iterdir()}
+    assert claimed >= set(ports)  # and any it found another test's daemon listening on (run 52)
 
 
 def test_a_port_held_by_a_listener_or_claimed_by_another_process_is_not_given(
