@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from rider.client import Rider
+from service.supervision.procstate import describe, threads
 
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT_S = 20.0
@@ -98,6 +99,18 @@ never get the same port while either may still use it."""
 PORT_CLAIM_S = 900.0
 """After this a claim is stale (its holder is long done) and the port may be handed out again."""
 _pick = random.SystemRandom()
+
+
+def sigstop(pid: int, timeout: float = 10.0) -> None:
+    """Stop `pid` (SIGSTOP) and return once every thread of it is stopped. The kernel stops a
+    process's threads as each is next scheduled: on a busy host one of them ran on after
+    `kill` returned (run 53: a Home sent after the SIGSTOP was taken 1 ms later)."""
+    os.kill(pid, signal.SIGSTOP)
+    deadline = time.monotonic() + timeout
+    while not all(t.state in "tT" for t in threads(pid)):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"pid {pid} not stopped in {timeout:g} s: {describe(threads(pid))}")
+        time.sleep(0.001)  # the kernel's thread states: no event tells of them
 
 
 def free_port() -> int:

@@ -17,7 +17,7 @@ from schema.errors import ErrorCode
 from schema.events import CommandEvent, EventQuery
 from schema.status import MachineState
 from tests.integration.support import write_fast_config
-from tests.procs import running_daemon
+from tests.procs import running_daemon, sigstop
 
 pytestmark = pytest.mark.integration
 
@@ -34,7 +34,7 @@ def test_a_home_sent_to_a_frozen_daemon_does_not_move_it_when_it_resumes(tmp_pat
         tid = f"frozen-{uuid.uuid4().hex[:8]}"
         # The sender waits 0.5 s and says it waits 0.2 s: it is stale by the time it is read.
         request = CommandRequest(transaction_id=tid, timecode=time.time(), valid_for=0.2)
-        os.kill(daemon.proc.pid, signal.SIGSTOP)
+        sigstop(daemon.proc.pid)
         try:
             with pytest.raises(MachineTimeout):
                 r.command(Command.HOME, request)

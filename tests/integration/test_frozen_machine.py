@@ -19,7 +19,7 @@ from rider.client import MachineTimeout
 from schema.status import MachineState
 from service.core.persist import CALIBRATION_FILE
 from tests.freeze import FREEZE_CONFIG, home
-from tests.procs import REPO, Daemon, LineReader, rider_cmd, start_daemon, stop_process
+from tests.procs import REPO, Daemon, LineReader, rider_cmd, sigstop, start_daemon, stop_process
 
 pytestmark = pytest.mark.integration
 
@@ -53,7 +53,7 @@ def cli(daemon: Daemon, *args: str) -> tuple[subprocess.CompletedProcess[str], f
 
 
 def test_status_and_io_of_a_frozen_machine_are_told_within_the_timeout(machine: Daemon) -> None:
-    os.kill(machine.proc.pid, signal.SIGSTOP)
+    sigstop(machine.proc.pid)
     t0 = time.monotonic()
     with machine.rider(timeout=TIMEOUT_S) as r, pytest.raises(MachineTimeout) as said:
         r.status()
