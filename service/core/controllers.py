@@ -165,14 +165,36 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
     def _last_edge(self, now: float, before: float | None) -> Step:
         if half_travel(self.cal.speed_dps, before, now) <= self.cfg.latch_tolerance_deg:
             return Step.DONE
-        self.final = RotateHome(self.axis, self.cfg, self.cal.speed_dps)
-        self.target_deg = 0.0
+        self._approach_again()
         return Step.BUSY
 
+    def _approach_again(self) -> None:
+        """The last edge, seen where the rotate may not stop on it: approach it again. Turning
+        CW the rotate runs on past the switch's arc, which is then behind it, the way
+        `RotateHome` backs off; turning CCW it runs on below 0°, short of where the seek
+        finds the switch."""
+        self.final = RotateHome(self.axis, self.cfg, self.cal.speed_dps)
+        self.final.behind = self.direction is Direction.CW
+        self.target_deg = 0.0
+
     def halt(self) -> None:
+        if self.final is None and self._left and self.axis.is_home():
+            self._edge_at_halt()
         super().halt()
         if self.final is not None:
             self.final.halt()
+
+    def _edge_at_halt(self) -> None:
+        """The scan that halts (a Pause, the E-stop, the deadman: each acts before `update`)
+        read the switch closed after the rotate had left it: that is a revolution's edge, and
+        counted now, for the rotate may run on past the arc before its outputs go off (a scan
+        stalled before its write, a seat that coasts) and the resumed step would never see it:
+        one revolution too many (CI, test_session: 4.0 turned for 3 counted). Where it stops
+        is unknown, so a last edge is approached again on resume (`RotateHome`)."""
+        self.done += 1
+        self._left = False
+        if self.done >= self.total:
+            self._approach_again()
 
     def resume(self, now: float) -> None:
         super().resume(now)

@@ -103,6 +103,10 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
     def _setup(self, rest_s: float) -> None:
         """The approach's state (called by the axis's `__init__` after the base's)."""
         self.phase = Phase.START
+        self.behind = False
+        """The switch lies behind, the way the axis backs off: the axis ran on past it (a last
+        edge seen as the rotate halted or across a stalled scan). The first back-off then goes
+        through the switch, not a whole revolution round to it."""
         self.attempts = 0
         """Latches refused so far."""
         self.latch: Latch | None = None
@@ -159,16 +163,18 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
             if self._limits[Phase.REST]:
                 self._enter(Phase.REST, now)
             else:
-                self._enter(Phase.BACKOFF if home else Phase.SEEK, now)
+                self._enter(Phase.BACKOFF if home or self.behind else Phase.SEEK, now)
         if self.phase in (Phase.REST, Phase.DWELL):
             if not self.timer.done(now):
                 return Step.BUSY
-            self._enter(Phase.BACKOFF if home else Phase.SEEK, now)
+            self._enter(Phase.BACKOFF if home or self.behind else Phase.SEEK, now)
         if self.phase is Phase.BACKOFF:
-            if not home:
+            if home:
+                self.behind = False  # reached: now off it as from any closed switch
+            if not home and not self.behind:
                 self._enter(Phase.RUNUP, now)
             elif self.timer.expired(now):
-                return self._fault(self._stuck_closed(now))
+                return self._fault(self._not_found() if self.behind else self._stuck_closed(now))
         if self.phase is Phase.RUNUP:
             return self._run_up(now, home)
         if self.phase is Phase.SEEK:
