@@ -16,6 +16,9 @@ from service.core.events import CommandFacts
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""
+FLUSH_S = 30.0
+"""A bound on a flush that must succeed: a history process that a loaded host starts slowly
+(its Python and imports) writes its first batch seconds late; a quiet host, at once."""
 
 
 def note(x: float) -> ParamEvent:

@@ -32,6 +32,7 @@ from service.config.model import EventsSection
 from service.core.events import Held, LogLine
 from tests.schema.event_samples import DETAILS
 from tests.service.adapters.eventlog_support import (
+    FLUSH_S,
     T0,
     command_tids,
     facts,
@@ -383,18 +384,29 @@ def test_retention_keeps_the_database_under_max_mb(tmp_path: Path, kind: type[Ev
 def test_a_restart_knows_whether_the_last_run_stopped_cleanly(
     tmp_path: Path, kind: type[EventLog]
 ) -> None:
+    """Each run's events are flushed before it closes: `close` is bounded (2 s) and a history
+    process that a loaded host had not yet started writing in that time was killed with the
+    start event unwritten (a run under load)."""
     path = tmp_path / EVENTS_FILE
     log = open_log(path, kind)
-    assert log.previous_stop_clean is None
-    log.emit_now(DaemonStartEvent(pid=1, hal="sim", period_s=0.01))
-    log.close()
+    try:
+        assert log.previous_stop_clean is None
+        log.emit_now(DaemonStartEvent(pid=1, hal="sim", period_s=0.01))
+        assert log.flush(timeout=FLUSH_S)
+    finally:
+        log.close()
     log = open_log(path, kind)
-    assert log.previous_stop_clean is False  # the last run never wrote daemon_stop
-    log.emit_now(DaemonStopEvent(reason="signal SIGTERM", exit_code=0))
-    log.close()
+    try:
+        assert log.previous_stop_clean is False  # the last run never wrote daemon_stop
+        log.emit_now(DaemonStopEvent(reason="signal SIGTERM", exit_code=0))
+        assert log.flush(timeout=FLUSH_S)
+    finally:
+        log.close()
     log = open_log(path, kind)
-    assert log.previous_stop_clean is True
-    log.close()
+    try:
+        assert log.previous_stop_clean is True
+    finally:
+        log.close()
 
 
 @pytest.mark.parametrize(
