@@ -16,7 +16,7 @@ import zenoh
 
 from rider.client import Rider
 from schema.codec import Format, decode
-from schema.events import Event, EventPage
+from schema.events import Event, EventPage, EventQuery
 from schema.status import MachineState, Status
 from service.adapters.eventlog import EVENTS_FILE
 from tests.integration.support import fast_args, one_reply, prepare, settle
@@ -229,6 +229,21 @@ class Follower:
         return list(self.lines)
 
 
+def stored_until_paused(r: Rider, timeout: float = 20.0) -> list[Event]:
+    """The machine's events, followed until the state change to PAUSED is among them: the
+    history writes a moment after the status it follows is published (run 57, under load,
+    read it as the status said PAUSED and found no `rider_lost` yet)."""
+    deadline = time.monotonic() + timeout
+    events: list[Event] = []
+    for event in r.follow_events(EventQuery(since=1), timeout=1.0):
+        if event is not None:
+            events.append(event)
+            if event.kind == "state" and event.details.new is S.PAUSED:  # type: ignore[union-attr]
+                return events
+        assert time.monotonic() < deadline, f"no state change to PAUSED stored: {events}"
+    raise AssertionError("the events' follow ended")
+
+
 def test_a_lost_rider_is_recorded_with_what_the_policy_did(tmp_path: Path) -> None:
     daemon = start_daemon(tmp_path, extra=fast_args(tmp_path))
     try:
@@ -239,7 +254,7 @@ def test_a_lost_rider_is_recorded_with_what_the_policy_did(tmp_path: Path) -> No
         # Its session closed mid-motion: the machine pauses (rider_loss.policy = pause).
         with daemon.rider(supervise=False) as r:
             r.wait_for({S.PAUSED}, 10.0)
-            events = r.events(since=1)
+            events = stored_until_paused(r)
     finally:
         daemon.stop()
     kinds = [e.kind for e in events]
