@@ -11,7 +11,7 @@ from collections.abc import Callable
 import pytest
 
 from schema.calibration import CalibrationSet, RotateCalibrationSet, TiltCalibrationSet
-from schema.commands import Command, Direction, RotateStep, Session
+from schema.commands import Command, Direction, RotateStep, Session, StartRequest
 from schema.status import FaultCode, MachineState
 from service.config.model import MachineConfig
 from service.core.calibrate import RotateCalibrate, TiltCalibrate
@@ -19,6 +19,7 @@ from service.core.controllers import RotateRevolutions, TiltMove
 from service.core.devices import RotateCalibration
 from service.core.homing import Phase, RotateHome, TiltApproach
 from service.core.plausibility import RevolutionCheck
+from service.core.tasks import PendingCommand
 from sim.settings import PhysicsParams
 from tests.integration.support import FAST_CONFIG
 from tests.rig import Rig, known_calibration
@@ -387,3 +388,23 @@ def test_an_overdue_revolution_names_a_stall_of_the_scan_that_could_hide_its_edg
     assert ("the scan stalled" in fault.message) is stall_named, fault.message
     if stall_named:
         assert f"stalled {gap_s:.3f} s" in fault.message and "(0.042 s)" in fault.message
+
+
+def test_a_drive_whose_first_write_comes_late_is_not_judged_slow() -> None:
+    """A tilt drive's relay is written on at the end of its first cycle; a busy host that
+    preempts the scan there starts the tilt late (a container run under load: 75 ms of a
+    0.12 s speed window stood still, `TILT_SPEED_IMPLAUSIBLE` "35.3°/s"). The speed and
+    follow windows start from the next reading, taken with the drive on."""
+    rig = Rig(calibration=known_calibration())
+    rig.home()
+    stalled = rig.hal.stalled_s
+    replies: list[object] = []
+    rig.loop.inbox.put(PendingCommand(C.START, StartRequest(transaction_id="late"), replies.append))
+    rig.hal.stall_scans(1.0, 0.5)  # the Start's cycle: its write of the tilt relay comes late
+    rig.step()
+    rig.hal.stall_scans(0.0, 0.0)
+    assert len(replies) == 1
+    assert isinstance(rig.control.motion(), TiltMove)
+    assert rig.hal.stalled_s - stalled > CONFIG.tilt.speed_window_s * CONFIG.tilt.speed_tolerance
+    rig.run_to_state(S.DONE, S.FAULT_HW)
+    assert rig.state is S.DONE, rig.control.fault
