@@ -41,8 +41,6 @@ class TiltSupervisor:
         """Speed windows judged since the last `reset` (with or without a calibration)."""
         self._last: tuple[float, int] | None = None
         self._jumps: deque[float] = deque()
-        self._driven = False
-        """A cycle of this drive has been checked, so its relay has been written on."""
 
     def reset(self) -> None:
         self._window.stop()
@@ -50,7 +48,6 @@ class TiltSupervisor:
         self.speed_windows = 0
         self._last = None
         self._jumps.clear()
-        self._driven = False
 
     def drive(self, now: float, direction: TiltDirection) -> Fault | None:
         """One cycle of drive `direction`, checked first: the fault that stops it, or None."""
@@ -61,13 +58,13 @@ class TiltSupervisor:
 
     def check(self, now: float, direction: TiltDirection) -> Fault | None:
         raw = self.axis.read_raw()
+        first = self._last is None  # the drive's first cycle since `reset`
         noise = self._check_noise(now, raw)
-        if not self._driven:
+        if first:
             # The first cycle of a drive writes its relay on only at the cycle's end, which a
             # busy host may delay well past the cycle's time (a container run: 75 ms of a
             # 0.12 s window stood still, "35.3°/s"): the windows start from the next reading,
             # taken with the drive on, as the calibration's stroke takes its samples.
-            self._driven = True
             return noise
         return (
             noise
