@@ -108,8 +108,7 @@ class Publisher:
         if status is not old.status or calibration is not old.calibration or records or changed:
             # Set before the publications: a Rider that hears one and asks finds it.
             self.published = Published(status, calibration, io, axes)
-        for notice in self.unpublished:  # a status query now finds the status they ended with
-            self.completions.record(notice)  # so `done/<tid>` answers them (published below)
+        self._remember_unpublished()  # a status query now finds the status they ended with
         sink = self.sink
         if records:
             sink.publish_axes(records)
@@ -120,9 +119,19 @@ class Publisher:
         if status is not None and status is not old.status:
             sink.publish_status(status)
         if self.unpublished:
-            self.publish_completions()  # after the status: the seed's WARNING, then DONE
+            self._send_completions()  # after the status: the seed's WARNING, then DONE
+
+    def _remember_unpublished(self) -> None:
+        """The notices not yet published, answerable by `done/<tid>`."""
+        for notice in self.unpublished:
+            self.completions.record(notice)
 
     def publish_completions(self) -> None:
+        """Publish the notices due without a cycle's publication (a stop's abort)."""
+        self._remember_unpublished()
+        self._send_completions()
+
+    def _send_completions(self) -> None:
         notices, self.unpublished = self.unpublished, []
         for notice in notices:
             log.info(
@@ -134,7 +143,6 @@ class Publisher:
                 notice.state,
                 notice.reason,
             )
-            self.completions.record(notice)
             self.sink.publish_completion(notice)
 
     def status(self, now: float, cycle: int, shown: Snapshot | None = None) -> Status:
