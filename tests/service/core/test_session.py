@@ -9,6 +9,7 @@ from schema.commands import Command, Direction, Reply, RotateStep, Session, Tilt
 from schema.commands import CommandRequest as Req
 from schema.status import MachineState
 from service.config.model import MachineConfig
+from service.core.controllers import SessionRun
 from service.core.tasks import PendingCommand
 from tests.rig import Rig, known_calibration, rig_in
 
@@ -126,14 +127,20 @@ def test_revolution_count_is_exact(revolutions: int) -> None:
     assert travel == pytest.approx(360.0 * revolutions, abs=ROTATE_STEP_DEG)
 
 
-@pytest.mark.parametrize("pause_in_step", [0, 1], ids=["during-tilt", "during-rotate"])
-def test_pause_freezes_everything_and_resume_finishes_the_session(pause_in_step: int) -> None:
+def started() -> tuple[Rig, SessionRun, float]:
+    """An idle rig that has just started the default session; its rotate travel before it."""
     rig = rig_in(S.IDLE)
-    world = rig.hal.world
-    travel0 = world.rotate_travel_deg
+    travel0 = rig.hal.world.rotate_travel_deg
     assert rig.send(C.START).success
     run = rig.control.session_run
     assert run is not None
+    return rig, run, travel0
+
+
+@pytest.mark.parametrize("pause_in_step", [0, 1], ids=["during-tilt", "during-rotate"])
+def test_pause_freezes_everything_and_resume_finishes_the_session(pause_in_step: int) -> None:
+    rig, run, travel0 = started()
+    world = rig.hal.world
     rig.run_until(lambda: run.index == pause_in_step and rig.relays_on())
     rig.step(50)  # well into the step
 
@@ -219,12 +226,8 @@ def test_an_edge_read_in_the_scan_that_pauses_is_counted(edge: int) -> None:
     three revolutions of the world, not four (CI, tests/integration/test_session.py). The last
     edge so seen is approached again on Resume (where the rotate stopped is unknown), back
     through the switch, and the session ends on it."""
-    rig = rig_in(S.IDLE)
+    rig, run, travel0 = started()
     world = rig.hal.world
-    travel0 = world.rotate_travel_deg
-    assert rig.send(C.START).success
-    run = rig.control.session_run
-    assert run is not None
     rig.run_until(lambda: run.revolutions_done() == edge - 1 and not world.sense().rotate_home)
     # Step until the next scan's read is the first to find the switch closed (at 0°).
     rig.run_until(lambda: world.rotate_deg + ROTATE_STEP_DEG >= 360.0)
