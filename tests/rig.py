@@ -7,7 +7,9 @@ import itertools
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+from unittest.mock import patch
 
+from hal.base import Outputs
 from schema.axes import AxisRecord
 from schema.calibration import CalibrationRecord
 from schema.commands import Command, Reply, Session, StartRequest, TiltStep
@@ -142,6 +144,18 @@ class Rig:
             self.clock.advance(self.period)
             self.loop.step(self.clock())
 
+    def step_late(self, late_s: float) -> None:
+        """One cycle whose output write comes `late_s` late: the scan thread preempted after it
+        read and decided (a loaded host), so the old outputs run on meanwhile."""
+        write = self.hal.scan_outputs
+
+        def late(outputs: Outputs) -> None:
+            self.clock.advance(late_s)
+            write(outputs)
+
+        with patch.object(self.hal, "scan_outputs", late):
+            self.step()
+
     def send(self, command: Command, **payload: Any) -> Reply:
         """Queue a command the way the bus does and let the runner service it between cycles."""
         payload.setdefault("transaction_id", f"t{next(_ids)}")
@@ -166,6 +180,12 @@ class Rig:
 
     def run_to_state(self, *states: MachineState, max_s: float = 120.0) -> float:
         return self.run_until(lambda: self.state in states, max_s)
+
+    def rotate_estimate_error_deg(self) -> float:
+        """How far the machine's rotate angle lies from the world's, either way round."""
+        angle = self.loop.axes.rotate.angle
+        assert angle is not None, "the machine has no rotate angle"
+        return abs((angle - self.hal.world.rotate_deg + 180) % 360 - 180)
 
     def relays_on(self) -> bool:
         return self.hal.outputs.any_on()

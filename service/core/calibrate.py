@@ -24,7 +24,7 @@ from service.core.devices import (
     TiltCalibration,
     TiltDirection,
 )
-from service.core.homing import Latch, RotateHome, TiltApproach, half_travel, line
+from service.core.homing import Latch, OnSwitch, RotateHome, TiltApproach, half_travel, line
 from service.core.motion import REVERSE_DWELL_S, Measurement, Step
 from service.core.plausibility import TiltSupervisor
 
@@ -175,6 +175,8 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
         """(closing, latch) of each switch edge passed since homing."""
         self._last: tuple[float, bool] | None = None
         self.result: RotateCalibration | None = None
+        self.stopped: OnSwitch | None = None
+        """Measured and stopped on a closing edge, until a later scan reads the switch closed."""
 
     def update(self, now: float) -> Step:
         if self.homing is not None:
@@ -182,8 +184,12 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
             if step is not Step.DONE:
                 return step
             self.homing = None
+            if self.result is not None:  # measured, and back on the switch it ran past
+                return Step.DONE
             self.timer.start(now, self.cfg.revolution_timeout_s)
         home = self.axis.is_home()
+        if self.stopped is not None:
+            return self._on_switch(now, home)
         last, self._last = self._last, (now, home)
         if last is not None and home != last[1]:
             speed = self.cfg.nominal_speed_dps
@@ -191,8 +197,11 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
             if home:
                 self.timer.start(now)
                 measured = self._measured()
-                if measured is not None:
+                if measured is Step.DONE:
                     self.axis.stop()
+                    self.stopped = OnSwitch(now)
+                    return Step.BUSY
+                if measured is not None:
                     return measured
         if self.timer.expired(now):
             return self._fail(
@@ -201,6 +210,17 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
                 " while measuring a revolution",
             )
         self.axis.rotate_one(Direction.CW)
+        return Step.BUSY
+
+    def _on_switch(self, now: float, home: bool) -> Step:
+        """It ends on the switch: a stop written late ran past it (`OnSwitch`), and the rotate
+        is homed again, back through the switch, keeping what it measured."""
+        assert self.stopped is not None
+        step = self.stopped.step(now, home)
+        if step is not None:
+            return step
+        self.stopped, self.homing = None, RotateHome(self.axis, self.cfg)
+        self.homing.behind = True
         return Step.BUSY
 
     def _good(self, latch: Latch) -> bool:

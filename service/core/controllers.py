@@ -12,8 +12,8 @@ from schema.commands import Direction, RotateStep, Session, TiltStep
 from schema.status import FaultCode, SessionProgress
 from service.config.model import MachineConfig, RotateSection, TiltSection
 from service.core.devices import Devices, RotateAxis, RotateCalibration, TiltAxis, TiltDirection
-from service.core.homing import RotateHome, half_travel
-from service.core.motion import AxisController, Chain, Controller, Step
+from service.core.homing import OnSwitch, RotateHome, half_travel
+from service.core.motion import REVERSE_DWELL_S, AxisController, Chain, Controller, Step
 from service.core.plausibility import RevolutionCheck, TiltSupervisor
 
 
@@ -128,11 +128,15 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
         self.check = RevolutionCheck(cfg, cal, direction)
         self.final: RotateHome | None = None
         """The final approach, when the last edge was seen across a stall."""
+        self.stopped: OnSwitch | None = None
+        """Stopped on the last edge, until a later scan reads the switch still closed."""
 
     def update(self, now: float) -> Step:
         if self.final is not None:
             return self._step(self.final, now)
         home = self.axis.is_home()
+        if self.stopped is not None:
+            return self._on_switch(now, home)
         if not self.timer.started:
             self.timer.start(now)
             self.check.start(now)
@@ -164,7 +168,17 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
 
     def _last_edge(self, now: float, before: float | None) -> Step:
         if half_travel(self.cal.speed_dps, before, now) <= self.cfg.latch_tolerance_deg:
-            return Step.DONE
+            self.stopped = OnSwitch(now)
+            return Step.BUSY
+        self._approach_again()
+        return Step.BUSY
+
+    def _on_switch(self, now: float, home: bool) -> Step:
+        """The session ends on the switch: a stop written late ran past it (`OnSwitch`)."""
+        assert self.stopped is not None
+        step = self.stopped.step(now, home)
+        if step is not None:
+            return step
         self._approach_again()
         return Step.BUSY
 
@@ -173,7 +187,8 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
         CW the rotate runs on past the switch's arc, which is then behind it, the way
         `RotateHome` backs off; turning CCW it runs on below 0°, short of where the seek
         finds the switch."""
-        self.final = RotateHome(self.axis, self.cfg, self.cal.speed_dps)
+        # The relay was just on: it rests before the back-off reverses the drive.
+        self.final = RotateHome(self.axis, self.cfg, self.cal.speed_dps, REVERSE_DWELL_S)
         self.final.behind = self.direction is Direction.CW
         self.target_deg = 0.0
 

@@ -9,7 +9,9 @@ their midpoint, sure to half the travel between them. A latch less sure than the
 `latch_tolerance_deg` (a late scan, a stalled host) is approached again, `latch_attempts` times
 at most, then `HOME_EDGE_UNCERTAIN`. The tilt's latch is the analog value at that midpoint, on
 the least-squares line through the approach's samples (the drive runs at one speed, so noise
-averages out). docs/homing.md has the sequences, the tolerances and what a late scan costs.
+averages out). An approach ends only when a scan after its stop was written still reads the
+switch closed (`OnSwitch`); else it ran past, and approaches again. docs/homing.md has the
+sequences, the tolerances and what a late scan costs.
 """
 
 from __future__ import annotations
@@ -80,6 +82,28 @@ def raw_at(samples: Sequence[tuple[float, int]], t: float) -> float:
     return mean_r + slope * (t - mean_t)
 
 
+@dataclass(slots=True)
+class OnSwitch:
+    """A stop on the home switch's closing edge, checked: is the axis still on the switch?
+
+    The stop is written at the end of the scan that read the edge; a scan preempted before
+    that write (a loaded host) or a seat that coasts runs on meanwhile, and the rotate, at the
+    integration tests' 720°/s, leaves its 10° arc in 14 ms: homed by the latch but not resting
+    on the switch that Start asks for (run 61: Home DONE, then Start refused `NOT_HOME`). A
+    scan after the write that reads the switch closed says it is; one that reads it open is a
+    contact bouncing or an axis past the switch, told apart by waiting out the relay's rest
+    (`REVERSE_DWELL_S`), due before any reversal anyway."""
+
+    since: float
+    """The scan that wrote the stop."""
+
+    def step(self, now: float, home: bool) -> Step | None:
+        """DONE: on the switch; BUSY: not known yet (read it again); None: it ran past."""
+        if home:
+            return Step.DONE
+        return Step.BUSY if now - self.since < REVERSE_DWELL_S else None
+
+
 class Phase(Enum):
     START = auto()
     REST = auto()
@@ -92,6 +116,8 @@ class Phase(Enum):
     """Relay off before reversing."""
     SEEK = auto()
     """Driven toward the closing edge, from the defined side."""
+    STOPPED = auto()
+    """Stopped on the latched edge, until a later scan reads the switch still closed."""
 
 
 class EdgeApproach(AxisController[AxisT, CfgT]):
@@ -110,6 +136,7 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
         self.attempts = 0
         """Latches refused so far."""
         self.latch: Latch | None = None
+        self._stopped: OnSwitch | None = None
         self.refused: list[str] = []
         """Why each refused latch was refused (for the fault message)."""
         self._limits = {
@@ -141,6 +168,9 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
     def _ran_up(self) -> bool:
         return True
 
+    def _ran_past(self) -> None:
+        """Stopped on the edge, the axis was found off the switch after the stop."""
+
     def _accept(self, latch: Latch) -> Step:
         return Step.DONE
 
@@ -159,6 +189,8 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
 
     def update(self, now: float) -> Step:
         home = self.axis.is_home()
+        if self.phase is Phase.STOPPED:
+            return self._on_switch(now, home)
         if self.phase is Phase.START:
             if self._limits[Phase.REST]:
                 self._enter(Phase.REST, now)
@@ -200,9 +232,26 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
         latch = self._latch(now)
         problem = self._problem(latch)
         if problem is None:
-            assert latch is not None
-            self.latch = latch
-            return self._accept(latch)
+            self.latch, self._stopped = latch, OnSwitch(now)
+            self.phase = Phase.STOPPED
+            return Step.BUSY
+        return self._refuse(problem, now)
+
+    def _on_switch(self, now: float, home: bool) -> Step:
+        assert self._stopped is not None and self.latch is not None
+        step = self._stopped.step(now, home)
+        if step is Step.DONE:
+            return self._accept(self.latch)
+        if step is not None:
+            return step
+        self._ran_past()
+        return self._refuse(
+            f"off the switch {REVERSE_DWELL_S:g} s after the stop (a stop written late by a"
+            " stalled scan, or a coasting axis, ran past it)",
+            now,
+        )
+
+    def _refuse(self, problem: str, now: float) -> Step:
         self.refused.append(problem)
         self.attempts += 1
         if self.attempts >= self.cfg.latch_attempts:
@@ -230,7 +279,10 @@ class EdgeApproach(AxisController[AxisT, CfgT]):
         self.axis.stop()
 
     def resume(self, now: float) -> None:
-        """After a pause: from the start (rest, then back off or seek), samples forgotten."""
+        """After a pause: from the start (rest, then back off or seek), samples forgotten;
+        stopped on a latched edge, the next scan reads whether it is still on the switch."""
+        if self.phase is Phase.STOPPED:
+            return
         self.phase = Phase.START
         self._limits[Phase.REST] = REVERSE_DWELL_S
 
@@ -324,10 +376,14 @@ class RotateHome(EdgeApproach[RotateAxis, RotateSection]):
     axis_name = "rotate"
 
     def __init__(
-        self, axis: RotateAxis, cfg: RotateSection, speed_dps: float | None = None
+        self,
+        axis: RotateAxis,
+        cfg: RotateSection,
+        speed_dps: float | None = None,
+        rest_s: float = 0.0,
     ) -> None:
         super().__init__(axis, cfg)
-        self._setup(0.0)
+        self._setup(rest_s)
         self.speed = speed_dps or cfg.nominal_speed_dps
         self._last: float | None = None
 
@@ -349,6 +405,9 @@ class RotateHome(EdgeApproach[RotateAxis, RotateSection]):
         if before is None:
             return None
         return Latch(before, now, half_travel(self.speed, before, now))
+
+    def _ran_past(self) -> None:
+        self.behind = True  # on past the arc, CW: back off CCW through it
 
     def _stuck_closed(self, now: float) -> Fault:
         return Fault(

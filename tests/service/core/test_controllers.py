@@ -55,7 +55,7 @@ def test_rotate_home_backs_off_the_switch_dwells_then_seeks() -> None:
 
     rig.run_until(record)
     assert rig.state is S.IDLE, rig.control.fault
-    assert seen == [Phase.BACKOFF, Phase.RUNUP, Phase.DWELL, Phase.SEEK]
+    assert seen == [Phase.BACKOFF, Phase.RUNUP, Phase.DWELL, Phase.SEEK, Phase.STOPPED]
 
 
 def test_a_paused_tilt_stroke_measures_again_from_home() -> None:

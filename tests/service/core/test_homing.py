@@ -168,9 +168,7 @@ def test_a_session_ending_across_a_stall_approaches_its_last_edge_again() -> Non
     assert stall_at(rig, near, 0.04, times=1) == 1
     assert rig.state is S.DONE, rig.control.fault
     assert revs.final is not None and revs.final.latch is not None
-    angle = rig.loop.axes.rotate.angle
-    assert angle is not None
-    assert abs((angle - world.rotate_deg + 180) % 360 - 180) <= CONFIG.rotate.latch_tolerance_deg
+    assert rig.rotate_estimate_error_deg() <= CONFIG.rotate.latch_tolerance_deg
 
 
 # -- 3. the rotate estimate: the world moves for the whole gap ------------------------------
@@ -321,9 +319,7 @@ def test_rotate_home_never_latches_the_edge_across_a_stall() -> None:
     assert rig.state is S.IDLE, rig.control.fault
     (home,) = homes
     assert home.attempts == 1 and "40 ms apart" in home.refused[0]
-    angle = rig.loop.axes.rotate.angle
-    assert angle is not None
-    assert abs((angle - world.rotate_deg + 180) % 360 - 180) <= CONFIG.rotate.latch_tolerance_deg
+    assert rig.rotate_estimate_error_deg() <= CONFIG.rotate.latch_tolerance_deg
 
 
 def test_a_revolution_hidden_by_two_stalls_is_a_fault_never_done() -> None:
