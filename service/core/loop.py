@@ -259,16 +259,18 @@ class ScanLoop:
         """The watchdog forced the outputs safe while the scan thread was stalled (and has
         published FAULT_HW already): make the machine state say so before the latch lets any
         output through again, and before any command is judged against the old state."""
-        if self.guard is None or not self.guard.latched:
+        guard = self.guard
+        if guard is None or not guard.latched:
             return False
+        stalled = "" if guard.stalled_s is None else f" {guard.stalled_s * 1000:.0f} ms"
         self.control.external_fault(
             Fault(
                 code=FaultCode.WATCHDOG,
-                message="scan loop stalled; the watchdog forced the outputs safe",
+                message=f"scan loop stalled{stalled}; the watchdog forced the outputs safe",
             ),
             now,
         )
-        self.guard.unlatch()
+        guard.unlatch()
         return True
 
     def _supervise(self, now: float) -> None:

@@ -48,10 +48,16 @@ class GuardedHal:
         """Any output on in the latest write: set before a write that energises, cleared
         after one that does not, so a thread that reads it never sees False while a relay
         may be on."""
+        self.stalled_s: float | None = None
+        """How long the scan had stalled when the watchdog latched (None: not said, as when
+        the supervisor's guard latched from its own process)."""
         self._beat = beat.rec if beat is not None else None
         """The record the supervisor may latch from its own process (`service.core.beat`)."""
 
-    def latch_safe(self) -> None:
+    def latch_safe(self, stalled_s: float | None = None) -> None:
+        """Outputs safe now and at every later write, until the scan thread `unlatch`es;
+        `stalled_s`: how long the scan had stalled (the machine's fault says so)."""
+        self.stalled_s = stalled_s
         self.latched = True
         self.inner.force_all_outputs_safe()
         self.energised = False
@@ -194,7 +200,7 @@ class Watchdog(TimedThread):
 
     def check(self, now: float, stalled_s: float) -> None:
         """Trip: latch outputs safe and report (also callable directly, e.g. from tests)."""
-        self.hal.latch_safe()
+        self.hal.latch_safe(stalled_s)
         self.trips += 1
         self.tripped_at = now
         log.error("event=watchdog_trip stalled_s=%.4f limit_s=%.4f", stalled_s, self.limit)

@@ -46,11 +46,13 @@ def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
     assert rig.send(Command.HOME).success
     rig.step(3)
     assert rig.relays_on()
-    guard.latch_safe()
+    guard.latch_safe(1.3043)
     assert not rig.relays_on()
     rig.step()
     assert rig.state is MachineState.FAULT_HW
     assert rig.control.fault is not None and rig.control.fault.code is FaultCode.WATCHDOG
+    # The status after the trip keeps saying how long (the watchdog thread's first one does).
+    assert rig.control.fault.message.startswith("scan loop stalled 1304 ms;")
     assert not guard.latched
     rig.step(50)
     assert not rig.relays_on()
@@ -159,6 +161,7 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     assert got_fault
     assert threaded.machine.control.fault is not None
     assert threaded.machine.control.fault.code is FaultCode.WATCHDOG
+    assert f"stalled {threaded.stalled[0] * 1000:.0f} ms" in threaded.machine.control.fault.message
     assert not hal.outputs.any_on()
     assert not thread.is_alive()
 
