@@ -124,13 +124,15 @@ class ScanLoop:
         """Wall time is `now + wall_offset`: the state machine's, which every part reads."""
         return self.control.wall_offset
 
-    def set_wall_offset(self, offset: float, now: float) -> None:
-        """The host's clock was set: wall times from `now` on are `now + offset` (the runner
-        follows the host's clock, `RealtimeRunner`); the step is logged and recorded."""
+    def set_wall_offset(self, offset: float, now: float, *, record: bool = True) -> None:
+        """The host's clock moved against the steady one: wall times from `now` on are
+        `now + offset` (the runner follows the host's clock, `RealtimeRunner`). A step that
+        was set (`record`) is logged and recorded; a drift followed bit by bit is not."""
         step = offset - self.control.wall_offset
         self.control.wall_offset = self.recorder.wall_offset = offset
-        log.warning("event=clock_set step_s=%.3f", step)
-        self.recorder.emit(ClockEvent(step_s=round(step, 6)), now)
+        if record:
+            log.warning("event=clock_set step_s=%.3f", step)
+            self.recorder.emit(ClockEvent(step_s=round(step, 6)), now)
 
     @property
     def published(self) -> Published:

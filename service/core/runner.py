@@ -48,8 +48,13 @@ _SCHED_ATTR_CALLS = {
 }
 """`sched_setattr(2)` and `sched_getattr(2)` by machine (no C library wraps them)."""
 CLOCK_STEP_S = 0.01
-"""A change of the host's wall clock against the steady clock larger than this is a step the
+"""A change of the host's wall clock against the steady clock larger than this is one the
 machine's wall times follow (`RealtimeRunner`'s `wall`); NTP's slewing moves both clocks alike."""
+CLOCK_SET_S = 0.1
+"""A change larger than this, seen at once, is the clock being set (NTP steps from 128 ms): it is
+logged and recorded (`clock_set`). Smaller ones are a drift, followed without a word: a host
+whose wall clock runs apart from its steady clock (a virtual machine's, 5 ms a second on the
+project's test host) would otherwise record a `clock_set` event every two seconds."""
 WALL_READ_MAX_S = 0.001
 """Both clocks read within this, or the sample is left for the next cycle (the thread was
 preempted between the reads, which would look like a step)."""
@@ -174,8 +179,9 @@ class RealtimeRunner:
         if after - before > WALL_READ_MAX_S:
             return
         offset = at - (before + after) / 2
-        if abs(offset - self.loop.wall_offset) > CLOCK_STEP_S:
-            self.loop.set_wall_offset(offset, now)
+        step = abs(offset - self.loop.wall_offset)
+        if step > CLOCK_STEP_S:
+            self.loop.set_wall_offset(offset, now, record=step > CLOCK_SET_S)
 
     def _sleep_until(self, deadline: float) -> bool:
         """Wait for the deadline on the inbox's event, serving commands as they come; the

@@ -6,191 +6,23 @@ import logging
 import os
 import random
 from array import array
-from collections.abc import Callable
 
 import pytest
 
 from schema.commands import Command, Reply, StartRequest
 from schema.diag import TimingStats
-from schema.events import ClockEvent
-from schema.status import FaultCode, MachineState
+from schema.status import FaultCode
 from service.core.beat import BeatReader, BeatWriter, create_beat_fd
-from service.core.events import ListEventSink
-from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed, RealtimeRunner
+from service.core.runner import MAX_CONSECUTIVE_ERRORS, LoopFailed
 from service.core.tasks import PendingCommand
 from service.core.timing import SORT_CHUNK, CycleStats, percentiles
-from service.core.watchdog import Watchdog
-from tests.rig import FakeClock, Rig, known_calibration
-
-S = MachineState
-PERIOD = 0.010
-TICK = 1e-6
-
-
-class TickingClock(FakeClock):
-    """Simulated time that moves on by `tick` at every read, so a busy-wait makes progress."""
-
-    def __init__(self, tick: float = TICK) -> None:
-        super().__init__()
-        self.tick = tick
-        self.reads = 0
-
-    def __call__(self) -> float:
-        self.reads += 1
-        if self.reads > 10_000_000:
-            raise AssertionError("runner is spinning without end")
-        self.t += self.tick
-        return self.t
-
-
-class FakeWake:
-    """The inbox's wake event on simulated time: a wait moves the clock instead of sleeping.
-
-    `oversleep` makes every timed-out wait return that much late, as a loaded OS does;
-    `arrivals` are (time, action) pairs run when the wait reaches them (a command arriving).
-    """
-
-    def __init__(self, clock: TickingClock, oversleep: float = 0.0) -> None:
-        self.clock = clock
-        self.oversleep = oversleep
-        self.arrivals: list[tuple[float, Callable[[], None]]] = []
-        self.waits: list[float] = []
-        self.flag = False
-
-    def set(self) -> None:
-        self.flag = True
-
-    def clear(self) -> None:
-        self.flag = False
-
-    def is_set(self) -> bool:
-        return self.flag
-
-    def wait(self, timeout: float | None = None) -> bool:
-        assert timeout is not None, "the runner must always wait with a deadline"
-        assert timeout > 0
-        self.waits.append(timeout)
-        if len(self.waits) > 1_000_000:
-            raise AssertionError("runner keeps waking without progress")
-        if self.flag:
-            return True
-        until = self.clock.t + timeout
-        if self.arrivals and self.arrivals[0][0] <= until:
-            at, action = self.arrivals.pop(0)
-            self.clock.t = max(self.clock.t, at)
-            action()
-            return self.flag
-        self.clock.t = until + self.oversleep
-        return False
-
-
-class Harness:
-    """A rig whose loop is run by a `RealtimeRunner` on simulated time, step by step observed."""
-
-    def __init__(  # noqa: PLR0913 - the cycle count, then keyword-only scenario knobs
-        self,
-        cycles: int,
-        *,
-        cost: Callable[[int], float] = lambda i: 0.002,
-        fail: Callable[[int], bool] = lambda i: False,
-        fail_after_step: bool = False,
-        homed: bool = False,
-        running: bool = False,
-        spin_s: float = 0.0,
-        oversleep: float = 0.0,
-        stall_limit: float | None = None,
-        estopped: bool = False,
-        beat: BeatWriter | None = None,
-        wall: Callable[[], float] | None = None,
-    ) -> None:
-        """`stall_limit`: the watchdog limit, with the watchdog's latch between the loop and
-        the HAL and its `after_stall` judging the runner's stalls (as the daemon wires it)."""
-        self.clock = TickingClock()
-        guarded = stall_limit is not None
-        self.rig = Rig(calibration=known_calibration(), clock=self.clock, guarded=guarded)
-        self._arrange(homed=homed, running=running, estopped=estopped)
-        loop = self.rig.loop
-        self.wake = FakeWake(self.clock, oversleep)
-        loop.inbox.wake = self.wake  # type: ignore[assignment]
-        self.stats = CycleStats(PERIOD, window=100, now=self.clock())
-        self.runner = RealtimeRunner(
-            loop,
-            PERIOD,
-            self.stats,
-            spin_s=spin_s,
-            clock=self.clock,
-            stall_limit_s=stall_limit,
-            beat=beat,
-            wall=wall,
-        )
-        self.watchdog: Watchdog | None = None
-        if self.rig.guard is not None and stall_limit is not None:
-            self.watchdog = Watchdog(
-                lambda: self.runner.heartbeat, self.rig.guard, PERIOD, 2, stall_limit
-            )
-            self.runner.on_stall = self.watchdog.after_stall
-        self.starts: list[float] = []
-        self.ends: list[float] = []
-        self.seen: list[tuple[MachineState, bool]] = []
-        """(state, any relay on) at the start of each cycle: what the previous cycle left."""
-        self._observe(cycles, cost, fail, fail_after_step)
-        self.t0 = self.clock.t
-
-    def _arrange(self, *, homed: bool, running: bool, estopped: bool) -> None:
-        """The rig to the scenario's start: homed, mid-session, or after an E-stop let go."""
-        if homed or running:
-            self.rig.home()
-        if running:
-            assert self.rig.send(Command.START).success
-            self.rig.run_until(self.rig.relays_on)
-        if estopped:
-            self.rig.hal.press_estop()
-            self.rig.step(3)
-            self.rig.hal.release_estop()
-            self.rig.step(3)
-
-    def _observe(
-        self,
-        cycles: int,
-        cost: Callable[[int], float],
-        fail: Callable[[int], bool],
-        fail_after_step: bool,
-    ) -> None:
-        """Wrap the loop's step: record each cycle's start and end, advance the clock by its
-        cost, inject its failure, and stop the runner after `cycles`."""
-        loop = self.rig.loop
-        real_step = loop.step
-
-        def step(now: float) -> None:
-            i = len(self.starts)
-            self.starts.append(now)
-            self.seen.append((self.rig.state, self.rig.relays_on()))
-            try:
-                if fail(i) and not fail_after_step:
-                    raise RuntimeError(f"injected failure in cycle {i}")
-                real_step(now)
-                self.clock.advance(cost(i))
-                if fail(i):
-                    raise RuntimeError(f"injected failure after cycle {i} wrote its outputs")
-            finally:
-                self.ends.append(self.clock.t)
-                if len(self.starts) >= cycles:
-                    self.runner.stop()
-
-        loop.step = step  # type: ignore[method-assign]
-
-    def run(self) -> None:
-        self.runner.run()
-
-    def grid_offsets(self) -> list[float]:
-        """Each cycle's start relative to its ideal slot on the first cycle's grid, in periods."""
-        first = self.starts[0]
-        return [(s - first) / PERIOD for s in self.starts]
-
-
-def assert_on_grid(h: Harness) -> None:
-    for k, offset in enumerate(h.grid_offsets()):
-        assert offset == pytest.approx(round(offset), abs=50 * TICK / PERIOD), (k, offset)
+from tests.service.core.runner_harness import (
+    PERIOD,
+    TICK,
+    Harness,
+    S,
+    assert_on_grid,
+)
 
 
 def test_cycles_start_on_absolute_deadlines() -> None:
@@ -319,61 +151,6 @@ def test_a_command_is_answered_when_it_arrives_not_at_the_next_deadline() -> Non
     assert h.seen[after + 1] == (S.RUNNING, True)
     assert_on_grid(h)  # the early wake did not shift the schedule
     assert h.rig.state is S.RUNNING
-
-
-def test_the_machines_wall_time_follows_the_host_clock_when_it_is_set(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    """A Revolution Pi has no battery clock: NTP sets the host's clock after the daemon started
-    (CI saw a resumed virtual machine do the same, 11.6 s). A Rider sends the timecode of the
-    set clock; measured against the clock the daemon started with, its Start was refused
-    BAD_TIMECODE (11.6 s ahead) until a restart, and every event and status carried the old
-    time."""
-    step_at, step = 0.1, 11.6
-    clock: list[TickingClock] = []
-
-    def wall() -> float:  # the host's clock: the rig's wall time (offset 0), set at `step_at`
-        t = clock[0].t
-        return t + (step if t - start >= step_at else 0.0)
-
-    h = Harness(40, homed=True, wall=wall)
-    clock.append(h.clock)
-    start = h.clock.t
-    sink = ListEventSink()
-    h.rig.loop.recorder.sink = sink
-    replies: list[Reply] = []
-
-    def put() -> None:  # sent with the host's clock, as a Rider on it does
-        request = StartRequest(transaction_id="clock-1", timecode=wall(), valid_for=5.0)
-        h.rig.loop.inbox.put(PendingCommand(Command.START, request, replies.append))
-
-    h.wake.arrivals.append((start + 0.2, put))
-    with caplog.at_level(logging.WARNING, logger="machine"):
-        h.run()
-
-    assert replies[0].success, replies[0].error
-    assert replies[0].request_timecode is not None
-    assert replies[0].timecode == pytest.approx(replies[0].request_timecode, abs=1e-3)
-    assert h.rig.loop.wall_offset == pytest.approx(step, abs=1e-3)
-    status = h.rig.sink.statuses[-1]  # published by a cycle after the Start, on the set clock
-    assert start + 0.2 + step <= status.time <= h.clock.t + step
-    steps = [(d, t) for d, t, _ in sink.events if isinstance(d, ClockEvent)]
-    assert len(steps) == 1, steps  # one step, recorded once, at the cycle that saw it
-    assert steps[0][0].step_s == pytest.approx(step, abs=1e-3)
-    assert steps[0][1] - start == pytest.approx(step_at + step, abs=PERIOD + 1e-3)
-    assert [r.getMessage() for r in caplog.records if "clock_set" in r.getMessage()] == [
-        "event=clock_set step_s=11.600"
-    ]
-    assert_on_grid(h)  # the scan's own clock never moved
-
-
-def test_a_wall_clock_that_is_never_set_is_never_followed() -> None:
-    h = Harness(50, wall=lambda: h.clock.t + 0.004)  # 4 ms apart: the reads' noise, no step
-    sink = ListEventSink()
-    h.rig.loop.recorder.sink = sink
-    h.run()
-    assert h.rig.loop.wall_offset == 0.0
-    assert not [d for d, _, _ in sink.events if isinstance(d, ClockEvent)]
 
 
 def test_stop_wakes_a_waiting_runner_at_once() -> None:
