@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from schema.diag import EventsDiag
-from service.adapters.eventdb import Row
+from service.adapters.eventdb import Row, claim_writer
 from service.adapters.eventlog import EventLog
 from service.adapters.history_pipe import (
     BATCH,
@@ -103,7 +103,15 @@ class HistoryProcess(EventLog):
     # ------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Open (or set aside and replace) the database here, as `EventLog` does, so that
-        `previous_stop_clean` is known at once; then start the process that writes it."""
+        `previous_stop_clean` is known at once; then start the process that writes it.
+
+        Read only once the log's previous writer has let go (`claim_writer`, then let go for
+        this daemon's own process to claim): a killed daemon's history process still writes
+        what it was sent, its `daemon_start` among it, and read before that the last run
+        looked clean (a run under load: `previous_stop_clean` True after a SIGKILL)."""
+        fd, _ = claim_writer(self.path, self.writer_wait_s)  # the process says if it is held
+        if fd is not None:
+            os.close(fd)
         self._open_or_replace()
         if self._conn is not None:
             self._conn.close()

@@ -20,17 +20,25 @@ from pathlib import Path
 import pytest
 
 from bench.common import children
-from schema.events import CommandEvent, EstopEvent, EventQuery, StorageEvent, WatchdogEvent
+from schema.events import (
+    CommandEvent,
+    DaemonStartEvent,
+    DaemonStopEvent,
+    EstopEvent,
+    EventQuery,
+    StorageEvent,
+    WatchdogEvent,
+)
 from schema.status import MachineState
 from service.adapters import eventlog, history
-from service.adapters.eventdb import StoredRow, connect
+from service.adapters.eventdb import WRITER_WAIT_S, StoredRow, connect
 from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.eventread import read_page
 from service.adapters.history import HistoryProcess
 from service.adapters.history_writer import _Pipe, _Writer
 from service.config.model import EventsSection
 from service.core.events import CommandFacts, Held, LogLine
-from tests.service.adapters.eventlog_support import command_tids, facts
+from tests.service.adapters.eventlog_support import FLUSH_S, command_tids, facts, open_log
 
 T0 = time.time()
 
@@ -348,3 +356,33 @@ def test_a_stop_on_a_locked_database_leaves_the_e_stop_for_the_next_start(tmp_pa
     assert "estop_pressed" in kinds, kinds
     failed = [e.details for e in events if isinstance(e.details, StorageEvent)]
     assert failed and "in the previous run" in failed[0].error
+
+
+def test_a_restart_reads_how_the_last_run_ended_once_its_writer_let_go(tmp_path: Path) -> None:
+    """A run under load: a daemon killed soon after its start left its history process writing
+    what it was sent, its `daemon_start` among it; the next daemon read the log before that and
+    said the killed run had stopped cleanly. The restart waits for the previous writer."""
+    path = tmp_path / EVENTS_FILE
+    first = open_log(path)
+    try:
+        first.emit_now(DaemonStopEvent(reason="signal SIGTERM", exit_code=0))
+        assert first.flush(timeout=FLUSH_S)
+    finally:
+        first.close()
+    killed = open_log(path)  # the killed run's writer, still holding the log
+    restart = HistoryProcess(path, "m1", EventsSection())
+    starting = threading.Thread(target=restart.start, name="restart")
+    try:
+        starting.start()
+        starting.join(0.5)
+        assert starting.is_alive(), "the restart read the log before its writer let go"
+        killed.emit_now(DaemonStartEvent(pid=2, hal="sim", period_s=0.01))
+        assert killed.flush(timeout=FLUSH_S)
+    finally:
+        killed.close()
+    starting.join(WRITER_WAIT_S + FLUSH_S)
+    try:
+        assert not starting.is_alive()
+        assert restart.previous_stop_clean is False  # its last run wrote no daemon_stop
+    finally:
+        restart.close()
