@@ -5,6 +5,8 @@ publishing under the machine's keys."""
 from __future__ import annotations
 
 import dataclasses
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import zenoh
@@ -14,6 +16,12 @@ from rider.link import Link, bus_errors
 
 KEY_CACHE = 256
 """Keys whose machine id a Rider remembers (the same few keys are asked again and again)."""
+
+LOOK_AGAIN_S = 0.1
+"""Before a reply is called a second daemon's, the holders are asked once more this long after
+the look that did not name its replier: a liveliness query can come back short (one racing a
+history replay, one on a loaded host; the project's CI once missed a live supervisor's token
+and refused its reply), and `DuplicateMachine` tells an operator to stop a daemon."""
 
 
 @dataclass
@@ -56,6 +64,8 @@ class Pinning:
         self.known: dict[str, Holders] = {}
         self._machine_of: dict[str, str | None] = {}
         """`machine_in`'s answers by key (bounded: cleared when it holds `KEY_CACHE` keys)."""
+        self.pause: Callable[[float], None] = time.sleep
+        """How the second look waits its `LOOK_AGAIN_S` (a test's hook)."""
 
     def machine_in(self, key: str) -> str | None:
         """The one machine id `key` is under (None: a wildcard id, or not a machine key)."""
@@ -142,6 +152,9 @@ class Pinning:
         known = self.known.get(mid)
         if known is None or not known.allows(zid):
             known = self.holders(mid)  # first contact, or the holder changed since
+            if not known.allows(zid):
+                self.pause(LOOK_AGAIN_S)
+                known = self.holders(mid)  # a second look before calling it a duplicate
         checked = known.changes
         if len(known.holders) > 1:
             raise DuplicateMachine(mid, sorted(known.holders), "each holds the machine's token")
@@ -151,7 +164,9 @@ class Pinning:
             raise DuplicateMachine(
                 mid,
                 [str(known.pinned), zid],
-                f"{zid} replied to {key}, but this Rider talks to {known.pinned}",
+                f"{zid} replied to {key}, but this Rider talks to {known.pinned}"
+                f" (holders seen: {', '.join(sorted(known.holders)) or 'none'}; supervisors"
+                f" seen: {', '.join(sorted(known.supervisors)) or 'none'})",
             )
         if replier_id is not None:
             known.allowed, known.allowed_at = replier_id, checked

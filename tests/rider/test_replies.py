@@ -321,3 +321,49 @@ def test_a_broken_or_hostile_publication_is_dropped_and_a_good_one_read(
         while after[0] == ready:  # a late copy of the probe
             after = [*after[1:], updates.get(timeout=5.0)]
         assert after == [good, good]  # the first to arrive after: every hostile one dropped
+
+
+def test_a_replier_no_look_names_is_looked_for_once_more_before_it_is_a_second_daemon(
+    scripted: Scripted, tmp_path: Path
+) -> None:
+    """A liveliness query can come back short: the project's CI (stop 50) saw a Rider refuse
+    the supervisor's `sim/world` reply as a second daemon's while that supervisor's token was
+    up all along. A replier the look does not name is looked for once more, after a pause;
+    named then (here: its supervisor token declared during the pause) it is the machine's; not
+    named by either look, it is refused with what the looks saw."""
+    session = scripted.session
+    assert session is not None
+    me = str(session.zid())
+    holder = session.liveliness().declare_token("machine/m1/holder/the-daemon")
+    pauses: list[float] = []
+    tokens: list[zenoh.LivelinessToken] = []
+
+    try:
+        with rider_for(scripted, tmp_path) as r:
+
+            def declare_supervisor(seconds: float) -> None:
+                """The first pause: the supervisor's token reaches the Rider's session."""
+                pauses.append(seconds)
+                if len(pauses) > 1:
+                    return
+                key = f"machine/m1/supervisor/{me}"
+                tokens.append(session.liveliness().declare_token(key))
+                deadline = time.monotonic() + 10.0
+                while not [t for t in r.transport.link.session.liveliness().get(key) if t.ok]:
+                    assert time.monotonic() < deadline, "the token never reached the Rider"
+
+            r.transport.pins.pause = declare_supervisor
+            assert r.check_home().ok  # the first look names the daemon only
+            known = r.transport.pins.known["m1"]
+            assert (known.pinned, known.supervisors) == ("the-daemon", {me})
+            assert pauses == [0.1]
+            tokens.pop().undeclare()
+            known.update("supervisor", me, False)  # what a liveliness subscriber hears
+            with pytest.raises(DuplicateMachine) as refused:
+                r.check_home()
+            assert pauses == [0.1, 0.1]  # looked for twice, then refused
+            assert "holders seen: the-daemon; supervisors seen: none" in str(refused.value)
+    finally:
+        holder.undeclare()
+        for token in tokens:
+            token.undeclare()
