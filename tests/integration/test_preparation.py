@@ -112,6 +112,21 @@ def test_a_home_edge_a_stall_hid_homes_and_rides_again(said: str, late: int) -> 
     assert machine.calls == ["home", "start", "home", "start"]
 
 
+def test_a_watchdog_trip_homes_and_rides_again() -> None:
+    """CI, stop 50: a loaded host froze a test daemon for over its 1 s watchdog limit mid-ride;
+    the machine rightly went FAULT_HW (WATCHDOG), its own measure of the stall."""
+    machine = Scripted(
+        [
+            ("home", IDLE, None, 0),
+            ("start", FAULT, FaultCode.WATCHDOG, 0),
+            ("home", IDLE, None, 0),
+            ("start", RUNNING, None, 0),
+        ]
+    )
+    assert ride(machine).state is RUNNING
+    assert machine.calls == ["home", "start", "home", "start"]
+
+
 @pytest.mark.parametrize(
     ("code", "late", "said"),
     [

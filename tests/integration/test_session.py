@@ -18,7 +18,9 @@ from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 from tests.integration.support import (
     STEP_TIMEOUT_S,
+    again_after_stall,
     module_machine,
+    not_stalled,
     prepare,
     relays_off,
     settle,
@@ -58,15 +60,18 @@ def holds_still(rider: Rider, since: SimWorldState) -> None:
 
 
 def run_to_done(rider: Rider, after: float) -> list[Status]:
-    """Every status until DONE (bounded); fails on any other resting or fault state."""
+    """Every status until DONE (bounded); fails on any other resting or fault state (one the
+    machine put down to its scan's stall: `HostStalled`, and the test rides again)."""
     seen: list[Status] = []
     for update in rider.watch(("status",), timeout=STEP_TIMEOUT_S):
         if not isinstance(update, Status) or update.time < after:
             continue
-        seen.append(update)
+        seen.append(not_stalled(update))
         if update.state is MachineState.DONE:
             return seen
-        assert update.state in (MachineState.RUNNING, MachineState.PAUSED), update
+        assert update.state in (MachineState.RUNNING, MachineState.PAUSED), (
+            f"{update.state} {update.fault} after {seen[:-1][-3:]}"
+        )
     raise AssertionError(f"no DONE; last status {seen[-1] if seen else None}")
 
 
@@ -82,20 +87,32 @@ def resume_to_done(rider: Rider, before: SimWorldState) -> Status:
     return final
 
 
+def one_revolution_in(rider: Rider) -> SimWorldState:
+    """Prepared, the default session started and one revolution done; the world before it."""
+    prepare(rider)
+    before = rider.sim("world")
+    wait_revolutions(rider, rider.start(), 1)
+    return before
+
+
 def test_calibrate_home_start_runs_the_default_session_to_done(rider: Rider) -> None:
+    again_after_stall(lambda: calibrate_home_and_ride(rider))
+
+
+def calibrate_home_and_ride(rider: Rider) -> None:
     reply = rider.calibrate_tilt()
     assert reply.code is ReplyCode.RESP_CALIBRATION_ACCEPTED
     assert reply.state is MachineState.CALIBRATING
-    assert settle(rider, reply).calibrated.tilt
+    assert not_stalled(settle(rider, reply)).calibrated.tilt
 
     reply = rider.calibrate_rotate()
     assert reply.state is MachineState.CALIBRATING
-    status = settle(rider, reply)
+    status = not_stalled(settle(rider, reply))
     assert status.calibrated.tilt and status.calibrated.rotate
 
     reply = rider.home()
     assert reply.code is ReplyCode.RESP_HOME_ACCEPTED
-    status = settle(rider, reply)
+    status = not_stalled(settle(rider, reply))
     assert status.state is MachineState.IDLE
     assert status.homed.tilt and status.homed.rotate
 
@@ -119,11 +136,11 @@ def test_calibrate_home_start_runs_the_default_session_to_done(rider: Rider) -> 
 
 
 def test_pause_holds_with_relays_off_and_resume_finishes_the_session(rider: Rider) -> None:
-    prepare(rider)
-    before = rider.sim("world")
-    started = rider.start()
-    wait_revolutions(rider, started, 1)
+    again_after_stall(lambda: pause_and_resume(rider))
 
+
+def pause_and_resume(rider: Rider) -> None:
+    before = one_revolution_in(rider)
     reply = rider.pause()
     assert reply.code is ReplyCode.RESP_PAUSED
     paused = rider.wait_for({MachineState.PAUSED}, STEP_TIMEOUT_S, after=reply.timecode)
@@ -136,10 +153,11 @@ def test_pause_holds_with_relays_off_and_resume_finishes_the_session(rider: Ride
 
 
 def test_stop_ends_the_session_done_and_nothing_moves(rider: Rider) -> None:
-    prepare(rider)
-    started = rider.start()
-    wait_revolutions(rider, started, 1)
+    again_after_stall(lambda: stop_mid_ride(rider))
 
+
+def stop_mid_ride(rider: Rider) -> None:
+    one_revolution_in(rider)
     reply = rider.stop()
     assert reply.code is ReplyCode.RESP_DONE
     done = rider.wait_for({MachineState.DONE}, STEP_TIMEOUT_S, after=reply.timecode)
@@ -154,11 +172,11 @@ def test_stop_ends_the_session_done_and_nothing_moves(rider: Rider) -> None:
 def test_estop_from_the_simulator_latches_release_moves_nothing_resume_continues(
     rider: Rider,
 ) -> None:
-    prepare(rider)
-    before = rider.sim("world")
-    started = rider.start()
-    wait_revolutions(rider, started, 1)
+    again_after_stall(lambda: estop_mid_ride(rider))
 
+
+def estop_mid_ride(rider: Rider) -> None:
+    before = one_revolution_in(rider)
     pressed = rider.sim("estop", pressed=True)
     assert pressed.estop_pressed
     fault = rider.wait_for({MachineState.FAULT_ESTOP}, STEP_TIMEOUT_S, after=pressed.time)
