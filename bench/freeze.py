@@ -30,12 +30,12 @@ from tests.freeze import (
     PERIOD_S,
     Freeze,
     Outcome,
-    home,
     ready,
     ride_and_freeze,
     start_supervised,
     stop,
 )
+from tests.integration.support import prepare
 from tests.procs import Daemon
 
 BOUND_S = LIMIT_S + 2 * PERIOD_S
@@ -87,7 +87,7 @@ def soak(seconds: float, tmp: Path, load: bool) -> tuple[float, int, float, int,
     stall s, watchdog trips, fault states seen, its final state)."""
     faults = 0
     with supervised(tmp / "soak") as (_, rider), burners(tmp, load, seconds):
-        home(rider)
+        prepare(rider)
         before = rider.diag(reset=True)
         t0 = time.monotonic()
         deadline = t0 + seconds

@@ -18,7 +18,8 @@ import pytest
 from rider.client import MachineTimeout
 from schema.status import MachineState
 from service.core.persist import CALIBRATION_FILE
-from tests.freeze import FREEZE_CONFIG, home
+from tests.freeze import FREEZE_CONFIG
+from tests.integration.support import prepare
 from tests.procs import REPO, Daemon, LineReader, rider_cmd, sigstop, start_daemon, stop_process
 
 pytestmark = pytest.mark.integration
@@ -70,7 +71,7 @@ def test_wait_says_when_the_machine_goes_silent_and_the_stall_is_the_fault(
     machine: Daemon,
 ) -> None:
     with machine.rider(timeout=5.0, supervise=False) as r:
-        home(r)
+        prepare(r)
         cmd = rider_cmd("--connect", machine.endpoint, "--zenoh-config", str(machine.zenoh_config))
         waiting = subprocess.Popen(
             [*cmd, "--machine", "m1", "start", "--wait"],
