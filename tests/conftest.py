@@ -2,11 +2,13 @@ from __future__ import annotations
 
 import os
 import random
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from tests.fixtures.revpi import make_image
+from tests.procs import logs_since
 from tests.rig import Rig
 
 
@@ -74,6 +76,17 @@ def _order_line(config: pytest.Config) -> str:
         seed = _seed(config)
         return f"test order: random, seed {seed} (again: --order random:{seed})"
     return f"test order: {order}"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
+    """A failed test's report carries the ends of its daemons' logs: a fault's message, a
+    stall, a refusal the daemon logged (a CI run leaves nothing else behind to read)."""
+    outcome = yield
+    report = outcome.get_result()  # type: ignore[attr-defined]
+    if report.failed and call.when == "call":
+        for title, text in logs_since(call.start):
+            report.sections.append((title, text))
 
 
 def pytest_report_header(config: pytest.Config) -> str:

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -166,6 +167,11 @@ class Daemon:
     zenoh_config: Path
     log_path: Path
     extra: list[str] = field(default_factory=list)
+    started: float = field(default_factory=time.time)
+
+    def __post_init__(self) -> None:
+        _STARTED[:] = [ref for ref in _STARTED if ref() is not None]
+        _STARTED.append(weakref.ref(self))
 
     def rider(self, **kwargs: object) -> Rider:
         return Rider(
@@ -200,6 +206,28 @@ class Daemon:
 
     def stop(self, sig: int = signal.SIGTERM) -> int:
         return stop_process(self.proc, sig)
+
+
+_STARTED: list[weakref.ref[Daemon]] = []
+"""The daemons this test process started, for the logs of a failed test (`logs_since`): weak, so
+a test's process (and its pipes) goes when the test lets go of it; a failed test's traceback
+and the fixtures in use hold theirs."""
+
+LOG_TAIL_LINES = 40
+
+
+def logs_since(since: float) -> list[tuple[str, str]]:
+    """(title, last lines) of each daemon's log that may tell why a test failed: those still
+    running, and those started since `since` (a test's own, stopped by now)."""
+    sections = []
+    for ref in _STARTED:
+        daemon = ref()
+        if daemon is None or (daemon.proc.poll() is not None and daemon.started < since):
+            continue
+        lines = daemon.log().splitlines()[-LOG_TAIL_LINES:]
+        title = f"daemon {daemon.machine_id} (pid {daemon.proc.pid}) log, last {len(lines)} lines"
+        sections.append((title, "\n".join(line[:400] for line in lines)))
+    return sections
 
 
 def child_pids(pid: int) -> list[int]:
