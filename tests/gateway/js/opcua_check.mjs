@@ -89,14 +89,17 @@ async function main() {
           seen.push(dv.value.value);
           if (dv.value.value === "HOMING") {
             clearTimeout(timer);
-            resolve(dv.sourceTimestamp);
+            // What was seen up to HOMING, copied now: the Stop below changes the state again,
+            // and a busy host may deliver that change before the line is printed.
+            resolve({ at: dv.sourceTimestamp, seen: [...seen] });
           }
         });
       });
       out.stop = await callMethod(session, ns, "Stop", []);
       out.home = await callMethod(session, ns, "Home", []);
-      out.homingSource = (await homing).toISOString();
-      out.changes = seen;
+      const homed = await homing;
+      out.homingSource = homed.at.toISOString();
+      out.changes = homed.seen;
       out.start = await callMethod(session, ns, "Start", [
         { dataType: DataType.String, value: "" },
       ]);
