@@ -12,12 +12,13 @@ container, volume and network a test makes is removed afterwards, even when it f
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import shutil
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,16 +38,12 @@ BUILD_TIMEOUT_S = 300.0
 STEP_TIMEOUT_S = 60.0
 HEALTHY_TIMEOUT_S = 30.0
 UID = 10001
+Done = subprocess.CompletedProcess[str]
 
 
 def engine(*args: str, timeout: float = STEP_TIMEOUT_S, check: bool = True) -> str:
     assert ENGINE is not None
-    done = subprocess.run(
-        [ENGINE, *args], capture_output=True, text=True, timeout=timeout, check=False
-    )
-    if check and done.returncode != 0:
-        raise AssertionError(f"podman {' '.join(args)}: exit {done.returncode}\n{done.stderr}")
-    return done.stdout
+    return run_engine("podman", *args, timeout=timeout, check=check)
 
 
 def _skip_reason() -> str | None:
@@ -131,15 +128,16 @@ def wait_healthy(name: str, timeout: float = HEALTHY_TIMEOUT_S) -> float:
         time.sleep(0.5)  # bounded retry of an external probe, not a settle
 
 
-def calibrate(endpoint: str, axis: str, tries: int = 3) -> None:
-    """`rider calibrate AXIS --wait`; again when the machine refused a measurement that a stall
-    of this (loaded) host spoiled (docs/homing.md): the container is the subject here."""
-    for _ in range(tries - 1):
-        done = run_rider(endpoint, "calibrate", axis, "--wait")
+def calibrate(rider: Callable[..., Done], axis: str, tries: int = 3) -> None:
+    """`rider calibrate AXIS --wait` through `rider` (the host's CLI, or the one in a container);
+    again when the machine refused a measurement that a stall of this (loaded) host spoiled
+    (docs/homing.md): the container is the subject here."""
+    for _ in range(tries):
+        done = rider("calibrate", axis, "--wait")
         if done.returncode == 0:
             return
         assert any(code in done.stdout for code in SPOILED), done.stdout + done.stderr
-    rider(endpoint, "calibrate", axis, "--wait")
+    raise AssertionError(f"calibrate {axis}: a spoiled measurement {tries} times in a row")
 
 
 def run_rider(
@@ -183,8 +181,8 @@ def test_container_runs_a_session_from_the_host_and_stops_safely(
     ):
         wait_healthy(name)
         endpoint = f"tcp/127.0.0.1:{port}"
-        calibrate(endpoint, "tilt")
-        calibrate(endpoint, "rotate")
+        calibrate(functools.partial(run_rider, endpoint), "tilt")
+        calibrate(functools.partial(run_rider, endpoint), "rotate")
         rider(endpoint, "home", "--wait")
         # Long enough (about 20 s) to be still under way when the next Rider process has
         # started on a loaded host and when SIGTERM comes: the default session (about 2 s at
@@ -243,11 +241,15 @@ def _docker_skip_reason() -> str | None:
     return None
 
 
-def run_engine(engine: str, *args: str, timeout: float = STEP_TIMEOUT_S, check: bool = True) -> str:
+def engine_run(engine: str, *args: str, timeout: float = STEP_TIMEOUT_S) -> Done:
     binary = str(ENGINE if engine == "podman" else DOCKER)
-    done = subprocess.run(
+    return subprocess.run(
         [binary, *args], capture_output=True, text=True, timeout=timeout, check=False
     )
+
+
+def run_engine(engine: str, *args: str, timeout: float = STEP_TIMEOUT_S, check: bool = True) -> str:
+    done = engine_run(engine, *args, timeout=timeout)
     if check and done.returncode != 0:
         raise AssertionError(f"{engine} {' '.join(args)}: exit {done.returncode}\n{done.stderr}")
     return done.stdout
@@ -357,7 +359,7 @@ def test_compose_services_turn_healthy_and_keep_the_calibration(site: Site) -> N
     site.wait_healthy("machine")
     site.wait_healthy("rider")
     rider = site.container("rider")
-    site.engine("exec", rider, "rider", "calibrate", "tilt", "--wait")
+    calibrate(functools.partial(engine_run, site.tool.engine, "exec", rider, "rider"), "tilt")
     site.compose("down")
     site.compose("up", "-d")
     site.wait_healthy("machine")
