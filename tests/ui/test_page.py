@@ -107,7 +107,8 @@ def run_the_default_session(page: Any) -> None:
     expect(page.locator("#cmd-pause")).to_be_enabled()
     expect(page.locator("#cmd-start")).to_be_disabled()
     expect(page.locator("#io-rotateRelay")).to_have_attribute("data-on", "true", timeout=RIDE_S)
-    expect(page.locator("#revs")).to_have_text("1 / 3", timeout=RIDE_S)
+    # A revolution counted; a loaded host may show 2 / 3 first (updates coalesce; run 77).
+    expect(page.locator("#revs")).to_have_text(re.compile(r"^[123] / 3$"), timeout=RIDE_S)
     shot(page, "06-running")
 
     state_is(page, "DONE", RIDE_S)
