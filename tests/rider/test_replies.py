@@ -340,17 +340,23 @@ def test_a_replier_no_look_names_is_looked_for_once_more_before_it_is_a_second_d
 
     try:
         with rider_for(scripted, tmp_path) as r:
+            key = f"machine/m1/supervisor/{me}"
+
+            def seen_by_rider(up: bool) -> None:
+                """Wait (bounded) until the Rider's session sees the supervisor token `up`."""
+                deadline = time.monotonic() + 10.0
+                while (
+                    bool([t for t in r.transport.link.session.liveliness().get(key) if t.ok]) != up
+                ):
+                    assert time.monotonic() < deadline, f"the token never reached the Rider ({up})"
 
             def declare_supervisor(seconds: float) -> None:
                 """The first pause: the supervisor's token reaches the Rider's session."""
                 pauses.append(seconds)
                 if len(pauses) > 1:
                     return
-                key = f"machine/m1/supervisor/{me}"
                 tokens.append(session.liveliness().declare_token(key))
-                deadline = time.monotonic() + 10.0
-                while not [t for t in r.transport.link.session.liveliness().get(key) if t.ok]:
-                    assert time.monotonic() < deadline, "the token never reached the Rider"
+                seen_by_rider(True)
 
             r.transport.pins.pause = declare_supervisor
             assert r.check_home().ok  # the first look names the daemon only
@@ -358,6 +364,7 @@ def test_a_replier_no_look_names_is_looked_for_once_more_before_it_is_a_second_d
             assert (known.pinned, known.supervisors) == ("the-daemon", {me})
             assert pauses == [0.1]
             tokens.pop().undeclare()
+            seen_by_rider(False)  # a loaded host delivers the undeclaration late
             known.update("supervisor", me, False)  # what a liveliness subscriber hears
             with pytest.raises(DuplicateMachine) as refused:
                 r.check_home()
