@@ -6,7 +6,13 @@ from __future__ import annotations
 import pytest
 
 from schema.status import Fault, FaultCode, MachineState, Status
-from tests.integration.support import HostStalled, again_after_stall, not_stalled, scan_stalled
+from tests.integration.support import (
+    HostStalled,
+    again_after_stall,
+    not_spoiled,
+    not_stalled,
+    scan_stalled,
+)
 
 
 def faulted(code: FaultCode, message: str, state: MachineState = MachineState.FAULT_HW) -> Status:
@@ -79,3 +85,26 @@ def test_any_other_failure_fails_at_once() -> None:
     with pytest.raises(AssertionError, match="ended early"):
         again_after_stall(wrong)
     assert calls == [1]
+
+
+@pytest.mark.parametrize(
+    ("status", "excused"),
+    [
+        (faulted(FaultCode.CALIBRATION_NOT_REPEATABLE, "0.500 s and 0.564 s"), True),
+        (faulted(FaultCode.HOME_EDGE_UNCERTAIN, "3 latches refused"), True),
+        (WATCHDOG, True),
+        (OVERDUE, False),
+        (faulted(FaultCode.CALIBRATION_IMPLAUSIBLE, "a revolution of 9 s"), False),
+    ],
+    ids=["not-repeatable", "edge-uncertain", "watchdog", "overdue", "implausible"],
+)
+def test_a_measurement_the_machine_refused_as_spoiled_is_taken_again(
+    status: Status, excused: bool
+) -> None:
+    """Run 92, beside three burners: a rotate calibration's two edge timings disagreed (a stall
+    between the cycle's clock and its read) and the machine rightly refused it."""
+    if excused:
+        with pytest.raises(HostStalled):
+            not_spoiled(status)
+    else:
+        assert not_spoiled(status) is status

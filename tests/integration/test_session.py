@@ -20,6 +20,7 @@ from tests.integration.support import (
     STEP_TIMEOUT_S,
     again_after_stall,
     module_machine,
+    not_spoiled,
     not_stalled,
     prepare,
     relays_off,
@@ -103,16 +104,16 @@ def calibrate_home_and_ride(rider: Rider) -> None:
     reply = rider.calibrate_tilt()
     assert reply.code is ReplyCode.RESP_CALIBRATION_ACCEPTED
     assert reply.state is MachineState.CALIBRATING
-    assert not_stalled(settle(rider, reply)).calibrated.tilt
+    assert not_spoiled(settle(rider, reply)).calibrated.tilt
 
     reply = rider.calibrate_rotate()
     assert reply.state is MachineState.CALIBRATING
-    status = not_stalled(settle(rider, reply))
+    status = not_spoiled(settle(rider, reply))
     assert status.calibrated.tilt and status.calibrated.rotate
 
     reply = rider.home()
     assert reply.code is ReplyCode.RESP_HOME_ACCEPTED
-    status = not_stalled(settle(rider, reply))
+    status = not_spoiled(settle(rider, reply))
     assert status.state is MachineState.IDLE
     assert status.homed.tilt and status.homed.rotate
 
