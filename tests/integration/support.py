@@ -184,13 +184,19 @@ def not_stalled(status: Status) -> Status:
     return status
 
 
+def spoiled(status: Status) -> bool:
+    """Whether `status` is the machine's refusal of a measurement two latches disagree on
+    (`SPOILED`), as a stall makes them."""
+    fault = status.fault
+    return status.state in FAULT_STATES and fault is not None and fault.code in SPOILED
+
+
 def not_spoiled(status: Status) -> Status:
     """`status`, unless the machine says its scan stalled or refused a measurement as spoiled
-    (`SPOILED`: two latches disagree, as a stall makes them; run 92, beside three burners: a
-    rotate calibration's edges timed 0.500 s and 0.564 s apart) (`HostStalled`)."""
-    fault = status.fault
-    if status.state in FAULT_STATES and fault is not None and fault.code in SPOILED:
-        raise HostStalled(f"a measurement the machine refused as spoiled: {fault}")
+    (`spoiled`; run 92, beside three burners: a rotate calibration's edges timed 0.500 s and
+    0.564 s apart) (`HostStalled`)."""
+    if spoiled(status):
+        raise HostStalled(f"a measurement the machine refused as spoiled: {status.fault}")
     return not_stalled(status)
 
 
@@ -286,9 +292,7 @@ class Preparation:
         `prepare` then calibrates the tilt again if its gain may be spoiled."""
         fault = status.fault
         assert status.state in FAULT_STATES and fault is not None, status
-        if fault.code in SPOILED:  # a measurement a stall spoiled: the machine's right refusal
-            return
-        if scan_stalled(status):  # the machine's own word: its scan stalled
+        if spoiled(status) or scan_stalled(status):  # the machine's own word on a stall
             return
         if fault.code is FaultCode.ROTATE_HOME_TIMEOUT:  # an edge a stall hid (the fast config)
             world_late = late_steps(self.rider) > self._moving_late
