@@ -138,8 +138,14 @@ class Pinning:
     ) -> tuple[list[zenoh.Reply], list[str]]:
         """A supervisor answers for its machine while the daemon is down, and for a moment
         after a restarted daemon answers again (until it has seen the daemon's token): its
-        reply is dropped when another session replied beside it."""
+        reply is dropped when another session replied beside it. A look that names none of
+        the repliers a supervisor is taken again (`LOOK_AGAIN_S`), as `_vet` does: the
+        project's CI once saw a restarted daemon's status refused as a duplicate because the
+        look missed its supervisor's token, up all along."""
         supervisors = self.holders(mid).supervisors
+        if not supervisors.intersection(repliers):
+            self.pause(LOOK_AGAIN_S)
+            supervisors = self.holders(mid).supervisors
         others = [z for z in repliers if z not in supervisors]
         if not others or len(others) == len(repliers):
             return replies, repliers
