@@ -335,37 +335,23 @@ def test_a_replier_no_look_names_is_looked_for_once_more_before_it_is_a_second_d
     assert session is not None
     me = str(session.zid())
     holder = session.liveliness().declare_token("machine/m1/holder/the-daemon")
-    pauses: list[float] = []
-    tokens: list[zenoh.LivelinessToken] = []
-
+    supervisor = TokenAtFirstPause(session, f"machine/m1/supervisor/{me}")
     try:
         with rider_for(scripted, tmp_path) as r:
-            key = f"machine/m1/supervisor/{me}"
-
-            def declare_supervisor(seconds: float) -> None:
-                """The first pause: the supervisor's token reaches the Rider's session."""
-                pauses.append(seconds)
-                if len(pauses) > 1:
-                    return
-                tokens.append(session.liveliness().declare_token(key))
-                token_seen(r, key, True)
-
-            r.transport.pins.pause = declare_supervisor
+            supervisor.attach(r)
             assert r.check_home().ok  # the first look names the daemon only
             known = r.transport.pins.known["m1"]
             assert (known.pinned, known.supervisors) == ("the-daemon", {me})
-            assert pauses == [0.1]
-            tokens.pop().undeclare()
-            token_seen(r, key, False)  # a loaded host delivers the undeclaration late
+            assert supervisor.pauses == [0.1]
+            supervisor.withdraw()
             known.update("supervisor", me, False)  # what a liveliness subscriber hears
             with pytest.raises(DuplicateMachine) as refused:
                 r.check_home()
-            assert pauses == [0.1, 0.1]  # looked for twice, then refused
+            assert supervisor.pauses == [0.1, 0.1]  # looked for twice, then refused
             assert "holders seen: the-daemon; supervisors seen: none" in str(refused.value)
     finally:
         holder.undeclare()
-        for token in tokens:
-            token.undeclare()
+        supervisor.close()
 
 
 def test_a_stand_in_no_look_names_is_looked_for_once_more_before_two_repliers_are_refused(
@@ -383,8 +369,6 @@ def test_a_stand_in_no_look_names_is_looked_for_once_more_before_two_repliers_ar
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps([stand_in_at]))
-    pauses: list[float] = []
-    tokens: list[zenoh.LivelinessToken] = []
 
     def stand_in_answer(query: zenoh.Query) -> None:
         with query:
@@ -394,36 +378,58 @@ def test_a_stand_in_no_look_names_is_looked_for_once_more_before_two_repliers_ar
     with zenoh.open(conf) as stand_in:
         queryable = stand_in.declare_queryable("machine/m1/cmd/**", stand_in_answer)
         holder = daemon.liveliness().declare_token(f"machine/m1/holder/{daemon.zid()}")
-        key = f"machine/m1/supervisor/{stand_in.zid()}"
+        supervisor = TokenAtFirstPause(stand_in, f"machine/m1/supervisor/{stand_in.zid()}")
         try:
             conf_path = write_zenoh_config(tmp_path)
             with Rider(
                 "m1", connect=[scripted.endpoint, stand_in_at], zenoh_config_path=conf_path
             ) as r:
-
-                def declare_supervisor(seconds: float) -> None:
-                    pauses.append(seconds)
-                    if len(pauses) > 1:
-                        return
-                    tokens.append(stand_in.liveliness().declare_token(key))
-                    token_seen(r, key, True)
-
                 repliers_reached(r)  # two repliers, or the test says nothing
-                r.transport.pins.pause = declare_supervisor
+                supervisor.attach(r)
                 assert r.check_home().ok  # the first look names no supervisor; the second does
-                known = r.transport.pins.known["m1"]
-                assert known.supervisors == {str(stand_in.zid())}
-                assert pauses == [0.1]
-                tokens.pop().undeclare()
-                token_seen(r, key, False)
+                assert r.transport.pins.known["m1"].supervisors == {str(stand_in.zid())}
+                assert supervisor.pauses == [0.1]
+                supervisor.withdraw()
                 with pytest.raises(DuplicateMachine, match="2 sessions replied"):
                     r.check_home()
-                assert pauses == [0.1, 0.1]  # looked for twice, then refused
+                assert supervisor.pauses == [0.1, 0.1]  # looked for twice, then refused
         finally:
             holder.undeclare()
             queryable.undeclare()
-            for token in tokens:
-                token.undeclare()
+            supervisor.close()
+
+
+@dataclass
+class TokenAtFirstPause:
+    """The Rider's pause hook (`Pinning.pause`): each pause recorded; at the first, `session`
+    declares the supervisor token `key` and waits until the Rider's session sees it."""
+
+    session: zenoh.Session
+    key: str
+    rider: Rider | None = None
+    pauses: list[float] = field(default_factory=list)
+    token: zenoh.LivelinessToken | None = None
+
+    def attach(self, rider: Rider) -> None:
+        self.rider = rider
+        rider.transport.pins.pause = self
+
+    def __call__(self, seconds: float) -> None:
+        self.pauses.append(seconds)
+        if len(self.pauses) == 1 and self.rider is not None:
+            self.token = self.session.liveliness().declare_token(self.key)
+            token_seen(self.rider, self.key, True)
+
+    def withdraw(self) -> None:
+        """Undeclare the token and wait until the Rider's session no longer sees it."""
+        self.close()
+        if self.rider is not None:
+            token_seen(self.rider, self.key, False)
+
+    def close(self) -> None:
+        if self.token is not None:
+            self.token.undeclare()
+            self.token = None
 
 
 def token_seen(r: Rider, key: str, up: bool) -> None:
