@@ -104,6 +104,15 @@ class Pinning:
                 known.update(kind, zid, True)
         return known
 
+    def _looked(self, machine_id: str, fine: Callable[[Holders], bool]) -> Holders:
+        """`holders`, looked at a second time `LOOK_AGAIN_S` later when the first look is not
+        `fine`: a look can come back short, and what follows is a `DuplicateMachine`."""
+        known = self.holders(machine_id)
+        if not fine(known):
+            self.pause(LOOK_AGAIN_S)
+            known = self.holders(machine_id)
+        return known
+
     def check_repliers(self, key: str, replies: list[zenoh.Reply]) -> list[zenoh.Reply]:
         """One session answers for one machine, and it is the pinned one (or its supervisor);
         the replies to use (the daemon's, when its supervisor answered beside it)."""
@@ -138,15 +147,11 @@ class Pinning:
     ) -> tuple[list[zenoh.Reply], list[str]]:
         """A supervisor answers for its machine while the daemon is down, and for a moment
         after a restarted daemon answers again (until it has seen the daemon's token): its
-        reply is dropped when another session replied beside it. A look that names none of
-        the repliers a supervisor is taken again (`LOOK_AGAIN_S`), as `_vet` does: the
-        project's CI once saw a restarted daemon's status refused as a duplicate because the
-        look missed its supervisor's token, up all along."""
-        supervisors = self.holders(mid).supervisors
-        if not supervisors.intersection(repliers):
-            self.pause(LOOK_AGAIN_S)
-            supervisors = self.holders(mid).supervisors
-        others = [z for z in repliers if z not in supervisors]
+        reply is dropped when another session replied beside it. The look is `_looked`'s: the
+        project's CI once saw a restarted daemon's status refused as a duplicate because a
+        single look missed its supervisor's token, up all along."""
+        known = self._looked(mid, lambda k: bool(k.supervisors.intersection(repliers)))
+        others = [z for z in repliers if z not in known.supervisors]
         if not others or len(others) == len(repliers):
             return replies, repliers
         kept = [r for r in replies if r.replier_id is None or str(r.replier_id.zid) in others]
@@ -157,10 +162,8 @@ class Pinning:
         (`DuplicateMachine` otherwise); remembered by its `zenoh.ZenohId` when given."""
         known = self.known.get(mid)
         if known is None or not known.allows(zid):
-            known = self.holders(mid)  # first contact, or the holder changed since
-            if not known.allows(zid):
-                self.pause(LOOK_AGAIN_S)
-                known = self.holders(mid)  # a second look before calling it a duplicate
+            # first contact, or the holder changed since
+            known = self._looked(mid, lambda k: k.allows(zid))
         checked = known.changes
         if len(known.holders) > 1:
             raise DuplicateMachine(mid, sorted(known.holders), "each holds the machine's token")
