@@ -96,6 +96,7 @@ def fmt_calibration(c: CalibrationRecord) -> str:
         if t is None
         else f"offset {t.offset_counts:.1f} counts, gain {t.gain_counts_per_deg:.3f} counts/°"
         f" {how(t.source, t.at)}"
+        + (" NOT VERIFIED: the next Home verifies it" if t.verified is False else "")
     )
     rotate = (
         "not calibrated"

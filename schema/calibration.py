@@ -30,6 +30,10 @@ class TiltCalibrationValues(OpenWireModel):
     """None: a file from before sources were recorded (measured then)."""
     at: float | None = None
     """When it was measured or entered (wall-clock seconds); None if unknown."""
+    verified: bool | None = None
+    """Confirmed by the machine's witnesses (the home switch, the drive's speed): measured, or
+    entered by hand and verified by a Home since. False: entered, and the next Home verifies
+    it before any session may run on it. None: a machine from before verification."""
 
 
 class RotateCalibrationValues(OpenWireModel):

@@ -47,9 +47,13 @@ class FaultCode(StrEnum):
     HOME_EDGE_UNCERTAIN = "HOME_EDGE_UNCERTAIN"
     """The home switch edge was seen only across scans too far apart, in every approach."""
     HOME_OFF_ZERO = "HOME_OFF_ZERO"
-    """Home found the switch edge outside the tolerance of the calibrated zero."""
+    """The home switch witness: the tilt's switch closed outside the tolerance of the
+    calibrated zero (at Home, a calibration's verification, or a pass on the way down)."""
     TILT_SPEED_IMPLAUSIBLE = "TILT_SPEED_IMPLAUSIBLE"
     """The tilt's measured speed disagrees with its nominal speed: wrong gain or bad sensor."""
+    TILT_GAIN_MISMATCH = "TILT_GAIN_MISMATCH"
+    """The drive's speed witness (counts per second over a stroke) disagrees with the
+    calibrated gain: a wrong, stale or slipped calibration, or a drive off its nominal speed."""
     ROTATE_SPEED_IMPLAUSIBLE = "ROTATE_SPEED_IMPLAUSIBLE"
     """A revolution took far less than the calibrated time: wrong calibration or a bad switch."""
     INVALID_SESSION = "INVALID_SESSION"

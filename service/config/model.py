@@ -145,6 +145,15 @@ class TiltSection(_Section):
     """While driven, the calibrated speed is measured over each window of this length …"""
     speed_tolerance: float = Field(default=0.3, gt=0, lt=1)
     """… and must be the nominal speed ± this fraction, or `TILT_SPEED_IMPLAUSIBLE`."""
+    gain_tolerance_deg: float = Field(default=0.3, gt=0, le=10)
+    """The drive's speed witness: over each stroke, the analog's counts per second against the
+    calibrated gain at the nominal speed may disagree by at most this much position error at
+    the range's far end (max |min_deg|, |max_deg|), or `TILT_GAIN_MISMATCH`. With
+    `home_tolerance_deg` it bounds how far a trusted calibration may overshoot a target."""
+    verify_tolerance_deg: float = Field(default=0.3, gt=0, le=10)
+    """A calibration entered by hand is verified by the next Home (two zeros and a stroke):
+    the position error the witnesses then find anywhere in min_deg..max_deg must be at most
+    this, or `HOME_OFF_ZERO` / `TILT_GAIN_MISMATCH`."""
 
 
 class RiderLossPolicy(StrEnum):

@@ -10,6 +10,7 @@ both values in the reason, never DONE. docs/homing.md has the sequences.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from enum import Enum, auto
 from itertools import pairwise
@@ -24,9 +25,10 @@ from service.core.devices import (
     TiltCalibration,
     TiltDirection,
 )
-from service.core.homing import Latch, OnSwitch, RotateHome, TiltApproach, half_travel, line
+from service.core.homing import Latch, OnSwitch, RotateHome, TiltApproach
 from service.core.motion import REVERSE_DWELL_S, Measurement, Step
 from service.core.plausibility import TiltSupervisor
+from service.core.witness import half_travel, judge_entered, line
 
 
 class TiltCalPhase(Enum):
@@ -142,7 +144,10 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
                 f" apart (gain {self._gain:.2f} counts/°); they must agree within {tol:g}°"
                 " (a bouncing or loose home switch, or a noisy sensor)",
             )
-        offset = (first + second) / 2
+        return self._finish((first + second) / 2)
+
+    def _finish(self, offset: float) -> Step:
+        """Both zeros agree on `offset`: the result, in use from now on."""
         self.result = TiltCalibration(offset_counts=offset, gain_counts_per_deg=self._gain)
         self.axis.calibration = self.result
         return Step.DONE
@@ -156,6 +161,29 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
         # An interrupted stroke measures nothing: start over with the first latch.
         self.phase, self.zeros = TiltCalPhase.FIRST, []
         self.homing = TiltApproach(self.axis, self.cfg, rest_s=REVERSE_DWELL_S)
+
+
+class TiltVerify(TiltCalibrate):
+    """A calibration entered by hand, verified before a session may run on it: the measurement
+    of `TiltCalibrate` (a zero, a stroke up, the zero again), judged against the entered values
+    instead of replacing them (`judge_entered`). It ends at home with the calibration verified,
+    or in the fault of the witness that disagrees (the entered values stay, unverified)."""
+
+    def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
+        super().__init__(axis, cfg)
+        # Measured through the entered values: the speed checks stop a gross error within a
+        # speed window (`TiltSupervisor`), before the stroke is over.
+        axis.calibration = self._previous
+
+    def _finish(self, offset: float) -> Step:
+        entered = self._previous
+        assert entered is not None, "only an entered calibration is verified"
+        fault = judge_entered(entered, offset, self._gain, self.cfg)
+        if fault is not None:
+            return self._fault(fault)
+        self.result = dataclasses.replace(entered, verified=True)
+        self.axis.calibration = self.result
+        return Step.DONE
 
 
 class RotateCalibrate(Measurement[RotateAxis, RotateSection]):

@@ -12,9 +12,10 @@ from schema.commands import Direction, RotateStep, Session, TiltStep
 from schema.status import FaultCode, SessionProgress
 from service.config.model import MachineConfig, RotateSection, TiltSection
 from service.core.devices import Devices, RotateAxis, RotateCalibration, TiltAxis, TiltDirection
-from service.core.homing import OnSwitch, RotateHome, half_travel
+from service.core.homing import OnSwitch, RotateHome
 from service.core.motion import REVERSE_DWELL_S, AxisController, Chain, Controller, Step
 from service.core.plausibility import RevolutionCheck, TiltSupervisor
+from service.core.witness import ZeroWitness, half_travel, off_zero
 
 
 class TiltMove(AxisController[TiltAxis, TiltSection]):
@@ -27,6 +28,7 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
         super().__init__(axis, cfg)
         self.target = self.target_deg = target_deg
         self._sup = TiltSupervisor(axis, cfg)
+        self._zero = ZeroWitness(cfg)
         self._dir: TiltDirection | None = None
         self._corrections = 0
 
@@ -66,7 +68,7 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
         """Stopped: DONE within tolerance, else the way to correct (None), or FAULT after
         too many corrections."""
         if abs(err) <= self.cfg.tolerance_deg:
-            return Step.DONE
+            return self._below_zero_open() or Step.DONE
         self._corrections += 1
         if self._corrections > self.MAX_CORRECTIONS:
             return self._fail(
@@ -75,10 +77,28 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
             )
         self._dir = TiltDirection.UP if err > 0 else TiltDirection.DOWN
         self._sup.reset()
+        self._zero.reset()
         return None
+
+    def _below_zero_open(self) -> Step | None:
+        """The home switch witness at rest: below 0° by the calibration, the switch must be
+        closed (it closes at 0° going down and opens at or above it going up)."""
+        cal, raw = self.axis.calibration, self.axis.read_raw()
+        if cal is None or self.axis.is_home():
+            return None
+        deg, tol = cal.degrees(raw), self.cfg.home_tolerance_deg
+        if deg >= -tol:
+            return None
+        return self._fault(off_zero(deg, raw, cal, tol, "is still open"))
 
     def _drive(self, now: float, err: float) -> Step:
         assert self._dir is not None
+        if self._dir is TiltDirection.DOWN:  # the home switch witness on the way down
+            fault = self._zero.down(
+                now, self.axis.read_raw(), self.axis.is_home(), self.axis.calibration
+            )
+            if fault is not None:
+                return self._fault(fault)
         reached = abs(err) <= self.cfg.tolerance_deg / 2 or (
             err <= 0 if self._dir is TiltDirection.UP else err >= 0
         )
@@ -97,6 +117,7 @@ class TiltMove(AxisController[TiltAxis, TiltSection]):
         self.timer.stop()  # re-armed from the distance left at the next update
         self._corrections = 0
         self._sup.reset()
+        self._zero.reset()
 
 
 class RotateRevolutions(AxisController[RotateAxis, RotateSection]):

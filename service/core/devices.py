@@ -24,6 +24,9 @@ class TiltCalibration:
     source: CalibrationSource = CalibrationSource.MEASURED
     at: float | None = None
     """When it was measured or entered (wall-clock seconds)."""
+    verified: bool = True
+    """Confirmed by the machine's witnesses: measured, or entered by hand and since verified
+    by a Home's stroke (docs/homing.md). An entered one is not, until then."""
 
     def degrees(self, raw: int) -> float:
         return (raw - self.offset_counts) / self.gain_counts_per_deg

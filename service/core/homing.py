@@ -16,9 +16,7 @@ sequences, the tolerances and what a late scan costs.
 
 from __future__ import annotations
 
-import math
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum, auto
 
@@ -34,6 +32,7 @@ from service.core.motion import (
     Step,
 )
 from service.core.plausibility import TiltSupervisor
+from service.core.witness import half_travel, off_zero, raw_at
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,29 +56,6 @@ class Latch:
     @property
     def gap_ms(self) -> float:
         return (self.after - self.before) * 1000.0
-
-
-def half_travel(speed_dps: float, before: float | None, after: float) -> float:
-    """Half the travel at `speed_dps` between two scans (infinite without the first)."""
-    return math.inf if before is None else speed_dps * (after - before) / 2
-
-
-def line(samples: Sequence[tuple[float, int]]) -> tuple[float, float, float]:
-    """The least-squares line through `samples` (time, raw), taken while the drive ran at one
-    speed: (mean time, mean raw, slope in counts/s; 0 when all are at one time)."""
-    n = len(samples)
-    mean_t = sum(s[0] for s in samples) / n
-    mean_r = sum(s[1] for s in samples) / n
-    var = sum((s[0] - mean_t) ** 2 for s in samples)
-    if var == 0.0:
-        return mean_t, mean_r, 0.0
-    return mean_t, mean_r, sum((s[0] - mean_t) * (s[1] - mean_r) for s in samples) / var
-
-
-def raw_at(samples: Sequence[tuple[float, int]], t: float) -> float:
-    """The analog value at `t` on the line through `samples` (one sample: its value)."""
-    mean_t, mean_r, slope = line(samples)
-    return mean_r + slope * (t - mean_t)
 
 
 @dataclass(slots=True)
@@ -360,12 +336,7 @@ class TiltHome(TiltApproach):
         tol = self.cfg.home_tolerance_deg
         if abs(deg) <= tol:
             return Step.DONE
-        return self._fail(
-            FaultCode.HOME_OFF_ZERO,
-            f"tilt home edge at {deg:+.2f}° by the calibration (raw {latch.raw:.1f}, offset"
-            f" {cal.offset_counts:g}); it must lie within ±{tol:g}° of 0°: calibrate the tilt"
-            " again, or check the sensor and the switch",
-        )
+        return self._fault(off_zero(deg, latch.raw, cal, tol, "closed at Home"))
 
 
 # ---------------------------------------------------------------------------------- rotate

@@ -28,7 +28,8 @@ def manual_calibration(
                 f" plausible {lo:g}..{hi:g} (tilt.gain_min/max_counts_per_deg)",
                 "/tilt/gain_counts_per_deg",
             )
-        tilt = TiltCalibration(t.offset_counts, t.gain_counts_per_deg, manual, wall)
+        # Unverified until a Home's stroke confirms it (`TiltVerify`).
+        tilt = TiltCalibration(t.offset_counts, t.gain_counts_per_deg, manual, wall, False)
     if values.rotate is not None:
         r = values.rotate
         nominal = 360.0 / config.rotate.nominal_speed_dps

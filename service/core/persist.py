@@ -59,11 +59,18 @@ class _CalibrationFile(BaseModel):
 
 def calibration_to_json(cal: Calibration, saved_at: float) -> bytes:
     doc = _CalibrationFile(
-        tilt=None if cal.tilt is None else _TiltEntry(**dataclasses.asdict(cal.tilt)),
+        tilt=None if cal.tilt is None else _tilt_entry(cal.tilt),
         rotate=None if cal.rotate is None else _RotateEntry(**dataclasses.asdict(cal.rotate)),
         saved_at=saved_at,
     )
     return doc.model_dump_json(indent=2).encode()
+
+
+def _tilt_entry(tilt: TiltCalibration) -> _TiltEntry:
+    """The file's record of the tilt: verification is not stored (a start verifies again)."""
+    values = dataclasses.asdict(tilt)
+    del values["verified"]
+    return _TiltEntry(**values)
 
 
 def load_calibration(data_dir: Path) -> tuple[Calibration, str | None]:
@@ -74,7 +81,12 @@ def load_calibration(data_dir: Path) -> tuple[Calibration, str | None]:
         return Calibration(), loaded.warning
     try:
         doc = _CalibrationFile.model_validate(loaded.data)
-        tilt = TiltCalibration(**doc.tilt.model_dump()) if doc.tilt else None
+        # An entered calibration is verified again by the first Home after a start: the file
+        # may be stale, copied from another machine, or edited (docs/homing.md).
+        tilt = None
+        if doc.tilt is not None:
+            manual = doc.tilt.source is CalibrationSource.MANUAL
+            tilt = TiltCalibration(**doc.tilt.model_dump(), verified=not manual)
         rotate = RotateCalibration(**doc.rotate.model_dump()) if doc.rotate else None
         if tilt is not None and not tilt.gain_counts_per_deg > 0:
             raise ValueError("tilt gain must be positive")

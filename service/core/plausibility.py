@@ -17,6 +17,7 @@ from schema.status import Fault, FaultCode
 from service.config.model import RotateSection, TiltSection
 from service.core.devices import RotateCalibration, TiltAxis, TiltDirection
 from service.core.motion import Timeout
+from service.core.witness import GainWitness
 
 
 class TiltSupervisor:
@@ -27,7 +28,7 @@ class TiltSupervisor:
     the driven way (either way before calibration tells the sign). Speed: over each
     `speed_window_s` a calibrated position must move at the nominal speed ± `speed_tolerance`.
     Noise: a change between two samples larger than the drive can cause is a jump; too many
-    within a second is a fault.
+    within a second is a fault. The gain: the whole stroke's speed (`GainWitness`), calibrated.
     """
 
     def __init__(self, axis: TiltAxis, cfg: TiltSection) -> None:
@@ -41,6 +42,8 @@ class TiltSupervisor:
         """Speed windows judged since the last `reset` (with or without a calibration)."""
         self._last: tuple[float, int] | None = None
         self._jumps: deque[float] = deque()
+        self.gain = GainWitness(cfg)
+        self._driven: TiltDirection | None = None
 
     def reset(self) -> None:
         self._window.stop()
@@ -48,6 +51,8 @@ class TiltSupervisor:
         self.speed_windows = 0
         self._last = None
         self._jumps.clear()
+        self.gain.reset()
+        self._driven = None
 
     def drive(self, now: float, direction: TiltDirection) -> Fault | None:
         """One cycle of drive `direction`, checked first: the fault that stops it, or None."""
@@ -57,6 +62,9 @@ class TiltSupervisor:
         return fault
 
     def check(self, now: float, direction: TiltDirection) -> Fault | None:
+        if self._driven is not direction:
+            self.reset()  # a reversal is a new stroke
+            self._driven = direction
         raw = self.axis.read_raw()
         first = self._last is None  # the drive's first cycle since `reset`
         noise = self._check_noise(now, raw)
@@ -66,10 +74,12 @@ class TiltSupervisor:
             # 0.12 s window stood still, "35.3°/s"): the windows start from the next reading,
             # taken with the drive on, as the calibration's stroke takes its samples.
             return noise
+        self.gain.sample(now, raw)
         return (
             noise
             or self._check_speed(now, raw, direction)
             or self._check_follow(now, raw, direction)
+            or self.gain.judge(self.axis.calibration, direction)
         )
 
     def _check_follow(self, now: float, raw: int, direction: TiltDirection) -> Fault | None:

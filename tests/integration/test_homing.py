@@ -151,6 +151,44 @@ def test_a_tilt_gain_typo_stops_within_a_few_degrees_not_at_the_end_stop(tmp_pat
             assert r.sim("world").tilt_deg < 10.0
 
 
+def test_a_gain_typed_30_percent_wrong_is_never_done_at_the_wrong_angle(tmp_path: Path) -> None:
+    """Issue 53, point 1: `calibration set --tilt-offset 1197 --tilt-gain 52` (40 is measured),
+    `home --wait`, `start --wait` ended DONE "at 44.6°" with the simulated tilt at 57.9°, and a
+    one-step session to 60° DONE at "59.6°" with the tilt at 77.3°, past `tilt.max_deg`: 23 %
+    slow is inside the speed window's ±30 %. Now the Home verifies the entered values (a zero, a
+    stroke, the zero again) and stops on the speed witness's code; nothing rides on them."""
+    with running_daemon(tmp_path, extra=config(tmp_path)) as daemon, daemon.rider() as r:
+        rotate = ["--rotate-revolution-s", "0.5", "--rotate-home-arc", "30"]
+        typed = ["--tilt-offset", "1197", "--tilt-gain", "52", *rotate]
+        assert daemon.cli("calibration", "set", *typed).returncode == 0
+        record = r.calibration()
+        assert record.tilt is not None and record.tilt.verified is False
+        home = daemon.cli("home", "--wait", timeout=CLI_TIMEOUT_S)
+        assert home.returncode == 1, home.stdout + home.stderr
+        status = r.status()
+        assert status.state is MachineState.FAULT_HW and status.fault is not None, status
+        assert status.fault.code is FaultCode.TILT_GAIN_MISMATCH, status.fault
+        assert "52" in status.fault.message and "counts/°" in status.fault.message
+        sixty = tmp_path / "sixty.json"
+        sixty.write_text('{"name": "sixty", "steps": [{"kind": "tilt", "degrees": 60}]}')
+        for session in ([], ["--session", str(sixty)]):
+            start = daemon.cli("start", "--wait", *session, timeout=CLI_TIMEOUT_S)
+            assert start.returncode == 1 and "NOT_HOME" in start.stderr, start.stderr
+        world = r.sim("world")
+        assert world.tilt_deg <= 61.0 and not any(world.relays.values()), world
+        # The right values, typed: verified by the same Home, and the ride goes where it says.
+        right = ["--tilt-offset", "1200", "--tilt-gain", "40"]
+        assert daemon.cli("calibration", "set", *right).returncode == 0
+        assert daemon.cli("home", "--wait", timeout=CLI_TIMEOUT_S).returncode == 0
+        record = r.calibration()
+        assert record.tilt is not None and record.tilt.verified is True
+        ride = daemon.cli("start", "--wait", "--session", str(sixty), timeout=CLI_TIMEOUT_S)
+        assert ride.returncode == 0, ride.stdout + ride.stderr
+        ended = r.status()
+        tilt_err, _ = positions_error(r, ended)
+        assert ended.state is MachineState.DONE and tilt_err <= POSITION_TOL_DEG, ended
+
+
 def test_calibration_set_republishes_the_idle_tilt_and_the_history_tells_a_failed_save(
     tmp_path: Path,
 ) -> None:

@@ -186,7 +186,7 @@
     if (!c) return "";
     const how = (v) => ` (${v.source || "measured"}${v.at ? `, ${stamp(v.at)}` : ""})`;
     const t = c.tilt
-      ? `tilt: offset ${c.tilt.offset_counts.toFixed(1)} counts, gain ${c.tilt.gain_counts_per_deg.toFixed(3)} counts/°${how(c.tilt)}`
+      ? `tilt: offset ${c.tilt.offset_counts.toFixed(1)} counts, gain ${c.tilt.gain_counts_per_deg.toFixed(3)} counts/°${how(c.tilt)}${c.tilt.verified === false ? " NOT VERIFIED: the next Home verifies it" : ""}`
       : "tilt: not calibrated";
     const r = c.rotate
       ? `rotate: revolution ${c.rotate.revolution_s.toFixed(3)} s, home arc ${c.rotate.home_arc_deg.toFixed(1)}°${how(c.rotate)}`

@@ -25,7 +25,7 @@ from schema.commands import (
 from schema.completion import Outcome
 from schema.status import Fault, FaultCode, MachineState
 from service.core.admission import admit
-from service.core.calibrate import RotateCalibrate, TiltCalibrate
+from service.core.calibrate import RotateCalibrate, TiltCalibrate, TiltVerify
 from service.core.controllers import SessionRun
 from service.core.homing import RotateHome, TiltHome
 from service.core.motion import Chain, Controller
@@ -131,6 +131,7 @@ def home(m: StateMachine, request: CommandRequest, now: float) -> None:
     chain = Chain([lambda: tilt_home(m), lambda: rotate_home(m)])
 
     def homed(at: float) -> Ending:
+        calibration.verified(m)
         m.refs.tilt = m.refs.rotate = True
         m.go(Event.MOTION_DONE, at, "Home complete")
         return Ending(Outcome.DONE, "Home complete")
@@ -139,7 +140,12 @@ def home(m: StateMachine, request: CommandRequest, now: float) -> None:
 
 
 def tilt_home(m: StateMachine) -> Controller:
-    return TiltHome(m.devices.tilt, m.config.tilt)
+    """The tilt's part of Home (and of CalibrateRotate): an entered calibration not verified
+    yet is verified on the way (`TiltVerify`), a trusted one checked at its zero."""
+    tilt, cfg = m.devices.tilt, m.config.tilt
+    if tilt.calibration is not None and not tilt.calibration.verified:
+        return TiltVerify(tilt, cfg)
+    return TiltHome(tilt, cfg)
 
 
 def rotate_home(m: StateMachine) -> Controller:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -199,10 +200,15 @@ def test_a_file_from_before_sources_loads_as_measured_and_manual_values_round_tr
     assert warning is None and cal.tilt is not None
     assert (cal.tilt.source, cal.tilt.at) == (CalibrationSource.MEASURED, None)
     manual = Calibration(
-        tilt=TiltCalibration(1200.0, 41.0, CalibrationSource.MANUAL, 1764300000.0),
+        tilt=TiltCalibration(1200.0, 41.0, CalibrationSource.MANUAL, 1764300000.0, False),
         rotate=RotateCalibration(4.1, 10.0, CalibrationSource.MEASURED, 1764200000.0),
     )
     CalibrationStore(tmp_path).save(manual)
+    assert load_calibration(tmp_path) == (manual, None)
+    # A Home verified it since; a start verifies it again (the file may be stale or copied).
+    assert manual.tilt is not None
+    verified = dataclasses.replace(manual, tilt=dataclasses.replace(manual.tilt, verified=True))
+    CalibrationStore(tmp_path).save(verified)
     assert load_calibration(tmp_path) == (manual, None)
     bad = {
         "version": 1,
