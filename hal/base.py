@@ -22,6 +22,9 @@ class Outputs:
     """The output half of the process image (relay outputs), keyed by channel name."""
 
     ro: dict[str, bool] = field(default_factory=dict)
+    pump: bool | None = None
+    """The charge-pump output's level this cycle (None: the ride has none, or nothing drives
+    it). It is no relay of the ride: `any_on` and a supervisor's `energised` leave it out."""
 
     def any_on(self) -> bool:
         return any(self.ro.values())

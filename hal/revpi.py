@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import Any
 
 from hal.base import HalConfigError, HalError, Inputs, Outputs
-from hal.iomap import IoMap, Signal
+from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
 from hal.pictory import (
     CONFIG_PATH,
     RevPiConfigError,
@@ -168,9 +168,17 @@ class RevPiHal:
         by_kind = {k: [b for b in bound if KIND[b.signal] is k] for k in IoKind}
         self._di = [(b.channel, b) for b in by_kind[IoKind.DI]]
         self._ai = [(b.channel, b.io) for b in by_kind[IoKind.AI]]
-        self._ro = [(b.channel, b.byte, b.mask) for b in by_kind[IoKind.RO]]
+        outputs = by_kind[IoKind.RO]
+        self._ro = [(b.channel, b.byte, b.mask) for b in outputs if b.signal in RELAY_OUTPUTS]
+        self._relay_bits: dict[int, int] = {}
+        """Byte address → the mask of the ride's relays in it (what `energised` reads)."""
         for _, byte, mask in self._ro:
-            self._owned[byte] = self._owned.get(byte, 0) | mask
+            self._relay_bits[byte] = self._relay_bits.get(byte, 0) | mask
+        pump = [b for b in outputs if b.signal is Signal.CHARGE_PUMP]
+        self._pump = (pump[0].byte, pump[0].mask) if pump else None
+        """The charge pump's byte and bit: written with the relays, off in the safe state."""
+        for b in outputs:
+            self._owned[b.byte] = self._owned.get(b.byte, 0) | b.mask
         self._lengths = [(dev, len(dev)) for dev in self._rpi.device]
         estop = next(b for b in bound if b.signal is Signal.ESTOP)
         self._estop_addr, self._estop_mask = estop.byte, estop.mask
@@ -202,6 +210,8 @@ class RevPiHal:
         for ch, byte, mask in self._ro:
             if outputs.ro.get(ch, False):
                 bits[byte] |= mask
+        if self._pump is not None and outputs.pump:
+            bits[self._pump[0]] |= self._pump[1]
         with self._lock:
             for byte, mask in self._owned.items():
                 self._io(
@@ -224,9 +234,9 @@ class RevPiHal:
         self._io(functools.partial(_merge, offset=byte, mask=mask, bits=on), "write")
 
     def energised(self) -> bool:
-        """Whether any of our relay bits is on in the image now (read, not remembered): what
-        a supervisor asks of a stalled daemon's outputs."""
-        for byte, mask in self._owned.items():
+        """Whether any of the ride's relay bits is on in the image now (read, not remembered):
+        what a supervisor asks of a stalled daemon's outputs (the charge pump is no relay)."""
+        for byte, mask in self._relay_bits.items():
             if self._io(functools.partial(_read_byte, offset=byte), "read") & mask:
                 return True
         return False

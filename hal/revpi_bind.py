@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
+from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, OPTIONAL_OUTPUTS, RELAY_OUTPUTS, IoMap, Signal
 from hal.pictory import BYTE_IO_BASES, CONFIG_PATH, STATUS_MODULES, Module, error, product_name
 from hal.revpi_open import import_revpimodio2
 from schema.findings import Finding, Severity
@@ -17,6 +17,7 @@ KIND = {
     **dict.fromkeys(DIGITAL_INPUTS, IoKind.DI),
     **dict.fromkeys(ANALOG_INPUTS, IoKind.AI),
     **dict.fromkeys(RELAY_OUTPUTS, IoKind.RO),
+    **dict.fromkeys(OPTIONAL_OUTPUTS, IoKind.RO),
 }
 """The kind of IO each signal needs."""
 _WANTED = {
@@ -106,7 +107,8 @@ def bind_ios(
     directions = (rp.OUT, rp.INP) if rpi.simulator else (rp.INP, rp.OUT)
     bound: list[BoundIo] = []
     findings: list[Finding] = []
-    for signal, kind in KIND.items():
+    for signal in iomap.mapped():
+        kind = KIND[signal]
         channel = iomap.channel(signal)
         path = f"/hal/iomap/{signal.value}"
         found = _resolve(rpi, channel)

@@ -100,6 +100,17 @@ class SimWorldState(OpenWireModel):
     embedded simulator, which the scan steps itself and which is never late."""
     longest_late_s: float | None = None
     """The latest of those steps, seconds behind its plan."""
+    drives_powered: bool | None = None
+    """Whether the charge pump's external relay gives the drives power; None: the ride has no
+    charge pump (no `chargePump` in the IO map)."""
+    drives_off_s: float | None = None
+    """How long the drives have been without power at `clock` (0 while powered)."""
+    charge_pump_drops: int | None = None
+    """Times the charge pump's relay dropped the drives and was picked up again."""
+    clock: float | None = None
+    """The world's own clock at this report: for a world on its own (`machine supervise
+    --sim`) the host's CLOCK_MONOTONIC in seconds, which every process on the host shares, so
+    the drives were cut at `clock - drives_off_s`."""
 
 
 SIM_REQUESTS: dict[str, type[WireModel]] = {

@@ -110,4 +110,8 @@ def world_state(sim: SimHal, stamp: float) -> SimWorldState:
         rotate_home_closed=w.rotate_switch.closed,
         tilt_zero_counts=p.ai_offset_counts + p.ai_gain_counts_per_deg * p.tilt_home_deg,
         stalled_s=sim.stalled_s,
+        drives_powered=None if w.pump is None else w.pump.powered(w.time),
+        drives_off_s=None if w.pump is None else max(0.0, w.time - w.pump.until),
+        charge_pump_drops=None if w.pump is None else w.pump.drops,
+        clock=sim.now(),
     )

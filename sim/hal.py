@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 from hal.base import Inputs, Outputs
 from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from sim.physics import SwitchFault, World, WorldInputs
+from sim.physics import ChargePumpRelay, SwitchFault, World, WorldInputs
 from sim.settings import PhysicsParams
 
 
@@ -30,6 +30,8 @@ class SimHal:
         self.iomap = iomap or IoMap()
         self.world = World(params=params or PhysicsParams())
         p = self.world.params
+        if self.iomap.charge_pump is not None:  # the ride's drives hang on the pump's relay
+            self.world.pump = ChargePumpRelay(p.charge_pump_timeout_s)
         self._sleep = sleep
         self._stalls = random.Random(p.seed + 1)
         self.stall_probability = p.scan_stall_probability
@@ -83,6 +85,10 @@ class SimHal:
         self.writes += 1
         if self.stall_probability and self._sleep is not None:
             self._stall(self._sleep)  # decided, not yet written: the old outputs run on
+        pump = self.world.pump
+        if pump is not None and outputs.pump is not None and outputs.pump != pump.level:
+            self._advance()  # the drives had power up to now as the relay had it
+            pump.feed(outputs.pump, self.world.time)
         if outputs.ro == self._written.ro:
             return  # the drive runs on these already: the next scan integrates up to then
         self._advance()
@@ -93,6 +99,8 @@ class SimHal:
         self._advance()
         self._written = Outputs(ro=dict.fromkeys(self._relays, False))
         self._apply(self._written)
+        if self.world.pump is not None:
+            self.world.pump.feed(False, self.world.time)  # the pump stops: low, for good
 
     def read_estop(self) -> bool:
         return self.world.faults.estop_pressed
@@ -102,6 +110,10 @@ class SimHal:
         self.closed = True
 
     # -- observation --------------------------------------------------------------------
+    def now(self) -> float:
+        """The clock the world runs on, now."""
+        return self._clock()
+
     @property
     def outputs(self) -> Outputs:
         """What was last written to the relays."""

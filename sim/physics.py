@@ -73,6 +73,44 @@ class Switch:
 
 
 @dataclass
+class ChargePumpRelay:
+    """The external watchdog relay a charge pump feeds (LinuxCNC's name; a timer relay or a
+    safety relay's dynamic input): the drives have power only while the controller's
+    charge-pump output keeps changing, and lose it `timeout_s` after its last change; the
+    next change picks the relay up again (retriggerable). No power before the first change.
+    Times are the world's (`World.time`)."""
+
+    timeout_s: float
+    level: bool = False
+    edge_at: float = -math.inf
+    drops: int = 0
+    """Times the relay dropped and was picked up again (a drop in progress not counted)."""
+
+    @property
+    def until(self) -> float:
+        """When the drives lose power unless the output changes before."""
+        return self.edge_at + self.timeout_s
+
+    def powered(self, at: float) -> bool:
+        return at <= self.until
+
+    def feed(self, level: bool, at: float) -> None:
+        """The output's level at `at`: a change retriggers the relay."""
+        if level == self.level:
+            return
+        if self.edge_at > -math.inf and at > self.until:
+            self.drops += 1
+        self.level, self.edge_at = level, at
+
+    def unseen(self, since: float, at: float) -> None:
+        """The world did not look from `since` to `at` (its own thread came late on a busy
+        host, which a hardware relay never does): changes then went unseen, so a relay that
+        had power at `since` is taken as retriggered at `at`."""
+        if self.powered(since):
+            self.edge_at = max(self.edge_at, at)
+
+
+@dataclass
 class World:
     """Positions of both axes, advanced by `step(dt)` under the current drive outputs.
 
@@ -92,6 +130,8 @@ class World:
     tilt_switch: Switch = field(default_factory=Switch)
     rotate_switch: Switch = field(default_factory=Switch)
     _frozen_raw: int | None = None
+    pump: ChargePumpRelay | None = None
+    """The charge pump's relay, when the ride has one: the drives move only while it holds."""
     hold_in_arc: bool = False
     """Set by the supervised world while the daemon's scan has not yet seen the rotate's home
     switch closed: the rotate turns on only to 1° short of the arc's far end (`_held`)."""
@@ -126,6 +166,10 @@ class World:
         self.time += dt
         if self.faults.estop_pressed:
             return
+        if self.pump is not None:  # no drive power past the relay's drop-out
+            dt = min(dt, self.pump.until - t0)
+            if dt <= 0:
+                return
         p = self.params
         if self.drive.rotate_on and not self.faults.rotate_stalled:
             v = p.rotate_speed_dps * (-1.0 if self.drive.rotate_ccw else 1.0)

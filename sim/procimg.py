@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from hal.base import HalError, Outputs
-from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap
+from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
 from hal.pictory import read_config
 from hal.revpi import bind_ios, open_modio, raise_for_errors
 from sim.hal import SimHal
@@ -50,6 +50,7 @@ class ProcImgSim:
         self._di = [ios[s] for s in DIGITAL_INPUTS]
         self._ai = [ios[s] for s in ANALOG_INPUTS]
         self._ro = [ios[s] for s in RELAY_OUTPUTS]
+        self._pump = ios.get(Signal.CHARGE_PUMP)
         # Only the modules carrying our sensors are written, so the HAL's bytes stay the HAL's.
         sensors = [b.io for b in self._di + self._ai]
         self._sensor_devices = [d for d in self._rpi.device if any(io in d for io in sensors)]
@@ -69,7 +70,8 @@ class ProcImgSim:
         rpi = self._rpi
         if not rpi.readprocimg():
             raise HalError("procimg sim: cannot read the process image")
-        self.ride.scan_outputs(Outputs(ro={b.channel: b.read_bool() for b in self._ro}))
+        pump = None if self._pump is None else self._pump.read_bool()
+        self.ride.scan_outputs(Outputs({b.channel: b.read_bool() for b in self._ro}, pump))
         self._t = self._clock()
         sensed = self.ride.scan_inputs()
         for b in self._di:
@@ -80,6 +82,11 @@ class ProcImgSim:
             if not rpi.writeprocimg(dev):
                 raise HalError("procimg sim: cannot write the process image")
         self.steps += 1
+
+    @property
+    def time(self) -> float:
+        """The clock at the last `step()`: the time the world has been advanced to."""
+        return self._t
 
     def relays(self) -> dict[str, bool]:
         """The relay outputs as the field sees them after the last `step()`."""

@@ -40,3 +40,6 @@ class PhysicsParams(BaseModel):
     """Each scan, the chance that the scan thread stalls before writing its outputs …"""
     scan_stall_max_s: float = Field(default=0.0, ge=0, le=1)
     """… for a uniform random time up to this (`sim/stalls` changes both at run time)."""
+    charge_pump_timeout_s: float = Field(default=0.1, gt=0, le=10)
+    """With a `chargePump` channel in the IO map: the external watchdog relay keeps the drives
+    powered only this long after the charge-pump output last changed (docs/revpi.md)."""

@@ -161,6 +161,9 @@ class SimWorld:
             return
         world = self._sim.world
         world.hold_in_arc = self._holding()
+        gap = self._clock() - self._sim.time
+        if world.pump is not None and gap > world.pump.timeout_s / 2:
+            world.pump.unseen(world.time, world.time + gap)  # this thread came late
         try:
             self._sim.step()
         except HalError as exc:

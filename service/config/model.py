@@ -231,6 +231,9 @@ class SimView(Protocol):
     @property
     def tilt_max_deg(self) -> float: ...
 
+    @property
+    def charge_pump_timeout_s(self) -> float: ...
+
 
 # `[hal.sim]` is validated by the model the backend named `sim` registers (`sim.settings`),
 # found by the one lookup: the config never imports the simulator. To mypy it is the few

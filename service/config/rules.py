@@ -21,6 +21,8 @@ def _io_conflicts(iomap: IoMap) -> Iterator[Finding]:
     channels = iomap.model_dump(by_alias=True, exclude={"estop_active_low"})
     seen: dict[str, str] = {}
     for name, channel in channels.items():
+        if channel is None:  # an optional point left unmapped
+            continue
         if channel in seen:
             yield error(
                 Category.IO_CONFLICT,
@@ -248,6 +250,42 @@ def _simulator(config: MachineConfig) -> Iterator[Finding]:
         )
 
 
+def _charge_pump(config: MachineConfig) -> Iterator[Finding]:
+    """Only a charge pump survives the whole controller stopping (docs/revpi.md): a RevPi
+    without one is told so; a simulated relay the scan cannot hold, or that a stall the
+    watchdog tolerates would drop, is said."""
+    hal, loop = config.hal, config.loop
+    if hal.iomap.charge_pump is None:
+        if hal.backend is HalBackend.REVPI:
+            yield warning(
+                Category.SUPERVISION,
+                "/hal/iomap/chargePump",
+                "no charge pump: when the whole controller stops (a hung host, a paused"
+                " container, a frozen kernel) nothing takes the drives' power away but the"
+                " RevPi's own 60 s watchdog, if armed; wire a digital output to an external"
+                " watchdog relay in the drives' power and map it (docs/revpi.md)",
+            )
+        return
+    if hal.backend is not HalBackend.SIM:
+        return
+    timeout, limit = hal.sim.charge_pump_timeout_s, loop.watchdog_limit_s
+    if timeout < 2 * loop.period_s:
+        yield error(
+            Category.SIMULATOR,
+            "/hal/sim/charge_pump_timeout_s",
+            f"the charge pump changes level once a scan ({loop.period_s:g} s): a relay that"
+            f" drops {timeout:g} s after the last change cannot be held (at least two periods)",
+        )
+    elif timeout < limit:
+        yield warning(
+            Category.SIMULATOR,
+            "/hal/sim/charge_pump_timeout_s",
+            f"the simulated charge-pump relay drops the drives {timeout:g} s after the scan"
+            f" stops, before the {limit:g} s watchdog limit: a stall the watchdog tolerates"
+            " cuts the drives without a fault",
+        )
+
+
 def _session(config: MachineConfig) -> Iterator[Finding]:
     lo, hi = config.tilt.min_deg, config.tilt.max_deg
     if lo >= hi:
@@ -334,6 +372,7 @@ def semantic_findings(config: MachineConfig) -> list[Finding]:
         _timeouts,
         _calibration,
         _simulator,
+        _charge_pump,
         _session,
         _bus,
         _rider_loss,

@@ -23,6 +23,7 @@ class ProcessImage:
     def all_outputs_off(self) -> None:
         for ch in self.outputs.ro:
             self.outputs.ro[ch] = False
+        self.outputs.pump = False if self.iomap.charge_pump is not None else None
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,7 +18,7 @@ from hal.base import Hal
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
 from schema.events import ClockEvent
-from schema.status import Fault, FaultCode, Status
+from schema.status import FAULT_STATES, Fault, FaultCode, Status
 from service.config.model import LiveConfig, MachineConfig
 from service.core.axes import AxisTracker
 from service.core.devices import Devices
@@ -109,6 +109,7 @@ class ScanLoop:
         """Quiet cycles run."""
         self._rest: _Rest | None = None
         self._commands_seen = self._tasks_seen = 0
+        self._pump = self.image.iomap.charge_pump is not None
         self.clock: Callable[[], float] | None = None
         """The clock `now` is read from, when it is a real one: the output write is stamped on
         it, so the rotate's dead reckoning counts the time a cycle took from its input scan to
@@ -178,7 +179,7 @@ class ScanLoop:
             ):
                 # Quiet: what a full cycle does at rest, without the work that finds nothing.
                 self._rest = rest
-                self.hal.scan_outputs(self.image.outputs)
+                self._write()
                 self.axes.tick(now)
                 self.quiet += 1
                 if self.verify_quiet:
@@ -203,7 +204,7 @@ class ScanLoop:
         """After the deadman: the control acts, outputs are written, changes recorded and
         published; then whether the next cycles may be quiet ones."""
         self.control.update(now)
-        self.hal.scan_outputs(self.image.outputs)
+        self._write()
         written = now if self.clock is None else self.clock()
         # The events and log lines of commands answered since the last cycle, outputs written.
         self.recorder.release()
@@ -215,6 +216,16 @@ class ScanLoop:
         # else: commands or tasks came since the last full cycle, and more may follow (a
         # stream makes every cycle a full one): the next cycle without any looks again.
         self._commands_seen, self._tasks_seen = commands, tasks
+
+    def _write(self) -> None:
+        """The cycle's outputs to the HAL; the charge pump, if the ride has one, changes level
+        every cycle while nothing is faulted (an external relay keeps the drives powered only
+        while it does: a stopped or faulted controller cannot keep them, docs/revpi.md). A
+        latched watchdog and the E-stop's safe state write it low."""
+        outputs = self.image.outputs
+        if self._pump:
+            outputs.pump = not outputs.pump and self.control.state not in FAULT_STATES
+        self.hal.scan_outputs(outputs)
 
     # ----------------------------------------------------------------------- quiet cycles
     # An idle machine's cycle changes nothing: the same inputs, no controller, nothing queued.

@@ -150,13 +150,15 @@ def settle(rider: Rider, reply: Reply, timeout: float = STEP_TIMEOUT_S) -> Statu
     return rider.wait_for(SETTLED, timeout, after=reply.timecode)
 
 
-TILT_LATE_WORLD = frozenset({FaultCode.TILT_NOT_FOLLOWING, FaultCode.TILT_SPEED_IMPLAUSIBLE})
+TILT_LATE_WORLD = frozenset(
+    {FaultCode.TILT_NOT_FOLLOWING, FaultCode.TILT_SPEED_IMPLAUSIBLE, FaultCode.TILT_GAIN_MISMATCH}
+)
 """The tilt's faults when its sensor stood still: the supervised simulator's world thread (not
 the embedded one, which the scan steps), late on a loaded host, left the analog unchanged, and
 the daemon rightly stopped the tilt. A tilt calibration measured meanwhile may carry a spoiled
-gain that a later check finds too fast. Tests not about it calibrate the tilt again, but only
-when the world itself counted a late step (`SimWorldState.late_steps`) since that calibration
-began."""
+gain that a later check finds too fast, or a stroke's speed witness too slow. Tests not about
+it calibrate the tilt again, but only when the world itself counted a late step
+(`SimWorldState.late_steps`) since that calibration began."""
 
 
 class HostStalled(AssertionError):

@@ -136,9 +136,38 @@ def test_a_watchdog_that_lets_the_rotate_pass_its_arc_is_a_warning() -> None:
 
 def test_simulator_checks_are_skipped_on_real_hardware() -> None:
     config, report = validate_data(
-        {"hal": {"backend": "revpi", "sim": {"rotate_speed_dps": 200.0}}}
+        {
+            "hal": {
+                "backend": "revpi",
+                "iomap": {"chargePump": "O_5"},
+                "sim": {"rotate_speed_dps": 200.0},
+            }
+        }
     )
     assert config is not None and report.findings == []
+
+
+def test_a_revpi_without_a_charge_pump_is_told_what_stops_its_drives() -> None:
+    """Issue 53: only the hardware level survives the whole controller stopping."""
+    config, report = validate_data({"hal": {"backend": "revpi"}})
+    assert config is not None
+    (finding,) = report.findings
+    assert (finding.category, finding.severity) == ("supervision", "warning")
+    assert finding.path == "/hal/iomap/chargePump" and "docs/revpi.md" in finding.message
+
+
+def test_a_simulated_charge_pump_relay_the_scan_cannot_hold_is_an_error() -> None:
+    pump = {"iomap": {"chargePump": "O_5"}}
+    _, short = validate_data({"hal": {**pump, "sim": {"charge_pump_timeout_s": 0.015}}})
+    assert [(f.path, f.severity) for f in short.findings] == [
+        ("/hal/sim/charge_pump_timeout_s", "error")
+    ]
+    _, early = validate_data({"hal": {**pump, "sim": {"charge_pump_timeout_s": 0.05}}})
+    assert [(f.path, f.severity) for f in early.findings] == [
+        ("/hal/sim/charge_pump_timeout_s", "warning")
+    ]
+    _, clash = validate_data({"hal": {"iomap": {"chargePump": "O_1"}}})
+    assert [f.path for f in clash.findings] == ["/hal/iomap/chargePump"]
 
 
 def test_every_error_is_reported_not_only_the_first() -> None:

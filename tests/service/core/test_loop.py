@@ -244,7 +244,8 @@ def test_status_record_fields() -> None:
 def test_io_is_published_on_change_only_with_an_analog_deadband() -> None:
     rig = Rig(calibration=known_calibration())
     first = {p.name for p in rig.sink.io}
-    assert first == {str(s) for s in Signal}  # everything once at start
+    assert first == {str(s) for s in rig.config.hal.iomap.mapped()}  # everything once at start
+    assert Signal.TILT_DIR in first
     rig.sink.io.clear()
     rig.step(100)
     assert rig.sink.io == []  # nothing moves, nothing published
