@@ -9,6 +9,14 @@ image showing every relay off (read every 0.2 ms); the overrun is the simulator'
 past where it was at the signal. Each kind runs on a quiet host and beside one CPU-bound
 process per core (bench/baselines/burner.py), the phases alternated.
 
+Then the whole controller frozen at once (tests/freeze_whole.py): the supervisor, its daemon
+and the daemon's history process stopped by SIGSTOP, or frozen in a freezer cgroup of their own
+(what `docker pause` / `podman pause` do), for 1 s mid-move, while the simulated plant runs on
+in a process of its own. The time is from the freeze to the plant's charge-pump relay cutting
+the drives (`hal.sim.charge_pump_timeout_s`, 0.1 s), read from the plant; the same freeze of a
+ride without a charge pump beside it (the old behaviour: relays on, drives powered, the whole
+freeze).
+
 Then the stall soak: an idle, homed daemon (the same defaults, under the supervisor) beside
 one CPU-bound process per core for ten minutes: its stalls, their longest, and its faults.
 """
@@ -25,6 +33,7 @@ from pathlib import Path
 from bench.common import Child, Dist, Options, Section, Table, Target, main_for, ms, python_module
 from rider.client import Rider
 from schema.status import FAULT_STATES
+from sim.settings import PhysicsParams
 from tests.freeze import (
     LIMIT_S,
     PERIOD_S,
@@ -35,11 +44,15 @@ from tests.freeze import (
     start_supervised,
     stop,
 )
+from tests.freeze_whole import FreezerCgroup, Whole, WholeOutcome, freeze_whole
 from tests.integration.support import prepare
 from tests.procs import Daemon
 
 BOUND_S = LIMIT_S + 2 * PERIOD_S
 """The issue's target: relays off within the watchdog limit plus two periods."""
+PUMP_TIMEOUT_S = PhysicsParams().charge_pump_timeout_s
+WHOLE_HOLD_S = 1.0
+"""How long each whole-controller freeze lasts (the relay acts within a tenth of it)."""
 
 
 @contextlib.contextmanager
@@ -57,8 +70,9 @@ def burners(tmp: Path, on: bool, seconds: float) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def supervised(tmp: Path) -> Iterator[tuple[Daemon, Rider]]:
-    supervisor = start_supervised(tmp)
+def supervised(tmp: Path, pump: bool = True) -> Iterator[tuple[Daemon, Rider]]:
+    tmp.mkdir(parents=True, exist_ok=True)
+    supervisor = start_supervised(tmp, pump=pump)
     try:
         with supervisor.rider(timeout=5.0, supervise=False) as rider:
             ready(rider, timeout=60.0)
@@ -80,6 +94,72 @@ def trials(n: int, tmp: Path, loads: tuple[bool, ...]) -> dict[tuple[Freeze, boo
                     for kind in Freeze:
                         results[kind, load].append(ride_and_freeze(supervisor, rider, kind))
     return results
+
+
+WholeKey = tuple[Whole, bool, bool]
+"""(freeze, beside burners, with a charge pump)."""
+
+
+def whole_trials(
+    n: int, baseline: int, tmp: Path, loads: tuple[bool, ...]
+) -> dict[WholeKey, list[WholeOutcome]]:
+    """`n` whole-controller freezes of each kind on each host with a charge pump, `baseline`
+    of each without (a supervisor of its own each), the loads alternated in rounds."""
+    kinds = [k for k in Whole if k is not Whole.CGROUP or FreezerCgroup.unavailable() is None]
+    results: dict[WholeKey, list[WholeOutcome]] = {}
+    for pump, count in ((True, n), (False, baseline)):
+        with supervised(tmp / f"whole-{pump}", pump=pump) as (supervisor, rider):
+            for i in range(count):
+                for load in loads if i % 2 == 0 else loads[::-1]:
+                    with burners(tmp, load, 60.0):
+                        for kind in kinds:
+                            outcome = freeze_whole(supervisor, rider, kind, WHOLE_HOLD_S)
+                            results.setdefault((kind, load, pump), []).append(outcome)
+    return results
+
+
+def whole_table(results: dict[WholeKey, list[WholeOutcome]]) -> tuple[Table, float]:
+    """The whole-controller table, and the longest cut with a charge pump (inf: one never)."""
+    table = Table(
+        "The whole controller frozen (supervisor, daemon, history): from the freeze to the"
+        " drives without power, read from the simulated plant",
+        [
+            "freeze",
+            "host",
+            "charge pump",
+            "trials",
+            "p50 ms",
+            "p99 ms",
+            "max ms",
+            "tilt overrun p50 °",
+            "max °",
+            "relays on at the end",
+        ],
+        note=f"each freeze {WHOLE_HOLD_S:g} s, 5° into a move at 15°/s; the relay drops"
+        f" {PUMP_TIMEOUT_S * 1e3:g} ms after the pump's last change; without a charge pump"
+        " nothing acts until the controller runs again",
+    )
+    worst = 0.0
+    for (kind, load, pump), outcomes in sorted(results.items(), key=lambda kv: (not kv[0][2],)):
+        cuts = [o.cut_s for o in outcomes if o.cut_s is not None]
+        d, over = Dist.of(cuts), Dist.of([o.overrun_deg for o in outcomes])
+        never = len(outcomes) - len(cuts)
+        if pump:
+            worst = max([worst, *cuts]) if not never else float("inf")
+        on = sum(o.relays_on for o in outcomes)
+        table.add(
+            str(kind),
+            "2 burners" if load else "quiet",
+            f"yes, {PUMP_TIMEOUT_S * 1e3:g} ms" if pump else "no (before)",
+            f"{len(outcomes)}" + (f" ({never} powered throughout)" if never else ""),
+            ms(d.p50, 1) if cuts else "never",
+            ms(d.p99, 1) if cuts else "never",
+            ms(d.max, 1) if cuts else "never",
+            f"{over.p50:.2f}",
+            f"{over.max:.2f}",
+            f"{on} of {len(outcomes)}",
+        )
+    return table, worst
 
 
 def soak(seconds: float, tmp: Path, load: bool) -> tuple[float, int, float, int, int, str]:
@@ -107,11 +187,14 @@ def run(opts: Options) -> Section:
     soak_s = opts.pick(5.0, 600.0, 1800.0)
     # The smoke run (beside the other benchmarks' smoke runs) starts no CPU burners.
     loads = opts.pick((False,), (False, True))
-    section = Section("freeze", "13. A frozen daemon: relays off, from outside it")
+    section = Section(
+        "freeze", "13. A frozen daemon, a frozen controller: relays off, drives unpowered"
+    )
     with tempfile.TemporaryDirectory(prefix="bench-freeze-") as name:
         tmp = Path(name)
         (tmp / "soak").mkdir()
         results = trials(n, tmp, loads)
+        whole = whole_trials(n, opts.pick(1, 5, 10), tmp, loads)
         soaked = soak(soak_s, tmp, load=loads[-1])
     table = Table(
         "From the freeze to every relay off in the process image (the supervisor's output guard)",
@@ -137,6 +220,8 @@ def run(opts: Options) -> Section:
             f"{o.max:.2f}",
         )
     section.tables.append(table)
+    table, worst_cut = whole_table(whole)
+    section.tables.append(table)
     elapsed, stalls, longest, trips, faults, state = soaked
     beside = "beside a CPU-bound process per core" if loads[-1] else "on a quiet host"
     idle = Table(
@@ -148,6 +233,14 @@ def run(opts: Options) -> Section:
     section.tables.append(idle)
     section.targets.append(
         Target.at_most("freeze → relays off, every trial", worst, BOUND_S, lambda v: ms(v, 1))
+    )
+    section.targets.append(
+        Target.at_most(
+            "whole controller frozen → drives without power, every trial",
+            worst_cut,
+            PUMP_TIMEOUT_S + 2 * PERIOD_S,
+            lambda v: ms(v, 1),
+        )
     )
     section.targets.append(
         Target(f"idle {beside}: no fault", "0", str(faults + trips), faults + trips == 0)

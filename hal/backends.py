@@ -10,7 +10,6 @@ the code that simulates (tests/test_layering.py holds the arrows).
 from __future__ import annotations
 
 import functools
-import threading
 from collections.abc import Callable
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -27,9 +26,6 @@ GROUP = "ride_machine.hal"
 
 Clock = Callable[[], float]
 Sleep = Callable[[float], object]
-Spawn = Callable[..., threading.Thread]
-"""Makes the thread a world runs on (`threading.Thread`'s arguments): the daemon's names
-itself for the OS (`service.threads.NamedThread`)."""
 
 
 class Simulator(Protocol):
@@ -50,11 +46,17 @@ class Simulator(Protocol):
 
 
 class World(Simulator, Protocol):
-    """A simulated world on a thread of its own behind a process image (`machine supervise`):
-    the daemon drives it with the RevPi backend on `procimg` and `configrsc`."""
+    """A simulated plant behind a process image (`machine supervise`), on a clock of its own
+    that no freeze of the controller stops: the daemon drives it with the RevPi backend on
+    `procimg` and `configrsc`."""
 
     procimg: str
     configrsc: str
+
+    @property
+    def pid(self) -> int | None:
+        """The plant's own process, once started (None: it runs in this one)."""
+        ...
 
     def start(self) -> None: ...
 
@@ -64,9 +66,10 @@ class World(Simulator, Protocol):
         """One step at once (so the world has seen outputs just dropped)."""
         ...
 
-    def follow_scans(self, scans: Callable[[], int]) -> None:
-        """`scans()`: the daemon's completed scans (its beat's count), for a world that waits
-        for a scan to see a switch the embedded world would not let a stall hide."""
+    def follow_beat(self, fd: int, offset: int) -> None:
+        """The daemon's completed scans, a uint64 at `offset` of the shared memory `fd` (its
+        beat record), for a world that waits for a scan to see a switch the embedded world
+        would not let a stall hide."""
         ...
 
 
@@ -91,10 +94,10 @@ class Backend(Protocol):
         ...
 
     def world(
-        self, iomap: IoMap, settings: object, directory: Path, period_s: float, spawn: Spawn
+        self, iomap: IoMap, settings: object, directory: Path, period_s: float
     ) -> World | None:
-        """A world behind a fresh process image in `directory`, stepped every `period_s` on a
-        thread `spawn` makes once it starts; None for hardware."""
+        """A world behind a fresh process image in `directory`, stepped every `period_s` by
+        a process of its own once it starts; None for hardware."""
         ...
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
-from hal.backends import Clock, Simulator, Sleep, Spawn, World
+from hal.backends import Clock, Simulator, Sleep, World
 from hal.base import Hal
 from hal.iomap import IoMap
 
@@ -42,7 +42,7 @@ class RevPiBackend:
         return None
 
     def world(
-        self, iomap: IoMap, settings: object, directory: Path, period_s: float, spawn: Spawn
+        self, iomap: IoMap, settings: object, directory: Path, period_s: float
     ) -> World | None:
         return None
 

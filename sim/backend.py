@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hal.backends import Clock, Simulator, Sleep, Spawn, World
+from hal.backends import Clock, Simulator, Sleep, World
 from hal.base import Hal
 from hal.iomap import IoMap
 from sim.settings import PhysicsParams
 
 
 class SimBackend:
-    """`SimHal` on the loop's clock, or the world behind a process image for the supervisor."""
+    """`SimHal` on the loop's clock, or the plant behind a process image for the supervisor
+    (a process of its own: `sim.plant`)."""
 
     settings = PhysicsParams
 
@@ -28,14 +29,11 @@ class SimBackend:
 
         return HalSim(hal) if isinstance(hal, SimHal) else None
 
-    def world(
-        self, iomap: IoMap, settings: object, directory: Path, period_s: float, spawn: Spawn
-    ) -> World | None:
-        from sim.world import CONFIG_RSC, SimWorld, make_image
+    def world(self, iomap: IoMap, settings: object, directory: Path, period_s: float) -> World:
+        from sim.plant_link import PlantProcess
 
-        procimg = make_image(directory / "procimg")
         params = PhysicsParams.model_validate(settings)
-        return SimWorld(iomap, procimg, str(CONFIG_RSC), params, period_s, spawn=spawn)
+        return PlantProcess(iomap, params, directory, period_s)
 
 
 BACKEND = SimBackend()

@@ -1,7 +1,8 @@
 """The simulated ride as a real-time world behind a process image, for `machine supervise --sim`.
 
-The daemon drives it through the same process-image file as real RevPi hardware, and it lives in
-the supervisor, so it keeps running (and can be observed) while the daemon dies and restarts.
+The daemon drives it through the same process-image file as real RevPi hardware, and it runs in
+a plant process of its own (`sim.plant`), so it keeps running (and can be observed) while the
+daemon dies and restarts, and while the whole controller is frozen.
 """
 
 from __future__ import annotations

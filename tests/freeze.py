@@ -29,7 +29,7 @@ from tests.integration.support import Preparation, late_steps
 from tests.procs import (
     REPO,
     Daemon,
-    child_pids,
+    children_running,
     free_port,
     machine_cmd,
     stop_process,
@@ -62,6 +62,11 @@ timeout_s = 2.0
 start_rotate_deg = 350.0
 start_tilt_deg = 2.0
 """
+PUMP_CONFIG = """
+[hal.iomap]
+chargePump = "O_5"   # the drives' power hangs on the charge pump's relay (0.1 s)
+"""
+"""Added unless a test asks for the ride without a charge pump (the old behaviour)."""
 
 
 class Freeze(StrEnum):
@@ -90,14 +95,15 @@ def hooked_env() -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": path, "MACHINE_TEST_FREEZE": "1", "PYTHONUNBUFFERED": "1"}
 
 
-def start_supervised(tmp: Path, *extra: str) -> Daemon:
+def start_supervised(tmp: Path, *extra: str, pump: bool = True) -> Daemon:
     """`machine supervise --sim` with no Zenoh config (the README's way), calibrated, not yet
-    waited for; its Riders use a test Zenoh config of their own."""
+    waited for; its Riders use a test Zenoh config of their own. `pump=False`: the ride has no
+    charge pump (the drives' power does not depend on the controller)."""
     data_dir = tmp / "data-m1"
     data_dir.mkdir(parents=True, exist_ok=True)
     (data_dir / CALIBRATION_FILE).write_bytes(calibration_file())
     config = tmp / "machine-freeze.toml"
-    config.write_text(FREEZE_CONFIG)
+    config.write_text(FREEZE_CONFIG + (PUMP_CONFIG if pump else ""))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     log_path = tmp / "supervise.log"
     cmd = machine_cmd(
@@ -150,11 +156,11 @@ def child_of(supervisor: Daemon, timeout: float = 20.0) -> int:
     """The pid of the supervisor's daemon child, once there is exactly one."""
     deadline = time.monotonic() + timeout
     while True:
-        out = child_pids(supervisor.proc.pid)
+        out = children_running(supervisor.proc.pid, "service.cli")
         if len(out) == 1:
             return out[0]
         if time.monotonic() > deadline:
-            raise TimeoutError(f"expected one child of the supervisor, found {out}")
+            raise TimeoutError(f"expected one daemon child of the supervisor, found {out}")
         time.sleep(0.05)
 
 

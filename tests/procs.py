@@ -236,6 +236,20 @@ def child_pids(pid: int) -> list[int]:
     return [int(child) for child in done.stdout.split()]
 
 
+def children_running(pid: int, module: str) -> list[int]:
+    """The children of `pid` that run `python -m <module>` (a supervisor's daemon is
+    `service.cli`, its simulated plant `sim.plant`)."""
+    out = []
+    for child in child_pids(pid):
+        try:
+            argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+        except OSError:  # gone meanwhile
+            continue
+        if module.encode() in argv:
+            out.append(child)
+    return out
+
+
 def machine_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "service.cli", *args]
 

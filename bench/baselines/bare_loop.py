@@ -32,6 +32,7 @@ class EmptyScan:
         self.inbox = Inbox()
         self.commands_handled = 0
         self.lock = threading.Lock()
+        self.guard = None  # no watchdog latch: nothing to stamp in a beat record
 
     def step(self, now: float) -> None:
         pass

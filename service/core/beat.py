@@ -41,10 +41,16 @@ class _Record(ctypes.Structure):
         ("latched", ctypes.c_uint64),
         # Stalls the supervisor acted on, over the record's life (across daemon restarts).
         ("trips", ctypes.c_uint64),
+        # Nonzero when the latest cycle's write left a relay of the ride on: what a stall
+        # found with the relays off now was doing before (the supervisor's claim is honest).
+        ("energised", ctypes.c_uint64),
     ]
 
 
 RECORD_BYTES = ctypes.sizeof(_Record)
+CYCLES_OFFSET: int = _Record.cycles.offset
+"""Where the scan count lies in the record: what a simulated plant reads to wait for a scan
+(`hal.backends.World.follow_beat`), knowing nothing else of the layout."""
 
 
 def create_beat_fd() -> int:
@@ -100,6 +106,8 @@ class Beat:
     pid: int
     finished: bool
     latched: bool
+    energised: bool = False
+    """The latest completed cycle left a relay of the ride on."""
 
 
 class BeatReader(BeatRecord):
@@ -114,6 +122,7 @@ class BeatReader(BeatRecord):
             pid=int(rec.pid),
             finished=bool(rec.finished),
             latched=bool(rec.latched),
+            energised=bool(rec.energised),
         )
 
     def reset(self) -> None:
@@ -124,6 +133,7 @@ class BeatReader(BeatRecord):
         rec.finished = 0
         rec.latched = 0
         rec.pid = 0
+        rec.energised = 0
 
     def latch(self) -> None:
         self.rec.latched = 1

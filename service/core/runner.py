@@ -138,6 +138,7 @@ class RealtimeRunner:
         lock = loop.lock
         limit = self.stall_limit if self.stall_limit is not None else float("inf")
         shared = self.beat.rec if self.beat is not None else None
+        guard = loop.guard
         wall = self.wall
         deadline = clock()  # first scan at once: commands need a real input image
         consecutive = 0
@@ -169,6 +170,8 @@ class RealtimeRunner:
             self.heartbeat += 1
             if shared is not None:
                 shared.cycles = self.heartbeat  # the supervised world waits on scans (sim/world)
+                if guard is not None:  # what the relays did, for a stall found with them off
+                    shared.energised = guard.energised
                 shared.beat_ns = int(end * 1e9)  # one store: what the supervisor watches
 
     def _follow_wall(self, wall: Callable[[], float], now: float) -> None:

@@ -15,6 +15,7 @@ microseconds of reaching the limit (plus this thread's wake-up on a busy host).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -42,6 +43,11 @@ class GuardedOutputs(Protocol):
     def force_all_outputs_safe(self) -> None: ...
 
 
+GUARD_LATE_S = 0.02
+"""The guard looked this much later than it meant to: it was stopped or starved itself (a
+frozen supervisor), and vouches for nothing it did not see."""
+
+
 @dataclass(frozen=True)
 class Stall:
     """A scan that stopped: whose (pid), since when (the last stamp), and what was done."""
@@ -50,6 +56,29 @@ class Stall:
     beat_ns: int
     stalled_s: float
     energised: bool
+    """A relay was on in the image when the guard looked (it made them safe)."""
+    was_on: bool = False
+    """The stalled scan's last write left a relay on (the beat record says)."""
+    guard_late_s: float = 0.0
+    """How much later than planned the guard looked: its own freeze, if any."""
+
+    def outputs(self) -> str:
+        """What the supervisor knows of the relays over the stall, in words: "off" only when
+        they were off from the last cycle on; otherwise how long they may have been on."""
+        late = self.guard_late_s
+        itself = f"; the supervisor itself was stopped {late:.2f} s" if late > GUARD_LATE_S else ""
+        if self.energised:
+            return (
+                f"energised, made safe by the supervisor {self.stalled_s:.2f} s after the"
+                f" daemon's last cycle{itself}"
+            )
+        if self.was_on:
+            return (
+                f"on at the daemon's last cycle and off {self.stalled_s:.2f} s later, when the"
+                f" supervisor looked: on for up to {self.stalled_s:.2f} s as far as it"
+                f" knows{itself}"
+            )
+        return "off"
 
 
 class OutputGuard(TimedThread):
@@ -84,11 +113,15 @@ class OutputGuard(TimedThread):
     def _run(self) -> None:
         set_sched_slice(SCHED_SLICE_NS)  # wake at once beside a busy neighbour (runner.py)
         wait = IDLE_LOOK_S
+        due = self.clock_ns() + round(wait * 1e9)
         while self.sleep(wait):
-            wait = self.look(self.reader.read(), self.clock_ns())
+            now = self.clock_ns()
+            wait = self.look(self.reader.read(), now, max(0, now - due))
+            due = now + round(wait * 1e9)
 
-    def look(self, beat: Beat, now_ns: int) -> float:
-        """One look at the record; the seconds until the next (public for tests)."""
+    def look(self, beat: Beat, now_ns: int, late_ns: int = 0) -> float:
+        """One look at the record, `late_ns` after it was due; the seconds until the next
+        (public for tests)."""
         if beat.beat_ns == 0 or beat.finished or beat.limit_ns == 0:
             self._stall = None
             return IDLE_LOOK_S
@@ -99,18 +132,18 @@ class OutputGuard(TimedThread):
             return (beat.beat_ns + beat.limit_ns - now_ns) / 1e9 + MARGIN_S
         stall = self._stall
         if stall is None or stall.beat_ns != beat.beat_ns or stall.pid != beat.pid:
-            stall = self._stalled(beat, age)
+            stall = self._stalled(beat, age, late_ns / 1e9)
         elif stall.energised and self.outputs.energised():
             self._make_safe()  # written again while latched (a write in flight at the trip)
         if age > self.hang_ns and self._hung_reported != beat.beat_ns:
             self._hung_reported = beat.beat_ns
-            self.on_hang(Stall(beat.pid, beat.beat_ns, age / 1e9, stall.energised))
+            self.on_hang(dataclasses.replace(stall, stalled_s=age / 1e9))
         until_hang = (beat.beat_ns + self.hang_ns - now_ns) / 1e9
         return max(MARGIN_S, min(beat.limit_ns / 1e9, until_hang + MARGIN_S))
 
-    def _stalled(self, beat: Beat, age_ns: int) -> Stall:
+    def _stalled(self, beat: Beat, age_ns: int, late_s: float) -> Stall:
         energised = self.outputs.energised()
-        stall = Stall(beat.pid, beat.beat_ns, age_ns / 1e9, energised)
+        stall = Stall(beat.pid, beat.beat_ns, age_ns / 1e9, energised, beat.energised, late_s)
         self._stall = stall
         self.stalls += 1
         if energised:
@@ -118,6 +151,16 @@ class OutputGuard(TimedThread):
             self._make_safe()
             self.trips += 1
             self.on_trip(stall)
+        elif beat.energised:  # off now, on at the last cycle: say what is not known
+            log.error(
+                "event=daemon_stalled pid=%d stalled_s=%.4f outputs=on_then_off on_up_to_s=%.4f"
+                " guard_late_s=%.4f action=none detail=%r",
+                beat.pid,
+                stall.stalled_s,
+                stall.stalled_s,
+                late_s,
+                stall.outputs(),
+            )
         else:
             log.warning(
                 "event=daemon_stalled pid=%d stalled_s=%.4f outputs=off action=none",

@@ -6,9 +6,10 @@ publishes FAULT_HW (DAEMON_DIED) for the machine, and restarts the daemon with b
 daemon comes up with outputs safe and not home. The supervisor is the machine's Zenoh router
 (see `service.bus.supervisor`), so Riders keep their session across restarts.
 
-With the simulator the ride's world runs here (`SimWorld`) behind a process-image file and the
-child runs the RevPi backend on that file, so the world outlives the daemon and tests can watch
-it; on a Revolution Pi the supervisor writes the safe image to the real process image.
+With the simulator the ride's world runs in a plant process of its own (`sim.plant`) behind a
+process-image file and the child runs the RevPi backend on that file, so the world outlives the
+daemon, keeps its clock while the supervisor and the daemon are frozen together, and tests can
+watch it; on a Revolution Pi the supervisor writes the safe image to the real process image.
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ from service.bus.supervisor import (
 )
 from service.config.model import HalBackend, MachineConfig
 from service.config.validate import finding_line
-from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
-from service.core.runner import SCHED_SLICE_NS, SUPERVISOR_PID_ENV, set_sched_slice
+from service.core.beat import BEAT_FD_ENV, CYCLES_OFFSET, BeatReader, create_beat_fd
+from service.core.runner import SUPERVISOR_PID_ENV
 from service.signals import SignalThread
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.malloc import bound_malloc_arenas
@@ -70,17 +71,6 @@ class SafeOutputs(Protocol):
     def force_all_outputs_safe(self) -> None: ...
 
     def close(self) -> None: ...
-
-
-class FieldThread(NamedThread):
-    """The simulated world's thread: it plays the field's IO, which real hardware updates
-    whatever the host does, so it asks for the scan thread's short time slice (a wake-up
-    preempts a busy neighbour at once). A world late on a loaded host left a sensor reading
-    unchanged for a whole check window, and the daemon rightly faulted the tilt."""
-
-    def run(self) -> None:
-        set_sched_slice(SCHED_SLICE_NS)
-        super().run()
 
 
 @dataclass(frozen=True)
@@ -232,10 +222,10 @@ class Supervisor:
         config = self.config
         hal = config.hal
         self.world = backend(hal.backend).world(
-            hal.iomap, hal.settings(), self.dir, self.options.world_period_s, FieldThread
+            hal.iomap, hal.settings(), self.dir, self.options.world_period_s
         )
         if self.world is not None:  # a simulated world: the child drives it as a RevPi
-            self.world.follow_scans(lambda: self.beat.read().cycles)
+            self.world.follow_beat(self.beat_fd, CYCLES_OFFSET)
             revpi = {"procimg": self.world.procimg, "configrsc": self.world.configrsc}
             config = config.with_overrides(hal={"backend": HalBackend.REVPI, "revpi": revpi})
         rp = config.hal.revpi
@@ -348,9 +338,12 @@ class Supervisor:
         """On the guard's thread, the outputs already safe: say so (the daemon, should it
         wake, takes FAULT_HW itself; if it does not, `_hung` follows)."""
         log.error(
-            "event=output_guard_trip pid=%d stalled_s=%.4f outputs=safe action=latched",
+            "event=output_guard_trip pid=%d stalled_s=%.4f outputs=safe action=latched"
+            " guard_late_s=%.4f detail=%r",
             stall.pid,
             stall.stalled_s,
+            stall.guard_late_s,
+            stall.outputs(),
         )
 
     def _hung(self, stall: Stall | None) -> float | None:
@@ -363,11 +356,10 @@ class Supervisor:
         with contextlib.suppress(ProcessLookupError):
             child.proc.kill()
         log.error("event=child_threads pid=%d when=hung threads=%r", stall.pid, describe(seen))
-        energised = "energised, made safe at the watchdog limit" if stall.energised else "off"
         self._went_down(
             child,
             f"the daemon's scan loop stopped cycling {stall.stalled_s:.2f} s ago (outputs"
-            f" {energised}); killed",
+            f" {stall.outputs()}); killed",
         )
         try:
             child.proc.wait(timeout=self.options.stop_timeout_s)

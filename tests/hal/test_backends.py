@@ -5,7 +5,8 @@ as the wire errors they were."""
 from __future__ import annotations
 
 import logging
-import threading
+import os
+import time
 from pathlib import Path
 
 import pytest
@@ -71,28 +72,31 @@ def test_hardware_has_no_simulator(tmp_path: Path) -> None:
     revpi = backend(HalBackend.REVPI)
     opened = backend(HalBackend.SIM).open(IoMap(), PhysicsParams(), FakeClock(), None)
     assert revpi.simulator(opened) is None  # not one of its own: nothing to inject into
-    assert revpi.world(IoMap(), RevPiSettings(), tmp_path, 0.01, threading.Thread) is None
+    assert revpi.world(IoMap(), RevPiSettings(), tmp_path, 0.01) is None
     assert list(tmp_path.iterdir()) == []
 
 
-def test_the_world_runs_on_the_thread_it_is_given(tmp_path: Path) -> None:
-    made: list[str] = []
-
-    def spawn(**kwargs: object) -> threading.Thread:
-        made.append(str(kwargs["name"]))
-        return threading.Thread(**kwargs)  # type: ignore[arg-type]
-
-    world = backend(HalBackend.SIM).world(IoMap(), PhysicsParams(), tmp_path, 0.01, spawn)
+def test_the_world_runs_in_a_plant_process_of_its_own(tmp_path: Path) -> None:
+    """Issue 53: the simulated plant keeps its own clock, so nothing that stops the
+    controller's processes stops it; it answers faults and the truth over its socket."""
+    iomap = IoMap(chargePump="O_5")
+    world = backend(HalBackend.SIM).world(iomap, PhysicsParams(), tmp_path, 0.005)
     assert world is not None
     assert Path(world.procimg).parent == tmp_path and Path(world.configrsc).is_file()
     world.start()
     try:
-        assert made == ["sim-world"]
+        pid = world.pid
+        assert pid is not None and pid != os.getpid()
+        assert b"sim.plant" in Path(f"/proc/{pid}/cmdline").read_bytes()
         world.apply(SimEstop(pressed=True))
         world.step_now()
-        assert world.world(0.0).estop_pressed
+        state = world.world(0.0)
+        assert state.estop_pressed
+        assert state.drives_powered is False  # nothing toggles the pump: the relay is down
+        assert state.clock is not None and abs(state.clock - time.monotonic()) < 1.0
     finally:
         world.stop()
+    assert not Path(f"/proc/{pid}").exists() or b"Z" in Path(f"/proc/{pid}/stat").read_bytes()
 
 
 def test_a_simulator_refusal_reaches_the_bus_as_its_wire_error() -> None:

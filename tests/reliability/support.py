@@ -28,7 +28,7 @@ from tests.procs import (
     REPO,
     START_TIMEOUT_S,
     Daemon,
-    child_pids,
+    children_running,
     free_port,
     machine_cmd,
     write_zenoh_config,
@@ -213,8 +213,8 @@ def secured_machine(
 
 def supervisor_child(daemon: Daemon) -> int:
     """The pid of the daemon child of a `machine supervise` process."""
-    out = child_pids(daemon.proc.pid)
-    assert len(out) == 1, f"expected one child of the supervisor, found {out}"
+    out = children_running(daemon.proc.pid, "service.cli")
+    assert len(out) == 1, f"expected one daemon child of the supervisor, found {out}"
     return out[0]
 
 

@@ -116,7 +116,7 @@ class Snapshot:
 
 def snapshot(r: Rider) -> Snapshot:
     st = r.status()
-    world = r.sim("world").model_dump(exclude={"time"})
+    world = r.sim("world").model_dump(exclude={"time", "clock"})  # both move by themselves
     params = {p.name: (p.value, p.persisted) for p in r.params()}
     return Snapshot(
         (st.state, st.calibrated, st.homed, st.estop, st.fault, st.session),

@@ -1,0 +1,106 @@
+"""The supervisor's output guard on a fake clock: what it does at a stall, and what it says of
+the relays (issue 53: a freeze of the supervisor and the daemon together kept the relays on for
+5 s, and the supervisor's log said "outputs off")."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+
+import pytest
+
+from service.core.beat import BeatReader, BeatWriter, create_beat_fd
+from service.supervision.outputguard import GUARD_LATE_S, OutputGuard, Stall
+
+LIMIT_S = 0.1
+T0 = 1_000_000_000_000
+
+
+class Image:
+    """The process image's relays as the guard reads and drops them."""
+
+    def __init__(self, on: bool) -> None:
+        self.on = on
+        self.dropped = 0
+
+    def energised(self) -> bool:
+        return self.on
+
+    def force_all_outputs_safe(self) -> None:
+        self.on = False
+        self.dropped += 1
+
+
+@pytest.fixture
+def record() -> Iterator[tuple[BeatWriter, BeatReader]]:
+    fd = create_beat_fd()
+    writer, reader = BeatWriter(fd), BeatReader(fd)
+    writer.start(LIMIT_S)
+    yield writer, reader
+    writer.close()
+    reader.close()
+    os.close(fd)
+
+
+def guard_on(reader: BeatReader, image: Image) -> tuple[OutputGuard, list[Stall], list[Stall]]:
+    trips: list[Stall] = []
+    hangs: list[Stall] = []
+    guard = OutputGuard(reader, image, on_trip=trips.append, on_hang=hangs.append, hang_s=1.0)
+    return guard, trips, hangs
+
+
+def beat(writer: BeatWriter, at_ns: int, energised: bool) -> None:
+    writer.rec.energised = energised
+    writer.rec.beat_ns = at_ns
+
+
+def test_a_stall_with_a_relay_on_is_made_safe_and_said_so(
+    record: tuple[BeatWriter, BeatReader],
+) -> None:
+    writer, reader = record
+    image = Image(on=True)
+    guard, trips, _ = guard_on(reader, image)
+    beat(writer, T0, energised=True)
+    guard.look(reader.read(), T0 + 105_000_000)
+    assert image.dropped == 1 and trips
+    said = trips[0].outputs()
+    assert "made safe by the supervisor 0.10 s after" in said and "stopped" not in said
+
+
+def test_a_stall_off_from_the_last_cycle_on_is_the_only_one_called_off(
+    record: tuple[BeatWriter, BeatReader],
+) -> None:
+    writer, reader = record
+    guard, trips, hangs = guard_on(reader, Image(on=False))
+    beat(writer, T0, energised=False)
+    guard.look(reader.read(), T0 + 2_000_000_000)
+    assert not trips and hangs and hangs[0].outputs() == "off"
+
+
+def test_relays_found_off_after_a_freeze_that_kept_them_on_are_not_called_off(
+    record: tuple[BeatWriter, BeatReader],
+) -> None:
+    """The supervisor and the daemon stopped together for 5 s, the relays on all along; the
+    daemon woke first and dropped them itself, so the guard, stopped as long, reads them off.
+    Before, that read was reported as `outputs off`."""
+    writer, reader = record
+    guard, trips, hangs = guard_on(reader, Image(on=False))
+    beat(writer, T0, energised=True)
+    guard.look(reader.read(), T0 + 5_000_000_000, late_ns=4_900_000_000)
+    assert not trips and hangs
+    said = hangs[0].outputs()
+    assert said != "off" and "on for up to 5.00 s" in said
+    assert "the supervisor itself was stopped 4.90 s" in said
+
+
+def test_a_guard_that_was_stopped_itself_says_so_when_it_makes_safe(
+    record: tuple[BeatWriter, BeatReader],
+) -> None:
+    writer, reader = record
+    image = Image(on=True)
+    guard, trips, _ = guard_on(reader, image)
+    beat(writer, T0, energised=True)
+    guard.look(reader.read(), T0 + 5_000_000_000, late_ns=round(2 * GUARD_LATE_S * 1e9))
+    assert image.dropped == 1
+    said = trips[0].outputs()
+    assert "5.00 s after the daemon's last cycle" in said and "itself was stopped" in said
