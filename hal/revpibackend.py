@@ -42,7 +42,13 @@ class RevPiBackend:
         return None
 
     def world(
-        self, iomap: IoMap, settings: object, directory: Path, period_s: float
+        self,
+        iomap: IoMap,
+        settings: object,
+        directory: Path,
+        period_s: float,
+        *,
+        attach: bool = False,
     ) -> World | None:
         return None
 

@@ -143,6 +143,14 @@ def _add_run_and_supervise(sub: argparse._SubParsersAction[argparse.ArgumentPars
         help="kill and restart a daemon whose scan has not cycled for this long (s; default:"
         " 1 s, or 3 watchdog limits when that is longer)",
     )
+    sup.add_argument(
+        "--plant",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="with --sim: attach to a simulated plant already running in DIR (python -m"
+        " sim.plant --make-image, a container of its own) instead of starting one",
+    )
 
 
 def _add_credentials(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -324,6 +332,7 @@ def _main(argv: list[str] | None) -> int:
             backoff_max_s=args.backoff_max,
             hang_s=args.hang,
             log_level=args.log_level,
+            plant_dir=args.plant,
         )
         return run_supervisor(config, options, sup)
     return run_daemon(config, options)

@@ -29,11 +29,19 @@ class SimBackend:
 
         return HalSim(hal) if isinstance(hal, SimHal) else None
 
-    def world(self, iomap: IoMap, settings: object, directory: Path, period_s: float) -> World:
+    def world(
+        self,
+        iomap: IoMap,
+        settings: object,
+        directory: Path,
+        period_s: float,
+        *,
+        attach: bool = False,
+    ) -> World:
         from sim.plant_link import PlantProcess
 
         params = PhysicsParams.model_validate(settings)
-        return PlantProcess(iomap, params, directory, period_s)
+        return PlantProcess(iomap, params, directory, period_s, attach=attach)
 
 
 BACKEND = SimBackend()

@@ -7,9 +7,10 @@ interpreter — stops this clock, so a freeze of the whole controller is measure
 live it: the charge pump stops toggling and the external relay cuts the drives.
 
     python -m sim.plant --dir DIR --config FILE [--socket PATH] [--period S] [--parent PID]
-                        [--beat-fd FD --beat-offset N]
+                        [--beat-fd FD --beat-offset N] [--make-image]
 
-DIR gets the process image (`procimg`, made by whoever starts the plant) and the control socket
+DIR gets the process image (`procimg`, made by whoever starts the plant, or by the plant with
+`--make-image`: a compose service of its own, docker/compose.plant.yaml) and the control socket
 (`plant.sock`, or `--socket PATH`; the file `plant.endpoint` names it); FILE is a TOML or JSON
 document whose `hal.iomap` and `hal.sim` tables wire and shape the world (a machine.toml does).
 The world steps every S seconds on a thread that asks for real-time scheduling (the field's
@@ -42,7 +43,7 @@ import msgpack
 from hal.iomap import IoMap
 from schema.sim import SIM_REQUESTS
 from sim.settings import PhysicsParams
-from sim.world import CONFIG_RSC, SimWorld
+from sim.world import CONFIG_RSC, SimWorld, make_image
 
 log = logging.getLogger("plant")
 
@@ -177,6 +178,11 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--parent", type=int, default=None)
     p.add_argument("--beat-fd", type=int, default=None)
     p.add_argument("--beat-offset", type=int, default=0)
+    p.add_argument(
+        "--make-image",
+        action="store_true",
+        help="make DIR/procimg itself (a plant started on its own, e.g. a compose service)",
+    )
     return p.parse_args(argv)
 
 
@@ -186,6 +192,9 @@ def main(argv: list[str] | None = None) -> int:
     sys.setswitchinterval(0.0005)  # a request's thread must not keep the world waiting
     iomap, params = read_tables(args.config)
     image = args.dir / IMAGE
+    if args.make_image:
+        args.dir.mkdir(parents=True, exist_ok=True)
+        make_image(image)
     world = SimWorld(iomap, str(image), str(CONFIG_RSC), params, args.period, spawn=FieldThread)
     if args.beat_fd is not None:
         world.follow_scans(beat_counter(args.beat_fd, args.beat_offset))

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ from hal.base import HalError
 from hal.iomap import IoMap
 from schema.sim import SIM_REQUESTS, SimWorldState
 from sim import faults as simfaults
-from sim.plant import IMAGE, SOCKET, recv_frame, send_frame
+from sim.plant import ENDPOINT, IMAGE, SOCKET, recv_frame, send_frame
 from sim.settings import PhysicsParams
 from sim.world import CONFIG_RSC, make_image
 
@@ -43,18 +44,27 @@ STOP_TIMEOUT_S = 5.0
 
 class PlantProcess:
     """The plant as a child process: `start()` runs `python -m sim.plant` on a fresh process
-    image in `directory`; every other call is one request over its socket."""
+    image in `directory`; every other call is one request over its socket. `attach`: a plant
+    someone else runs in `directory` (a compose service of its own), found, never stopped."""
 
     def __init__(
-        self, iomap: IoMap, params: PhysicsParams, directory: Path, period_s: float
+        self,
+        iomap: IoMap,
+        params: PhysicsParams,
+        directory: Path,
+        period_s: float,
+        *,
+        attach: bool = False,
     ) -> None:
         self.dir = directory
-        self.procimg = make_image(directory / IMAGE)
+        self.attach = attach
+        self.procimg = str(directory / IMAGE) if attach else make_image(directory / IMAGE)
         self.configrsc = str(CONFIG_RSC)
         self.period = period_s
         self._config = directory / "plant.json"
-        tables = {"iomap": iomap.model_dump(by_alias=True), "sim": params.model_dump()}
-        self._config.write_text(json.dumps({"hal": tables}))
+        if not attach:
+            tables = {"iomap": iomap.model_dump(by_alias=True), "sim": params.model_dump()}
+            self._config.write_text(json.dumps({"hal": tables}))
         self._sockdir = Path(tempfile.mkdtemp(prefix="plant-"))  # short: at most 107 bytes
         self.socket = self._sockdir / SOCKET
         self._beat: tuple[int, int] | None = None
@@ -73,6 +83,9 @@ class PlantProcess:
         self._beat = (fd, offset)
 
     def start(self) -> None:
+        if self.attach:
+            self._find()
+            return
         cmd = [sys.executable, "-m", "sim.plant", "--dir", str(self.dir), "--config"]
         cmd += [str(self._config), "--socket", str(self.socket), "--period", str(self.period)]
         cmd += ["--parent", str(os.getpid())]
@@ -83,6 +96,23 @@ class PlantProcess:
         self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, pass_fds=fds)
         self._wait_ready(self._proc)
         log.info("event=plant_up pid=%d dir=%s", self._proc.pid, self.dir)
+
+    def _find(self) -> None:
+        """A plant someone else started: its socket, once it names one and the image is there
+        (bounded). Its beat record cannot reach another container: no arc hold then."""
+        deadline = time.monotonic() + START_TIMEOUT_S
+        endpoint = self.dir / ENDPOINT
+        while True:  # an endpoint left by an earlier plant names a socket nobody answers on
+            try:
+                self.socket = Path(endpoint.read_text())
+                Path(self.procimg).stat()
+                self._call({"op": "step_now"})
+                break
+            except (OSError, HalError) as exc:
+                if time.monotonic() > deadline:
+                    raise HalError(f"no simulated plant answers in {self.dir}: {exc}") from exc
+            time.sleep(0.05)
+        log.info("event=plant_found dir=%s socket=%s", self.dir, self.socket)
 
     def _wait_ready(self, proc: subprocess.Popen[str]) -> None:
         assert proc.stdout is not None
@@ -95,7 +125,10 @@ class PlantProcess:
 
     def stop(self) -> None:
         proc = self._proc
-        if proc is None:
+        if proc is None:  # not started, or attached: the plant is not ours to stop
+            if self._sock is not None:
+                self._sock.close()
+            shutil.rmtree(self._sockdir, ignore_errors=True)
             return
         with contextlib.suppress(HalError):
             self._call({"op": "stop"})

@@ -31,6 +31,7 @@ from typing import Protocol
 from common.credentials import MACHINE, CredentialError, env_name
 from hal.backends import World, backend
 from hal.base import HalConfigError, HalError
+from schema.findings import Finding, Severity
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.bus.supervisor import (
@@ -92,6 +93,9 @@ class SupervisorOptions:
     `HANG_S`, or three watchdog limits when that is longer."""
     world_period_s: float = 0.005
     log_level: str = "info"
+    plant_dir: Path | None = None
+    """With the simulator: attach to a plant already running there (`--plant`, a compose
+    service of its own) instead of starting one as a child."""
 
 
 class Supervisor:
@@ -221,9 +225,16 @@ class Supervisor:
         self.dir.mkdir(parents=True, exist_ok=True)
         config = self.config
         hal = config.hal
+        plant = self.options.plant_dir
         self.world = backend(hal.backend).world(
-            hal.iomap, hal.settings(), self.dir, self.options.world_period_s
+            hal.iomap,
+            hal.settings(),
+            plant or self.dir,
+            self.options.world_period_s,
+            attach=plant is not None,
         )
+        if plant is not None and self.world is None:
+            raise HalConfigError([_plant_needs_sim(hal.backend)])
         if self.world is not None:  # a simulated world: the child drives it as a RevPi
             self.world.follow_beat(self.beat_fd, CYCLES_OFFSET)
             revpi = {"procimg": self.world.procimg, "configrsc": self.world.configrsc}
@@ -476,6 +487,15 @@ class Supervisor:
 
     def _on_presence(self, present: bool) -> None:
         self.events.put(Event(Kind.PRESENCE, present=present))
+
+
+def _plant_needs_sim(name: str) -> Finding:
+    return Finding(
+        category="hal",
+        severity=Severity.ERROR,
+        path="/hal/backend",
+        message=f"--plant attaches to a simulated plant; the {name!r} backend has none (--sim)",
+    )
 
 
 def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: SupervisorOptions) -> int:

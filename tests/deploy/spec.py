@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import io
 import json
 import os
@@ -27,6 +28,7 @@ from tests.procs import REPO
 
 COMPOSE = REPO / "compose.yaml"
 REVPI_OVERRIDE = REPO / "docker" / "compose.revpi.yaml"
+PLANT_OVERRIDE = REPO / "docker" / "compose.plant.yaml"
 ROUTER_OVERRIDE = REPO / "docker" / "compose.router.yaml"
 DOCKERFILE = REPO / "Dockerfile"
 DOCKERIGNORE = REPO / ".dockerignore"
@@ -76,6 +78,25 @@ def _interpolate_tree(node: Any, env: Mapping[str, str]) -> Any:
     if isinstance(node, dict):
         return {k: _interpolate_tree(v, env) for k, v in node.items()}
     return node
+
+
+def merged(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    """`-f base -f override` as compose merges them, for the keys our files use: a service's
+    `command` and other scalars replaced, its `volumes` and `depends_on` appended, new services
+    and top-level `volumes` added."""
+    out = copy.deepcopy(dict(base))
+    services = out.setdefault("services", {})
+    for name, svc in (override.get("services") or {}).items():
+        mine = services.setdefault(name, {})
+        for key, value in svc.items():
+            if key in ("volumes", "depends_on") and key in mine:
+                mine[key] = [*mine[key], *value]
+            else:
+                mine[key] = copy.deepcopy(value)
+    for key in ("volumes", "secrets"):
+        if override.get(key):
+            out[key] = {**(out.get(key) or {}), **override[key]}
+    return out
 
 
 def service(compose: Mapping[str, Any], name: str) -> dict[str, Any]:

@@ -33,9 +33,10 @@ from schema.commands import RotateStep, Session
 from schema.status import MachineState, Status
 from service.adapters.credentials import init_credentials
 from tests.deploy import spec
+from tests.freeze_whole import plant_world
 from tests.integration.support import write_fast_config
 from tests.netns import NetnsUnavailable, NsPair, hosts_file, unavailable_reason, veth_pair
-from tests.procs import REPO
+from tests.procs import REPO, child_pids
 
 pytestmark = [
     pytest.mark.integration,
@@ -118,15 +119,18 @@ class Stack:
     tmp: Path
     compose: dict[str, Any]
     children: dict[str, Child] = field(default_factory=dict)
+    config_extra: str = ""
+    """Appended to the fast config that replaces the mounted machine.toml."""
 
     def ns(self, name: str) -> str:
-        return self.net.a if name == "machine" else self.net.b
+        return self.net.a if name in ("machine", "plant") else self.net.b
 
     def svc(self, name: str) -> dict[str, Any]:
         return spec.service(self.compose, name)
 
     def paths(self, name: str) -> dict[str, Path]:
         fast = write_fast_config(self.tmp)
+        fast.write_text(fast.read_text() + self.config_extra)
         return spec.mount_paths(self.svc(name), self.tmp / "volumes", {"./machine.toml": fast})
 
     def secrets(self, name: str) -> dict[str, Path]:
@@ -273,3 +277,58 @@ def test_compose_stack_runs_a_session_to_done_and_stops_safely(stack: Stack) -> 
     machine.wait_line("event=stopped code=0 outputs=safe")
     assert stack.healthcheck("machine") != EXIT_OK  # the stopped daemon removed its file
     assert ui.stop(grace) == 0, ui.log()
+
+
+PUMP = '\n[hal.iomap]\nchargePump = "O_5"\n'
+
+
+def test_the_plant_in_a_container_of_its_own_cuts_the_drives_when_the_machine_is_paused(
+    stack: Stack,
+) -> None:
+    """docker/compose.plant.yaml (issue 53): the simulated plant a service of its own, the
+    machine's supervisor attached to it through the shared volume. `docker compose pause
+    machine` (every process of the machine's container stopped; here SIGSTOP of its process
+    tree) leaves the plant running, and its charge-pump relay cuts the drives."""
+    stack.compose = spec.merged(stack.compose, spec.load_compose(spec.PLANT_OVERRIDE))
+    stack.config_extra = PUMP
+    plant = stack.up("plant")
+    plant.wait_line("event=plant_started")
+    machine = stack.up("machine")
+    machine.wait_line("event=started")
+    machine.wait_line("event=plant_found")
+    stack.rider("calibrate", "tilt", "--wait")
+    stack.rider("calibrate", "rotate", "--wait")
+    stack.rider("home", "--wait")
+    long_ride = stack.tmp / "long-ride.json"
+    long_ride.write_text(
+        Session(name="long", steps=[RotateStep(revolutions=100)]).model_dump_json()
+    )
+    stack.rider("start", "--session", str(long_ride))
+    stack.rider("watch", "--keys", "status", "--until", "RUNNING", "--for", "30")
+    volume = stack.tmp / "volumes" / "plant"
+    tree = [machine.proc.pid, *descendants(machine.proc.pid)]
+    for pid in tree:
+        os.kill(pid, signal.SIGSTOP)
+    try:
+        t0 = time.monotonic()
+        while (left := t0 + 1.0 - time.monotonic()) > 0:
+            time.sleep(left)  # the pause itself
+        world = plant_world(volume)
+    finally:
+        for pid in tree:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+    assert plant.proc.poll() is None, plant.log()
+    assert world.drives_powered is False and world.drives_off_s is not None, world
+    assert world.clock is not None
+    cut = world.clock - world.drives_off_s - t0
+    assert cut <= 0.3, f"drives cut {cut:.3f} s after the pause"
+    assert any(world.relays.values()), "the paused machine's relays stay as they were"
+
+
+def descendants(pid: int) -> list[int]:
+    """Every process below `pid` (the container's other processes)."""
+    out = []
+    for child in child_pids(pid):
+        out += [child, *descendants(child)]
+    return out
