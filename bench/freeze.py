@@ -11,7 +11,7 @@ process per core (bench/baselines/burner.py), the phases alternated.
 
 Then the whole controller frozen at once (tests/freeze_whole.py): the supervisor, its daemon
 and the daemon's history process stopped by SIGSTOP, or frozen in a freezer cgroup of their own
-(what `docker pause` / `podman pause` do), for 1 s mid-move, while the simulated plant runs on
+(what `docker pause` / `podman pause` do), for 1.5 s mid-move, while the simulated plant runs on
 in a process of its own. The time is from the freeze to the plant's charge-pump relay cutting
 the drives (`hal.sim.charge_pump_timeout_s`, 0.1 s), read from the plant; the same freeze of a
 ride without a charge pump beside it (the old behaviour: relays on, drives powered, the whole
@@ -51,8 +51,9 @@ from tests.procs import Daemon
 BOUND_S = LIMIT_S + 2 * PERIOD_S
 """The issue's target: relays off within the watchdog limit plus two periods."""
 PUMP_TIMEOUT_S = PhysicsParams().charge_pump_timeout_s
-WHOLE_HOLD_S = 1.0
-"""How long each whole-controller freeze lasts (the relay acts within a tenth of it)."""
+WHOLE_HOLD_S = 1.5
+"""How long each whole-controller freeze lasts: past the supervisor's 1 s `--hang`, so it
+replaces the frozen daemon once it runs again (the relay acts within a tenth of it)."""
 
 
 @contextlib.contextmanager

@@ -20,7 +20,7 @@ import os
 import signal
 import socket
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -30,7 +30,7 @@ from schema.commands import Reply, Session, TiltStep
 from schema.sim import SimWorldState
 from schema.status import Status
 from sim.plant import ENDPOINT, recv_frame, send_frame
-from tests.freeze import TILT_DPS, child_of, image_relays, ready
+from tests.freeze import TILT_DPS, child_of, image_relays, ready, replaced
 from tests.integration.support import Preparation, late_steps
 from tests.procs import Daemon, child_pids
 
@@ -43,15 +43,20 @@ class Whole(StrEnum):
     CGROUP = "cgroup-freezer"
 
 
-def plant_world(data_dir: Path, timeout: float = 2.0) -> SimWorldState:
-    """The truth, from the plant itself (its socket in the supervisor's directory)."""
+def plant_world(directory: Path, timeout: float = 2.0) -> SimWorldState:
+    """The truth, from the plant itself (the socket named in its `directory`)."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(timeout)
-        sock.connect((data_dir / "supervisor" / ENDPOINT).read_text())
+        sock.connect((directory / ENDPOINT).read_text())
         send_frame(sock, {"op": "world", "stamp": time.time()})
         answer = recv_frame(sock)
     assert "ok" in answer, answer
     return SimWorldState.model_validate(answer["ok"])
+
+
+def plant_dir(supervisor: Daemon) -> Path:
+    """Where `machine supervise --sim` keeps its plant's image and endpoint."""
+    return supervisor.data_dir / "supervisor"
 
 
 def controller_pids(supervisor: Daemon) -> list[int]:
@@ -108,27 +113,40 @@ class FreezerCgroup:
 
 
 @contextlib.contextmanager
-def frozen(kind: Whole, pids: list[int]) -> Iterator[float]:
-    """The processes `pids` frozen for the block; yields the monotonic time just before."""
+def frozen(
+    kind: Whole, first: list[int], rest: list[int], between: Callable[[], None]
+) -> Iterator[float]:
+    """The processes `first` and `rest` frozen for the block (in that order, microseconds
+    apart); yields the monotonic time just before. Thawed in the same order, `between()` run
+    once `first` runs again and `rest` does not yet: the supervisor wakes before its daemon, so
+    what it does about the freeze (kill a daemon frozen past `--hang`) is not a race."""
+    groups = (first, rest)
     if kind is Whole.SIGSTOP:
         t0 = time.monotonic()
-        for pid in pids:
+        for pid in (*first, *rest):
             os.kill(pid, signal.SIGSTOP)
         try:
             yield t0
         finally:
-            for pid in pids:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGCONT)
+            for n, group in enumerate(groups):
+                for pid in group:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, signal.SIGCONT)
+                if n == 0:
+                    between()
         return
-    cgroup = FreezerCgroup(f"ride-freeze-{os.getpid()}")
+    cgroups = [FreezerCgroup(f"ride-freeze-{os.getpid()}-{n}") for n in range(2)]
     try:
-        cgroup.add(pids)
+        for cgroup, group in zip(cgroups, groups, strict=True):
+            cgroup.add(group)
         t0 = time.monotonic()
-        cgroup.freeze()
+        for cgroup in cgroups:
+            cgroup.freeze()
         yield t0
     finally:
-        cgroup.close()
+        cgroups[0].close()
+        between()
+        cgroups[1].close()
 
 
 @dataclass(frozen=True)
@@ -147,6 +165,13 @@ class WholeOutcome:
 
 def prepare_a_ride(supervisor: Daemon, rider: Rider) -> None:
     """Home, and drive the tilt towards 45°: returns once it is 5° into its move."""
+    try:
+        _ride(supervisor, rider)
+    except AssertionError as exc:  # a trial that could not start: the supervisor's account
+        raise AssertionError(f"{exc}\n--- supervisor log:\n{supervisor.log()[-5000:]}") from exc
+
+
+def _ride(supervisor: Daemon, rider: Rider) -> None:
     ready(rider)
     moving: list[SimWorldState] = []
 
@@ -166,30 +191,45 @@ def prepare_a_ride(supervisor: Daemon, rider: Rider) -> None:
 
 def freeze_whole(supervisor: Daemon, rider: Rider, kind: Whole, hold_s: float) -> WholeOutcome:
     """Drive the tilt (`prepare_a_ride`), freeze the whole controller 5° into the move for
-    `hold_s`, and read the plant before thawing; returns once a daemon answers again."""
+    `hold_s` (longer than the supervisor's `--hang`), and read the plant before thawing;
+    returns once the frozen daemon was replaced and the new one answers."""
     prepare_a_ride(supervisor, rider)
     pids = controller_pids(supervisor)
-    before = plant_world(supervisor.data_dir)
-    with frozen(kind, pids) as t0:
+    before = plant_world(plant_dir(supervisor))
+    said = len(supervisor.log())
+
+    def daemon_down() -> None:  # the supervisor's answer to a daemon frozen past --hang
+        wait_for_log(supervisor, said, "event=daemon_down")
+
+    with frozen(kind, pids[:1], pids[1:], daemon_down) as t0:
         deadline = t0 + hold_s
         while (left := deadline - time.monotonic()) > 0:
             time.sleep(left)  # the freeze itself: nothing of the controller runs meanwhile
-        world = plant_world(supervisor.data_dir)
+        world = plant_world(plant_dir(supervisor))
         relays_on = any(image_relays(supervisor.data_dir).values())
     assert before.clock is not None and world.clock is not None
     cut = None
     if world.drives_powered is False and world.drives_off_s is not None:
         cut = world.clock - world.drives_off_s - t0
     overrun = world.tilt_deg - (before.tilt_deg + TILT_DPS * (t0 - before.clock))
-    ready(rider)  # the same daemon, faulted by its own watchdog, or a new one
+    replaced(supervisor, rider, pids[1])
     return WholeOutcome(kind, cut, overrun, relays_on, hold_s)
+
+
+def wait_for_log(daemon: Daemon, start: int, text: str, timeout: float = 20.0) -> str:
+    """The log from character `start` once it holds `text` (bounded)."""
+    deadline = time.monotonic() + timeout
+    while text not in (said := daemon.log()[start:]):
+        assert time.monotonic() < deadline, f"no {text!r} in:\n{said[-3000:]}"
+        time.sleep(0.02)
+    return said
 
 
 def tilt_moving(supervisor: Daemon, rider: Rider, timeout: float = 30.0) -> SimWorldState | None:
     """The plant once the tilt is driven 5° into its move; None if the move ended first."""
     deadline = time.monotonic() + timeout
     while True:
-        world = plant_world(supervisor.data_dir)
+        world = plant_world(plant_dir(supervisor))
         if world.tilt_deg >= 5.0 and world.relays.get("O_3"):
             return world
         status = rider.status()

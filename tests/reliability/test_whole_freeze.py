@@ -38,22 +38,15 @@ from tests.freeze_whole import (
     controller_pids,
     freeze_whole,
     prepare_a_ride,
+    wait_for_log,
 )
 from tests.procs import Daemon
-
-
-def wait_for_log(daemon: Daemon, start: int, text: str, timeout: float = 20.0) -> str:
-    """The log from character `start` once it holds `text` (bounded)."""
-    deadline = time.monotonic() + timeout
-    while text not in (said := daemon.log()[start:]):
-        assert time.monotonic() < deadline, f"no {text!r} in:\n{said[-3000:]}"
-        time.sleep(0.05)
-    return said
-
 
 pytestmark = pytest.mark.integration
 
 PUMP_TIMEOUT_S = 0.1
+HOLD_S = 1.5
+"""Each freeze: longer than the supervisor's 1 s `--hang`, so it replaces the frozen daemon."""
 CUT_BOUND_S = PUMP_TIMEOUT_S + 2 * PERIOD_S + 0.15
 """The relay's timeout and two periods (the issue's target), and room for a loaded host."""
 
@@ -69,6 +62,7 @@ def supervised(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemo
         stop(supervisor)
 
 
+@pytest.mark.hazard("H05")
 @pytest.mark.parametrize("kind", list(Whole))
 def test_a_controller_frozen_as_a_whole_loses_its_drives_power_within_the_relay_timeout(
     supervised: tuple[Daemon, Rider], kind: Whole
@@ -76,7 +70,7 @@ def test_a_controller_frozen_as_a_whole_loses_its_drives_power_within_the_relay_
     if kind is Whole.CGROUP and (why := FreezerCgroup.unavailable()) is not None:
         pytest.skip(why)
     supervisor, rider = supervised
-    outcome = freeze_whole(supervisor, rider, kind, hold_s=1.0)
+    outcome = freeze_whole(supervisor, rider, kind, hold_s=HOLD_S)
     assert outcome.relays_on, "nothing of the controller ran: its relays stayed as they were"
     assert outcome.cut_s is not None, f"the drives kept their power: {outcome}"
     assert outcome.cut_s <= CUT_BOUND_S, outcome
@@ -110,6 +104,7 @@ def test_the_supervisor_never_calls_a_freeze_that_kept_the_relays_on_outputs_off
         assert "5." in line and ("energised" in line or "on for up to" in line), line
 
 
+@pytest.mark.hazard("H04")
 def test_relays_found_off_after_a_frozen_supervisor_wakes_are_not_called_off(
     supervised: tuple[Daemon, Rider],
 ) -> None:
