@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-under-load install browser prometheus js schema states lint bench clean
+.PHONY: run test test-under-load install browser prometheus js schema states hazards lint bench clean
 
 # The locked versions (requirements/dev.txt, hashes checked), then the project itself on top.
 $(STAMP): pyproject.toml requirements/dev.txt
@@ -54,6 +54,11 @@ schema: $(STAMP)
 ## (service/core/statemachine/table.py TABLE); tests/service/core/test_control_doc.py fails while they differ.
 states: $(STAMP)
 	$(BIN)/python -m service.core.control_doc
+
+## Run every test the hazard log names, record the results and rewrite docs/hazards.md from
+## docs/hazards.toml (tests/test_hazards.py fails while the page, the table and the suite differ).
+hazards: $(STAMP)
+	$(BIN)/python -m tests.hazard_log --run
 
 ## Install, then lint, type-check and run the whole test suite: two pytest-xdist workers, each
 ## taking a whole test file at a time (a file's tests share fixtures and daemons).

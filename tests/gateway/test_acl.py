@@ -37,6 +37,7 @@ def _rider(daemon: Daemon) -> list[str]:
     return rider_cmd("--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config))
 
 
+@pytest.mark.hazard("H52")
 def test_a_monitor_gateway_reads_and_refuses_every_call(
     secured: tuple[Daemon, Identities], creds: Credentials
 ) -> None:

@@ -21,6 +21,7 @@ def _alive(scrape: str) -> dict[str, float]:
     return {mid: float(v) for mid, v in found}
 
 
+@pytest.mark.hazard("H08", "H51")
 def test_two_machines_arrive_and_one_leaves(plant: Site, gateway: GatewayProc) -> None:
     plant.start_daemons({"m2": "client", "m3": "client"})
     try:

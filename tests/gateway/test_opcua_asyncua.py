@@ -26,6 +26,7 @@ OPERATOR = "operator"
 _S = ua.StatusCodes
 
 
+@pytest.mark.hazard("H51")
 def test_an_operator_browses_reads_subscribes_and_calls(
     gateway: GatewayProc, creds: Credentials
 ) -> None:
@@ -59,6 +60,7 @@ def test_an_operator_browses_reads_subscribes_and_calls(
     run(body())
 
 
+@pytest.mark.hazard("H52")
 def test_anonymous_reads_and_browses_but_never_calls(gateway: GatewayProc) -> None:
     async def body() -> None:
         async with connected(gateway.url) as c:
@@ -72,6 +74,7 @@ def test_anonymous_reads_and_browses_but_never_calls(gateway: GatewayProc) -> No
     run(body())
 
 
+@pytest.mark.hazard("H52")
 def test_a_wrong_password_is_refused(gateway: GatewayProc) -> None:
     async def body() -> None:
         with pytest.raises(ua.uaerrors.BadUserAccessDenied):
@@ -148,6 +151,7 @@ def test_the_encrypted_endpoint_uses_the_certificate_credentials_init_made(
     run(body())
 
 
+@pytest.mark.hazard("H52")
 def test_a_listed_certificate_is_an_operator_an_unlisted_one_only_reads(
     gateway: GatewayProc, creds: Credentials, client_certs: tuple[Credentials, Credentials]
 ) -> None:

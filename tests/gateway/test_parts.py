@@ -100,6 +100,7 @@ def test_a_password_makes_an_operator_none_is_anonymous_a_wrong_one_nobody() -> 
     assert other is not None and other.role is UserRole.Anonymous
 
 
+@pytest.mark.hazard("H52")
 def test_anonymous_reads_an_operator_calls_nobody_edits_the_space() -> None:
     rules = Rules()
     anon, op = Caller(role=UserRole.Anonymous), Caller(role=OPERATOR)
@@ -108,6 +109,7 @@ def test_anonymous_reads_an_operator_calls_nobody_edits_the_space() -> None:
     assert not rules.check_validity(op, ADD_NODES, None)
 
 
+@pytest.mark.hazard("H53")
 def test_a_supervising_session_ends_when_closed_or_silent_past_the_timeout() -> None:
     now = [100.0]
     open_keys: set[str] = set()

@@ -63,6 +63,7 @@ def _ready(plant: Site) -> None:
         prepare(r)
 
 
+@pytest.mark.hazard("H53")
 def test_a_session_closed_without_stop_pauses_its_motion(
     plant: Site, gateway: GatewayProc, creds: Credentials
 ) -> None:
@@ -83,6 +84,7 @@ def test_a_session_closed_without_stop_pauses_its_motion(
     assert events and events[-1].details.acted  # type: ignore[union-attr]
 
 
+@pytest.mark.hazard("H53")
 def test_a_frozen_client_pauses_its_motion_within_the_two_timeouts(
     plant: Site, gateway: GatewayProc, creds: Credentials
 ) -> None:

@@ -97,6 +97,7 @@ def test_analog_input_is_a_signed_little_endian_word(hal: RevPiHal, image: str, 
     assert hal.scan_inputs().ai == {"InputValue_1": raw}
 
 
+@pytest.mark.hazard("H48")
 @pytest.mark.parametrize("signal", RELAY_OUTPUTS)
 def test_each_relay_is_written_to_its_bit_and_nothing_else(
     hal: RevPiHal, image: str, signal: Signal
@@ -187,6 +188,7 @@ def test_force_safe_does_not_wait_for_a_stuck_scan(hal: RevPiHal, image: str) ->
     assert relay_byte(image) == 0
 
 
+@pytest.mark.hazard("H11")
 @pytest.mark.parametrize("active_low", [True, False])
 def test_read_estop_reads_the_image_and_honours_active_low(image: str, active_low: bool) -> None:
     h = RevPiHal(IoMap(estop_active_low=active_low), image, CONFIG)
@@ -351,6 +353,7 @@ def test_estop_drops_the_relays_in_the_same_cycle(ride: RevPiRide) -> None:
         assert relay_byte(ride.image) == 0
 
 
+@pytest.mark.hazard("H43")
 def test_machine_start_up_forces_outputs_safe(tmp_path: Path) -> None:
     image = make_image(tmp_path)
     write_bit(image, "O_1", True)
@@ -375,6 +378,7 @@ def _set_led(image: str, value: int) -> None:
     Path(image).write_bytes(bytes(data))
 
 
+@pytest.mark.hazard("H44")
 def test_the_hardware_watchdog_bit_flips_from_the_scan_and_only_it(
     image: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -51,6 +51,7 @@ def test_run_and_supervise_report_a_backend_error_as_findings_with_exit_2(
     assert not (tmp_path / "data").exists()  # refused before anything opened
 
 
+@pytest.mark.hazard("H48")
 @pytest.mark.parametrize(
     ("layout", "line"),
     [

@@ -347,6 +347,7 @@ def test_validation_names_the_outputs_that_share_our_byte_and_module(tmp_path: P
     assert [f.path for f in default] == ["/hal/iomap/rotateDir"]  # our O_2; lamp is not ours
 
 
+@pytest.mark.hazard("H48")
 def test_other_signals_on_the_relay_module_keep_their_values(tmp_path: Path) -> None:
     image = make_image(tmp_path)
     set_bit(image, *where("shared_dio", "conv_run"), True)  # the conveyor runs

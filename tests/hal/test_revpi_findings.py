@@ -31,6 +31,7 @@ def errors(findings: list[Finding]) -> list[tuple[str, str]]:
     return [(f.category, f.path) for f in findings if f.severity is Severity.ERROR]
 
 
+@pytest.mark.hazard("H48")
 @pytest.mark.parametrize(
     ("field", "channel", "category", "words"),
     [
@@ -126,6 +127,7 @@ def test_a_module_missing_from_the_config_makes_its_ios_missing(tmp_path: Path, 
     assert errors(findings) == [("io_missing", "/hal/iomap/tiltPosition")]
 
 
+@pytest.mark.hazard("H43")
 def test_relay_defaulting_on_is_a_warning(tmp_path: Path, image: str) -> None:
     data = load()
     find_entry(data, "O_2")[1] = "1"
@@ -140,6 +142,7 @@ def test_relay_defaulting_on_is_a_warning(tmp_path: Path, image: str) -> None:
         h.close()
 
 
+@pytest.mark.hazard("H48")
 def test_unmapped_outputs_are_never_written_not_even_their_default(
     tmp_path: Path, image: str
 ) -> None:

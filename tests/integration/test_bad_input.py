@@ -73,6 +73,7 @@ def fake_machine() -> Iterator[str]:
         stop_process(proc)
 
 
+@pytest.mark.hazard("H30")
 def test_a_hostile_session_name_cannot_fake_a_status_line(fake_machine: str) -> None:
     done = subprocess.run(
         rider_cmd("--connect", fake_machine, "--machine", "evil", "status"),
@@ -97,6 +98,7 @@ def test_a_hostile_session_name_cannot_fake_a_status_line(fake_machine: str) -> 
     assert json.loads(as_json.stdout)["session"]["name"] == HOSTILE  # JSON stays faithful
 
 
+@pytest.mark.hazard("H30")
 def test_the_machine_refuses_a_session_name_that_is_not_printable(machine: Daemon) -> None:
     session = Session(name="x", steps=[RotateStep(revolutions=1)])
     with machine.rider() as r:
@@ -110,6 +112,7 @@ def test_the_machine_refuses_a_session_name_that_is_not_printable(machine: Daemo
 
 
 # ------------------------------------------------------------ online writes, JSON in and out
+@pytest.mark.hazard("H25")
 def test_an_online_write_the_file_check_flags_is_refused(machine: Daemon) -> None:
     done = machine.cli("params", "set", "bus.heartbeat_s", "1e-9")
     assert done.returncode == 1, done.stdout
@@ -188,6 +191,7 @@ def test_a_reader_that_goes_away_ends_the_cli_quietly(machine: Daemon) -> None:
     assert "Traceback" not in err and "BrokenPipe" not in err
 
 
+@pytest.mark.hazard("H48")
 @pytest.mark.parametrize(
     ("args", "line"),
     [

@@ -10,6 +10,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import pytest
+
 from rider.client import Rider
 from schema.codec import Format, decode, pack
 from schema.commands import Command, Reply
@@ -75,6 +77,7 @@ def _events(rider: Rider, after: int, commands: int) -> list[Event]:
             return events
 
 
+@pytest.mark.hazard("H09", "H47")
 def test_estop_first_and_one_reply_each_under_a_command_storm(tmp_path: Path) -> None:
     with contextlib.ExitStack() as stack:
         daemon = stack.enter_context(fast_daemon(tmp_path))

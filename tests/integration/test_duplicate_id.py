@@ -118,6 +118,7 @@ def relays_off_at(daemon: Daemon) -> bool:
     return not any(own(daemon, "sim/world", SimWorldState).relays.values())
 
 
+@pytest.mark.hazard("H35")
 def test_a_second_daemon_with_a_live_id_refuses_to_start(tmp_path: Path) -> None:
     with daemon_in(tmp_path, "a") as first:
         first_zid = zid_of(first)
@@ -163,6 +164,7 @@ def rider_hearing(a: Daemon, b: Daemon, *args: str) -> subprocess.CompletedProce
     return run_rider(*linked, "--zenoh-config", str(a.zenoh_config), *args)
 
 
+@pytest.mark.hazard("H35")
 def test_two_segments_joined_at_runtime_both_stop_with_duplicate_id(tmp_path: Path) -> None:
     with daemon_in(tmp_path, "a") as a, daemon_in(tmp_path, "b") as b:
         zids = sorted([zid_of(a), zid_of(b)])

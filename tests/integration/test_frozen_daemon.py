@@ -22,6 +22,7 @@ from tests.procs import running_daemon, sigstop
 pytestmark = pytest.mark.integration
 
 
+@pytest.mark.hazard("H27")
 def test_a_home_sent_to_a_frozen_daemon_does_not_move_it_when_it_resumes(tmp_path: Path) -> None:
     config = write_fast_config(tmp_path)
     # No clock margin: the Rider and the daemon share this host's clock.

@@ -53,6 +53,7 @@ def cli(daemon: Daemon, *args: str) -> tuple[subprocess.CompletedProcess[str], f
     return done, time.monotonic() - t0
 
 
+@pytest.mark.hazard("H08")
 def test_status_and_io_of_a_frozen_machine_are_told_within_the_timeout(machine: Daemon) -> None:
     sigstop(machine.proc.pid)
     t0 = time.monotonic()
@@ -67,6 +68,7 @@ def test_status_and_io_of_a_frozen_machine_are_told_within_the_timeout(machine: 
         assert took < TIMEOUT_S + SLACK_S + 1.5, (what, took)  # + the CLI's own start
 
 
+@pytest.mark.hazard("H02")
 def test_wait_says_when_the_machine_goes_silent_and_the_stall_is_the_fault(
     machine: Daemon,
 ) -> None:

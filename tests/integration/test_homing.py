@@ -151,6 +151,7 @@ def test_a_tilt_gain_typo_stops_within_a_few_degrees_not_at_the_end_stop(tmp_pat
             assert r.sim("world").tilt_deg < 10.0
 
 
+@pytest.mark.hazard("H21")
 def test_a_gain_typed_30_percent_wrong_is_never_done_at_the_wrong_angle(tmp_path: Path) -> None:
     """Issue 53, point 1: `calibration set --tilt-offset 1197 --tilt-gain 52` (40 is measured),
     `home --wait`, `start --wait` ended DONE "at 44.6°" with the simulated tilt at 57.9°, and a

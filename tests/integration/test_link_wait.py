@@ -61,6 +61,7 @@ def said(lines: LineReader, text: str, within: float) -> str:
             return line
 
 
+@pytest.mark.hazard("H08", "H36")
 def test_wait_says_silence_then_paused_and_gives_up_when_the_link_stays_down(
     tmp_path: Path, proxy: tuple[Daemon, subprocess.Popen[str], int]
 ) -> None:

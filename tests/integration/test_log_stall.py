@@ -17,6 +17,7 @@ COMMANDS = 1500
 """Each logs one ~170-byte line: ~250 KB, four times what a pipe holds unread."""
 
 
+@pytest.mark.hazard("H42")
 def test_a_log_reader_that_stops_reading_never_stalls_the_machine(tmp_path: Path) -> None:
     with running_daemon(tmp_path, "m1", pipe=True) as daemon:
         assert daemon.proc.stdout is not None

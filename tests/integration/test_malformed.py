@@ -244,6 +244,7 @@ def untouched(machine: Daemon, rider: Rider) -> Iterator[None]:
     assert overruns <= cycles // 2
 
 
+@pytest.mark.hazard("H30")
 @pytest.mark.parametrize("command", list(Command), ids=lambda c: c.key)
 def test_every_command_refuses_every_malformed_payload(
     machine: Daemon, rider: Rider, command: Command
@@ -368,6 +369,7 @@ def test_a_refused_payload_does_not_use_up_its_transaction_id(
     assert len(answers) == 1 and answers[0].model(Reply).success
 
 
+@pytest.mark.hazard("H26")
 def test_a_repeated_transaction_id_gets_the_same_reply_and_acts_once(
     machine: Daemon, rider: Rider
 ) -> None:

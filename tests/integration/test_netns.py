@@ -134,6 +134,7 @@ def wait_holding(site: Site, driver: subprocess.Popen[str]) -> None:
         raise AssertionError(f"driver ended early:\n{site.daemon.log()}")
 
 
+@pytest.mark.hazard("H06", "H36")
 def test_a_pulled_cable_pauses_the_session_by_the_riders_heartbeat(site: Site) -> None:
     """No FIN, no RST, and a Rider on Zenoh's default 10 s lease (no --zenoh-config): only its
     deadman heartbeat (`rider_loss.timeout_s`, 1 s in the fast test config) can notice."""

@@ -46,6 +46,7 @@ def machine(tmp: Path) -> Daemon:
     return start_daemon(tmp, extra=fast_args(tmp))
 
 
+@pytest.mark.hazard("H26", "H43")
 def test_a_start_repeated_after_a_restart_gets_its_recorded_answer_and_moves_nothing(
     tmp_path: Path,
 ) -> None:

@@ -222,6 +222,7 @@ def test_bad_usage_exits_2(machine: Daemon, tmp_path: Path) -> None:
     assert "not a valid session" in invalid.stderr
 
 
+@pytest.mark.hazard("H37")
 def test_two_machines_and_none_named_exits_4(machine: Daemon, tmp_path: Path) -> None:
     with fast_daemon(tmp_path, "m2") as other:
         both = ["--connect", other.endpoint]

@@ -44,6 +44,7 @@ def rider_process(daemon: Daemon, *steps: str) -> subprocess.Popen[str]:
     return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO)
 
 
+@pytest.mark.hazard("H06")
 def test_killing_the_rider_mid_session_pauses_with_relays_off(machine: Daemon) -> None:
     child = rider_process(machine, *LONG_SESSION)
     try:
@@ -106,6 +107,7 @@ def test_a_reading_rider_that_leaves_changes_nothing(machine: Daemon) -> None:
         child.wait(STEP_TIMEOUT_S)
 
 
+@pytest.mark.hazard("H07")
 def test_a_frozen_cli_rider_on_zenoh_defaults_pauses_the_ride_by_its_heartbeat(
     machine: Daemon, tmp_path: Path
 ) -> None:

@@ -52,6 +52,7 @@ def run_machine(
     return proc, log
 
 
+@pytest.mark.hazard("H32")
 def test_without_listen_the_daemon_listens_on_loopback_only(tmp_path: Path) -> None:
     try:
         with veth_pair("sd") as net:
@@ -75,6 +76,7 @@ def test_without_listen_the_daemon_listens_on_loopback_only(tmp_path: Path) -> N
     assert WARNING not in text
 
 
+@pytest.mark.hazard("H32")
 def test_listening_beyond_loopback_without_a_login_warns_how_to_turn_it_on(tmp_path: Path) -> None:
     proc, log = run_machine(tmp_path, "--listen", f"tcp/0.0.0.0:{free_port()}")
     try:

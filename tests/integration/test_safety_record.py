@@ -91,6 +91,7 @@ def estops(r: Rider) -> list[str]:
     return [e.kind for e in r.events(EventQuery(kinds=("estop_pressed", "estop_released")))]
 
 
+@pytest.mark.hazard("H41")
 def test_a_command_flood_prunes_commands_never_the_e_stop(tmp_path: Path) -> None:
     daemon = machine(tmp_path)
     try:
@@ -127,6 +128,7 @@ def wait_failures(r: Rider) -> None:
         time.sleep(0.1)
 
 
+@pytest.mark.hazard("H41")
 def test_an_e_stop_pressed_while_the_history_is_locked_is_written_when_it_opens(
     tmp_path: Path,
 ) -> None:
@@ -144,6 +146,7 @@ def test_an_e_stop_pressed_while_the_history_is_locked_is_written_when_it_opens(
         daemon.stop()
 
 
+@pytest.mark.hazard("H41")
 def test_an_e_stop_still_unwritten_at_the_stop_is_written_by_the_next_start(
     tmp_path: Path,
 ) -> None:

@@ -24,6 +24,7 @@ LOSS_BOUND_S = 10.0
 40 revolutions (20 s), so a ride nobody paused would still be RUNNING."""
 
 
+@pytest.mark.hazard("H06", "H25")
 def test_the_deadman_cannot_be_switched_off_during_a_ride(tmp_path: Path) -> None:
     with fast_daemon(tmp_path) as daemon, rider_proc.supervising(daemon) as (victim, _):
         tried = daemon.cli("params", "set", "rider_loss.policy", '"ignore"')

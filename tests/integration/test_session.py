@@ -170,6 +170,7 @@ def stop_mid_ride(rider: Rider) -> None:
     assert refused.value.error.code is ErrorCode.WRONG_STATE
 
 
+@pytest.mark.hazard("H10")
 def test_estop_from_the_simulator_latches_release_moves_nothing_resume_continues(
     rider: Rider,
 ) -> None:

@@ -65,6 +65,7 @@ def storage_warnings(status: Status) -> list[str]:
     return [w for w in status.warnings if w.startswith("STORAGE_FAILED: ")]
 
 
+@pytest.mark.hazard("H38")
 def test_full_disk_calibration_and_parameter_are_not_reported_saved(tmp_path: Path) -> None:
     with tmpfs(tmp_path / "mnt", "256k") as mount:
         data = mount / "data"
@@ -112,6 +113,7 @@ def status_after_restart(tmp_path: Path, data: Path) -> Status:
         daemon.stop()
 
 
+@pytest.mark.hazard("H39")
 def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: Path) -> None:
     with tmpfs(tmp_path / "mnt", "1m") as mount:
         data = mount / "data"
@@ -139,6 +141,7 @@ def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: 
     assert storage_warnings(after)
 
 
+@pytest.mark.hazard("H22", "H39")
 def test_a_calibration_refused_by_a_read_only_dir_is_not_undone_by_a_restart(
     tmp_path: Path,
 ) -> None:
@@ -179,6 +182,7 @@ def test_a_calibration_refused_by_a_read_only_dir_is_not_undone_by_a_restart(
     assert storage_warnings(status) == []
 
 
+@pytest.mark.hazard("H38")
 def test_events_lost_on_a_full_disk_are_counted_after_a_restart(tmp_path: Path) -> None:
     """Issue 43, reproduction 4: the `storage_failed` record that counts them could not be
     written while the disk was full, and a restart forgot the count; the file the history

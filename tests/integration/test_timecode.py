@@ -41,6 +41,7 @@ def home_with(daemon: Daemon, tid: str, timecode: float) -> tuple[dict[str, obje
     return reply, homing
 
 
+@pytest.mark.hazard("H28")
 @pytest.mark.parametrize(
     ("sent", "says"),
     [

@@ -151,6 +151,7 @@ def session_as(daemon: Daemon, env: dict[str, str]) -> Iterator[Rider]:
         yield r
 
 
+@pytest.mark.hazard("H32")
 def test_profiles_share_one_access_control_block() -> None:
     acl = zenoh.Config.from_file(str(ACL_PROFILE)).get_json("access_control")
     tls = zenoh.Config.from_file(str(TLS_PROFILE)).get_json("access_control")
@@ -174,6 +175,7 @@ def test_rider_identity_commands_writes_params_and_reads(machine: Daemon, ids: I
         assert r.sim("world").estop_pressed is False
 
 
+@pytest.mark.hazard("H21", "H32")
 @pytest.mark.parametrize("who", ["monitor", "wrong password", "unknown user", "no credentials"])
 def test_unauthorized_sessions_cannot_command_and_the_machine_does_not_act(
     machine: Daemon, ids: Identities, who: str
@@ -260,6 +262,7 @@ FORGED_MACHINE = (
 )  # fmt: skip
 
 
+@pytest.mark.hazard("H34")
 @pytest.mark.parametrize("who", ["rider", "monitor"])
 def test_a_peer_with_valid_credentials_cannot_pose_as_the_machine(
     machine: Daemon, ids: Identities, who: str, tmp_path: Path
@@ -297,6 +300,7 @@ def test_a_peer_with_valid_credentials_cannot_pose_as_the_machine(
     assert "forged" not in machine.log()
 
 
+@pytest.mark.hazard("H34")
 @pytest.mark.parametrize("who", ["rider", "monitor"])
 def test_rider_watch_sees_no_forged_status(machine: Daemon, ids: Identities, who: str) -> None:
     """The real CLI, on Zenoh's defaults, while a forger publishes on machine/m1/status."""
@@ -314,6 +318,7 @@ def test_rider_watch_sees_no_forged_status(machine: Daemon, ids: Identities, who
     assert FORGED_SEQ not in seqs
 
 
+@pytest.mark.hazard("H33")
 @pytest.mark.parametrize("command", ["run", "supervise"])
 def test_a_monitor_cannot_keep_a_killed_rider_alive(
     tmp_path_factory: pytest.TempPathFactory, ids: Identities, command: str
@@ -351,6 +356,7 @@ def test_monitor_reads_and_follows_the_event_history(machine: Daemon, ids: Ident
         live.close()
 
 
+@pytest.mark.hazard("H41")
 def test_no_identity_but_the_machine_may_put_or_delete_events() -> None:
     """The ACL itself: events are read-only over the bus for riders and monitors (a router
     with the same profile keeps a site's stored copy read-only too)."""
@@ -399,6 +405,7 @@ def test_nothing_listening_is_not_called_a_refused_login() -> None:
     assert f"nothing answers at {endpoint}" in done.stderr
 
 
+@pytest.mark.hazard("H33")
 def test_only_the_rider_identity_may_declare_or_put_under_rider() -> None:
     """The ACL itself: rider/** (presence tokens, deadman heartbeats) is written by `rider`
     alone; the monitor and even the machine's own login may only watch it."""

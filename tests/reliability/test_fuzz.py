@@ -99,6 +99,7 @@ def check(rider: Rider, batch: list[Case]) -> int:
     return len(batch)
 
 
+@pytest.mark.hazard("H30")
 def test_ten_thousand_malformed_messages_get_errors_and_break_nothing(machine: Daemon) -> None:
     with machine.rider(timeout=REPLY_TIMEOUT_S) as r:
         keys = Keys(

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from service.core.runner import SUPERVISOR_PID_ENV, die_with_parent
 from tests.procs import REPO, free_port, machine_cmd, write_zenoh_config
 
@@ -34,6 +36,7 @@ def test_die_with_parent_checks_the_parent_is_still_there() -> None:
     assert not die_with_parent(os.getppid() + 999_999)
 
 
+@pytest.mark.hazard("H04")
 def test_daemon_refuses_to_run_when_its_supervisor_is_gone(tmp_path: Path) -> None:
     env = {**os.environ, SUPERVISOR_PID_ENV: "1"}  # init is not our parent
     cmd = sim_daemon_cmd(tmp_path)
@@ -44,6 +47,7 @@ def test_daemon_refuses_to_run_when_its_supervisor_is_gone(tmp_path: Path) -> No
     assert "supervisor_gone" in done.stderr
 
 
+@pytest.mark.hazard("H04")
 def test_daemon_gets_sigterm_when_its_parent_dies(tmp_path: Path) -> None:
     """A parent that starts the daemon the way the supervisor does, then is SIGKILLed."""
     daemon = sim_daemon_cmd(tmp_path)

@@ -38,6 +38,7 @@ def supervised(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemo
         stop(supervisor)
 
 
+@pytest.mark.hazard("H01", "H02", "H47")
 @pytest.mark.parametrize("kind", list(Freeze))
 def test_a_frozen_daemon_has_its_relays_dropped_at_the_watchdog_limit(
     supervised: tuple[Daemon, Rider], kind: Freeze

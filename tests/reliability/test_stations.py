@@ -59,6 +59,7 @@ def stations(tmp_path_factory: pytest.TempPathFactory) -> tuple[Identities, Path
     return ids, profile
 
 
+@pytest.mark.hazard("H33")
 def test_each_station_login_may_declare_and_put_under_its_own_prefix_only() -> None:
     """The profiles' template, as the daemon makes it (both profiles alike)."""
     for path in (ACL_PROFILE, TLS_PROFILE):
@@ -89,6 +90,7 @@ def test_each_station_login_may_declare_and_put_under_its_own_prefix_only() -> N
         assert not any("<login>" in k for r in made["rules"] for k in r["key_exprs"])
 
 
+@pytest.mark.hazard("H33")
 @pytest.mark.parametrize("command", ["run", "supervise"])
 def test_a_second_station_can_neither_hold_nor_feed_the_first_stations_deadman(
     tmp_path_factory: pytest.TempPathFactory, stations: tuple[Identities, Path], command: str
@@ -118,6 +120,7 @@ def test_a_second_station_can_neither_hold_nor_feed_the_first_stations_deadman(
         daemon.stop()
 
 
+@pytest.mark.hazard("H33")
 def test_a_station_without_a_subject_is_named_at_start(
     tmp_path_factory: pytest.TempPathFactory, stations: tuple[Identities, Path]
 ) -> None:

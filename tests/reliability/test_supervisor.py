@@ -90,6 +90,7 @@ def image_relays(daemon: Daemon) -> dict[str, bool]:
     return freeze.image_relays(daemon.data_dir)
 
 
+@pytest.mark.hazard("H03")
 def test_sigkill_mid_ride_outputs_safe_then_restart_not_home_with_calibration(
     supervised: Daemon,
 ) -> None:
@@ -140,6 +141,7 @@ FROZEN = ("the daemon stopped answering", "the daemon's scan loop stopped cyclin
 Its link's lease is `--hang` (3 s here) too, so either can be first."""
 
 
+@pytest.mark.hazard("H02")
 def test_frozen_daemon_is_caught_and_replaced(supervised: Daemon) -> None:
     with supervised.rider(timeout=3.0) as r:
         feed = StatusFeed(r)
@@ -206,6 +208,7 @@ def test_sigterm_stops_the_child_cleanly_and_leaves_outputs_safe(supervised: Dae
     assert "event=daemon_down" not in log
 
 
+@pytest.mark.hazard("H32")
 def test_supervisor_router_enforces_the_acl_profile(tmp_path: Path) -> None:
     ids = make_identities(tmp_path / "users")
     rider_env = ids.env(RIDER, "rider")

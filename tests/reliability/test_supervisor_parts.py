@@ -44,6 +44,7 @@ def test_toml_leaves_out_none_and_refuses_what_it_cannot_write() -> None:
         to_toml({"a": object()})
 
 
+@pytest.mark.hazard("H03")
 def test_backoff_doubles_to_its_maximum_and_resets_after_a_stable_run() -> None:
     b = Backoff(0.5, 4.0)
     assert [b.delay(1.0, 10.0) for _ in range(5)] == [0.5, 1.0, 2.0, 4.0, 4.0]

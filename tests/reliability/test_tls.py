@@ -93,6 +93,7 @@ def test_calibrate_home_and_a_session_to_done_over_tls(
     assert world.tilt_deg == pytest.approx(20.0, abs=3.0)
 
 
+@pytest.mark.hazard("H32")
 def test_a_rider_without_the_ca_reaches_nothing(machine: Daemon, ids: Identities) -> None:
     with rider_as(machine, ids.env(RIDER, "rider"), timeout=1.0) as r:
         assert not list(r.session.info.peers_zid())
@@ -100,6 +101,7 @@ def test_a_rider_without_the_ca_reaches_nothing(machine: Daemon, ids: Identities
             r.status()
 
 
+@pytest.mark.hazard("H32")
 def test_plain_tcp_to_the_tls_port_reaches_nothing(
     machine: Daemon, rider_env: dict[str, str]
 ) -> None:

@@ -214,6 +214,7 @@ def test_async_watch_ends_cleanly_once_its_event_loop_is_gone(machine: Daemon) -
     assert not errors, errors
 
 
+@pytest.mark.hazard("H34", "H35", "H51")
 def test_the_pinned_holder_and_its_supervisor_may_answer_and_no_one_else() -> None:
     from rider.client import Holders
 
@@ -251,6 +252,7 @@ def test_the_machine_a_key_is_under_is_remembered_within_a_bound() -> None:
     assert rider.transport.pins.machine_in("machine/*/status") is None
 
 
+@pytest.mark.hazard("H34")
 def test_subscribe_drops_samples_of_any_session_but_the_machine(
     machine: Daemon, caplog: pytest.LogCaptureFixture
 ) -> None:

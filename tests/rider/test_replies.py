@@ -227,6 +227,7 @@ HOSTILE: dict[str, tuple[bytes, zenoh.Encoding]] = {
 }
 
 
+@pytest.mark.hazard("H30")
 @pytest.mark.parametrize("case", sorted(HOSTILE))
 def test_a_broken_or_hostile_reply_is_a_bad_reply(
     scripted: Scripted, tmp_path: Path, case: str
@@ -323,6 +324,7 @@ def test_a_broken_or_hostile_publication_is_dropped_and_a_good_one_read(
         assert after == [good, good]  # the first to arrive after: every hostile one dropped
 
 
+@pytest.mark.hazard("H34")
 def test_a_replier_no_look_names_is_looked_for_once_more_before_it_is_a_second_daemon(
     scripted: Scripted, tmp_path: Path
 ) -> None:

@@ -35,6 +35,7 @@ def test_a_session_without_a_link_says_the_link_is_down(
     assert "the link is down; nothing answers at tcp/127.0.0.1:1" in capsys.readouterr().err
 
 
+@pytest.mark.hazard("H08")
 def test_silence_is_told_once_and_gives_up_past_the_limit() -> None:
     told: list[float] = []
     silence = Silence(2.0, told.append, 6.0, now=100.0)

@@ -159,6 +159,7 @@ def test_motion_is_integrated_under_the_outputs_that_were_on() -> None:
     assert sim.world.rotate_travel_deg == pytest.approx(0.05 * PARAMS.rotate_speed_dps)
 
 
+@pytest.mark.hazard("H11")
 def test_estop_cuts_all_motion_and_reads_as_an_open_safety_circuit() -> None:
     sim = Sim()
     sim.set(rotate=True, tilt=True, tilt_up=True)

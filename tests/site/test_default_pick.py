@@ -214,6 +214,7 @@ def report(
         Path(os.environ["PICK_DUMP"]).write_text(json.dumps(dump, default=str))
 
 
+@pytest.mark.hazard("H37")
 @pytest.mark.integration
 def test_default_pick_trials_never_pick_while_another_machine_is_alive(stand: Site) -> None:
     a = stand.daemons["a"]
@@ -291,6 +292,7 @@ def test_a_peer_rider_at_the_router_sees_a_peer_machine_it_is_not_linked_to(
     assert outcomes == ["a"] * (ISSUE_TRIES // 4), outcomes
 
 
+@pytest.mark.hazard("H37")
 @pytest.mark.integration
 def test_issue_22_two_peer_daemons_the_rider_never_picks_the_one_it_connected_to(
     tmp_path: Path,
@@ -337,6 +339,7 @@ def test_through_a_peer_daemons_port_a_client_of_its_router_is_seen(tmp_path: Pa
     assert "several machines are alive (a, b)" in cli.stderr
 
 
+@pytest.mark.hazard("H37")
 @pytest.mark.integration
 def test_a_router_that_dialed_the_machine_is_out_of_sight_so_the_pick_is_unsure(
     tmp_path: Path,

@@ -123,6 +123,7 @@ def resume_to_done_once(
         assert r.status().state is MachineState.DONE
 
 
+@pytest.mark.hazard("H36")
 def test_router_lost_mid_session_pauses_and_a_retried_resume_finishes_it_once(
     xy: Site,
 ) -> None:
@@ -175,6 +176,7 @@ def test_router_lost_mid_session_pauses_and_a_retried_resume_finishes_it_once(
         resume_to_done_once(riders, resumes, before)
 
 
+@pytest.mark.hazard("H36")
 def test_without_the_router_a_client_fails_clearly_and_a_client_daemon_exits(
     tmp_path: Path,
 ) -> None:

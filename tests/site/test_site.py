@@ -222,6 +222,7 @@ def assert_nothing_moved(abc: Site, before: dict[str, tuple[MachineState, SimWor
         assert not any(world_after.relays.values()), (mid, world_after.relays)
 
 
+@pytest.mark.hazard("H31", "H51")
 @pytest.mark.parametrize("key", list(WILDCARD_COMMANDS))
 def test_a_wildcard_command_key_is_refused_by_every_machine_it_reaches(abc: Site, key: str) -> None:
     before = snapshot(abc)
@@ -236,6 +237,7 @@ def test_a_wildcard_command_key_is_refused_by_every_machine_it_reaches(abc: Site
     assert_nothing_moved(abc, before)
 
 
+@pytest.mark.hazard("H31")
 def test_wildcard_parameter_writes_and_fault_injections_are_refused(abc: Site) -> None:
     before = snapshot(abc)
     policy = "machine/*/params/rider_loss.policy"
@@ -257,6 +259,7 @@ def test_wildcard_parameter_writes_and_fault_injections_are_refused(abc: Site) -
             assert not r.status().estop.active
 
 
+@pytest.mark.hazard("H31")
 def test_a_wildcard_machine_id_is_a_clear_error_in_the_client_and_the_cli(abc: Site) -> None:
     with abc.rider("*", timeout=5.0) as r, pytest.raises(CommandRefused) as refused:
         r.home()
@@ -267,6 +270,7 @@ def test_a_wildcard_machine_id_is_a_clear_error_in_the_client_and_the_cli(abc: S
     assert "wildcards are not allowed in a command key: 'machine/*/cmd/home'" in cli.stderr
 
 
+@pytest.mark.hazard("H37", "H51")
 def test_a_command_for_one_machine_is_answered_by_that_machine_only(abc: Site) -> None:
     request = CommandRequest(transaction_id="only-b-1", timecode=time.time())
     with abc.rider(None, timeout=5.0) as r:

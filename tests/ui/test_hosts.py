@@ -10,6 +10,7 @@ from rider.ui.app import build_parser
 from rider.ui.hosts import BadHostRule, HostPolicy, HostRule, parse_rule
 
 
+@pytest.mark.hazard("H49")
 def test_a_loopback_ui_answers_to_its_address_and_localhost_on_its_port_only() -> None:
     policy = HostPolicy.serving("127.0.0.1", 8080)
     for host in ("127.0.0.1:8080", "localhost:8080", "LOCALHOST:8080"):
@@ -29,6 +30,7 @@ def test_a_loopback_ui_answers_to_its_address_and_localhost_on_its_port_only() -
     assert str(policy) == "127.0.0.1:8080, localhost:8080"
 
 
+@pytest.mark.hazard("H50")
 def test_origins_must_be_one_of_its_names_and_never_null() -> None:
     policy = HostPolicy.serving("127.0.0.1", 8080)
     assert policy.origin_ok(None)  # not a browser (curl, a script): the Host check holds

@@ -201,6 +201,7 @@ def test_uploaded_sessions_are_checked_before_they_can_be_started(
     expect(page.locator("#session-select option:checked")).to_contain_text("Uploaded: spin")
 
 
+@pytest.mark.hazard("H49")
 def test_monitor_mode_shows_everything_and_sends_nothing(
     page: Any, tmp_path: Path, fast_daemon: Daemon
 ) -> None:

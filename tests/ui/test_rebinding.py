@@ -30,6 +30,7 @@ def commands_recorded(daemon: Daemon) -> int:
         return len(r.events(kinds=("command",)))
 
 
+@pytest.mark.hazard("H49")
 def test_a_rebound_host_name_can_neither_command_nor_read(
     ui: UiServer, fast_daemon: Daemon
 ) -> None:
@@ -54,6 +55,7 @@ def test_a_rebound_host_name_can_neither_command_nor_read(
     assert commands_recorded(fast_daemon) == 2
 
 
+@pytest.mark.hazard("H50")
 def test_a_null_or_foreign_origin_cannot_command(ui: UiServer, fast_daemon: Daemon) -> None:
     for origin in ("null", "http://evil.example", f"http://127.0.0.1:{ui.port + 1}", "file://"):
         status, body = request(ui.port, "POST", "/api/cmd/check/home", {}, {"Origin": origin})
@@ -99,6 +101,7 @@ window.outcome = new Promise((done) => w.addEventListener("load", async () => {
 </script>"""
 
 
+@pytest.mark.hazard("H49")
 def test_a_page_whose_name_rebinds_to_the_ui_cannot_press_its_buttons(
     rebinding_browser: Any, ui: UiServer, fast_daemon: Daemon
 ) -> None:

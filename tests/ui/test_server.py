@@ -59,6 +59,7 @@ def test_event_stream_starts_with_a_snapshot_then_goes_live(ui: UiServer) -> Non
     assert {p["name"] for p in snap["io"]} >= {"estop", "rotateRelay", "tiltPosition"}
 
 
+@pytest.mark.hazard("H50")
 def test_commands_answer_with_the_machine_reply_or_a_clear_error(ui: UiServer) -> None:
     status, body = request(ui.port, "POST", "/api/cmd/start", {})
     assert status == 409

@@ -53,6 +53,7 @@ def test_link_is_down_until_the_first_status_and_says_why() -> None:
     assert events[1].data == {"up": True, "reason": "", "machine": "m1"}
 
 
+@pytest.mark.hazard("H08")
 def test_link_is_lost_when_the_heartbeat_stops_for_more_than_the_limit() -> None:
     view = LiveView()
     view.apply(MachineFound("m1"), 0.0)
@@ -90,6 +91,7 @@ def test_the_limit_follows_the_heartbeat_the_machine_states(
     assert f"for over {limit_s:g} s" in view.link.reason
 
 
+@pytest.mark.hazard("H08")
 def test_liveliness_loss_drops_the_link_at_once_and_a_new_status_restores_it() -> None:
     view = LiveView()
     view.apply(MachineFound("m1"), 0.0)

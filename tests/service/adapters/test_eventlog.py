@@ -305,6 +305,7 @@ def test_a_full_queue_drops_without_waiting_and_records_the_count_later(
         log.close()
 
 
+@pytest.mark.hazard("H42")
 def test_emit_never_blocks_while_the_writer_holds_the_database(
     tmp_path: Path, kind: type[EventLog]
 ) -> None:
@@ -381,6 +382,7 @@ def test_retention_keeps_the_database_under_max_mb(tmp_path: Path, kind: type[Ev
         log.close()
 
 
+@pytest.mark.hazard("H43")
 def test_a_restart_knows_whether_the_last_run_stopped_cleanly(
     tmp_path: Path, kind: type[EventLog]
 ) -> None:

@@ -35,6 +35,7 @@ def _written(db: Path, first: int) -> list[int]:
     return [c for (c,) in rows]
 
 
+@pytest.mark.hazard("H40")
 @pytest.mark.integration
 def test_sigkill_never_corrupts_the_event_log_and_loses_only_the_newest(tmp_path: Path) -> None:
     seed = int.from_bytes(os.urandom(4), "big")

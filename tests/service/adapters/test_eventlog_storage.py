@@ -81,6 +81,7 @@ def _foreign(path: Path) -> None:
         other.commit()
 
 
+@pytest.mark.hazard("H40")
 @pytest.mark.parametrize("spoil", [_garbage, _foreign], ids=["garbage", "foreign-schema"])
 def test_an_unusable_database_is_kept_aside_and_a_new_log_started(
     tmp_path: Path, spoil: Callable[[Path], None], kind: type[EventLog]
@@ -169,6 +170,7 @@ def fill(disk: Path) -> Path:
     return filler
 
 
+@pytest.mark.hazard("H38")
 def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recovers(
     small_disk: Path, kind: type[EventLog]
 ) -> None:

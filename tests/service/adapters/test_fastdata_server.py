@@ -160,6 +160,7 @@ def test_one_axis_reply_holds_that_axis_values(
     assert (tilt.pFb, tilt.vFb, tilt.bus_cycle_num) == (13.0, 15.0, 102)
 
 
+@pytest.mark.hazard("H30")
 @pytest.mark.parametrize(
     "bad",
     [b"", b"\x01" * (MAX_REQUEST_BYTES + 1), b"\x01" * 4096, b"\xff" * 60000],
@@ -304,6 +305,7 @@ def _storm(server: FastDataServer, peers: int, per_peer: int) -> list[ServerData
     return replies
 
 
+@pytest.mark.hazard("H30")
 def test_storm_never_touches_the_loop() -> None:
     """The server only reads the published dict: no inbox task, no step, no loop lock."""
     rig = Rig().ready()

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from schema.codec import Format, decode
 from schema.commands import Reply, ReplyCode
 from schema.errors import ErrorCode
@@ -60,6 +62,7 @@ def test_answers_and_notices_come_back_oldest_first(tmp_path: Path) -> None:
     assert got.since == T0
 
 
+@pytest.mark.hazard("H26")
 def test_the_window_keeps_the_newest_and_another_machine_is_not_recalled(
     tmp_path: Path,
 ) -> None:

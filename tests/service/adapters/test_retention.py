@@ -97,6 +97,7 @@ def test_a_flood_of_routine_events_prunes_routine_events_only(path: Path) -> Non
         log.close()
 
 
+@pytest.mark.hazard("H41")
 def test_the_safety_record_keeps_to_its_own_limit_causable_events_first(path: Path) -> None:
     """Faults a `rider` login can cause at will (an invalid session) fill the safety record:
     the oldest of them go, never the E-stop before them."""

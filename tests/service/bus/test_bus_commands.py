@@ -115,6 +115,7 @@ def test_while_the_scan_holds_the_lock_commands_wait_in_order_and_a_later_one_qu
     until(lambda: bus.deferred.pending == 0)
 
 
+@pytest.mark.hazard("H47")
 def test_a_stalled_loop_gets_busy_and_a_full_queue_is_refused(
     session: zenoh.Session,
     machine: tuple[Rig, Commands, ListEventSink],

@@ -137,6 +137,7 @@ def test_the_reply_format_comes_from_the_selector_and_the_key_goes_without_it(
     assert routes.seen == [f"{BASE}/read/a"]
 
 
+@pytest.mark.hazard("H31")
 def test_a_wildcard_on_a_key_that_acts_is_refused_before_its_handler(
     session: zenoh.Session, routes: Calls
 ) -> None:

@@ -27,6 +27,7 @@ def test_without_a_template_the_block_is_left_as_it_is() -> None:
     assert expand(block) is block
 
 
+@pytest.mark.hazard("H33")
 def test_a_user_name_that_cannot_name_keys_stops_the_start() -> None:
     with pytest.raises(StationError, match="cannot name keys"):
         expand(acl("bay 1"))

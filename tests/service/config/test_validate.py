@@ -116,6 +116,7 @@ def test_project_defaults_have_no_findings() -> None:
     assert report.ok and report.findings == []
 
 
+@pytest.mark.hazard("H47")
 def test_home_arc_check_holds_exactly_at_half_the_arc() -> None:
     base = {"rotate": {"nominal_speed_dps": 100.0, "home_arc_deg": 10.0}}
     ok, _ = validate_data({**base, "loop": {"period_s": 0.05}})  # 5.0° per scan: exactly half
@@ -124,6 +125,7 @@ def test_home_arc_check_holds_exactly_at_half_the_arc() -> None:
     assert finding.path == "/loop/period_s" and "5.1°" in finding.message
 
 
+@pytest.mark.hazard("H47")
 def test_a_watchdog_that_lets_the_rotate_pass_its_arc_is_a_warning() -> None:
     """Run 38: with the tests' 1 s watchdog at 720°/s a stalled scan let the rotate turn two
     revolutions unseen. The defaults (0.1 s at 90°/s: 9° of a 10° arc) hold."""
@@ -147,6 +149,7 @@ def test_simulator_checks_are_skipped_on_real_hardware() -> None:
     assert config is not None and report.findings == []
 
 
+@pytest.mark.hazard("H44")
 def test_a_revpi_without_a_charge_pump_is_told_what_stops_its_drives() -> None:
     """Issue 53: only the hardware level survives the whole controller stopping."""
     config, report = validate_data({"hal": {"backend": "revpi"}})
@@ -156,6 +159,7 @@ def test_a_revpi_without_a_charge_pump_is_told_what_stops_its_drives() -> None:
     assert finding.path == "/hal/iomap/chargePump" and "docs/revpi.md" in finding.message
 
 
+@pytest.mark.hazard("H44")
 def test_a_simulated_charge_pump_relay_the_scan_cannot_hold_is_an_error() -> None:
     pump = {"iomap": {"chargePump": "O_5"}}
     _, short = validate_data({"hal": {**pump, "sim": {"charge_pump_timeout_s": 0.015}}})
@@ -310,6 +314,7 @@ def test_machine_validate_with_only_warnings_exits_0(tmp_path: Path) -> None:
     assert "warning" in done.stdout and "/loop/period_s" in done.stdout
 
 
+@pytest.mark.hazard("H48")
 @pytest.mark.integration
 def test_daemon_refuses_to_start_on_an_error_and_prints_every_finding(bad_toml: Path) -> None:
     done = machine("run", "--sim", "--config", str(bad_toml), cwd=bad_toml.parent)

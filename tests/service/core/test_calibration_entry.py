@@ -71,6 +71,7 @@ def test_one_axis_keeps_the_other_axis_values() -> None:
     assert cal.rotate is not None and cal.rotate.revolution_s == 4.05
 
 
+@pytest.mark.hazard("H21")
 @pytest.mark.parametrize(
     ("values", "code", "path"),
     [
@@ -91,6 +92,7 @@ def test_implausible_values_are_refused_and_change_nothing(
     assert rig.control.calibration.tilt is None and rig.control.calibration.rotate is None
 
 
+@pytest.mark.hazard("H21")
 def test_values_are_refused_while_a_motion_is_under_way_or_paused() -> None:
     rig = Rig()
     assert rig.send(Command.CALIBRATE_TILT).success

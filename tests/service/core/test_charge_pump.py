@@ -48,6 +48,7 @@ def ride_the_tilt(rig: Rig) -> None:
     assert rig.hal.world.drive.tilt_on
 
 
+@pytest.mark.hazard("H04")
 def test_the_pump_changes_level_every_cycle_while_healthy_quiet_cycles_too() -> None:
     rig = pumped_rig()
     seen = levels(rig, 50)
@@ -78,6 +79,7 @@ def test_a_fault_stops_the_pump_the_relay_drops_and_home_picks_it_up_again() -> 
     assert world.pump.powered(world.time) and world.pump.drops == 1
 
 
+@pytest.mark.hazard("H09", "H10")
 def test_the_estop_holds_the_pump_low_until_the_machine_leaves_its_fault() -> None:
     rig = pumped_rig()
     rig.step(3)
@@ -90,6 +92,7 @@ def test_the_estop_holds_the_pump_low_until_the_machine_leaves_its_fault() -> No
     assert True in seen and False in seen
 
 
+@pytest.mark.hazard("H01")
 def test_a_latched_watchdog_writes_the_pump_low() -> None:
     rig = Rig(config=PUMPED, calibration=known_calibration(), guarded=True)
     assert rig.guard is not None
@@ -100,6 +103,7 @@ def test_a_latched_watchdog_writes_the_pump_low() -> None:
     assert not rig.relays_on()
 
 
+@pytest.mark.hazard("H02", "H03", "H05", "H44")
 @pytest.mark.parametrize("pumped", [True, False])
 def test_a_controller_frozen_as_a_whole_loses_drive_power_within_the_timeout(pumped: bool) -> None:
     """Issue 53, point 2 on the fake clock: the whole process stops for 5 s mid-ride (no
@@ -118,6 +122,7 @@ def test_a_controller_frozen_as_a_whole_loses_drive_power_within_the_timeout(pum
         assert overrun > 40.0  # 75° of drive, stopped by the end stop at 95°
 
 
+@pytest.mark.hazard("H44")
 def test_the_relay_sees_a_level_change_as_an_edge_and_drops_after_the_last() -> None:
     relay = ChargePumpRelay(0.1)
     assert not relay.powered(0.0)  # no change yet: no power
@@ -132,6 +137,7 @@ def test_the_relay_sees_a_level_change_as_an_edge_and_drops_after_the_last() -> 
     assert not relay.powered(2.2)
 
 
+@pytest.mark.hazard("H44")
 def test_the_revpi_hal_writes_the_pump_bit_and_leaves_it_out_of_energised(tmp_path: Path) -> None:
     image = make_image(tmp_path)
     hal = RevPiHal(IoMap(chargePump="O_5"), image, str(CONFIG_RSC))
@@ -148,6 +154,7 @@ def test_the_revpi_hal_writes_the_pump_bit_and_leaves_it_out_of_energised(tmp_pa
         hal.close()
 
 
+@pytest.mark.hazard("H01")
 def test_a_watchdog_trip_names_the_stall_and_the_pump_resumes_after_home() -> None:
     rig = Rig(config=PUMPED, calibration=known_calibration(), guarded=True)
     ride_the_tilt(rig)

@@ -306,6 +306,7 @@ def test_start_refusals_name_the_missing_axes() -> None:
     assert "tilt and rotate not home" in reply.error.message
 
 
+@pytest.mark.hazard("H29")
 def test_start_with_invalid_session_is_refused_and_faults() -> None:
     rig = rig_in(S.IDLE)
     tilt = rig.hal.world.tilt_deg
@@ -323,6 +324,7 @@ def test_start_with_invalid_session_is_refused_and_faults() -> None:
     assert rig.hal.world.tilt_deg == tilt
 
 
+@pytest.mark.hazard("H29")
 def test_session_range_comes_from_the_machine_config() -> None:
     config = MachineConfig().with_overrides(tilt={"max_deg": 90.0})
     rig = Rig(config=config, calibration=known_calibration())
@@ -378,6 +380,7 @@ def test_state_transitions_are_reported_with_a_reason() -> None:
 
 
 # ---------------------------------------------------------------------------- transactions
+@pytest.mark.hazard("H26")
 def test_repeated_transaction_id_gets_the_same_reply_and_does_not_act_twice() -> None:
     rig = rig_in(S.IDLE)
     first = rig.send(C.START, transaction_id="start-1")
@@ -418,6 +421,7 @@ def test_repeated_refusal_stays_a_refusal() -> None:
     assert rig.state is S.IDLE
 
 
+@pytest.mark.hazard("H26")
 def test_same_transaction_id_for_another_command_is_refused() -> None:
     rig = rig_in(S.IDLE)
     assert rig.send(C.START, transaction_id="tx-9").success

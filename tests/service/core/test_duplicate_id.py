@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from schema.commands import Command
 from schema.errors import ErrorCode
 from schema.status import FaultCode
@@ -17,6 +19,7 @@ def _running() -> Rig:
     return rig
 
 
+@pytest.mark.hazard("H35")
 def test_meeting_a_second_holder_stops_motion_in_the_same_cycle() -> None:
     rig = _running()
     rig.control.duplicate_id(("other",), "me", rig.clock())
@@ -38,6 +41,7 @@ def test_commands_are_refused_while_duplicated_and_checks_answered() -> None:
     assert not rig.relays_on()
 
 
+@pytest.mark.hazard("H35")
 def test_alone_again_commands_are_taken_and_nothing_moves_by_itself() -> None:
     rig = _running()
     rig.control.duplicate_id(("other",), "me", rig.clock())

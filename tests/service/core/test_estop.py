@@ -42,6 +42,7 @@ def press_at_random_cycle(rig: Rig, state: MachineState, seed: int) -> int:
     return cycles
 
 
+@pytest.mark.hazard("H09")
 @pytest.mark.parametrize(("state", "seed"), CASES, ids=IDS)
 def test_estop_drops_relays_in_the_same_cycle(state: MachineState, seed: int) -> None:
     rig = enter(state)
@@ -62,6 +63,7 @@ def test_estop_drops_relays_in_the_same_cycle(state: MachineState, seed: int) ->
     assert published[-1].estop.latched
 
 
+@pytest.mark.hazard("H09")
 @pytest.mark.parametrize("state", sorted(MOTION_STATES))
 def test_estop_cuts_a_relay_that_was_on(state: MachineState) -> None:
     rig = enter(state)
@@ -72,6 +74,7 @@ def test_estop_cuts_a_relay_that_was_on(state: MachineState) -> None:
     assert rig.state is S.FAULT_ESTOP
 
 
+@pytest.mark.hazard("H10")
 @pytest.mark.parametrize(("state", "seed"), CASES, ids=IDS)
 def test_release_alone_moves_nothing(state: MachineState, seed: int) -> None:
     rig = enter(state)
@@ -91,6 +94,7 @@ def test_release_alone_moves_nothing(state: MachineState, seed: int) -> None:
     assert status.estop.latched is True
 
 
+@pytest.mark.hazard("H10")
 @pytest.mark.parametrize(("state", "seed"), CASES, ids=IDS)
 def test_resume_after_release_returns_to_the_previous_state(state: MachineState, seed: int) -> None:
     rig = enter(state)
@@ -180,6 +184,7 @@ def test_estops_anywhere_in_a_session_keep_the_revolution_count(seed: int) -> No
     assert rig.hal.world.tilt_deg == pytest.approx(45.0, abs=MachineConfig().tilt.tolerance_deg)
 
 
+@pytest.mark.hazard("H09")
 def test_command_queued_in_the_estop_cycle_is_refused_in_that_cycle() -> None:
     rig = enter(S.IDLE)
     got: list[Reply] = []
@@ -211,6 +216,7 @@ def test_stop_after_release_clears_the_latch() -> None:
     assert not rig.relays_on()
 
 
+@pytest.mark.hazard("H11")
 @pytest.mark.parametrize("active_low", [True, False])
 def test_estop_polarity_comes_from_the_io_map(active_low: bool) -> None:
     config = MachineConfig().with_overrides(hal={"iomap": {"estop_active_low": active_low}})

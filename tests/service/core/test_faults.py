@@ -142,6 +142,7 @@ CASES = [
 ]  # fmt: skip
 
 
+@pytest.mark.hazard("H13", "H14", "H16", "H17", "H19")
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_fault_ends_in_fault_hw_with_safe_outputs_within_timeout(case: FaultCase) -> None:
     calibration = None if case.name.endswith("calibration") else known_calibration()
@@ -176,6 +177,7 @@ def test_fault_ends_in_fault_hw_with_safe_outputs_within_timeout(case: FaultCase
     assert (world.rotate_travel_deg, world.tilt_deg) == where
 
 
+@pytest.mark.hazard("H16", "H17")
 @pytest.mark.parametrize(
     ("timeout_s", "fault", "before_home"),
     [
@@ -216,6 +218,7 @@ def test_recovery_after_a_fault_needs_home_and_then_runs_a_session() -> None:
     assert rig.hal.world.rotate_travel_deg - travel0 == pytest.approx(1080.0, abs=1.0)
 
 
+@pytest.mark.hazard("H14", "H24")
 def test_failed_tilt_calibration_keeps_the_previous_one() -> None:
     rig = Rig(config=CONFIG, calibration=known_calibration())
     before = rig.control.calibration
@@ -242,6 +245,7 @@ def test_failed_rotate_calibration_stores_nothing() -> None:
     assert not rig.relays_on()
 
 
+@pytest.mark.hazard("H19", "H24")
 def test_rotate_speed_far_from_nominal_fails_calibration() -> None:
     config = CONFIG.with_overrides(hal={"sim": {"rotate_speed_dps": 200.0}})
     rig = Rig(config=config)
@@ -253,6 +257,7 @@ def test_rotate_speed_far_from_nominal_fails_calibration() -> None:
     assert rig.control.calibration.rotate is None
 
 
+@pytest.mark.hazard("H13", "H24")
 def test_inverted_tilt_wiring_fails_calibration() -> None:
     """An analog input that falls as the seat rises gives a negative gain: refused."""
     config = CONFIG.with_overrides(

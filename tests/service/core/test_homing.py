@@ -80,6 +80,7 @@ def test_tilt_calibration_from_anywhere_measures_the_true_zero(start: float) -> 
     assert rig.hal.world.sense().tilt_home  # it ends at home, just past the edge
 
 
+@pytest.mark.hazard("H17")
 def test_a_switch_found_closed_is_backed_off_then_approached_from_above() -> None:
     rig = rig_on(start_tilt_deg=-5.0, tilt_home_hysteresis_deg=0.5)
     seen: list[Phase] = []
@@ -134,6 +135,7 @@ def test_a_tilt_edge_seen_across_a_stalled_scan_is_approached_again() -> None:
     assert offset_error_deg(rig) <= 0.25
 
 
+@pytest.mark.hazard("H24", "H47")
 def test_an_edge_stalled_at_every_approach_is_refused_never_done() -> None:
     rig = rig_on(start_tilt_deg=5.0)
     world = rig.hal.world
@@ -198,6 +200,7 @@ def enter(
     rig.step()
 
 
+@pytest.mark.hazard("H21")
 @pytest.mark.parametrize("start", [-0.1, 12.0, 40.0])
 def test_a_hand_entered_gain_typo_is_stopped_by_home_within_a_speed_window(start: float) -> None:
     """Issue 37, point 4: gain 400 for 40 (in range) drove the tilt into its end stop. Typed-in
@@ -215,6 +218,7 @@ def test_a_hand_entered_gain_typo_is_stopped_by_home_within_a_speed_window(start
     assert abs(rig.hal.world.tilt_deg - start) <= SPEED_WINDOW_DEG + 2 * TILT_SCAN_DEG
 
 
+@pytest.mark.hazard("H13")
 def test_a_sensor_that_reads_a_tenth_stops_a_session_within_a_speed_window() -> None:
     rig = Rig(calibration=known_calibration())
     rig.home()
@@ -234,6 +238,7 @@ def test_a_sensor_that_reads_a_tenth_stops_a_session_within_a_speed_window() -> 
     assert world.tilt_deg - broken <= 2 * SPEED_WINDOW_DEG
 
 
+@pytest.mark.hazard("H15", "H22", "H23")
 def test_home_that_finds_the_edge_off_the_calibrated_zero_says_so() -> None:
     rig = Rig(calibration=known_calibration())
     rig.hal.world.params = rig.hal.world.params.model_copy(update={"tilt_home_deg": 1.0})
@@ -247,6 +252,7 @@ WIDE_LATCH = CONFIG.with_overrides(rotate={"latch_tolerance_deg": 1.0})
 """A rotate typed in faster than it is also judges its latches at that speed: room for it."""
 
 
+@pytest.mark.hazard("H21", "H23")
 def test_a_hand_entered_rotate_time_is_found_out_at_the_first_revolution() -> None:
     """The rotate has no sensor between its edges: a revolution time typed 50 % too long (in the
     accepted range) is found at the first closing edge, one revolution on."""
@@ -258,6 +264,7 @@ def test_a_hand_entered_rotate_time_is_found_out_at_the_first_revolution() -> No
     assert fault is not None and fault.code is F.ROTATE_SPEED_IMPLAUSIBLE, fault
 
 
+@pytest.mark.hazard("H16")
 def test_a_revolution_overdue_by_the_tolerance_stops_the_session() -> None:
     rig = Rig(config=WIDE_LATCH, calibration=known_calibration())
     enter(rig, rotate=RotateCalibrationSet(revolution_s=2.5, home_arc_deg=10.0))
@@ -270,6 +277,7 @@ def test_a_revolution_overdue_by_the_tolerance_stops_the_session() -> None:
 
 
 # -- repeatability: two measurements that disagree are refused ------------------------------
+@pytest.mark.hazard("H24")
 def test_a_tilt_zero_that_moves_between_its_two_latches_is_refused() -> None:
     rig = rig_on(start_tilt_deg=5.0)
     assert rig.send(C.CALIBRATE_TILT).success
@@ -287,6 +295,7 @@ def test_a_tilt_zero_that_moves_between_its_two_latches_is_refused() -> None:
     assert rig.control.calibration.tilt is None
 
 
+@pytest.mark.hazard("H24")
 def test_a_rotate_whose_speed_changes_mid_calibration_is_refused() -> None:
     rig = Rig(calibration=known_calibration())
     assert rig.send(C.CALIBRATE_ROTATE).success
@@ -322,6 +331,7 @@ def test_rotate_home_never_latches_the_edge_across_a_stall() -> None:
     assert rig.rotate_estimate_error_deg() <= CONFIG.rotate.latch_tolerance_deg
 
 
+@pytest.mark.hazard("H47")
 def test_a_revolution_hidden_by_two_stalls_is_a_fault_never_done() -> None:
     """Run 38 (a loaded host, the tests' fast config: 720°/s, a 1 s watchdog): a session ended
     DONE with 3 revolutions counted and 4 turned. One stall from the switch carried the rotate
@@ -348,6 +358,7 @@ def test_a_revolution_hidden_by_two_stalls_is_a_fault_never_done() -> None:
     assert world.revolutions - before == pytest.approx(3.0, abs=0.1)  # stopped at the edge
 
 
+@pytest.mark.hazard("H24")
 def test_a_tilt_stroke_the_scan_stalled_through_is_refused_as_spoiled() -> None:
     """Run 42: a stall took most of a 0.4 s calibration stroke, which then had 2 samples (one
     a scan) and was refused as if the sensor were unwired (`CALIBRATION_IMPLAUSIBLE`). Too few

@@ -43,6 +43,7 @@ def on_the_switch(rig: Rig) -> None:
     assert rig.rotate_estimate_error_deg() <= CONFIG.rotate.latch_tolerance_deg
 
 
+@pytest.mark.hazard("H18", "H19")
 def test_a_home_whose_stop_is_written_late_approaches_again_and_ends_on_the_switch() -> None:
     """Run 61 (a loaded host, the tests' 720°/s): Home latched the rotate's edge, the scan was
     preempted before it wrote the stop, the rotate ran past its arc, and Home said DONE (the
@@ -65,6 +66,7 @@ def test_a_home_whose_stop_is_written_late_approaches_again_and_ends_on_the_swit
     assert rig.send(C.START).success
 
 
+@pytest.mark.hazard("H19")
 def test_a_session_whose_last_stop_is_written_late_ends_on_the_switch() -> None:
     """The session's last edge latched well, its stop written late: the rotate is found past
     the switch and approached again, back through it (not a revolution more)."""

@@ -14,6 +14,8 @@ import random
 from collections import Counter
 from dataclasses import dataclass, field
 
+import pytest
+
 from schema.commands import Command, RotateStep, Session, TiltStep
 from schema.status import FaultCode, MachineState
 from service.config.model import MachineConfig
@@ -128,6 +130,7 @@ def trial(rng: random.Random, tally: Tally, calibrate_rotate: bool) -> None:
         check_positions(rig, world, tally, "after Home from the session's end")
 
 
+@pytest.mark.hazard("H18", "H24", "H47")
 def test_calibrations_and_homes_from_anywhere_on_a_stalling_host_are_right_or_refused() -> None:
     rng = random.Random(37)
     tally = Tally()

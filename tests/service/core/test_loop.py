@@ -53,6 +53,7 @@ def queue(loop: ScanLoop, command: Command, tid: str, replies: list[Reply]) -> N
     assert loop.inbox.put(PendingCommand(command, request, replies.append))
 
 
+@pytest.mark.hazard("H43")
 def test_machine_makes_outputs_safe_before_anything_else() -> None:
     clock = FakeClock()
     hal = CallLog(clock)
@@ -111,6 +112,7 @@ def test_commands_between_cycles_take_effect_at_the_next_cycle_boundary() -> Non
     assert not rig.relays_on()  # ...until the next write
 
 
+@pytest.mark.hazard("H47")
 def test_commands_per_cycle_are_bounded_and_all_answered_in_order() -> None:
     config = MachineConfig().with_overrides(loop={"max_commands_per_cycle": 4})
     rig = Rig(config=config)

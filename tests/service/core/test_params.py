@@ -162,6 +162,7 @@ def test_reset_of_a_temporary_value_leaves_the_file_alone(tmp_path: Path) -> Non
 
 
 # ------------------------------------------------------------------------- refusals
+@pytest.mark.hazard("H25")
 @pytest.mark.parametrize(
     "name",
     ["tilt.tolerance_deg", "tilt.nominal_speed_dps", "tilt.max_deg", "rotate.nominal_speed_dps"],
@@ -182,6 +183,7 @@ def test_locked_parameter_is_refused_while_moving(tmp_path: Path, name: str) -> 
     assert reg.set(name, req(value * 0.9), moving=False, now=2.0).value == value * 0.9
 
 
+@pytest.mark.hazard("H25")
 def test_reset_of_a_locked_parameter_is_refused_while_moving(tmp_path: Path) -> None:
     reg = registry(tmp_path)
     reg.set("tilt.tolerance_deg", req(2.0), moving=False, now=1.0)
@@ -232,6 +234,7 @@ def test_reset_with_a_value_is_refused(tmp_path: Path) -> None:
         registry(tmp_path).set("bus.heartbeat_s", req(2.0, reset=True), moving=False, now=1.0)
 
 
+@pytest.mark.hazard("H25")
 @pytest.mark.parametrize(
     ("name", "value", "says"),
     [
@@ -268,6 +271,7 @@ def test_out_of_range_is_refused(tmp_path: Path, name: str, value: Any, says: st
     assert not (tmp_path / PARAMS_FILE).exists()
 
 
+@pytest.mark.hazard("H25")
 def test_live_config_never_has_a_validation_error(tmp_path: Path) -> None:
     # Slower rotation is allowed where the timeout allows for it (a longer timeout is the
     # config file's to give: service/core/safety.py).
@@ -326,6 +330,7 @@ def test_persisted_value_that_conflicts_with_a_new_project_config_is_ignored(
     assert reg.config.rotate.revolution_timeout_s == 12.0
 
 
+@pytest.mark.hazard("H40")
 @pytest.mark.parametrize(
     ("entry", "says"),
     [

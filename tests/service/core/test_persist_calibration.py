@@ -170,6 +170,7 @@ def test_saved_file_is_readable_json_with_every_value(tmp_path: Path) -> None:
     assert load_calibration(tmp_path)[0] == CAL
 
 
+@pytest.mark.hazard("H42")
 def test_background_writer_saves_in_order_and_reports_failures(tmp_path: Path) -> None:
     writer = BackgroundWriter(name="test-persist")
     try:
@@ -191,6 +192,7 @@ def test_background_writer_saves_in_order_and_reports_failures(tmp_path: Path) -
         writer.close(timeout=10)
 
 
+@pytest.mark.hazard("H22", "H23")
 def test_a_file_from_before_sources_loads_as_measured_and_manual_values_round_trip(
     tmp_path: Path,
 ) -> None:

@@ -56,6 +56,7 @@ def _check(data_dir: Path, r: int) -> tuple[int, int, int]:
     return i1 - r, i2 - r, ic - r
 
 
+@pytest.mark.hazard("H40", "H43")
 @pytest.mark.integration
 def test_sigkill_at_random_moments_never_leaves_a_torn_file(tmp_path: Path) -> None:
     seed = int.from_bytes(os.urandom(4), "big")
@@ -86,6 +87,7 @@ def _kept(data_dir: Path, name: str) -> list[Path]:
     return sorted(data_dir.glob(f"{name}.corrupt-*"))
 
 
+@pytest.mark.hazard("H40")
 def test_corrupt_params_file_gives_warning_and_defaults_and_is_kept(tmp_path: Path) -> None:
     (tmp_path / PARAMS_FILE).write_bytes(CORRUPT)
     registry = ParamRegistry(MachineConfig(), ParamStore(tmp_path))
@@ -133,6 +135,7 @@ def test_corrupt_calibration_file_gives_warning_and_defaults_and_is_kept(tmp_pat
     assert kept.name in warning
 
 
+@pytest.mark.hazard("H40")
 def test_machine_starts_needing_calibration_on_a_corrupt_calibration_file(
     tmp_path: Path,
 ) -> None:
@@ -144,6 +147,7 @@ def test_machine_starts_needing_calibration_on_a_corrupt_calibration_file(
     assert [p.read_bytes() for p in _kept(tmp_path, CALIBRATION_FILE)] == [b"\x00\x00garbage"]
 
 
+@pytest.mark.hazard("H40")
 def test_invalid_calibration_values_are_kept_aside(tmp_path: Path) -> None:
     doc = b'{"version": 1, "tilt": {"offset_counts": 1.0, "gain_counts_per_deg": 0.0}}'
     (tmp_path / CALIBRATION_FILE).write_bytes(doc)
@@ -171,6 +175,7 @@ def test_unreadable_file_is_reported_not_moved(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------ temp files
+@pytest.mark.hazard("H40")
 def test_temp_files_of_dead_writers_are_removed_at_load(tmp_path: Path) -> None:
     dead = subprocess.run(
         [sys.executable, "-c", "import os; print(os.getpid())"],

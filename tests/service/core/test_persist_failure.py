@@ -45,6 +45,7 @@ def read_only(path: Path) -> Path:
     raise OSError(errno.EROFS, "Read-only file system")
 
 
+@pytest.mark.hazard("H22", "H38")
 def test_a_failed_calibration_save_is_a_warning_and_the_older_file_goes(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -126,6 +127,7 @@ class SlowStore:
         return self.tickets[-1]
 
 
+@pytest.mark.hazard("H38")
 def test_calibration_ends_only_when_the_disk_has_answered() -> None:
     rig = Rig()
     store = SlowStore()
@@ -141,6 +143,7 @@ def test_calibration_ends_only_when_the_disk_has_answered() -> None:
     assert "NOT saved" in rig.transitions[-1].reason
 
 
+@pytest.mark.hazard("H39")
 def test_a_data_dir_that_cannot_be_written_is_a_warning_from_start(tmp_path: Path) -> None:
     blocked = tmp_path / "a-file"
     blocked.write_text("not a directory")
@@ -150,6 +153,7 @@ def test_a_data_dir_that_cannot_be_written_is_a_warning_from_start(tmp_path: Pat
     assert "not writable (Not a directory)" in warnings[-1]
 
 
+@pytest.mark.hazard("H38")
 def test_a_failed_parameter_write_changes_nothing_and_is_a_warning(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -169,6 +173,7 @@ def test_a_failed_parameter_write_changes_nothing_and_is_a_warning(
     assert saved["params"][name]["value"] == 2.0  # the file matches what runs
 
 
+@pytest.mark.hazard("H39")
 def test_a_calibration_whose_older_file_cannot_be_moved_aside_is_saved_once_it_can(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

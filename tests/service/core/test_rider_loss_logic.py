@@ -30,6 +30,7 @@ def _running(policy: str, grace_s: float = 0.0) -> Rig:
     return rig
 
 
+@pytest.mark.hazard("H06")
 @pytest.mark.parametrize(
     ("policy", "state"), [("pause", S.PAUSED), ("stop", S.DONE), ("ignore", S.RUNNING)]
 )
@@ -103,6 +104,7 @@ def test_a_beating_rider_keeps_the_ride_running() -> None:
     assert rig.control.rider_connected
 
 
+@pytest.mark.hazard("H07")
 def test_a_silent_heartbeat_pauses_within_the_timeout_and_two_cycles() -> None:
     rig, beats = _supervised(timeout_s=0.5)
     _beat_for(rig, beats, 1.0)
@@ -116,6 +118,7 @@ def test_a_silent_heartbeat_pauses_within_the_timeout_and_two_cycles() -> None:
     assert rig.control.rider_warning is not None
 
 
+@pytest.mark.hazard("H07")
 def test_a_rider_that_never_beats_is_lost_after_the_timeout_from_its_command() -> None:
     rig, _ = _supervised(timeout_s=0.3)
     sent = rig.clock()
@@ -123,6 +126,7 @@ def test_a_rider_that_never_beats_is_lost_after_the_timeout_from_its_command() -
     assert 0.3 < rig.clock() - sent <= 0.3 + 2 * rig.period
 
 
+@pytest.mark.hazard("H06", "H36")
 def test_heartbeat_back_reconnects_but_moves_nothing() -> None:
     rig, beats = _supervised(timeout_s=0.3)
     rig.run_to_state(S.PAUSED, max_s=1.0)
@@ -153,6 +157,7 @@ def test_timeout_is_an_online_parameter_checked_against_the_heartbeat() -> None:
     assert any("scan periods" in f.message for f in semantic_findings(slow))
 
 
+@pytest.mark.hazard("H07")
 def test_an_online_timeout_below_two_heartbeats_is_refused(tmp_path: Path) -> None:
     registry = ParamRegistry(MachineConfig(), ParamStore(tmp_path))
     with pytest.raises(ParamOutOfRange, match="heartbeat"):

@@ -162,6 +162,7 @@ def test_stop_wakes_a_waiting_runner_at_once() -> None:
     assert h.clock.t == pytest.approx(stop_at, abs=20 * TICK)
 
 
+@pytest.mark.hazard("H04")
 def test_shutdown_leaves_outputs_safe() -> None:
     h = Harness(50, running=True)
     h.run()
@@ -169,6 +170,7 @@ def test_shutdown_leaves_outputs_safe() -> None:
     assert not h.rig.relays_on()
 
 
+@pytest.mark.hazard("H03")
 @pytest.mark.parametrize("after_step", [False, True], ids=["before-write", "after-write"])
 def test_exception_in_a_cycle_forces_outputs_safe_and_faults(
     after_step: bool, caplog: pytest.LogCaptureFixture
@@ -193,6 +195,7 @@ def test_exception_in_a_cycle_forces_outputs_safe_and_faults(
     assert_on_grid(h)
 
 
+@pytest.mark.hazard("H03")
 def test_repeated_failures_raise_loop_failed_with_outputs_safe() -> None:
     h = Harness(10_000, running=True, fail=lambda i: i >= 3, fail_after_step=True)
     with pytest.raises(LoopFailed, match="failed 50 cycles in a row"):

@@ -51,6 +51,7 @@ def registry(tmp_path: Path, config: MachineConfig | None = None) -> ParamRegist
     return ParamRegistry(config or MachineConfig(), ParamStore(tmp_path))
 
 
+@pytest.mark.hazard("H25")
 def test_the_tables_cover_every_safety_setting() -> None:
     assert set(LESS_STRICT) == set(STRICTER) == set(SAFETY)
     assert set(SAFETY) <= set(SPECS)
@@ -61,6 +62,7 @@ def test_the_tables_cover_every_safety_setting() -> None:
         assert not weaker(name, STRICTER[name], default), name
 
 
+@pytest.mark.hazard("H25", "H29")
 @pytest.mark.parametrize("name", sorted(SAFETY))
 def test_a_write_less_strict_than_the_config_file_is_refused_standing_still(
     tmp_path: Path, name: str
@@ -96,6 +98,7 @@ def test_a_config_file_may_make_a_setting_less_strict(tmp_path: Path) -> None:
     assert in_effect(reg.project)["rider_loss.policy"] == "ignore"
 
 
+@pytest.mark.hazard("H25")
 def test_a_persisted_value_less_strict_than_the_config_file_is_ignored(tmp_path: Path) -> None:
     """A params.json written by an older version (or by hand) cannot weaken the file either."""
     doc = {"version": 1, "params": {"rider_loss.policy": {"value": "ignore", "changed_at": 1.0}}}

@@ -192,6 +192,7 @@ def test_a_second_session_needs_home_and_then_runs_again() -> None:
     assert travel == pytest.approx(1080.0, abs=ROTATE_STEP_DEG)
 
 
+@pytest.mark.hazard("H22", "H43")
 def test_session_on_a_machine_calibrated_in_an_earlier_life() -> None:
     rig = Rig(calibration=known_calibration())
     assert rig.state is S.WARNING_NOT_HOME  # never assumed home after power-up

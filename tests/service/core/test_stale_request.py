@@ -23,6 +23,7 @@ def wall(rig: Rig) -> float:
     return rig.clock() + rig.control.wall_offset
 
 
+@pytest.mark.hazard("H27")
 @pytest.mark.parametrize("command", MOTION)
 def test_a_motion_command_older_than_its_wait_is_refused_and_nothing_moves(
     command: Command,
@@ -51,6 +52,7 @@ def test_without_a_time_or_a_wait_no_age_is_judged() -> None:
     assert rig.send(Command.HOME, valid_for=0.5).success  # no timecode
 
 
+@pytest.mark.hazard("H27")
 def test_stop_pause_and_checks_are_never_refused_for_age() -> None:
     rig = Rig(calibration=None).ready()
     assert rig.send(Command.START, timecode=wall(rig), valid_for=2.0).success
@@ -69,6 +71,7 @@ def test_the_margin_is_a_setting() -> None:
 
 
 # ------------------------------------------------------------------------ one clock, seconds
+@pytest.mark.hazard("H28")
 @pytest.mark.parametrize("command", [*MOTION, Command.START])
 def test_a_timecode_in_milliseconds_is_refused_whatever_its_wait(command: Command) -> None:
     """Issue 43, point 2: a JavaScript Rider's `Date.now()` (ms) 30 s ago with `valid_for: 5`
@@ -85,6 +88,7 @@ def test_a_timecode_in_milliseconds_is_refused_whatever_its_wait(command: Comman
     assert rig.state is before and not rig.relays_on()
 
 
+@pytest.mark.hazard("H28")
 def test_a_timecode_ahead_of_the_clock_by_more_than_the_margin_is_refused() -> None:
     """A captured or pre-made request "a day in the future" stayed fresh for a day."""
     rig = Rig()

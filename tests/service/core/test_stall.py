@@ -33,6 +33,7 @@ def stalled(where: str, **kwargs: object) -> Harness:
     return h
 
 
+@pytest.mark.hazard("H01")
 @pytest.mark.parametrize("where", ["between", "inside"])
 def test_a_stall_at_rest_is_counted_and_changes_nothing(where: str) -> None:
     h = stalled(where, homed=True)
@@ -47,6 +48,7 @@ def test_a_stall_at_rest_is_counted_and_changes_nothing(where: str) -> None:
     assert not [t for t in rig.transitions if t.new is MachineState.FAULT_HW]
 
 
+@pytest.mark.hazard("H01", "H47")
 @pytest.mark.parametrize("where", ["between", "inside"])
 def test_a_stall_while_moving_drops_the_relays_and_is_the_fault_reported(where: str) -> None:
     h = stalled(where, running=True)

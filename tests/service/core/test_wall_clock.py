@@ -19,6 +19,7 @@ from tests.service.core.runner_harness import (
 )
 
 
+@pytest.mark.hazard("H46")
 def test_the_machines_wall_time_follows_the_host_clock_when_it_is_set(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -65,6 +66,7 @@ def test_the_machines_wall_time_follows_the_host_clock_when_it_is_set(
     assert_on_grid(h)  # the scan's own clock never moved
 
 
+@pytest.mark.hazard("H46")
 def test_a_wall_clock_that_drifts_is_followed_without_a_clock_set_event(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

@@ -23,6 +23,7 @@ from tests.rig import Rig
 WAIT_S = 10.0
 
 
+@pytest.mark.hazard("H01")
 def test_latched_hal_writes_only_safe_outputs() -> None:
     rig = Rig()
     guard = GuardedHal(rig.hal)
@@ -39,6 +40,7 @@ def test_latched_hal_writes_only_safe_outputs() -> None:
     assert rig.hal.outputs.any_on()
 
 
+@pytest.mark.hazard("H01")
 def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
     rig = Rig(guarded=True)
     guard = rig.guard
@@ -125,6 +127,7 @@ class Threaded:
         return seen
 
 
+@pytest.mark.hazard("H01", "H04")
 def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     """A real runner thread blocked inside a cycle: the watchdog trips and outputs drop."""
     threaded = Threaded()

@@ -78,6 +78,7 @@ def test_judging_an_entered_calibration_names_the_witness_and_the_figure() -> No
     assert zero is not None and zero.code is F.HOME_OFF_ZERO and "-1.00°" in zero.message
 
 
+@pytest.mark.hazard("H21")
 def test_the_issue_calibration_is_stopped_by_home_and_never_ridden() -> None:
     """Issue 53, point 1 on the fake clock: 1197 / 52 for the measured 1197 / 40."""
     rig = Rig(calibration=known_calibration())
@@ -116,6 +117,7 @@ def test_calibrate_rotate_verifies_an_entered_tilt_on_its_way() -> None:
     assert fault is not None and fault.code is F.HOME_OFF_ZERO, fault
 
 
+@pytest.mark.hazard("H15", "H22", "H23")
 @pytest.mark.parametrize("factor", [0.98, 0.97, 0.95])
 def test_a_gain_that_drifted_stops_a_session_before_it_passes_its_target_by_a_degree(
     factor: float,
@@ -154,6 +156,7 @@ def session_with_drift(rig: Rig, steps: list[float], after: int, **change: float
     return rig.state
 
 
+@pytest.mark.hazard("H15")
 def test_a_zero_that_moved_is_found_at_the_next_pass_down_through_the_switch() -> None:
     """The sensor slips 1° after a ride up: the way down to 0° passes the switch, which closes
     at "+1.0°" by the calibration."""
@@ -165,6 +168,7 @@ def test_a_zero_that_moved_is_found_at_the_next_pass_down_through_the_switch() -
     assert "closed on the way down at +1.0" in fault.message
 
 
+@pytest.mark.hazard("H13")
 def test_below_zero_by_the_calibration_the_switch_must_be_closed() -> None:
     """A zero that moved the other way: a session down to -1° stops short of the switch, which
     is still open where the calibration says it is below 0°."""

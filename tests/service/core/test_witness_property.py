@@ -20,6 +20,8 @@ import random
 from collections import Counter
 from dataclasses import dataclass, field
 
+import pytest
+
 from schema.calibration import CalibrationSet
 from schema.commands import Command, RotateStep, Session, TiltStep
 from schema.status import FaultCode, MachineState
@@ -149,6 +151,7 @@ def trial(rng: random.Random, tally: Tally) -> None:
     tally.outcomes["right: DONE"] += wrong <= RIGHT_DEG
 
 
+@pytest.mark.hazard("H21", "H29")
 def test_hand_entered_calibrations_are_verified_or_stopped_never_done_wrong() -> None:
     rng = random.Random(53)
     tally = Tally()

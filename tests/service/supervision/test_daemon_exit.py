@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+import pytest
+
 from tests.procs import run_bounded
 
 SCRIPT = """
@@ -26,6 +28,7 @@ print("not reached", flush=True)
 """
 
 
+@pytest.mark.hazard("H03")
 def test_exit_deadline_forces_outputs_safe_then_ends_the_process() -> None:
     done = run_bounded([sys.executable, "-c", SCRIPT], timeout=60)
     assert done.returncode == 1

@@ -54,6 +54,7 @@ def beat(writer: BeatWriter, at_ns: int, energised: bool) -> None:
     writer.rec.beat_ns = at_ns
 
 
+@pytest.mark.hazard("H02")
 def test_a_stall_with_a_relay_on_is_made_safe_and_said_so(
     record: tuple[BeatWriter, BeatReader],
 ) -> None:
@@ -77,6 +78,7 @@ def test_a_stall_off_from_the_last_cycle_on_is_the_only_one_called_off(
     assert not trips and hangs and hangs[0].outputs() == "off"
 
 
+@pytest.mark.hazard("H04")
 def test_relays_found_off_after_a_freeze_that_kept_them_on_are_not_called_off(
     record: tuple[BeatWriter, BeatReader],
 ) -> None:
@@ -93,6 +95,7 @@ def test_relays_found_off_after_a_freeze_that_kept_them_on_are_not_called_off(
     assert "the supervisor itself was stopped 4.90 s" in said
 
 
+@pytest.mark.hazard("H04")
 def test_a_guard_that_was_stopped_itself_says_so_when_it_makes_safe(
     record: tuple[BeatWriter, BeatReader],
 ) -> None:
