@@ -6,7 +6,7 @@ import math
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, StringConstraints, field_validator
+from pydantic import Field, FiniteFloat, StringConstraints, field_validator
 
 from schema import SCHEMA_VERSION
 from schema.base import OpenWireModel, WireModel
@@ -147,18 +147,19 @@ class CommandRequest(WireModel):
     """
 
     transaction_id: TransactionId
-    timecode: float | None = None
+    timecode: FiniteFloat | None = None
     """The sender's clock when it sent the request, in seconds since the Unix epoch (UTC, as
     `time.time()`; a JavaScript Rider sends `Date.now() / 1000`). Seed 000 used integer
     milliseconds; here seconds, as every time on this wire, and a motion command whose timecode
     can only be milliseconds (above 1e11), or lies ahead of the machine's clock by more than
-    `bus.clock_margin_s`, is refused `BAD_TIMECODE`. Echoed in the reply as `request_timecode`
-    and written to the daemon's log with the command."""
+    `bus.clock_margin_s`, is refused `BAD_TIMECODE`. NaN or an infinity is no time: refused
+    `BAD_PAYLOAD` (a NaN passed both age checks and started a ride). Echoed in the reply as
+    `request_timecode` and written to the daemon's log with the command."""
     rider: TransactionId | None = None
     """The supervising Rider, `<login>/<zid>` (schema/rider.py): the machine watches its
     heartbeat on `rider/<login>/<zid>/heartbeat` while the motion it sent runs. None: nobody
     supervises it (a one-shot command)."""
-    valid_for: float | None = Field(default=None, gt=0, le=VALID_FOR_MAX_S)
+    valid_for: FiniteFloat | None = Field(default=None, gt=0, le=VALID_FOR_MAX_S)
     """Seconds after `timecode` that the sender still waits for the answer (the Rider sends the
     end of this call's wait: timeout × tries, counted from `timecode`). A command that would
     move the machine and reaches it later than that (a frozen or unreachable daemon that

@@ -9,6 +9,7 @@ refused `BAD_TIMECODE` with the reason, and nothing moves.
 from __future__ import annotations
 
 import json
+import math
 import time
 
 import pytest
@@ -61,6 +62,21 @@ def test_a_timecode_that_is_no_time_in_seconds_is_refused_and_nothing_moves(
     assert isinstance(error, dict)
     assert error["code"] == "BAD_TIMECODE" and error["path"] == "/timecode", error
     assert says in str(error["message"]) and "nothing moved" in str(error["message"])
+
+
+@pytest.mark.hazard("H28")
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf], ids=["nan", "inf", "-inf"])
+def test_a_timecode_that_is_no_number_is_refused_and_nothing_moves(
+    machine: Daemon, bad: float
+) -> None:
+    """Issue 58, point 1: `{"timecode": NaN, "valid_for": 5}` passed both the future and the
+    stale check (every comparison with NaN is false) and the ride ran."""
+    reply, homing = home_with(machine, f"no-number-{bad}", bad)
+    assert not homing, "the machine moved on a timecode that is no number"
+    assert reply["success"] is False, reply
+    error = reply["error"]
+    assert isinstance(error, dict) and error["code"] == "BAD_PAYLOAD", error
+    assert error["path"] == "/timecode", error
 
 
 def test_seconds_from_this_clock_are_taken(machine: Daemon) -> None:
