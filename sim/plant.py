@@ -13,8 +13,8 @@ DIR gets the process image (`procimg`, made by whoever starts the plant, or by t
 `--make-image`: a compose service of its own, docker/compose.plant.yaml) and the control socket
 (`plant.sock`, or `--socket PATH`; the file `plant.endpoint` names it); FILE is a TOML or JSON
 document whose `hal.iomap` and `hal.sim` tables wire and shape the world (a machine.toml does).
-The world steps every S seconds on a thread that asks for real-time scheduling (the field's
-physics is never late; refused, it runs as any thread and counts its late steps).
+The world steps every S seconds; the plant asks for real-time scheduling for all its threads
+(the field's physics is never late; refused, it runs as any process and counts its late steps).
 `--beat-fd`: the daemon's scan count, a uint64 at offset N of that shared memory, so the rotate
 waits in its home arc for a stalled scan (`SimWorld.follow_scans`). It prints `ready` once the
 socket listens and stops on SIGTERM, SIGINT, a `stop` request, or when its parent (`--parent`)
@@ -94,15 +94,16 @@ def read_tables(path: Path) -> tuple[IoMap, PhysicsParams]:
     )
 
 
-class FieldThread(threading.Thread):
-    """The world's thread, real-time where the host allows it (the field is never late)."""
-
-    def run(self) -> None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
-        except (PermissionError, OSError) as exc:
-            log.warning("event=plant_not_realtime error=%r (late steps are counted)", str(exc))
-        super().run()
+def realtime() -> bool:
+    """The calling thread, and every thread it starts from now on, real-time (SCHED_FIFO): the
+    field is never late, and no thread of the plant waits behind a busy neighbour for the GIL
+    another of its threads holds. False where the host refuses (late steps are counted)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
+    except (PermissionError, OSError) as exc:
+        log.warning("event=plant_not_realtime error=%r (late steps are counted)", str(exc))
+        return False
+    return True
 
 
 def beat_counter(fd: int, offset: int) -> Callable[[], int]:
@@ -195,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.make_image:
         args.dir.mkdir(parents=True, exist_ok=True)
         make_image(image)
-    world = SimWorld(iomap, str(image), str(CONFIG_RSC), params, args.period, spawn=FieldThread)
+    rt = realtime()  # before any thread starts: they inherit it
+    world = SimWorld(iomap, str(image), str(CONFIG_RSC), params, args.period)
     if args.beat_fd is not None:
         world.follow_scans(beat_counter(args.beat_fd, args.beat_offset))
     plant = Plant(world, args.dir, args.socket)
@@ -204,10 +206,11 @@ def main(argv: list[str] | None = None) -> int:
     world.start()
     plant.serve()
     log.info(
-        "event=plant_started dir=%s period_s=%g pump=%s",
+        "event=plant_started dir=%s period_s=%g pump=%s realtime=%s",
         args.dir,
         args.period,
         iomap.charge_pump or "none",
+        rt,
     )
     print("ready", flush=True)
     try:

@@ -72,8 +72,8 @@ class Injection:
             raise NotAvailable(
                 f"sim/{what}: this machine runs the {self.backend} HAL, not the simulator"
             )
-        if what == WORLD:
-            request.reply(port.world(self.wall()))
+        if what == WORLD:  # read where faults are applied: never beside a change
+            self.run(request, lambda: request.reply(port.world(self.wall())))
             return
         fault = port.decode(what, request.payload, request.encoding)
 

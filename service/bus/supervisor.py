@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable
@@ -20,6 +21,7 @@ from typing import Any
 import zenoh
 
 from common.zenoh_session import file_config
+from hal.base import HalError
 from schema import keys as machine_keys
 from schema.codec import DecodeError, Format, decode, encode
 from schema.completion import Completion, Outcome
@@ -32,7 +34,8 @@ from service.bus.request import Request
 from service.bus.routes import Route, declare
 from service.bus.session import zenoh_config
 from service.config.model import MachineConfig
-from service.errors import NotAvailable
+from service.errors import MachineError, NotAvailable
+from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +108,7 @@ class SupervisorBus:
         self.session = session
         self.config = config
         self.world = world
+        self._plant = PlantRequests()
         self.on_presence = on_presence
         self.wall = wall
         self.base = config.key_base
@@ -134,8 +138,8 @@ class SupervisorBus:
             s.liveliness().declare_subscriber(f"{b}/alive", self._on_token, history=True)
         )
         # Always: the daemon child leaves sim/** to its supervisor (one answer, never two).
-        # The world applies a fault under its own lock: at once, on Zenoh's thread.
-        sim = Injection(b, self.world, self.config.hal.backend, _at_once, self.wall)
+        # The plant answers over a socket: on a thread of its own, never Zenoh's.
+        sim = Injection(b, self.world, self.config.hal.backend, self._plant.run, self.wall)
         self._declared += declare(s, b, self, sim.routes())
         # Riders accept answers for this machine from its holder and from this session only.
         self._declared.append(
@@ -147,6 +151,7 @@ class SupervisorBus:
         return zenoh.SourceInfo(self._status_pub.id, sn)
 
     def close(self) -> None:
+        self._plant.close()
         with self._lock:
             entities, self._down_entities = self._down_entities, []
         for entity in reversed(self._declared + entities):
@@ -288,5 +293,31 @@ class SupervisorBus:
         self.on_presence(sample.kind == zenoh.SampleKind.PUT)
 
 
-def _at_once(request: Request, fn: Callable[[], None]) -> None:
-    fn()
+class PlantRequests:
+    """`sim/**` work done on a thread of its own, in arrival order: the simulated plant is
+    another process and each request a round trip to it, which a Zenoh callback must not wait
+    for. A plant that does not answer makes the request `NOT_AVAILABLE`."""
+
+    def __init__(self) -> None:
+        self._queue: queue.SimpleQueue[tuple[Request, Callable[[], None]] | None] = (
+            queue.SimpleQueue()
+        )
+        self._thread = NamedThread(target=self._serve, name="sim-requests", daemon=True)
+        self._thread.start()
+
+    def run(self, request: Request, fn: Callable[[], None]) -> None:
+        self._queue.put((request, fn))
+
+    def _serve(self) -> None:
+        while (item := self._queue.get()) is not None:
+            request, fn = item
+            try:
+                fn()
+            except MachineError as exc:
+                request.refuse(exc)
+            except HalError as exc:  # the plant is gone or did not answer in time
+                request.refuse(NotAvailable(f"the simulated plant: {exc}"))
+
+    def close(self) -> None:
+        self._queue.put(None)
+        self._thread.join(timeout=2.0)
