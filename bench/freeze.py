@@ -31,7 +31,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from bench.common import Child, Dist, Options, Section, Table, Target, main_for, ms, python_module
-from rider.client import Rider
 from schema.status import FAULT_STATES
 from sim.settings import PhysicsParams
 from tests.freeze import (
@@ -39,14 +38,11 @@ from tests.freeze import (
     PERIOD_S,
     Freeze,
     Outcome,
-    ready,
     ride_and_freeze,
-    start_supervised,
-    stop,
+    supervised,
 )
 from tests.freeze_whole import FreezerCgroup, Whole, WholeOutcome, freeze_whole
 from tests.integration.support import prepare
-from tests.procs import Daemon
 
 BOUND_S = LIMIT_S + 2 * PERIOD_S
 """The issue's target: relays off within the watchdog limit plus two periods."""
@@ -70,25 +66,13 @@ def burners(tmp: Path, on: bool, seconds: float) -> Iterator[None]:
         yield
 
 
-@contextlib.contextmanager
-def supervised(tmp: Path, pump: bool = True) -> Iterator[tuple[Daemon, Rider]]:
-    tmp.mkdir(parents=True, exist_ok=True)
-    supervisor = start_supervised(tmp, pump=pump)
-    try:
-        with supervisor.rider(timeout=5.0, supervise=False) as rider:
-            ready(rider, timeout=60.0)
-            yield supervisor, rider
-    finally:
-        stop(supervisor)
-
-
 def trials(n: int, tmp: Path, loads: tuple[bool, ...]) -> dict[tuple[Freeze, bool], list[Outcome]]:
     """`n` freezes of each kind on each host (`loads`: quiet False, beside burners True), the
     phases alternated in rounds."""
     results: dict[tuple[Freeze, bool], list[Outcome]] = {
         (k, load): [] for k in Freeze for load in loads
     }
-    with supervised(tmp) as (supervisor, rider):
+    with supervised(tmp, timeout=5.0, ready_s=60.0) as (supervisor, rider):
         for i in range(n):
             for load in loads if i % 2 == 0 else loads[::-1]:
                 with burners(tmp, load, 60.0):
@@ -109,7 +93,10 @@ def whole_trials(
     kinds = [k for k in Whole if k is not Whole.CGROUP or FreezerCgroup.unavailable() is None]
     results: dict[WholeKey, list[WholeOutcome]] = {}
     for pump, count in ((True, n), (False, baseline)):
-        with supervised(tmp / f"whole-{pump}", pump=pump) as (supervisor, rider):
+        with supervised(tmp / f"whole-{pump}", pump=pump, timeout=5.0, ready_s=60.0) as (
+            supervisor,
+            rider,
+        ):
             for i in range(count):
                 for load in loads if i % 2 == 0 else loads[::-1]:
                     with burners(tmp, load, 60.0):
@@ -167,7 +154,10 @@ def soak(seconds: float, tmp: Path, load: bool) -> tuple[float, int, float, int,
     """An idle, homed daemon (beside a burner per core with `load`): (seconds, stalls, longest
     stall s, watchdog trips, fault states seen, its final state)."""
     faults = 0
-    with supervised(tmp / "soak") as (_, rider), burners(tmp, load, seconds):
+    with (
+        supervised(tmp / "soak", timeout=5.0, ready_s=60.0) as (_, rider),
+        burners(tmp, load, seconds),
+    ):
         prepare(rider)
         before = rider.diag(reset=True)
         t0 = time.monotonic()

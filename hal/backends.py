@@ -94,13 +94,7 @@ class Backend(Protocol):
         ...
 
     def world(
-        self,
-        iomap: IoMap,
-        settings: object,
-        directory: Path,
-        period_s: float,
-        *,
-        attach: bool = False,
+        self, iomap: IoMap, settings: object, directory: Path, period_s: float, attach: bool = False
     ) -> World | None:
         """A world behind a fresh process image in `directory`, stepped every `period_s` by
         a process of its own once it starts (`attach`: one already running in `directory`,

@@ -42,13 +42,7 @@ class RevPiBackend:
         return None
 
     def world(
-        self,
-        iomap: IoMap,
-        settings: object,
-        directory: Path,
-        period_s: float,
-        *,
-        attach: bool = False,
+        self, iomap: IoMap, settings: object, directory: Path, period_s: float, attach: bool = False
     ) -> World | None:
         return None
 

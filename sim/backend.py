@@ -30,13 +30,7 @@ class SimBackend:
         return HalSim(hal) if isinstance(hal, SimHal) else None
 
     def world(
-        self,
-        iomap: IoMap,
-        settings: object,
-        directory: Path,
-        period_s: float,
-        *,
-        attach: bool = False,
+        self, iomap: IoMap, settings: object, directory: Path, period_s: float, attach: bool = False
     ) -> World:
         from sim.plant_link import PlantProcess
 

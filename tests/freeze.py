@@ -14,6 +14,7 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -194,14 +195,7 @@ def ride_and_freeze(supervisor: Daemon, rider: Rider, kind: Freeze) -> Outcome:
             moving.append((world, time.monotonic()))
         return rider.status()
 
-    def start() -> Reply:
-        reply = rider.start(Session(name="freeze", steps=[TiltStep(degrees=45.0)]))
-        assert reply.success, reply
-        return reply
-
-    # The tilt's calibration is the file's (not measured here): a tilt fault is excused only
-    # by the world's lateness during this call.
-    Preparation(rider, tilt_late=late_steps(rider)).ride(start, going)
+    ride_the_tilt(rider, going)
     world, seen_at = moving[-1]
     t0 = freeze(before, kind)
     off = relays_off_at(supervisor.data_dir, timeout=15.0)
@@ -209,6 +203,36 @@ def ride_and_freeze(supervisor: Daemon, rider: Rider, kind: Freeze) -> Outcome:
     overrun = after.tilt_deg - (world.tilt_deg + TILT_DPS * (t0 - seen_at))
     replaced(supervisor, rider, before)
     return Outcome(kind, None if off is None else off - t0, overrun)
+
+
+def ride_the_tilt(rider: Rider, going: Callable[[Reply], Status]) -> None:
+    """Home, then a session towards 45°, through `Preparation`; `going` waits until the tilt
+    is on its way. The tilt's calibration is the file's (not measured here): a tilt fault is
+    excused only by the world's lateness during this call."""
+
+    def start() -> Reply:
+        reply = rider.start(Session(name="freeze", steps=[TiltStep(degrees=45.0)]))
+        assert reply.success, reply
+        return reply
+
+    Preparation(rider, tilt_late=late_steps(rider)).ride(start, going)
+
+
+@contextlib.contextmanager
+def supervised(
+    tmp: Path, *, pump: bool = True, timeout: float = 3.0, ready_s: float | None = None
+) -> Iterator[tuple[Daemon, Rider]]:
+    """`start_supervised` in `tmp` and a Rider of the test's own (its calls bounded by
+    `timeout`; `ready_s`: first wait that long for a daemon), stopped after the block."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    supervisor = start_supervised(tmp, pump=pump)
+    try:
+        with supervisor.rider(timeout=timeout, supervise=False) as rider:
+            if ready_s is not None:
+                ready(rider, timeout=ready_s)
+            yield supervisor, rider
+    finally:
+        stop(supervisor)
 
 
 def tilt_moving(rider: Rider, timeout: float = 30.0) -> SimWorldState | None:

@@ -26,12 +26,11 @@ from enum import StrEnum
 from pathlib import Path
 
 from rider.client import Rider
-from schema.commands import Reply, Session, TiltStep
+from schema.commands import Reply
 from schema.sim import SimWorldState
 from schema.status import Status
 from sim.plant import ENDPOINT, recv_frame, send_frame
-from tests.freeze import TILT_DPS, child_of, image_relays, ready, replaced
-from tests.integration.support import Preparation, late_steps
+from tests.freeze import TILT_DPS, child_of, image_relays, ready, replaced, ride_the_tilt
 from tests.procs import Daemon, child_pids
 
 FREEZER_V1 = Path("/sys/fs/cgroup/freezer")
@@ -173,20 +172,12 @@ def prepare_a_ride(supervisor: Daemon, rider: Rider) -> None:
 
 def _ride(supervisor: Daemon, rider: Rider) -> None:
     ready(rider)
-    moving: list[SimWorldState] = []
 
     def going(_: Reply) -> Status:
-        world = tilt_moving(supervisor, rider)
-        if world is not None:
-            moving.append(world)
+        tilt_moving(supervisor, rider)
         return rider.status()
 
-    def start() -> Reply:
-        reply = rider.start(Session(name="freeze", steps=[TiltStep(degrees=45.0)]))
-        assert reply.success, reply
-        return reply
-
-    Preparation(rider, tilt_late=late_steps(rider)).ride(start, going)
+    ride_the_tilt(rider, going)
 
 
 def freeze_whole(supervisor: Daemon, rider: Rider, kind: Whole, hold_s: float) -> WholeOutcome:

@@ -12,13 +12,13 @@ bench/freeze.py measures the time itself (BENCHMARKS.md).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
 from rider.client import Rider
 from schema.status import MachineState
-from tests.freeze import LIMIT_S, Freeze, ride_and_freeze, start_supervised, stop
+from tests.freeze import LIMIT_S, Freeze, ride_and_freeze
+from tests.freeze import supervised as supervised_machine
 from tests.procs import Daemon
 
 pytestmark = pytest.mark.integration
@@ -29,13 +29,8 @@ OFF_BOUND_S = LIMIT_S + 1.0
 
 @pytest.fixture(scope="module")
 def supervised(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemon, Rider]]:
-    tmp: Path = tmp_path_factory.mktemp("guard")
-    supervisor = start_supervised(tmp)
-    try:
-        with supervisor.rider(timeout=3.0, supervise=False) as rider:
-            yield supervisor, rider
-    finally:
-        stop(supervisor)
+    with supervised_machine(tmp_path_factory.mktemp("guard")) as both:
+        yield both
 
 
 @pytest.mark.hazard("H01", "H02", "H47")

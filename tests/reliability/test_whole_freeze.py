@@ -17,7 +17,6 @@ import re
 import signal
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
@@ -29,8 +28,9 @@ from tests.freeze import (
     TILT_DPS,
     image_relays,
     ready,
-    start_supervised,
-    stop,
+)
+from tests.freeze import (
+    supervised as supervised_machine,
 )
 from tests.freeze_whole import (
     FreezerCgroup,
@@ -53,13 +53,8 @@ CUT_BOUND_S = PUMP_TIMEOUT_S + 2 * PERIOD_S + 0.15
 
 @pytest.fixture(scope="module")
 def supervised(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemon, Rider]]:
-    tmp: Path = tmp_path_factory.mktemp("whole")
-    supervisor = start_supervised(tmp)
-    try:
-        with supervisor.rider(timeout=3.0, supervise=False) as rider:
-            yield supervisor, rider
-    finally:
-        stop(supervisor)
+    with supervised_machine(tmp_path_factory.mktemp("whole")) as both:
+        yield both
 
 
 @pytest.mark.hazard("H05")

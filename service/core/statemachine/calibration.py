@@ -38,18 +38,20 @@ def tilt_measured(m: StateMachine, ctl: TiltCalibrate, now: float) -> Ending | N
 
 
 def verified(m: StateMachine) -> None:
-    """After a motion that homed the tilt: an entered calibration its stroke verified
+    """When a motion ends (done or faulted): an entered calibration its stroke verified
     (`TiltVerify`) is the machine's calibration now, shown verified (not saved: a start
-    verifies an entered one again)."""
-    tilt = m.devices.tilt.calibration
-    if tilt is not m.calibration.tilt:
+    verifies an entered one again). A Home whose rotate part failed after the tilt's
+    verification keeps the verification."""
+    tilt, mine = m.devices.tilt.calibration, m.calibration.tilt
+    if tilt is None or mine is None or tilt is mine or not tilt.verified or mine.verified:
+        return
+    if dataclasses.replace(tilt, verified=False) == mine:
         m.calibration = dataclasses.replace(m.calibration, tilt=tilt)
 
 
 def rotate_measured(m: StateMachine, ctl: RotateCalibrate, now: float) -> Ending | None:
     """CalibrateRotate's `on_done`: both axes were homed on the way."""
     assert ctl.result is not None  # it finished DONE
-    verified(m)
     m.refs.tilt = m.refs.rotate = True
     rotate = dataclasses.replace(ctl.result, at=now + m.wall_offset)
     return _measured(m, Calibration(tilt=m.calibration.tilt, rotate=rotate), now)

@@ -326,6 +326,7 @@ class StateMachine:
         step = ctl.update(now)
         if step is Step.BUSY:
             return
+        calibration.verified(self)  # a verification that passed, whatever came after it
         if step is Step.FAULT:
             assert ctl.fault is not None
             command = self.action.command.value if self.action else "motion"

@@ -193,3 +193,14 @@ def test_a_measured_calibration_rides_on_a_stalling_host_without_a_false_witness
         session = Session(name="up-and-down", steps=steps).model_dump()
         assert finish(rig, C.START, session=session) is S.DONE, rig.control.fault
     assert rig.hal.stalled_s > 1.0
+
+
+def test_a_home_whose_rotate_fails_keeps_the_tilts_verification() -> None:
+    rig = Rig(calibration=known_calibration())
+    enter(rig, ZERO, GAIN)
+    rig.hal.stall("rotate")  # the rotate's home times out after the tilt's part passed
+    assert finish(rig, C.HOME) is S.FAULT_HW
+    fault = rig.control.fault
+    assert fault is not None and fault.axis == "rotate", fault
+    tilt = rig.control.calibration.tilt
+    assert tilt is not None and tilt.verified

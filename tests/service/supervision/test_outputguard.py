@@ -49,20 +49,30 @@ def guard_on(reader: BeatReader, image: Image) -> tuple[OutputGuard, list[Stall]
     return guard, trips, hangs
 
 
-def beat(writer: BeatWriter, at_ns: int, energised: bool) -> None:
-    writer.rec.energised = energised
-    writer.rec.beat_ns = at_ns
+def stall(
+    record: tuple[BeatWriter, BeatReader],
+    *,
+    was_on: bool,
+    on_now: bool,
+    age_s: float,
+    late_s: float = 0.0,
+) -> tuple[Image, list[Stall], list[Stall]]:
+    """The daemon's last beat (its relays `was_on`), and the guard's look `age_s` later, itself
+    `late_s` late, with the relays `on_now` in the image: the image, the trips and the hangs."""
+    writer, reader = record
+    image = Image(on=on_now)
+    guard, trips, hangs = guard_on(reader, image)
+    writer.rec.energised = was_on
+    writer.rec.beat_ns = T0
+    guard.look(reader.read(), T0 + round(age_s * 1e9), late_ns=round(late_s * 1e9))
+    return image, trips, hangs
 
 
 @pytest.mark.hazard("H02")
 def test_a_stall_with_a_relay_on_is_made_safe_and_said_so(
     record: tuple[BeatWriter, BeatReader],
 ) -> None:
-    writer, reader = record
-    image = Image(on=True)
-    guard, trips, _ = guard_on(reader, image)
-    beat(writer, T0, energised=True)
-    guard.look(reader.read(), T0 + 105_000_000)
+    image, trips, _ = stall(record, was_on=True, on_now=True, age_s=0.105)
     assert image.dropped == 1 and trips
     said = trips[0].outputs()
     assert "made safe by the supervisor 0.10 s after" in said and "stopped" not in said
@@ -71,10 +81,7 @@ def test_a_stall_with_a_relay_on_is_made_safe_and_said_so(
 def test_a_stall_off_from_the_last_cycle_on_is_the_only_one_called_off(
     record: tuple[BeatWriter, BeatReader],
 ) -> None:
-    writer, reader = record
-    guard, trips, hangs = guard_on(reader, Image(on=False))
-    beat(writer, T0, energised=False)
-    guard.look(reader.read(), T0 + 2_000_000_000)
+    _, trips, hangs = stall(record, was_on=False, on_now=False, age_s=2.0)
     assert not trips and hangs and hangs[0].outputs() == "off"
 
 
@@ -85,10 +92,7 @@ def test_relays_found_off_after_a_freeze_that_kept_them_on_are_not_called_off(
     """The supervisor and the daemon stopped together for 5 s, the relays on all along; the
     daemon woke first and dropped them itself, so the guard, stopped as long, reads them off.
     Before, that read was reported as `outputs off`."""
-    writer, reader = record
-    guard, trips, hangs = guard_on(reader, Image(on=False))
-    beat(writer, T0, energised=True)
-    guard.look(reader.read(), T0 + 5_000_000_000, late_ns=4_900_000_000)
+    _, trips, hangs = stall(record, was_on=True, on_now=False, age_s=5.0, late_s=4.9)
     assert not trips and hangs
     said = hangs[0].outputs()
     assert said != "off" and "on for up to 5.00 s" in said
@@ -99,11 +103,7 @@ def test_relays_found_off_after_a_freeze_that_kept_them_on_are_not_called_off(
 def test_a_guard_that_was_stopped_itself_says_so_when_it_makes_safe(
     record: tuple[BeatWriter, BeatReader],
 ) -> None:
-    writer, reader = record
-    image = Image(on=True)
-    guard, trips, _ = guard_on(reader, image)
-    beat(writer, T0, energised=True)
-    guard.look(reader.read(), T0 + 5_000_000_000, late_ns=round(2 * GUARD_LATE_S * 1e9))
+    image, trips, _ = stall(record, was_on=True, on_now=True, age_s=5.0, late_s=2 * GUARD_LATE_S)
     assert image.dropped == 1
     said = trips[0].outputs()
     assert "5.00 s after the daemon's last cycle" in said and "itself was stopped" in said
