@@ -26,12 +26,10 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 from common.credentials import MACHINE, CredentialError, env_name
-from hal.backends import World, backend
+from hal.backends import World
 from hal.base import HalConfigError, HalError
-from schema.findings import Finding, Severity
 from service import bus as zbus
 from service.bus.exposure import warn_if_exposed
 from service.bus.supervisor import (
@@ -40,12 +38,13 @@ from service.bus.supervisor import (
     requires_credentials,
     router_config,
 )
-from service.config.model import HalBackend, MachineConfig
+from service.config.model import MachineConfig
 from service.config.validate import finding_line
-from service.core.beat import BEAT_FD_ENV, CYCLES_OFFSET, BeatReader, create_beat_fd
+from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
 from service.core.runner import SUPERVISOR_PID_ENV
 from service.signals import SignalThread
 from service.supervision.daemon import DaemonOptions, StartRefused
+from service.supervision.field import SafeOutputs, open_field
 from service.supervision.malloc import bound_malloc_arenas
 from service.supervision.outputguard import OutputGuard, Stall
 from service.supervision.procstate import describe, threads
@@ -62,16 +61,6 @@ EXIT_CONFIG = 2
 SUPERVISOR_DIR = "supervisor"
 HANG_S = 1.0
 """The default hang limit: what the shipped Zenoh profiles' lease gave before (1 s)."""
-
-
-class SafeOutputs(Protocol):
-    """What the supervisor needs from a HAL: read and drop the outputs, from any thread."""
-
-    def energised(self) -> bool: ...
-
-    def force_all_outputs_safe(self) -> None: ...
-
-    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -219,31 +208,11 @@ class Supervisor:
             log.warning("event=zenoh_close_timeout")
 
     def _prepare_hal(self) -> MachineConfig:
-        """The safe-output path (and, with the simulator, the world); the child's config."""
-        from hal.revpi import RevPiHal  # revpimodio2 is an optional extra: import on use
-
-        self.dir.mkdir(parents=True, exist_ok=True)
-        config = self.config
-        hal = config.hal
-        plant = self.options.plant_dir
-        self.world = backend(hal.backend).world(
-            hal.iomap,
-            hal.settings(),
-            plant or self.dir,
-            self.options.world_period_s,
-            attach=plant is not None,
-        )
-        if plant is not None and self.world is None:
-            raise HalConfigError([_plant_needs_sim(hal.backend)])
-        if self.world is not None:  # a simulated world: the child drives it as a RevPi
-            self.world.follow_beat(self.beat_fd, CYCLES_OFFSET)
-            revpi = {"procimg": self.world.procimg, "configrsc": self.world.configrsc}
-            config = config.with_overrides(hal={"backend": HalBackend.REVPI, "revpi": revpi})
-        rp = config.hal.revpi
-        self.safe = RevPiHal(config.hal.iomap, rp.procimg, rp.configrsc)  # opens safe
-        if self.world is not None:
-            self.world.start()
-        return config.model_copy(update={"data_dir": str(Path(config.data_dir).resolve())})
+        """The safe-output path (and, with the simulator, the plant); the child's config."""
+        o = self.options
+        field = open_field(self.config, self.dir, o.plant_dir, o.world_period_s, self.beat_fd)
+        self.safe, self.world = field.safe, field.world
+        return field.child
 
     def _write_child_files(self, config: MachineConfig, zenoh_json: str) -> None:
         data = config.model_dump(mode="json", by_alias=True, exclude_none=True)
@@ -487,15 +456,6 @@ class Supervisor:
 
     def _on_presence(self, present: bool) -> None:
         self.events.put(Event(Kind.PRESENCE, present=present))
-
-
-def _plant_needs_sim(name: str) -> Finding:
-    return Finding(
-        category="hal",
-        severity=Severity.ERROR,
-        path="/hal/backend",
-        message=f"--plant attaches to a simulated plant; the {name!r} backend has none (--sim)",
-    )
 
 
 def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: SupervisorOptions) -> int:

@@ -31,7 +31,6 @@ from service.adapters.opcua_credentials import opcua_files
 from service.bus import close_session
 from service.config.model import MachineConfig
 from service.supervision.daemon import SHUTDOWN_DEADLINE_S
-from sim.plant import parse as plant_parse
 from tests.deploy import spec
 from tests.procs import REPO
 
@@ -174,39 +173,6 @@ def test_machine_runs_the_authenticated_profile_and_clients_log_in(
     declared = {Path(d["file"]).name for d in compose["secrets"].values()}
     gateway = {p.name for p in opcua_files(Path())}  # the plant gateway's (docs/plant.md)
     assert declared <= {password_file(Path(), u).name for u in IDENTITIES} | {DICTIONARY} | gateway
-
-
-def test_the_plant_overlay_gives_the_simulated_ride_a_container_of_its_own(
-    compose: dict[str, Any],
-) -> None:
-    """docker/compose.plant.yaml (issue 53): `docker compose pause machine` must not stop the
-    plant's clock, so the plant is a service of its own, on the machine's own config, and the
-    supervisor attaches to it through one named volume; nothing else of the machine changes."""
-    both = spec.merged(compose, spec.load_compose(spec.PLANT_OVERRIDE))
-    plant_svc = spec.service(both, "plant")
-    argv = spec.command(plant_svc)
-    assert argv[:3] == ["python", "-m", "sim.plant"]
-    plant_args = plant_parse(argv[3:])
-    assert plant_args.make_image
-    machine_svc = spec.service(both, "machine")
-    machine_argv = spec.command(machine_svc)
-    machine_args = spec.parse_cli(machine_argv)
-    assert (machine_args.cmd, machine_args.hal, machine_args.plant) == (
-        "supervise",
-        "sim",
-        plant_args.dir,
-    )
-    for svc in (plant_svc, machine_svc):
-        volume = {m.target: m for m in spec.mounts(svc)}[str(plant_args.dir)]
-        assert (volume.is_bind, volume.read_only, volume.source) == (False, False, "plant")
-    assert "plant" in both["volumes"]
-    config = {m.target: m for m in spec.mounts(plant_svc)}[str(plant_args.config)]
-    assert config.source == "./machine.toml" and config.read_only
-    at = machine_argv.index("--plant")
-    assert machine_argv[:at] + machine_argv[at + 2 :] == spec.command(
-        spec.service(compose, "machine")
-    )
-    assert plant_svc["restart"] == "unless-stopped" and plant_svc["logging"]["driver"]
 
 
 def test_machine_config_and_data_dir_are_mounted(compose: dict[str, Any]) -> None:
