@@ -119,6 +119,8 @@ class AxisTracker:
         self._last_w: float | None = None
         """When the last update's outputs were written (the rotate moves from write to write)."""
         self._tilt_prev: float | None = None
+        self._tilt_prev_cal: object = None
+        """The calibration `_tilt_prev` was read through."""
         self._state: MachineState | None = None
         self.samples: dict[str, AxisSample] = {}
         # None: never published, so the first cycle publishes every axis once.
@@ -268,8 +270,11 @@ class AxisTracker:
         target = self.targets["tilt"]
         tv = self.config.tilt.nominal_speed_dps
         error = 0.0 if tilt is None or target is None else target - tilt
-        velocity_fb = _rate(self._tilt_prev, tilt, dt)
-        self._tilt_prev = tilt
+        # Positions read through one calibration only: one entered meanwhile moves every
+        # reading at once, which is no speed (issue 58: a standing tilt "at -321°/s").
+        prev = self._tilt_prev if self._tilt_prev_cal is cal else None
+        velocity_fb = _rate(prev, tilt, dt)
+        self._tilt_prev, self._tilt_prev_cal = tilt, cal
         raw_cmd = float(raw)
         if cal is not None and target is not None:
             raw_cmd = cal.offset_counts + cal.gain_counts_per_deg * target

@@ -258,3 +258,21 @@ def test_a_calibration_entered_at_rest_republishes_the_tilt_record() -> None:
     assert after.cycle > before.cycle
     assert after.position_fb == pytest.approx(before.position_fb - 6 / 40.0)
     assert round(after.position_fb, 2) == status.tilt_deg
+
+
+def test_a_calibration_entered_at_rest_is_no_speed() -> None:
+    """Issue 58, point 9: after `calibration set --tilt-offset 1300` on an idle machine the
+    standing tilt was reported at about −321°/s until it moved (its position jumped by the new
+    offset in one cycle). A calibration change resets the speed estimate."""
+    rig = homed_rig()
+    rig.step(50)
+    cal = rig.control.calibration.tilt
+    assert cal is not None
+    entered = CalibrationSet(
+        transaction_id="c9",
+        tilt=TiltCalibrationSet(offset_counts=cal.offset_counts + 100, gain_counts_per_deg=40.0),
+    )
+    rig.control.enter_calibration(entered, rig.clock())
+    for _ in range(3):
+        rig.step()
+        assert latest(rig, "tilt").velocity_fb == 0.0
