@@ -205,7 +205,7 @@ def _refused(
     assert problem is not None  # the pick chose FAULT_HW for it
     path, message = problem
     fault = Fault(code=FaultCode.INVALID_SESSION, message=message)
-    m.enter_fault(fault, now, "Start: bad session", C.START)
+    m.enter_fault(fault, now, "Start: bad session", C.START, moved=False)
     return Outcome.FAULT_HW, InvalidSession(message, path)
 
 

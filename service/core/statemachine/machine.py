@@ -252,11 +252,20 @@ class StateMachine:
         self.end(Ending(Outcome.STOPPED, reason, code), now)
 
     def enter_fault(
-        self, fault: Fault, now: float, why: str, trigger: Trigger = Event.FAULT
+        self,
+        fault: Fault,
+        now: float,
+        why: str,
+        trigger: Trigger = Event.FAULT,
+        *,
+        moved: bool = True,
     ) -> None:
+        """`FAULT_HW`; the axes' references are lost unless nothing moved (`moved=False`: a
+        Start refused for its session before any motion began)."""
         self.clear_motion()  # a still-pressed E-stop latches again next cycle
         self.fault = fault
-        self.refs.tilt = self.refs.rotate = False
+        if moved:
+            self.refs.tilt = self.refs.rotate = False
         self.enter(trigger, S.FAULT_HW, now, f"{why}: {fault.message}")
         self.end(Ending(Outcome.FAULT_HW, fault.message, fault.code.value), now)
 
