@@ -10,7 +10,7 @@ import pytest
 from schema.codec import Format, encode
 from schema.commands import ALLOWED_STATES, CheckResult, Command, ReplyCode
 from schema.errors import ErrorCode
-from schema.status import MOTION_STATES, AxesFlags, MachineState
+from schema.status import MOTION_STATES, MachineState
 from service.config.model import MachineConfig
 from service.core.statemachine import HANDLING, TABLE, Event, allowed_states, edges
 from tests.rig import BAD_SESSION, Rig, known_calibration, rig_in
@@ -322,20 +322,6 @@ def test_start_with_invalid_session_is_refused_and_faults() -> None:
     rig.step(100)
     assert not rig.relays_on()
     assert rig.hal.world.tilt_deg == tilt
-
-
-def test_a_start_refused_for_its_session_keeps_the_home_references() -> None:
-    """Issue 58, point 8: nothing moved, so both axes are as home as before; a Stop (out of
-    FAULT_HW) and a good session ride without a Home."""
-    rig = rig_in(S.IDLE)
-    assert not rig.send(C.START, session=BAD_SESSION.model_dump()).success
-    assert rig.state is S.FAULT_HW
-    assert rig.control.homed() == AxesFlags(tilt=True, rotate=True)
-    assert rig.send(C.STOP).success
-    rig.step()
-    assert rig.send(C.START).success, rig.replies[-1]
-    rig.run_to_state(S.DONE, S.FAULT_HW)
-    assert rig.state is S.DONE, rig.control.fault
 
 
 @pytest.mark.hazard("H29")

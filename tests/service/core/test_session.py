@@ -7,11 +7,11 @@ import pytest
 from hal.iomap import Signal
 from schema.commands import Command, Direction, Reply, RotateStep, Session, TiltStep
 from schema.commands import CommandRequest as Req
-from schema.status import MachineState
+from schema.status import AxesFlags, MachineState
 from service.config.model import MachineConfig
 from service.core.controllers import SessionRun
 from service.core.tasks import PendingCommand
-from tests.rig import Rig, known_calibration, rig_in
+from tests.rig import BAD_SESSION, Rig, known_calibration, rig_in
 
 S = MachineState
 C = Command
@@ -246,3 +246,17 @@ def test_an_edge_read_in_the_scan_that_pauses_is_counted(edge: int) -> None:
     assert rig.state is S.DONE, rig.control.fault
     assert world.sense().rotate_home and not rig.relays_on()
     assert world.rotate_travel_deg - travel0 == pytest.approx(1080.0, abs=2 * ROTATE_STEP_DEG)
+
+
+def test_a_start_refused_for_its_session_keeps_the_home_references() -> None:
+    """Issue 58, point 8: nothing moved, so both axes are as home as before; a Stop (out of
+    FAULT_HW) and a good session ride without a Home."""
+    rig = rig_in(MachineState.IDLE)
+    assert not rig.send(Command.START, session=BAD_SESSION.model_dump()).success
+    assert rig.state is MachineState.FAULT_HW
+    assert rig.control.homed() == AxesFlags(tilt=True, rotate=True)
+    assert rig.send(Command.STOP).success
+    rig.step()
+    assert rig.send(Command.START).success, rig.replies[-1]
+    rig.run_to_state(MachineState.DONE, MachineState.FAULT_HW)
+    assert rig.state is MachineState.DONE, rig.control.fault
