@@ -9,6 +9,7 @@ for commands. The daemon's liveliness token tells the supervisor the child is up
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import queue
@@ -34,7 +35,7 @@ from service.bus.request import Request
 from service.bus.routes import Route, declare
 from service.bus.session import zenoh_config
 from service.config.model import MachineConfig
-from service.errors import MachineError, NotAvailable
+from service.errors import Busy, MachineError, NotAvailable
 from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
@@ -298,15 +299,21 @@ class PlantRequests:
     another process and each request a round trip to it, which a Zenoh callback must not wait
     for. A plant that does not answer makes the request `NOT_AVAILABLE`."""
 
+    PENDING_MAX = 256
+    """Requests waiting at most: a flood of `sim/world` is refused BUSY, not queued without end."""
+
     def __init__(self) -> None:
-        self._queue: queue.SimpleQueue[tuple[Request, Callable[[], None]] | None] = (
-            queue.SimpleQueue()
+        self._queue: queue.Queue[tuple[Request, Callable[[], None]] | None] = queue.Queue(
+            self.PENDING_MAX
         )
         self._thread = NamedThread(target=self._serve, name="sim-requests", daemon=True)
         self._thread.start()
 
     def run(self, request: Request, fn: Callable[[], None]) -> None:
-        self._queue.put((request, fn))
+        try:
+            self._queue.put_nowait((request, fn))
+        except queue.Full:
+            raise Busy(f"{self.PENDING_MAX} simulator requests are waiting; retry later") from None
 
     def _serve(self) -> None:
         while (item := self._queue.get()) is not None:
@@ -319,5 +326,6 @@ class PlantRequests:
                 request.refuse(NotAvailable(f"the simulated plant: {exc}"))
 
     def close(self) -> None:
-        self._queue.put(None)
+        with contextlib.suppress(queue.Full):  # after what waits: each still gets its answer
+            self._queue.put(None, timeout=2.0)
         self._thread.join(timeout=2.0)
