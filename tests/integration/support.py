@@ -343,12 +343,15 @@ def wait_cycles(rider: Rider, cycles: int, timeout: float = STEP_TIMEOUT_S) -> S
 
 
 def states_over(rider: Rider, cycles: int, timeout: float = STEP_TIMEOUT_S) -> list[Status]:
-    """Every status published while the scan loop runs `cycles` more cycles."""
+    """Every status published while the scan loop runs `cycles` more cycles: after the one
+    published last when it is called, which may still show what the previous command ended
+    (run `random:178645`: the HOMING of an earlier test's Home, stopped a cycle before, was
+    taken for a refused Home's)."""
     start = rider.status().cycle
     deadline = time.monotonic() + timeout
     seen: list[Status] = []
     for update in rider.watch(("status",), timeout=timeout):
-        if isinstance(update, Status):
+        if isinstance(update, Status) and update.cycle > start:
             seen.append(update)
             if update.cycle >= start + cycles:
                 return seen
