@@ -235,6 +235,10 @@ class Link:
         conf.insert_json5("connect/exit_on_failure", "true")
         return open_session(conf, self.zenoh_threads)
 
+    def logs_in(self) -> bool:
+        """Whether this session presents a user/password login."""
+        return json.loads(self.conf.get_json("transport/auth/usrpwd/user") or "null") is not None
+
     def no_link_hint(self) -> str:
         """Why nothing answers, when this session has no link at all ("" when it has one).
 
@@ -249,11 +253,17 @@ class Link:
             endpoints = [e for group in endpoints.values() for e in group]
         answers = {str(e): _answers(str(e)) for e in endpoints}
         listening = [e for e, live in answers.items() if live]
-        if listening:
+        if listening and self.logs_in():
             return (
                 f"; {', '.join(listening)} answers but refused this session:"
                 " authentication refused? (check RIDER_ZENOH_USER and RIDER_ZENOH_PASSWORD_FILE,"
                 " and RIDER_ZENOH_TLS_ROOT_CA for tls/)"
+            )
+        if listening:  # no login of ours to blame (issue 58: an open machine, a link closed)
+            return (
+                f"; {', '.join(listening)} answers but closed this session, which logs in as"
+                " nobody (no RIDER_ZENOH_USER): the machine asks for a login, or it is"
+                " restarting"
             )
         silent = [e for e, live in answers.items() if live is None]
         if silent:

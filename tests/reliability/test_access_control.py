@@ -394,6 +394,22 @@ def test_a_refused_login_says_authentication_refused(
     assert "RIDER_ZENOH_PASSWORD_FILE" in said
 
 
+def test_a_rider_without_a_login_is_not_told_its_login_was_refused(machine: Daemon) -> None:
+    """Issue 58, point 6: a session that presents no login was told "authentication refused?
+    (check RIDER_ZENOH_USER …)", on an open machine too. It is told what was seen: it logs in
+    as nobody, and the machine asks for a login (this one does) or is restarting."""
+    env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
+    args = ["--connect", machine.endpoint, "--zenoh-config", str(machine.zenoh_config)]
+    done = subprocess.run(
+        [sys.executable, "-m", "rider.cli", *args, "--timeout", "1", "status"],
+        check=False, capture_output=True, text=True, timeout=60, cwd=REPO, env=env,
+    )  # fmt: skip
+    said = done.stderr + done.stdout
+    assert done.returncode == 3, said
+    assert "authentication refused?" not in said
+    assert "logs in as nobody (no RIDER_ZENOH_USER)" in said
+
+
 def test_nothing_listening_is_not_called_a_refused_login() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     done = subprocess.run(
