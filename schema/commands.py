@@ -6,7 +6,7 @@ import math
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, FiniteFloat, StringConstraints, field_validator
+from pydantic import BeforeValidator, Field, FiniteFloat, StringConstraints, field_validator
 
 from schema import SCHEMA_VERSION
 from schema.base import OpenWireModel, WireModel
@@ -79,12 +79,29 @@ class Direction(StrEnum):
 
 
 _CHUNK = r"[A-Za-z0-9._:+\-][A-Za-z0-9._:@+\-]*"
+
+
+def _not_a_number(value: object) -> object:
+    """Seed 000's transaction ids are numbers; here they are strings, and a number is refused
+    with the reason (docs/seeds.md)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        raise ValueError(
+            f"a transaction id is a string, not the number {value!r}: the machine answers a"
+            " repeated id from its memory without acting, and numbers from two senders (or one"
+            " that restarted) collide; send a string of your own, e.g."
+            f' "{value}-bay1-{"<start time>"}"'
+        )
+    return value
+
+
 TransactionId = Annotated[
     str,
     StringConstraints(min_length=1, max_length=64, pattern=rf"^{_CHUNK}(?:/{_CHUNK})*$"),
+    BeforeValidator(_not_a_number),
 ]
 """Letters, digits and `._:@+-`, in `/`-separated parts: it names a Zenoh key
-(`machine/<id>/done/<transaction_id>`), so no empty part and no part starting with `@`."""
+(`machine/<id>/done/<transaction_id>`), so no empty part and no part starting with `@`. Not a
+number (`_not_a_number`)."""
 
 
 class TiltStep(WireModel):

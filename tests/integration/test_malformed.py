@@ -259,6 +259,16 @@ def test_every_command_refuses_every_malformed_payload(
             assert reply.command == command.value
 
 
+def test_a_numeric_transaction_id_is_refused_with_the_reason(machine: Daemon, rider: Rider) -> None:
+    """Issue 58, point 7: seed 000's `{"transaction_id": 101}` was refused "Input should be a
+    valid string"; the difference is argued in docs/seeds.md and the refusal says it."""
+    bad = Bad("seed number id", b'{"transaction_id": 101}', path="/transaction_id")
+    with untouched(machine, rider):
+        reply = refusal(rider.session, f"{BASE}/cmd/home", bad)
+    assert reply.error is not None and "a transaction id is a string" in reply.error.message
+    assert "collide" in reply.error.message
+
+
 def test_simulator_requests_refuse_malformed_payloads(machine: Daemon, rider: Rider) -> None:
     with untouched(machine, rider):
         for name in SIM_REQUESTS:
