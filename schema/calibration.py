@@ -76,6 +76,6 @@ class CalibrationSet(WireModel):
     """Enter one or both axes' calibration by hand; refused while a motion is under way."""
 
     transaction_id: TransactionId
-    timecode: float | None = None
+    timecode: FiniteFloat | None = None
     tilt: TiltCalibrationSet | None = None
     rotate: RotateCalibrationSet | None = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pydantic import FiniteFloat
+
 from schema.base import OpenWireModel, WireModel
 from schema.commands import TransactionId
 
@@ -25,6 +27,7 @@ class ParamSet(WireModel):
     """Write a parameter (`persist` makes it survive a restart) or reset it to its default."""
 
     transaction_id: TransactionId
-    value: float | int | bool | str | None = None
+    value: FiniteFloat | int | bool | str | None = None
+    """A number is finite: NaN or an infinity is refused at the wire, whatever the parameter."""
     persist: bool = False
     reset: bool = False

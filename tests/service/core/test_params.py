@@ -31,6 +31,13 @@ REQUIRED = {
 
 
 def req(value: Any = None, *, persist: bool = False, reset: bool = False) -> ParamSet:
+    """A write as the registry gets it. A non-finite number never passes the wire's model
+    (tests/schema/test_finite_fields.py); it is built past it here, as a caller inside the
+    daemon could, to show the registry refuses it too."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return ParamSet.model_construct(
+            transaction_id="t1", value=value, persist=persist, reset=reset
+        )
     return ParamSet(transaction_id="t1", value=value, persist=persist, reset=reset)
 
 
