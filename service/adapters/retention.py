@@ -35,10 +35,14 @@ CAUSABLE = (
     _K.RIDER_LOST,
     _K.RIDER_RETURNED,
     _K.SAFETY_CHANGED,
+    _K.CALIBRATION,
+    _K.PARAM_CHANGED,
     _K.EVENTS_DROPPED,
 )
 """The safety record a `rider` login can add to (an invalid session faults; a Rider that
-connects and leaves; a safety setting written and reset): pruned first, within its own limit."""
+connects and leaves; a safety setting, a calibration or a parameter written): pruned first,
+within its own limit. Who entered which gain two minutes before a ride went wrong must not go
+with a flood of cheap commands (issue 58, point 5)."""
 SAFETY_KINDS = frozenset(k.value for k in (*PROTECTED, *CAUSABLE))
 
 PRUNE_CHUNK = 2000

@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from schema.commands import Command, CommandRequest, Reply, ReplyCode
-from schema.events import EventPage, EventQuery, ParamEvent
+from schema.events import EventPage, EventQuery, SessionEndedEvent
 from schema.status import MachineState
 from service.adapters.eventdb import connect
 from service.adapters.eventlog import EventLog
@@ -21,9 +21,18 @@ FLUSH_S = 30.0
 (its Python and imports) writes its first batch seconds late; a quiet host, at once."""
 
 
-def note(x: float) -> ParamEvent:
-    """A routine event that carries a number (the safety record is kept apart: its own tests)."""
-    return ParamEvent(name="tilt.tolerance_deg", old=x, new=x, persisted=False)
+def note(x: float) -> SessionEndedEvent:
+    """A routine event that carries a number, `duration_s` (the safety record, calibrations and
+    parameter writes among it, is kept apart: its own tests)."""
+    return SessionEndedEvent(
+        name="n",
+        steps=1,
+        steps_done=1,
+        revolutions_done=0,
+        revolutions_total=0,
+        duration_s=x,
+        outcome="DONE",
+    )
 
 
 def open_log(path: Path, kind: type[EventLog] = EventLog, **settings: object) -> EventLog:

@@ -63,7 +63,7 @@ def test_listeners_get_each_committed_batch_with_its_seq(any_log: EventLog) -> N
     events = [row_event(row) for row in seen]
     assert [(e.seq, e.kind, e.cycle) for e in events] == [
         (1, "daemon_stop", None),
-        (2, "param_changed", 7),
+        (2, "session_ended", 7),
     ]
     assert events == page(any_log).events  # what listeners get is what is stored
 
@@ -132,7 +132,7 @@ def test_kind_filter(any_log: EventLog) -> None:
     any_log.emit_now(DaemonStopEvent(reason="x", exit_code=1))
     any_log.emit_now(note(2.0))
     assert any_log.flush()
-    assert [e.seq for e in page(any_log, kinds=("param_changed",)).events] == [1, 3]
+    assert [e.seq for e in page(any_log, kinds=("session_ended",)).events] == [1, 3]
     with connect(any_log.path) as conn:
         assert len(list(iter_events(conn, EventQuery(kinds=("daemon_stop",)), chunk=1))) == 1
 
@@ -196,7 +196,7 @@ def test_defer_is_refused_before_start_and_after_close_and_past_its_bound_made_i
         go.set()
         assert log.flush()
         made = [e.details for e in page(log).events]
-        assert [d.transaction_id if d.kind == "command" else d.new for d in made] == [  # type: ignore[union-attr]
+        assert [d.transaction_id if d.kind == "command" else d.duration_s for d in made] == [  # type: ignore[union-attr]
             0.0,
             1.0,
             "t1",

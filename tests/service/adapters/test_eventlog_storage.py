@@ -196,7 +196,7 @@ def test_a_full_disk_costs_counted_events_keeps_the_history_readable_and_recover
         log.emit_now(note(99.0))
         assert log.flush()
         kinds = [e.kind for e in page(log).events]
-        assert kinds[-2:] == ["storage_failed", "param_changed"]
+        assert kinds[-2:] == ["storage_failed", "session_ended"]
         failed = page(log).events[-2].details
         assert isinstance(failed, StorageEvent) and failed.lost == log.lost
     finally:
@@ -212,7 +212,7 @@ def test_a_log_started_on_a_full_disk_starts_and_writes_once_there_is_room(
         filler.unlink()
         log.emit_now(note(1.0))
         assert log.flush(timeout=10.0)
-        assert [e.kind for e in page(log).events][-1] == "param_changed"
+        assert [e.kind for e in page(log).events][-1] == "session_ended"
     finally:
         log.close()
 
@@ -228,7 +228,7 @@ def test_a_file_system_without_locks_is_written_unlocked(
     try:
         log.emit_now(note(1.0))
         assert log.flush()
-        assert [e.kind for e in page(log).events] == ["param_changed"]
+        assert [e.kind for e in page(log).events] == ["session_ended"]
         assert log.last_error is None
     finally:
         log.close()
@@ -251,7 +251,7 @@ def test_a_writer_waits_for_the_one_before_it_to_let_go(
         before.close()  # writes its last event, then lets go
         starting.join(10.0)
         assert after.flush()
-        assert [e.details.new for e in page(after).events] == [1.0, 2.0]  # type: ignore[union-attr]
+        assert [e.details.duration_s for e in page(after).events] == [1.0, 2.0]  # type: ignore[union-attr]
         assert after.last_error is None
     finally:
         before.close()

@@ -13,12 +13,14 @@ from pathlib import Path
 import pytest
 
 from schema.events import (
+    CalibrationEvent,
     CommandEvent,
     EstopEvent,
     Event,
     EventQuery,
     FaultEvent,
     KnownDetails,
+    ParamEvent,
     RiderEvent,
     StorageEvent,
 )
@@ -73,6 +75,9 @@ SAFETY: list[KnownDetails] = [
     EstopEvent(kind="estop_pressed", state=MachineState.RUNNING),
     FaultEvent(kind="fault_raised", code="TILT_TIMEOUT", message="tilt stuck"),
     RiderEvent(kind="rider_lost", rider="bay1/ab12", policy="pause", acted=True),
+    # Who entered which gain (issue 58, point 5: a flood of commands flushed these).
+    CalibrationEvent(axis="tilt", new={"gain_counts_per_deg": 52.0}, persisted=True),
+    ParamEvent(name="tilt.max_deg", old=60.0, new=50.0, persisted=True, by="bay1/ab12"),
 ]
 
 
@@ -89,7 +94,13 @@ def test_a_flood_of_routine_events_prunes_routine_events_only(path: Path) -> Non
                 assert log.flush()
         assert log.flush()
         wait_pruned(log, lambda conn: used_bytes(conn) <= MB)
-        assert kinds(log, *SAFETY_KINDS) == ["estop_pressed", "fault_raised", "rider_lost"]
+        assert kinds(log, *SAFETY_KINDS) == [
+            "estop_pressed",
+            "fault_raised",
+            "rider_lost",
+            "calibration",
+            "param_changed",
+        ]
         with connect(path) as conn:
             [(first,)] = conn.execute("SELECT MIN(seq) FROM events WHERE kind = 'command'")
         assert first > 100  # the oldest routine events went
