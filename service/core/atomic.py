@@ -25,10 +25,7 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)  # less under a umask
         try:
-            view = memoryview(data)
-            while view:
-                written = os.write(fd, view)
-                view = view[written:]
+            write_all(fd, data)
             os.fsync(fd)
         finally:
             os.close(fd)
@@ -38,6 +35,15 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
         tmp.unlink(missing_ok=True)
         raise
     fsync_dir(path.parent)
+
+
+def write_all(fd: int, data: bytes) -> None:
+    """All of `data`, or the error: a short write on a nearly full disk goes round again,
+    and the next one raises ENOSPC."""
+    view = memoryview(data)
+    while view:
+        written = os.write(fd, view)
+        view = view[written:]
 
 
 def fsync_dir(path: Path) -> None:
@@ -133,15 +139,23 @@ def retire(path: Path) -> Path | None:
     return stale
 
 
+PROBE_BYTES = 64 * 1024
+"""What the start-up probe writes: the room a save needs (a calibration or the parameters,
+written beside the file it replaces, a few pages each), with margin. Six bytes once went
+through on a disk that had filled while the daemon ran (its shutdown gave a page back), and
+only the first save failed (issue 58, point 4)."""
+
+
 def probe_writable(data_dir: Path) -> OSError | None:
-    """None if a file can be created, written, synced and removed in `data_dir` (made if
-    missing); otherwise the error. A read-only mount or a full disk fails here."""
+    """None if a file of `PROBE_BYTES` can be created, written, synced and removed in
+    `data_dir` (made if missing); otherwise the error. A read-only mount or a full disk fails
+    here."""
     probe = data_dir / f".probe-{os.getpid()}"
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         try:
-            os.write(fd, b"probe\n")
+            write_all(fd, bytes(PROBE_BYTES))
             os.fsync(fd)
         finally:
             os.close(fd)

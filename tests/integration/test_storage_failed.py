@@ -216,3 +216,27 @@ def test_events_lost_on_a_full_disk_are_counted_after_a_restart(tmp_path: Path) 
     counted = [d for d in failed if isinstance(d, StorageEvent)]
     assert sum(d.lost for d in counted) >= 20, failed
     assert len(estops) == 1
+
+
+@pytest.mark.hazard("H38")
+def test_a_restart_on_a_disk_that_filled_while_running_says_so_from_start(
+    tmp_path: Path,
+) -> None:
+    """Issue 58, point 4: the disk filled while the machine ran; at the restart its status had
+    no STORAGE_FAILED (`warnings []`), and only the first save failed. The shutdown gave back
+    what the history's journal held, so a write of a few bytes still went through: the start-up
+    probe now asks for the room a save needs."""
+    with tmpfs(tmp_path / "mnt", "2m") as mount:
+        data = mount / "data"
+        daemon = machine_on(tmp_path, data)
+        try:
+            with daemon.rider() as r:
+                assert r.events(last=1)  # the history runs: now the disk fills
+                fill(mount)
+                for _ in range(20):
+                    r.check_home()
+        finally:
+            daemon.stop()
+        after = status_after_restart(tmp_path, data)
+    assert storage_warnings(after), after.warnings
+    assert "data dir" in storage_warnings(after)[0]
