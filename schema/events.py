@@ -5,7 +5,8 @@ Each event has a kind (`EventKind`) and typed details, one model per kind, told 
 instead of failing, so old Riders can read a newer machine's history.
 
 One import for all of it; the parts: the wire models (schema/event_models.py), which events to
-read (schema/event_query.py), and the history for people (schema/event_text.py).
+read (schema/event_query.py), the history counted for people (schema/event_text.py) and one
+line for people per event (schema/event_words.py).
 """
 
 from __future__ import annotations
@@ -13,3 +14,4 @@ from __future__ import annotations
 from schema.event_models import *  # noqa: F403 - this module is the one import for all of them
 from schema.event_query import *  # noqa: F403
 from schema.event_text import *  # noqa: F403
+from schema.event_words import *  # noqa: F403

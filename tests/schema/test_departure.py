@@ -29,10 +29,10 @@ def lost(**kw: object) -> RiderEvent:
             "rider r1 lost mid-motion: policy ignore, the motion goes on",
         ),
         # From a machine older than `mid_motion`: what it said, nothing guessed.
-        (lost(acted=False), "rider r1 policy=pause acted=False"),
+        (lost(acted=False), "rider r1 lost (policy pause, not applied at once)"),
         (
             RiderEvent(kind="rider_returned", rider="r1", policy="pause", mid_motion=True),
-            "rider r1 policy=pause acted=False",
+            "rider r1 back (policy pause)",
         ),
     ],
 )

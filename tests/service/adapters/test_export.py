@@ -49,7 +49,7 @@ def test_csv_has_a_header_and_the_details_as_json(data_dir: Path, tmp_path: Path
     assert [r[5] for r in rows[1:]] == ["command", "daemon_stop"]
     assert json.loads(rows[1][7])["transaction_id"] == "t1"
     assert rows[1][3] == "5" and rows[2][3] == ""  # the cycle, empty outside the loop
-    assert "Home tx=t1" in rows[1][6]
+    assert rows[1][6].startswith("Home ") and rows[1][6].endswith("[tx t1]")
 
 
 def test_since_an_age_and_kind_filter(data_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
