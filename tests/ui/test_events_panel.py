@@ -98,3 +98,28 @@ def test_a_rider_that_leaves_at_rest_is_no_incident_one_lost_mid_motion_is(
     expect(at_rest.locator(".ev-kind")).to_have_css("font-weight", "400")
     expect(mid_motion.locator(".ev-kind")).to_have_css("font-weight", "600")
     shot(page, "41-rider-left-vs-lost")
+
+
+def test_the_panel_reads_a_calibration_and_its_rider_for_people(
+    page: Any, ui: UiServer, fast_daemon: Daemon
+) -> None:
+    """Issue 58, point 11: `rotate calibrated: revolution 2.000 s, home arc 20.0° (measured)`
+    and `from anonymous · 9d617a`, where the panel showed a dict of 16-digit floats and the
+    Rider's 32-digit session id (the text comes from the server: schema/event_words.py)."""
+    for axis in ("tilt", "rotate"):
+        done = fast_daemon.cli("calibrate", axis, "--wait", timeout=RIDE_S / 1000)
+        assert done.returncode == 0, done.stderr
+    open_page(page, ui)
+    page.select_option("#events-kind", "calibration")
+    rotate = page.locator("#events-rows > [data-kind='calibration']", has_text="rotate")
+    expect(rotate.locator(".ev-text")).to_have_text(
+        re.compile(r"^rotate calibrated: revolution \d+\.\d{3} s, home arc \d+\.\d° \(measured\)$"),
+        timeout=SHORT,
+    )
+    page.select_option("#events-kind", "command")
+    commands = page.locator("#events-rows > [data-kind='command'] .ev-text")
+    expect(commands.first).to_contain_text("Calibrate rotate accepted from anonymous · ")
+    for text in commands.all_inner_texts():
+        assert re.search(r"from anonymous · [0-9a-f]{6}( |,|:|$)", text), text
+        assert not re.search(r"[0-9a-f]{16,}|[{}]|\d\.\d{4,}", text), text
+    shot(page, "42-events-for-people")
