@@ -26,15 +26,28 @@ from rider.client import (
     open_session,
     zenoh_config,
 )
+from schema.axes import AxisRecord
 from schema.codec import MAX_PAYLOAD_BYTES, DecodeError, Format, decode
 from schema.commands import Command, CommandRequest, Reply
+from schema.diag import CycleDiag
 from schema.events import Event
+from schema.io import IoValue
 from schema.rider import alive_key
+from schema.status import Status
 
 log = logging.getLogger(__name__)
 
 Deliver = Callable[[str, Any], None]
-"""(machine id, what arrived): a `bool` for presence, an `Update`, an `Event`."""
+"""(machine id, what arrived): a `bool` for presence, an `Update`, a `Snapshot`, an `Event`."""
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A value the gateway read on request (at attach, or when a machine's token came back),
+    not a publication: it fills a value nobody published since, never replaces one."""
+
+    update: Status | CycleDiag | IoValue | AxisRecord
+
 
 KEYS = ("status", "io/**", "axis/**", "diag/cycle")
 """The publications the gateway follows under each machine."""
@@ -55,6 +68,7 @@ class MachineLink(Rider):
 class Attached:
     """A machine the gateway follows: its link and its subscriptions."""
 
+    machine_id: str
     link: MachineLink
     subscriptions: list[Any]
 
@@ -139,16 +153,22 @@ class GatewayBus:
             deliver(machine_id, event)
 
         subs: list[Any] = [link.subscribe(KEYS, on_update)]
-        attached = Attached(link, subs)
+        attached = Attached(machine_id, link, subs)
         try:
             base = f"{self.prefix}/{machine_id}"
             subs.append(self._session.declare_subscriber(f"{base}/events/*", on_event))
-            for current in _current_values(link):
-                deliver(machine_id, current)
+            self.refresh(attached, deliver)
         except BaseException:
             attached.close()
             raise
         return attached
+
+    def refresh(self, attached: Attached, deliver: Deliver) -> None:
+        """Read the machine's current values and hand them over as `Snapshot`s: after a
+        drop-out (its token went and came back) values published only on change, IO and
+        axes at rest, would otherwise stay Bad. Blocking: run it on a worker thread."""
+        for current in _current_values(attached.link):
+            deliver(attached.machine_id, Snapshot(current))
 
     def command(
         self, attached: Attached, command: Command, request: CommandRequest, timeout: float

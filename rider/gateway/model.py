@@ -38,16 +38,22 @@ class MachineView:
     left_at: float | None = None
     """When its token went (monotonic seconds); None while alive."""
 
-    def apply(self, update: Status | CycleDiag | IoValue | AxisRecord) -> None:
-        """Keep a publication (a newer status never loses to an older one arriving late)."""
+    def apply(
+        self, update: Status | CycleDiag | IoValue | AxisRecord, snapshot: bool = False
+    ) -> None:
+        """Keep a publication (a newer status never loses to an older one arriving late); a
+        `snapshot` (a value read on request) never replaces a newer one."""
         if isinstance(update, Status):
             if self.status is None or update.seq >= self.status.seq or update.seq < 2:
                 self.status = update  # seq restarts at 1 with the daemon
         elif isinstance(update, CycleDiag):
-            self.diag = update
+            if not (snapshot and _newer(self.diag, update)):
+                self.diag = update
         elif isinstance(update, IoValue):
-            self.io[f"{update.kind}/{update.name}"] = update
-        else:
+            key = f"{update.kind}/{update.name}"
+            if not (snapshot and _newer(self.io.get(key), update)):
+                self.io[key] = update
+        elif not (snapshot and _newer(self.axes.get(update.axis), update)):
             self.axes[update.axis] = update
 
     def count(self, event: Event) -> None:
@@ -66,3 +72,9 @@ class MachineView:
         if self.status is None:
             return 0
         return sum(w.startswith(STORAGE_WARNING) for w in self.status.warnings)
+
+
+def _newer(
+    kept: CycleDiag | IoValue | AxisRecord | None, update: CycleDiag | IoValue | AxisRecord
+) -> bool:
+    return kept is not None and kept.time > update.time

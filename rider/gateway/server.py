@@ -28,7 +28,7 @@ from prometheus_client import (
 
 from rider.client import NoMachine, rider_login
 from rider.gateway.alarms import alarm_of
-from rider.gateway.bus import Attached, Deliver, GatewayBus
+from rider.gateway.bus import Attached, Deliver, GatewayBus, Snapshot
 from rider.gateway.methods import Commander, add_methods
 from rider.gateway.metrics import GatewayStats, MachineCollector
 from rider.gateway.model import MachineView
@@ -77,6 +77,7 @@ class Gateway:
         self.ready = asyncio.Event()
         self._pending = 0
         self._inbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
+        self._tasks: set[asyncio.Task[None]] = set()
         self.server = Server(user_manager=Users(options.users, options.operator_certs))
         self.space = Space(self.server)
         self.bus: GatewayBus | None = None
@@ -220,6 +221,9 @@ class Gateway:
             view.count(item)
             if (alarm := alarm_of(item)) is not None:
                 await node.fire(alarm, item.time)
+        elif isinstance(item, Snapshot):
+            view.apply(item.update, snapshot=True)
+            await node.update(item.update, snapshot=True)
         else:
             view.apply(item)
             await node.update(item)
@@ -242,12 +246,29 @@ class Gateway:
             await add_methods(node.obj, self.space.idx, machine_id, self.commander)
         else:
             await node.presence(True)
-        if machine_id not in self.attached and self.bus is not None:
+        attached = self.attached.get(machine_id)
+        if attached is not None:
+            self._background(self._refresh(attached))  # back from a drop-out
+        elif self.bus is not None:
             deliver = self._deliver()
             self.attached[machine_id] = await asyncio.to_thread(
                 self.bus.attach, machine_id, deliver
             )
         log.info("event=machine_seen machine=%s", machine_id)
+
+    async def _refresh(self, attached: Attached) -> None:
+        """A machine back from a drop-out: its current values read again (on a worker thread,
+        the loop keeps serving), so what it publishes only on change is Good again too."""
+        if self.bus is not None:
+            try:
+                await asyncio.to_thread(self.bus.refresh, attached, self._deliver())
+            except Exception:  # a link closed under it (forgotten meanwhile): publications fill in
+                log.exception("event=refresh_failed machine=%s", attached.machine_id)
+
+    def _background(self, coro: Any) -> None:
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     def _deliver(self) -> Deliver:
         """For Zenoh's threads: hand an item to the loop and return at once."""

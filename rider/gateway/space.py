@@ -16,6 +16,7 @@ from asyncua import Node, Server, ua
 from asyncua.common.manage_nodes import delete_nodes
 
 from rider.gateway.alarms import Alarm
+from rider.gateway.parking import Parking
 from rider.gateway.variables import (
     AXIS_VARS,
     DIAG_VARS,
@@ -55,6 +56,11 @@ class MachineNode:
         self.last: dict[str, Any] = {}
         self.folders: dict[str, Node] = {}
         self.events: Any = None
+        self.properties: list[ua.NodeId] = []
+
+    def value_ids(self) -> list[ua.NodeId]:
+        """Every node of the machine with a value a client may monitor."""
+        return [nid for nid, _var in self.nodes.values()] + self.properties
 
     def nodeid(self, path: str) -> ua.NodeId:
         return ua.NodeId(f"{self.machine_id}/{path}", self.space.idx)
@@ -78,7 +84,10 @@ class MachineNode:
                 DisplayName=ua.LocalizedText(var.unit.symbol),
                 Description=ua.LocalizedText(var.unit.description),
             )
-            await node.add_property(self.space.idx, "EngineeringUnits", eu)
+            prop = await node.add_property(self.space.idx, "EngineeringUnits", eu)
+            self.properties.append(prop.nodeid)
+            self.space.parking.unpark([prop.nodeid])
+        self.space.parking.unpark([nid])  # a client's items from before it was forgotten
         # A Bad quality until the machine says: never a made-up zero.
         await self.space.server.write_attribute_value(nid, ua.DataValue(StatusCode=_UNKNOWN))
         self.nodes[path] = (nid, var)
@@ -93,51 +102,61 @@ class MachineNode:
             self.folders[path] = found
         return found
 
-    async def write(self, path: str, model: Any, when: float) -> None:
+    async def write(self, path: str, model: Any, when: float, snapshot: bool = False) -> None:
+        """The value `path` reads from `model` (the machine's time `when` as its source
+        timestamp), when it changed; a snapshot only fills a value not written since the
+        machine (re)appeared."""
         nid, var = self.nodes[path]
         value = var.read(model)
-        if path in self.last and self.last[path] == value:
+        if path in self.last and (snapshot or self.last[path] == value):
             return
         self.last[path] = value
-        source = _time(when)
+        source, now = _time(when), datetime.now(UTC)
         if value is None:
-            dv = ua.DataValue(StatusCode=_UNKNOWN, SourceTimestamp=source)
+            dv = ua.DataValue(StatusCode=_UNKNOWN, SourceTimestamp=source, ServerTimestamp=now)
         else:
-            dv = ua.DataValue(ua.Variant(value, var.vtype), SourceTimestamp=source)
+            variant = ua.Variant(value, var.vtype)
+            dv = ua.DataValue(variant, SourceTimestamp=source, ServerTimestamp=now)
         await self.space.server.write_attribute_value(nid, dv)
 
-    async def update(self, update: Status | CycleDiag | IoValue | AxisRecord) -> None:
-        """Write what a publication carries."""
+    async def update(
+        self, update: Status | CycleDiag | IoValue | AxisRecord, snapshot: bool = False
+    ) -> None:
+        """Write what a publication (or a snapshot read) carries."""
         if isinstance(update, Status):
             for var in STATUS_VARS:
-                await self.write(var.name, update, update.time)
+                await self.write(var.name, update, update.time, snapshot)
         elif isinstance(update, CycleDiag):
             for var in DIAG_VARS:
-                await self.write(f"Diagnostics/{var.name}", update, update.time)
+                await self.write(f"Diagnostics/{var.name}", update, update.time, snapshot)
         elif isinstance(update, IoValue):
             path = f"IO/{update.kind.value.upper()}/{update.name}"
             if path not in self.nodes:
                 await self.add_var(await self.folder(path.rpartition("/")[0]), path, io_var(update))
-            await self.write(path, update, update.time)
+            await self.write(path, update, update.time, snapshot)
         else:
             prefix = f"Axes/{update.axis}/"
             if prefix + AXIS_VARS[0].name not in self.nodes:
                 await self.add_vars(await self.folder(prefix.rstrip("/")), prefix, AXIS_VARS)
             for var in AXIS_VARS:
-                await self.write(prefix + var.name, update, update.time)
+                await self.write(prefix + var.name, update, update.time, snapshot)
 
     async def presence(self, alive: bool) -> None:
-        """`Alive` follows the token; a machine gone leaves every other value Bad
-        (no communication) until it is back and publishes again."""
-        await self.space.server.write_attribute_value(
-            self.nodeid("Alive"), ua.DataValue(ua.Variant(alive, V.Boolean))
+        """`Alive` follows the token (the gateway's time of the change as its source
+        timestamp); a machine gone leaves every other value Bad (no communication) until it
+        is back and publishes, or answers the gateway's reads, again."""
+        now = datetime.now(UTC)
+        alive_dv = ua.DataValue(
+            ua.Variant(alive, V.Boolean), SourceTimestamp=now, ServerTimestamp=now
         )
+        await self.space.server.write_attribute_value(self.nodeid("Alive"), alive_dv)
         if alive:
             return
         self.last.clear()
+        gone = ua.DataValue(StatusCode=_GONE, SourceTimestamp=now, ServerTimestamp=now)
         for path, (nid, _var) in self.nodes.items():
             if path != "Alive":
-                await self.space.server.write_attribute_value(nid, ua.DataValue(StatusCode=_GONE))
+                await self.space.server.write_attribute_value(nid, gone)
 
     async def fire(self, alarm: Alarm, when: float) -> None:
         """The machine's event on its object, and on the Server object for event views."""
@@ -162,6 +181,8 @@ class Space:
         self.folder: Node | None = None
         self.event_type: Node | None = None
         self.server_events: Any = None
+        self.model_events: Any = None
+        self.parking = Parking(server.iserver.aspace)
 
     def qname(self, name: str) -> ua.QualifiedName:
         """A browse name in the gateway's namespace."""
@@ -180,6 +201,26 @@ class Space:
             [("Machine", V.String), ("Kind", V.String), ("Code", V.String)],
         )
         self.server_events = await self.server.get_event_generator(self.event_type)
+        self.model_events = await self.server.get_event_generator(
+            ua.ObjectIds.GeneralModelChangeEventType, ua.ObjectIds.Server
+        )
+        self.model_events.event.data_types["Changes"] = V.ExtensionObject
+
+    async def model_changed(self, machine: ua.NodeId, added: bool) -> None:
+        """A `GeneralModelChangeEvent` on the Server object: a machine's object added under
+        `Machines`, or deleted from it (OPC UA Part 3, 9.32)."""
+        verbs = ua.ModelChangeStructureVerbMask
+        assert self.folder is not None
+        node_verb = verbs.NodeAdded if added else verbs.NodeDeleted
+        ref_verb = verbs.ReferenceAdded if added else verbs.ReferenceDeleted
+        base = ua.NodeId(ua.ObjectIds.BaseObjectType)
+        folder = ua.NodeId(ua.ObjectIds.FolderType)
+        self.model_events.event.Changes = [
+            ua.ModelChangeStructureDataType(machine, base, int(node_verb)),
+            ua.ModelChangeStructureDataType(self.folder.nodeid, folder, int(ref_verb)),
+        ]
+        what = "added" if added else "deleted"
+        await self.model_events.trigger(message=f"machine {machine.Identifier} {what}")
 
     async def add(self, machine_id: str) -> MachineNode:
         """The machine's object with its status and diagnostics variables (Bad until heard)."""
@@ -193,6 +234,7 @@ class Space:
         node.events = await self.server.get_event_generator(self.event_type, obj)
         self.machines[machine_id] = node
         await node.presence(True)
+        await self.model_changed(obj.nodeid, added=True)
         log.info("event=opcua_machine_added machine=%s", machine_id)
         return node
 
@@ -205,8 +247,10 @@ class Space:
         # own session watchdog to close idle clients). The only reference from outside the
         # machine's subtree is the folder's, removed here.
         assert self.folder is not None
+        parked = await self.parking.park(node.value_ids())
         await self.folder.delete_reference(node.obj, ua.ObjectIds.Organizes, bidirectional=False)
         await delete_nodes(
             self.server.iserver.isession, [node.obj], recursive=True, delete_target_references=False
         )
-        log.info("event=opcua_machine_removed machine=%s", machine_id)
+        await self.model_changed(node.obj.nodeid, added=False)
+        log.info("event=opcua_machine_removed machine=%s parked_items=%d", machine_id, parked)

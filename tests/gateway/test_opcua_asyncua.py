@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import time
 from datetime import UTC, datetime
-from typing import Any
 
 import pytest
 from asyncua import ua
@@ -18,7 +17,7 @@ from tests.gateway.support import (
     GatewayProc,
     until,
 )
-from tests.gateway.ua import Changes, call, connected, machines, ns, read, run
+from tests.gateway.ua import Changes, Events, call, connected, machines, ns, read, run
 from tests.site.stand import Site
 
 pytestmark = pytest.mark.integration
@@ -175,13 +174,6 @@ def test_a_listed_certificate_is_an_operator_an_unlisted_one_only_reads(
 def test_an_estop_is_an_opc_ua_event_on_the_machine_with_a_severity(
     plant: Site, gateway: GatewayProc
 ) -> None:
-    class Events:
-        def __init__(self) -> None:
-            self.got: asyncio.Queue[Any] = asyncio.Queue()
-
-        def event_notification(self, event: Any) -> None:
-            self.got.put_nowait(event)
-
     async def body() -> None:
         async with connected(gateway.url) as c:  # anonymous: events are read access
             idx = await ns(c)

@@ -75,22 +75,53 @@ async def call(client: Client, machine_id: str, method: str, *args: ua.Variant) 
 
 
 class Changes:
-    """A subscription's data changes, as (value, source timestamp) per node id string."""
+    """A subscription's data changes, as (value, source timestamp, status) per node id string."""
 
     def __init__(self) -> None:
-        self.values: asyncio.Queue[tuple[str, Any, Any]] = asyncio.Queue()
+        self.values: asyncio.Queue[tuple[str, Any, Any, ua.StatusCode]] = asyncio.Queue()
 
     def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
         dv = data.monitored_item.Value
-        self.values.put_nowait((node.nodeid.Identifier, val, dv.SourceTimestamp))
+        status = dv.StatusCode or ua.StatusCode()
+        self.values.put_nowait((node.nodeid.Identifier, val, dv.SourceTimestamp, status))
 
-    async def until(self, nodeid: str, wanted: Any, timeout: float) -> Any:
-        """The source timestamp of the first change of `nodeid` to `wanted`."""
+    async def _first(
+        self, nodeid: str, ok: Callable[[Any, ua.StatusCode], bool], timeout: float
+    ) -> Any:
         async with asyncio.timeout(timeout):
             while True:
-                nid, val, when = await self.values.get()
-                if nid == nodeid and val == wanted:
+                nid, val, when, status = await self.values.get()
+                if nid == nodeid and ok(val, status):
                     return when
+
+    async def until(self, nodeid: str, wanted: Any, timeout: float) -> Any:
+        """The source timestamp of the first change of `nodeid` to `wanted` (Good)."""
+        return await self._first(nodeid, lambda v, s: s.is_good() and v == wanted, timeout)
+
+    async def good(self, nodeid: str, timeout: float) -> Any:
+        """The first Good value of `nodeid`."""
+        return await self._first(nodeid, lambda v, s: s.is_good(), timeout)
+
+    async def status(self, nodeid: str, code: int, timeout: float) -> None:
+        """Until `nodeid` is notified with the status `code`."""
+        await self._first(nodeid, lambda v, s: s.value == code, timeout)
+
+
+class Events:
+    """A subscription's event notifications, in order."""
+
+    def __init__(self) -> None:
+        self.got: asyncio.Queue[Any] = asyncio.Queue()
+
+    def event_notification(self, event: Any) -> None:
+        self.got.put_nowait(event)
+
+    async def first(self, ok: Callable[[Any], bool], timeout: float) -> Any:
+        """The first event (from now on) `ok` accepts."""
+        async with asyncio.timeout(timeout):
+            while not ok(event := await self.got.get()):
+                pass
+            return event
 
 
 def run(coro: Any) -> Any:
@@ -109,3 +140,27 @@ async def eventually(
         if time.monotonic() > deadline:
             raise AssertionError(f"not within {timeout:g} s: {what}")
         await asyncio.sleep(0.05)
+
+
+async def variables(client: Client, machine_id: str) -> dict[str, ua.DataValue]:
+    """Every data variable under the machine's object (its components, folders walked; no
+    properties), by node id string, with the value each reads now (Bad ones included)."""
+    idx = await ns(client)
+    found: list[Any] = []
+    todo = [client.get_node(ua.NodeId(machine_id, idx))]
+    while todo:
+        node = todo.pop()
+        for ref in await node.get_children_descriptions(refs=ua.ObjectIds.HierarchicalReferences):
+            if ref.ReferenceTypeId == ua.NodeId(ua.ObjectIds.HasProperty):
+                continue
+            child = client.get_node(ref.NodeId)
+            if ref.NodeClass == ua.NodeClass.Variable:
+                found.append(child)
+            elif ref.NodeClass == ua.NodeClass.Object:
+                todo.append(child)
+    values = await client.read_attributes(found) if found else []
+    return {str(n.nodeid.Identifier): dv for n, dv in zip(found, values, strict=True)}
+
+
+def good(values: dict[str, ua.DataValue]) -> set[str]:
+    return {nid for nid, dv in values.items() if dv.StatusCode is None or dv.StatusCode.is_good()}

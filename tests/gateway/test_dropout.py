@@ -1,0 +1,142 @@
+"""Values and subscriptions follow a machine through a drop-out (issue 56, points 1 and 2): a
+daemon frozen past its lease (its liveliness token goes and comes back without a restart), and
+one gone longer than `--forget-after` that comes back. Real daemons, a real gateway, asyncua's
+client."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import signal
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from asyncua import Client, ua
+
+from tests.gateway.support import Credentials, GatewayProc, running_gateway
+from tests.gateway.ua import Changes, Events, connected, eventually, good, ns, run, variables
+from tests.procs import Daemon
+from tests.site.stand import Site
+
+pytestmark = pytest.mark.integration
+_S = ua.StatusCodes
+RETURN_BOUND_S = 2.0
+"""Every value Good again within this of the machine's return (issue 56's criterion)."""
+
+
+@pytest.fixture(scope="module")
+def patient(plant: Site, creds: Credentials) -> Iterator[GatewayProc]:
+    """A gateway that forgets a machine only after 60 s: a token flap never makes it forget."""
+    with running_gateway(plant.rider_cmd(), creds, "--forget-after", "60") as gw:
+        yield gw
+
+
+@contextlib.contextmanager
+def joined(plant: Site, machine_id: str) -> Iterator[Daemon]:
+    """A machine of the test's own (a frozen one must not disturb the package's m1)."""
+    plant.start_daemons({machine_id: "client"})
+    daemon = plant.daemons[machine_id]
+    try:
+        yield daemon
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            daemon.proc.send_signal(signal.SIGCONT)
+        plant.daemons.pop(machine_id).stop()
+
+
+async def settled(client: Client, machine_id: str) -> set[str]:
+    """The machine's Good values once its IO and axes are there (they come with its first
+    reads and publications)."""
+
+    async def probe() -> set[str] | None:
+        got = good(await variables(client, machine_id))
+        io = any("/IO/" in nid for nid in got)
+        axes = any("/Axes/" in nid for nid in got)
+        return got if io and axes and f"{machine_id}/State" in got else None
+
+    return await eventually(f"{machine_id}'s IO and axes Good", probe)
+
+
+async def watch(client: Client, machine_id: str, *paths: str) -> tuple[Changes, Any]:
+    changes = Changes()
+    sub = await client.create_subscription(50, changes)
+    idx = await ns(client)
+    nodes = [client.get_node(ua.NodeId(f"{machine_id}/{p}", idx)) for p in paths]
+    await sub.subscribe_data_change(nodes)
+    return changes, sub
+
+
+def test_after_a_token_flap_every_value_is_good_again_within_two_seconds(
+    plant: Site, patient: GatewayProc
+) -> None:
+    with joined(plant, "flap") as daemon:
+
+        async def body() -> None:
+            async with connected(patient.url) as c:
+                before = await settled(c, "flap")
+                changes, _ = await watch(c, "flap", "Alive")
+                await changes.until("flap/Alive", True, 10)
+                daemon.proc.send_signal(signal.SIGSTOP)  # frozen past its 1 s lease
+                try:
+                    await changes.until("flap/Alive", False, 20)
+                    gone = good(await variables(c, "flap"))
+                    assert gone == {"flap/Alive"}, gone  # Alive False, all else Bad
+                finally:
+                    daemon.proc.send_signal(signal.SIGCONT)
+                await changes.until("flap/Alive", True, 20)
+                back = time.monotonic()
+
+                async def all_good() -> set[str] | None:
+                    got = good(await variables(c, "flap"))
+                    return got if got >= before else None
+
+                await eventually("every value Good again", all_good, 20)
+                took = time.monotonic() - back
+                assert took < RETURN_BOUND_S, f"{took:.2f} s"
+
+        run(body())
+
+
+def test_a_forgotten_machine_that_returns_keeps_its_subscriptions(
+    plant: Site, gateway: GatewayProc
+) -> None:
+    with joined(plant, "lost") as daemon:
+
+        async def body() -> None:
+            async with connected(gateway.url) as c:
+                before = await settled(c, "lost")
+                io = sorted(nid for nid in before if "/IO/DI/" in nid)[0].split("/", 1)[1]
+                changes, _ = await watch(c, "lost", "Alive", "State", io)
+                model = Events()
+                events = await c.create_subscription(50, model)
+                change_type = c.get_node(ua.NodeId(ua.ObjectIds.GeneralModelChangeEventType))
+                await events.subscribe_events(c.nodes.server, change_type)
+                await changes.until("lost/Alive", True, 10)
+                daemon.proc.send_signal(signal.SIGSTOP)
+                try:
+                    await changes.until("lost/Alive", False, 20)
+                    await asyncio.to_thread(
+                        gateway.lines.wait_for, "event=opcua_machine_removed machine=lost", 30
+                    )
+                    # The client is told: its items on the forgotten nodes read BadNodeIdUnknown,
+                    # and the Server object raises a model change that names the machine.
+                    await changes.status("lost/State", _S.BadNodeIdUnknown, 10)
+                    await model.first(lambda e: _changed(e, "lost", VERB.NodeDeleted), 10)
+                finally:
+                    daemon.proc.send_signal(signal.SIGCONT)
+                # The same monitored items deliver again when the machine is back.
+                await changes.until("lost/Alive", True, 30)
+                await changes.good("lost/State", 10)
+                await changes.good(f"lost/{io}", 10)
+                await model.first(lambda e: _changed(e, "lost", VERB.NodeAdded), 10)
+
+        run(body())
+
+
+VERB = ua.ModelChangeStructureVerbMask
+
+
+def _changed(event: Any, machine_id: str, verb: int) -> bool:
+    return any(c.Affected.Identifier == machine_id and c.Verb & verb for c in (event.Changes or []))
