@@ -39,12 +39,17 @@ prometheus:
 ## The tests' Node packages, each pinned by its package-lock.json: ajv for the JSON Schema check
 ## and axe-core for the UI's accessibility check (tests/js), node-opcua's client for the
 ## gateway's OPC UA check (tests/gateway/js); when node and npm are present; without them those
-## tests skip and say why.
-js:
+## tests skip and say why. `npm ci` runs only when package-lock.json is newer than the copy npm
+## keeps in node_modules (its hidden lockfile, touched here after each install): offline, an
+## installed tree is used as it is (npm ci would delete it and wait on the registry).
+JS_STAMPS := tests/js/node_modules/.package-lock.json \
+	tests/gateway/js/node_modules/.package-lock.json
+js: $(JS_STAMPS)
+
+%/node_modules/.package-lock.json: %/package-lock.json
 	@if command -v npm >/dev/null 2>&1; then \
-	  npm ci --prefix tests/js --no-audit --no-fund --silent && \
-	  npm ci --prefix tests/gateway/js --no-audit --no-fund --silent; \
-	else echo "npm not installed: the ajv and node-opcua checks will be skipped"; fi
+	  npm ci --prefix $* --no-audit --no-fund --silent && touch $@; \
+	else echo "npm not installed: the checks of $* will be skipped"; fi
 
 ## Regenerate the checked-in JSON Schema (schema/json/) from the models.
 schema: $(STAMP)
