@@ -18,7 +18,8 @@ from asyncua import Node, ua
 from pydantic import ValidationError
 
 from rider.client import MachineTimeout, NoMachine, RiderError
-from rider.gateway.security import Caller, current_caller
+from rider.gateway.calls import MAX_ARGUMENT_BYTES, Calls, Invocation, Role
+from rider.gateway.security import Caller
 from schema.codec import json_pointer
 from schema.commands import Command, CommandRequest, Reply, Session, StartRequest
 from schema.errors import ErrorCode
@@ -82,13 +83,13 @@ class Commander:
     read_only: bool
 
     async def call(
-        self, machine_id: str, command: Command, args: list[ua.Variant]
+        self, caller: Caller, machine_id: str, command: Command, args: list[ua.Variant]
     ) -> ua.CallMethodResult:
         """One method call, answered as the machine answered (never a silent success)."""
         tid = uuid.uuid4().hex[:16]
         try:
             session = _session_arg(args) if command is Command.START else _no_args(command, args)
-            rider = await self.rider_for(self._caller())
+            rider = await self.rider_for(self._may(caller))
             request = _request(command, session, tid, rider)
             reply = await self.send(machine_id, command, request)
         except CallRefused as exc:
@@ -121,9 +122,8 @@ class Commander:
         where = f" at {error.path}" if error and error.path else ""
         return _result(REFUSALS.get(code, _S.BadUnexpectedError), code, text + where, tid, state)
 
-    def _caller(self) -> Caller:
-        caller = current_caller()
-        if caller is None or not caller.operator:  # the rules refuse it first; kept as a guard
+    def _may(self, caller: Caller) -> Caller:
+        if not caller.operator:  # the Call service refuses it first; kept as a guard
             raise CallRefused(_S.BadUserAccessDenied, "ACCESS_DENIED", "needs the operator role")
         if self.read_only:
             raise CallRefused(
@@ -162,11 +162,19 @@ def _session_arg(args: list[ua.Variant]) -> Session | None:
             "BAD_PAYLOAD",
             f"Session must be a String, not {type(text).__name__}",
         )
+    if len(text.encode()) > MAX_ARGUMENT_BYTES:  # characters passed the Call service's bound
+        raise CallRefused(
+            _S.BadOutOfRange, "BAD_PAYLOAD", f"Session is longer than {MAX_ARGUMENT_BYTES} bytes"
+        )
     try:
         return Session.model_validate(json.loads(text))
     except json.JSONDecodeError as exc:
         raise CallRefused(
             _S.BadInvalidArgument, "BAD_PAYLOAD", f"Session is not JSON: {exc.msg} at {exc.pos}"
+        ) from exc
+    except RecursionError as exc:
+        raise CallRefused(
+            _S.BadInvalidArgument, "BAD_PAYLOAD", "Session nests deeper than any session does"
         ) from exc
     except ValidationError as exc:
         first = exc.errors()[0]
@@ -193,24 +201,34 @@ def _argument(name: str, doc: str) -> ua.Argument:
     return arg
 
 
-async def add_methods(obj: Node, idx: int, machine_id: str, commander: Commander) -> None:
-    """The methods on a machine's object, each calling `commander` for this machine."""
+async def add_methods(
+    obj: Node, idx: int, machine_id: str, commander: Commander, calls: Calls
+) -> list[ua.NodeId]:
+    """The methods on a machine's object, each bound to `commander` for this machine (the
+    operator's); their node ids."""
     outputs = [_argument(name, doc) for name, doc in OUTPUTS]
     session = _argument("Session", 'JSON, e.g. {"name": "s", "steps": [...]}; "" = default')
+    made = []
     for command in METHODS:
         inputs = [session] if command is Command.START else []
-        method = _bind(commander, machine_id, command)
         nid = ua.NodeId(f"{machine_id}/{command.value}", idx)
-        await obj.add_method(nid, ua.QualifiedName(command.value, idx), method, inputs, outputs)
+        await obj.add_method(nid, ua.QualifiedName(command.value, idx), _unused, inputs, outputs)
+        calls.bind(nid, Role.OPERATOR, _bind(commander, machine_id, command))
+        made.append(nid)
+    return made
+
+
+def _unused(parent: ua.NodeId, *args: ua.Variant) -> None:
+    """asyncua wants a callback per method; the gateway's Call service runs its own."""
+    raise AssertionError("called around the gateway's Call service")
 
 
 def _bind(
     commander: Commander, machine_id: str, command: Command
-) -> Callable[..., Awaitable[ua.CallMethodResult]]:
-    """A coroutine function (asyncua awaits it in the calling session's task, where the
-    caller is known) for one machine's command."""
+) -> Callable[[Invocation], Awaitable[ua.CallMethodResult]]:
+    """One machine's command, for the Call service (which checked who calls, and on what)."""
 
-    async def method(parent: ua.NodeId, *args: ua.Variant) -> ua.CallMethodResult:
-        return await commander.call(machine_id, command, list(args))
+    async def method(call: Invocation) -> ua.CallMethodResult:
+        return await commander.call(call.caller, machine_id, command, call.arguments)
 
     return method

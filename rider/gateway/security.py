@@ -7,7 +7,6 @@ under its own Rider id (rider/gateway/supervision.py).
 
 from __future__ import annotations
 
-import contextvars
 import hmac
 import time
 import uuid
@@ -23,7 +22,6 @@ from cryptography.hazmat.primitives.serialization import Encoding
 OPERATOR = UserRole.User
 """asyncua's `User` role is the gateway's operator role (no Admin: nobody edits the space)."""
 
-_CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
 _WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
 _HISTORY_UPDATE = ua.NodeId(ua.ObjectIds.HistoryUpdateRequest_Encoding_DefaultBinary)
 
@@ -45,29 +43,19 @@ class Caller(User):  # type: ignore[misc]
         return self.role is OPERATOR
 
 
-_current: contextvars.ContextVar[Caller | None] = contextvars.ContextVar("caller", default=None)
-
-
-def current_caller() -> Caller | None:
-    """The session whose method call is running (set when its Call request was admitted)."""
-    return _current.get()
-
-
 class Rules(PermissionRuleset):  # type: ignore[misc]
-    """Anonymous: every read-side service, never Call, Write or HistoryUpdate. Operator: the
-    read side and Call. Nobody: the node management services (the space is the gateway's)."""
+    """Every session: the read side and Call (which method a session may call is the Call
+    service's to say, per method: rider/gateway/calls.py). Nobody: Write, HistoryUpdate and
+    the node management services (the space is the gateway's)."""
 
     def __init__(self) -> None:
-        read = {ua.NodeId(t) for t in USER_TYPES} - {_CALL, _WRITE, _HISTORY_UPDATE}
-        self._allowed = {UserRole.Anonymous: read, OPERATOR: read | {_CALL}}
+        allowed = {ua.NodeId(t) for t in USER_TYPES} - {_WRITE, _HISTORY_UPDATE}
+        self._allowed = {UserRole.Anonymous: allowed, OPERATOR: allowed}
 
     def check_validity(self, user: Any, action_type_id: ua.NodeId, body: Any) -> bool:
-        allowed = action_type_id in self._allowed.get(user.role, set())
         if isinstance(user, Caller):
             user.last_active = time.monotonic()  # the session's own watch, for supervision
-            if allowed and action_type_id == _CALL:
-                _current.set(user)
-        return allowed
+        return action_type_id in self._allowed.get(user.role, set())
 
 
 def read_users(path: Path) -> dict[str, str]:

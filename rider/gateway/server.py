@@ -35,6 +35,7 @@ from rider.gateway.model import MachineView
 from rider.gateway.security import Rules, Users
 from rider.gateway.space import NAMESPACE, Space
 from rider.gateway.supervision import Supervisor, open_session_keys
+from rider.gateway.uaserver import GatewayInternalServer
 from schema.commands import Command, CommandRequest, Reply
 from schema.events import Event
 
@@ -78,7 +79,8 @@ class Gateway:
         self._pending = 0
         self._inbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
         self._tasks: set[asyncio.Task[None]] = set()
-        self.server = Server(user_manager=Users(options.users, options.operator_certs))
+        self.iserver = GatewayInternalServer(Users(options.users, options.operator_certs))
+        self.server = Server(iserver=self.iserver)
         self.space = Space(self.server)
         self.bus: GatewayBus | None = None
         self.supervisor = Supervisor(
@@ -243,7 +245,9 @@ class Gateway:
         node = self.space.machines.get(machine_id)
         if node is None:
             node = await self.space.add(machine_id)
-            await add_methods(node.obj, self.space.idx, machine_id, self.commander)
+            node.methods = await add_methods(
+                node.obj, self.space.idx, machine_id, self.commander, self.iserver.calls
+            )
         else:
             await node.presence(True)
         attached = self.attached.get(machine_id)
@@ -292,6 +296,9 @@ class Gateway:
                     attached = self.attached.pop(mid, None)
                     if attached is not None:
                         await asyncio.to_thread(attached.close)
+                    if (node := self.space.machines.get(mid)) is not None:
+                        for method in node.methods:
+                            self.iserver.calls.unbind(method)
                     await self.space.remove(mid)
 
     # ----------------------------------------------------------------------- commands

@@ -57,6 +57,7 @@ class MachineNode:
         self.folders: dict[str, Node] = {}
         self.events: Any = None
         self.properties: list[ua.NodeId] = []
+        self.methods: list[ua.NodeId] = []
 
     def value_ids(self) -> list[ua.NodeId]:
         """Every node of the machine with a value a client may monitor."""

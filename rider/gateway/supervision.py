@@ -23,6 +23,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from rider.gateway.security import Caller
+from rider.gateway.uaserver import open_sessions
 from schema.rider import rider_id
 
 log = logging.getLogger(__name__)
@@ -105,11 +106,5 @@ class Supervisor:
 
 
 def open_session_keys(iserver: Any) -> set[str]:
-    """The keys of the OPC UA sessions open now. asyncua keeps its sessions in a registry with
-    no public listing (`InternalServer._external_sessions`, asyncua 2.x; a test pins it)."""
-    sessions = getattr(iserver, "_external_sessions", {})
-    return {
-        s.user.key
-        for s in list(sessions.values())
-        if isinstance(s.user, Caller) and s.state.name != "Closed"
-    }
+    """The keys of the OPC UA sessions open now."""
+    return {s.user.key for s in open_sessions(iserver) if isinstance(s.user, Caller)}

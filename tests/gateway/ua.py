@@ -61,17 +61,24 @@ async def read(client: Client, machine_id: str, path: str) -> ua.DataValue:
 
 
 async def call(client: Client, machine_id: str, method: str, *args: ua.Variant) -> Called:
+    """A machine's method called on its own object."""
+    idx = await ns(client)
+    return await call_on(
+        client, ua.NodeId(machine_id, idx), ua.NodeId(f"{machine_id}/{method}", idx), *args
+    )
+
+
+async def call_on(
+    client: Client, object_id: ua.NodeId, method_id: ua.NodeId, *args: ua.Variant
+) -> Called:
     """The call's whole result (status and output arguments), as the wire carries it: asyncua's
     `call_method` raises on a Bad status and drops the outputs."""
-    idx = await ns(client)
     request = ua.CallMethodRequest(
-        ObjectId=ua.NodeId(machine_id, idx),
-        MethodId=ua.NodeId(f"{machine_id}/{method}", idx),
-        InputArguments=list(args),
+        ObjectId=object_id, MethodId=method_id, InputArguments=list(args)
     )
     (result,) = await client.uaclient.call([request])
-    outputs = [v.Value for v in result.OutputArguments] or ["", "", "", ""]
-    return Called(result.StatusCode, *outputs)
+    texts = [v.Value if isinstance(v.Value, str) else "" for v in result.OutputArguments]
+    return Called(result.StatusCode, *[*texts, "", "", "", ""][:4])
 
 
 class Changes:
