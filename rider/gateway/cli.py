@@ -77,8 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--certificate",
         type=Path,
-        help="the gateway's certificate (DER or PEM): adds the Basic256Sha256"
-        " Sign & Encrypt endpoint (made by `machine credentials init`)",
+        help="the gateway's certificate (DER or PEM): adds the Sign and Sign & Encrypt"
+        " endpoints (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss) and the"
+        " operators' logins (made by `machine credentials init`)",
     )
     p.add_argument("--private-key", type=Path, help="the certificate's private key (PEM)")
     p.add_argument(
@@ -107,6 +108,12 @@ def options_from(
     """The gateway's options; `BadUsers` or `OSError` for a file that cannot be used."""
     if (args.certificate is None) != (args.private_key is None):
         raise BadUsers("--certificate and --private-key go together")
+    if (args.users or args.operator_certs) and args.certificate is None:
+        # The password is encrypted with it; a user certificate signs with its policy.
+        raise BadUsers(
+            "--users and --operator-certs need --certificate and --private-key: an operator's"
+            " password or certificate is never accepted unprotected"
+        )
     return Options(
         connect=connect,
         zenoh_config=zenoh_config,

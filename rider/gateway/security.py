@@ -101,6 +101,10 @@ class Users:
         self._users = users
         self._certificates = certificates
 
+    def lists(self, certificate: bytes) -> bool:
+        """Whether `certificate` (DER) is one of `--operator-certs`."""
+        return certificate in self._certificates
+
     def get_user(
         self,
         iserver: Any,

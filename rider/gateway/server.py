@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from asyncua import Server, ua
+from asyncua import ua
 from prometheus_client import (
     CollectorRegistry,
     GCCollector,
@@ -35,7 +35,7 @@ from rider.gateway.model import MachineView
 from rider.gateway.security import Rules, Users
 from rider.gateway.space import NAMESPACE, Space
 from rider.gateway.supervision import Supervisor, open_session_keys
-from rider.gateway.uaserver import GatewayInternalServer
+from rider.gateway.uaserver import POLICIES, GatewayInternalServer, GatewayServer
 from schema.commands import Command, CommandRequest, Reply
 from schema.events import Event
 
@@ -80,7 +80,7 @@ class Gateway:
         self._inbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
         self._tasks: set[asyncio.Task[None]] = set()
         self.iserver = GatewayInternalServer(Users(options.users, options.operator_certs))
-        self.server = Server(iserver=self.iserver)
+        self.server = GatewayServer(iserver=self.iserver)
         self.space = Space(self.server)
         self.bus: GatewayBus | None = None
         self.supervisor = Supervisor(
@@ -100,14 +100,15 @@ class Gateway:
         s.set_server_name("ride-machine gateway")
         await s.set_application_uri(APPLICATION_URI)
         policies = [ua.SecurityPolicyType.NoSecurity]
+        tokens: list[type] = [ua.AnonymousIdentityToken]
         if o.certificate is not None and o.private_key is not None:
             await s.load_certificate(str(o.certificate))
             await s.load_private_key(str(o.private_key))
-            policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
+            policies += POLICIES
+            # Without a certificate a password or a user certificate cannot be protected.
+            tokens += [ua.UserNameIdentityToken, ua.X509IdentityToken]
         s.set_security_policy(policies, permission_ruleset=Rules())
-        s.set_identity_tokens(
-            [ua.AnonymousIdentityToken, ua.UserNameIdentityToken, ua.X509IdentityToken]
-        )
+        s.set_identity_tokens(tokens)
         # The longest a session may stay silent before it is closed (and its Riders end).
         timeout_ms = o.session_timeout_s * 1000
         s.iserver.max_session_timeout_ms = timeout_ms

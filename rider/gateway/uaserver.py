@@ -11,8 +11,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from asyncua import ua
+from asyncua import Server, ua
 from asyncua.common.utils import ServiceError
+from asyncua.crypto import security_policies
 from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_server import InternalServer
 from asyncua.server.internal_session import InternalSession, SessionState
@@ -92,6 +93,25 @@ class GatewayInternalServer(InternalServer):  # type: ignore[misc]
         clients = [ua.Variant([m.client_handle for m in items.values()], ua.VariantType.UInt32)]
         return ua.CallMethodResult(OutputArguments=servers + clients)
 
+    def decrypt_user_token(self, isession: Any, token: ua.UserNameIdentityToken) -> tuple[str, str]:
+        """A password only encrypted with the gateway's certificate, on every endpoint: every
+        UserName token policy names an encrypting security policy (`GatewayServer`), and a
+        token that ignores it is refused, never read (docs/plant.md, *Security*)."""
+        if token.EncryptionAlgorithm not in PASSWORD_ENCRYPTIONS:
+            raise ServiceError(_S.BadIdentityTokenInvalid)
+        user, password = super().decrypt_user_token(isession, token)
+        return str(user), str(password)
+
+    def verify_x509_token(
+        self, isession: Any, token: ua.X509IdentityToken, signature: ua.SignatureData
+    ) -> bytes:
+        """A certificate given as the user's identity: its signature checked (asyncua), then it
+        must be one of `--operator-certs`, or the session is refused at activation."""
+        der = super().verify_x509_token(isession, token, signature)
+        if not self.user_manager.lists(der):
+            raise ServiceError(_S.BadIdentityTokenRejected)
+        return bytes(der)
+
     def create_session(
         self, name: str, user: User | None = None, external: bool = False
     ) -> InternalSession:
@@ -101,6 +121,37 @@ class GatewayInternalServer(InternalServer):  # type: ignore[misc]
         )
 
 
+PASSWORD_ENCRYPTIONS = (
+    "http://www.w3.org/2001/04/xmlenc#rsa-oaep",  # Basic256Sha256
+    "http://opcfoundation.org/UA/security/rsa-oaep-sha2-256",  # Aes128_Sha256_RsaOaep, Aes256…
+)
+"""How a client may encrypt a password (not RSA 1.5, not in plain text)."""
+
+POLICIES = (
+    ua.SecurityPolicyType.Basic256Sha256_Sign,
+    ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+    ua.SecurityPolicyType.Aes128Sha256RsaOaep_Sign,
+    ua.SecurityPolicyType.Aes128Sha256RsaOaep_SignAndEncrypt,
+    ua.SecurityPolicyType.Aes256Sha256RsaPss_Sign,
+    ua.SecurityPolicyType.Aes256Sha256RsaPss_SignAndEncrypt,
+)
+"""The secure endpoints beside `None`, with the gateway's certificate."""
+_TOKEN_POLICY = security_policies.SecurityPolicyBasic256Sha256.URI
+"""How a password or a user certificate is protected on the `None` endpoint."""
+
+
+class GatewayServer(Server):  # type: ignore[misc]
+    """asyncua's server, whose endpoints never let a password travel in plain text."""
+
+    def _set_endpoints(self, policy: Any, mode: ua.MessageSecurityMode, level: int) -> None:
+        super()._set_endpoints(policy, mode, level)
+        endpoint = self.iserver.endpoints[-1]
+        own = policy.URI if policy is not security_policies.SecurityPolicyNone else _TOKEN_POLICY
+        for token in endpoint.UserIdentityTokens:
+            if token.TokenType in (ua.UserTokenType.UserName, ua.UserTokenType.Certificate):
+                token.SecurityPolicyUri = own
+
+
 def open_sessions(iserver: InternalServer) -> list[InternalSession]:
     """The client sessions not closed. asyncua keeps them in a registry with no public listing
     (`InternalServer._external_sessions`, asyncua 2.x; tests/gateway/test_sessions.py pins it)."""
@@ -108,4 +159,4 @@ def open_sessions(iserver: InternalServer) -> list[InternalSession]:
     return [s for s in list(sessions.values()) if s.state is not SessionState.Closed]
 
 
-__all__ = ["GatewayInternalServer", "GatewaySession", "ServiceError", "open_sessions"]
+__all__ = ["GatewayInternalServer", "GatewayServer", "GatewaySession", "open_sessions"]

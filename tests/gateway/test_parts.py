@@ -11,6 +11,7 @@ from asyncua import ua
 from asyncua.crypto.permission_rules import UserRole
 
 from rider.gateway.alarms import Severity, alarm_of
+from rider.gateway.cli import build_parser, options_from
 from rider.gateway.model import MachineView
 from rider.gateway.security import OPERATOR, BadUsers, Caller, Rules, Users, read_users
 from rider.gateway.supervision import Supervisor
@@ -137,3 +138,11 @@ class _Handle:
 def test_units_carry_their_unece_codes() -> None:
     assert DEGREE.unit_id == (ord("D") << 8) | ord("D") == 17476
     assert SECOND.unit_id == 5457219  # "SEC"
+
+
+def test_operators_without_the_gateways_certificate_are_a_usage_error(tmp_path: Path) -> None:
+    users = tmp_path / "users"
+    users.write_text("operator:pw\n")
+    args = build_parser().parse_args(["--users", str(users)])
+    with pytest.raises(BadUsers, match="need --certificate"):
+        options_from(args, [], None, 1)
