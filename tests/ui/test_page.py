@@ -168,7 +168,7 @@ def test_a_command_refused_in_the_wrong_state_shows_the_machine_error(
     state_is(page, "WARNING_NEEDS_CALIBRATION")
     pause = page.locator("#cmd-pause")
     expect(pause).to_be_disabled()
-    expect(pause).to_have_attribute("title", "accepted in CALIBRATING, HOMING, RUNNING")
+    expect(pause).to_have_accessible_description("accepted in CALIBRATING, HOMING, RUNNING")
     # A page whose view is a moment old can still send it: the machine has the last word.
     page.evaluate("riderUI.send('pause')")
     result = page.locator("#cmd-result")

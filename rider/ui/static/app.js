@@ -315,17 +315,27 @@
     show("commands", !monitor);
     const box = $("buttons");
     box.innerHTML = "";
+    // A button the machine would refuse now stays focusable (aria-disabled, its press refused
+    // with the reason): one under the keyboard's focus keeps it when the machine moves on, and
+    // Tab and a screen reader reach the visible line that says why (aria-describedby).
     for (const c of ui.cfg.commands) {
+      const cell = document.createElement("div");
+      cell.className = "cmd";
       const b = document.createElement("button");
       b.type = "button";
       b.id = `cmd-${c.key.replace("/", "-")}`;
       b.textContent = c.label;
-      b.disabled = true;
+      b.setAttribute("aria-disabled", "true");
       if (c.name === "Start") b.className = "go";
       if (c.name === "Pause") b.className = "hold";
       if (c.name === "Stop") b.className = "halt";
       b.addEventListener("click", () => press(c));
-      box.append(b);
+      const reason = document.createElement("span");
+      reason.id = `why-${b.id}`;
+      reason.className = "why";
+      reason.hidden = true;
+      cell.append(b, reason);
+      box.append(cell);
     }
   }
 
@@ -372,29 +382,58 @@
     return [...ui.cfg.sessions, ...ui.uploaded].find((s) => s.id === id) || ui.cfg.sessions[0];
   }
 
-  function why(c) {
+  const ESTOP_ACTIVE = "E-stop active";
+
+  // Why no command can be sent now (the checks excepted, with the E-stop in): said once.
+  function sharedReason() {
     if (ui.cfg.monitor) return "read-only monitor";
     if (!live()) return "not connected to the machine";
+    if (ui.status.estop.active) return ESTOP_ACTIVE;
+    return "";
+  }
+
+  function why(c) {
+    const shared = sharedReason();
+    if (shared && !(shared === ESTOP_ACTIVE && c.with_estop)) return shared;
     if (ui.busy.has(c.name)) return "sent, waiting for the reply";
-    const st = ui.status;
     if (c.with_estop) return "";
-    if (st.estop.active) return "E-stop active";
+    const st = ui.status;
     if (!c.states.includes(st.state)) return `accepted in ${c.states.map(words).join(", ")}`;
     return "";
   }
 
+  // Each unavailable button is described by the visible line that says why: its own under it,
+  // or the one above them all when the reason is the page's (no link, the E-stop).
   function renderButtons() {
     if (!ui.cfg) return;
+    const shared = sharedReason();
+    const common = $("commands-why");
+    setText(common, shared ? `Unavailable now: ${shared}` : "");
+    common.hidden = !shared;
     for (const c of ui.cfg.commands) {
       const b = $(`cmd-${c.key.replace("/", "-")}`);
       const reason = why(c);
-      b.disabled = reason !== "";
-      b.title = reason || `send ${c.name}`;
+      const line = $(`why-${b.id}`);
+      const own = reason === shared ? "" : reason;
+      b.setAttribute("aria-disabled", String(reason !== ""));
+      setText(line, own);
+      line.hidden = own === "";
+      if (reason) b.setAttribute("aria-describedby", own ? line.id : common.id);
+      else b.removeAttribute("aria-describedby");
       b.classList.toggle("busy", ui.busy.has(c.name));
     }
   }
 
+  function setText(node, text) {
+    if (node.textContent !== text) node.textContent = text;
+  }
+
   async function press(c) {
+    const now = why(c);
+    if (now) {
+      result(false, `${c.label} not sent: ${now}`);
+      return;
+    }
     let body = {};
     let question = c.confirm;
     if (c.name === "Start") {
