@@ -180,8 +180,8 @@ def test_every_state_of_the_page_passes_axe(
 
     def check(name: str) -> None:
         found = axe(page)
-        seen[name] = by_impact(found)
         blocking = [v for v in found if v["impact"] in BLOCKING]
+        seen[name] = {**by_impact(found), "blocking_nodes": sum(v["nodes"] for v in blocking)}
         if blocking:
             failures[name] = blocking
         shot(page, f"state-{name.replace(' ', '-')}")
