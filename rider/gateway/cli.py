@@ -13,6 +13,7 @@ from pathlib import Path
 
 from rider.client import BadCredentials, BadRuntime, MachineTimeout
 from rider.exits import own_options
+from rider.gateway.identity import Limits
 from rider.gateway.security import BadUsers, read_certificates, read_users
 from rider.gateway.server import Gateway, Options
 
@@ -38,6 +39,36 @@ def _seconds(text: str) -> float:
     if not 0 < value <= 3600:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds (0-3600]")
     return value
+
+
+def _count(text: str) -> int:
+    if not text.isdigit() or not 1 <= int(text) <= 10_000:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number from 1 to 10000")
+    return int(text)
+
+
+def _session_options(p: argparse.ArgumentParser) -> None:
+    """How long sessions and machines are kept, and how many sessions at once."""
+    p.add_argument(
+        "--session-timeout",
+        type=_seconds,
+        default=10.0,
+        help="longest OPC UA session timeout granted, s (default 10): a motion"
+        " started through OPC UA pauses this long plus the rider-loss timeout after"
+        " its client went silent",
+    )
+    p.add_argument(
+        "--forget-after",
+        type=_seconds,
+        default=30.0,
+        help="a machine gone this long leaves the address space (default 30 s)",
+    )
+    p.add_argument(
+        "--max-sessions",
+        type=_count,
+        default=Limits.sessions,
+        help=f"OPC UA sessions served at once (default {Limits.sessions}); more are refused",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,20 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
         " operators' logins (made by `machine credentials init`)",
     )
     p.add_argument("--private-key", type=Path, help="the certificate's private key (PEM)")
-    p.add_argument(
-        "--session-timeout",
-        type=_seconds,
-        default=10.0,
-        help="longest OPC UA session timeout granted, s (default 10): a motion"
-        " started through OPC UA pauses this long plus the rider-loss timeout after"
-        " its client went silent",
-    )
-    p.add_argument(
-        "--forget-after",
-        type=_seconds,
-        default=30.0,
-        help="a machine gone this long leaves the address space (default 30 s)",
-    )
+    _session_options(p)
     p.add_argument("--prefix", default="machine", help="key prefix (default: machine)")
     p.add_argument("--timeout", type=_seconds, default=2.0, help="command reply timeout, s")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -129,6 +147,7 @@ def options_from(
         command_timeout_s=args.timeout,
         prefix=args.prefix,
         zenoh_threads=zenoh_threads,
+        max_sessions=args.max_sessions,
     )
 
 

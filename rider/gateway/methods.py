@@ -14,7 +14,7 @@ import uuid
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
-from asyncua import Node, ua
+from asyncua import ua
 from pydantic import ValidationError
 
 from rider.client import MachineTimeout, NoMachine, RiderError
@@ -25,17 +25,6 @@ from schema.commands import Command, CommandRequest, Reply, Session, StartReques
 from schema.errors import ErrorCode
 
 log = logging.getLogger(__name__)
-
-METHODS: tuple[Command, ...] = (
-    Command.HOME,
-    Command.CALIBRATE_TILT,
-    Command.CALIBRATE_ROTATE,
-    Command.START,
-    Command.PAUSE,
-    Command.RESUME,
-    Command.STOP,
-)
-"""The commands a SCADA may call, by their own names."""
 
 _S = ua.StatusCodes
 REFUSALS: dict[str, int] = {
@@ -50,13 +39,6 @@ REFUSALS: dict[str, int] = {
     ErrorCode.STALE_REQUEST: _S.BadTimeout,
 }
 """The machine's refusal codes as OPC UA status codes; any other is BadUnexpectedError."""
-
-OUTPUTS = (
-    ("Code", "the reply code (RESP_…) or, refused, the machine's error code"),
-    ("Message", "empty when accepted; why, when refused"),
-    ("TransactionId", "the command's transaction (its completion notice's key)"),
-    ("State", "the machine's state after the command"),
-)
 
 
 class CallRefused(Exception):
@@ -192,35 +174,13 @@ def _result(status: int, code: str, message: str, tid: str, state: str) -> ua.Ca
     )
 
 
-def _argument(name: str, doc: str) -> ua.Argument:
-    arg = ua.Argument()
-    arg.Name = name
-    arg.DataType = ua.NodeId(ua.ObjectIds.String)
-    arg.ValueRank = -1
-    arg.Description = ua.LocalizedText(doc)
-    return arg
-
-
-async def add_methods(
-    obj: Node, idx: int, machine_id: str, commander: Commander, calls: Calls
-) -> list[ua.NodeId]:
-    """The methods on a machine's object, each bound to `commander` for this machine (the
-    operator's); their node ids."""
-    outputs = [_argument(name, doc) for name, doc in OUTPUTS]
-    session = _argument("Session", 'JSON, e.g. {"name": "s", "steps": [...]}; "" = default')
-    made = []
-    for command in METHODS:
-        inputs = [session] if command is Command.START else []
-        nid = ua.NodeId(f"{machine_id}/{command.value}", idx)
-        await obj.add_method(nid, ua.QualifiedName(command.value, idx), _unused, inputs, outputs)
+def bind_methods(
+    methods: dict[Command, ua.NodeId], machine_id: str, commander: Commander, calls: Calls
+) -> None:
+    """A machine's methods (its object's, rider/gateway/typemodel.py), each bound to
+    `commander` for this machine, for the operator."""
+    for command, nid in methods.items():
         calls.bind(nid, Role.OPERATOR, _bind(commander, machine_id, command))
-        made.append(nid)
-    return made
-
-
-def _unused(parent: ua.NodeId, *args: ua.Variant) -> None:
-    """asyncua wants a callback per method; the gateway's Call service runs its own."""
-    raise AssertionError("called around the gateway's Call service")
 
 
 def _bind(

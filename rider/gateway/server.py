@@ -29,13 +29,22 @@ from prometheus_client import (
 from rider.client import NoMachine, rider_login
 from rider.gateway.alarms import alarm_of
 from rider.gateway.bus import Attached, Deliver, GatewayBus, Snapshot
-from rider.gateway.methods import Commander, add_methods
+from rider.gateway.identity import (
+    MANUFACTURER,
+    PRODUCT_NAME,
+    PRODUCT_URI,
+    Limits,
+    describe,
+    diagnose,
+    enable_diagnostics,
+)
+from rider.gateway.methods import Commander, bind_methods
 from rider.gateway.metrics import GatewayStats, MachineCollector
 from rider.gateway.model import MachineView
 from rider.gateway.security import Rules, Users
 from rider.gateway.space import NAMESPACE, Space
 from rider.gateway.supervision import Supervisor, open_session_keys
-from rider.gateway.uaserver import POLICIES, GatewayInternalServer, GatewayServer
+from rider.gateway.uaserver import POLICIES, GatewayInternalServer, GatewayServer, open_sessions
 from schema.commands import Command, CommandRequest, Reply
 from schema.events import Event
 
@@ -65,6 +74,7 @@ class Options:
     command_timeout_s: float = 2.0
     prefix: str = "machine"
     zenoh_threads: int = 1
+    max_sessions: int = Limits.sessions
 
 
 class Gateway:
@@ -79,7 +89,9 @@ class Gateway:
         self._pending = 0
         self._inbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
         self._tasks: set[asyncio.Task[None]] = set()
-        self.iserver = GatewayInternalServer(Users(options.users, options.operator_certs))
+        self.iserver = GatewayInternalServer(
+            Users(options.users, options.operator_certs), Limits(sessions=options.max_sessions)
+        )
         self.server = GatewayServer(iserver=self.iserver)
         self.space = Space(self.server)
         self.bus: GatewayBus | None = None
@@ -97,8 +109,11 @@ class Gateway:
         await s.init()
         host, port = o.opcua
         s.set_endpoint(f"opc.tcp://{host}:{port}/")
-        s.set_server_name("ride-machine gateway")
+        s.set_server_name(PRODUCT_NAME)
+        s.product_uri, s.manufacturer_name = PRODUCT_URI, MANUFACTURER
         await s.set_application_uri(APPLICATION_URI)
+        await describe(s, self.iserver.limits)
+        await enable_diagnostics(s)
         policies = [ua.SecurityPolicyType.NoSecurity]
         tokens: list[type] = [ua.AnonymousIdentityToken]
         if o.certificate is not None and o.private_key is not None:
@@ -157,6 +172,7 @@ class Gateway:
                 asyncio.create_task(self._consume()),
                 asyncio.create_task(self.supervisor.watch()),
                 asyncio.create_task(self._forget()),
+                asyncio.create_task(self._diagnostics()),
             ]
             self.ready.set()
             log.info(
@@ -193,6 +209,15 @@ class Gateway:
                 await asyncio.to_thread(attached.close)
             await asyncio.to_thread(bus.close)
         log.info("event=gateway_stopped")
+
+    async def _diagnostics(self) -> None:
+        """The server's diagnostics summary, every second."""
+        iserver = self.iserver
+        while True:
+            sessions = len(open_sessions(iserver))
+            subscriptions = len(iserver.subscription_service.subscriptions)
+            await diagnose(self.server, iserver.counts, sessions, subscriptions)
+            await asyncio.sleep(1.0)
 
     # ----------------------------------------------------------------------- machines
     def _arrive(self, machine_id: str, item: Any) -> None:
@@ -246,9 +271,7 @@ class Gateway:
         node = self.space.machines.get(machine_id)
         if node is None:
             node = await self.space.add(machine_id)
-            node.methods = await add_methods(
-                node.obj, self.space.idx, machine_id, self.commander, self.iserver.calls
-            )
+            bind_methods(node.methods, machine_id, self.commander, self.iserver.calls)
         else:
             await node.presence(True)
         attached = self.attached.get(machine_id)
@@ -298,7 +321,7 @@ class Gateway:
                     if attached is not None:
                         await asyncio.to_thread(attached.close)
                     if (node := self.space.machines.get(mid)) is not None:
-                        for method in node.methods:
+                        for method in node.methods.values():
                             self.iserver.calls.unbind(method)
                     await self.space.remove(mid)
 

@@ -17,11 +17,15 @@ from asyncua.crypto import security_policies
 from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_server import InternalServer
 from asyncua.server.internal_session import InternalSession, SessionState
+from asyncua.ua.uaprotocol_auto import DataChangeFilter
 
 from rider.gateway.calls import Calls, Invocation, Role
+from rider.gateway.identity import Counts, Limits
 from rider.gateway.security import Caller
 
 _S = ua.StatusCodes
+_FILTER_NOT_ALLOWED: int = _S.BadFilterNotAllowed
+_DEADBAND_INVALID: int = _S.BadDeadbandFilterInvalid
 _USER_EXECUTABLE = ua.AttributeIds.UserExecutable
 
 
@@ -30,10 +34,102 @@ class GatewaySession(InternalSession):  # type: ignore[misc]
 
     iserver: GatewayInternalServer
 
+    async def create_session(
+        self, params: ua.CreateSessionParameters, sockname: tuple[str, int] | None = None
+    ) -> ua.CreateSessionResult:
+        """At most `Limits.sessions` sessions (ServerCapabilities.MaxSessions)."""
+        if len(open_sessions(self.iserver)) > self.iserver.limits.sessions:  # this one counts
+            self.iserver.counts.rejected_sessions += 1
+            await self.close_session()
+            raise ServiceError(_S.BadTooManySessions)
+        self.iserver.counts.sessions += 1
+        return await super().create_session(params, sockname)
+
+    def activate_session(
+        self, params: ua.ActivateSessionParameters, peer_certificate: bytes | None
+    ) -> ua.ActivateSessionResult:
+        try:
+            return super().activate_session(params, peer_certificate)
+        except (ServiceError, ua.UaStatusCodeError):
+            self.iserver.counts.security_rejected += 1
+            raise
+
     async def call(self, params: list[ua.CallMethodRequest]) -> list[ua.CallMethodResult]:
+        self._bounded(len(params), self.iserver.limits.methods_per_call)
         return await self.iserver.calls.call(self, params)
 
+    async def browse(self, params: ua.BrowseParameters) -> list[ua.BrowseResult]:
+        self._bounded(len(params.NodesToBrowse), self.iserver.limits.nodes_per_operation)
+        results: list[ua.BrowseResult] = await super().browse(params)
+        return results
+
+    async def translate_browsepaths_to_nodeids(
+        self, params: list[ua.BrowsePath]
+    ) -> list[ua.BrowsePathResult]:
+        self._bounded(len(params), self.iserver.limits.nodes_per_operation)
+        results: list[ua.BrowsePathResult] = await super().translate_browsepaths_to_nodeids(params)
+        return results
+
+    async def create_subscription(
+        self, params: ua.CreateSubscriptionParameters, callback: Any, request_callback: Any = None
+    ) -> ua.CreateSubscriptionResult:
+        """At most `Limits.subscriptions_per_session` of them (and asyncua's own server-wide
+        bound, set to `Limits.subscriptions`)."""
+        if len(self._subscriptions()) >= self.iserver.limits.subscriptions_per_session:
+            raise ServiceError(_S.BadTooManySubscriptions)
+        self.iserver.counts.subscriptions += 1
+        return await super().create_subscription(params, callback, request_callback)
+
+    async def create_monitored_items(
+        self, params: ua.CreateMonitoredItemsParameters
+    ) -> list[ua.MonitoredItemCreateResult]:
+        """Items past the limits are refused `BadTooManyMonitoredItems`, and a deadband the
+        item cannot take `BadDeadbandFilterInvalid` / `BadFilterNotAllowed` (Part 4, 7.22.2):
+        a PercentDeadband needs an `EURange` (it is taken as that share of the range)."""
+        limits = self.iserver.limits
+        self._bounded(len(params.ItemsToCreate), limits.nodes_per_operation)
+        sub = self.subscription_service.subscriptions.get(params.SubscriptionId)
+        if sub is None or sub.session_id != self.session_id:
+            raise ServiceError(_S.BadSubscriptionIdInvalid)
+        room = min(
+            limits.monitored_items_per_subscription - len(sub.monitored_item_srv._monitored_items),
+            limits.monitored_items - self.iserver.monitored_items(),
+        )
+        refusals: dict[int, int] = {}
+        for i, item in enumerate(params.ItemsToCreate):
+            status = filter_refusal(self.iserver, item)
+            if status is None and room <= 0:
+                status = _S.BadTooManyMonitoredItems
+            if status is not None:
+                refusals[i] = status
+            else:
+                room -= 1
+        accepted = [it for i, it in enumerate(params.ItemsToCreate) if i not in refusals]
+        done = iter(
+            await super().create_monitored_items(
+                dataclasses.replace(params, ItemsToCreate=accepted)
+            )
+            if accepted
+            else []
+        )
+        return [
+            ua.MonitoredItemCreateResult(StatusCode=ua.StatusCode(refusals[i]))
+            if i in refusals
+            else next(done)
+            for i in range(len(params.ItemsToCreate))
+        ]
+
+    def _subscriptions(self) -> list[Any]:
+        subs = self.subscription_service.subscriptions.values()
+        return [s for s in subs if s.session_id == self.session_id]
+
+    def _bounded(self, count: int, limit: int) -> None:
+        if count > limit:
+            self.iserver.counts.rejected_requests += 1
+            raise ServiceError(_S.BadTooManyOperations)
+
     async def read(self, params: ua.ReadParameters) -> list[ua.DataValue]:
+        self._bounded(len(params.NodesToRead), self.iserver.limits.nodes_per_operation)
         results = await super().read(params)
         return [
             self._as_asked(rv, dv, params.TimestampsToReturn)
@@ -69,14 +165,22 @@ class GatewaySession(InternalSession):  # type: ignore[misc]
 class GatewayInternalServer(InternalServer):  # type: ignore[misc]
     """asyncua's internal server, making `GatewaySession`s and holding the Call service."""
 
-    def __init__(self, user_manager: Any) -> None:
+    def __init__(self, user_manager: Any, limits: Limits | None = None) -> None:
         super().__init__(user_manager=user_manager)
+        self.limits = limits or Limits()
+        self.counts = Counts()
+        self.max_subscriptions = self.limits.subscriptions  # asyncua's own, server-wide
         self.calls = Calls(self.isession)
         self.calls.bind(
-            ua.NodeId(ua.ObjectIds.Server_GetMonitoredItems), Role.SESSION, self.monitored_items
+            ua.NodeId(ua.ObjectIds.Server_GetMonitoredItems), Role.SESSION, self.get_monitored_items
         )
 
-    async def monitored_items(self, call: Invocation) -> ua.CallMethodResult:
+    def monitored_items(self) -> int:
+        """Monitored items of every subscription now."""
+        subs = self.subscription_service.subscriptions.values()
+        return sum(len(s.monitored_item_srv._monitored_items) for s in subs)
+
+    async def get_monitored_items(self, call: Invocation) -> ua.CallMethodResult:
         """`Server.GetMonitoredItems(SubscriptionId)`: the server and client handles of the
         items of one of the calling session's subscriptions (Part 5, 9.1)."""
         if len(call.arguments) != 1:
@@ -119,6 +223,46 @@ class GatewayInternalServer(InternalServer):  # type: ignore[misc]
         return GatewaySession(
             self, self.aspace, self.subscription_service, name, user=user, external=external
         )
+
+
+_NUMBERS = {
+    ua.VariantType.SByte, ua.VariantType.Byte, ua.VariantType.Int16, ua.VariantType.UInt16,
+    ua.VariantType.Int32, ua.VariantType.UInt32, ua.VariantType.Int64, ua.VariantType.UInt64,
+    ua.VariantType.Float, ua.VariantType.Double,
+}  # fmt: skip
+
+
+def filter_refusal(iserver: InternalServer, item: ua.MonitoredItemCreateRequest) -> int | None:
+    """Why a data change filter cannot be taken on the item (None: it can; a PercentDeadband
+    is turned into the absolute deadband it means on the item's EURange)."""
+    flt = item.RequestedParameters.Filter
+    # The wire decodes uaprotocol_auto's DataChangeFilter; `ua.DataChangeFilter` is a subclass.
+    if not isinstance(flt, DataChangeFilter) or flt.DeadbandType == ua.DeadbandType.None_:
+        return None
+    nid = item.ItemToMonitor.NodeId
+    if item.ItemToMonitor.AttributeId != ua.AttributeIds.Value:
+        return _FILTER_NOT_ALLOWED
+    if not _numeric(iserver, nid):
+        return _FILTER_NOT_ALLOWED
+    if flt.DeadbandType != ua.DeadbandType.Percent:
+        return None
+    eurange = iserver.aspace.read_attribute_value(
+        ua.NodeId(f"{nid.Identifier}/EURange", nid.NamespaceIndex), ua.AttributeIds.Value
+    )
+    span = eurange.Value.Value if eurange.Value is not None else None
+    if not isinstance(span, ua.Range) or not 0 <= flt.DeadbandValue <= 100:
+        return _DEADBAND_INVALID
+    flt.DeadbandType = ua.DeadbandType.Absolute
+    flt.DeadbandValue = flt.DeadbandValue / 100 * (span.High - span.Low)
+    return None
+
+
+def _numeric(iserver: InternalServer, nid: ua.NodeId) -> bool:
+    """Whether the variable's DataType is a number (a deadband means something on it)."""
+    dtype = iserver.aspace.read_attribute_value(nid, ua.AttributeIds.DataType)
+    node = dtype.Value.Value if dtype.Value is not None else None
+    numbers = {v.value for v in _NUMBERS}
+    return isinstance(node, ua.NodeId) and node.NamespaceIndex == 0 and node.Identifier in numbers
 
 
 PASSWORD_ENCRYPTIONS = (

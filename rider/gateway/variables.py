@@ -42,16 +42,26 @@ DEGREE_PER_SECOND = Unit("E96", "°/s", "degree per second")
 SECOND = Unit("SEC", "s", "second")
 UNITS_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
 
+TILT_RANGE = (-90.0, 120.0)
+"""The tilt angles a machine's configuration may allow (tilt.min_deg, tilt.max_deg bounds), °."""
+ROTATE_RANGE = (0.0, 360.0)
+SPEED_RANGES = {"tilt": (-360.0, 360.0), "rotate": (-3600.0, 3600.0)}
+"""The speeds a configuration may set (nominal_speed_dps bounds), °/s, either way."""
+POSITION_RANGES = {"tilt": TILT_RANGE, "rotate": ROTATE_RANGE}
+
 
 @dataclass(frozen=True)
 class Var:
-    """One variable: its browse name, type, unit (if any), and its value from a model."""
+    """One variable: its browse name, type, unit (if any), and its value from a model. With a
+    `eurange` it is an `AnalogItemType` (a PercentDeadband is taken on it); with a unit only,
+    an `AnalogUnitType`; else a `BaseDataVariableType`."""
 
     name: str
     vtype: ua.VariantType
     read: Callable[[Any], Any]
     unit: Unit | None = None
     doc: str = ""
+    eurange: tuple[float, float] | None = None
 
 
 def _fault_code(s: Status) -> str:
@@ -74,8 +84,8 @@ STATUS_VARS: tuple[Var, ...] = (
     Var("TiltHomed", V.Boolean, lambda s: s.homed.tilt),
     Var("RotateHomed", V.Boolean, lambda s: s.homed.rotate),
     Var("RiderConnected", V.Boolean, lambda s: s.rider_connected),
-    Var("TiltPosition", V.Double, lambda s: s.tilt_deg, DEGREE),
-    Var("RotatePosition", V.Double, lambda s: s.rotate_deg, DEGREE),
+    Var("TiltPosition", V.Double, lambda s: s.tilt_deg, DEGREE, eurange=TILT_RANGE),
+    Var("RotatePosition", V.Double, lambda s: s.rotate_deg, DEGREE, eurange=ROTATE_RANGE),
     Var("SessionName", V.String, lambda s: s.session.name if s.session else ""),
     Var("SessionStep", V.Int32, lambda s: _session(s, "step_index")),
     Var("SessionSteps", V.Int32, lambda s: _session(s, "step_count")),
@@ -100,16 +110,27 @@ DIAG_VARS: tuple[Var, ...] = (
 )
 """Under `Diagnostics`, from `machine/<id>/diag/cycle`."""
 
-AXIS_VARS: tuple[Var, ...] = (
-    Var(
-        "PositionFeedback", V.Double, lambda a: a.position_fb if a.position_known else None, DEGREE
-    ),
-    Var("PositionCommanded", V.Double, lambda a: a.position_cmd, DEGREE),
-    Var("Velocity", V.Double, lambda a: a.velocity_fb, DEGREE_PER_SECOND),
-    Var("Moving", V.Boolean, lambda a: bool(a.pn_status & 0b10)),
-    Var("StatusBits", V.UInt32, lambda a: a.pn_status, doc="FastData pn_status bits"),
-)
-"""Under `Axes/<axis>`, from `machine/<id>/axis/<axis>`."""
+AXES = ("tilt", "rotate")
+"""The axes a machine publishes (`axis/<name>`)."""
+
+
+def axis_vars(axis: str) -> tuple[Var, ...]:
+    """Under `Axes/<axis>`, from `machine/<id>/axis/<axis>` (the ranges are the axis')."""
+    where = POSITION_RANGES.get(axis, (-3600.0, 3600.0))  # another axis: the widest
+    speed = SPEED_RANGES.get(axis, SPEED_RANGES["rotate"])
+    return (
+        Var(
+            "PositionFeedback",
+            V.Double,
+            lambda a: a.position_fb if a.position_known else None,
+            DEGREE,
+            eurange=where,
+        ),
+        Var("PositionCommanded", V.Double, lambda a: a.position_cmd, DEGREE, eurange=where),
+        Var("Velocity", V.Double, lambda a: a.velocity_fb, DEGREE_PER_SECOND, eurange=speed),
+        Var("Moving", V.Boolean, lambda a: bool(a.pn_status & 0b10)),
+        Var("StatusBits", V.UInt32, lambda a: a.pn_status, doc="FastData pn_status bits"),
+    )
 
 
 def io_var(value: IoValue) -> Var:

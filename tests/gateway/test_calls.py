@@ -52,7 +52,7 @@ def test_a_method_runs_only_on_the_object_it_belongs_to(
             for obj in (
                 ua.NodeId("m1", idx),  # another machine's object
                 SERVER,
-                ua.NodeId("Machines", idx),
+                ua.NodeId("gateway.Machines", idx),
                 ua.NodeId("m1/Diagnostics", idx),  # a folder of another machine
             ):
                 got = await call_on(c, obj, stop)

@@ -53,7 +53,7 @@ def test_an_operator_browses_reads_subscribes_and_calls(
             state = await read(c, "m1", "State")
             assert state.StatusCode.is_good() and state.Value.Value in {"DONE", "HOMING"}
             position = c.get_node(ua.NodeId("m1/TiltPosition", await ns(c)))
-            eu = await position.get_child(f"{await ns(c)}:EngineeringUnits")
+            eu = await position.get_child("0:EngineeringUnits")
             assert (await eu.read_value()).DisplayName.Text == "°"
 
     run(body())

@@ -51,7 +51,7 @@ async def ns(client: Client) -> int:
 
 async def machines(client: Client) -> set[str]:
     idx = await ns(client)
-    folder = client.get_node(ua.NodeId("Machines", idx))
+    folder = client.get_node(ua.NodeId("gateway.Machines", idx))
     return {ref.BrowseName.Name for ref in await folder.get_children_descriptions()}
 
 
