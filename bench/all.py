@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable
 
 from bench import (
+    confirm,
     cost,
     estop,
     events_cost,
@@ -57,6 +58,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.healthcheck", healthcheck.run),
     ("bench.gateway", gateway.run),
     ("bench.homing", homing.run),
+    ("bench.confirm", confirm.run),
 ]
 
 

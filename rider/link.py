@@ -23,6 +23,7 @@ from common.threadstate import keeping_state
 from common.zenoh_session import RIDER_SIDE, UnreadableRuntime
 from common.zenoh_session import open_session as shared_open
 from common.zenoh_session import zenoh_config as shared_config
+from rider.confirm import Confirmations, Ledger
 from rider.discovery import PROBE_TIMEOUT_S
 from rider.errors import BadCredentials, BadRuntime, BusError, MachineTimeout, RiderError
 from schema.rider import (
@@ -141,6 +142,8 @@ class Link:
         self.rider_id = ""
         self.attachment = b""
         """Who asked, for the machine's event history (sent with every request)."""
+        self.ledger = Ledger()
+        """The requests this Rider sent, for the machine to confirm (rider/confirm.py)."""
         self.keys: dict[str, zenoh.KeyExpr] = {}
         """Keys declared to the session (`declare_key`): a query on a declared key expression
         is routed without matching its string again (BENCHMARKS.md, section 1)."""
@@ -149,6 +152,7 @@ class Link:
         self._owned = False
         self._token: zenoh.LivelinessToken | None = None
         self._heartbeat: Heartbeat | None = None
+        self._confirmations: Confirmations | None = None
 
     def open(self) -> None:
         """Open the session, declare this Rider's liveliness token, start its heartbeat."""
@@ -161,6 +165,9 @@ class Link:
             raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
         self._session, self._owned = session, True
         self._named(rider_id(self.login, str(session.zid())))
+        # Declared before anything is sent: the machine asks here about every request that
+        # names this Rider, and a request it cannot confirm does not move the machine.
+        self._confirmations = Confirmations(session, self.rider_id, self.ledger)
         self._token = session.liveliness().declare_token(alive_key(self.rider_id))
         if self.supervise:
             self._heartbeat = Heartbeat(session, self.rider_id)
@@ -186,6 +193,9 @@ class Link:
         if self._token is not None:
             self._token.undeclare()
             self._token = None
+        if self._confirmations is not None:
+            self._confirmations.close()
+            self._confirmations = None
         session, self._session = self._session, None
         if session is not None:
             for key_expr in self.keys.values():

@@ -79,6 +79,7 @@ class Transport:
             if payload is None:
                 handler = session.get(target, timeout=timeout or link.timeout, consolidation=_ALL)
             else:
+                link.ledger.sent(payload)  # before it goes: the machine may ask at once
                 handler = session.get(
                     target,
                     payload=payload,

@@ -42,6 +42,14 @@ class ErrorCode(StrEnum):
     DUPLICATE_ID = "DUPLICATE_ID"
     """Another session holds this machine's id: no command that moves or changes the machine
     is taken until one of the two is alone again."""
+    RIDER_UNCONFIRMED = "RIDER_UNCONFIRMED"
+    """A motion command named a Rider (`<login>/<zid>`) that did not confirm sending it, asked on
+    `rider/<login>/<zid>/confirm`: another sender copied its id, or the Rider does not answer
+    there (an older Rider, another client). Nothing moved; send no `rider` field (and no
+    attachment naming one) to move unsupervised."""
+    SUPERSEDED = "SUPERSEDED"
+    """A motion command that was still waiting (for its Rider's confirmation, or for a cycle to
+    end) when a Pause or Stop arrived after it: the later stop wins, nothing moved."""
     INTERNAL = "INTERNAL"
 
 

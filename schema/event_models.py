@@ -48,9 +48,13 @@ class CommandEvent(OpenWireModel):
     command: str | None
     transaction_id: str | None = None
     rider: str | None = None
-    """The sending Rider's Zenoh session id, when it named itself in the request."""
+    """The Rider the request named (`<login>/<zid>`, its `rider` field or its attachment), as
+    its sender claimed it."""
     identity: str | None = None
-    """The authenticated user under the ACL profiles, when the bus can tell it."""
+    """The same Rider once it confirmed that it sent this request (`rider/<login>/<zid>/confirm`,
+    schema/rider.py): under the ACL profiles only that login can answer there, so this is
+    proof of the login. None: `rider` is a claim nobody confirmed (or a Pause, Stop or check,
+    which are taken from anyone at once and not asked about)."""
     accepted: bool
     code: str
     """The reply code when accepted (e.g. RESP_START_ACCEPTED), the error code when refused."""
@@ -144,6 +148,9 @@ class ParamEvent(OpenWireModel):
     transaction_id: str | None = None
     by: str | None = None
     """Who asked: the Rider id (`<login>/<zid>`) the write came with, as its sender said it."""
+    identity: str | None = None
+    """`by` once that Rider confirmed it sent the write (as `CommandEvent.identity`); None:
+    `by` is only claimed."""
     accepted: bool = True
     """False: refused (`message` says why; `new` is what was asked), nothing changed."""
     message: str = ""

@@ -11,6 +11,11 @@ The machine judges the Rider that started a motion by that heartbeat, not by the
 token lives as long as the Rider's Zenoh lease (10 s by default), the heartbeat stops the moment
 the Rider freezes, dies or loses its link.
 
+A Rider also answers `rider/<login>/<zid>/confirm`: the machine asks it there whether it sent a
+request before it binds a ride to it or records it as the sender (`confirm_key`, `digest`). The
+ACL profiles let only login `<login>` declare that queryable, so under them a confirmation proves
+the login; on the open profile anyone may, and it proves nothing (docs/security.md).
+
 Schema 1 used `rider/<zid>/…` and a bare `<zid>` as the Rider id: a machine of schema 2 refuses
 a motion command that names such a Rider (`BAD_PAYLOAD` at `/rider`, `outdated_rider`) instead
 of running a ride whose deadman it cannot see.
@@ -18,6 +23,7 @@ of running a ride whose deadman it cannot see.
 
 from __future__ import annotations
 
+import hashlib
 import re
 
 HEARTBEAT_INTERVAL_S = 0.1
@@ -26,6 +32,14 @@ against it."""
 
 ANONYMOUS = "anonymous"
 """The login part of a Rider id when the Rider has no Zenoh login (the open profile)."""
+
+CONFIRM_QUERY_BYTES = 16
+"""The size of a confirmation query's payload: the request's `digest`."""
+CONFIRMED = b"1"
+"""A Rider's reply to a confirmation query: it sent the request with this digest."""
+DENIED = b"0"
+"""... it did not (or has forgotten it: a Rider remembers its last `LEDGER_SIZE` requests)."""
+LEDGER_SIZE = 4096
 
 ALIVE_KEYS = "rider/*/*/alive"
 HEARTBEAT_KEYS = "rider/*/*/heartbeat"
@@ -51,6 +65,19 @@ def alive_key(rider: str) -> str:
 
 def heartbeat_key(rider: str) -> str:
     return f"rider/{rider}/heartbeat"
+
+
+def confirm_key(rider: str) -> str:
+    """Where Rider `rider` (`<login>/<zid>`) answers whether it sent a request."""
+    return f"rider/{rider}/confirm"
+
+
+def digest(payload: bytes) -> bytes:
+    """What a confirmation asks about: 16 bytes of BLAKE2b over the request's payload, exactly
+    as it went on the wire. Any change to the request (its id, time, command, Rider) changes
+    it, so a station that copies another's Rider id into a request of its own is not
+    confirmed, and a request replayed whole is refused as stale by its timecode."""
+    return hashlib.blake2b(payload, digest_size=CONFIRM_QUERY_BYTES).digest()
 
 
 def rider_of(key: str) -> str | None:

@@ -100,6 +100,18 @@ class OutdatedRider(MachineError):
     code = ErrorCode.BAD_PAYLOAD
 
 
+class RiderUnconfirmed(MachineError):
+    """A motion command whose named Rider did not confirm sending it (service/bus/confirm.py)."""
+
+    code = ErrorCode.RIDER_UNCONFIRMED
+
+
+class Superseded(MachineError):
+    """A motion command overtaken by a Pause or Stop that arrived after it."""
+
+    code = ErrorCode.SUPERSEDED
+
+
 class Busy(MachineError):
     code = ErrorCode.BUSY
 

@@ -34,6 +34,7 @@ ZENOH_MODULES = (
     "common/zenoh_session.py",
     "rider/blocking.py",
     "rider/completions.py",
+    "rider/confirm.py",
     "rider/discovery.py",
     "rider/events.py",
     "rider/link.py",

@@ -26,6 +26,7 @@ from rider.client import (
     open_session,
     zenoh_config,
 )
+from rider.confirm import Confirmations, Ledger
 from schema.axes import AxisRecord
 from schema.codec import MAX_PAYLOAD_BYTES, DecodeError, Format, decode
 from schema.commands import Command, CommandRequest, Reply
@@ -88,8 +89,10 @@ class Supervision:
 
     token: Any
     heartbeat: Heartbeat
+    confirmations: Confirmations
 
     def close(self) -> None:
+        self.confirmations.close()
         self.heartbeat.close()
         with contextlib.suppress(zenoh.ZError):
             self.token.undeclare()
@@ -114,6 +117,9 @@ class GatewayBus:
         except zenoh.ZError as exc:
             raise MachineTimeout(f"cannot open the Zenoh session: {exc}") from exc
         self._presence: Any = None
+        self.ledger = Ledger()
+        """Every request the gateway sent, to any machine: its operator sessions' Riders
+        confirm them when a machine asks (rider/confirm.py)."""
 
     @property
     def zid(self) -> str:
@@ -134,6 +140,7 @@ class GatewayBus:
         """Follow one machine: its publications and events, then its current values (so a
         machine that is at rest is not blank). Blocking: run it on a worker thread."""
         link = MachineLink(self._session, machine_id, prefix=self.prefix, timeout=self.timeout)
+        link.link.ledger = self.ledger
 
         def on_update(update: Update) -> None:
             deliver(machine_id, update)
@@ -178,9 +185,12 @@ class GatewayBus:
         return attached.link.command(command, request, check=False, timeout=timeout)
 
     def supervise(self, rider_id: str) -> Supervision:
-        """Hold `rider/<rider_id>/alive` and beat `rider/<rider_id>/heartbeat` until closed."""
-        token = self._session.liveliness().declare_token(alive_key(rider_id))
-        return Supervision(token, Heartbeat(self._session, rider_id))
+        """Hold `rider/<rider_id>/alive`, beat `rider/<rider_id>/heartbeat` and confirm the
+        gateway's requests on `rider/<rider_id>/confirm` until closed."""
+        session = self._session
+        confirmations = Confirmations(session, rider_id, self.ledger)
+        token = session.liveliness().declare_token(alive_key(rider_id))
+        return Supervision(token, Heartbeat(session, rider_id), confirmations)
 
     def close(self) -> None:
         if self._presence is not None:

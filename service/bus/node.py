@@ -12,6 +12,7 @@ from typing import Any
 
 from schema.status import MachineState
 from service.bus.commands import Commands
+from service.bus.confirm import Confirmer
 from service.bus.injection import Injection, SimPort
 from service.bus.presence import Presence
 from service.bus.publications import Publications
@@ -50,10 +51,20 @@ class ZenohBus:
         self.wall = wall = pubs.wall
         self.io_keys = tuple(io_keys)
         self.presence = Presence(session, port, config)
+        confirmer = Confirmer(session, config.bus.confirm_timeout_s)
         routes: list[Route] = [
-            *Commands(b, port).routes(),
+            *Commands(b, port, confirmer, events).routes(),
             *Reads(b, port, pubs.diag, check_config=check_config, events=events).routes(),
-            *Writes(b, port, pubs.stats, pubs.diag, wall, params=params, events=events).routes(),
+            *Writes(
+                b,
+                port,
+                pubs.stats,
+                pubs.diag,
+                wall,
+                params=params,
+                events=events,
+                confirmer=confirmer,
+            ).routes(),
         ]
         # Declared without a simulator too: `sim/*` on real hardware answers NOT_AVAILABLE
         # at once instead of leaving the caller to time out (a supervisor answers for its child).

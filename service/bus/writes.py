@@ -15,6 +15,7 @@ from schema.errors import Error
 from schema.events import ParamEvent
 from schema.params import ParamSet, ParamValue
 from service.adapters.eventlog import EventLog
+from service.bus.confirm import Confirmer, Verdict
 from service.bus.reads import matching
 from service.bus.request import Request, sender_of
 from service.bus.routes import Route, Wildcard
@@ -64,6 +65,7 @@ class Writes:
     wall: Callable[[], float]
     params: ParamService | None = None
     events: EventLog | None = None
+    confirmer: Confirmer | None = None
 
     def routes(self) -> list[Route]:
         named = Wildcard.REFUSE_NAMED
@@ -119,7 +121,8 @@ class Writes:
         # The registry is thread-safe and its write (with fsync) stays off the scan thread;
         # the loop picks the new config up at the next cycle boundary.
         old = params.get(name)
-        record = functools.partial(self._record, old, req, sender_of(request.query))
+        by = sender_of(request.query)
+        record = functools.partial(self._record, old, req, by, self._confirmed(by, request))
         try:
             value = params.set(name, req, moving=self.port.moving(), now=self.wall())
         except MachineError as exc:
@@ -134,6 +137,7 @@ class Writes:
         old: ParamValue,
         req: ParamSet,
         by: str | None,
+        identity: str | None,
         new: object,
         persisted: bool,
         refused: str,
@@ -151,10 +155,18 @@ class Writes:
                 reset=req.reset,
                 transaction_id=req.transaction_id,
                 by=by,
+                identity=identity,
                 accepted=not refused,
                 message=refused,
             )
         )
+
+    def _confirmed(self, by: str | None, request: Request) -> str | None:
+        """`by` once that Rider confirmed the write (asked on this route's own thread, never
+        Zenoh's); None: nobody named, or only claimed. A write is not refused for it."""
+        if by is None or self.confirmer is None:
+            return None
+        return by if self.confirmer.ask(by, request.payload) is Verdict.CONFIRMED else None
 
     def calibration(self, request: Request) -> None:
         """Values entered by hand: applied on the scan thread, answered once they are saved."""

@@ -182,6 +182,12 @@ class BusSection(_Section):
     ai_deadband_counts: int = Field(default=2, ge=0, le=65_535)
     transaction_window: int = Field(default=4096, ge=1, le=1_000_000)
     inbox_capacity: int = Field(default=1024, ge=1, le=1_000_000)
+    confirm_timeout_s: float = Field(default=0.5, gt=0, le=10)
+    """How long the machine waits for a Rider named in a request to confirm that it sent it
+    (`rider/<login>/<zid>/confirm`, service/bus/confirm.py) before a motion command naming it is
+    refused `RIDER_UNCONFIRMED`. A Rider on the bus answers in about a millisecond; for one that
+    is not there the machine asks again every 5 ms until this timeout (a Rider's queryable can
+    reach it just after its first request)."""
     clock_margin_s: float = Field(default=1.0, ge=0, le=86_400)
     """How far a sender's clock may be behind this machine's before its motion commands look
     older than their `valid_for` and are refused `STALE_REQUEST`."""

@@ -105,6 +105,9 @@ class CommandFacts(NamedTuple):
     state: str | None
     repeat: bool
     timecode: float | None
+    identity: str | None = None
+    """The Rider that confirmed it sent the command (service/bus/confirm.py); `rider` is
+    only its claim."""
 
     @classmethod
     def of(
@@ -114,6 +117,7 @@ class CommandFacts(NamedTuple):
         reply: Reply,
         sender: str | None,
         repeat: bool,
+        identity: str | None = None,
     ) -> CommandFacts:
         error = reply.error
         return cls(
@@ -126,6 +130,7 @@ class CommandFacts(NamedTuple):
             reply.state._value_ if reply.state is not None else None,
             repeat,
             request.timecode,
+            identity,
         )
 
     def __call__(self) -> CommandEvent:
@@ -133,6 +138,7 @@ class CommandFacts(NamedTuple):
             command=self.command,
             transaction_id=self.transaction_id,
             rider=self.rider,
+            identity=self.identity,
             accepted=self.accepted,
             code=self.code,
             message=self.message,
@@ -144,7 +150,8 @@ class CommandFacts(NamedTuple):
         """The command's log line (its message: `logfmt` adds the time, level and logger)."""
         return (
             f"event=command tx={self.transaction_id} command={self.command}"
-            f" rider={self.rider} timecode={self.timecode} code={self.code} state={self.state}"
+            f" rider={self.rider} confirmed={self.identity is not None}"
+            f" timecode={self.timecode} code={self.code} state={self.state}"
         )
 
 
@@ -224,7 +231,7 @@ class EventRecorder:
         """`StateMachine.on_transition`: kept until the next `observe`, so causes come first."""
         self._transitions.append(t)
 
-    def command(
+    def command(  # noqa: PLR0913 - the command, its answer, who sent it (claimed, confirmed)
         self,
         control: StateMachine,
         command: Command,
@@ -233,13 +240,14 @@ class EventRecorder:
         now: float,
         *,
         sender: str | None = None,
+        identity: str | None = None,
         repeat: bool = False,
         logged: bool = False,
     ) -> None:
         """A command was answered: the command event, then what it changed. What changed is
         compared now (the state is the command's); the events are made and handed to the sink,
         and its log line written (`logged`), at the next `release`: off the path of its reply."""
-        facts = CommandFacts.of(command, request, reply, sender, repeat)
+        facts = CommandFacts.of(command, request, reply, sender, repeat, identity)
         rows: list[Lazy] = []
         wall = now + self.wall_offset
         self._compare(control, wall, rows.append, facts)

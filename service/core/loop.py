@@ -320,6 +320,7 @@ class ScanLoop:
         clock: Callable[[], float],
         *,
         sender: str | None = None,
+        identity: str | None = None,
         timeout: float | None,
     ) -> Reply | None:
         """Run a command on the calling thread under the loop's lock, between two cycles.
@@ -344,25 +345,45 @@ class ScanLoop:
         try:
             if self.cycle == 0 or self.inbox.closed:
                 return None
-            return self.execute(command, request, clock(), sender=sender)
+            return self.execute(command, request, clock(), sender=sender, identity=identity)
         finally:
             self.lock.release()
 
     def execute(
-        self, command: Command, request: CommandRequest, now: float, *, sender: str | None = None
+        self,
+        command: Command,
+        request: CommandRequest,
+        now: float,
+        *,
+        sender: str | None = None,
+        identity: str | None = None,
     ) -> Reply:
-        """One command with at-most-once semantics by transaction id."""
+        """One command with at-most-once semantics by transaction id; `sender` the Rider it
+        names as claimed, `identity` the same once confirmed (for the history)."""
         # Between cycles (from a Zenoh callback or the runner's queue) a Rider that saw the
         # watchdog's FAULT_HW and sent Home at once must find the machine in that fault, not
         # in the motion the stall interrupted; within a cycle `step` has taken it already.
         if self._take_watchdog_trip(now):
             self._observe(now)  # the fault and its notice, before the command's own
         self.commands_handled += 1
+        live = self.live
+        if live.offered is not live.current:
+            # A parameter write answered before this command is in force for it: its reply
+            # said so (issue 58: a Start sent on a `tilt.max_deg` write's reply was judged on
+            # the old range). Between cycles, as at the start of one.
+            live.take()
         stamp = now + self.wall_offset
         repeat = self.transactions.lookup(request.transaction_id, command._value_, stamp)
         if repeat is not None:
             self.recorder.command(
-                self.control, command, request, repeat, now, sender=sender, repeat=True
+                self.control,
+                command,
+                request,
+                repeat,
+                now,
+                sender=sender,
+                identity=identity,
+                repeat=True,
             )
             return repeat
         reply = self.control.handle(command, request, now)
@@ -376,6 +397,7 @@ class ScanLoop:
             reply,
             now,
             sender=sender,
+            identity=identity,
             logged=True,
         )
         return reply

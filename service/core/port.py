@@ -36,13 +36,16 @@ class LoopPort:
         *,
         sender: str | None,
         timeout: float | None,
+        identity: str | None = None,
     ) -> Reply | None:
         """Run a command now, between two cycles (`ScanLoop.execute_between_cycles`): None
         while it cannot (`timeout=None` and a cycle in progress, before the first scan, after
-        shutdown: `submit` it instead); a BUSY reply for a loop stalled past `timeout`."""
+        shutdown: `submit` it instead); a BUSY reply for a loop stalled past `timeout`. `sender`:
+        the Rider the request names, as claimed; `identity`: the same once it confirmed the
+        request (service/bus/confirm.py), for the history."""
         loop = self._loop
         return loop.execute_between_cycles(
-            command, request, self._clock, sender=sender, timeout=timeout
+            command, request, self._clock, sender=sender, identity=identity, timeout=timeout
         )
 
     def wire(self, reply: Reply) -> bytes | None:

@@ -35,9 +35,12 @@ class PendingCommand:
     respond: Callable[[Reply], None]
     sender: str | None = None
     """The sending session's id, for the event history (the Rider attaches it)."""
+    identity: str | None = None
+    """`sender` once it confirmed the request (service/bus/confirm.py)."""
 
     def run(self, loop: ScanLoop, now: float) -> None:
-        self.respond(loop.execute(self.command, self.request, now, sender=self.sender))
+        request, sender, identity = self.request, self.sender, self.identity
+        self.respond(loop.execute(self.command, request, now, sender=sender, identity=identity))
 
     def reject(self, error: Error) -> None:
         self.respond(

@@ -35,6 +35,7 @@ MODULES = [
     "healthcheck",
     "gateway",
     "homing",
+    "confirm",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0

@@ -32,16 +32,6 @@ BASE = "machine/c1"
 _ids = itertools.count()
 
 
-@pytest.fixture(scope="module")
-def session() -> Iterator[zenoh.Session]:
-    conf = zenoh.Config()
-    conf.insert_json5("listen/endpoints", "[]")
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    s = zenoh.open(conf)
-    yield s
-    s.close()
-
-
 @pytest.fixture
 def machine(session: zenoh.Session) -> Iterator[tuple[Rig, Commands, ListEventSink]]:
     sink = ListEventSink()

@@ -39,17 +39,6 @@ class Host:
         return MachineState.IDLE
 
 
-@pytest.fixture(scope="module")
-def session() -> Iterator[zenoh.Session]:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("listen/endpoints", "[]")
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    s = zenoh.open(conf)
-    yield s
-    s.close()
-
-
 @dataclass
 class Answer:
     ok: bool

@@ -33,12 +33,17 @@ def test_a_user_name_that_cannot_name_keys_stops_the_start() -> None:
         expand(acl("bay 1"))
 
 
+@pytest.mark.hazard("H54")
 def test_every_station_gets_a_subject_and_a_policy_of_its_own() -> None:
     made = expand(acl("bay1", "bay2"))
     ids = {s["id"]: s["usernames"] for s in made["subjects"]}
     assert ids["rider@bay1"] == ["bay1"] and ids["rider@bay2"] == ["bay2"]
     own = {p["id"]: p for p in made["policies"]}
-    assert own["rider@bay1"]["rules"] == ["supervise-in@bay1"]
+    assert own["rider@bay1"]["rules"] == [
+        "supervise-in@bay1",
+        "confirm-in@bay1",
+        "confirm-out@bay1",
+    ]
     assert "supervise-in" not in own["rider"]["rules"]  # the common policy lost the template
 
 
