@@ -64,6 +64,14 @@ def rider_name(rider: str | None, identity: str | None = None) -> str:
     return " · ".join(part for part in (login, zid[:SHORT_ID]) if part)
 
 
+def asker(rider: str | None, identity: str | None) -> str:
+    """Who asked for a command or a write: `rider_name`, marked `(claimed)` when the Rider it
+    names never confirmed that it sent it (a Pause, Stop or check is not asked; a record older
+    than confirmations; a Rider that did not answer): the sender's word, not proof."""
+    name = rider_name(rider, identity)
+    return f"{name} (claimed)" if name and not identity else name
+
+
 # ----------------------------------------------------------------------------------- numbers
 def fixed(value: float, decimals: int) -> str:
     """`value` with exactly `decimals` decimals (never `-0.0`)."""
@@ -171,7 +179,7 @@ def tx(transaction_id: str | None) -> str:
 def command_text(d: CommandEvent) -> str:
     """`Start accepted from bay1 · 9d617a, now RUNNING [tx …]`, or `Pause refused WRONG_STATE
     from …: the machine's words [tx …]`."""
-    who = rider_name(d.rider, d.identity)
+    who = asker(d.rider, d.identity)
     src = f" from {who}" if who else ""
     again = " again (a repeat: answered as before, nothing done twice)" if d.repeat else ""
     if d.accepted:
@@ -263,7 +271,7 @@ def param_text(d: ParamEvent) -> str:
     """`tilt.max_deg set 45° → 50° by bay1 · 9d617a [tx …]`; a refusal says why."""
     old, new = param_value(d.name, d.old), param_value(d.name, d.new)
     what = f"reset to its default {new} (was {old})" if d.reset else f"set {old} → {new}"
-    who = rider_name(d.by)
+    who = asker(d.by, d.identity)
     src = f" by {who}" if who else ""
     if not d.accepted:
         return f"{d.name} {what}{src} refused: {d.message}{tx(d.transaction_id)}"
@@ -364,4 +372,4 @@ def describe(details: Details) -> str:
     return TEXTS[details.kind](details)
 
 
-__all__ = ["describe", "rider_name"]
+__all__ = ["asker", "describe", "rider_name"]

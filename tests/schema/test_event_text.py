@@ -14,7 +14,7 @@ from typing import Any, get_args
 import pytest
 from pydantic import BaseModel
 
-from schema.event_words import TEXTS, param_unit, rider_name
+from schema.event_words import TEXTS, asker, param_unit, rider_name
 from schema.events import (
     CalibrationEvent,
     ClockEvent,
@@ -63,6 +63,7 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
             command="Start",
             transaction_id="2a671776-1",
             rider=RIDER,
+            identity=RIDER,
             accepted=True,
             code="RESP_START_ACCEPTED",
             state=S.RUNNING,
@@ -81,7 +82,7 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
             repeat=True,
         ),
         "Check home refused WRONG_STATE again (a repeat: answered as before, nothing done twice)"
-        " from anonymous · 9d617a: not accepted in state RUNNING [tx t9]",
+        " from anonymous · 9d617a (claimed): not accepted in state RUNNING [tx t9]",
         (),
     ),
     (
@@ -190,6 +191,7 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
             new=50.00000000001,
             persisted=True,
             by=RIDER,
+            identity=RIDER,
             transaction_id="p1",
         ),
         "tilt.max_deg set 45° → 50° by bay1 · 9d617a [tx p1]",
@@ -212,7 +214,7 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
             accepted=False,
             message="a safety setting is only made stricter over the bus",
         ),
-        "rider_loss.grace_s set 0.25 s → 5.123 s by anonymous · 9d617a refused:"
+        "rider_loss.grace_s set 0.25 s → 5.123 s by anonymous · 9d617a (claimed) refused:"
         " a safety setting is only made stricter over the bus",
         (" s",),
     ),
@@ -340,3 +342,10 @@ def test_every_parameter_gets_the_unit_of_the_parameter_table() -> None:
     """The units `param_value` reads off a name are the parameter table's own."""
     for name, spec in SPECS.items():
         assert param_unit(name)[0] == spec.unit, name
+
+
+def test_a_rider_that_never_confirmed_is_marked_claimed() -> None:
+    """Who asked is shown as proven only when the Rider confirmed it (issue 58, point 2)."""
+    assert asker(RIDER, RIDER) == "bay1 · 9d617a"
+    assert asker(RIDER, None) == "bay1 · 9d617a (claimed)"
+    assert asker(None, None) == ""
