@@ -71,6 +71,9 @@ class Calls:
     def __init__(self, isession: InternalSession) -> None:
         self._isession = isession
         self._handlers: dict[ua.NodeId, tuple[Role, Handler]] = {}
+        self.virtual: Callable[[ua.NodeId], bool] = lambda _object_id: False
+        """Whether an object id names an object that is no node (a condition's ConditionId,
+        rider/gateway/alarmlist.py): a bound method called on it runs."""
 
     def bind(self, method: ua.NodeId, role: Role, handler: Handler) -> None:
         self._handlers[method] = (role, handler)
@@ -129,6 +132,8 @@ class Calls:
         self, object_id: ua.NodeId, method_id: ua.NodeId
     ) -> tuple[ua.NodeId | None, int | None]:
         """The bound method for `method_id` called on `object_id`, or a status."""
+        if method_id in self._handlers and self.virtual(object_id):
+            return method_id, None
         obj = Node(self._isession, object_id)
         obj_class = await _node_class(obj)
         if obj_class is None:

@@ -27,6 +27,7 @@ from prometheus_client import (
 )
 
 from rider.client import NoMachine, rider_login
+from rider.gateway.alarmlist import AlarmList
 from rider.gateway.alarms import alarm_of
 from rider.gateway.bus import Attached, Deliver, GatewayBus, Snapshot
 from rider.gateway.identity import (
@@ -47,6 +48,7 @@ from rider.gateway.supervision import Supervisor, open_session_keys
 from rider.gateway.uaserver import POLICIES, GatewayInternalServer, GatewayServer, open_sessions
 from schema.commands import Command, CommandRequest, Reply
 from schema.events import Event
+from schema.status import Status
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +96,7 @@ class Gateway:
         )
         self.server = GatewayServer(iserver=self.iserver)
         self.space = Space(self.server)
+        self.alarms = AlarmList(self.iserver, self.iserver.calls)
         self.bus: GatewayBus | None = None
         self.supervisor = Supervisor(
             self._declare_rider,
@@ -129,6 +132,7 @@ class Gateway:
         s.iserver.max_session_timeout_ms = timeout_ms
         s.iserver.min_session_timeout_ms = min(1000.0, timeout_ms)
         await self.space.setup()
+        self.alarms.idx = self.space.idx
         await s.start()
 
     def _metrics(self) -> Any:
@@ -252,9 +256,16 @@ class Gateway:
         elif isinstance(item, Snapshot):
             view.apply(item.update, snapshot=True)
             await node.update(item.update, snapshot=True)
+            await self._conditions(view, item.update)
         else:
             view.apply(item)
             await node.update(item)
+            await self._conditions(view, item)
+
+    async def _conditions(self, view: MachineView, update: Any) -> None:
+        """A status the view took (not a late one) moves the machine's conditions."""
+        if isinstance(update, Status) and view.status is update:
+            await self.alarms.status(view.machine_id, update)
 
     async def _presence(self, machine_id: str, alive: bool) -> None:
         view = self.views.get(machine_id)
@@ -263,6 +274,7 @@ class Gateway:
                 view.presence(False, time.monotonic())
                 if (node := self.space.machines.get(machine_id)) is not None:
                     await node.presence(False)
+                await self.alarms.presence(machine_id, False, time.time())
                 log.warning("event=machine_gone machine=%s", machine_id)
             return
         if view is None:
@@ -274,6 +286,7 @@ class Gateway:
             bind_methods(node.methods, machine_id, self.commander, self.iserver.calls)
         else:
             await node.presence(True)
+        await self.alarms.presence(machine_id, True, time.time())
         attached = self.attached.get(machine_id)
         if attached is not None:
             self._background(self._refresh(attached))  # back from a drop-out
