@@ -3,6 +3,12 @@
 Names follow Prometheus' conventions: a `ride_machine_` prefix, base units (seconds), `_total`
 for counters, one label `machine` (plus `state`, `code`, `axis` or `quantile` where a metric has
 several series). docs/plant.md lists them; docs/plant-alerts.yml alerts on them.
+
+A counter is there, at 0, from a machine's first sight (for every code it can count), so
+`increase()` sees its first step. A machine that is gone keeps only `ride_machine_alive 0` and
+the time of the status it was last heard with: the series that say how it is (state, E-stop,
+fault, cycle timing) go, so Prometheus marks them stale and the alerts on them resolve
+(`RideMachineGone` fires instead) rather than firing on a state nobody knows any more.
 """
 
 from __future__ import annotations
@@ -14,7 +20,14 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from rider.gateway.model import MachineView
+from schema.commands import ReplyCode
+from schema.errors import ErrorCode
 from schema.status import MachineState
+
+COMMAND_CODES: tuple[str, ...] = tuple(c.value for c in ReplyCode) + tuple(
+    e.value for e in ErrorCode
+)
+"""Every code a command's reply can carry: each machine's command counters start at 0 for all."""
 
 
 @dataclass(frozen=True)
@@ -25,6 +38,7 @@ class GatewayStats:
     opcua_sessions: int
     supervising: int
     updates_dropped: int
+    version: str = "unknown"
 
 
 class MachineCollector(Collector):
@@ -54,6 +68,12 @@ def _gauge(name: str, doc: str, labels: tuple[str, ...] = ("machine",)) -> Gauge
     return GaugeMetricFamily(name, doc, labels=list(labels))
 
 
+def _summary(name: str, doc: str) -> Metric:
+    """A summary whose quantiles the machine computed (prometheus_client's own family takes
+    only a count and a sum)."""
+    return Metric(name, doc, "summary")
+
+
 def _counter(name: str, doc: str, labels: tuple[str, ...] = ("machine",)) -> CounterMetricFamily:
     return CounterMetricFamily(name, doc, labels=list(labels))
 
@@ -65,12 +85,19 @@ def _presence(views: list[MachineView]) -> Iterator[Metric]:
         "ride_machine_status_timestamp_seconds",
         "The machine's time of its latest status publication (Unix seconds)",
     )
+    build = _gauge(
+        "ride_machine_build_info",
+        "1, with the wire schema version the machine speaks",
+        ("machine", "schema_version"),
+    )
     for v in views:
         alive.add_metric([v.machine_id], 1.0 if v.alive else 0.0)
         if v.status is not None:
-            uptime.add_metric([v.machine_id], v.status.uptime_s)
             seen.add_metric([v.machine_id], v.status.time)
-    yield from (alive, uptime, seen)
+            build.add_metric([v.machine_id, str(v.status.schema_version)], 1.0)
+            if v.alive:
+                uptime.add_metric([v.machine_id], v.status.uptime_s)
+    yield from (alive, uptime, seen, build)
 
 
 def _state(views: list[MachineView]) -> Iterator[Metric]:
@@ -94,7 +121,7 @@ def _state(views: list[MachineView]) -> Iterator[Metric]:
     }
     for v in views:
         s, mid = v.status, v.machine_id
-        if s is None:
+        if s is None or not v.alive:
             continue
         for name in MachineState:
             state.add_metric([mid, name.value], 1.0 if s.state is name else 0.0)
@@ -112,36 +139,32 @@ def _state(views: list[MachineView]) -> Iterator[Metric]:
 
 
 def _cycle(views: list[MachineView]) -> Iterator[Metric]:
-    # Quantiles as gauges of their own: the machine measures them over its recent window, and
-    # a `quantile` label belongs to summaries (with a count and a sum of the same cycles).
-    window = "over the machine's recent window of cycles"
-    gauges = {
-        "p50": _gauge("ride_machine_cycle_execution_p50_seconds", f"Median execution {window}"),
-        "p99": _gauge("ride_machine_cycle_execution_p99_seconds", f"99th pct execution {window}"),
-        "max": _gauge("ride_machine_cycle_execution_max_seconds", "Longest execution since reset"),
-        "jit": _gauge("ride_machine_cycle_jitter_p99_seconds", f"99th pct wake-up jitter {window}"),
-        "period": _gauge("ride_machine_cycle_period_seconds", "The scan period configured"),
-    }
+    # The machine measures the percentiles over its recent window of cycles: summaries with
+    # those quantiles and the count of cycles observed (no sum: the machine keeps none).
+    window = "over the machine's recent window of cycles (quantiles); cycles run (count)"
+    execution = Metric(
+        "ride_machine_cycle_execution_seconds", f"Execution time {window}", "summary"
+    )
+    jitter = Metric("ride_machine_cycle_jitter_seconds", f"Wake-up jitter {window}", "summary")
+    longest = _gauge("ride_machine_cycle_execution_max_seconds", "Longest execution since reset")
+    period = _gauge("ride_machine_cycle_period_seconds", "The scan period configured")
     cycles = _counter("ride_machine_cycles", "Scan cycles run")
     overruns = _counter("ride_machine_overruns", "Cycles that overran their period (resettable)")
     missed = _counter("ride_machine_missed_cycles", "Deadlines skipped after overruns")
     for v in views:
         d, mid = v.diag, v.machine_id
-        if d is None:
+        if d is None or not v.alive:
             continue
-        values = {
-            "p50": d.execution.p50,
-            "p99": d.execution.p99,
-            "max": d.execution.max,
-            "jit": d.jitter.p99,
-            "period": d.period_s,
-        }
-        for key, family in gauges.items():
-            family.add_metric([mid], values[key])
+        for family, stats in ((execution, d.execution), (jitter, d.jitter)):
+            for quantile, value in (("0.5", stats.p50), ("0.99", stats.p99)):
+                family.add_sample(family.name, {"machine": mid, "quantile": quantile}, value)
+            family.add_sample(f"{family.name}_count", {"machine": mid}, float(d.cycles))
+        longest.add_metric([mid], d.execution.max)
+        period.add_metric([mid], d.period_s)
         cycles.add_metric([mid], float(d.cycles))
         overruns.add_metric([mid], float(d.overruns))
         missed.add_metric([mid], float(d.missed_cycles))
-    yield from (*gauges.values(), cycles, overruns, missed)
+    yield from (execution, jitter, longest, period, cycles, overruns, missed)
 
 
 def _events(views: list[MachineView]) -> Iterator[Metric]:
@@ -155,7 +178,8 @@ def _events(views: list[MachineView]) -> Iterator[Metric]:
     failures = _counter("ride_machine_storage_failures", "Writes of the event history that failed")
     for v in views:
         mid = v.machine_id
-        for code, n in sorted(v.commands.items()):
+        counts = {code: 0 for code in COMMAND_CODES} | dict(v.commands)
+        for code, n in sorted(counts.items()):
             commands.add_metric([mid, code], float(n))
         events = v.diag.events if v.diag is not None else None
         if events is not None:
@@ -166,6 +190,9 @@ def _events(views: list[MachineView]) -> Iterator[Metric]:
 
 
 def _gateway(stats: GatewayStats) -> Iterator[Metric]:
+    build = _gauge("ride_gateway_build_info", "1, with the gateway's version", ("version",))
+    build.add_metric([stats.version], 1.0)
+    yield build
     yield GaugeMetricFamily(
         "ride_gateway_machines", "Machines the gateway follows", value=stats.machines
     )

@@ -23,13 +23,13 @@ from prometheus_client import (
     GCCollector,
     PlatformCollector,
     ProcessCollector,
-    start_http_server,
 )
 
 from rider.client import NoMachine, rider_login
 from rider.gateway.alarmlist import AlarmList
 from rider.gateway.alarms import alarm_of
 from rider.gateway.bus import Attached, Deliver, GatewayBus, Snapshot
+from rider.gateway.exposition import serve
 from rider.gateway.identity import (
     MANUFACTURER,
     PRODUCT_NAME,
@@ -38,6 +38,7 @@ from rider.gateway.identity import (
     describe,
     diagnose,
     enable_diagnostics,
+    version,
 )
 from rider.gateway.methods import Commander, bind_methods
 from rider.gateway.metrics import GatewayStats, MachineCollector
@@ -105,6 +106,7 @@ class Gateway:
             login=rider_login(),
         )
         self.commander = Commander(self._send, self.supervisor.rider_for, options.read_only)
+        self._version = version()[0]
 
     # ------------------------------------------------------------------------------- setup
     async def _opcua(self) -> None:
@@ -145,7 +147,7 @@ class Gateway:
         PlatformCollector(registry=registry)
         GCCollector(registry=registry)
         host, port = self.o.metrics
-        return start_http_server(port, addr=host, registry=registry)
+        return serve(host, port, registry)
 
     def stats(self) -> GatewayStats:
         return GatewayStats(
@@ -153,6 +155,7 @@ class Gateway:
             opcua_sessions=len(open_session_keys(self.server.iserver)),
             supervising=self.supervisor.supervising,
             updates_dropped=self.dropped,
+            version=self._version,
         )
 
     # --------------------------------------------------------------------------------- run

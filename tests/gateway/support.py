@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import TypeVar
 
 from service.adapters.opcua_credentials import CERTIFICATE, OPERATOR, PRIVATE_KEY, USERS, init_opcua
-from tests.procs import REPO, free_port, stop_process
-from tests.site.stand import Lines
+from tests.procs import REPO, Daemon, free_port, stop_process
+from tests.site.stand import Lines, Site
 
 T = TypeVar("T")
 NAMESPACE = "urn:ride-machine:gateway"
@@ -149,3 +149,17 @@ def python_client(script: str, *args: str) -> subprocess.Popen[str]:
         text=True,
         cwd=REPO,
     )
+
+
+@contextlib.contextmanager
+def joined(plant: Site, machine_id: str) -> Iterator[Daemon]:
+    """A machine of the test's own on the plant (one that is frozen, E-stopped or killed must
+    not disturb the package's m1); stopped after, thawed first if it was frozen."""
+    plant.start_daemons({machine_id: "client"})
+    try:
+        yield plant.daemons[machine_id]
+    finally:
+        if machine_id in plant.daemons:
+            with contextlib.suppress(ProcessLookupError):
+                plant.daemons[machine_id].proc.send_signal(signal.SIGCONT)
+            plant.daemons.pop(machine_id).stop()

@@ -6,17 +6,14 @@ and refresh but never acknowledge. Real daemons, a real gateway, asyncua's clien
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import signal
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from asyncua import Client, ua
 
-from tests.gateway.support import Credentials, GatewayProc, until
+from tests.gateway.support import Credentials, GatewayProc, joined, until
 from tests.gateway.ua import Events, connected, ns, read, run
-from tests.procs import Daemon
 from tests.site.stand import Site
 
 pytestmark = pytest.mark.integration
@@ -25,19 +22,6 @@ _I = ua.ObjectIds
 OPERATOR = "operator"
 START = ua.NodeId(_I.RefreshStartEventType)
 END = ua.NodeId(_I.RefreshEndEventType)
-
-
-@contextlib.contextmanager
-def joined(plant: Site, machine_id: str) -> Iterator[Daemon]:
-    """A machine of the test's own (an E-stop or a kill must not disturb the package's m1)."""
-    plant.start_daemons({machine_id: "client"})
-    try:
-        yield plant.daemons[machine_id]
-    finally:
-        if machine_id in plant.daemons:
-            with contextlib.suppress(ProcessLookupError):
-                plant.daemons[machine_id].proc.send_signal(signal.SIGCONT)
-            plant.daemons.pop(machine_id).stop()
 
 
 async def alarm_list(client: Client) -> tuple[Events, Any]:

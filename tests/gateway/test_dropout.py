@@ -6,7 +6,6 @@ client."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import signal
 import time
 from collections.abc import Iterator
@@ -15,9 +14,8 @@ from typing import Any
 import pytest
 from asyncua import Client, ua
 
-from tests.gateway.support import Credentials, GatewayProc, running_gateway
+from tests.gateway.support import Credentials, GatewayProc, joined, running_gateway
 from tests.gateway.ua import Changes, Events, connected, eventually, good, ns, run, variables
-from tests.procs import Daemon
 from tests.site.stand import Site
 
 pytestmark = pytest.mark.integration
@@ -31,19 +29,6 @@ def patient(plant: Site, creds: Credentials) -> Iterator[GatewayProc]:
     """A gateway that forgets a machine only after 60 s: a token flap never makes it forget."""
     with running_gateway(plant.rider_cmd(), creds, "--forget-after", "60") as gw:
         yield gw
-
-
-@contextlib.contextmanager
-def joined(plant: Site, machine_id: str) -> Iterator[Daemon]:
-    """A machine of the test's own (a frozen one must not disturb the package's m1)."""
-    plant.start_daemons({machine_id: "client"})
-    daemon = plant.daemons[machine_id]
-    try:
-        yield daemon
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            daemon.proc.send_signal(signal.SIGCONT)
-        plant.daemons.pop(machine_id).stop()
 
 
 async def settled(client: Client, machine_id: str) -> set[str]:

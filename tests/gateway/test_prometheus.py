@@ -6,7 +6,9 @@ reason, where the `prometheus` package is not installed: `make test` installs it
 from __future__ import annotations
 
 import json
+import re
 import shutil
+import signal
 import subprocess
 import urllib.parse
 import urllib.request
@@ -16,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from schema.status import MachineState
-from tests.gateway.support import GatewayProc, until
+from tests.gateway.support import GatewayProc, joined, until
 from tests.procs import REPO, free_port, stop_process
 from tests.site.stand import Site
 
@@ -47,7 +49,9 @@ def test_promtool_finds_the_exposition_clean(gateway: GatewayProc) -> None:
     for name in (
         "ride_machine_alive",
         "ride_machine_state",
-        "ride_machine_cycle_execution_p99_seconds",
+        "ride_machine_cycle_execution_seconds",
+        "ride_machine_cycle_jitter_seconds",
+        "ride_machine_build_info",
         "ride_machine_overruns_total",
         "ride_machine_rider_connected",
         "ride_machine_events_written_total",
@@ -55,6 +59,8 @@ def test_promtool_finds_the_exposition_clean(gateway: GatewayProc) -> None:
         "ride_machine_uptime_seconds",
     ):
         assert f'\n{name}{{machine="m1"' in scrape, name
+    assert 'ride_machine_cycle_execution_seconds{machine="m1",quantile="0.99"}' in scrape
+    assert "\nride_gateway_build_info{version=" in scrape
 
 
 def test_the_example_alert_rules_pass_promtool() -> None:
@@ -135,3 +141,65 @@ def _get(url: str) -> str | None:
             return str(r.read().decode())
     except OSError:
         return None
+
+
+def test_head_is_answered_as_get_without_a_body(gateway: GatewayProc) -> None:
+    request = urllib.request.Request(gateway.metrics_url, method="HEAD")
+    with urllib.request.urlopen(request, timeout=5) as r:  # 405 before: an error here
+        assert r.status == 200 and r.headers["Content-Type"].startswith("text/plain")
+        assert int(r.headers["Content-Length"]) > 0 and r.read() == b""
+
+
+def _value(scrape: str, name: str, **labels: str) -> float | None:
+    """The sample `name{labels}`, or None (prometheus_client writes the labels sorted)."""
+    inner = ",".join(f'{k}="{v}"' for k, v in sorted(labels.items()))
+    found = re.search(rf"^{name}{{{re.escape(inner)}}} (\S+)$", scrape, re.M)
+    return float(found.group(1)) if found else None
+
+
+def test_a_machines_command_counters_are_there_at_zero_from_its_first_sight(
+    plant: Site, gateway: GatewayProc
+) -> None:
+    done = {"machine": "counted", "code": "RESP_DONE"}
+    with joined(plant, "counted"):
+        until(
+            "counted in a scrape",
+            lambda: _value(gateway.scrape(), "ride_machine_alive", machine="counted") or None,
+        )
+        # Before its first command: 0, so increase() counts the first one.
+        assert _value(gateway.scrape(), "ride_machine_commands_total", **done) == 0.0
+        refused = {"machine": "counted", "code": "WRONG_STATE"}
+        assert _value(gateway.scrape(), "ride_machine_commands_total", **refused) == 0.0
+        with plant.rider("counted", timeout=5.0, supervise=False) as r:
+            r.stop()
+        until(
+            "the Stop counted",
+            lambda: _value(gateway.scrape(), "ride_machine_commands_total", **done) == 1.0 or None,
+        )
+
+
+def test_a_gone_machine_keeps_only_alive_0_so_its_estop_alert_stops(
+    plant: Site, gateway: GatewayProc
+) -> None:
+    def scrape_with(what: str) -> str | None:
+        text = gateway.scrape()
+        return text if what in text else None
+
+    with joined(plant, "faded") as daemon:
+        with plant.rider("faded", timeout=5.0, supervise=False) as r:
+            r.sim("estop", pressed=True)
+        pressed = 'ride_machine_estop_active{machine="faded"} 1.0'
+        until("the E-stop in a scrape", lambda: scrape_with(pressed))
+        daemon.proc.send_signal(signal.SIGSTOP)  # frozen past its lease: its token goes
+        gone = until("faded gone", lambda: scrape_with('ride_machine_alive{machine="faded"} 0.0'))
+        # What RideMachineEstop and RideMachineFault match is gone (stale to Prometheus): only
+        # RideMachineGone fires. The time it was last heard stays.
+        for name in ("estop_active", "estop_latched", "state", "fault", "uptime_seconds"):
+            assert f'ride_machine_{name}{{machine="faded"' not in gone, name
+        assert 'ride_machine_cycle_execution_seconds{machine="faded"' not in gone
+        assert 'ride_machine_status_timestamp_seconds{machine="faded"}' in gone
+        daemon.proc.send_signal(signal.SIGCONT)
+        until(
+            "faded back, E-stop still latched",
+            lambda: scrape_with('ride_machine_estop_latched{machine="faded"} 1.0'),
+        )
