@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TextIO
 
@@ -157,16 +158,25 @@ def _add_credentials(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     cred = sub.add_parser("credentials", help="make the Zenoh login files of the ACL profiles")
     cred_sub = cred.add_subparsers(dest="cred_cmd", required=True)
     init = cred_sub.add_parser(
-        "init", help="random passwords for machine, rider and monitor, and the dictionary"
+        "init",
+        help="random passwords for the machine, each operator station and the monitor, and the"
+        " dictionary",
     )
     init.add_argument("directory", type=Path, help="where to write them (created 0700)")
     init.add_argument(
+        "--stations",
         "--station",
         action="append",
         default=[],
-        metavar="NAME",
-        help="a login of its own for this operator station, instead of the shared `rider`"
-        " (repeat for each; list them in the profile's `rider` subject)",
+        metavar="NAME[,NAME…]",
+        help="operator stations, a login each (besides the stack's own: ui, gateway); the"
+        " profiles make every login of the dictionary a station",
+    )
+    init.add_argument(
+        "--shared-rider",
+        action="store_true",
+        help="also the one `rider` login several stations share (not recommended: a station on"
+        " it can keep another's dead Rider alive; the machine warns at start)",
     )
     init.add_argument("--force", action="store_true", help="replace existing files")
 
@@ -221,7 +231,10 @@ def print_findings(findings: Findings, path: Path | None, as_json: bool) -> None
         print(f"{path or 'defaults'}: {errors} error(s), {warnings} warning(s); {verdict}")
 
 
-def credentials_init(directory: Path, force: bool, stations: tuple[str, ...] = ()) -> int:
+def credentials_init(
+    directory: Path, force: bool, stations: Sequence[str] = (), shared: bool = False
+) -> int:
+    """`machine credentials init`: `stations` as given (each a name or a comma list)."""
     from service.adapters.credentials import (
         DICTIONARY,
         CredentialsExist,
@@ -241,7 +254,8 @@ def credentials_init(directory: Path, force: bool, stations: tuple[str, ...] = (
         existing = [str(p) for p in opcua_files(directory) if p.exists()]
         if existing and not force:
             raise CredentialsExist(f"{', '.join(existing)}: exists already (--force replaces)")
-        users = identities(stations)
+        names = tuple(n.strip() for arg in stations for n in arg.split(",") if n.strip())
+        users = identities(names, shared=shared)
         written = init_credentials(directory, users, force=force)
         written += init_opcua(directory)  # the plant gateway's (docs/plant.md)
     except (CredentialsExist, OSError, ValueError) as exc:
@@ -256,15 +270,11 @@ def credentials_init(directory: Path, force: bool, stations: tuple[str, ...] = (
         " zenoh/acl.json5",
         *(
             f"{label:8} RIDER_ZENOH_USER={u} RIDER_ZENOH_PASSWORD_FILE={password_file(d, u)}"
-            for label, u in [*(("rider:", u) for u in riders), ("monitor:", "monitor")]
+            for label, u in [*(("station:", u) for u in riders), ("monitor:", "monitor")]
         ),
         f"gateway: rider gateway --users {d / USERS} --certificate {d / CERTIFICATE}"
-        f" --private-key {d / PRIVATE_KEY}",
+        f" --private-key {d / PRIVATE_KEY} (as station gateway)",
     ]
-    if stations:
-        names = ", ".join(f'"{u}"' for u in riders)
-        subject = f'{{ id: "rider", usernames: [{names}] }}'
-        lines.append(f"profile: in zenoh/acl.json5 (and tls.json5) set {subject}")
     print("\n".join(lines))
     return EXIT_OK
 
@@ -279,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     if args.cmd == "credentials":
-        return credentials_init(args.directory, args.force, tuple(args.station))
+        return credentials_init(args.directory, args.force, args.stations, args.shared_rider)
     if args.cmd == "schema":
         from schema.jsonschema import write
 

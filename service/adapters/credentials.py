@@ -3,8 +3,10 @@
 One `<user>.password` file per identity (one line, a random password) and `zenoh-users` (one
 `user:password` line each): exactly what `MACHINE_ZENOH_DICTIONARY_FILE`,
 `<SIDE>_ZENOH_PASSWORD_FILE` and the subjects of zenoh/acl.json5 expect (docs/security.md).
-With `--station NAME …` each operator station gets a login of its own instead of the shared
-`rider` one (its keys are `rider/<NAME>/…`, service/bus/stations.py).
+Every operator station gets a login of its own (its keys are `rider/<NAME>/…`,
+service/bus/stations.py): the stack's own two (`ui`, the compose file's UI and CLI, and
+`gateway`, the plant gateway) and each named with `--stations bay1,bay2`. The login all
+stations once shared, `rider`, only with `--shared-rider` (the daemon warns while it is used).
 """
 
 from __future__ import annotations
@@ -16,26 +18,32 @@ from schema.rider import login_ok
 from service.core.atomic import atomic_write
 
 IDENTITIES = ("machine", "rider", "monitor")
-"""The ACL subjects of zenoh/acl.json5 and zenoh/tls.json5, by user name."""
-ROLES = ("machine", "monitor")
-"""Logins that are not operator stations."""
+"""One login per ACL subject of zenoh/acl.json5 and zenoh/tls.json5 (the shared `rider`)."""
+ROLES = ("machine", "monitor", "router")
+"""Logins that are not operator stations (the profiles name them in subjects of their own)."""
+SHARED = "rider"
+"""The login several stations shared before each had its own (`--shared-rider`)."""
+STACK_STATIONS = ("ui", "gateway")
+"""The stations of the shipped stack, always made: compose.yaml's Rider (its UI and CLI) and
+the plant gateway (docker/compose.gateway.yaml)."""
 DICTIONARY = "zenoh-users"
 PASSWORD_BYTES = 24
 """192 random bits per password (URL-safe base64, no ':' and no spaces)."""
 
 
-def identities(stations: tuple[str, ...] = ()) -> tuple[str, ...]:
-    """The logins to make: the machine, one per station (`rider` without any), the monitor;
-    ValueError names a station that cannot be a login."""
+def identities(stations: tuple[str, ...] = (), *, shared: bool = False) -> tuple[str, ...]:
+    """The logins to make: the machine, the stack's stations and `stations`, the shared `rider`
+    when asked for, the monitor; ValueError names a station that cannot be a login."""
     for name in stations:
-        if not login_ok(name) or name in ROLES:
+        if not login_ok(name) or name in (*ROLES, SHARED):
             raise ValueError(
                 f"station {name!r}: a login of letters, digits and ._@+- (at most 64), other than"
-                f" {' and '.join(ROLES)}"
+                f" {', '.join(ROLES)} and {SHARED} (the shared login: --shared-rider)"
             )
-    if len(set(stations)) != len(stations):
-        raise ValueError("a station is named twice")
-    return ("machine", *(stations or ("rider",)), "monitor")
+    made = (*STACK_STATIONS, *stations)
+    if len(set(made)) != len(made):
+        raise ValueError(f"a station is named twice ({', '.join(STACK_STATIONS)} are always made)")
+    return ("machine", *made, *((SHARED,) if shared else ()), "monitor")
 
 
 class CredentialsExist(FileExistsError):

@@ -12,7 +12,7 @@ import zenoh
 
 from common.zenoh_session import LOCAL_ENDPOINT, MACHINE_SIDE
 from common.zenoh_session import zenoh_config as shared_config
-from service.bus.stations import expand, without_role
+from service.bus.stations import expand, fill_stations, without_role
 from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
@@ -32,10 +32,13 @@ def zenoh_config(
     conf = shared_config(MACHINE_SIDE, path, listen or None, connect)
     acl = json.loads(conf.get_json("access_control") or "null")
     if isinstance(acl, dict) and acl.get("enabled"):
-        # A rule per station login for the Riders' own keys (service/bus/stations.py).
-        conf.insert_json5("access_control", json.dumps(expand(acl)))
+        # The station logins, then a rule per station for the Riders' own keys
+        # (service/bus/stations.py).
         users = json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file") or "null")
-        for user in without_role(acl, Path(users)) if users else []:
+        dictionary = Path(users) if users else None
+        acl = fill_stations(acl, dictionary)
+        conf.insert_json5("access_control", json.dumps(expand(acl)))
+        for user in without_role(acl, dictionary) if dictionary else []:
             log.warning(
                 "event=login_without_role user=%s detail=%r",
                 user,

@@ -9,6 +9,13 @@ can thus neither hold nor feed another login's token or heartbeat (docs/security
 
 Left as it is (no daemon to expand it, e.g. under `zenohd`), the template matches no real key:
 nobody may supervise, which fails safe (a ride pauses when its Rider's heartbeat is not seen).
+
+The shipped profiles name no station either: their `rider` subject's user name `<stations>`
+stands for every login of the dictionary that no other subject names (`fill_stations`), so
+the logins `machine credentials init --stations bay1,bay2` makes are stations as they are. The
+one login all stations once shared, `rider`, is made only on request (`--shared-rider`), and
+the daemon warns at start while it is a station (two stations on one login can hold each
+other's Rider keys).
 """
 
 from __future__ import annotations
@@ -19,11 +26,14 @@ from pathlib import Path
 from typing import Any
 
 from schema.rider import login_ok
+from service.adapters.credentials import ROLES, SHARED
 
 log = logging.getLogger(__name__)
 
 LOGIN = "<login>"
 """The key chunk a rule's key expressions name the sending login by."""
+STATIONS = "<stations>"
+"""A subject's user name standing for every dictionary login no other subject names."""
 
 
 class StationError(ValueError):
@@ -64,16 +74,58 @@ def expand(acl: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def fill_stations(acl: dict[str, Any], dictionary: Path | None) -> dict[str, Any]:
+    """The block with `<stations>` replaced by the logins of `dictionary` that no other subject
+    names and no role has (sorted); as it is when no subject uses it. With no such login the
+    placeholder stays (a subject without user names would match every login): no station, and
+    a warning."""
+    holders = [s for s in acl.get("subjects", []) if STATIONS in (s.get("usernames") or [])]
+    if not holders:
+        return acl
+    users = dictionary_users(dictionary) if dictionary else set()
+    if STATIONS in users:
+        raise StationError(f"{dictionary}: a login may not be named {STATIONS!r}")
+    named = {u for s in acl["subjects"] for u in s.get("usernames") or [] if u != STATIONS}
+    # The role logins (machine, monitor, router) are never stations, named or not.
+    stations = sorted(u for u in users - named - set(ROLES) if login_ok(u))
+    if not stations:
+        log.warning(
+            "event=no_stations detail=%r",
+            f"no login in the dictionary for the {STATIONS} subject: no Rider may command"
+            " (machine credentials init DIR --stations NAME,…)",
+        )
+        return acl
+    out = copy.deepcopy(acl)
+    for subject in out["subjects"]:
+        names = subject.get("usernames") or []
+        if STATIONS in names:
+            subject["usernames"] = [u for u in names if u != STATIONS] + stations
+    if SHARED in stations:
+        log.warning(
+            "event=shared_login login=%s detail=%r",
+            SHARED,
+            "one login for every operator station: a station on it can keep another's Rider"
+            " alive after that station died, and confirm for it (docs/security.md); give each"
+            " station its own: machine credentials init DIR --stations bay1,bay2",
+        )
+    return out
+
+
 def without_role(acl: dict[str, Any], dictionary: Path) -> list[str]:
     """The logins of `dictionary` (`user:password` lines) that no subject names: they can open a
     session and nothing else (a station whose login was made but not listed, usually)."""
     named = {u for s in acl.get("subjects", []) for u in s.get("usernames") or []}
+    return sorted(dictionary_users(dictionary) - named)
+
+
+def dictionary_users(dictionary: Path) -> set[str]:
+    """The user names of a Zenoh dictionary file (`user:password` lines); none when it cannot be
+    read (Zenoh itself says what is wrong with the file)."""
     try:
         lines = dictionary.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError):
-        return []  # Zenoh itself says what is wrong with the file
-    users = {line.split(":", 1)[0].strip() for line in lines if ":" in line}
-    return sorted(users - named)
+        return set()
+    return {line.split(":", 1)[0].strip() for line in lines if ":" in line}
 
 
 def _is_template(rule: dict[str, Any]) -> bool:
@@ -81,7 +133,7 @@ def _is_template(rule: dict[str, Any]) -> bool:
 
 
 def _logins(subject: dict[str, Any]) -> list[str]:
-    names = list(subject.get("usernames", []))
+    names = [n for n in subject.get("usernames", []) if n != STATIONS]  # none: fill_stations
     if not names:
         log.warning(
             "event=acl_template_unused subject=%s detail=%r",

@@ -33,7 +33,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from service.adapters.credentials import IDENTITIES, init_credentials
+from service.adapters.credentials import identities, init_credentials
 from service.adapters.opcua_credentials import opcua_files
 from tests.procs import REPO
 
@@ -140,7 +140,7 @@ def project(tmp_path: Path) -> Path:
     for name in OVERRIDES:
         (root / "docker").mkdir(exist_ok=True)
         shutil.copy2(REPO / "docker" / name, root / "docker" / name)
-    init_credentials(root / "secrets", IDENTITIES)
+    init_credentials(root / "secrets", identities())
     for path in opcua_files(root / "secrets"):  # the gateway's, made by the same command
         path.write_text("")
     return root

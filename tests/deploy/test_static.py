@@ -25,7 +25,7 @@ from urllib.parse import urlsplit
 import pytest
 import zenoh
 
-from service.adapters.credentials import DICTIONARY, IDENTITIES, password_file
+from service.adapters.credentials import DICTIONARY, identities, password_file
 from service.adapters.heartbeat import HEARTBEAT_FILE_ENV, INTERVAL_S
 from service.adapters.opcua_credentials import opcua_files
 from service.bus import close_session
@@ -161,18 +161,19 @@ def test_machine_runs_the_authenticated_profile_and_clients_log_in(
     env = spec.environment(machine)
     secrets = spec.secret_paths(compose, machine, REPO / "secrets")
     assert secrets[env["MACHINE_ZENOH_DICTIONARY_FILE"]].name == DICTIONARY
-    # the supervisor's daemon child logs in to its router as `machine`; the UI commands as rider
+    # the supervisor's daemon child logs in to its router as `machine`; the UI as station ui
     assert env["MACHINE_ZENOH_USER"] == "machine"
     machine_password = secrets[env["MACHINE_ZENOH_PASSWORD_FILE"]]
     assert machine_password == password_file(REPO / "secrets", "machine")
     rider = spec.service(compose, "rider")
     env = spec.environment(rider)
-    assert env["RIDER_ZENOH_USER"] == "rider"
+    assert env["RIDER_ZENOH_USER"] == "ui"  # the stack's own station, a login of its own
     host = spec.secret_paths(compose, rider, REPO / "secrets")[env["RIDER_ZENOH_PASSWORD_FILE"]]
-    assert host == password_file(REPO / "secrets", "rider")
+    assert host == password_file(REPO / "secrets", "ui")
     declared = {Path(d["file"]).name for d in compose["secrets"].values()}
     gateway = {p.name for p in opcua_files(Path())}  # the plant gateway's (docs/plant.md)
-    assert declared <= {password_file(Path(), u).name for u in IDENTITIES} | {DICTIONARY} | gateway
+    logins = {password_file(Path(), u).name for u in identities()}
+    assert declared <= logins | {DICTIONARY} | gateway
 
 
 def test_machine_config_and_data_dir_are_mounted(compose: dict[str, Any]) -> None:

@@ -31,7 +31,7 @@ import pytest
 from rider.cli import EXIT_OK
 from schema.commands import RotateStep, Session
 from schema.status import MachineState, Status
-from service.adapters.credentials import init_credentials
+from service.adapters.credentials import identities, init_credentials
 from tests.deploy import spec
 from tests.freeze_whole import plant_world
 from tests.integration.support import write_fast_config
@@ -137,7 +137,7 @@ class Stack:
         """The service's /run/secrets files, made here as `machine credentials init` makes them."""
         host_dir = self.tmp / "secrets"
         if not host_dir.exists():
-            init_credentials(host_dir)
+            init_credentials(host_dir, identities())
         return spec.secret_paths(self.compose, self.svc(name), host_dir)
 
     def env(self, name: str) -> dict[str, str]:

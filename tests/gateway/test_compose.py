@@ -30,9 +30,9 @@ def test_the_gateway_service_is_opt_in_and_on_host_loopback() -> None:
         f"127.0.0.1:{gw.metrics[1]}:{gw.metrics[1]}",
     ]
     env = spec.environment(svc)
-    assert env["RIDER_ZENOH_USER"] == "rider" and not gw.monitor
+    assert env["RIDER_ZENOH_USER"] == "gateway" and not gw.monitor  # a station of its own
     secrets = spec.secret_paths(override, svc, REPO / "secrets")
-    assert secrets[env["RIDER_ZENOH_PASSWORD_FILE"]] == password_file(REPO / "secrets", "rider")
+    assert secrets[env["RIDER_ZENOH_PASSWORD_FILE"]] == password_file(REPO / "secrets", "gateway")
     made = {Path(name) for name in (USERS, CERTIFICATE, PRIVATE_KEY)}
     assert {
         secrets[str(p)].relative_to(REPO / "secrets")

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from common.credentials import RIDER, zenoh_settings
-from service.adapters.credentials import DICTIONARY, IDENTITIES, password_file
+from service.adapters.credentials import DICTIONARY, identities, password_file
 from tests import procs
 from tests.netns import NetnsUnavailable, veth_pair
 from tests.procs import REPO, START_TIMEOUT_S, free_port, machine_cmd, stop_process
@@ -88,21 +88,24 @@ def test_listening_beyond_loopback_without_a_login_warns_how_to_turn_it_on(tmp_p
     assert "machine credentials init" in line
 
 
+@pytest.mark.hazard("H33")
 def test_credentials_init_makes_files_an_acl_daemon_starts_with(tmp_path: Path) -> None:
     secrets = tmp_path / "secrets"
     done = procs.run_machine("credentials", "init", str(secrets))
     assert done.returncode == 0, done.stderr
-    files = [password_file(secrets, u) for u in IDENTITIES] + [secrets / DICTIONARY]
+    made = identities()  # one login per station, none shared (issue 58, point 3)
+    assert "rider" not in made and {"ui", "gateway"} <= set(made)
+    files = [password_file(secrets, u) for u in made] + [secrets / DICTIONARY]
     assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in files)
     assert stat.S_IMODE(secrets.stat().st_mode) == 0o700
     lines = dict(line.split(":", 1) for line in (secrets / DICTIONARY).read_text().splitlines())
-    assert set(lines) == set(IDENTITIES)
+    assert set(lines) == set(made)
     env = {
-        "RIDER_ZENOH_USER": "rider",
-        "RIDER_ZENOH_PASSWORD_FILE": str(password_file(secrets, "rider")),
+        "RIDER_ZENOH_USER": "ui",
+        "RIDER_ZENOH_PASSWORD_FILE": str(password_file(secrets, "ui")),
     }
-    assert zenoh_settings(RIDER, env)["transport/auth/usrpwd/password"] == f'"{lines["rider"]}"'
-    assert len(set(lines.values())) == len(IDENTITIES)  # one password each
+    assert zenoh_settings(RIDER, env)["transport/auth/usrpwd/password"] == f'"{lines["ui"]}"'
+    assert len(set(lines.values())) == len(made)  # one password each
 
     again = procs.run_machine("credentials", "init", str(secrets))
     assert again.returncode == 1 and "exists already" in again.stderr
@@ -125,3 +128,4 @@ def test_credentials_init_makes_files_an_acl_daemon_starts_with(tmp_path: Path) 
     finally:
         stop_process(proc)
     assert WARNING not in text
+    assert "event=acl_stations logins=gateway,ui" in text and "shared_login" not in text

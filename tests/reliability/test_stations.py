@@ -121,20 +121,21 @@ def test_a_second_station_can_neither_hold_nor_feed_the_first_stations_deadman(
 
 
 @pytest.mark.hazard("H33")
-def test_a_station_without_a_subject_is_named_at_start(
+def test_the_shipped_profile_makes_every_station_login_a_station_at_start(
     tmp_path_factory: pytest.TempPathFactory, stations: tuple[Identities, Path]
 ) -> None:
-    """A login made for a station but left out of the profile can connect and do nothing: the
-    daemon says so as it starts, by name (here the shipped profile, which lists `rider` only)."""
+    """The shipped profile names no station: the daemon makes each login of the dictionary that
+    no other subject names a station as it starts, and says which (issue 58, point 3)."""
     ids, _ = stations
     daemon = start_machine(
-        tmp_path_factory.mktemp("stations-unlisted"),
+        tmp_path_factory.mktemp("stations-shipped"),
         profile=ACL_PROFILE,
         env={env_name(MACHINE, "DICTIONARY_FILE"): str(ids.dictionary)},
         wait=False,
     )
     try:
-        for station in STATIONS:
-            assert daemon.has_logged(f"event=login_without_role user={station}", 20.0), daemon.log()
+        assert daemon.has_logged("event=acl_stations logins=bay1,bay2,gateway,ui", 20.0)
+        assert "login_without_role" not in daemon.log()
+        assert "shared_login" not in daemon.log()
     finally:
         daemon.stop()
