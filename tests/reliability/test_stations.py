@@ -1,5 +1,6 @@
-"""One login per operator station (issue 43, reproduction 1), with two station logins of the
-test's own: `bay1` supervises a ride, `bay2` is the forger.
+"""One login per operator station (issue 43, reproduction 1; issue 58, point 3), with the
+station logins `machine credentials init --stations bay1,bay2` makes and the shipped profile:
+`bay1` supervises a ride, `bay2` is the forger.
 
 Under one shared `rider` login a second process held the victim's `rider/<zid>/alive` token and
 put its heartbeat: the victim SIGKILLed mid-session, the ride ran on to DONE with
@@ -41,22 +42,14 @@ forger lives 60 s, so a ride it kept alive would still be RUNNING."""
 
 @pytest.fixture(scope="module")
 def stations(tmp_path_factory: pytest.TempPathFactory) -> tuple[Identities, Path]:
-    """`machine credentials init --station bay1 --station bay2`'s files, and the shipped profile
-    with the two stations in its `rider` subject (the edit the command prints)."""
+    """`machine credentials init --stations bay1,bay2`'s files and the shipped profile as it is:
+    its `<stations>` subject makes every station login a station (issue 58, point 3; the old
+    profile named the shared `rider` only, and bay1 and bay2 could do nothing)."""
     directory = tmp_path_factory.mktemp("stations")
     users = identities(STATIONS)
     init_credentials(directory, users)
     files = {u: password_file(directory, u) for u in users}
-    ids = Identities(directory / DICTIONARY, files, files["monitor"])
-    conf = zenoh.Config.from_file(str(ACL_PROFILE))
-    acl = json.loads(conf.get_json("access_control"))
-    for subject in acl["subjects"]:
-        if subject["id"] == "rider":
-            subject["usernames"] = list(STATIONS)
-    conf.insert_json5("access_control", json.dumps(acl))
-    profile = directory / "acl-stations.json5"
-    profile.write_text(str(conf))
-    return ids, profile
+    return Identities(directory / DICTIONARY, files, files["monitor"]), ACL_PROFILE
 
 
 @pytest.mark.hazard("H33")
