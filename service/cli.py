@@ -7,6 +7,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 from typing import TextIO
 
 from schema.findings import Findings, Severity
@@ -242,28 +243,24 @@ def credentials_init(
         init_credentials,
         password_file,
     )
-    from service.adapters.opcua_credentials import (
-        CERTIFICATE,
-        PRIVATE_KEY,
-        USERS,
-        init_opcua,
-        opcua_files,
-    )
 
+    opcua = _opcua_credentials()
     try:
-        existing = [str(p) for p in opcua_files(directory) if p.exists()]
+        existing = [str(p) for p in opcua.opcua_files(directory) if p.exists()] if opcua else []
         if existing and not force:
             raise CredentialsExist(f"{', '.join(existing)}: exists already (--force replaces)")
         names = tuple(n.strip() for arg in stations for n in arg.split(",") if n.strip())
         users = identities(names, shared=shared)
         written = init_credentials(directory, users, force=force)
-        written += init_opcua(directory)  # the plant gateway's (docs/plant.md)
+        if opcua is not None:
+            written += opcua.init_opcua(directory)  # the plant gateway's (docs/plant.md)
     except (CredentialsExist, OSError, ValueError) as exc:
         print(f"machine: credentials: {exc}", file=sys.stderr)
         return EXIT_FAILED
     for path in written:
         print(f"wrote {path}")
-    d = directory.resolve()
+    # As given, not resolved: run in a container, a resolved path would be the container's.
+    d = directory
     riders = users[1:-1]
     lines = [
         f"machine: MACHINE_ZENOH_DICTIONARY_FILE={d / DICTIONARY} machine run --zenoh-config"
@@ -272,11 +269,34 @@ def credentials_init(
             f"{label:8} RIDER_ZENOH_USER={u} RIDER_ZENOH_PASSWORD_FILE={password_file(d, u)}"
             for label, u in [*(("station:", u) for u in riders), ("monitor:", "monitor")]
         ),
-        f"gateway: rider gateway --users {d / USERS} --certificate {d / CERTIFICATE}"
-        f" --private-key {d / PRIVATE_KEY} (as station gateway)",
+        _gateway_hint(d, opcua),
     ]
     print("\n".join(lines))
     return EXIT_OK
+
+
+def _opcua_credentials() -> ModuleType | None:
+    """The gateway's OPC UA credentials module; None where the gateway's libraries are not
+    installed (the machine's image: docs/deploy.md)."""
+    try:
+        from service.adapters import opcua_credentials
+    except ModuleNotFoundError as exc:
+        if exc.name != "cryptography":
+            raise
+        return None
+    return opcua_credentials
+
+
+def _gateway_hint(d: Path, opcua: ModuleType | None) -> str:
+    if opcua is None:
+        return (
+            "gateway: its OPC UA files not made: this installation has no gateway libraries"
+            " (with the plant gateway, run this command in its image: docs/deploy.md)"
+        )
+    return (
+        f"gateway: rider gateway --users {d / opcua.USERS} --certificate {d / opcua.CERTIFICATE}"
+        f" --private-key {d / opcua.PRIVATE_KEY} (as station gateway)"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
