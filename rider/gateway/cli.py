@@ -13,6 +13,7 @@ from pathlib import Path
 
 from rider.client import BadCredentials, BadRuntime, MachineTimeout
 from rider.exits import own_options
+from rider.gateway import nodeset_cache
 from rider.gateway.identity import Limits
 from rider.gateway.security import BadUsers, read_certificates, read_users
 from rider.gateway.server import Gateway, Options
@@ -114,6 +115,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--private-key", type=Path, help="the certificate's private key (PEM)")
     _session_options(p)
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=nodeset_cache.default_dir(),
+        help="where the OPC UA standard nodes are kept on disk, read as needed (default"
+        " $XDG_CACHE_HOME/ride-machine or ~/.cache/ride-machine)",
+    )
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="hold the standard nodes in memory (about 50 MB more)",
+    )
     p.add_argument("--prefix", default="machine", help="key prefix (default: machine)")
     p.add_argument("--timeout", type=_seconds, default=2.0, help="command reply timeout, s")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -148,6 +161,7 @@ def options_from(
         prefix=args.prefix,
         zenoh_threads=zenoh_threads,
         max_sessions=args.max_sessions,
+        cache_dir=None if args.no_cache else args.cache_dir,
     )
 
 

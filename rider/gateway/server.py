@@ -26,6 +26,7 @@ from prometheus_client import (
 )
 
 from rider.client import NoMachine, rider_login
+from rider.gateway import nodeset_cache
 from rider.gateway.alarmlist import AlarmList
 from rider.gateway.alarms import alarm_of
 from rider.gateway.bus import Attached, Deliver, GatewayBus, Snapshot
@@ -78,6 +79,8 @@ class Options:
     prefix: str = "machine"
     zenoh_threads: int = 1
     max_sessions: int = Limits.sessions
+    cache_dir: Path | None = None
+    """Where the standard address space's shelf is kept (None: built in memory)."""
 
 
 class Gateway:
@@ -111,6 +114,8 @@ class Gateway:
     # ------------------------------------------------------------------------------- setup
     async def _opcua(self) -> None:
         o, s = self.o, self.server
+        if o.cache_dir is not None:
+            self.iserver.nodeset = await asyncio.to_thread(nodeset_cache.ensure, o.cache_dir)
         await s.init()
         host, port = o.opcua
         s.set_endpoint(f"opc.tcp://{host}:{port}/")

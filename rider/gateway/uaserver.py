@@ -9,6 +9,7 @@ Subclasses of asyncua's own classes, hooked in where asyncua makes them (`Server
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 from asyncua import Server, ua
@@ -19,6 +20,7 @@ from asyncua.server.internal_server import InternalServer
 from asyncua.server.internal_session import InternalSession, SessionState
 from asyncua.ua.uaprotocol_auto import DataChangeFilter
 
+from rider.gateway import nodeset_cache
 from rider.gateway.calls import Calls, Invocation, Role
 from rider.gateway.identity import Counts, Limits
 from rider.gateway.security import Caller
@@ -167,6 +169,9 @@ class GatewayInternalServer(InternalServer):  # type: ignore[misc]
 
     def __init__(self, user_manager: Any, limits: Limits | None = None) -> None:
         super().__init__(user_manager=user_manager)
+        self.nodeset: Path | None = None
+        """The standard address space's shelf (rider/gateway/nodeset_cache.py); None: build
+        it in memory."""
         self.limits = limits or Limits()
         self.counts = Counts()
         self.max_subscriptions = self.limits.subscriptions  # asyncua's own, server-wide
@@ -174,6 +179,13 @@ class GatewayInternalServer(InternalServer):  # type: ignore[misc]
         self.calls.bind(
             ua.NodeId(ua.ObjectIds.Server_GetMonitoredItems), Role.SESSION, self.get_monitored_items
         )
+
+    async def load_standard_address_space(self, shelf_file: Path | None = None) -> None:
+        """From `nodeset` when there is one: its nodes read as they are touched."""
+        if self.nodeset is not None:
+            nodeset_cache.load(self, self.nodeset)
+        else:
+            await super().load_standard_address_space(None)
 
     def monitored_items(self) -> int:
         """Monitored items of every subscription now."""
