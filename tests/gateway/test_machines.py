@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import asyncio
 import re
+from typing import Any
 
 import pytest
 from asyncua import ua
 
-from tests.gateway.support import FORGET_AFTER_S, GatewayProc, until
+from tests.gateway.support import FORGET_AFTER_S, GatewayProc, joined, until
 from tests.gateway.ua import Changes, connected, eventually, machines, ns, read, run
 from tests.site.stand import Site
 
@@ -67,3 +68,30 @@ def test_two_machines_arrive_and_one_leaves(plant: Site, gateway: GatewayProc) -
         for mid in ("m2", "m3"):
             if (daemon := plant.daemons.pop(mid, None)) is not None:
                 daemon.stop()
+
+
+def test_a_machine_may_be_called_machines(plant: Site, gateway: GatewayProc) -> None:
+    """The gateway's own nodes have ids of their own (`gateway.Machines`): a machine whose id is
+    `Machines` is a machine like any other (it never appeared: its object's id was the
+    folder's)."""
+    with joined(plant, "Machines"):
+
+        async def listed() -> None:
+            async with connected(gateway.url) as c:
+                idx = await ns(c)
+                folder = await c.nodes.objects.get_child(f"{idx}:Machines")
+
+                async def there() -> bool | None:
+                    names = {r.BrowseName.Name for r in await folder.get_children_descriptions()}
+                    return "Machines" in names or None
+
+                await eventually("a machine called Machines listed", there)
+                dv = await eventually("its State", lambda: _good(read(c, "Machines", "State")))
+                assert dv.Value.Value
+
+        run(listed())
+
+
+async def _good(pending: Any) -> ua.DataValue | None:
+    dv = await pending
+    return dv if dv.StatusCode.is_good() else None
