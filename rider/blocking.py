@@ -3,16 +3,15 @@ event query, subscription and wait (the parts: rider/client.py's docstring lists
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any, Generic, TypeVar, overload
+from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 
 import zenoh
 
 from rider.commands import Commands
-from rider.completions import Completions
 from rider.discovery import Discovery, Listing
-from rider.events import Events
 from rider.link import DEFAULT_TIMEOUT_S, Link
 from rider.machines import MachineInfo, Machines
 from rider.pinning import Holders
@@ -23,14 +22,18 @@ from rider.transport import Transport
 from schema.axes import AxisRecord
 from schema.calibration import CalibrationRecord, RotateCalibrationSet, TiltCalibrationSet
 from schema.commands import CheckResult, Command, CommandRequest, Reply, Session, StartRequest
-from schema.completion import Completion
 from schema.diag import CycleDiag
-from schema.events import Event, EventPage, EventQuery, EventSummary
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamValue
 from schema.sim import SimWorldState
 from schema.status import MachineState, Status
+
+if TYPE_CHECKING:  # loaded by the first event query or wait: `rider status` needs neither
+    from rider.completions import Completions
+    from rider.events import Events
+    from schema.completion import Completion
+    from schema.events import Event, EventPage, EventQuery, EventSummary
 
 T = TypeVar("T")
 
@@ -101,8 +104,20 @@ class Rider:
         self._commands = Commands(self.link, self._machines, self.transport)
         self._reads = Reads(self._machines, self.transport, self._commands)
         self._subs = Subscriptions(self.link, self._machines, self.transport.pins)
-        self._events = Events(self.link, self._machines, self.transport, self._subs)
-        self._completions = Completions(self._machines, self.transport, self._subs, self._reads)
+
+    @functools.cached_property
+    def _events(self) -> Events:
+        """The event history's part, made at its first use (its models are the largest)."""
+        from rider.events import Events
+
+        return Events(self.link, self._machines, self.transport, self._subs)
+
+    @functools.cached_property
+    def _completions(self) -> Completions:
+        """Completion notices and waits, made at their first use."""
+        from rider.completions import Completions
+
+        return Completions(self._machines, self.transport, self._subs, self._reads)
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:

@@ -18,7 +18,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
-from rider.blocking import Rider
 from rider.errors import CommandRefused, DuplicateMachine, RiderError
 from rider.exits import (
     EXIT_AMBIGUOUS,
@@ -31,8 +30,7 @@ from rider.exits import (
     EXITS,
     UsageError,
 )
-from rider.link import env_connect
-from rider.subcommands import live, motion, reads, settings
+from rider.subcommands import parsers
 from rider.text import printable
 
 N = TypeVar("N", int, float)
@@ -51,23 +49,25 @@ __all__ = [
 ]
 
 SUBCOMMANDS = (
-    reads.add_status,
-    live.add_watch,
-    motion.add_motions,
-    settings.add_calibration,
-    reads.add_done,
-    reads.add_check,
-    reads.add_io,
-    reads.add_axes,
-    reads.add_diag,
-    settings.add_params,
-    reads.add_validate,
-    live.add_machines,
-    settings.add_sim,
-    live.add_events,
+    parsers.add_status,
+    parsers.add_watch,
+    parsers.add_motions,
+    parsers.add_calibration,
+    parsers.add_done,
+    parsers.add_check,
+    parsers.add_io,
+    parsers.add_axes,
+    parsers.add_diag,
+    parsers.add_params,
+    parsers.add_validate,
+    parsers.add_machines,
+    parsers.add_sim,
+    parsers.add_events,
 )
 """The sub-commands run on a Rider, in the order `rider --help` lists them; each parser carries
-its handler (`args.func`)."""
+its handler (`args.func`), loaded when it runs: this module and the parsers import neither Zenoh
+nor a wire model, so `rider --help` and bad usage answer at once
+(tests/rider/test_cli_imports.py)."""
 
 OWN_OPTIONS = ("fastdata", "ui", "gateway")
 """Sub-commands that parse their own options (rider/fastdata.py, rider/ui/app.py,
@@ -155,6 +155,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
     if args.cmd == "fastdata" and (code := _fastdata(args, rest)) is not None:
         return code
+    from rider.link import env_connect  # Zenoh: only for a command that runs
+
     connect = args.connect or env_connect()
     if args.cmd == "gateway":
         from rider.gateway.cli import main as gateway_main
@@ -184,13 +186,15 @@ def _fastdata(args: argparse.Namespace, rest: list[str]) -> int | None:
     if not rest or rest[0] not in SET_COMMANDS:
         return int(fastdata_main(rest))
     reg = parse_set(rest)
-    args.cmd, args.params_cmd, args.func = "params", "set", settings.set_param
+    args.cmd, args.params_cmd, args.func = "params", "set", parsers.SET_PARAM
     args.name, args.value, args.persist = reg.name, reg.value, reg.persist
     return None
 
 
 def _run(args: argparse.Namespace, connect: list[str]) -> int:
     """Run the sub-command's handler on a Rider; an error that ends it becomes its exit code."""
+    from rider.blocking import Rider  # the client: only for a command that runs
+
     try:
         # A one-shot command that exits at once supervises nothing; `--wait` and live views do.
         supervise = bool(getattr(args, "wait", False)) or args.cmd == "watch"

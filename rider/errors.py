@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
-from schema.commands import Reply
-from schema.errors import Error, ErrorCode
+if TYPE_CHECKING:  # the wire models load only where a reply is decoded: `rider --help` needs none
+    from schema.commands import Reply
 
 
 class RiderError(Exception):
@@ -20,6 +21,8 @@ class CommandRefused(RiderError):
     """The machine answered with an error (wrong state, bad payload, ...)."""
 
     def __init__(self, reply: Reply) -> None:
+        from schema.errors import Error, ErrorCode  # loaded already: `reply` is a wire model
+
         error = reply.error or Error(code=ErrorCode.INTERNAL, message="refused without reason")
         where = f" at {error.path}" if error.path else ""
         super().__init__(f"{error.code}: {error.message}{where}")

@@ -7,7 +7,7 @@ import json
 import time
 from collections.abc import Callable
 from datetime import datetime
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from pydantic import BaseModel
 
@@ -19,11 +19,13 @@ from schema.calibration import CalibrationRecord
 from schema.commands import CheckResult, Reply
 from schema.completion import Completion
 from schema.diag import CycleDiag
-from schema.events import Event, EventSummary, describe
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamValue
 from schema.status import Status
+
+if TYPE_CHECKING:
+    from schema.events import Event, EventSummary
 
 T = TypeVar("T")
 
@@ -211,6 +213,8 @@ def fmt_machine(m: MachineInfo) -> str:
 
 
 def fmt_event(e: Event, with_machine: bool = False) -> str:
+    from schema.events import describe  # the history's models: only where events are shown
+
     stamp = datetime.fromtimestamp(e.time).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
     who = f"{e.machine_id:8} " if with_machine else ""
     return f"{stamp} {who}#{e.seq:<6} {e.kind:15} {describe(e.details)}"

@@ -11,8 +11,6 @@ from __future__ import annotations
 from enum import Enum
 from typing import Any, TypeVar
 
-from pydantic import BaseModel
-
 T = TypeVar("T")
 
 
@@ -25,6 +23,8 @@ def printable(text: str) -> str:
 
 def shown(value: T) -> T:
     """A copy of a wire model (or list, dict, str) with every string made `printable`."""
+    from pydantic import BaseModel  # here, not above: `printable` alone loads no pydantic
+
     out: Any
     if isinstance(value, Enum):
         out = value  # our own names, and an enum member must stay one for comparisons

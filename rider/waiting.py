@@ -21,10 +21,6 @@ from collections.abc import Callable
 from rider.text import printable
 from schema.status import MachineState, Status
 
-LINK_LIMIT_S = 30.0
-"""`--link-limit`'s default: the wait gives up after this long without a word from the machine
-(the deadman paused a ride this Rider supervised after `rider_loss.timeout_s`)."""
-
 
 def tell(text: str) -> None:
     print(f"rider: {printable(text)}", file=sys.stderr, flush=True)

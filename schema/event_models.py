@@ -1,9 +1,8 @@
-"""The event history's wire models: the kinds of event, one details model per kind (told apart by
+"""The event history's wire models: one details model per kind of event (told apart by
 `kind`), an event as stored and read, and a page of them as the `events` queryable replies."""
 
 from __future__ import annotations
 
-from enum import StrEnum
 from typing import Annotated, Any, Literal
 
 from pydantic import Field, model_validator
@@ -12,33 +11,6 @@ from schema.base import OpenWireModel
 from schema.status import MachineState
 
 ParamScalar = bool | int | float | str
-
-
-class EventKind(StrEnum):
-    """Every kind of event the machine records; the string is what the wire and the db carry."""
-
-    COMMAND = "command"
-    COMPLETION = "completion"
-    STATE = "state"
-    FAULT_RAISED = "fault_raised"
-    FAULT_CLEARED = "fault_cleared"
-    ESTOP_PRESSED = "estop_pressed"
-    ESTOP_RELEASED = "estop_released"
-    ESTOP_LATCHED = "estop_latched"
-    ESTOP_RESET = "estop_reset"
-    SESSION_STARTED = "session_started"
-    SESSION_ENDED = "session_ended"
-    CALIBRATION = "calibration"
-    PARAM_CHANGED = "param_changed"
-    SAFETY_CHANGED = "safety_changed"
-    RIDER_LOST = "rider_lost"
-    RIDER_RETURNED = "rider_returned"
-    WATCHDOG_TRIP = "watchdog_trip"
-    CLOCK_SET = "clock_set"
-    DAEMON_START = "daemon_start"
-    DAEMON_STOP = "daemon_stop"
-    STORAGE_FAILED = "storage_failed"
-    EVENTS_DROPPED = "events_dropped"
 
 
 class CommandEvent(OpenWireModel):

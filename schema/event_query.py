@@ -10,7 +10,8 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import TypeVar
 
-from schema.event_models import Event, EventKind
+from schema.event_kinds import EventKind
+from schema.event_models import Event
 
 
 class QueryError(ValueError):

@@ -7,12 +7,12 @@ from collections import Counter
 from collections.abc import Iterable
 
 from schema.base import OpenWireModel
+from schema.event_kinds import EventKind
 from schema.event_models import (
     CommandEvent,
     DaemonStartEvent,
     DroppedEvent,
     Event,
-    EventKind,
     FaultEvent,
     SessionEndedEvent,
 )

@@ -23,6 +23,7 @@ from datetime import datetime
 from typing import Any
 
 from schema.departure import departure_text
+from schema.event_kinds import EventKind
 from schema.event_models import (
     CalibrationEvent,
     ClockEvent,
@@ -33,7 +34,6 @@ from schema.event_models import (
     Details,
     DroppedEvent,
     EstopEvent,
-    EventKind,
     FaultEvent,
     ParamEvent,
     RiderEvent,

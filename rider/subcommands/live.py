@@ -1,5 +1,6 @@
 """`rider watch`, `rider machines [--watch]` and `rider events [--follow]`: what happens, as it
-happens (each with `--for S` to stop after S seconds)."""
+happens (each with `--for S` to stop after S seconds). The handlers; their parsers:
+rider/subcommands/parsers.py."""
 
 from __future__ import annotations
 
@@ -11,26 +12,9 @@ import time
 from rider.blocking import Rider
 from rider.exits import EXIT_DUPLICATE, EXIT_NO_REPLY, EXIT_OK, UsageError
 from rider.formats import emit, fmt_event, fmt_machine, fmt_summary, fmt_update
-from rider.subcommands import Subparsers
 from rider.text import printable, shown
-from schema.events import EventKind, EventQuery, query_of
+from schema.events import EventQuery, query_of
 from schema.status import MachineState, Status
-
-
-def add_watch(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    w = sub.add_parser("watch", help="live status / IO / axis updates")
-    w.add_argument("--keys", default="status,io/**,axis/**", help="comma-separated keys")
-    w.add_argument(
-        "--for", dest="duration", type=float, default=None, help="stop after this many seconds"
-    )
-    w.add_argument(
-        "--until",
-        nargs="*",
-        default=None,
-        metavar="STATE",
-        help="stop when the machine reaches one of these states",
-    )
-    w.set_defaults(func=watch)
 
 
 def watch(args: argparse.Namespace, rider: Rider) -> int:
@@ -52,13 +36,6 @@ def watch(args: argparse.Namespace, rider: Rider) -> int:
             if deadline is not None and time.monotonic() > deadline:
                 break
     return EXIT_OK if until is None else EXIT_NO_REPLY
-
-
-def add_machines(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    m = sub.add_parser("machines", help="machines alive on the network")
-    m.add_argument("--watch", action="store_true", help="follow arrivals and departures")
-    m.add_argument("--for", dest="duration", type=float, default=None)
-    m.set_defaults(func=machines)
 
 
 def machines(args: argparse.Namespace, rider: Rider) -> int:
@@ -91,28 +68,6 @@ def machines(args: argparse.Namespace, rider: Rider) -> int:
         if deadline is not None and time.monotonic() > deadline:
             break
     return EXIT_OK
-
-
-def add_events(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    ev = sub.add_parser("events", help="the machine's event history (what happened, when, who)")
-    ev.add_argument(
-        "--since", help="a seq number, an age (30m, 12h, 7d) or a local time (2026-11-27T14:00)"
-    )
-    ev.add_argument("--until", help="as --since")
-    ev.add_argument(
-        "--kind",
-        action="append",
-        default=[],
-        help=f"only these kinds (repeatable or comma-separated): {', '.join(EventKind)}",
-    )
-    ev.add_argument("--last", type=int, help="only the newest N (default 20 without --since)")
-    ev.add_argument("--follow", action="store_true", help="then print new events as they happen")
-    ev.add_argument("--for", dest="duration", type=float, help="with --follow: stop after S s")
-    ev.add_argument(
-        "--summary", action="store_true", help="sessions, ride time, E-stops, faults by code"
-    )
-    ev.add_argument("--json", action="store_true", default=argparse.SUPPRESS, help="JSON lines")
-    ev.set_defaults(func=events)
 
 
 def event_query(args: argparse.Namespace, now: float) -> EventQuery:

@@ -1,6 +1,7 @@
 """`rider home|pause|resume|stop|calibrate|start [--wait]`: the commands that move (or stop) a
 ride, and `--wait`: the motion's completion notice, told on stderr while it is awaited (exit 1
-unless it ended DONE, 6 once the machine is unheard for `--link-limit`)."""
+unless it ended DONE, 6 once the machine is unheard for `--link-limit`). The handlers; their
+parsers: rider/subcommands/parsers.py."""
 
 from __future__ import annotations
 
@@ -16,47 +17,11 @@ from rider.blocking import Rider
 from rider.errors import RiderError
 from rider.exits import EXIT_OK, EXIT_REFUSED, UsageError
 from rider.formats import emit, fmt_completion, fmt_reply, fmt_status
-from rider.subcommands import Subparsers
 from rider.text import printable
-from rider.waiting import LINK_LIMIT_S, WaitTeller, quiet_limit
+from rider.waiting import WaitTeller, quiet_limit
 from schema.commands import Reply, Session
 from schema.completion import Outcome
 from schema.status import MachineState
-
-WAIT_HELP = "wait for the completion notice of this command's motion (exit 1 unless DONE)"
-
-
-def add_motions(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    """`home`, `pause`, `resume`, `stop`, `calibrate AXIS` and `start [--session FILE]`."""
-    for name, text in (
-        ("home", "home both axes (tilt, then rotate)"),
-        ("pause", "pause motion, relays off"),
-        ("resume", "resume after pause or a released E-stop"),
-        ("stop", "stop, clear the session, DONE"),
-    ):
-        _wait_options(sub.add_parser(name, help=text))
-    cal = sub.add_parser("calibrate", help="calibrate an axis")
-    cal.add_argument("axis", choices=["tilt", "rotate"])
-    _wait_options(cal)
-    st = sub.add_parser("start", help="start a session (default: tilt 45°, rotate CW x3)")
-    st.add_argument("--session", type=Path, help="session file (JSON or TOML)")
-    _wait_options(st)
-
-
-def _wait_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--wait", action="store_true", help=WAIT_HELP)
-    p.add_argument(
-        "--wait-timeout", type=float, default=600.0, help="give up waiting after this many s"
-    )
-    p.add_argument(
-        "--link-limit",
-        type=float,
-        default=LINK_LIMIT_S,
-        metavar="S",
-        help="give up waiting (exit 6) after S seconds without a word from the machine"
-        f" (default {LINK_LIMIT_S:g})",
-    )
-    p.set_defaults(func=motion)
 
 
 def motion(args: argparse.Namespace, rider: Rider) -> int:

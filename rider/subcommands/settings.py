@@ -1,5 +1,6 @@
 """`rider calibration [set …]`, `rider params list|get|set|reset` and `rider sim FAULT`: what
-an operator sets on the machine (and, on a simulator, the faults it injects)."""
+an operator sets on the machine (and, on a simulator, the faults it injects). The handlers;
+their parsers: rider/subcommands/parsers.py."""
 
 from __future__ import annotations
 
@@ -13,20 +14,7 @@ from pydantic import ValidationError
 from rider.blocking import Rider
 from rider.exits import EXIT_OK, UsageError
 from rider.formats import emit, fmt_calibration, fmt_param
-from rider.subcommands import Subparsers
 from schema.calibration import RotateCalibrationSet, TiltCalibrationSet
-
-
-def add_calibration(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    cb = sub.add_parser("calibration", help="calibration values; `set` enters them by hand")
-    cb.set_defaults(func=calibration)
-    cbs = cb.add_subparsers(dest="calibration_cmd")
-    cs = cbs.add_parser("set", help="enter values by hand (recorded as manual)")
-    cs.add_argument("--tilt-offset", type=float, help="tilt offset in raw counts (at 0°)")
-    cs.add_argument("--tilt-gain", type=float, help="tilt gain in counts per degree")
-    cs.add_argument("--rotate-revolution-s", type=float, help="one revolution, seconds")
-    cs.add_argument("--rotate-home-arc", type=float, help="home-switch arc, degrees")
-    cs.set_defaults(func=set_calibration)
 
 
 def calibration(args: argparse.Namespace, rider: Rider) -> int:
@@ -68,23 +56,6 @@ def _calibration_values(
     return tilt, rotate
 
 
-def add_params(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    pr = sub.add_parser("params", help="online parameters")
-    prs = pr.add_subparsers(dest="params_cmd", required=True)
-    prs.add_parser("list").set_defaults(func=list_params)
-    g = prs.add_parser("get")
-    g.add_argument("name")
-    g.set_defaults(func=get_param)
-    s = prs.add_parser("set")
-    s.add_argument("name")
-    s.add_argument("value", help="JSON value (number, true/false, or a string)")
-    s.add_argument("--persist", action="store_true", help="keep it across restarts")
-    s.set_defaults(func=set_param)
-    r = prs.add_parser("reset")
-    r.add_argument("name")
-    r.set_defaults(func=reset_param)
-
-
 def list_params(args: argparse.Namespace, rider: Rider) -> int:
     emit(rider.params(), args.json, lambda vs: "\n".join(fmt_param(p) for p in vs))
     return EXIT_OK
@@ -111,17 +82,6 @@ def _parse_value(text: str) -> Any:
         return json.loads(text)
     except ValueError:
         return text
-
-
-def add_sim(sub: Subparsers[argparse.ArgumentParser]) -> None:
-    sim_parser = sub.add_parser("sim", help="simulator fault injection")
-    sim_parser.add_argument(
-        "fault", choices=["estop", "release", "home", "tilt_ai", "stall", "clear", "world"]
-    )
-    sim_parser.add_argument(
-        "args", nargs="*", help="e.g. `home rotate open`, `tilt_ai frozen`, `stall tilt`"
-    )
-    sim_parser.set_defaults(func=sim)
 
 
 SIM_MAX_ARGS = {"home": 2, "tilt_ai": 2, "stall": 2}
