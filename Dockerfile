@@ -1,9 +1,12 @@
 # The machine daemon and the Rider in one image; compose.yaml runs it twice (docs/deploy.md).
+# Two targets: `machine` (the default, the last stage: daemon, Rider, operator UI, RevPi
+# backend) and `gateway` (the same plus the plant gateway's OPC UA and Prometheus libraries).
 #
-#   docker build -t localhost/ride-machine:local .
-#   podman build --format docker -t localhost/ride-machine:local .   # docker format keeps HEALTHCHECK
-#   docker run --rm localhost/ride-machine:local                     # the supervised simulator
-#   docker run --rm localhost/ride-machine:local rider --help        # the Rider CLI / operator UI
+#   docker build -t localhost/ride-machine:0.1.0 .
+#   podman build --format docker -t localhost/ride-machine:0.1.0 .   # docker format keeps HEALTHCHECK
+#   docker build --target gateway -t localhost/ride-machine-gateway:0.1.0 .
+#   docker run --rm localhost/ride-machine:0.1.0                     # the supervised simulator
+#   docker run --rm localhost/ride-machine:0.1.0 rider --help        # the Rider CLI / operator UI
 #
 # Nothing here needs BuildKit (no RUN --mount, no `# syntax=` line): Debian 12's docker 20.10 and
 # docker-compose 1.29 build it with the classic builder, BuildKit and podman (buildah) alike, and
@@ -15,8 +18,9 @@
 ARG PYTHON_IMAGE=docker.io/library/python:3.11-slim
 
 # ---------------------------------------------------------------------------------- builder
-# Every dependency at its locked version (hashes checked) and the package itself, installed in
-# the virtualenv /opt/venv: the one thing the runtime stage takes from here.
+# Every dependency of the machine's image at its locked version (requirements/machine.txt,
+# hashes checked) and the package itself, installed in the virtualenv /opt/venv: the one thing
+# a runtime stage takes from here.
 FROM ${PYTHON_IMAGE} AS builder
 
 # Empty defaults: no "missing build argument" warnings; an empty one is not passed to pip.
@@ -30,9 +34,10 @@ ENV PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PIP_ROOT_USER_ACTION=ignore
 
 WORKDIR /src
-COPY requirements/runtime.txt requirements/build.txt requirements/
-# The site's pip settings, if any (docker/pip/: its README alone by default). They stay in this
-# stage: the runtime stage takes /opt/venv only.
+COPY requirements/machine.txt requirements/runtime.txt requirements/build.txt requirements/
+# The site's pip settings, if any (docker/pip/: its README alone by default), and the build
+# arguments, written to /etc/pip-build/env.sh for each pip run here (an empty one is not passed
+# on). They stay in the builder stages: a runtime stage takes /opt/venv only.
 COPY docker/pip/ /etc/pip-build/
 
 # hadolint ignore=DL3008
@@ -41,13 +46,16 @@ RUN set -eu; \
         apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev libffi-dev \
         && rm -rf /var/lib/apt/lists/*; \
     fi; \
-    [ -n "$PIP_INDEX_URL" ] || unset PIP_INDEX_URL; \
-    [ -n "$PIP_EXTRA_INDEX_URL" ] || unset PIP_EXTRA_INDEX_URL; \
-    [ -n "$PIP_TRUSTED_HOST" ] || unset PIP_TRUSTED_HOST; \
-    if [ -f /etc/pip-build/pip.conf ]; then export PIP_CONFIG_FILE=/etc/pip-build/pip.conf; fi; \
-    if [ -f /etc/pip-build/ca.crt ]; then export PIP_CERT=/etc/pip-build/ca.crt; fi; \
+    { [ -z "$PIP_INDEX_URL" ] || echo "export PIP_INDEX_URL='$PIP_INDEX_URL'"; \
+      [ -z "$PIP_EXTRA_INDEX_URL" ] || echo "export PIP_EXTRA_INDEX_URL='$PIP_EXTRA_INDEX_URL'"; \
+      [ -z "$PIP_TRUSTED_HOST" ] || echo "export PIP_TRUSTED_HOST='$PIP_TRUSTED_HOST'"; \
+      [ ! -f /etc/pip-build/pip.conf ] || echo "export PIP_CONFIG_FILE=/etc/pip-build/pip.conf"; \
+      [ ! -f /etc/pip-build/ca.crt ] || echo "export PIP_CERT=/etc/pip-build/ca.crt"; \
+    } > /etc/pip-build/env.sh; \
+    unset PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_TRUSTED_HOST; \
+    . /etc/pip-build/env.sh; \
     python -m venv --without-pip /opt/venv; \
-    pip --python /opt/venv/bin/python install --require-hashes --no-deps -r requirements/runtime.txt; \
+    pip --python /opt/venv/bin/python install --require-hashes --no-deps -r requirements/machine.txt; \
     pip install --require-hashes --no-deps -r requirements/build.txt
 
 COPY pyproject.toml README.md ./
@@ -61,8 +69,25 @@ COPY rider/ rider/
 RUN pip wheel --no-deps --no-build-isolation --no-index --wheel-dir /tmp/wheel . \
     && pip --python /opt/venv/bin/python install --no-deps --no-index /tmp/wheel/*.whl
 
+# The plant gateway's libraries on top (requirements/runtime.txt: the machine's pins and
+# asyncua, cryptography, prometheus_client and theirs), for the `gateway` target only.
+FROM builder AS builder-gateway
+# The site's pip settings as the builder wrote them (/etc/pip-build/env.sh).
+RUN set -eu; \
+    . /etc/pip-build/env.sh; \
+    pip --python /opt/venv/bin/python install --require-hashes --no-deps -r requirements/runtime.txt
+
 # ---------------------------------------------------------------------------------- runtime
+# What both images share: the base, the user, the default files, the healthcheck.
 FROM ${PYTHON_IMAGE} AS runtime
+
+# The package's version (pyproject.toml; tests/deploy/test_static.py checks it) and OCI labels.
+ARG VERSION=0.1.0
+LABEL org.opencontainers.image.title="ride-machine" \
+      org.opencontainers.image.description="PLC-style machine daemon for a two-axis ride, with its Rider, over Zenoh" \
+      org.opencontainers.image.version="${VERSION}" \
+      org.opencontainers.image.licenses="Apache-2.0" \
+      org.opencontainers.image.base.name="docker.io/library/python:3.11-slim"
 
 ENV PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
@@ -76,7 +101,6 @@ RUN groupadd --gid 10001 machine \
     && mkdir -p /etc/machine /var/lib/machine \
     && chown 10001:10001 /var/lib/machine
 
-COPY --from=builder /opt/venv /opt/venv
 # Defaults only: compose mounts the site's own files over these.
 COPY machine.toml zenoh.json5 /etc/machine/
 COPY zenoh/acl.json5 zenoh/tls.json5 /etc/machine/zenoh/
@@ -105,3 +129,13 @@ HEALTHCHECK --interval=5s --timeout=3s --start-period=30s --retries=3 \
 # The daemon as a child of its supervisor (docs/supervisor.md): outputs safe and a restart
 # when the daemon dies or freezes.
 CMD ["machine", "supervise", "--sim", "--config", "/etc/machine/machine.toml", "--zenoh-config", "/etc/machine/zenoh.json5", "--data-dir", "/var/lib/machine"]
+
+# ---------------------------------------------------------------------------------- gateway
+# `docker build --target gateway`: the plant gateway's image (docker/compose.gateway.yaml).
+FROM runtime AS gateway
+COPY --from=builder-gateway /opt/venv /opt/venv
+
+# ---------------------------------------------------------------------------------- machine
+# The default target: the machine, the Rider and its UI, without the gateway's libraries.
+FROM runtime AS machine
+COPY --from=builder /opt/venv /opt/venv

@@ -98,6 +98,7 @@ lock: $(STAMP)
 	$(LOCK) --extra dev --extra revpi --extra ui --extra gateway --all-build-deps \
 	  -o requirements/dev.txt pyproject.toml
 	$(LOCK) --extra revpi --extra ui --extra gateway -c requirements/dev.txt -o requirements/runtime.txt pyproject.toml
+	$(LOCK) --extra revpi --extra ui -c requirements/dev.txt -o requirements/machine.txt pyproject.toml
 	$(LOCK) --all-build-deps --only-build-deps -c requirements/dev.txt \
 	  -o requirements/build.txt pyproject.toml
 

@@ -82,8 +82,8 @@ def _interpolate_tree(node: Any, env: Mapping[str, str]) -> Any:
 
 def merged(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
     """`-f base -f override` as compose merges them, for the keys our files use: a service's
-    `command` and other scalars replaced, its `volumes` and `depends_on` appended, new services
-    and top-level `volumes` added."""
+    `command` and other scalars replaced, its `volumes` and `depends_on` appended, its
+    `environment` merged by name, new services and top-level `volumes` added."""
     out = copy.deepcopy(dict(base))
     services = out.setdefault("services", {})
     for name, svc in (override.get("services") or {}).items():
@@ -91,6 +91,8 @@ def merged(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, An
         for key, value in svc.items():
             if key in ("volumes", "depends_on") and key in mine:
                 mine[key] = [*mine[key], *value]
+            elif key == "environment" and key in mine:
+                mine[key] = {**environment(mine), **environment(svc)}
             else:
                 mine[key] = copy.deepcopy(value)
     for key in ("volumes", "secrets"):
@@ -243,9 +245,43 @@ def split_options(args: str) -> tuple[dict[str, str], str]:
     return options, rest
 
 
-def final_stage(instructions: Sequence[Instruction]) -> list[Instruction]:
-    last = max(i.stage for i in instructions)
-    return [i for i in instructions if i.stage == last]
+def image(instructions: Sequence[Instruction], target: str | None = None) -> list[Instruction]:
+    """What an image is built from: the instructions of the `target` stage (default the last,
+    which a build without --target makes) after those of the stages it is `FROM`, in order."""
+    names: dict[str, int] = {}
+    bases: dict[int, str] = {}
+    for i in instructions:
+        if i.keyword == "FROM":
+            parts = re.split(r"\s+as\s+", i.args, flags=re.I)
+            base = parts[0].split()[-1]
+            if len(parts) == 2:
+                names[parts[1].strip()] = i.stage
+            bases[i.stage] = base
+    if target is None:
+        stage = max(bases)
+    elif target in names:
+        stage = names[target]
+    else:
+        raise SpecError(f"no stage {target!r} in the Dockerfile ({sorted(names)})")
+    chain = [stage]
+    while bases[chain[0]] in names:
+        chain.insert(0, names[bases[chain[0]]])
+    return [i for s in chain for i in instructions if i.stage == s]
+
+
+def image_args(
+    instructions: Sequence[Instruction], keyword: str, target: str | None = None
+) -> list[str]:
+    """The arguments of each `keyword` instruction an image is built from (`image`)."""
+    return [i.args for i in image(instructions, target) if i.keyword == keyword]
+
+
+def image_env(instructions: Sequence[Instruction], target: str | None = None) -> dict[str, str]:
+    """An image's ENV settings (`ENV A=1 \\ B=2` form)."""
+    out: dict[str, str] = {}
+    for args in image_args(instructions, "ENV", target):
+        out.update(dict(pair.split("=", 1) for pair in shlex.split(args)))
+    return out
 
 
 # ------------------------------------------------------------------------ build context

@@ -35,12 +35,13 @@ import yaml
 
 from service.adapters.credentials import identities, init_credentials
 from service.adapters.opcua_credentials import opcua_files
+from tests.deploy import spec
 from tests.procs import REPO
 
 TOOL_TIMEOUT_S = 60.0
 HEARTBEAT = "/dev/shm/machine.heartbeat"
 UI = "127.0.0.1:8080"
-IMAGE = "localhost/ride-machine:local"
+IMAGE = "localhost/ride-machine:0.1.0"
 COMPOSE_ENV = {**os.environ, "PICONTROL_GID": "996"}  # docker/compose.revpi.yaml asks for it
 OVERRIDES = ("compose.plant.yaml", "compose.revpi.yaml")
 FAKE_PODMAN = """#!{python}
@@ -341,14 +342,73 @@ def test_podman_compose_stops_at_once_without_the_login_files(
     output = done.stdout + done.stderr
     missing = [line for line in output.splitlines() if "no such file or directory" in line]
     assert any("secrets/" in line for line in missing), output  # the engine names the file
+    if is_debian_podman_compose(reader):
+        # Debian 12's ignores every podman error and exits 0 (documented)
+        return
+    assert done.returncode != 0, output
+
+
+def is_debian_podman_compose(reader: Reader) -> bool:
+    """Whether `reader` is podman-compose 1.0.3 (Debian 12's)."""
     version = subprocess.run(
         [_shebang_python(reader.argv[-1]), reader.argv[-1], "version"],
         capture_output=True, text=True, timeout=TOOL_TIMEOUT_S, check=False,
     )  # fmt: skip
-    if re.search(r"version\s+1\.0\.3\b", version.stdout):
-        # Debian 12's ignores every podman error and exits 0 (documented)
-        return
-    assert done.returncode != 0, output
+    return re.search(r"version\s+1\.0\.3\b", version.stdout) is not None
+
+
+HARDENING_FILES = ("compose.yaml", "docker/compose.plant.yaml", "docker/compose.gateway.yaml")
+
+
+def podman_hardening(args: list[str]) -> dict[str, object]:
+    """The hardening a `podman run` argv asks for (None where it asks for none)."""
+
+    def value(*flags: str) -> str | None:
+        return next((args[i + 1] for i, a in enumerate(args[:-1]) if a in flags), None)
+
+    return {
+        "read_only": "--read-only" in args,
+        "tmpfs": value("--tmpfs"),
+        "cap_drop": value("--cap-drop"),
+        "security_opt": value("--security-opt"),
+        "pids_limit": value("--pids-limit"),
+        "mem_limit": value("-m", "--memory"),
+    }
+
+
+def test_every_compose_implementation_passes_the_hardening_on(
+    reader: Reader, project: Path
+) -> None:
+    """Issue 57, point 3, as each tool hands it to its engine. Debian's podman-compose 1.0.3
+    drops `pids_limit` (it knows no such key): podman's own bound applies (docs/deploy.md)."""
+    written = spec.merged(spec.load_compose(project / "compose.yaml"), {})
+    for name in HARDENING_FILES[1:]:
+        written = spec.merged(written, spec.load_compose(project / name))
+    if reader.kind == "podman-compose":
+        runs = podman_runs(reader, project, *HARDENING_FILES)
+        got = {name: podman_hardening(args) for name, args in runs.items()}
+    else:
+        config = docker_config(reader, project, *HARDENING_FILES)
+        got = {n: {k: svc.get(k) for k in ("read_only", "tmpfs", "cap_drop", "security_opt",
+               "pids_limit", "mem_limit")} for n, svc in config.items()}  # fmt: skip
+    assert set(got) == set(written["services"])
+    for name, svc in written["services"].items():
+        want = {
+            "read_only": True, "tmpfs": "/tmp", "cap_drop": "ALL",
+            "security_opt": "no-new-privileges:true", "pids_limit": str(svc["pids_limit"]),
+            "mem_limit": str(svc["mem_limit"]),
+        }  # fmt: skip
+        if reader.kind == "podman-compose" and is_debian_podman_compose(reader):
+            want["pids_limit"] = None
+        have = {k: _one(v) for k, v in got[name].items()}
+        assert have == want, f"{reader.label}: {name}"
+
+
+def _one(value: object) -> object:
+    """A compose config's list of one (`[ALL]`), or its number, as podman's argument."""
+    if isinstance(value, list) and len(value) == 1:
+        value = value[0]
+    return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
 
 
 @contextlib.contextmanager

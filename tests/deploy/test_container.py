@@ -34,7 +34,7 @@ from tests.procs import REPO, free_port, rider_cmd, run_bounded
 ENGINE = shutil.which("podman")
 DOCKER = "/usr/bin/docker" if Path("/usr/bin/docker").exists() else shutil.which("docker")
 BASE_IMAGE = "docker.io/library/python:3.11-slim"
-IMAGE = "localhost/ride-machine:local"
+IMAGE = "localhost/ride-machine:0.1.0"
 BUILD_TIMEOUT_S = 300.0
 STEP_TIMEOUT_S = 60.0
 HEALTHY_TIMEOUT_S = 30.0
@@ -105,6 +105,34 @@ def image(context: Path) -> str:
     # issue 41: no "missing build argument" and no useradd SYS_UID_MAX warning on a build
     assert "missing" not in done.stderr and "SYS_UID_MAX" not in done.stdout + done.stderr
     return IMAGE
+
+
+def dangling() -> set[str]:
+    return set(engine("images", "-q", "--no-trunc", "--filter", "dangling=true").split())
+
+
+def test_the_documented_podman_build_leaves_no_unnamed_image(context: Path, tmp_path: Path) -> None:
+    """Issue 57, reproduction 7: each `podman build` of changed sources left its builder stage
+    behind as an unnamed image of about 300 MB (the layer cache's); docs/deploy.md's build has
+    `--layers=false`. The sources change here (a line in the README the wheel carries), as
+    they do between two releases; without `--layers=false` this fails."""
+    reason = _skip_reason()
+    if reason:
+        pytest.skip(reason)
+    changed = tmp_path / "context"
+    shutil.copytree(context, changed)
+    with (changed / "README.md").open("a") as readme:
+        readme.write(f"\n<!-- build {os.getpid()} {time.time_ns()} -->\n")
+    tag = f"localhost/ride-machine:leftover-test-{os.getpid()}"
+    before = dangling()
+    try:
+        engine(
+            "build", "--format", "docker", "--layers=false", "-t", tag, *build_args(),
+            str(changed), timeout=BUILD_TIMEOUT_S,
+        )  # fmt: skip
+        assert dangling() - before == set()
+    finally:
+        engine("rmi", tag, check=False)
 
 
 @contextlib.contextmanager
@@ -372,10 +400,33 @@ def site(request: pytest.FixtureRequest, context: Path, tmp_path: Path) -> Itera
         assert not site.leftovers(), f"{tool.label}: could not remove {site.leftovers()}"
 
 
+HARDENING_PROBE = (
+    "grep -E '^(CapEff|NoNewPrivs):' /proc/1/status; "
+    "touch /etc/machine/x 2>/dev/null && echo root=writable || echo root=read-only; "
+    "cat /sys/fs/cgroup/memory.max 2>/dev/null || cat /sys/fs/cgroup/memory/memory.limit_in_bytes; "
+    "cat /sys/fs/cgroup/pids.max 2>/dev/null || cat /sys/fs/cgroup/pids/pids.max"
+)  # cgroup v2, or v1
+
+
+def hardening(site: Site, service: str) -> list[str]:
+    """What the running container got: capabilities, no_new_privs, root, memory, pids."""
+    out = site.engine("exec", site.container(service), "sh", "-c", HARDENING_PROBE)
+    return [" ".join(line.split()) for line in out.splitlines()]
+
+
 def test_compose_services_turn_healthy_and_keep_the_calibration(site: Site) -> None:
     site.compose("up", "-d")
     site.wait_healthy("machine")
     site.wait_healthy("rider")
+    written = spec.load_compose()
+    for service in ("machine", "rider"):
+        svc = spec.service(written, service)
+        memory = int(svc["mem_limit"].removesuffix("m")) << 20
+        # Debian's podman-compose 1.0.3 drops pids_limit: podman's default bound (2048) holds
+        pids = 2048 if site.tool.label == "podman-compose-debian" else svc["pids_limit"]
+        assert hardening(site, service) == [
+            "CapEff: 0000000000000000", "NoNewPrivs: 1", "root=read-only", str(memory), str(pids)
+        ], f"{site.tool.label}: {service}"  # fmt: skip
     rider = site.container("rider")
     calibrate(functools.partial(engine_run, site.tool.engine, "exec", rider, "rider"), "tilt")
     site.compose("down")

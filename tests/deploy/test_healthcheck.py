@@ -32,7 +32,7 @@ STALE_TIMEOUT_S = 30.0
 
 
 def image_check() -> list[str]:
-    (check,) = [i.args for i in spec.final_stage(spec.dockerfile()) if i.keyword == "HEALTHCHECK"]
+    (check,) = [i.args for i in spec.image(spec.dockerfile()) if i.keyword == "HEALTHCHECK"]
     _, rest = spec.split_options(check)
     return spec.exec_form(rest.removeprefix("CMD "))
 

@@ -56,7 +56,7 @@ def test_every_declared_dependency_is_locked_within_its_range() -> None:
 
 def test_the_image_locks_are_the_dev_versions() -> None:
     dev = pins(LOCKS / "dev.txt")
-    for name in ("runtime.txt", "build.txt"):
+    for name in ("machine.txt", "runtime.txt", "build.txt"):
         image = pins(LOCKS / name)
         assert image, name
         assert {k: dev.get(k) for k in image} == image, f"{name} differs from dev.txt"
@@ -66,6 +66,11 @@ def test_the_image_locks_are_the_dev_versions() -> None:
         r for e in ("revpi", "ui", "gateway") for r in project["optional-dependencies"][e]
     ]
     assert {canonical(Requirement(r).name) for r in image_reqs} <= runtime.keys()
+    machine = pins(LOCKS / "machine.txt")  # the machine's image: no gateway extra
+    machine_reqs = project["dependencies"] + [
+        r for e in ("revpi", "ui") for r in project["optional-dependencies"][e]
+    ]
+    assert {canonical(Requirement(r).name) for r in machine_reqs} <= machine.keys()
     assert not {"pytest", "ruff", "mypy", "playwright"} & runtime.keys(), "dev tools in the image"
 
 

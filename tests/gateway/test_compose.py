@@ -21,7 +21,10 @@ def test_the_gateway_service_is_opt_in_and_on_host_loopback() -> None:
     override = spec.load_compose(GATEWAY_OVERRIDE)
     svc = spec.service(override, "gateway")
     assert "profiles" not in svc
-    assert svc["image"] == spec.service(compose, "machine")["image"]
+    # its own image, the Dockerfile's `gateway` target: the machine's carries no OPC UA stack
+    name, tag = spec.service(compose, "machine")["image"].split(":")
+    assert svc["image"] == f"{name}-gateway:{tag}"
+    assert svc["build"] == {"context": ".", "target": "gateway"}
     args = spec.parse_cli(spec.command(svc))
     assert args.cmd == "gateway"
     gw = args.gateway
