@@ -122,6 +122,12 @@ def backend(name: str) -> Backend:
     )
 
 
+@functools.cache
+def names() -> frozenset[str]:
+    """The registered backends' names, without loading any of them."""
+    return frozenset(p.name for p in entry_points(group=GROUP))
+
+
 def settings_of(name: str) -> type[BaseModel]:
     """The model of backend `name`'s `[hal.<name>]` table."""
     return backend(name).settings

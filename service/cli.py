@@ -10,9 +10,10 @@ from pathlib import Path
 from types import ModuleType
 from typing import TextIO
 
+from hal.backends import names
 from schema.findings import Findings, Severity
 from service.config.load import load, override_source
-from service.config.model import HalBackend, MachineConfig
+from service.config.model import MachineConfig
 from service.config.validate import finding_line, findings_of, hardware_findings
 from service.logfmt import flush_logs, setup_logging
 
@@ -30,7 +31,9 @@ def _add_hal_args(p: argparse.ArgumentParser) -> None:
     hal = p.add_mutually_exclusive_group()
     hal.add_argument("--sim", action="store_const", const="sim", dest="hal", help="simulator HAL")
     hal.add_argument(
-        "--hal", choices=[b.value for b in HalBackend], help="HAL backend (overrides hal.backend)"
+        "--hal",
+        choices=sorted(names()),
+        help="HAL backend, any registered (overrides hal.backend)",
     )
 
 

@@ -5,11 +5,12 @@ from __future__ import annotations
 import tomllib
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Protocol, cast
+from typing import Annotated, Any, Protocol, cast
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_core import ErrorDetails, InitErrorDetails, PydanticCustomError
 
-from hal.backends import settings_of
+from hal.backends import names, settings_of
 from hal.iomap import IoMap
 from hal.revpibackend import RevPiSettings
 from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
@@ -221,6 +222,9 @@ class EventsSection(_Section):
 
 
 class HalBackend(StrEnum):
+    """The backends this project ships (pyproject.toml registers them). `hal.backend` may name
+    any registered backend: a third is one entry point (`hal.backends`)."""
+
     SIM = "sim"
     REVPI = "revpi"
 
@@ -241,31 +245,119 @@ class SimView(Protocol):
     def charge_pump_timeout_s(self) -> float: ...
 
 
-# `[hal.sim]` is validated by the model the backend named `sim` registers (`sim.settings`),
-# found by the one lookup: the config never imports the simulator. To mypy it is the few
-# fields the check reads; at run time pydantic sees (and documents) the registered model.
-if TYPE_CHECKING:
-    SimSettings = SimView
-else:
-    SimSettings = settings_of(HalBackend.SIM)
-
-
-def _sim_default() -> SimSettings:
-    """`[hal.sim]` left out: the registered model's defaults."""
-    return cast("SimSettings", settings_of(HalBackend.SIM)())
-
-
 class HalSection(_Section):
-    backend: HalBackend = HalBackend.SIM
-    iomap: IoMap = IoMap()
-    sim: SimSettings = Field(default_factory=_sim_default)
-    revpi: RevPiSettings = RevPiSettings()
+    """`[hal]`: the backend, the IO map, and one table per backend, `[hal.<name>]`, each
+    validated by the model its backend registers (`hal.backends.settings_of`). Only the chosen
+    backend's table is validated (and its backend loaded) as the config is: a hardware install
+    never loads the simulator for a `[hal.sim]` table it does not use. A table that names no
+    registered backend is refused."""
 
-    def settings(self) -> object:
-        """The `[hal.<backend>]` table of the backend that runs (each backend validates its
-        own: `hal.backends.Backend.open`)."""
-        table: object = getattr(self, self.backend.value)
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    backend: str = HalBackend.SIM
+    iomap: IoMap = IoMap()
+
+    @field_validator("backend")
+    @classmethod
+    def _registered(cls, name: str) -> str:
+        if name not in names():  # out of range, as an enum's value would be
+            expected = " or ".join(repr(n) for n in sorted(names()))
+            raise PydanticCustomError(
+                "enum",
+                "Input should be {expected} (a registered HAL backend)",
+                {"expected": expected},
+            )
+        return HalBackend(name) if name in HalBackend.__members__.values() else name
+
+    @model_validator(mode="after")
+    def _tables(self) -> HalSection:
+        extra = self.__pydantic_extra__ or {}
+        unknown = [
+            InitErrorDetails(
+                type=PydanticCustomError(
+                    "hal_backend",
+                    "a table for no registered HAL backend (known: {known})",
+                    {"known": known()},
+                ),
+                loc=(name,),
+                input=raw,
+            )
+            for name, raw in extra.items()
+            if name not in names()
+        ]
+        if unknown:
+            raise ValidationError.from_exception_data("HalSection", unknown)
+        self._validate(self.backend)
+        return self
+
+    def __eq__(self, other: object) -> bool:
+        """Equal when they run the same backend on the same IO with the same tables, as their
+        models read them (a table given as its defaults equals none)."""
+        if not isinstance(other, HalSection):
+            return NotImplemented
+        tables = {self.backend, other.backend, *self._given(), *other._given()}
+        return (self.backend, self.iomap) == (other.backend, other.iomap) and all(
+            self.table(n) == other.table(n) for n in tables
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.backend, self.iomap))  # what equal sections share
+
+    def _given(self) -> list[str]:
+        return list(self.__pydantic_extra__ or {})
+
+    def table(self, name: str) -> BaseModel:
+        """`[hal.<name>]`, validated by backend `name`'s model (loading that backend once); its
+        defaults when the file has no such table."""
+        name = str(name)
+        extra = self.__pydantic_extra__ if self.__pydantic_extra__ is not None else {}
+        found = extra.get(name)
+        return found if isinstance(found, BaseModel) else self._validate(name)
+
+    def settings(self) -> BaseModel:
+        """The `[hal.<backend>]` table of the backend that runs (`Backend.open` reads it)."""
+        return self.table(self.backend)
+
+    @property
+    def sim(self) -> SimView:
+        """`[hal.sim]` (the simulator's mechanics; loads the simulator)."""
+        return cast("SimView", self.table(HalBackend.SIM))
+
+    @property
+    def revpi(self) -> RevPiSettings:
+        """`[hal.revpi]` (where revpimodio2 finds the process image)."""
+        return cast("RevPiSettings", self.table(HalBackend.REVPI))
+
+    def _validate(self, name: str) -> BaseModel:
+        name = str(name)
+        extra = self.__pydantic_extra__ if self.__pydantic_extra__ is not None else {}
+        raw = extra.get(name, {})
+        if isinstance(raw, BaseModel):
+            return raw
+        try:
+            table = settings_of(name).model_validate(raw)
+        except ValidationError as exc:
+            raise ValidationError.from_exception_data(
+                "HalSection", [_under(name, e) for e in exc.errors()]
+            ) from None
+        extra[name] = table  # validated once: the same object each time it is read
+        if self.__pydantic_extra__ is None:
+            object.__setattr__(self, "__pydantic_extra__", extra)
         return table
+
+
+def _under(name: str, error: ErrorDetails) -> InitErrorDetails:
+    """A table's error, located under `[hal.<name>]`."""
+    return InitErrorDetails(
+        type=error["type"],
+        loc=(name, *error["loc"]),
+        input=error["input"],
+        ctx=error.get("ctx", {}),
+    )
+
+
+def known() -> str:
+    return ", ".join(sorted(names())) or "none"
 
 
 class FastDataSection(_Section):
@@ -286,7 +378,7 @@ class MachineConfig(_Section):
     tilt: TiltSection = TiltSection()
     rider_loss: RiderLossSection = RiderLossSection()
     bus: BusSection = BusSection()
-    hal: HalSection = HalSection()
+    hal: HalSection = Field(default_factory=HalSection)
     fastdata: FastDataSection = FastDataSection()
     events: EventsSection = EventsSection()
     data_dir: str = Field(default="data", min_length=1)

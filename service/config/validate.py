@@ -59,6 +59,8 @@ def _schema_findings(exc: ValidationError) -> list[Finding]:
             category, message = Category.UNKNOWN_KEY, "unknown key (not part of the machine config)"
         elif kind == "missing":
             category, message = Category.MISSING_KEY, err["msg"]
+        elif kind == "hal_backend":  # [hal.<name>] for no registered backend
+            category, message = Category.UNKNOWN_KEY, err["msg"]
         elif kind in _RANGE_TYPES:
             category, message = Category.OUT_OF_RANGE, err["msg"]
         else:

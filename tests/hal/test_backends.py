@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import logging
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 from hal.backends import Backend, NoBackend, backend
 from hal.base import Hal
@@ -31,7 +34,7 @@ def test_every_configurable_backend_is_registered_with_its_table() -> None:
     for name in HalBackend:
         found = backend(name)
         assert isinstance(found, Backend)
-        assert HalSection.model_fields[name.value].annotation is found.settings
+        assert type(HalSection().table(name)) is found.settings  # its table, by its model
     assert backend(HalBackend.SIM).settings is PhysicsParams
     assert backend(HalBackend.REVPI).settings is RevPiSettings
 
@@ -177,3 +180,55 @@ def test_the_supervised_world_holds_the_rotate_in_its_arc_until_a_scan_has_seen_
         assert run(0.2) > 60.0  # a frozen daemon's rotate turns on (the freeze tests' hazard)
     finally:
         world.stop()
+
+
+# The daemon's whole import and start-up path with the RevPi backend: the CLI, the daemon, the
+# supervisor and its field, the config with a [hal.sim] table it does not use, its checks and
+# the backend lookup. Run in a fresh interpreter: this one has loaded the simulator.
+HARDWARE_ONLY = """
+import sys
+import service.cli, service.supervision.daemon, service.supervision.supervisor
+import service.supervision.field
+from hal.backends import backend
+from service.config.load import load_data
+from service.config.validate import semantic_findings
+config, report = load_data({"hal": {"backend": "revpi", "sim": {"seed": 3}}})
+assert config is not None and report.ok, report
+semantic_findings(config)
+assert config.hal.settings().procimg == "/dev/piControl0"
+backend(config.hal.backend)
+print(sorted(m for m in sys.modules if m == "sim" or m.startswith("sim.")))
+"""
+
+
+def test_the_daemon_with_the_revpi_backend_loads_no_simulator() -> None:
+    """Issue 54: importing `service.config.model` loaded `sim`, `sim.backend` and
+    `sim.settings` (the config typed `[hal.sim]` with the simulator's model)."""
+    done = subprocess.run(
+        [sys.executable, "-c", HARDWARE_ONLY],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
+def test_a_table_for_no_registered_backend_is_refused_where_it_is() -> None:
+    config, report = load_data({"hal": {"ethercat": {"cycle_us": 250}}})
+    assert config is None
+    assert [f.path for f in report.findings] == ["/hal/ethercat"]
+    assert "no registered HAL backend (known: revpi, sim)" in report.findings[0].message
+    config, report = load_data({"hal": {"backend": "ethercat"}})
+    assert config is None and [f.path for f in report.findings] == ["/hal/backend"]
+
+
+def test_only_the_chosen_backends_table_is_checked_as_the_config_loads() -> None:
+    """A RevPi machine does not validate (or load) the simulator for its `[hal.sim]`; reading
+    that table validates it then, with its path."""
+    config, report = load_data({"hal": {"backend": "revpi", "sim": {"rotate_speed_dps": 0}}})
+    assert config is not None and report.ok
+    with pytest.raises(ValidationError) as bad:
+        _ = config.hal.sim
+    assert bad.value.errors()[0]["loc"] == ("sim", "rotate_speed_dps")
