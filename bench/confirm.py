@@ -23,7 +23,7 @@ from collections.abc import Callable, Iterator
 
 import zenoh
 
-from bench.common import Dist, Options, Section, Table, main_for, ms, only_reply
+from bench.common import Dist, Options, Section, Table, Target, main_for, ms, only_reply
 from bench.daemon import bench_daemon, home_and_start
 from rider.client import Rider
 from rider.confirm import Confirmations, Ledger
@@ -112,6 +112,11 @@ def accepted(rider: Rider, start: Callable[[], tuple[float, Reply]], variant: st
     raise RuntimeError(f"{variant}: the machine would not stay home")
 
 
+ADDED_LIMIT_S = 0.001
+"""Our bound for the confirmation's cost on loopback: one query round trip, well under the
+heartbeat period (0.1 s) the ride's supervision already works at."""
+
+
 def run(opts: Options) -> Section:
     rounds = opts.pick(10, 150, 600)
     samples: dict[str, list[float]] = {v: [] for v in VARIANTS}
@@ -141,6 +146,9 @@ def run(opts: Options) -> Section:
         "confirm",
         "Who asked: the Start's round trip",
         tables=[table],
+        targets=[
+            Target.at_most("what the check adds to a raw Start's p50", added, ADDED_LIMIT_S, ms)
+        ],
         notes=[
             f"The check adds {ms(added)} to the p50 of a raw Start"
             f" ({ms(dists[BARE].p50)} → {ms(dists[CLAIMED].p50)}): the machine's query to the"
