@@ -69,6 +69,7 @@ def state(event: Any) -> tuple[bool, bool, bool]:
     return getattr(event, "ActiveState/Id"), getattr(event, "AckedState/Id"), event.Retain
 
 
+@pytest.mark.hazard("H52", "H55")
 def test_an_estop_raised_while_scada_was_away_is_in_its_alarm_list_after_a_refresh(
     plant: Site, gateway: GatewayProc, creds: Credentials
 ) -> None:
@@ -123,6 +124,7 @@ def test_an_estop_raised_while_scada_was_away_is_in_its_alarm_list_after_a_refre
         run(away())
 
 
+@pytest.mark.hazard("H55")
 def test_a_lost_machine_is_an_alarm_until_it_returns_and_is_acknowledged(
     plant: Site, gateway: GatewayProc, creds: Credentials
 ) -> None:

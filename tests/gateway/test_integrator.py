@@ -182,6 +182,7 @@ async def settled(client: Client, machine: str) -> set[str]:
     return await eventually(f"{machine} settled", probe, 20)
 
 
+@pytest.mark.hazard("H55")
 def test_an_integrators_session_with_two_stacks_through_flap_outage_and_forget(
     tmp_path: Path, creds: Credentials
 ) -> None:

@@ -157,6 +157,7 @@ def _value(scrape: str, name: str, **labels: str) -> float | None:
     return float(found.group(1)) if found else None
 
 
+@pytest.mark.hazard("H55")
 def test_a_machines_command_counters_are_there_at_zero_from_its_first_sight(
     plant: Site, gateway: GatewayProc
 ) -> None:
@@ -178,6 +179,7 @@ def test_a_machines_command_counters_are_there_at_zero_from_its_first_sight(
         )
 
 
+@pytest.mark.hazard("H55")
 def test_a_gone_machine_keeps_only_alive_0_so_its_estop_alert_stops(
     plant: Site, gateway: GatewayProc
 ) -> None:
