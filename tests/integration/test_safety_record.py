@@ -20,6 +20,7 @@ import pytest
 import zenoh
 
 from rider.client import Rider
+from schema.calibration import TiltCalibrationSet
 from schema.codec import Format, encode
 from schema.commands import CommandRequest
 from schema.events import EventQuery
@@ -91,22 +92,35 @@ def estops(r: Rider) -> list[str]:
     return [e.kind for e in r.events(EventQuery(kinds=("estop_pressed", "estop_released")))]
 
 
+def kept_changes(r: Rider) -> list[str]:
+    """The calibration and parameter rows, oldest first (issue 58, point 5)."""
+    return [e.kind for e in r.events(EventQuery(kinds=("calibration", "param_changed")))]
+
+
 @pytest.mark.hazard("H41")
 def test_a_command_flood_prunes_commands_never_the_e_stop(tmp_path: Path) -> None:
+    """Nor a calibration or a parameter entered before it (issue 58, point 5: who entered which
+    gain two minutes before went with a flood of cheap commands)."""
     daemon = machine(tmp_path)
     try:
         with daemon.rider(supervise=False) as r:
             estop(r)
             assert r.events(EventQuery(kinds=("command",), last=1)) == []  # none before it
+            r.set_calibration(tilt=TiltCalibrationSet(offset_counts=2000, gain_counts_per_deg=40))
+            r.set_param("bus.heartbeat_s", 2.0)
+            changes = kept_changes(r)
+            assert sorted(changes) == ["calibration", "param_changed"], changes
             flood(r, FLOOD)
             deadline = time.monotonic() + WAIT_S
             while oldest_command(daemon.data_dir) < FLOOD // 10:  # the prune took the oldest
                 assert time.monotonic() < deadline, "the history was never pruned"
                 time.sleep(0.2)
             kept = estops(r)
+            kept_after = kept_changes(r)
     finally:
         daemon.stop()
     assert kept == ["estop_pressed", "estop_released"]
+    assert kept_after == changes
 
 
 @contextlib.contextmanager
