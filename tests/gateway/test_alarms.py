@@ -160,3 +160,37 @@ async def _poll(probe: Any) -> Any:
     while (got := await probe()) is None:
         await asyncio.sleep(0.05)
     return got
+
+
+def test_a_session_refreshes_only_its_own_subscriptions(gateway: GatewayProc) -> None:
+    async def body() -> None:
+        async with connected(gateway.url) as mine, connected(gateway.url) as other:
+            _, theirs = await alarm_list(other)
+            _, own = await alarm_list(mine)
+
+            async def refresh(method: int, *args: ua.Variant) -> int:
+                request = ua.CallMethodRequest(
+                    ObjectId=ua.NodeId(_I.ConditionType),
+                    MethodId=ua.NodeId(method),
+                    InputArguments=list(args),
+                )
+                (result,) = await mine.uaclient.call([request])
+                return int(result.StatusCode.value)
+
+            def u32(value: int) -> ua.Variant:
+                return ua.Variant(value, ua.VariantType.UInt32)
+
+            refresh1, refresh2 = (
+                _I.ConditionType_ConditionRefresh,
+                _I.ConditionType_ConditionRefresh2,
+            )
+            assert await refresh(refresh1, u32(theirs.subscription_id)) == (
+                _S.BadSubscriptionIdInvalid
+            )
+            assert await refresh(refresh1, u32(own.subscription_id)) == _S.Good
+            assert await refresh(refresh2, u32(own.subscription_id), u32(999_999)) == (
+                _S.BadMonitoredItemIdInvalid
+            )
+            assert await refresh(refresh1) == _S.BadArgumentsMissing
+
+    run(body())
