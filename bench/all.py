@@ -23,6 +23,7 @@ from bench import (
     rider_cost,
     rider_loss,
     roundtrip,
+    startup,
     status_latency,
     throughput,
 )
@@ -59,6 +60,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.gateway", gateway.run),
     ("bench.homing", homing.run),
     ("bench.confirm", confirm.run),
+    ("bench.startup", startup.run),
 ]
 
 

@@ -36,6 +36,7 @@ MODULES = [
     "gateway",
     "homing",
     "confirm",
+    "startup",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0
