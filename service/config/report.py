@@ -29,6 +29,7 @@ class Category(StrEnum):
     BUS = "bus"
     EVENTS = "events"
     HAL = "hal"
+    REALTIME = "realtime"
 
 
 def _finding(

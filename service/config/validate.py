@@ -18,6 +18,7 @@ from pydantic import ValidationError
 
 from schema.codec import json_pointer
 from schema.findings import Finding, Findings
+from service.config.host import realtime_findings
 from service.config.model import HalBackend, MachineConfig, read_toml
 from service.config.report import Category, error, finding_line, findings_of, one_error, show
 from service.config.rules import MIN_RELIABLE_PERIOD_S, semantic_findings
@@ -166,15 +167,17 @@ def read_file(path: Path) -> tuple[dict[str, Any] | None, Findings]:
 
 
 def hardware_findings(config: MachineConfig) -> list[Finding]:
-    """What the chosen backend finds on this host (piCtory config, process image, IO names).
+    """What the chosen backend finds on this host (piCtory config, process image, IO names),
+    and whether the host grants `loop.rt_priority` (service/config/host.py).
 
     Not part of `validate_data`: it reads files of the host, and `--hal` may pick another
     backend than the file does. `machine validate` adds it to the report; `machine run` and
     `machine supervise` run it (on the config with their overrides) before they start.
     """
+    found = realtime_findings(config)
     if config.hal.backend is not HalBackend.REVPI:
-        return []
+        return found
     from hal.revpi import check_revpi_io  # only with that backend: it pulls in revpimodio2
 
     revpi = config.hal.revpi
-    return check_revpi_io(config.hal.iomap, revpi.configrsc, revpi.procimg)
+    return [*check_revpi_io(config.hal.iomap, revpi.configrsc, revpi.procimg), *found]
