@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable
 
 from bench import (
+    busybox,
     confirm,
     cost,
     estop,
@@ -61,6 +62,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.homing", homing.run),
     ("bench.confirm", confirm.run),
     ("bench.startup", startup.run),
+    ("bench.busybox", busybox.run),
 ]
 
 

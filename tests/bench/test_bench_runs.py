@@ -37,6 +37,7 @@ MODULES = [
     "homing",
     "confirm",
     "startup",
+    "busybox",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0
