@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from hal.backends import names
 from schema.findings import Findings, Severity
@@ -16,6 +16,9 @@ from service.config.load import load, override_source
 from service.config.model import MachineConfig
 from service.config.validate import finding_line, findings_of, hardware_findings
 from service.logfmt import flush_logs, setup_logging
+
+if TYPE_CHECKING:
+    from service.supervision.daemon import DaemonOptions
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -108,6 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_hal_args(val)
     _add_override_args(val)
     val.add_argument("--json", action="store_true", help="print the findings as JSON")
+    val.set_defaults(handler=_validate_command)
     _add_credentials(sub)
     _add_events(sub)
     sch = sub.add_parser("schema", help="write the wire contract as JSON Schema (+ keys.json)")
@@ -118,9 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=Path("schema/json"),
         help="where to write it (default schema/json)",
     )
+    sch.set_defaults(handler=_schema)
     demo = sub.add_parser("demo", help="same as `run --sim --once-session`")
     _add_config_args(demo)
     demo.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    demo.set_defaults(handler=_with_config(_demo))
     return parser
 
 
@@ -133,6 +139,7 @@ def _add_run_and_supervise(sub: argparse._SubParsersAction[argparse.ArgumentPars
         help="no network: calibrate, home and run the default session once, then exit",
     )
     run.add_argument("--speed", type=float, default=1.0, help="with --once-session: sim speed-up")
+    run.set_defaults(handler=_with_config(_run))
 
     sup = sub.add_parser(
         "supervise",
@@ -156,6 +163,7 @@ def _add_run_and_supervise(sub: argparse._SubParsersAction[argparse.ArgumentPars
         help="with --sim: attach to a simulated plant already running in DIR (python -m"
         " sim.plant --make-image, a container of its own) instead of starting one",
     )
+    sup.set_defaults(handler=_with_config(_supervise))
 
 
 def _add_credentials(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -183,6 +191,7 @@ def _add_credentials(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         " it can keep another's dead Rider alive; the machine warns at start)",
     )
     init.add_argument("--force", action="store_true", help="replace existing files")
+    init.set_defaults(handler=_credentials)
 
 
 def _add_events(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -196,6 +205,7 @@ def _add_events(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     exp.add_argument("--kind", action="append", default=[], help="only these kinds (repeatable)")
     exp.add_argument("--format", choices=["csv", "jsonl"], default="jsonl")
     exp.add_argument("--output", "-o", type=Path, help="file to write (default: stdout)")
+    exp.set_defaults(handler=_with_config(_events))
 
 
 def load_config(
@@ -311,64 +321,101 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
-    if args.cmd == "credentials":
-        return credentials_init(args.directory, args.force, args.stations, args.shared_rider)
-    if args.cmd == "schema":
-        from schema.jsonschema import write
+    handler: Handler = args.handler
+    return handler(args)
 
-        try:
-            paths = write(args.directory)
-        except OSError as exc:  # a read-only or missing place, a file where the directory goes
-            where = exc.filename or args.directory
-            print(f"machine: cannot write the schema to {where}: {exc.strerror}", file=sys.stderr)
-            return EXIT_FAILED
-        print(f"machine: wrote {len(paths)} files to {args.directory}")
-        return EXIT_OK
+
+Handler = Callable[[argparse.Namespace], int]
+"""What a sub-command does with its parsed arguments (each parser's `handler` default)."""
+
+
+def _credentials(args: argparse.Namespace) -> int:
+    return credentials_init(args.directory, args.force, args.stations, args.shared_rider)
+
+
+def _schema(args: argparse.Namespace) -> int:
+    from schema.jsonschema import write
+
+    try:
+        paths = write(args.directory)
+    except OSError as exc:  # a read-only or missing place, a file where the directory goes
+        where = exc.filename or args.directory
+        print(f"machine: cannot write the schema to {where}: {exc.strerror}", file=sys.stderr)
+        return EXIT_FAILED
+    print(f"machine: wrote {len(paths)} files to {args.directory}")
+    return EXIT_OK
+
+
+def _validate_command(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
-    if args.cmd == "validate":
-        return _validate(args.config, overrides_of(args), args.json)
-    config = load_config(args.config, overrides_of(args))
-    if config is None:
-        return EXIT_CONFIG
-    if args.cmd == "events":
-        from service.adapters.export import export_events
+    return _validate(args.config, overrides_of(args), args.json)
 
-        return export_events(args, args.data_dir or Path(config.data_dir))
-    if args.cmd == "demo" or getattr(args, "once_session", False):
-        from service.demo import run_demo
 
-        return run_demo(config, speed=args.speed)
-    from service.supervision.daemon import DaemonOptions, run_daemon
+def _with_config(run: Callable[[argparse.Namespace, MachineConfig], int]) -> Handler:
+    """A handler that logs at the asked level and runs `run` on the config with the
+    command-line overrides, or exits 2 after printing every finding."""
+
+    def handler(args: argparse.Namespace) -> int:
+        setup_logging(args.log_level)
+        config = load_config(args.config, overrides_of(args))
+        return EXIT_CONFIG if config is None else run(args, config)
+
+    return handler
+
+
+def _events(args: argparse.Namespace, config: MachineConfig) -> int:
+    from service.adapters.export import export_events
+
+    return export_events(args, args.data_dir or Path(config.data_dir))
+
+
+def _demo(args: argparse.Namespace, config: MachineConfig) -> int:
+    from service.demo import run_demo
+
+    return run_demo(config, speed=args.speed)
+
+
+def _run(args: argparse.Namespace, config: MachineConfig) -> int:
+    if args.once_session:
+        return _demo(args, config)
+    from service.supervision.daemon import run_daemon
 
     # The backend's own check, on the config that will run: the same findings, the same way,
     # for `run` and `supervise`, before anything opens.
     if not check_hardware(config, str(args.config or "machine")):
         return EXIT_CONFIG
-    options = DaemonOptions(
-        zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect
-    )
-    if args.cmd == "supervise":
-        from service.supervision.supervisor import SupervisorOptions, run_supervisor
+    return run_daemon(config, _daemon_options(args))
 
-        if not 0 < args.backoff <= args.backoff_max:
-            print("machine: need 0 < --backoff <= --backoff-max", file=sys.stderr)
-            return EXIT_CONFIG
-        if args.hang is not None and not config.loop.watchdog_limit_s < args.hang <= 600:
-            print(
-                f"machine: --hang must be longer than the watchdog limit"
-                f" ({config.loop.watchdog_limit_s:g} s) and at most 600 s",
-                file=sys.stderr,
-            )
-            return EXIT_CONFIG
-        sup = SupervisorOptions(
-            backoff_s=args.backoff,
-            backoff_max_s=args.backoff_max,
-            hang_s=args.hang,
-            log_level=args.log_level,
-            plant_dir=args.plant,
+
+def _supervise(args: argparse.Namespace, config: MachineConfig) -> int:
+    from service.supervision.supervisor import SupervisorOptions, run_supervisor
+
+    if not check_hardware(config, str(args.config or "machine")):
+        return EXIT_CONFIG
+    if not 0 < args.backoff <= args.backoff_max:
+        print("machine: need 0 < --backoff <= --backoff-max", file=sys.stderr)
+        return EXIT_CONFIG
+    if args.hang is not None and not config.loop.watchdog_limit_s < args.hang <= 600:
+        print(
+            f"machine: --hang must be longer than the watchdog limit"
+            f" ({config.loop.watchdog_limit_s:g} s) and at most 600 s",
+            file=sys.stderr,
         )
-        return run_supervisor(config, options, sup)
-    return run_daemon(config, options)
+        return EXIT_CONFIG
+    sup = SupervisorOptions(
+        backoff_s=args.backoff,
+        backoff_max_s=args.backoff_max,
+        hang_s=args.hang,
+        log_level=args.log_level,
+        plant_dir=args.plant,
+    )
+    return run_supervisor(config, _daemon_options(args), sup)
+
+
+def _daemon_options(args: argparse.Namespace) -> DaemonOptions:
+    from service.supervision.daemon import DaemonOptions
+
+    return DaemonOptions(zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect)
 
 
 def _validate(path: Path | None, overrides: dict[str, object], as_json: bool) -> int:
