@@ -24,6 +24,7 @@ from pathlib import Path
 from bench.common import Child, Options, Section, Table, Target, main_for, python_module
 from bench.daemon import Tuning, bench_daemon, pinnable_cpu
 from rider.client import CommandRefused, Rider
+from rider.errors import MachineTimeout
 from schema.commands import Reply, RotateStep, Session, TiltStep
 from schema.status import MachineState, Status
 
@@ -35,6 +36,7 @@ SESSION = Session(
 SETTLED = {
     MachineState.IDLE,
     MachineState.DONE,
+    MachineState.PAUSED,  # the Rider was lost: its station starved
     MachineState.FAULT_HW,
     MachineState.FAULT_ESTOP,
     MachineState.WARNING_NOT_HOME,
@@ -64,7 +66,10 @@ def outcome(rider: Rider, ask: Reply | None, refused: CommandRefused | None) -> 
         code = refused.reply.error.code.value if refused.reply.error else "?"
         return f"refused {code}"
     assert ask is not None
-    status = settle(rider, ask.timecode)
+    try:
+        status = settle(rider, ask.timecode)
+    except MachineTimeout as exc:
+        return f"no end within {WAIT_S:g} s ({exc})"
     if status.fault is not None:
         return f"fault {status.fault.code.value}"
     return status.state.value
@@ -94,7 +99,7 @@ def rounds(tuning: Tuning, n: int, core: int, tmp: Path) -> Counter[str]:
         for _ in range(n):
             for command in ("Home", "Start"):
                 counts[f"{command}: {attempt(rider, command)}"] += 1
-            if rider.status().state is MachineState.FAULT_HW:
+            if rider.status().state in {MachineState.FAULT_HW, MachineState.PAUSED}:
                 rider.stop()  # clears it for the next round's Home
     return counts
 
