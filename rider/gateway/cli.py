@@ -118,9 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--cache-dir",
         type=Path,
-        default=nodeset_cache.default_dir(),
         help="where the OPC UA standard nodes are kept on disk, read as needed (default"
-        " $XDG_CACHE_HOME/ride-machine or ~/.cache/ride-machine)",
+        " $XDG_CACHE_HOME/ride-machine or ~/.cache/ride-machine, else <tmp>/ride-machine-<uid>)",
     )
     p.add_argument(
         "--no-cache",
@@ -161,8 +160,14 @@ def options_from(
         prefix=args.prefix,
         zenoh_threads=zenoh_threads,
         max_sessions=args.max_sessions,
-        cache_dir=None if args.no_cache else args.cache_dir,
+        cache_dirs=_cache_dirs(args),
     )
+
+
+def _cache_dirs(args: argparse.Namespace) -> tuple[Path, ...]:
+    if args.no_cache:
+        return ()
+    return (args.cache_dir,) if args.cache_dir is not None else nodeset_cache.default_dirs()
 
 
 async def _serve(options: Options) -> None:

@@ -5,9 +5,13 @@ node is read from disk the first time a service touches it, and only those stay 
 
 The shelf is made once per asyncua and Python version, by a child process (building it needs
 the whole space in memory, which the serving process should never have held), in the cache
-directory (`--cache-dir`; `$XDG_CACHE_HOME/ride-machine` or `~/.cache/ride-machine`), under a
-lock, and named `ready` only once complete. Without a writable cache directory the gateway
-builds the space in memory as before (and says so).
+directory (`--cache-dir`; by default `$XDG_CACHE_HOME/ride-machine` or `~/.cache/ride-machine`,
+else `<tmp>/ride-machine-<uid>`, for a container with a read-only root and a tmpfs /tmp), under a
+lock, and named `ready` only once complete. Without a usable cache directory the gateway builds
+the space in memory as before (and says so).
+
+A shelf is pickles, and loading a pickle runs what it says: the gateway uses one only from a
+directory of its own (made 0700, owned by its user, writable by nobody else).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import asyncio
 import fcntl
 import logging
 import os
+import stat
 import subprocess
 import sys
 import tempfile
@@ -30,9 +35,31 @@ BUILD_TIMEOUT_S = 120.0
 """A child that builds the shelf: ~3 s of CPU on a quiet host; bounded for a loaded one."""
 
 
-def default_dir() -> Path:
+def default_dirs() -> tuple[Path, ...]:
+    """Where to keep the cache unless told: the user's cache, else a directory of the temp
+    directory's (a read-only root with a tmpfs /tmp)."""
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "ride-machine"
+    return Path(base) / "ride-machine", Path(tempfile.gettempdir()) / f"ride-machine-{os.getuid()}"
+
+
+def first(cache_dirs: tuple[Path, ...]) -> Path | None:
+    """The shelf in the first of `cache_dirs` that has or can make one."""
+    for cache_dir in cache_dirs:
+        if (shelf := ensure(cache_dir)) is not None:
+            return shelf
+    return None
+
+
+class Unsafe(OSError):
+    """A cache directory someone else owns or may write."""
+
+
+def _own(directory: Path) -> None:
+    """`directory`, made private if new; `Unsafe` unless ours alone."""
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    st = directory.lstat()
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.geteuid() or st.st_mode & 0o022:
+        raise Unsafe(f"{directory} is not a directory of this user's alone")
 
 
 def shelf_path(cache_dir: Path) -> Path:
@@ -49,10 +76,11 @@ def _ready(shelf: Path) -> Path:
 def ensure(cache_dir: Path) -> Path | None:
     """The shelf, made first if it is not there; None if it cannot be (said in the log)."""
     shelf = shelf_path(cache_dir)
-    if _ready(shelf).exists():
-        return shelf
     try:
-        shelf.parent.mkdir(parents=True, exist_ok=True)
+        _own(shelf.parent.parent)
+        _own(shelf.parent)
+        if _ready(shelf).exists():
+            return shelf
         done = subprocess.run(
             [sys.executable, "-m", "rider.gateway.nodeset_cache", str(shelf)],
             capture_output=True,
@@ -78,7 +106,7 @@ def load(iserver: InternalServer, shelf: Path) -> None:
 def build(shelf: Path) -> None:
     """Make the shelf (in this process: it holds the whole space meanwhile), under a lock, in a
     directory of its own, then mark it ready."""
-    shelf.parent.mkdir(parents=True, exist_ok=True)
+    _own(shelf.parent)
     with (shelf.parent / "lock").open("w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if _ready(shelf).exists():

@@ -79,8 +79,8 @@ class Options:
     prefix: str = "machine"
     zenoh_threads: int = 1
     max_sessions: int = Limits.sessions
-    cache_dir: Path | None = None
-    """Where the standard address space's shelf is kept (None: built in memory)."""
+    cache_dirs: tuple[Path, ...] = ()
+    """Where the standard address space's shelf may be kept, in order (none: in memory)."""
 
 
 class Gateway:
@@ -114,8 +114,8 @@ class Gateway:
     # ------------------------------------------------------------------------------- setup
     async def _opcua(self) -> None:
         o, s = self.o, self.server
-        if o.cache_dir is not None:
-            self.iserver.nodeset = await asyncio.to_thread(nodeset_cache.ensure, o.cache_dir)
+        if o.cache_dirs:
+            self.iserver.nodeset = await asyncio.to_thread(nodeset_cache.first, o.cache_dirs)
         await s.init()
         host, port = o.opcua
         s.set_endpoint(f"opc.tcp://{host}:{port}/")

@@ -4,6 +4,7 @@ directory built in memory as before. Real gateways, asyncua's client."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -41,11 +42,32 @@ def test_the_standard_nodes_come_from_a_cache_made_once(
     assert {p.name: p.stat().st_mtime_ns for p in ready.parent.iterdir()} == made  # read only
 
 
-def test_without_a_writable_cache_the_gateway_builds_them_in_memory(
+def test_without_a_user_cache_the_temp_directory_serves(
     plant: Site, creds: Credentials, tmp_path: Path
 ) -> None:
+    """A read-only root (a container's): the user's cache cannot be made; a tmpfs /tmp can."""
     blocked = tmp_path / "a-file"
     blocked.write_text("not a directory\n")
-    with running_gateway(plant.rider_cmd(), creds, "--cache-dir", str(blocked / "x")) as gw:
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {"XDG_CACHE_HOME": str(blocked / "cache"), "TMPDIR": str(tmp)}
+    with running_gateway(plant.rider_cmd(), creds, env=env) as gw:
         assert any("event=nodeset_cache_unavailable" in line for line in gw.lines.seen)
+        assert len(list(tmp.glob(f"ride-machine-{os.getuid()}/opcua-nodeset-*/ready"))) == 1
+        run(_standard_nodes(gw.url))
+
+
+def test_a_cache_others_may_write_is_never_read(
+    plant: Site, creds: Credentials, tmp_path: Path
+) -> None:
+    """Its files are pickles (loading one runs it): a directory others may write is refused,
+    and the standard nodes are built in memory."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    with running_gateway(plant.rider_cmd(), creds, "--cache-dir", str(shared)) as gw:
+        assert any(
+            "event=nodeset_cache_unavailable" in line and "alone" in line for line in gw.lines.seen
+        )
+        assert not list(shared.glob("*/ready"))
         run(_standard_nodes(gw.url))
