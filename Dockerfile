@@ -104,6 +104,8 @@ RUN groupadd --gid 10001 machine \
 # Defaults only: compose mounts the site's own files over these.
 COPY machine.toml zenoh.json5 /etc/machine/
 COPY zenoh/acl.json5 zenoh/tls.json5 /etc/machine/zenoh/
+# The site router (docker/compose.router.yaml): Zenoh's router mode on the machine's profile.
+COPY docker/site_router.py /opt/site-router/
 
 USER 10001:10001
 WORKDIR /var/lib/machine

@@ -8,8 +8,8 @@ For each, the healthcheck the engine would run (podman: a JSON array is exec for
 string is `/bin/sh -c STRING`; docker: `CMD` exec form, `CMD-SHELL` via `/bin/sh -c`) is run
 here against a fresh heartbeat file and a stand-in of the UI's endpoint, container paths mapped
 to this test's; every implementation starts exactly the machine and the rider by default; an
-override file's machine command replaces compose.yaml's; the router file keeps its
-entrypoint. podman-compose without the
+override file's machine command replaces compose.yaml's; the router file merges as written
+(its machine keeps compose.yaml's variables and mounts). podman-compose without the
 login files stops at once. Each implementation not installed is skipped, with the reason.
 """
 
@@ -43,7 +43,7 @@ HEARTBEAT = "/dev/shm/machine.heartbeat"
 UI = "127.0.0.1:8080"
 IMAGE = "localhost/ride-machine:0.1.0"
 COMPOSE_ENV = {**os.environ, "PICONTROL_GID": "996"}  # docker/compose.revpi.yaml asks for it
-OVERRIDES = ("compose.plant.yaml", "compose.revpi.yaml")
+OVERRIDES = ("compose.plant.yaml", "compose.revpi.yaml", "compose.router.yaml")
 FAKE_PODMAN = """#!{python}
 import json, os, sys
 args = sys.argv[1:]
@@ -135,15 +135,14 @@ def project(tmp_path: Path) -> Path:
     for rel in ("compose.yaml", "machine.toml", "zenoh.json5", "zenoh/acl.json5"):
         (root / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(REPO / rel, root / rel)
-    for name in ("compose.router.yaml", "compose.gateway.yaml", "zenohd.json5", "zenohd-start.sh"):
+    for name in ("compose.gateway.yaml", *OVERRIDES):
         (root / "docker").mkdir(exist_ok=True)
         shutil.copy2(REPO / "docker" / name, root / "docker" / name)
-    for name in OVERRIDES:
-        (root / "docker").mkdir(exist_ok=True)
-        shutil.copy2(REPO / "docker" / name, root / "docker" / name)
-    init_credentials(root / "secrets", identities())
+    init_credentials(root / "secrets", (*identities(), "router"))
     for path in opcua_files(root / "secrets"):  # the gateway's, made by the same command
         path.write_text("")
+    for name in ("site-ca.crt", "router.crt", "router.key"):  # docker/site-certs.sh's files
+        (root / "secrets" / name).write_text("")
     return root
 
 
@@ -308,22 +307,33 @@ def test_every_compose_implementation_replaces_the_machines_command_with_the_ove
         assert given_command(machine["command"]) == given_command(written)
 
 
-def test_every_compose_implementation_keeps_the_router_entrypoint_and_mounts(
+def test_every_compose_implementation_merges_the_router_file_as_written(
     reader: Reader, project: Path
 ) -> None:
+    """The router's command as written; the machine's login variables and mounts kept beside
+    the router file's (merged by name and by target)."""
     files = ("compose.yaml", "docker/compose.router.yaml")
-    script = str(project / "docker" / "zenohd-start.sh")
+    written = yaml.safe_load((project / files[1]).read_text())["services"]["router"]["command"]
+    profile = str(project / "zenoh" / "acl.json5")
     if reader.kind == "podman-compose":
-        args = podman_runs(reader, project, *files)["router"]
-        entrypoint = args[args.index("--entrypoint") + 1]
-        assert json.loads(entrypoint) == ["/bin/sh", "/etc/zenoh/zenohd-start.sh"]
-        mounts = [args[i + 1] for i, a in enumerate(args) if a in ("-v", "--volume")]
-        assert f"{script}:/etc/zenoh/zenohd-start.sh:ro" in mounts, mounts
+        runs = podman_runs(reader, project, *files)
+        assert runs["router"][runs["router"].index(IMAGE) + 1 :] == written
+        machine = runs["machine"]
+        mounts = [a for i, a in enumerate(machine) if machine[i - 1] in ("-v", "--volume")]
+        env = [a for i, a in enumerate(machine) if machine[i - 1] in ("-e", "--env")]
+        assert "MACHINE_ZENOH_USER=machine" in env, env
+        assert any(e.startswith("MACHINE_ZENOH_TLS_ROOT_CA=") for e in env), env
+        assert any(m.startswith(f"{profile}:") for m in mounts), mounts
+        assert any(m.endswith(":/etc/machine/site-ca.crt:ro") for m in mounts), mounts
         return
-    router = docker_config(reader, project, *files)["router"]
-    assert router["entrypoint"] == ["/bin/sh", "/etc/zenoh/zenohd-start.sh"]
-    sources = [v["source"] if isinstance(v, dict) else v.split(":")[0] for v in router["volumes"]]  # type: ignore[attr-defined]
-    assert script in sources, sources
+    services = docker_config(reader, project, *files)
+    assert given_command(services["router"]["command"]) == written
+    machine = services["machine"]
+    env = machine["environment"]
+    assert env["MACHINE_ZENOH_USER"] == "machine" and "MACHINE_ZENOH_TLS_ROOT_CA" in env  # type: ignore[index,operator]
+    volumes = machine["volumes"]
+    targets = {v["target"] if isinstance(v, dict) else v.split(":")[1] for v in volumes}  # type: ignore[attr-defined]
+    assert {"/etc/machine/zenoh.json5", "/etc/machine/site-ca.crt", "/var/lib/machine"} <= targets
 
 
 def test_podman_compose_stops_at_once_without_the_login_files(
@@ -357,7 +367,10 @@ def is_debian_podman_compose(reader: Reader) -> bool:
     return re.search(r"version\s+1\.0\.3\b", version.stdout) is not None
 
 
-HARDENING_FILES = ("compose.yaml", "docker/compose.plant.yaml", "docker/compose.gateway.yaml")
+HARDENING_FILES = (
+    "compose.yaml", "docker/compose.plant.yaml", "docker/compose.router.yaml",
+    "docker/compose.gateway.yaml",
+)  # fmt: skip
 
 
 def podman_hardening(args: list[str]) -> dict[str, object]:

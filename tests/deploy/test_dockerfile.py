@@ -119,6 +119,7 @@ def test_the_image_is_labelled_and_tagged_with_the_package_version(
         assert svc["image"] == image, name
     gateway = spec.load_compose(REPO / "docker" / "compose.gateway.yaml")["services"]["gateway"]
     assert gateway["image"] == f"localhost/ride-machine-gateway:{version}"
+    assert spec.service(spec.load_compose(spec.ROUTER_OVERRIDE), "router")["image"] == image
 
 
 def test_dockerfile_builds_with_the_classic_builder(docker: list[spec.Instruction]) -> None:

@@ -20,6 +20,7 @@ from tests.procs import REPO
 OVERRIDES = {
     "plant": spec.PLANT_OVERRIDE,
     "revpi": spec.REVPI_OVERRIDE,
+    "router": spec.ROUTER_OVERRIDE,
     "gateway": REPO / "docker" / "compose.gateway.yaml",
 }
 ENV = {"PICONTROL_GID": "996"}  # docker/compose.revpi.yaml asks for it

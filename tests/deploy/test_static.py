@@ -8,9 +8,7 @@ Dockerfile's own checks are in test_dockerfile.py, the hardening's in test_harde
 
 from __future__ import annotations
 
-import importlib.metadata
 import inspect
-import json
 import re
 import shlex
 import tomllib
@@ -34,6 +32,9 @@ UID = 10001
 BUILD_TIMEOUT_S = 120.0
 LINT_TIMEOUT_S = 60.0
 PICONTROL_ENV = {"PICONTROL_GID": "996"}
+ROUTER_PROGRAM = "/opt/site-router/site_router.py"
+SITE_CA = "./secrets/site-ca.crt"
+RIDERS_PORT, SITE_PORT = 7447, 7448
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +84,7 @@ def test_machine_and_rider_run_by_default_and_the_router_only_from_its_own_file(
 ) -> None:
     """No `profiles:` anywhere: podman-compose 1.0.3 ignores them and starts every service."""
     assert set(compose["services"]) == {"machine", "rider"}
-    assert set(router["services"]) == {"router"}
+    assert set(router["services"]) == {"router", "machine"}  # the machine dials its router
     for name, svc in [*compose["services"].items(), *router["services"].items()]:
         assert "profiles" not in svc, name
 
@@ -137,9 +138,11 @@ def test_mounted_files_exist_and_are_read_only(
     for name, svc in [*compose["services"].items(), *router["services"].items()]:
         for m in spec.mounts(svc):
             if m.is_bind:
+                assert m.read_only, f"{name}: {m.source} should be mounted :ro"
+                if m.source == SITE_CA:
+                    continue  # made by docker/site-certs.sh on the site, like the secrets
                 assert repo_file(m).is_file(), f"{name}: {m.source} is not a file in the repo"
                 assert repo_file(m).is_relative_to(REPO), f"{name}: {m.source} leaves the repo"
-                assert m.read_only, f"{name}: {m.source} should be mounted :ro"
 
 
 def test_machine_runs_the_authenticated_profile_and_clients_log_in(
@@ -185,7 +188,7 @@ def test_machine_config_and_data_dir_are_mounted(compose: dict[str, Any]) -> Non
 def test_services_restart_and_stop_gracefully(
     compose: dict[str, Any], router: dict[str, Any]
 ) -> None:
-    for name, svc in [*compose["services"].items(), *router["services"].items()]:
+    for name, svc in [*compose["services"].items(), ("router", spec.service(router, "router"))]:
         assert svc.get("restart") == "unless-stopped", name
         assert svc.get("stop_signal", "SIGTERM") == "SIGTERM", name
     grace = spec.seconds(spec.service(compose, "machine")["stop_grace_period"])
@@ -198,7 +201,7 @@ def test_services_restart_and_stop_gracefully(
 
 def test_every_service_rotates_its_log(compose: dict[str, Any], router: dict[str, Any]) -> None:
     """An edge box logs to an SD card: json-file with a size cap on every service."""
-    for name, svc in [*compose["services"].items(), *router["services"].items()]:
+    for name, svc in [*compose["services"].items(), ("router", spec.service(router, "router"))]:
         logging = svc.get("logging") or {}
         assert logging.get("driver") == "json-file", name
         options = logging.get("options") or {}
@@ -213,9 +216,10 @@ def test_only_the_ui_and_the_router_are_published(
     rider = spec.service(compose, "rider")
     ui_port = spec.parse_cli(spec.command(rider)).ui.port
     assert rider["ports"] == [f"127.0.0.1:{ui_port}:{ui_port}"]
-    router_port = listen_port(REPO / "docker" / "zenohd.json5")
-    # the router asks for logins but has no ACL of its own: host loopback only
-    assert spec.service(router, "router")["ports"] == [f"127.0.0.1:{router_port}:{router_port}"]
+    # host loopback by default; opening it to the site is a documented edit
+    assert spec.service(router, "router")["ports"] == [
+        f"127.0.0.1:{p}:{p}" for p in (RIDERS_PORT, SITE_PORT)
+    ]
 
 
 def test_machine_healthcheck_reads_the_heartbeat_file(
@@ -248,42 +252,52 @@ def test_rider_healthcheck_probes_its_own_ui(compose: dict[str, Any]) -> None:
     assert (urlsplit(url).hostname, urlsplit(url).port) == ("127.0.0.1", ui.port)
 
 
-def test_router_is_the_zenoh_release_we_build_against(router: dict[str, Any]) -> None:
-    image = spec.service(router, "router")["image"]
-    name, _, tag = image.partition(":")
-    assert name == "docker.io/eclipse/zenoh"  # fully qualified: podman resolves no short names
-    assert tag == importlib.metadata.version("eclipse-zenoh"), "bump the image with the library"
-
-
-def test_router_config_connects_to_the_machine_service(
+def test_router_runs_the_image_with_the_machines_own_profile(
     compose: dict[str, Any], router: dict[str, Any]
 ) -> None:
+    """Issue 57: the router enforces the machine's logins and rules, read from the same file
+    (tests/deploy/test_site_router.py runs the service); its program is in the image."""
     svc = spec.service(router, "router")
-    # A script of ours in front of the image's /entrypoint.sh: it passes two plain arguments
-    # (tests/deploy/test_router.py runs it through a replica of that entrypoint).
-    assert svc["entrypoint"] == ["/bin/sh", "/etc/zenoh/zenohd-start.sh"]
-    assert "command" not in svc
+    assert svc["image"] == spec.service(compose, "machine")["image"]
+    argv = spec.command(svc)
+    assert argv[:2] == ["python", ROUTER_PROGRAM]
     targets = {m.target: m for m in spec.mounts(svc)}
-    script = (REPO / targets["/etc/zenoh/zenohd-start.sh"].source).read_text()
-    assert 'exec /entrypoint.sh -c "$RUN_DIR/zenohd.json5"' in script
-    assert "/run/zenohd" in svc["tmpfs"]
-    # zenohd's "Initial conf" line (target zenohd, info) would print the password
-    assert spec.environment(svc)["RUST_LOG"].split(",")[-1] == "zenohd=warn"
-    # the router logs in to the machine as `machine` and asks Riders for the same dictionary
-    assert set(spec.secret_paths(compose, svc, REPO)) == {
-        "/run/secrets/machine.password",
-        "/run/secrets/zenoh-users",
-    }
-    conf = zenoh_file(repo_file(targets["/etc/zenoh/zenohd.json5"]))
-    assert conf.get_json("mode") == '"router"'
-    machine_port = listen_port(REPO / "zenoh.json5")
-    assert f'"tcp/machine:{machine_port}"' in conf.get_json("connect/endpoints")
-    login = json.loads(conf.get_json("transport/auth/usrpwd"))
-    assert login == {
-        "user": "machine",
-        "password": "@MACHINE_PASSWORD@",
-        "dictionary_file": "/run/secrets/zenoh-users",
-    }
+    profile = argv[argv.index("--zenoh-config") + 1]
+    machine_profile = str(
+        spec.parse_cli(spec.command(spec.service(compose, "machine"))).zenoh_config
+    )
+    machine_targets = {m.target: m for m in spec.mounts(spec.service(compose, "machine"))}
+    assert targets[profile].source == machine_targets[machine_profile].source == "./zenoh/acl.json5"
+    env = spec.environment(svc)
+    secrets = spec.secret_paths(spec.merged(compose, router), svc, REPO / "secrets")
+    assert secrets[env["MACHINE_ZENOH_DICTIONARY_FILE"]].name == DICTIONARY
+    assert env["MACHINE_ZENOH_USER"] == "router"
+    assert secrets[env["MACHINE_ZENOH_PASSWORD_FILE"]] == password_file(REPO / "secrets", "router")
+    for var in ("TLS_CERTIFICATE", "TLS_PRIVATE_KEY"):
+        assert env[f"MACHINE_ZENOH_{var}"] in secrets, var
+    assert targets[env["MACHINE_ZENOH_TLS_ROOT_CA"]].source == SITE_CA
+    listen = [argv[i + 1] for i, a in enumerate(argv) if a == "--listen"]
+    assert listen == [f"tcp/0.0.0.0:{RIDERS_PORT}", f"tls/0.0.0.0:{SITE_PORT}"]
+    copied = [
+        spec.exec_form(i.args) if i.args.startswith("[") else i.args.split()
+        for i in spec.image(spec.dockerfile())
+        if i.keyword == "COPY"
+    ]
+    assert ["docker/site_router.py", str(Path(ROUTER_PROGRAM).parent) + "/"] in copied
+
+
+def test_the_machine_dials_its_router_with_compose_yamls_command(
+    compose: dict[str, Any], router: dict[str, Any]
+) -> None:
+    """The override repeats the machine's command (compose replaces a list): nothing but the
+    router's TLS endpoint may differ, and the site's CA is what it checks the router by."""
+    base = spec.command(spec.service(compose, "machine"))
+    over = spec.service(router, "machine")
+    assert spec.command(over) == [*base, "--connect", f"tls/router:{SITE_PORT}"]
+    ca = spec.environment(over)["MACHINE_ZENOH_TLS_ROOT_CA"]
+    assert {m.target: m.source for m in spec.mounts(over)}[ca] == SITE_CA
+    merged = spec.service(spec.merged(compose, router), "machine")
+    assert spec.environment(merged)["MACHINE_ZENOH_USER"] == "machine"  # kept from compose.yaml
 
 
 def test_site_rider_config_is_a_client() -> None:

@@ -67,6 +67,10 @@ SIM_FAULTS: dict[str, dict[str, Any]] = {
 }
 
 
+SITE_ROUTERS = ["router", "router-certificate"]
+"""The subjects of the site's routers (docker/compose.router.yaml): they forward every login's."""
+
+
 def forbidden_requests() -> list[tuple[str, bytes]]:
     """Every key that changes something, each with a request the machine would accept."""
     out: list[tuple[str, bytes]] = []
@@ -359,12 +363,13 @@ def test_monitor_reads_and_follows_the_event_history(machine: Daemon, ids: Ident
 @pytest.mark.hazard("H41")
 def test_no_identity_but_the_machine_may_put_or_delete_events() -> None:
     """The ACL itself: events are read-only over the bus for riders and monitors (a router
-    with the same profile keeps a site's stored copy read-only too)."""
+    with the same profile keeps a site's stored copy read-only too). The site's routers carry
+    other machines' events as they carry everything, each login checked where it connects."""
     for profile in (ACL_PROFILE, TLS_PROFILE):
         acl = json.loads(zenoh.Config.from_file(str(profile)).get_json("access_control"))
         rules = {rule["id"]: rule for rule in acl["rules"]}
         for policy in acl["policies"]:
-            if policy["subjects"] == ["machine"]:
+            if policy["subjects"] in (["machine"], SITE_ROUTERS):
                 continue
             for rule_id in policy["rules"]:
                 rule = rules[rule_id]
@@ -424,7 +429,8 @@ def test_nothing_listening_is_not_called_a_refused_login() -> None:
 @pytest.mark.hazard("H33")
 def test_only_the_rider_identity_may_declare_or_put_under_rider() -> None:
     """The ACL itself: rider/** (presence tokens, deadman heartbeats) is written by `rider`
-    alone; the monitor and even the machine's own login may only watch it."""
+    alone; the monitor and even the machine's own login may only watch it. The site's routers
+    carry the stations' (each checked at the router it logs in to: test_site_router.py)."""
     for profile in (ACL_PROFILE, TLS_PROFILE):
         acl = json.loads(zenoh.Config.from_file(str(profile)).get_json("access_control"))
         rules = {rule["id"]: rule for rule in acl["rules"]}
@@ -437,4 +443,4 @@ def test_only_the_rider_identity_may_declare_or_put_under_rider() -> None:
                     continue
                 if any(k.startswith("rider/") for k in rule["key_exprs"]):
                     writers.update(policy["subjects"])
-        assert writers == {"rider"}, (profile, writers)
+        assert writers == {"rider", *SITE_ROUTERS}, (profile, writers)

@@ -64,6 +64,9 @@ def test_each_station_login_may_declare_and_put_under_its_own_prefix_only() -> N
         rules = {r["id"]: r for r in made["rules"]}
         writes: dict[str, set[str]] = {}
         for policy in made["policies"]:
+            if policy["id"] == "router":  # the site's routers forward every station's
+                assert policy["rules"] == ["site-link"], policy
+                continue
             users = {
                 u for s in made["subjects"] if s["id"] in policy["subjects"] for u in s["usernames"]
             }
