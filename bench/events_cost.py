@@ -30,9 +30,10 @@ from service.adapters.history import HistoryProcess
 from service.config.model import EventsSection, MachineConfig
 from service.core.loop import ScanLoop
 from service.core.machine import Machine
-from service.core.runner import RealtimeRunner, slice_process, tune_thread
+from service.core.runner import RealtimeRunner
 from service.core.tasks import LoopCall, PendingCommand
 from service.core.timing import CycleStats
+from service.core.tuning import slice_process, tune_thread
 from sim.hal import SimHal
 from sim.settings import PhysicsParams
 

@@ -15,14 +15,9 @@ from typing import Any, cast
 
 from service.core.inbox import Inbox
 from service.core.loop import ScanLoop
-from service.core.runner import (
-    SCHED_SLICE_NS,
-    TIMER_SLACK_NS,
-    RealtimeRunner,
-    slice_process,
-    tune_thread,
-)
+from service.core.runner import RealtimeRunner
 from service.core.timing import CycleStats
+from service.core.tuning import SCHED_SLICE_NS, TIMER_SLACK_NS, slice_process, tune_thread
 
 
 class EmptyScan:

@@ -18,7 +18,7 @@ import zenoh
 
 from bench.baselines.lifetime import stop_event
 from service.bus import use_runtime, zenoh_config
-from service.core.runner import pin_process
+from service.core.tuning import pin_process
 
 KEY = "bench/echo"
 DIRECT_KEY = "bench/echo-direct"

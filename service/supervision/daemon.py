@@ -31,10 +31,12 @@ from service.core.machine import Machine
 from service.core.params import ParamRegistry
 from service.core.persist import BackgroundWriter, CalibrationStore, ParamStore
 from service.core.port import LoopPort
-from service.core.runner import (
+from service.core.runner import LoopFailed, RealtimeRunner
+from service.core.safety import in_effect
+from service.core.statemachine.deadman import Heartbeats
+from service.core.timing import CycleStats
+from service.core.tuning import (
     SUPERVISOR_PID_ENV,
-    LoopFailed,
-    RealtimeRunner,
     die_with_parent,
     gc_threshold,
     pin_process,
@@ -42,9 +44,6 @@ from service.core.runner import (
     switch_interval,
     tune_thread,
 )
-from service.core.safety import in_effect
-from service.core.statemachine.deadman import Heartbeats
-from service.core.timing import CycleStats
 from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
 from service.signals import SignalThread

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from service.core.beat import Beat, BeatReader
-from service.core.runner import SCHED_SLICE_NS, set_sched_slice
+from service.core.tuning import SCHED_SLICE_NS, set_sched_slice
 from service.threads import TimedThread
 
 log = logging.getLogger("machine.supervisor")

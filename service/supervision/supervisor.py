@@ -41,7 +41,7 @@ from service.bus.supervisor import (
 from service.config.model import MachineConfig
 from service.config.validate import finding_line
 from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
-from service.core.runner import SUPERVISOR_PID_ENV
+from service.core.tuning import SUPERVISOR_PID_ENV
 from service.signals import SignalThread
 from service.supervision.daemon import DaemonOptions, StartRefused
 from service.supervision.field import SafeOutputs, open_field

@@ -19,7 +19,7 @@ several_cpus = pytest.mark.skipif(
 def thread_cpus_of(cpus: str) -> tuple[str, str]:
     """A child that pins itself to `cpus` with threads running: (applied, each thread's CPUs)."""
     return call_among_threads(
-        "from service.core.runner import pin_process\nfrom tests.procs import thread_cpus",
+        "from service.core.tuning import pin_process\nfrom tests.procs import thread_cpus",
         "pin_process([int(c) for c in sys.argv[1].split(',')])",
         "sorted(set(map(tuple, thread_cpus(os.getpid()).values())))",
         cpus,

@@ -12,7 +12,7 @@ from pydantic import ValidationError
 from bench.common import children
 from service.config.model import LoopSection
 from service.config.validate import validate_data
-from service.core.runner import SCHED_SLICE_NS, sched_slice
+from service.core.tuning import SCHED_SLICE_NS, sched_slice
 from tests.procs import call_among_threads, running_daemon, thread_slices
 
 KERNEL_SLICE = thread_slices(os.getpid()).get(os.getpid())
@@ -27,7 +27,7 @@ custom_slices = pytest.mark.skipif(
 def slices_of(ns: int) -> tuple[str, str]:
     """A child that asks for `ns` with threads running: (applied, each thread's slice)."""
     return call_among_threads(
-        "from service.core.runner import slice_process\nfrom tests.procs import thread_slices",
+        "from service.core.tuning import slice_process\nfrom tests.procs import thread_slices",
         "slice_process(int(sys.argv[1]))",
         "sorted(thread_slices(os.getpid()).values())",
         str(ns),

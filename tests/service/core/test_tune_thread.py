@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import pytest
 
-from service.core.runner import (
+from service.core.tuning import (
     TIMER_SLACK_NS,
     gc_threshold,
     switch_interval,

@@ -19,7 +19,7 @@ from service.adapters.eventlog import EVENTS_FILE
 from service.adapters.eventread import iter_events
 from service.config.model import MachineConfig
 from service.core.loop import ScanLoop
-from service.core.runner import set_timer_slack, timer_slack
+from service.core.tuning import set_timer_slack, timer_slack
 from service.supervision.daemon import EXIT_FAILED, EXIT_OK, Daemon, DaemonOptions
 from tests.procs import free_port, write_zenoh_config
 
