@@ -22,6 +22,7 @@ from schema.diag import CycleDiag
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamValue
+from schema.sim import SimWorldState
 from schema.status import Status
 
 if TYPE_CHECKING:
@@ -159,6 +160,29 @@ def fmt_diag(d: CycleDiag) -> str:
             + (f", last error: {e.last_error}" if e.last_error else "")
         )
     return "\n".join(lines)
+
+
+def fmt_sim_world(w: SimWorldState) -> str:
+    """The simulated world in a few lines (`--json` gives every field)."""
+
+    def switch(closed: bool | None) -> str:
+        return "" if closed is None else f", home switch {'closed' if closed else 'open'}"
+
+    if w.drives_powered is None:
+        drives = "no charge pump"
+    else:
+        drives = "drives powered" if w.drives_powered else f"drives off {w.drives_off_s or 0:.1f} s"
+    on = sorted(name for name, closed in w.relays.items() if closed)
+    rows = [
+        ("world", f"E-stop {'pressed' if w.estop_pressed else 'released'}, {drives}"),
+        ("tilt", f"{w.tilt_deg:.1f}°{switch(w.tilt_home_closed)}"),
+        ("rotate", f"{w.rotate_deg:.1f}° ({w.revolutions:.2f} rev){switch(w.rotate_home_closed)}"),
+        ("relays", ", ".join(on) + " on" if on else "all off"),
+        ("faults", ", ".join(f"{k}={v}" for k, v in sorted(w.faults.items())) or "none"),
+    ]
+    if w.late_steps is not None:
+        rows.append(("late", f"{w.late_steps} steps, longest {w.longest_late_s or 0:.3f} s"))
+    return "\n".join(f"{k:<9}  {v}" for k, v in rows)
 
 
 def fmt_param(p: ParamValue) -> str:

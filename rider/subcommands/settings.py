@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from rider.blocking import Rider
 from rider.exits import EXIT_OK, UsageError
-from rider.formats import emit, fmt_calibration, fmt_param
+from rider.formats import emit, fmt_calibration, fmt_param, fmt_sim_world
 from schema.calibration import RotateCalibrationSet, TiltCalibrationSet
 
 
@@ -127,5 +127,5 @@ def sim(args: argparse.Namespace, rider: Rider) -> int:
             world = rider.sim(f)
     except IndexError as exc:
         raise UsageError(f"sim {f}: missing argument") from exc
-    emit(world, args.json, lambda w: w.model_dump_json(indent=2))
+    emit(world, args.json, fmt_sim_world)
     return EXIT_OK

@@ -264,3 +264,19 @@ def diag_samples(rider: Rider, count: int) -> None:
             samples.get(timeout=STEP_TIMEOUT_S)
     finally:
         sub.undeclare()
+
+
+def test_sim_prints_the_world_in_a_few_lines(tmp_path: Path) -> None:
+    """Issue 57, reproduction 7: `rider sim estop` printed the world as 30 lines of JSON; a line
+    per part now (`--json` keeps every field)."""
+    with fast_daemon(tmp_path) as daemon:
+        pressed = rider(daemon, "sim", "estop")
+        assert pressed.returncode == OK, pressed.stderr
+        lines = pressed.stdout.splitlines()
+        assert len(lines) <= 8 and not any("{" in line for line in lines), pressed.stdout
+        assert lines[0].split() == ["world", "E-stop", "pressed,", "no", "charge", "pump"]
+        assert any(line.startswith("relays") and "all off" in line for line in lines), lines
+        released = rider(daemon, "sim", "release")
+        assert released.stdout.splitlines()[0].startswith("world      E-stop released")
+        full = SimWorldState.model_validate(ok_json(rider(daemon, "--json", "sim", "world"))[0])
+        assert not full.estop_pressed
