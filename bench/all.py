@@ -24,6 +24,7 @@ from bench import (
     rider_cost,
     rider_loss,
     roundtrip,
+    site,
     startup,
     status_latency,
     throughput,
@@ -63,6 +64,7 @@ BENCHMARKS: list[tuple[str, Callable[[Options], Section]]] = [
     ("bench.confirm", confirm.run),
     ("bench.startup", startup.run),
     ("bench.busybox", busybox.run),
+    ("bench.site", site.run),
 ]
 
 

@@ -38,6 +38,7 @@ MODULES = [
     "confirm",
     "startup",
     "busybox",
+    "site",
 ]
 MARKER = "BENCH_TEST_RUN"
 RUN_TIMEOUT_S = 150.0
