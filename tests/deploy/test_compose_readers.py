@@ -23,8 +23,10 @@ import os
 import re
 import shlex
 import shutil
+import socket
 import subprocess
 import sys
+import tempfile
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -35,6 +37,7 @@ import yaml
 
 from service.adapters.credentials import identities, init_credentials
 from service.adapters.opcua_credentials import opcua_files
+from sim.plant import SOCKET as PLANT_SOCKET
 from tests.deploy import spec
 from tests.procs import REPO
 
@@ -422,6 +425,29 @@ def _one(value: object) -> object:
     if isinstance(value, list) and len(value) == 1:
         value = value[0]
     return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+def test_every_compose_implementation_gives_the_plant_its_own_healthcheck(
+    reader: Reader, project: Path
+) -> None:
+    """The plant's container ran the image's check, the daemon's heartbeat file, which it has
+    not: never healthy. Its own check connects to its control socket (a stand-in here)."""
+    files = ("compose.yaml", "docker/compose.plant.yaml")
+    if reader.kind == "podman-compose":
+        check = podman_health(podman_runs(reader, project, *files)["plant"])
+    else:
+        check = docker_health(docker_config(reader, project, *files)["plant"])
+    bin_dir = python_bin(project)
+    directory = Path(tempfile.mkdtemp(prefix="plant-"))  # short: a socket path is 107 bytes
+    try:
+        mapping = {"/run/plant": str(directory)}
+        assert run_here(check, mapping, bin_dir) != 0  # nothing listens: unhealthy
+        with socket.socket(socket.AF_UNIX) as server:
+            server.bind(str(directory / PLANT_SOCKET))
+            server.listen(1)
+            assert run_here(check, mapping, bin_dir) == 0, check
+    finally:
+        shutil.rmtree(directory)
 
 
 @contextlib.contextmanager
