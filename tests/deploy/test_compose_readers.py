@@ -427,16 +427,20 @@ def _one(value: object) -> object:
     return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
 
 
+def service_health(reader: Reader, project: Path, override: str, service: str) -> list[str]:
+    """The healthcheck argv the engine gets for `service` of compose.yaml + `override`."""
+    files = ("compose.yaml", override)
+    if reader.kind == "podman-compose":
+        return podman_health(podman_runs(reader, project, *files)[service])
+    return docker_health(docker_config(reader, project, *files)[service])
+
+
 def test_every_compose_implementation_gives_the_plant_its_own_healthcheck(
     reader: Reader, project: Path
 ) -> None:
     """The plant's container ran the image's check, the daemon's heartbeat file, which it has
     not: never healthy. Its own check connects to its control socket (a stand-in here)."""
-    files = ("compose.yaml", "docker/compose.plant.yaml")
-    if reader.kind == "podman-compose":
-        check = podman_health(podman_runs(reader, project, *files)["plant"])
-    else:
-        check = docker_health(docker_config(reader, project, *files)["plant"])
+    check = service_health(reader, project, "docker/compose.plant.yaml", "plant")
     bin_dir = python_bin(project)
     directory = Path(tempfile.mkdtemp(prefix="plant-"))  # short: a socket path is 107 bytes
     try:
@@ -462,11 +466,7 @@ def metrics_stand_in(root: Path) -> Iterator[int]:
 def test_every_compose_implementation_passes_the_gateway_healthcheck_on_intact(
     reader: Reader, project: Path
 ) -> None:
-    files = ("compose.yaml", "docker/compose.gateway.yaml")
-    if reader.kind == "podman-compose":
-        check = podman_health(podman_runs(reader, project, *files)["gateway"])
-    else:
-        check = docker_health(docker_config(reader, project, *files)["gateway"])
+    check = service_health(reader, project, "docker/compose.gateway.yaml", "gateway")
     bin_dir = python_bin(project)
     with metrics_stand_in(project) as port:
         mapping = {"127.0.0.1:9464": f"127.0.0.1:{port}"}
