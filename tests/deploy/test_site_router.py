@@ -25,12 +25,14 @@ import pytest
 
 from common.credentials import MACHINE, RIDER, env_name
 from rider.errors import MachineTimeout
+from schema.errors import ErrorCode
 from schema.events import EventQuery, RiderEvent
 from schema.status import MachineState
 from service.adapters.credentials import DICTIONARY, identities, init_credentials, password_file
 from tests.deploy import spec
 from tests.deploy.test_topology import Child
 from tests.integration import rider_proc
+from tests.integration.support import prepare
 from tests.procs import REPO, Daemon, free_port
 from tests.reliability.support import ACL_PROFILE, Identities, rider_as, start_machine
 from tests.reliability.test_access_control import (
@@ -40,6 +42,7 @@ from tests.reliability.test_access_control import (
     forger,
     snapshot,
 )
+from tests.reliability.test_attribution import forge
 
 pytestmark = pytest.mark.integration
 
@@ -233,6 +236,26 @@ def test_a_station_cannot_keep_another_stations_ride_alive_through_the_routers(
     assert any(isinstance(e.details, RiderEvent) and e.details.rider == victim_id for e in lost), (
         lost
     )
+
+
+@pytest.mark.parametrize("hops", [1, 2], ids=["one router", "two routers"])
+def test_a_station_naming_anothers_rider_is_not_confirmed_through_the_routers(
+    site: Site, hops: int
+) -> None:
+    """bay2 names bay1's Rider in a Start and answers yes on bay1's confirm key: the machine's
+    question crosses the routers to bay1's Rider, which did not send it, and bay2's answer is
+    dropped at its router (RIDER_UNCONFIRMED; nothing moves). bay1's own Start is confirmed."""
+    with rider_as(site.via(hops), site.ids.env(RIDER, "bay1"), timeout=10.0) as bay1:
+        bay1.stop()  # a ride another test left paused ends: prepare from rest
+        prepare(bay1)
+        forged, _ = forge(site.via(hops), site.ids.env(RIDER, "bay2"), bay1.rider_id)
+        assert forged.error is not None and forged.error.code is ErrorCode.RIDER_UNCONFIRMED, (
+            f"{forged}\n{site.logs()}"
+        )
+        assert bay1.status().state is MachineState.IDLE
+        own = bay1.start()
+        assert own.success, own
+        bay1.stop()
 
 
 @pytest.mark.parametrize(
