@@ -15,7 +15,7 @@ from typing import Any
 
 import zenoh
 
-from schema.rider import CONFIRM_QUERY_BYTES, CONFIRMED, DENIED, LEDGER_SIZE, confirm_key, digest
+from schema.rider import CONFIRM_QUERY_BYTES, DENIED, LEDGER_SIZE, confirm_key, confirmation, digest
 
 
 class Ledger:
@@ -43,8 +43,13 @@ class Ledger:
 class Confirmations:
     """The queryable that answers the machine's confirmation queries from a `Ledger`."""
 
-    def __init__(self, session: zenoh.Session, rider_id: str, ledger: Ledger) -> None:
+    def __init__(
+        self, session: zenoh.Session, rider_id: str, ledger: Ledger, operator: str | None = None
+    ) -> None:
+        """`operator`: the person this Rider acts for, named in each confirmation (the plant
+        gateway's OPC UA user; None for a Rider whose person the bus knows by its login)."""
         self.ledger = ledger
+        self._yes = confirmation(operator)
         self._queryable: Any = session.declare_queryable(  # its undeclare has no types
             confirm_key(rider_id), self._answer
         )
@@ -54,7 +59,7 @@ class Confirmations:
         key = payload.to_bytes() if payload is not None else b""
         known = len(key) == CONFIRM_QUERY_BYTES and self.ledger.knows(key)
         with query, contextlib.suppress(zenoh.ZError):  # the asker may be gone already
-            query.reply(query.key_expr, CONFIRMED if known else DENIED)
+            query.reply(query.key_expr, self._yes if known else DENIED)
 
     def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):

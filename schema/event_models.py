@@ -27,6 +27,9 @@ class CommandEvent(OpenWireModel):
     schema/rider.py): under the ACL profiles only that login can answer there, so this is
     proof of the login. None: `rider` is a claim nobody confirmed (or a Pause, Stop or check,
     which are taken from anyone at once and not asked about)."""
+    operator: str | None = None
+    """The person the confirming Rider acted for, as it named them in its confirmation (the
+    plant gateway's OPC UA user or certificate subject); None: the Rider named nobody."""
     accepted: bool
     code: str
     """The reply code when accepted (e.g. RESP_START_ACCEPTED), the error code when refused."""
@@ -123,6 +126,8 @@ class ParamEvent(OpenWireModel):
     identity: str | None = None
     """`by` once that Rider confirmed it sent the write (as `CommandEvent.identity`); None:
     `by` is only claimed."""
+    operator: str | None = None
+    """As `CommandEvent.operator`."""
     accepted: bool = True
     """False: refused (`message` says why; `new` is what was asked), nothing changed."""
     message: str = ""

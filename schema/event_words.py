@@ -64,12 +64,15 @@ def rider_name(rider: str | None, identity: str | None = None) -> str:
     return " · ".join(part for part in (login, zid[:SHORT_ID]) if part)
 
 
-def asker(rider: str | None, identity: str | None) -> str:
+def asker(rider: str | None, identity: str | None, operator: str | None = None) -> str:
     """Who asked for a command or a write: `rider_name`, marked `(claimed)` when the Rider it
     names never confirmed that it sent it (a Pause, Stop or check is not asked; a record older
-    than confirmations; a Rider that did not answer): the sender's word, not proof."""
+    than confirmations; a Rider that did not answer): the sender's word, not proof. With the
+    person the Rider acted for (the gateway's OPC UA user): `gateway · 4f2a1c for jane`."""
     name = rider_name(rider, identity)
-    return f"{name} (claimed)" if name and not identity else name
+    if name and not identity:
+        return f"{name} (claimed)"
+    return f"{name} for {operator}" if name and operator else name
 
 
 # ----------------------------------------------------------------------------------- numbers
@@ -179,7 +182,7 @@ def tx(transaction_id: str | None) -> str:
 def command_text(d: CommandEvent) -> str:
     """`Start accepted from bay1 · 9d617a, now RUNNING [tx …]`, or `Pause refused WRONG_STATE
     from …: the machine's words [tx …]`."""
-    who = asker(d.rider, d.identity)
+    who = asker(d.rider, d.identity, d.operator)
     src = f" from {who}" if who else ""
     again = " again (a repeat: answered as before, nothing done twice)" if d.repeat else ""
     if d.accepted:
@@ -271,7 +274,7 @@ def param_text(d: ParamEvent) -> str:
     """`tilt.max_deg set 45° → 50° by bay1 · 9d617a [tx …]`; a refusal says why."""
     old, new = param_value(d.name, d.old), param_value(d.name, d.new)
     what = f"reset to its default {new} (was {old})" if d.reset else f"set {old} → {new}"
-    who = asker(d.by, d.identity)
+    who = asker(d.by, d.identity, d.operator)
     src = f" by {who}" if who else ""
     if not d.accepted:
         return f"{d.name} {what}{src} refused: {d.message}{tx(d.transaction_id)}"

@@ -36,7 +36,11 @@ ANONYMOUS = "anonymous"
 CONFIRM_QUERY_BYTES = 16
 """The size of a confirmation query's payload: the request's `digest`."""
 CONFIRMED = b"1"
-"""A Rider's reply to a confirmation query: it sent the request with this digest."""
+"""A Rider's reply to a confirmation query: it sent the request with this digest. A Rider that
+acts for a person it authenticated itself (the plant gateway, for its OPC UA user) adds a space
+and that person's name: `1 jane` (`confirmation`, `operator_of`)."""
+OPERATOR_MAX = 64
+"""The longest operator name a confirmation carries (longer ones are cut)."""
 DENIED = b"0"
 """... it did not (or has forgotten it: a Rider remembers its last `LEDGER_SIZE` requests)."""
 LEDGER_SIZE = 4096
@@ -78,6 +82,27 @@ def digest(payload: bytes) -> bytes:
     it, so a station that copies another's Rider id into a request of its own is not
     confirmed, and a request replayed whole is refused as stale by its timecode."""
     return hashlib.blake2b(payload, digest_size=CONFIRM_QUERY_BYTES).digest()
+
+
+def confirmation(operator: str | None = None) -> bytes:
+    """The reply that confirms a request, naming the person the Rider acted for, if any."""
+    name = _printable(operator or "")
+    return CONFIRMED + b" " + name.encode() if name else CONFIRMED
+
+
+def operator_of(reply: bytes) -> tuple[bool, str | None]:
+    """Whether `reply` confirms, and the person it names (None: nobody named)."""
+    if reply == CONFIRMED:
+        return True, None
+    if not reply.startswith(CONFIRMED + b" "):
+        return False, None
+    name = _printable(reply[len(CONFIRMED) + 1 :].decode(errors="replace"))
+    return True, name or None
+
+
+def _printable(name: str) -> str:
+    """`name` without control characters, trimmed, at most `OPERATOR_MAX` characters."""
+    return "".join(c for c in name if c.isprintable()).strip()[:OPERATOR_MAX]
 
 
 def rider_of(key: str) -> str | None:

@@ -184,11 +184,12 @@ class GatewayBus:
         machine gave it, refused or not. Blocking: run it on a worker thread."""
         return attached.link.command(command, request, check=False, timeout=timeout)
 
-    def supervise(self, rider_id: str) -> Supervision:
+    def supervise(self, rider_id: str, operator: str | None = None) -> Supervision:
         """Hold `rider/<rider_id>/alive`, beat `rider/<rider_id>/heartbeat` and confirm the
-        gateway's requests on `rider/<rider_id>/confirm` until closed."""
+        gateway's requests on `rider/<rider_id>/confirm` until closed, naming `operator` (the
+        OPC UA user) in each confirmation: the machine records who commanded."""
         session = self._session
-        confirmations = Confirmations(session, rider_id, self.ledger)
+        confirmations = Confirmations(session, rider_id, self.ledger, operator)
         token = session.liveliness().declare_token(alive_key(rider_id))
         return Supervision(token, Heartbeat(session, rider_id), confirmations)
 

@@ -355,6 +355,6 @@ class Gateway:
         timeout = self.o.command_timeout_s
         return await asyncio.to_thread(bus.command, attached, command, request, timeout)
 
-    def _declare_rider(self, key: str) -> Any:
+    def _declare_rider(self, key: str, operator: str) -> Any:
         assert self.bus is not None
-        return self.bus.supervise(key)
+        return self.bus.supervise(key, operator)

@@ -36,8 +36,9 @@ class Closable(Protocol):
     def close(self) -> None: ...
 
 
-Declare = Callable[[str], Closable]
-"""Declares the Rider `key` on the bus (blocking); closing it undeclares it."""
+Declare = Callable[[str, str], Closable]
+"""Declares the Rider `key` on the bus for the OPC UA user named (blocking; the machine records
+that user as who commanded); closing it undeclares it."""
 
 
 class Supervisor:
@@ -70,7 +71,7 @@ class Supervisor:
         rider = rider_id(self._login, caller.key)
         async with self._lock:
             if caller.key not in self._riders:
-                handle = await asyncio.to_thread(self._declare, rider)
+                handle = await asyncio.to_thread(self._declare, rider, caller.name)
                 self._riders[caller.key] = (caller, handle)
                 log.info("event=opcua_rider_declared rider=%s user=%s", rider, caller.name)
         return rider

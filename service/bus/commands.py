@@ -30,6 +30,7 @@ from service.bus.confirm import Confirmer, Verdict
 from service.bus.request import Request, sender_of
 from service.bus.routes import Handler, Route, Wildcard
 from service.core.admission import watchable
+from service.core.identity import Identity
 from service.core.port import LoopPort
 from service.core.statemachine import HANDLING
 from service.core.tasks import PendingCommand
@@ -219,14 +220,15 @@ class Commands:
 
     def _confirmed(
         self, request: Request, command: Command, body: CommandRequest, claim: str | None
-    ) -> str | None:
+    ) -> Identity | None:
         """`claim` once its Rider confirmed the request; None if nobody was asked or it did
         not confirm (then a motion command is refused: nothing binds to a claim)."""
         if claim is None or self.confirmer is None:
             return None
-        verdict = self.confirmer.ask(claim, request.payload)
+        answer = self.confirmer.ask(claim, request.payload)
+        verdict = answer.verdict
         if verdict is Verdict.CONFIRMED:
-            return claim
+            return answer.identity(claim)
         if MOVES[command] and verdict is not Verdict.UNNAMED:
             raise RiderUnconfirmed(
                 _unconfirmed(command, claim, verdict, self.confirmer),

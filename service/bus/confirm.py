@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from enum import Enum
 
 import zenoh
 
-from schema.rider import CONFIRMED, confirm_key, digest, is_rider_id
+from schema.rider import confirm_key, digest, is_rider_id, operator_of
+from service.core.identity import Identity
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +44,18 @@ class Verdict(Enum):
     session): nobody to ask."""
 
 
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """A Rider's answer: the verdict, and the person it acted for when it names one."""
+
+    verdict: Verdict
+    operator: str | None = None
+
+    def identity(self, rider: str) -> Identity | None:
+        """Who asked, for the history: `rider` (and its person) once confirmed, else None."""
+        return Identity(rider, self.operator) if self.verdict is Verdict.CONFIRMED else None
+
+
 class Confirmer:
     """Asks Riders about requests on one session."""
 
@@ -49,10 +63,10 @@ class Confirmer:
         self.session = session
         self.timeout_s = timeout_s
 
-    def ask(self, rider: str, payload: bytes) -> Verdict:
+    def ask(self, rider: str, payload: bytes) -> Answer:
         """Whether Rider `rider` sent `payload` (the request's bytes as they came)."""
         if not is_rider_id(rider):
-            return Verdict.UNNAMED
+            return Answer(Verdict.UNNAMED)
         key, asked = confirm_key(rider), digest(payload)
         started = time.monotonic()
         deadline = started + self.timeout_s
@@ -62,17 +76,19 @@ class Confirmer:
                 answers = [r.ok for r in replies if r.ok is not None]
             except zenoh.ZError as exc:  # a closing session
                 log.warning("event=confirm_failed rider=%s error=%r", rider, str(exc))
-                return Verdict.SILENT
+                return Answer(Verdict.SILENT)
             # No answer before the timeout: no queryable was matched yet. A Rider's
             # declaration can reach the machine after its first request (Zenoh sends
             # declarations apart from queries): ask again until the timeout.
             if answers or time.monotonic() + NOT_YET_S >= deadline:
                 break
             time.sleep(NOT_YET_S)
-        verdict = Verdict.SILENT
+        verdict, operator = Verdict.SILENT, None
         if answers:
-            said = {a.payload.to_bytes() for a in answers}
-            verdict = Verdict.CONFIRMED if CONFIRMED in said else Verdict.DENIED
+            said = [operator_of(a.payload.to_bytes()) for a in answers]
+            confirmed = [name for yes, name in said if yes]
+            verdict = Verdict.CONFIRMED if confirmed else Verdict.DENIED
+            operator = next((name for name in confirmed if name), None)
         if verdict is not Verdict.CONFIRMED:
             log.warning(
                 "event=rider_unconfirmed rider=%s verdict=%s waited_ms=%.1f",
@@ -80,4 +96,4 @@ class Confirmer:
                 verdict.value,
                 (time.monotonic() - started) * 1000,
             )
-        return verdict
+        return Answer(verdict, operator)

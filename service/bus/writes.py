@@ -15,10 +15,11 @@ from schema.errors import Error
 from schema.events import ParamEvent
 from schema.params import ParamSet, ParamValue
 from service.adapters.eventlog import EventLog
-from service.bus.confirm import Confirmer, Verdict
+from service.bus.confirm import Confirmer
 from service.bus.reads import matching
 from service.bus.request import Request, sender_of
 from service.bus.routes import Route, Wildcard
+from service.core.identity import Identity
 from service.core.persist import SaveTicket
 from service.core.port import LoopPort
 from service.core.safety import is_safety
@@ -137,7 +138,7 @@ class Writes:
         old: ParamValue,
         req: ParamSet,
         by: str | None,
-        identity: str | None,
+        identity: Identity | None,
         new: object,
         persisted: bool,
         refused: str,
@@ -155,18 +156,19 @@ class Writes:
                 reset=req.reset,
                 transaction_id=req.transaction_id,
                 by=by,
-                identity=identity,
+                identity=identity.rider if identity else None,
+                operator=identity.operator if identity else None,
                 accepted=not refused,
                 message=refused,
             )
         )
 
-    def _confirmed(self, by: str | None, request: Request) -> str | None:
+    def _confirmed(self, by: str | None, request: Request) -> Identity | None:
         """`by` once that Rider confirmed the write (asked on this route's own thread, never
         Zenoh's); None: nobody named, or only claimed. A write is not refused for it."""
         if by is None or self.confirmer is None:
             return None
-        return by if self.confirmer.ask(by, request.payload) is Verdict.CONFIRMED else None
+        return self.confirmer.ask(by, request.payload).identity(by)
 
     def calibration(self, request: Request) -> None:
         """Values entered by hand: applied on the scan thread, answered once they are saved."""

@@ -33,6 +33,7 @@ from schema.events import (
 from schema.status import Fault, MachineState
 from service.core.controllers import SessionRun
 from service.core.devices import Calibration
+from service.core.identity import Identity
 from service.core.statemachine import Snapshot, StateMachine, Transition
 from service.logfmt import info
 
@@ -108,6 +109,8 @@ class CommandFacts(NamedTuple):
     identity: str | None = None
     """The Rider that confirmed it sent the command (service/bus/confirm.py); `rider` is
     only its claim."""
+    operator: str | None = None
+    """The person that Rider acted for, as its confirmation named them."""
 
     @classmethod
     def of(
@@ -117,7 +120,7 @@ class CommandFacts(NamedTuple):
         reply: Reply,
         sender: str | None,
         repeat: bool,
-        identity: str | None = None,
+        identity: Identity | None = None,
     ) -> CommandFacts:
         error = reply.error
         return cls(
@@ -130,7 +133,8 @@ class CommandFacts(NamedTuple):
             reply.state._value_ if reply.state is not None else None,
             repeat,
             request.timecode,
-            identity,
+            identity.rider if identity else None,
+            identity.operator if identity else None,
         )
 
     def __call__(self) -> CommandEvent:
@@ -139,6 +143,7 @@ class CommandFacts(NamedTuple):
             transaction_id=self.transaction_id,
             rider=self.rider,
             identity=self.identity,
+            operator=self.operator,
             accepted=self.accepted,
             code=self.code,
             message=self.message,
@@ -146,11 +151,14 @@ class CommandFacts(NamedTuple):
             repeat=self.repeat,
         )
 
+    def _operator(self) -> str:
+        return f" operator={self.operator!r}" if self.operator else ""
+
     def log_line(self) -> str:
         """The command's log line (its message: `logfmt` adds the time, level and logger)."""
         return (
             f"event=command tx={self.transaction_id} command={self.command}"
-            f" rider={self.rider} confirmed={self.identity is not None}"
+            f" rider={self.rider} confirmed={self.identity is not None}{self._operator()}"
             f" timecode={self.timecode} code={self.code} state={self.state}"
         )
 
@@ -240,7 +248,7 @@ class EventRecorder:
         now: float,
         *,
         sender: str | None = None,
-        identity: str | None = None,
+        identity: Identity | None = None,
         repeat: bool = False,
         logged: bool = False,
     ) -> None:

@@ -23,6 +23,7 @@ from service.config.model import LiveConfig, MachineConfig
 from service.core.axes import AxisTracker
 from service.core.devices import Devices
 from service.core.events import EventRecorder, NullEventSink, hold_limit
+from service.core.identity import Identity
 from service.core.inbox import Inbox
 from service.core.io import IoPoints, ProcessImage
 from service.core.publisher import Publisher
@@ -320,7 +321,7 @@ class ScanLoop:
         clock: Callable[[], float],
         *,
         sender: str | None = None,
-        identity: str | None = None,
+        identity: Identity | None = None,
         timeout: float | None,
     ) -> Reply | None:
         """Run a command on the calling thread under the loop's lock, between two cycles.
@@ -356,7 +357,7 @@ class ScanLoop:
         now: float,
         *,
         sender: str | None = None,
-        identity: str | None = None,
+        identity: Identity | None = None,
     ) -> Reply:
         """One command with at-most-once semantics by transaction id; `sender` the Rider it
         names as claimed, `identity` the same once confirmed (for the history)."""

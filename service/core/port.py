@@ -13,6 +13,7 @@ from collections.abc import Callable
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
 from schema.status import MotionRef
+from service.core.identity import Identity
 from service.core.inbox import Task
 from service.core.loop import ScanLoop
 from service.core.sink import Published
@@ -36,7 +37,7 @@ class LoopPort:
         *,
         sender: str | None,
         timeout: float | None,
-        identity: str | None = None,
+        identity: Identity | None = None,
     ) -> Reply | None:
         """Run a command now, between two cycles (`ScanLoop.execute_between_cycles`): None
         while it cannot (`timeout=None` and a cycle in progress, before the first scan, after

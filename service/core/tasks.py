@@ -16,6 +16,7 @@ from schema.calibration import CalibrationRecord, CalibrationSet
 from schema.commands import Command, CommandRequest, Reply
 from schema.errors import Error
 from schema.events import RiderEvent
+from service.core.identity import Identity
 from service.core.sink import calibration_record
 from service.errors import MachineError, Rejected
 
@@ -35,7 +36,7 @@ class PendingCommand:
     respond: Callable[[Reply], None]
     sender: str | None = None
     """The sending session's id, for the event history (the Rider attaches it)."""
-    identity: str | None = None
+    identity: Identity | None = None
     """`sender` once it confirmed the request (service/bus/confirm.py)."""
 
     def run(self, loop: ScanLoop, now: float) -> None:

@@ -11,8 +11,9 @@ import pytest
 from asyncua import Client, ua
 
 from rider.client import Rider
+from schema.event_models import CommandEvent
 from tests.gateway.support import Credentials, GatewayProc
-from tests.gateway.ua import call_on, connected, eventually, ns, read, run
+from tests.gateway.ua import call, call_on, connected, eventually, ns, read, run
 from tests.site.stand import Site
 
 pytestmark = pytest.mark.integration
@@ -152,3 +153,29 @@ def test_anonymous_may_refresh_and_list_its_items_but_never_command(
             assert await executable(op, "Home")
 
     run(body())
+
+
+@pytest.mark.hazard("H54")
+def test_the_opc_ua_user_is_recorded_as_who_commanded(
+    plant: Site, gateway: GatewayProc, creds: Credentials
+) -> None:
+    """Issue 56: the machine's history named only the gateway's Zenoh login. The gateway's Rider
+    for the session names its OPC UA user in each confirmation (rider/<login>/<key>/confirm),
+    and the machine records the user with the confirmed Rider."""
+
+    async def body() -> str:
+        async with connected(gateway.url, OPERATOR, creds.password) as c:
+            got = await call(c, "m1", "Home")  # a motion command: the machine asks its Rider
+            return got.code
+
+    code = run(body())
+    with plant.rider("m1", timeout=5.0, supervise=False) as r:
+        homes = [
+            e.details
+            for e in _commands(r)
+            if isinstance(e.details, CommandEvent) and e.details.command == "Home"
+        ]
+    assert homes, "no Home in the machine's history"
+    last = homes[-1]
+    assert last.code == code and last.operator == OPERATOR, last
+    assert last.identity is not None and last.identity == last.rider, last

@@ -118,7 +118,7 @@ def test_every_session_reads_and_calls_nobody_writes_or_edits_the_space() -> Non
 def test_a_supervising_session_ends_when_closed_or_silent_past_the_timeout() -> None:
     now = [100.0]
     open_keys: set[str] = set()
-    sup = Supervisor(lambda key: _Handle(), lambda: open_keys, 2.0, clock=lambda: now[0])
+    sup = Supervisor(lambda key, operator: _Handle(), lambda: open_keys, 2.0, clock=lambda: now[0])
     a, b = Caller(role=OPERATOR, last_active=100.0), Caller(role=OPERATOR, last_active=100.0)
     open_keys |= {a.key, b.key}
     asyncio.run(sup.rider_for(a))

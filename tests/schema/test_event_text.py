@@ -349,3 +349,4 @@ def test_a_rider_that_never_confirmed_is_marked_claimed() -> None:
     assert asker(RIDER, RIDER) == "bay1 · 9d617a"
     assert asker(RIDER, None) == "bay1 · 9d617a (claimed)"
     assert asker(None, None) == ""
+    assert asker(RIDER, RIDER, "jane") == "bay1 · 9d617a for jane"  # the gateway's OPC UA user

@@ -164,4 +164,4 @@ def test_a_stop_never_waits_for_a_confirmation_and_the_start_it_overtook_is_refu
 
 
 def test_an_id_without_a_login_is_nobody_to_ask(session: zenoh.Session) -> None:
-    assert Confirmer(session, TIMEOUT_S).ask("0123abcd", b"{}") is Verdict.UNNAMED
+    assert Confirmer(session, TIMEOUT_S).ask("0123abcd", b"{}").verdict is Verdict.UNNAMED
