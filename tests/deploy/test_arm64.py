@@ -75,12 +75,15 @@ def image(tmp_path_factory: pytest.TempPathFactory) -> str:
     if reason:
         pytest.skip(reason)
     context = build_context(tmp_path_factory.mktemp("build-arm64"))
+    replaced = engine("images", "-q", "--no-trunc", IMAGE).strip()
     done = subprocess.run(
         [str(ENGINE), "build", "--arch", "arm64", "--format", "docker", "--layers=false",
          "--build-arg", f"PYTHON_IMAGE={ARM64_BASE}", "-t", IMAGE, *build_args(), str(context)],
         capture_output=True, text=True, timeout=BUILD_TIMEOUT_S, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-4000:]
+    if replaced and replaced != engine("images", "-q", "--no-trunc", IMAGE).strip():
+        engine("rmi", replaced, check=False)  # the last run's, now unnamed (unless in use)
     return IMAGE
 
 
