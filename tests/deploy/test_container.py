@@ -348,6 +348,9 @@ class Site:
             assert time.monotonic() - start < HEALTHY_TIMEOUT_S * 2, self.engine("logs", name)
             time.sleep(1.0)  # bounded retry of an outside probe, not a settle
 
+    def unnamed_images(self) -> set[str]:
+        return set(self.engine("images", "-q", "--no-trunc", "--filter", "dangling=true").split())
+
     def leftovers(self) -> list[str]:
         label = f"label=com.docker.compose.project={self.name}"
         names = self.engine("ps", "-a", "--filter", label, "--format", "{{.Names}}").split()
@@ -385,6 +388,7 @@ def site(request: pytest.FixtureRequest, context: Path, tmp_path: Path) -> Itera
     compose["services"]["rider"]["ports"] = [f"127.0.0.1:{free_port()}:8080"]
     (root / "compose.yaml").write_text(yaml.safe_dump(compose, sort_keys=False))
     site = Site(tool, root, f"ridetest{os.getpid()}{tool.engine}")
+    unnamed = site.unnamed_images()
     try:
         if tool.build:
             site.compose("build")  # docker-compose 1.29: the classic builder
@@ -403,6 +407,10 @@ def site(request: pytest.FixtureRequest, context: Path, tmp_path: Path) -> Itera
         # is left, then checks that nothing of its project remains.
         site.remove_leftovers()
         assert not site.leftovers(), f"{tool.label}: could not remove {site.leftovers()}"
+        # The classic builder keeps each stage, and the image its build replaced, unnamed
+        # (docs/deploy.md: `docker image prune -f`); only those this test made go.
+        for image in site.unnamed_images() - unnamed:
+            site.engine("rmi", image, check=False)
 
 
 HARDENING_PROBE = (
