@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 import zenoh
 
 from rider.commands import Commands
-from rider.discovery import Discovery, Listing
+from rider.discovery import Discovery, Listing, Lookahead
 from rider.link import DEFAULT_TIMEOUT_S, Link
 from rider.machines import MachineInfo, Machines
 from rider.pinning import Holders
@@ -89,7 +89,7 @@ class Rider:
         rider-loss policy if this process disappears mid-motion (off for one-shot CLI calls).
         `zenoh_threads`: Zenoh's worker threads in this process, as `bus.zenoh_threads` is the
         daemon's (`open_session`; 0 keeps Zenoh's own six)."""
-        self.link = Link(
+        link = Link(
             zenoh_config_path,
             connect,
             listen,
@@ -99,8 +99,23 @@ class Rider:
             supervise=supervise,
             zenoh_threads=zenoh_threads,
         )
+        self._assemble(link, machine_id, None)
+
+    @classmethod
+    def on_link(
+        cls, link: Link, machine_id: str | None, lookahead: Lookahead | None = None
+    ) -> Rider:
+        """A Rider on a link made (and perhaps opened) before the client was loaded, with the
+        default-machine lookup perhaps already under way (`rider/cli.py` does both, so the
+        lookup's settle window runs while the wire models load)."""
+        rider = cls.__new__(cls)
+        rider._assemble(link, machine_id, lookahead)
+        return rider
+
+    def _assemble(self, link: Link, machine_id: str | None, lookahead: Lookahead | None) -> None:
+        self.link = link
         self.transport = Transport(self.link)
-        self._machines = Machines(self.link, self.transport, machine_id)
+        self._machines = Machines(self.link, self.transport, machine_id, lookahead)
         self._commands = Commands(self.link, self._machines, self.transport)
         self._reads = Reads(self._machines, self.transport, self._commands)
         self._subs = Subscriptions(self.link, self._machines, self.transport.pins)
@@ -121,7 +136,8 @@ class Rider:
 
     # ---------------------------------------------------------------------------- session
     def open(self) -> Rider:
-        self.link.open()
+        if not self.link.is_open:
+            self.link.open()
         self._commands.check_ids()
         return self
 

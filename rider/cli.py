@@ -192,21 +192,36 @@ def _fastdata(args: argparse.Namespace, rest: list[str]) -> int | None:
 
 
 def _run(args: argparse.Namespace, connect: list[str]) -> int:
-    """Run the sub-command's handler on a Rider; an error that ends it becomes its exit code."""
-    from rider.blocking import Rider  # the client: only for a command that runs
+    """Run the sub-command's handler on a Rider; an error that ends it becomes its exit code.
 
+    The session opens before the client and the wire models load (Zenoh alone), and without
+    `--machine` the default machine's lookup starts at once on its own thread: its settle
+    window (rider/discovery.py) runs while Python imports the rest, instead of after."""
+    from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Lookahead
+    from rider.link import Link
+
+    link: Link | None = None
+    lookahead: Lookahead | None = None
     try:
         # A one-shot command that exits at once supervises nothing; `--wait` and live views do.
         supervise = bool(getattr(args, "wait", False)) or args.cmd == "watch"
-        with Rider(
-            args.machine,
-            supervise=supervise,
-            connect=connect,
-            zenoh_config_path=args.zenoh_config,
+        link = Link(
+            args.zenoh_config,
+            connect,
+            None,
             key_prefix=args.prefix,
             timeout=args.timeout,
+            retries=1,
+            supervise=supervise,
             zenoh_threads=args.zenoh_threads,
-        ) as rider:
+        )
+        link.open()
+        if args.machine is None:
+            settle = MOTION_SETTLE_S if getattr(args, "sends_command", False) else SETTLE_S
+            lookahead = Lookahead(settle, link.lookup)
+        from rider.blocking import Rider  # the client, loaded while the lookup settles
+
+        with Rider.on_link(link, args.machine, lookahead) as rider:
             code: int = args.func(args, rider)
             return code
     except (UsageError, RiderError) as exc:
@@ -219,6 +234,11 @@ def _run(args: argparse.Namespace, connect: list[str]) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
+    finally:
+        if lookahead is not None:
+            lookahead.join()  # a handler that ended before it needed the machine
+        if link is not None:
+            link.close()
 
 
 def _failed(exc: Exception, as_json: bool) -> int:

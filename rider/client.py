@@ -21,7 +21,7 @@ from __future__ import annotations
 from rider.aio import AsyncRider
 from rider.blocking import Rider
 from rider.completions import DONE_RECHECK_S
-from rider.discovery import Listing
+from rider.discovery import DISCOVERY_MIN_S, Listing
 from rider.errors import (
     AmbiguousMachine,
     BadCredentials,
@@ -50,7 +50,7 @@ from rider.link import (
     zenoh_config,
 )
 from rider.link import direct as _direct  # tests/service/bus/test_bus_callbacks.py compares it
-from rider.machines import DISCOVERY_MIN_S, MachineInfo
+from rider.machines import MachineInfo
 from rider.pinning import KEY_CACHE, Holders
 from rider.replies import Update
 from rider.subscriptions import FOREIGN_LOG_EVERY_S, Subscription, Throttle

@@ -48,6 +48,8 @@ MOTION_SETTLE_S = 0.3
 """Quiet time before a command (motion) without `--machine`: more certainty, more latency."""
 LIMIT_S = 2.0
 """Discovery that has not settled after this long (two 1 s leases) is refused, not guessed."""
+DISCOVERY_MIN_S = 1.0
+"""The default-machine lookup waits at least this long, whatever is left of the timeout."""
 ADMIN_TIMEOUT_S = 0.5
 PROBE_TIMEOUT_S = 0.5
 """Bound on asking a router out of sight (open a client session, read its tokens)."""
@@ -183,6 +185,40 @@ def discover(
             _probe_brokers(routers, reached, seen, prefix, probe)
     seen.waited_s = time.monotonic() - start
     return seen
+
+
+class Lookahead:
+    """A lookup begun early, on a thread of its own: the `rider` command starts one as soon as
+    its session is open and loads the client and the wire models meanwhile, so the settle
+    window runs while Python imports (rider/cli.py). `settle` is the quiet time it waits for;
+    `result()` waits for it to end."""
+
+    def __init__(self, settle: float, lookup: Callable[[float], Discovery]) -> None:
+        self.settle = settle
+        self._seen: Discovery | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._run, args=(lookup,), name="rider-lookahead", daemon=True
+        )
+        self._thread.start()
+
+    def _run(self, lookup: Callable[[float], Discovery]) -> None:
+        try:
+            self._seen = lookup(self.settle)
+        except BaseException as exc:  # noqa: BLE001 - not swallowed: `result()` raises it
+            self._error = exc
+
+    def join(self) -> None:
+        """Wait for the lookup to end (bounded by its limit), whatever it found."""
+        self._thread.join()
+
+    def result(self) -> Discovery:
+        """What the lookup saw, once it ended (bounded by its limit); its error re-raised."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        assert self._seen is not None
+        return self._seen
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from common.zenoh_session import RIDER_SIDE, UnreadableRuntime
 from common.zenoh_session import open_session as shared_open
 from common.zenoh_session import zenoh_config as shared_config
 from rider.confirm import Confirmations, Ledger
-from rider.discovery import PROBE_TIMEOUT_S
+from rider.discovery import DISCOVERY_MIN_S, PROBE_TIMEOUT_S, Discovery, discover
 from rider.errors import BadCredentials, BadRuntime, BusError, MachineTimeout, RiderError
 from schema.rider import (
     ANONYMOUS,
@@ -244,6 +244,20 @@ class Link:
         conf.insert_json5("connect/timeout_ms", str(int(PROBE_TIMEOUT_S * 1000)))
         conf.insert_json5("connect/exit_on_failure", "true")
         return open_session(conf, self.zenoh_threads)
+
+    def lookup(self, settle: float) -> Discovery:
+        """The machines alive once discovery has settled for `settle` s (rider/discovery.py),
+        within what is left of the timeout since the open began (at least `DISCOVERY_MIN_S`),
+        so a frozen machine is told within the timeout."""
+        return discover(
+            self.session,
+            self.key_prefix,
+            settle=settle,
+            limit=max(DISCOVERY_MIN_S, self.time_left()),
+            probe=self.probe,
+            links_peers=self.links_peers(),
+            peer=self.is_peer(),
+        )
 
     def logs_in(self) -> bool:
         """Whether this session presents a user/password login."""

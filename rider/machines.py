@@ -10,15 +10,12 @@ from typing import Any
 
 import zenoh
 
-from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Discovery, Listing, discover
+from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Discovery, Listing, Lookahead
 from rider.errors import AmbiguousMachine, NoMachine, RiderError, UnsureMachine
 from rider.link import Link, direct
 from rider.replies import decode_reply
 from rider.transport import Transport
 from schema.status import MachineState, Status
-
-DISCOVERY_MIN_S = 1.0
-"""The default-machine lookup waits at least this long, whatever is left of the timeout."""
 
 
 @dataclass(frozen=True)
@@ -39,10 +36,19 @@ class MachineInfo:
 class Machines:
     """The machine this Rider talks to, and the others alive on the network."""
 
-    def __init__(self, link: Link, transport: Transport, machine_id: str | None) -> None:
+    def __init__(
+        self,
+        link: Link,
+        transport: Transport,
+        machine_id: str | None,
+        lookahead: Lookahead | None = None,
+    ) -> None:
+        """`lookahead`: a lookup begun before this Rider was made (rider/cli.py), taken by the
+        first lookup that asks for no longer a settle than it waited for."""
         self.link = link
         self.transport = transport
         self._machine_id = machine_id
+        self._lookahead = lookahead
         self.discovery: Discovery | None = None
         """What the default-machine lookup saw (None when a machine was named)."""
 
@@ -81,18 +87,16 @@ class Machines:
         return next(iter(seen.alive))
 
     def discover(self, settle: float) -> Discovery:
-        """Discovery, settled (rider/discovery.py), kept as `self.discovery`."""
-        self.discovery = discover(
-            self.link.session,
-            self.link.key_prefix,
-            settle=settle,
-            # What is left of the timeout since the open began, so a frozen machine is told
-            # within the timeout.
-            limit=max(DISCOVERY_MIN_S, self.link.time_left()),
-            probe=self.link.probe,
-            links_peers=self.link.links_peers(),
-            peer=self.link.is_peer(),
-        )
+        """Discovery, settled (rider/discovery.py), kept as `self.discovery`. A lookahead is
+        waited for first (one lookup at a time on a session) and taken when it waited for at
+        least `settle`."""
+        early, self._lookahead = self._lookahead, None
+        if early is not None:
+            seen = early.result()
+            if early.settle >= settle:
+                self.discovery = seen
+                return seen
+        self.discovery = self.link.lookup(settle)
         return self.discovery
 
     def listing(self, with_status: bool = True) -> Listing[MachineInfo]:

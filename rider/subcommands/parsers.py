@@ -1,6 +1,8 @@
 """Every sub-command's parser, apart from its handler: `rider --help` and bad usage are answered
 from argparse alone, before the client, Zenoh or a wire model is loaded. Each parser carries
-its handler by name (`Lazy(kind, name)`), loaded when the command runs."""
+its handler by name (`Lazy(kind, name)`), loaded when the command runs; one that sends a
+command (`cmd/…`: a motion, a check) says so (`sends_command`): without `--machine` its lookup
+waits longer (rider/discovery.py's `MOTION_SETTLE_S`)."""
 
 from __future__ import annotations
 
@@ -33,7 +35,7 @@ def add_axes(sub: Subparsers[argparse.ArgumentParser]) -> None:
 def add_check(sub: Subparsers[argparse.ArgumentParser]) -> None:
     chk = sub.add_parser("check", help="check calibration or home")
     chk.add_argument("what", choices=["calibration", "home"])
-    chk.set_defaults(func=Lazy("reads", "check"))
+    chk.set_defaults(func=Lazy("reads", "check"), sends_command=True)
 
 
 def add_diag(sub: Subparsers[argparse.ArgumentParser]) -> None:
@@ -151,7 +153,7 @@ def _wait_options(p: argparse.ArgumentParser) -> None:
         help="give up waiting (exit 6) after S seconds without a word from the machine"
         f" (default {LINK_LIMIT_S:g})",
     )
-    p.set_defaults(func=Lazy("motion", "motion"))
+    p.set_defaults(func=Lazy("motion", "motion"), sends_command=True)
 
 
 # ------------------------------------------------------------ settings (what is set)
