@@ -178,6 +178,7 @@ def test_through_the_routers_a_station_commands_and_reads(site: Site, hops: int)
         assert {p.name for p in r.io()} >= {"estop"}
 
 
+@pytest.mark.hazard("H32")
 @pytest.mark.parametrize("hops", [1, 2], ids=["one router", "two routers"])
 @pytest.mark.parametrize("who", ["monitor", "wrong password", "unknown user", "no login"])
 def test_through_the_routers_only_a_station_login_commands(site: Site, hops: int, who: str) -> None:
@@ -212,6 +213,7 @@ def test_through_the_routers_only_a_station_login_commands(site: Site, hops: int
         assert reads == dict.fromkeys(reads, 0)
 
 
+@pytest.mark.hazard("H33")
 @pytest.mark.parametrize("forger_hops", [1, 2], ids=["forger at A", "forger at B"])
 def test_a_station_cannot_keep_another_stations_ride_alive_through_the_routers(
     site: Site, forger_hops: int
@@ -238,6 +240,7 @@ def test_a_station_cannot_keep_another_stations_ride_alive_through_the_routers(
     )
 
 
+@pytest.mark.hazard("H54")
 @pytest.mark.parametrize("hops", [1, 2], ids=["one router", "two routers"])
 def test_a_station_naming_anothers_rider_is_not_confirmed_through_the_routers(
     site: Site, hops: int
@@ -269,6 +272,7 @@ def test_a_station_naming_anothers_rider_is_not_confirmed_through_the_routers(
     ],
     ids=["open profile", "tcp dial", "no CA", "no dictionary", "no certificate"],
 )
+@pytest.mark.hazard("H32")
 def test_the_router_refuses_a_config_that_would_not_enforce_the_profile(
     tmp_path: Path, args: list[str], env: dict[str, None], reason: str
 ) -> None:
