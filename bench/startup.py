@@ -352,7 +352,9 @@ def run(opts: Options, rev: str | None = None) -> Section:
         notes=[
             f"`rider status` without `-m` waits for discovery to settle ({SETTLE_S * 1e3:.0f}"
             " ms without a new token or link, rider/discovery.py) before it may call a machine"
-            " the only one; `-m m1` names it and skips that.",
+            " the only one; the CLI starts that lookup as soon as its session is open, so the"
+            " window runs while it loads the client and the wire models. `-m m1` names the"
+            " machine and looks up nothing.",
         ],
     )
 
