@@ -46,7 +46,7 @@ from service.adapters.eventread import Reader
 from service.adapters.retention import prune_and_vacuum
 from service.adapters.unwritten import Unwritten
 from service.config.model import EventsSection
-from service.core.events import Held, LogLine
+from service.core.held import Held, LogLine
 from service.threads import NamedThread
 
 log = logging.getLogger(__name__)

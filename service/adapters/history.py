@@ -53,7 +53,7 @@ from service.adapters.history_pipe import (
     write_all,
 )
 from service.config.model import EventsSection
-from service.core.events import Held
+from service.core.held import Held
 from service.logfmt import put_text
 from service.threads import NamedThread
 

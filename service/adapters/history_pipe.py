@@ -11,7 +11,7 @@ import msgpack
 
 from schema.codec import dump_json
 from service.adapters.eventdb import Row
-from service.core.events import CommandFacts, Held, LogLine
+from service.core.held import CommandFacts, Held, LogLine
 
 # daemon → history process (`[FLUSH, token, timeout_s]`: the daemon waits no longer for the
 # answer, so the process answers by then, written or not, and reads the pipe again)

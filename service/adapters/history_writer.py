@@ -29,7 +29,7 @@ from service.adapters.history_pipe import (
     write_all,
 )
 from service.config.model import EventsSection
-from service.core.events import COMMAND_LOG, CommandFacts
+from service.core.held import COMMAND_LOG, CommandFacts
 from service.logfmt import flush_logs, info, setup_logging
 from service.threads import name_os_thread
 

@@ -22,7 +22,8 @@ from schema.status import FAULT_STATES, Fault, FaultCode, Status
 from service.config.model import LiveConfig, MachineConfig
 from service.core.axes import AxisTracker
 from service.core.devices import Devices
-from service.core.events import EventRecorder, NullEventSink, hold_limit
+from service.core.events import EventRecorder, NullEventSink
+from service.core.held import hold_limit
 from service.core.identity import Identity
 from service.core.inbox import Inbox
 from service.core.io import IoPoints, ProcessImage

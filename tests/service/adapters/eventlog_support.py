@@ -12,7 +12,7 @@ from service.adapters.eventdb import connect
 from service.adapters.eventlog import EventLog
 from service.adapters.eventread import read_page
 from service.config.model import EventsSection
-from service.core.events import CommandFacts
+from service.core.held import CommandFacts
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""

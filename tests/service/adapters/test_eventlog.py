@@ -29,7 +29,7 @@ from service.adapters.eventlog import EVENTS_FILE, EventLog
 from service.adapters.eventread import iter_events, row_event, row_payload
 from service.adapters.retention import used_bytes
 from service.config.model import EventsSection
-from service.core.events import Held, LogLine
+from service.core.held import Held, LogLine
 from tests.schema.event_samples import DETAILS
 from tests.service.adapters.eventlog_support import (
     FLUSH_S,

@@ -37,7 +37,7 @@ from service.adapters.eventread import read_page
 from service.adapters.history import HistoryProcess
 from service.adapters.history_writer import _Pipe, _Writer
 from service.config.model import EventsSection
-from service.core.events import CommandFacts, Held, LogLine
+from service.core.held import CommandFacts, Held, LogLine
 from tests.service.adapters.eventlog_support import FLUSH_S, command_tids, facts, open_log
 
 T0 = time.time()

@@ -22,8 +22,9 @@ from schema.events import (
     StorageEvent,
 )
 from schema.status import MachineState
-from service.core import events as events_module
-from service.core.events import Held, ListEventSink, hold_limit
+from service.core import held as held_module
+from service.core.events import ListEventSink
+from service.core.held import Held, hold_limit
 from service.core.persist import StorageHealth
 from tests.rig import Rig, known_calibration
 
@@ -359,13 +360,13 @@ def test_without_a_history_a_held_record_writes_its_log_line_and_makes_no_event(
     """`[events] enabled = false`: the command's line is logged, in order, and none of its
     events is made (they would only be dropped)."""
     made: list[str] = []
-    command_event = events_module.CommandEvent
+    command_event = held_module.CommandEvent
 
     def counting(**fields: object) -> CommandEvent:
         made.append(str(fields["transaction_id"]))
         return command_event(**fields)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(events_module, "CommandEvent", counting)
+    monkeypatch.setattr(held_module, "CommandEvent", counting)
     rig = Rig(calibration=known_calibration())
     caplog.set_level(logging.INFO, logger="machine")
     between_cycles(rig, Command.CHECK_HOME, "first")
