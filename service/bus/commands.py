@@ -25,6 +25,7 @@ import zenoh
 
 from schema.commands import REQUEST_MODELS, Command, CommandRequest, Reply
 from schema.events import CommandEvent
+from schema.status import MachineState
 from service.adapters.eventlog import EventLog
 from service.bus.confirm import Confirmer, Verdict
 from service.bus.request import Request, sender_of
@@ -37,6 +38,7 @@ from service.core.tasks import PendingCommand
 from service.errors import (
     BadRequest,
     Busy,
+    EstopActive,
     MachineError,
     RiderUnconfirmed,
     Superseded,
@@ -202,6 +204,11 @@ class Commands:
         try:
             identity = self._confirmed(request, command, body, claim)
             if MOVES[command] and self.stops != stops:
+                if request.host.state() is MachineState.FAULT_ESTOP:  # the first reason
+                    raise EstopActive(
+                        f"{command.value} refused: the E-stop is active; release it, then"
+                        " Resume, Home or Stop"
+                    )
                 raise Superseded(
                     f"{command.value} refused: a Pause or Stop arrived after it while it"
                     " waited; the later stop wins, nothing moved"
@@ -246,9 +253,11 @@ class Commands:
     ) -> None:
         """A refusal that never reached the loop, into the history (an unconfirmed Rider is
         on the record: who tried to move the machine in another's name)."""
-        if self.events is None or not isinstance(exc, RiderUnconfirmed | Superseded):
+        if self.events is None or not isinstance(exc, RiderUnconfirmed | Superseded | EstopActive):
             return
-        self.events.emit_now(
+        # Stamped with the wall clock and the cycle it was refused in (the loop's last), as a
+        # command the loop answered is: the history orders it among that cycle's events.
+        self.events.emit(
             CommandEvent(
                 command=command.value,
                 transaction_id=body.transaction_id,
@@ -257,7 +266,9 @@ class Commands:
                 code=exc.code.value,
                 message=exc.message,
                 state=request.host.state(),
-            )
+            ),
+            self.events.wall(),
+            self.port.cycle(),
         )
 
     def _unknown(self, key: str) -> UnknownCommand:

@@ -110,7 +110,14 @@ def test_a_motion_command_its_rider_does_not_confirm_is_refused_and_recorded(
 ) -> None:
     rig, bus, sink = machine
     events: list[object] = []
-    bus.events = type("Log", (), {"emit_now": staticmethod(events.append)})()  # type: ignore[assignment]
+    cycles: list[int | None] = []
+
+    def emit(details: object, _time: float, cycle: int | None) -> None:
+        events.append(details)
+        cycles.append(cycle)
+
+    log = {"emit": staticmethod(emit), "wall": staticmethod(lambda: 0.0)}
+    bus.events = type("Log", (), log)()  # type: ignore[assignment]
     rider = FakeRider(session) if answers else None  # it never sent it / no such Rider
     if not answers:
         bus.confirmer = Confirmer(session, SILENT_S)
@@ -126,6 +133,7 @@ def test_a_motion_command_its_rider_does_not_confirm_is_refused_and_recorded(
     [event] = events
     assert isinstance(event, CommandEvent) and event.identity is None
     assert event.rider == rider_of(session) and event.code == "RIDER_UNCONFIRMED"
+    assert cycles == [rig.loop.cycle]  # among the events of the cycle it was refused in
 
 
 def test_a_command_that_names_no_rider_is_not_asked_about(
