@@ -55,6 +55,10 @@ def on_scan_thread(port: LoopPort, request: Request, fn: Callable[[], None]) -> 
         raise Busy("command queue full; retry later")
 
 
+RELEASE_TIMEOUT_S = 0.05
+"""How long a write waits for the loop's lock to hand over the commands it holds."""
+
+
 @dataclass
 class Writes:
     """The daemon's write routes other than commands."""
@@ -146,6 +150,9 @@ class Writes:
         if self.events is None:
             return
         kind = "safety_changed" if is_safety(old.name) else "param_changed"
+        # The commands answered before this write are in the history before it (the loop
+        # holds them for its next cycle), as a history read sees them (reads.py).
+        self.port.release_records(RELEASE_TIMEOUT_S)
         self.events.emit_now(
             ParamEvent(
                 kind=kind,
