@@ -284,9 +284,9 @@ class EventLog:
             self._wake.set()
         return True
 
-    def emit_now(self, details: KnownDetails) -> None:
-        """An event from outside the scan loop, stamped with the wall clock."""
-        self.emit(details, self.wall(), None)
+    def emit_now(self, details: KnownDetails, cycle: int | None = None) -> None:
+        """An event from outside the scan loop, stamped with the wall clock and `cycle`."""
+        self.emit(details, self.wall(), cycle)
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until everything queued so far is written (tests and shutdown)."""

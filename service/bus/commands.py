@@ -257,7 +257,7 @@ class Commands:
             return
         # Stamped with the wall clock and the cycle it was refused in (the loop's last), as a
         # command the loop answered is: the history orders it among that cycle's events.
-        self.events.emit(
+        self.events.emit_now(
             CommandEvent(
                 command=command.value,
                 transaction_id=body.transaction_id,
@@ -267,7 +267,6 @@ class Commands:
                 message=exc.message,
                 state=request.host.state(),
             ),
-            self.events.wall(),
             self.port.cycle(),
         )
 

@@ -112,12 +112,11 @@ def test_a_motion_command_its_rider_does_not_confirm_is_refused_and_recorded(
     events: list[object] = []
     cycles: list[int | None] = []
 
-    def emit(details: object, _time: float, cycle: int | None) -> None:
+    def emit_now(details: object, cycle: int | None = None) -> None:
         events.append(details)
         cycles.append(cycle)
 
-    log = {"emit": staticmethod(emit), "wall": staticmethod(lambda: 0.0)}
-    bus.events = type("Log", (), log)()  # type: ignore[assignment]
+    bus.events = type("Log", (), {"emit_now": staticmethod(emit_now)})()  # type: ignore[assignment]
     rider = FakeRider(session) if answers else None  # it never sent it / no such Rider
     if not answers:
         bus.confirmer = Confirmer(session, SILENT_S)
