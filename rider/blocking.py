@@ -30,10 +30,11 @@ from schema.sim import SimWorldState
 from schema.status import MachineState, Status
 
 if TYPE_CHECKING:  # loaded by the first event query or wait: `rider status` needs neither
+    from common.event_summary import EventSummary
     from rider.completions import Completions
     from rider.events import Events
     from schema.completion import Completion
-    from schema.events import Event, EventPage, EventQuery, EventSummary
+    from schema.events import Event, EventPage, EventQuery
 
 T = TypeVar("T")
 

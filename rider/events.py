@@ -14,6 +14,7 @@ from typing import Any
 
 import zenoh
 
+from common.event_summary import EventSummary, summarize
 from rider.errors import BadReply, RiderError
 from rider.link import Link
 from rider.machines import Machines
@@ -21,7 +22,7 @@ from rider.replies import decode_reply, decode_sample
 from rider.subscriptions import Subscriptions
 from rider.transport import EMPTY_RETRY_S, Transport
 from schema.codec import MAX_REPLY_BYTES
-from schema.events import Event, EventPage, EventQuery, EventSummary, summarize
+from schema.events import Event, EventPage, EventQuery
 
 log = logging.getLogger("rider.client")  # one logger for the whole client, as before its split
 

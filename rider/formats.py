@@ -26,7 +26,8 @@ from schema.sim import SimWorldState
 from schema.status import Status
 
 if TYPE_CHECKING:
-    from schema.events import Event, EventSummary
+    from common.event_summary import EventSummary
+    from schema.events import Event
 
 T = TypeVar("T")
 
@@ -237,7 +238,7 @@ def fmt_machine(m: MachineInfo) -> str:
 
 
 def fmt_event(e: Event, with_machine: bool = False) -> str:
-    from schema.events import describe  # the history's models: only where events are shown
+    from common.event_words import describe
 
     stamp = datetime.fromtimestamp(e.time).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
     who = f"{e.machine_id:8} " if with_machine else ""

@@ -5,8 +5,9 @@ Each event has a kind (`EventKind`) and typed details, one model per kind, told 
 instead of failing, so old Riders can read a newer machine's history.
 
 One import for all of it; the parts: the kinds (schema/event_kinds.py), the wire models
-(schema/event_models.py), which events to read (schema/event_query.py), the history counted for
-people (schema/event_text.py) and one line for people per event (schema/event_words.py).
+(schema/event_models.py) and which events to read (schema/event_query.py). How events read for
+people is not wire: common/event_words.py (one line per event) and common/event_summary.py (the
+history counted).
 """
 
 from __future__ import annotations
@@ -14,5 +15,3 @@ from __future__ import annotations
 from schema.event_kinds import *  # noqa: F403 - this module is the one import for all of them
 from schema.event_models import *  # noqa: F403
 from schema.event_query import *  # noqa: F403
-from schema.event_text import *  # noqa: F403
-from schema.event_words import *  # noqa: F403

@@ -1,5 +1,6 @@
 """The import graph keeps its arrows: schema ← hal ← service, hal ← sim, rider ← schema, and
-common (what daemon and Rider share off the wire) beside schema; schema holds wire models on
+common (what daemon and Rider share off the wire: the session, the logins, how events read for
+people) on schema; schema holds wire models on
 pydantic, msgpack and the standard library alone; the simulator is a HAL backend found by name
 (`hal.backends`), imported by nothing outside sim/; Zenoh only at the edges; no cycles."""
 
@@ -17,7 +18,7 @@ PACKAGES = ("schema", "common", "hal", "service", "sim", "rider")
 
 MAY_IMPORT = {
     "schema": set(),
-    "common": set(),
+    "common": {"schema"},
     "hal": {"schema"},
     "service": {"hal", "schema", "common"},
     "sim": {"hal", "schema"},
@@ -55,17 +56,35 @@ def modules() -> Iterator[Path]:
         yield from sorted((REPO / package).rglob("*.py"))
 
 
+INSTALLED_AS = "ride_machine."
+"""The one import name everything installed sits under (pyproject.toml's package-dir)."""
+
+
+def _ours(name: str) -> str:
+    """`name` as the folders at the top name it: ride_machine.service.cli → service.cli."""
+    return name.removeprefix(INSTALLED_AS)
+
+
 def imports(path: Path) -> Iterator[tuple[str, int]]:
-    """Every module name `path` imports (at the top, in a function, under TYPE_CHECKING)."""
+    """Every module name `path` imports (at the top, in a function, under TYPE_CHECKING),
+    relative imports resolved, our own named by their folders (service.cli)."""
     tree = ast.parse(path.read_text(), str(path))
+    here = rel(path).removesuffix(".py").split("/")
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for alias in node.names:
-                yield alias.name, node.lineno
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            yield node.module, node.lineno
+                yield _ours(alias.name), node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ".".join(here[: len(here) - node.level])
+                module = f"{base}.{node.module}" if node.module else base
+            elif node.module:
+                module = _ours(node.module)
+            else:
+                continue
+            yield module, node.lineno
             for alias in node.names:  # `from service import bus` imports service.bus
-                yield f"{node.module}.{alias.name}", node.lineno
+                yield f"{module}.{alias.name}", node.lineno
 
 
 def rel(path: Path) -> str:

@@ -40,6 +40,7 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
         f"`rider ui` needs the ui extra: pip install 'ride-machine[ui]' (missing {exc.name})"
     ) from exc
 
+from common.event_words import describe
 from rider.client import MachineTimeout, Rider, RiderError
 from rider.exits import own_options
 from rider.text import printable, shown
@@ -53,7 +54,7 @@ from rider.ui.view import HISTORY_S, SAMPLE_PERIOD_S, Event, LiveView, Update
 from schema.base import WireModel
 from schema.codec import DecodeError, Format, decode_raw, validate
 from schema.commands import Command, Reply, Session
-from schema.events import EventQuery, QueryError, describe
+from schema.events import EventQuery, QueryError
 
 log = logging.getLogger("rider.ui")
 

@@ -17,7 +17,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import TextIO
 
-from schema.events import Event, describe, query_of
+from common.event_words import describe
+from schema.events import Event, query_of
 from service.adapters.eventdb import connect_readonly
 from service.adapters.eventlog import EVENTS_FILE
 from service.adapters.eventread import iter_events

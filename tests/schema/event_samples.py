@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel
 
+from common.event_summary import EventSummary
 from schema.diag import EventsDiag
 from schema.events import (
     CalibrationEvent,
@@ -16,7 +17,6 @@ from schema.events import (
     EstopEvent,
     Event,
     EventPage,
-    EventSummary,
     FaultEvent,
     ParamEvent,
     RiderEvent,

@@ -105,7 +105,7 @@ def test_the_panel_reads_a_calibration_and_its_rider_for_people(
 ) -> None:
     """Issue 58, point 11: `rotate calibrated: revolution 2.000 s, home arc 20.0° (measured)`
     and `from anonymous · 9d617a`, where the panel showed a dict of 16-digit floats and the
-    Rider's 32-digit session id (the text comes from the server: schema/event_words.py)."""
+    Rider's 32-digit session id (the text comes from the server: common/event_words.py)."""
     for axis in ("tilt", "rotate"):
         done = fast_daemon.cli("calibrate", axis, "--wait", timeout=RIDE_S / 1000)
         assert done.returncode == 0, done.stderr

@@ -14,7 +14,7 @@ from typing import Any, get_args
 import pytest
 from pydantic import BaseModel
 
-from schema.event_words import TEXTS, asker, param_unit, rider_name
+from common.event_words import TEXTS, asker, describe, param_unit, rider_name
 from schema.events import (
     CalibrationEvent,
     ClockEvent,
@@ -34,7 +34,6 @@ from schema.events import (
     StateEvent,
     StorageEvent,
     WatchdogEvent,
-    describe,
 )
 from schema.status import MachineState as S
 from service.core.params import SPECS

@@ -2,7 +2,7 @@
 `text` column all print (docs/events.md, "How an event reads").
 
 One text function per event kind (`TEXTS`), so a kind added to the schema without its text fails
-at import and in tests/schema/test_event_text.py. The rules they share:
+at import and in tests/common/test_event_text.py. The rules they share:
 
 - numbers rounded to what the instrument resolves, with their unit (`QUANTITIES`; a parameter's
   unit comes from its name, `param_value`): `revolution 4.000 s`, `home arc 9.9°`;
@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping
 from datetime import datetime
 from typing import Any
 
-from schema.departure import departure_text
+from common.departure import departure_text
 from schema.event_kinds import EventKind
 from schema.event_models import (
     CalibrationEvent,
@@ -283,7 +283,7 @@ def param_text(d: ParamEvent) -> str:
 
 
 def rider_text(d: RiderEvent) -> str:
-    """A departure at rest or mid-motion (schema/departure.py); a return; or what a machine
+    """A departure at rest or mid-motion (common/departure.py); a return; or what a machine
     older than `mid_motion` said."""
     who = rider_name(d.rider)
     if d.kind == "rider_lost" and d.mid_motion is not None:

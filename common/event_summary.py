@@ -1,5 +1,5 @@
 """The event history counted for people: sessions, ride time, E-stops and faults over a range
-(`rider events --summary`). One line per event: schema/event_words.py."""
+(`rider events --summary`). One line per event: common/event_words.py."""
 
 from __future__ import annotations
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from schema.events import RiderEvent, describe
+from common.event_words import describe
+from schema.events import RiderEvent
 
 
 def lost(**kw: object) -> RiderEvent:
