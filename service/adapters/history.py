@@ -109,15 +109,13 @@ class HistoryProcess(EventLog):
         this daemon's own process to claim): a killed daemon's history process still writes
         what it was sent, its `daemon_start` among it, and read before that the last run
         looked clean (a run under load: `previous_stop_clean` True after a SIGKILL)."""
+        writer = self.writer
         fd, _ = claim_writer(self.path, self.writer_wait_s)  # the process says if it is held
         if fd is not None:
             os.close(fd)
-        self._open_or_replace()
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
-        self._pending_failure = self._failure
-        self._failure = None
+        self.previous_stop_clean = writer.open_or_replace(self.wall())
+        writer.release()
+        self._pending_failure, writer.failure = writer.failure, None
         self._base = (0, self.lost, self.failures)
         self._spawn()
         self._start_threads()
@@ -167,8 +165,8 @@ class HistoryProcess(EventLog):
         `timeout` (then the process is killed, and what it had not written is counted lost)."""
         deadline = time.monotonic() + timeout
         self._stop()
-        if self._writer is not None:
-            self._writer.join(max(0.0, deadline - time.monotonic()))
+        if self._thread is not None:
+            self._thread.join(max(0.0, deadline - time.monotonic()))
         proc = self._proc
         if proc is not None:
             with contextlib.suppress(OSError):
@@ -317,7 +315,7 @@ class HistoryProcess(EventLog):
             _, rows, status = message
             self._status(proc, status)
             if rows:
-                self._publish(list(rows))
+                self.writer.publish(list(rows))
         elif tag == FLUSHED:
             _, token, status = message
             self._status(proc, status)

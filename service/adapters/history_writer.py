@@ -68,7 +68,8 @@ class _Writer(EventLog):
     back to the daemon."""
 
     def __init__(self, pipe: _Pipe, path: Path, machine_id: str, settings: EventsSection) -> None:
-        super().__init__(path, machine_id, settings)
+        # Between a batch's chunks of inserts it gives way, as `_make` does between events.
+        super().__init__(path, machine_id, settings, pace=os.sched_yield)
         self.pipe = pipe
         self.received = 0
         self.forwarded = 0
@@ -88,10 +89,7 @@ class _Writer(EventLog):
     def record_failure(self, error: str, lost: int) -> None:
         """A failure the daemon saw (an earlier process ended): written with the next batch."""
         with self._lock:
-            self._failure = (error, lost)
-
-    def _pace(self) -> None:
-        os.sched_yield()  # between a batch's chunks of inserts, as `_make` between events
+            self.writer.failure = (error, lost)
 
     def _take(self) -> list[Row]:
         batch = super()._take()

@@ -251,7 +251,7 @@ def test_a_batch_that_fails_unexpectedly_is_counted_lost_and_the_writer_goes_on(
         note(0.2),
     ]
     assert (log.lost, log.failures, log.last_error) == (1, 1, error)
-    assert log._writer is not None and log._writer.is_alive()
+    assert log._thread is not None and log._thread.is_alive()
     [record] = [r for r in caplog.records if "events_write_failed" in r.getMessage()]
     assert record.exc_info is not None  # a bug: its traceback is in the log
 
@@ -260,7 +260,7 @@ def test_a_prune_that_fails_unexpectedly_leaves_the_writer_running(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     def broken(self: EventLog) -> None:
-        self._prune_due = self.wall() + self.settings.prune_every_s
+        self.writer.prune_due = self.wall() + self.settings.prune_every_s
         raise RuntimeError("bug in a prune")
 
     monkeypatch.setattr(EventLog, "_prune", broken)
@@ -280,7 +280,7 @@ def test_a_prune_that_fails_unexpectedly_leaves_the_writer_running(
             StorageEvent(what="events", error="event prune failed: RuntimeError('bug in a prune')")
             in details
         )
-        assert log._writer is not None and log._writer.is_alive()
+        assert log._thread is not None and log._thread.is_alive()
     finally:
         log.close()
 

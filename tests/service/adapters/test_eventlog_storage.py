@@ -54,8 +54,8 @@ def test_a_recovered_database_records_the_failure_as_an_event(tmp_path: Path) ->
     try:
         blocker = sqlite3.connect(log.path, timeout=0.1)
         blocker.execute("BEGIN EXCLUSIVE")
-        assert log._conn is not None
-        log._conn.execute("PRAGMA busy_timeout=10")
+        assert log.writer.conn is not None
+        log.writer.conn.execute("PRAGMA busy_timeout=10")
         log.emit_now(note(1.0))
         assert log.flush()
         assert log.lost == 1

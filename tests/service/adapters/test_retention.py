@@ -140,8 +140,8 @@ def blocker(path: Path) -> Iterator[sqlite3.Connection]:
 def locked_out(path: Path, blocker: sqlite3.Connection) -> EventLog:
     """A log whose database `blocker` locks: an E-stop and a routine event it cannot write."""
     log = open_log(path)
-    assert log._conn is not None
-    log._conn.execute("PRAGMA busy_timeout=10")  # a failed write in 10 ms, not 1 s
+    assert log.writer.conn is not None
+    log.writer.conn.execute("PRAGMA busy_timeout=10")  # a failed write in 10 ms, not 1 s
     blocker.execute("BEGIN EXCLUSIVE")
     log.emit(SAFETY[0], T0, 1)
     log.emit(routine(1, 10), T0 + 1, 2)
