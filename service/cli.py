@@ -18,7 +18,7 @@ from service.config.validate import finding_line, findings_of, hardware_findings
 from service.logfmt import flush_logs, setup_logging
 
 if TYPE_CHECKING:
-    from service.supervision.daemon import DaemonOptions
+    from service.supervision.assembly import DaemonOptions
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -388,7 +388,8 @@ def _run(args: argparse.Namespace, config: MachineConfig) -> int:
 
 
 def _supervise(args: argparse.Namespace, config: MachineConfig) -> int:
-    from service.supervision.supervisor import SupervisorOptions, run_supervisor
+    from service.supervision.restarts import SupervisorOptions
+    from service.supervision.supervisor import run_supervisor
 
     if not check_hardware(config, str(args.config or "machine")):
         return EXIT_CONFIG
@@ -413,7 +414,7 @@ def _supervise(args: argparse.Namespace, config: MachineConfig) -> int:
 
 
 def _daemon_options(args: argparse.Namespace) -> DaemonOptions:
-    from service.supervision.daemon import DaemonOptions
+    from service.supervision.assembly import DaemonOptions
 
     return DaemonOptions(zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect)
 

@@ -1,4 +1,6 @@
-"""`machine run`: assemble the daemon, run the scan loop, and always leave the outputs safe."""
+"""`machine run`: the daemon's lifecycle. Set up on one `ExitStack` (the parts are made in
+service/supervision/assembly.py), serve until a signal or a failure, wind down while the bus can
+still carry the last answers, and always leave the outputs safe."""
 
 from __future__ import annotations
 
@@ -6,34 +8,16 @@ import contextlib
 import logging
 import os
 import signal
-import sys
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
 
-from hal.backends import backend
-from hal.base import Hal, HalConfigError, HalError
-from schema.events import DaemonStartEvent, DaemonStopEvent, WatchdogEvent
+from hal.base import Hal
+from schema.events import DaemonStopEvent, WatchdogEvent
 from service import bus as zbus
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.fastdata import FastDataServer, user_registers
-from service.adapters.heartbeat import HeartbeatFile
-from service.adapters.history import HistoryProcess
-from service.adapters.replay import Recalled, recall
-from service.bus.exposure import warn_if_exposed
-from service.config.load import check_candidate
+from service.adapters.eventlog import EventLog
 from service.config.model import MachineConfig
-from service.config.validate import Category, finding_line, one_error
 from service.core.beat import BeatWriter, beat_from_env
-from service.core.machine import Machine
-from service.core.params import ParamRegistry
-from service.core.persist import BackgroundWriter, CalibrationStore, ParamStore
-from service.core.port import LoopPort
 from service.core.runner import LoopFailed, RealtimeRunner
-from service.core.safety import in_effect
-from service.core.statemachine.deadman import Heartbeats
 from service.core.timing import CycleStats
 from service.core.tuning import (
     SUPERVISOR_PID_ENV,
@@ -44,49 +28,30 @@ from service.core.tuning import (
     switch_interval,
     tune_thread,
 )
-from service.core.watchdog import GuardedHal, Watchdog
 from service.logfmt import flush_logs
 from service.signals import SignalThread
+from service.supervision.assembly import (
+    Built,
+    DaemonOptions,
+    Wiring,
+    build_machine,
+    event_log,
+    guarded_hal,
+    on_exit,
+    open_session,
+    open_storage,
+    recall_answers,
+    refuse_duplicate,
+    remember,
+    start_fastdata,
+    start_heartbeat_file,
+    start_watchdog,
+)
 from service.supervision.malloc import bound_malloc_arenas
-from service.supervision.simport import sim_port
+from service.supervision.outcome import EXIT_FAILED, EXIT_OK, StartRefused
 from service.threads import name_callback_threads
 
 log = logging.getLogger("machine")
-
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_CONFIG = 2
-
-
-@dataclass
-class DaemonOptions:
-    """How to reach the bus; the rest is in the machine config."""
-
-    zenoh_config: Path | None = None
-    listen: list[str] = field(default_factory=list)
-    connect: list[str] = field(default_factory=list)
-
-
-def make_hal(config: MachineConfig, clock: object) -> Hal:
-    """The configured backend, found by name (`hal.backends`); the simulator by default. On
-    the real clock: an injected scan stall really sleeps."""
-    hal = config.hal
-    return backend(hal.backend).open(hal.iomap, hal.settings(), time.monotonic, time.sleep)
-
-
-def open_hal(config: MachineConfig, clock: object, source: str = "machine") -> Hal | None:
-    """The backend, or None after printing why it cannot open as findings on stderr."""
-    try:
-        return make_hal(config, clock)
-    except HalConfigError as exc:
-        found = exc.findings
-    except (HalError, OSError) as exc:  # anything else the backend meets while it opens
-        message = f"the {config.hal.backend} backend cannot open: {exc}"
-        found = one_error(Category.HAL, message, "/hal/backend").findings
-    for f in found:
-        print(finding_line(source, f), file=sys.stderr)
-    log.error("event=hal_failed backend=%s findings=%d", config.hal.backend, len(found))
-    return None
 
 
 def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
@@ -111,15 +76,6 @@ def run_daemon(config: MachineConfig, options: DaemonOptions) -> int:
     # default action) before its last log lines are written.
     daemon.signals_after = signal.SIG_IGN
     return daemon.run()
-
-
-class StartRefused(Exception):
-    """A setup step found the daemon cannot run; what was set up so far is undone."""
-
-    def __init__(self, code: int, reason: str) -> None:
-        super().__init__(reason)
-        self.code = code
-        self.reason = reason
 
 
 class Daemon:
@@ -150,6 +106,10 @@ class Daemon:
         self._stop_recorded = False
         self.beat: BeatWriter | None = beat_from_env() if supervised else None
         """The shared record the supervisor's output guard watches (`service.core.beat`)."""
+        self.raw_hal: Hal
+        self.stats: CycleStats
+        self.built: Built
+        """The running machine (service/supervision/assembly.py), once assembled."""
         self.tuned: list[str] = []
         """What `run_daemon` applied to the process before it started (`loop.malloc_arenas`,
         `loop.cpus`, `loop.slice_s`, `bus.zenoh_threads`), for the start line's tuning."""
@@ -186,189 +146,50 @@ class Daemon:
 
     # ------------------------------------------------------------------------------ setup
     def _assemble(self, stack: contextlib.ExitStack) -> None:
-        """The setup steps in order; each registers its undo as soon as it has succeeded."""
-        hal = self._open_hal(stack)
-        store, registry = self._open_storage(stack)
-        recalled = self._recall()  # before this run's history writer takes the file
-        self._open_event_log(stack)
+        """The setup steps in order (service/supervision/assembly.py); each registers its undo
+        as soon as it has succeeded."""
+        config = self.config
+        self.raw_hal, hal = guarded_hal(stack, config, self.beat)
+        raw_hal = self.raw_hal
+        self.exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
+        self.exit_deadline.daemon = True
+        storage = open_storage(stack, config)
+        self.config = config = storage.registry.config  # persisted online values apply now
+        self.stats = storage.stats
+        recalled = recall_answers(config)  # before this run's history writer takes the file
+        self.events = event_log(config)
+        on_exit(stack, "event_log", self._close_events)
         # Handled on a thread of their own, never inside the code a signal interrupts; until
         # `run` returns, so a signal during the teardown is handled too.
         self.signals = SignalThread(self._on_signal)
         self.signals.start()
-        session = self._open_session(stack)
-        self._refuse_duplicate(session)
-        self._build_machine(hal, store, registry, session)
-        self._remember(recalled)
-        _on_exit(stack, "bus", self.bus.close)
-        self.bus.start()
-        name_callback_threads()  # zenoh-python's callback threads, for `top -H`
-        _on_exit(stack, "wind_down", self._wind_down)  # while the bus is up: last answers
-        self._start_watchdog(stack, hal)
-        if (beat := HeartbeatFile.from_env(self.port.cycle)) is not None:  # healthcheck
-            _on_exit(stack, "heartbeat_file", beat.stop)
-            beat.start()
-        if self.config.fastdata.enabled:
-            self._start_fastdata(stack, registry)
-        _on_exit(stack, "outputs_safe", self.loop.go_safe)  # pushed last, so undone first
-
-    def _open_hal(self, stack: contextlib.ExitStack) -> GuardedHal:
-        """The backend, outputs safe, behind the watchdog's latch; armed exit deadline."""
-        raw_hal = open_hal(self.config, self.clock)
-        if raw_hal is None:
-            raise StartRefused(EXIT_CONFIG, "the HAL could not open")
-        raw_hal.force_all_outputs_safe()
-        self.raw_hal = raw_hal
-        self.exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
-        self.exit_deadline.daemon = True
-        hal = GuardedHal(raw_hal, self.beat)
-        _on_exit(stack, "hal", hal.close)
-        return hal
-
-    def _open_storage(self, stack: contextlib.ExitStack) -> tuple[CalibrationStore, ParamRegistry]:
-        """Calibration and online parameters in the data dir; persisted values apply now."""
-        data_dir = Path(self.config.data_dir)
-        writer = BackgroundWriter()
-        _on_exit(stack, "storage", _flush_and_close, writer)
-        store = CalibrationStore(data_dir, writer)
-        _on_exit(stack, "calibration", store.close)  # before the writer's own close
-        registry = ParamRegistry(self.config, ParamStore(data_dir), store.health)
-        self.config = config = registry.config  # persisted online values survive a restart
-        self.stats = CycleStats(
-            config.loop.period_s,
-            config.loop.stats_window,
-            time.time(),
-            limit_s=config.loop.watchdog_limit_s,
-        )
-        return store, registry
-
-    def _recall(self) -> Recalled:
-        """The answers of the commands before this start (service/adapters/replay.py)."""
-        config = self.config
-        if not config.events.enabled:
-            return Recalled()
-        path = Path(config.data_dir) / EVENTS_FILE
-        return recall(path, config.machine.id, config.bus.transaction_window)
-
-    def _remember(self, recalled: Recalled) -> None:
-        """A repeat of a transaction answered before this start gets that answer again."""
-        self.loop.remember(recalled.replies, recalled.completions)
-        log.info(
-            "event=transactions_recalled commands=%d completions=%d since=%s",
-            len(recalled.replies),
-            len(recalled.completions),
-            "-" if recalled.since is None else f"{recalled.since:.3f}",
-        )
-
-    def _open_event_log(self, stack: contextlib.ExitStack) -> None:
-        self.events = _event_log(self.config)
-        _on_exit(stack, "event_log", self._close_events)
-
-    def _open_session(self, stack: contextlib.ExitStack) -> zbus.Session:
-        options = self.options
-        try:
-            zconf = zbus.zenoh_config(options.zenoh_config, options.listen, options.connect)
-            warn_if_exposed(zconf, log)
-            session = zbus.open_session(zconf)
-        except Exception as exc:  # zenoh raises plain ZError; the outputs are safe already
-            log.error("event=zenoh_open_failed error=%r", str(exc))
-            raise StartRefused(EXIT_FAILED, f"zenoh session could not open: {exc}") from exc
-        _on_exit(stack, "session", self._close_session, session)
-        return session
-
-    def _refuse_duplicate(self, session: zbus.Session) -> None:
-        """One machine per id: a second daemon would take the first one's commands too."""
-        config = self.config
-        others = zbus.holders_of(session, config.key_base)
-        if not others:
-            return
-        log.error(
-            "event=duplicate_id id=%s other_session=%s action=refuse_start detail=%r",
-            config.machine.id,
-            ",".join(others),
-            f"machine id {config.machine.id} is already alive on the network (session"
-            f" {', '.join(others)}); stop that daemon or give this one another --id",
-        )
-        raise StartRefused(EXIT_FAILED, "machine id already alive on the network")
-
-    def _build_machine(
-        self,
-        hal: GuardedHal,
-        store: CalibrationStore,
-        registry: ParamRegistry,
-        session: zbus.Session,
-    ) -> None:
-        """The machine, its runner, and the bus, each given what it uses: the loop publishes
-        through the bus's publications (made first), the bus reaches the loop through its port
-        (made after it)."""
-        config, clock = self.config, self.clock
-        publications = zbus.Publications(session, self.stats, config, time.time, self.events)
-        machine = Machine(
-            registry.live,
+        session = open_session(self.options)
+        on_exit(stack, "session", self._close_session, session)
+        refuse_duplicate(session, config)
+        wiring = Wiring(
+            raw_hal,
             hal,
-            now=clock(),
-            wall_offset=time.time() - clock(),
-            store=store,
-            events=self.events,
-            guard=hal,
-            warnings=registry.warnings,
-            sink=publications,
-            beats=Heartbeats(),
-            clock=clock,
+            storage,
+            session,
+            self.events,
+            self.beat,
+            self.supervised,
+            self._on_watchdog_trip,
         )
-        self.loop = machine.loop
-        self.port = LoopPort(machine.loop, clock)
-        self.bus = zbus.ZenohBus(
-            self.port,
-            publications,
-            io_keys=[f"io/{p.kind}/{p.name}" for p in machine.points.all()],
-            sim=sim_port(backend(self.config.hal.backend).simulator(self.raw_hal)),
-            sim_elsewhere=self.supervised,
-            params=registry,
-            check_config=lambda candidate: check_candidate(registry.config, candidate),
-        )
-        self.runner = RealtimeRunner(
-            self.loop,
-            config.loop.period_s,
-            self.stats,
-            spin_s=config.loop.spin_s,
-            stall_limit_s=config.loop.watchdog_limit_s,
-            beat=self.beat,
-            wall=time.time,  # the host's clock can be set while the daemon runs (NTP)
-        )
-        if self.beat is not None:
-            self.beat.start(config.loop.watchdog_limit_s)
+        self.built = built = build_machine(config, wiring)
+        self.runner = built.runner
         if self._stop_asked:  # a signal during setup: serve no cycle
-            self.runner.stop()
-
-    def _start_watchdog(self, stack: contextlib.ExitStack, hal: GuardedHal) -> None:
-        loop, runner = self.config.loop, self.runner
-        assert runner is not None
-        watchdog = Watchdog(
-            lambda: runner.heartbeat,
-            hal,
-            loop.period_s,
-            loop.watchdog_periods,
-            loop.watchdog_min_s,
-            on_trip=self._on_watchdog_trip,
-            beat_at=lambda: runner.beat_at,
-            finished=lambda: runner.finished,
-        )
-        runner.on_stall = watchdog.after_stall
-        _on_exit(stack, "watchdog", watchdog.stop)
-        watchdog.start()
-
-    def _start_fastdata(self, stack: contextlib.ExitStack, registry: ParamRegistry) -> None:
-        fd, port = self.config.fastdata, self.port
-        server = FastDataServer(
-            lambda: port.snapshot().axes,
-            fd.host,
-            fd.port,
-            cycle=port.cycle,
-            registers=lambda: user_registers(registry.config),
-        )
-        _on_exit(stack, "fastdata", server.close)
-        server.start()
-        log.info("event=fastdata_started address=%s:%d", *server.address)
+            built.runner.stop()
+        remember(built.loop, recalled)
+        on_exit(stack, "bus", built.bus.close)
+        built.bus.start()
+        name_callback_threads()  # zenoh-python's callback threads, for `top -H`
+        on_exit(stack, "wind_down", self._wind_down)  # while the bus is up: last answers
+        start_watchdog(stack, built.watchdog)
+        start_heartbeat_file(stack, built.port)  # the container's healthcheck
+        if config.fastdata.enabled:
+            start_fastdata(stack, config, built.port, storage.registry)
+        on_exit(stack, "outputs_safe", built.loop.go_safe)  # pushed last, so undone first
 
     # ------------------------------------------------------------------------------ serve
     def _serve(self) -> None:
@@ -409,7 +230,7 @@ class Daemon:
         self._arm_exit_deadline()
 
     def _on_watchdog_trip(self, stalled_s: float) -> None:
-        self.bus.publish_watchdog_trip(stalled_s)
+        self.built.bus.publish_watchdog_trip(stalled_s)
         if self.events is not None:
             self.events.emit_now(WatchdogEvent(stalled_s=stalled_s))
 
@@ -418,8 +239,9 @@ class Daemon:
         """The runner has stopped: every queued command and the motion under way get their
         answer, and the stop is recorded, while the bus can still carry them."""
         now = self.clock()
-        self.loop.reject_pending("machine daemon is shutting down")
-        self.loop.abort_motion(now, "machine daemon is shutting down")
+        loop = self.built.loop
+        loop.reject_pending("machine daemon is shutting down")
+        loop.abort_motion(now, "machine daemon is shutting down")
         if self.events is not None:
             self._record_stop(self.events)
             self.events.flush(timeout=1.0)
@@ -445,43 +267,6 @@ class Daemon:
         if self.exit_deadline is not None:
             with contextlib.suppress(RuntimeError):  # armed already
                 self.exit_deadline.start()
-
-
-def _on_exit(
-    stack: contextlib.ExitStack, step: str, undo: Callable[..., object], *args: object
-) -> None:
-    """Register the undo of a setup step; a debug line names each one as it runs, so a
-    shutdown that hangs shows where."""
-
-    def run() -> None:
-        log.debug("event=undo step=%s", step)
-        undo(*args)
-
-    stack.callback(run)
-
-
-def _flush_and_close(writer: BackgroundWriter) -> None:
-    writer.flush()
-    writer.close()
-
-
-def _event_log(config: MachineConfig) -> EventLog | None:
-    """The event history, started, with this start recorded first; None when disabled."""
-    if not config.events.enabled:
-        return None
-    kind = HistoryProcess if config.events.process else EventLog
-    events = kind(Path(config.data_dir) / EVENTS_FILE, config.machine.id, config.events)
-    events.start()
-    events.emit_now(
-        DaemonStartEvent(
-            pid=os.getpid(),
-            hal=str(config.hal.backend),
-            period_s=config.loop.period_s,
-            previous_stop_clean=events.previous_stop_clean,
-            safety=in_effect(config),
-        )
-    )
-    return events
 
 
 SHUTDOWN_DEADLINE_S = 5.0

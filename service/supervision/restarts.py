@@ -1,5 +1,6 @@
-"""The child daemon as the supervisor keeps it: its record, what can happen to it (the
-supervisor's events), how it ended in words, and the back-off before the next start."""
+"""The child daemon as the supervisor keeps it: the restart policy and bounds, its record, what
+can happen to it (the supervisor's events), how it ended in words, and the back-off before the
+next start."""
 
 from __future__ import annotations
 
@@ -7,8 +8,33 @@ import signal
 import subprocess
 from dataclasses import dataclass
 from enum import Enum
+from pathlib import Path
 
 from service.supervision.outputguard import Stall
+
+
+@dataclass(frozen=True)
+class SupervisorOptions:
+    """Restart policy and bounds."""
+
+    backoff_s: float = 0.5
+    backoff_max_s: float = 8.0
+    stable_s: float = 10.0
+    """A child up this long resets the back-off to `backoff_s`."""
+    start_timeout_s: float = 30.0
+    """A child whose liveliness token has not appeared by then is killed and restarted."""
+    exit_grace_s: float = 1.0
+    """After the token goes: how long a child that is still running may take to exit."""
+    stop_timeout_s: float = 10.0
+    hang_s: float | None = None
+    """A daemon whose scan has completed no cycle for this long is killed and restarted,
+    whatever its outputs (they were made safe at the watchdog limit if any was on); None:
+    `HANG_S` (supervisor.py), or three watchdog limits when that is longer."""
+    world_period_s: float = 0.005
+    log_level: str = "info"
+    plant_dir: Path | None = None
+    """With the simulator: attach to a plant already running there (`--plant`, a compose
+    service of its own) instead of starting one as a child."""
 
 
 class Backoff:

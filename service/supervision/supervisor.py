@@ -20,11 +20,8 @@ import os
 import queue
 import shutil
 import signal
-import subprocess
 import sys
 import tempfile
-import time
-from dataclasses import dataclass
 from pathlib import Path
 
 from common.credentials import MACHINE, CredentialError, env_name
@@ -40,51 +37,23 @@ from service.bus.supervisor import (
 )
 from service.config.model import MachineConfig
 from service.config.validate import finding_line
-from service.core.beat import BEAT_FD_ENV, BeatReader, create_beat_fd
-from service.core.tuning import SUPERVISOR_PID_ENV
+from service.core.beat import BeatReader, create_beat_fd
 from service.signals import SignalThread
-from service.supervision.daemon import DaemonOptions, StartRefused
+from service.supervision.assembly import DaemonOptions
+from service.supervision.children import ChildKeeper
 from service.supervision.field import SafeOutputs, open_field
 from service.supervision.malloc import bound_malloc_arenas
+from service.supervision.outcome import EXIT_CONFIG, EXIT_FAILED, EXIT_OK, StartRefused
 from service.supervision.outputguard import OutputGuard, Stall
-from service.supervision.procstate import describe, threads
-from service.supervision.restarts import Backoff, Child, Event, Kind, describe_exit
+from service.supervision.restarts import Event, Kind, SupervisorOptions
 from service.supervision.simport import sim_port
 from service.supervision.toml_out import to_toml, write_private
-from service.threads import NamedThread
 
 log = logging.getLogger("machine.supervisor")
 
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_CONFIG = 2
 SUPERVISOR_DIR = "supervisor"
 HANG_S = 1.0
 """The default hang limit: what the shipped Zenoh profiles' lease gave before (1 s)."""
-
-
-@dataclass(frozen=True)
-class SupervisorOptions:
-    """Restart policy and bounds."""
-
-    backoff_s: float = 0.5
-    backoff_max_s: float = 8.0
-    stable_s: float = 10.0
-    """A child up this long resets the back-off to `backoff_s`."""
-    start_timeout_s: float = 30.0
-    """A child whose liveliness token has not appeared by then is killed and restarted."""
-    exit_grace_s: float = 1.0
-    """After the token goes: how long a child that is still running may take to exit."""
-    stop_timeout_s: float = 10.0
-    hang_s: float | None = None
-    """A daemon whose scan has completed no cycle for this long is killed and restarted,
-    whatever its outputs (they were made safe at the watchdog limit if any was on); None:
-    `HANG_S`, or three watchdog limits when that is longer."""
-    world_period_s: float = 0.005
-    log_level: str = "info"
-    plant_dir: Path | None = None
-    """With the simulator: attach to a plant already running there (`--plant`, a compose
-    service of its own) instead of starting one as a child."""
 
 
 class Supervisor:
@@ -102,12 +71,11 @@ class Supervisor:
         self.signals_repeated = 0
         self.signals_after: signal.Handlers | None = None
         """What SIGTERM and SIGINT get once `run` returns; None: the handlers from before."""
-        self.child: Child | None = None
-        self.generation = 0
         self.world: World | None = None
         self.safe: SafeOutputs | None = None
-        self.backoff = Backoff(options.backoff_s, options.backoff_max_s)
         self.bus: SupervisorBus
+        self.children: ChildKeeper | None = None
+        """The daemon child's keeper (service/supervision/children.py), once the bus is up."""
         self.beat_fd = create_beat_fd()
         self.beat = BeatReader(self.beat_fd)
         """The record the daemon child stamps every cycle (`service.core.beat`)."""
@@ -124,7 +92,6 @@ class Supervisor:
         signals = SignalThread(self._on_signal)  # never inside the code a signal interrupts
         signals.start()
         code = EXIT_OK
-        started = False
         try:
             with contextlib.ExitStack() as stack:
                 stack.callback(self._cleanup)
@@ -141,8 +108,8 @@ class Supervisor:
                 stack.callback(self._force_safe)
                 self.guard = self._start_guard()
                 stack.callback(self.guard.stop)
-                stack.callback(self._stop_child)
-                started = True
+                self.children = children = self._keeper()
+                stack.callback(children.stop)
                 zenoh_json = child_config(self.zenoh.zenoh_config, self.private, self.hang_s)
                 self._write_child_files(child_cfg, zenoh_json)
                 self.bus.start()
@@ -152,14 +119,14 @@ class Supervisor:
                     self.config.hal.backend,
                     self.private,
                 )
-                code = self._loop()
+                code = children.keep()
         finally:
-            if started:
+            if self.children is not None:  # started
                 repeated = self.signals_repeated
                 log.info(
                     "event=supervisor_stopped code=%d restarts=%d%s",
                     code,
-                    self.generation - 1,
+                    self.children.generation - 1,
                     f" signals_repeated={repeated}" if repeated else "",
                 )
             signals.close(then=self.signals_after)
@@ -238,6 +205,19 @@ class Supervisor:
         guard.start()
         return guard
 
+    def _keeper(self) -> ChildKeeper:
+        """The daemon child's keeper, with the safe-output path and the bus it tells."""
+        return ChildKeeper(
+            self.options,
+            self.dir,
+            (self.beat, self.beat_fd),
+            self.events,
+            self.bus,
+            self._force_safe,
+            self.world,
+            self.config.bus.heartbeat_s,
+        )
+
     def _cleanup(self) -> None:
         if self.world is not None:
             self.world.stop()
@@ -247,76 +227,9 @@ class Supervisor:
         os.close(self.beat_fd)
         shutil.rmtree(self._sockdir, ignore_errors=True)
 
-    # ------------------------------------------------------------------------- the loop
-    def _loop(self) -> int:
-        restart_at: float | None = time.monotonic()
-        heartbeat = self.config.bus.heartbeat_s
-        while True:
-            now = time.monotonic()
-            if self.child is None and restart_at is not None and now >= restart_at:
-                self._spawn()
-                restart_at = None
-            timeout = heartbeat
-            if restart_at is not None:
-                timeout = min(timeout, max(0.0, restart_at - now))
-            child = self.child
-            if child is not None and child.up_since is None and not child.down:
-                timeout = min(timeout, max(0.0, child.started + self.options.start_timeout_s - now))
-            try:
-                event = self.events.get(timeout=timeout)
-            except queue.Empty:
-                limit = self.options.start_timeout_s
-                if (
-                    child is not None
-                    and not child.down
-                    and child.up_since is None
-                    and time.monotonic() - child.started >= limit
-                ):
-                    self._freeze(child, f"the daemon was not up within {limit:g} s")
-                    restart_at = self._schedule(child)
-                else:
-                    self.bus.republish()
-                continue
-            if event.kind is Kind.STOP:
-                return EXIT_OK
-            if event.kind is Kind.PRESENCE:
-                restart_at = self._presence(event.present) or restart_at
-                continue
-            if event.kind is Kind.HUNG:
-                restart_at = self._hung(event.stall) or restart_at
-                continue
-            if child is None or event.generation != child.generation or child.down:
-                continue  # an exit we already handled (a child we killed as frozen)
-            self._went_down(child, describe_exit(event.code))
-            if event.code == EXIT_CONFIG:
-                log.error("event=child_config_error detail=%r", "not restarting a config error")
-                return EXIT_CONFIG
-            restart_at = self._schedule(child)
-
-    def _presence(self, present: bool) -> float | None:
-        child = self.child
-        if child is None or child.down:
-            return None
-        now = time.monotonic()
-        if present:
-            if child.up_since is None:
-                child.up_since = now
-                self.bus.daemon_up()
-                log.info(
-                    "event=daemon_up generation=%d pid=%d start_s=%.3f",
-                    child.generation,
-                    child.proc.pid,
-                    now - child.started,
-                )
-            return None
-        if child.up_since is None:
-            return None  # the token of an earlier child, gone late
-        self._freeze(child, "the daemon stopped answering (its liveliness token is gone)")
-        return self._schedule(child)
-
     def _on_guard_trip(self, stall: Stall) -> None:
         """On the guard's thread, the outputs already safe: say so (the daemon, should it
-        wake, takes FAULT_HW itself; if it does not, `_hung` follows)."""
+        wake, takes FAULT_HW itself; if it does not, `ChildKeeper._hung` follows)."""
         log.error(
             "event=output_guard_trip pid=%d stalled_s=%.4f outputs=safe action=latched"
             " guard_late_s=%.4f detail=%r",
@@ -325,120 +238,6 @@ class Supervisor:
             stall.guard_late_s,
             stall.outputs(),
         )
-
-    def _hung(self, stall: Stall | None) -> float | None:
-        """The child's scan has not cycled for `hang_s`: kill it first (it can no longer
-        write), outputs safe, report, restart."""
-        child = self.child
-        if stall is None or child is None or child.down or child.proc.pid != stall.pid:
-            return None
-        seen = threads(child.proc.pid)
-        with contextlib.suppress(ProcessLookupError):
-            child.proc.kill()
-        log.error("event=child_threads pid=%d when=hung threads=%r", stall.pid, describe(seen))
-        self._went_down(
-            child,
-            f"the daemon's scan loop stopped cycling {stall.stalled_s:.2f} s ago (outputs"
-            f" {stall.outputs()}); killed",
-        )
-        try:
-            child.proc.wait(timeout=self.options.stop_timeout_s)
-        except subprocess.TimeoutExpired:  # stuck in the kernel: it dies when that returns
-            log.error("event=child_kill_pending pid=%d", child.proc.pid)
-        return self._schedule(child)
-
-    def _freeze(self, child: Child, reason: str) -> None:
-        """A child that is gone from the bus: outputs safe first, then find out why, then kill."""
-        self._force_safe()
-        first = threads(child.proc.pid)
-        try:
-            code = child.proc.wait(timeout=0.1)  # a crash closes its link before the exit shows
-        except subprocess.TimeoutExpired:
-            self._went_down(child, f"{reason}; killed after {self.options.exit_grace_s:g} s")
-            try:
-                child.proc.wait(timeout=self.options.exit_grace_s)
-            except subprocess.TimeoutExpired:
-                # where its threads were then and since, for the log: why it stopped answering
-                last = threads(child.proc.pid)
-                child.proc.kill()
-                log.error(
-                    "event=child_threads pid=%d when=gone_from_bus threads=%r since=%r",
-                    child.proc.pid,
-                    describe(first),
-                    describe(last, first),
-                )
-                child.proc.wait(timeout=self.options.stop_timeout_s)
-            return
-        self._went_down(child, describe_exit(code))
-
-    def _went_down(self, child: Child, reason: str) -> None:
-        t0 = time.monotonic()
-        self._force_safe()
-        if self.world is not None:
-            self.world.step_now()  # the world has seen the relays drop before anyone is told
-        safe_s = time.monotonic() - t0
-        child.down = True
-        self.bus.daemon_down(reason)
-        log.error(
-            "event=daemon_down generation=%d reason=%r safe_ms=%.2f",
-            child.generation,
-            reason,
-            safe_s * 1e3,
-        )
-
-    def _schedule(self, child: Child) -> float:
-        lived = time.monotonic() - child.up_since if child.up_since is not None else None
-        delay = self.backoff.delay(lived, self.options.stable_s)
-        self.child = None
-        log.info("event=restart_scheduled in_s=%.2f", delay)
-        return time.monotonic() + delay
-
-    # --------------------------------------------------------------------------- helpers
-    def _spawn(self) -> None:
-        self.generation += 1
-        cmd = [
-            sys.executable,
-            "-m",
-            "service.cli",
-            "run",
-            "--config",
-            str(self.dir / "machine.toml"),
-            "--zenoh-config",
-            str(self.dir / "zenoh-child.json5"),
-            "--log-level",
-            self.options.log_level,
-        ]
-        env = {
-            **os.environ,
-            SUPERVISOR_PID_ENV: str(os.getpid()),
-            BEAT_FD_ENV: str(self.beat_fd),
-        }
-        self.beat.reset()  # the new child's first beat arms the guard
-        proc = subprocess.Popen(cmd, env=env, pass_fds=(self.beat_fd,))
-        child = Child(proc, self.generation, time.monotonic())
-        self.child = child
-        log.info("event=child_started generation=%d pid=%d", child.generation, proc.pid)
-        NamedThread(
-            target=self._reap, args=(child,), name=f"reap-{child.generation}", daemon=True
-        ).start()
-
-    def _reap(self, child: Child) -> None:
-        code = child.proc.wait()
-        self.events.put(Event(Kind.EXITED, child.generation, code=code))
-
-    def _stop_child(self) -> None:
-        """SIGTERM (the daemon leaves its outputs safe and closes cleanly), bounded."""
-        child = self.child
-        if child is None or child.proc.poll() is not None:
-            return
-        child.down = True
-        child.proc.send_signal(signal.SIGTERM)
-        try:
-            child.proc.wait(timeout=self.options.stop_timeout_s)
-        except subprocess.TimeoutExpired:
-            log.error("event=child_stop_timeout pid=%d", child.proc.pid)
-            child.proc.kill()
-            child.proc.wait(timeout=self.options.stop_timeout_s)
 
     def _force_safe(self) -> None:
         if self.safe is not None:

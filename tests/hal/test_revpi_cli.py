@@ -11,8 +11,9 @@ import pytest
 
 from hal.iomap import IoMap
 from service.config.model import MachineConfig
-from service.supervision.daemon import DaemonOptions, open_hal
-from service.supervision.supervisor import Supervisor, SupervisorOptions
+from service.supervision.assembly import DaemonOptions, open_hal
+from service.supervision.restarts import SupervisorOptions
+from service.supervision.supervisor import Supervisor
 from tests.fixtures.revpi import CONFIG_RSC, make_image
 from tests.fixtures.revpi.corpus import path
 from tests.procs import run_machine
@@ -100,7 +101,7 @@ def test_open_hal_turns_a_backend_error_into_findings(
             "revpi": {"procimg": str(tmp_path / "absent"), "configrsc": str(CONFIG_RSC)},
         }
     )
-    assert open_hal(config, object()) is None
+    assert open_hal(config) is None
     err = capsys.readouterr().err
     assert "machine: error: revpi_procimg at /hal/revpi/procimg" in err
 

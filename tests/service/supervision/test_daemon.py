@@ -20,7 +20,9 @@ from service.adapters.eventread import iter_events
 from service.config.model import MachineConfig
 from service.core.loop import ScanLoop
 from service.core.tuning import set_timer_slack, timer_slack
-from service.supervision.daemon import EXIT_FAILED, EXIT_OK, Daemon, DaemonOptions
+from service.supervision.assembly import DaemonOptions
+from service.supervision.daemon import Daemon
+from service.supervision.outcome import EXIT_FAILED, EXIT_OK
 from tests.procs import free_port, write_zenoh_config
 
 # Setup order reversed: the outputs first, the HAL last.

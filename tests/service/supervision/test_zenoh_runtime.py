@@ -14,7 +14,7 @@ from pydantic import ValidationError
 
 from common.runtime import RUNTIME_ENV, runtime_layout
 from service.config.model import BusSection
-from service.supervision.daemon import EXIT_FAILED
+from service.supervision.outcome import EXIT_FAILED
 from tests.procs import REPO, free_port, running_daemon, start_daemon
 
 CHILD = """

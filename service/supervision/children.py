@@ -1,0 +1,248 @@
+"""The supervisor's child handling: the daemon started as a child process, what becomes of it
+heard (its exit, its liveliness token coming and going, its scan hung, no start in time), the
+outputs made safe and the machine's bus told when it goes, and a new start after the back-off.
+
+The supervisor (service/supervision/supervisor.py) owns the safe-output path, the bus and the
+events queue; `ChildKeeper.keep` is its loop until it is asked to stop."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import queue
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from hal.backends import World
+from service.bus.supervisor import SupervisorBus
+from service.core.beat import BEAT_FD_ENV, BeatReader
+from service.core.tuning import SUPERVISOR_PID_ENV
+from service.supervision.outcome import EXIT_CONFIG, EXIT_OK
+from service.supervision.outputguard import Stall
+from service.supervision.procstate import describe, threads
+from service.supervision.restarts import (
+    Backoff,
+    Child,
+    Event,
+    Kind,
+    SupervisorOptions,
+    describe_exit,
+)
+from service.threads import NamedThread
+
+log = logging.getLogger("machine.supervisor")
+
+
+class ChildKeeper:
+    """Keeps one daemon child running: starts it from the files in `files`, and when it goes,
+    outputs safe first, then the reason told, then a new start after the back-off."""
+
+    def __init__(
+        self,
+        options: SupervisorOptions,
+        files: Path,
+        beat: tuple[BeatReader, int],
+        events: queue.SimpleQueue[Event],
+        bus: SupervisorBus,
+        force_safe: Callable[[], None],
+        world: World | None,
+        heartbeat_s: float,
+    ) -> None:
+        self.options = options
+        self.files = files
+        """Where the child's machine.toml and zenoh-child.json5 are."""
+        self.beat, self.beat_fd = beat
+        """The record the child stamps every cycle, and its descriptor the child inherits."""
+        self.events = events
+        self.bus = bus
+        self.force_safe = force_safe
+        self.world = world
+        self.heartbeat_s = heartbeat_s
+        """With nothing heard for this long, the bus republishes the machine's state."""
+        self.child: Child | None = None
+        self.generation = 0
+        self.backoff = Backoff(options.backoff_s, options.backoff_max_s)
+
+    def keep(self) -> int:
+        """Until a `STOP` event (0) or a child that ends with a config error (2)."""
+        restart_at: float | None = time.monotonic()
+        while True:
+            now = time.monotonic()
+            if self.child is None and restart_at is not None and now >= restart_at:
+                self._spawn()
+                restart_at = None
+            timeout = self.heartbeat_s
+            if restart_at is not None:
+                timeout = min(timeout, max(0.0, restart_at - now))
+            child = self.child
+            if child is not None and child.up_since is None and not child.down:
+                timeout = min(timeout, max(0.0, child.started + self.options.start_timeout_s - now))
+            try:
+                event = self.events.get(timeout=timeout)
+            except queue.Empty:
+                limit = self.options.start_timeout_s
+                if (
+                    child is not None
+                    and not child.down
+                    and child.up_since is None
+                    and time.monotonic() - child.started >= limit
+                ):
+                    self._freeze(child, f"the daemon was not up within {limit:g} s")
+                    restart_at = self._schedule(child)
+                else:
+                    self.bus.republish()
+                continue
+            if event.kind is Kind.STOP:
+                return EXIT_OK
+            if event.kind is Kind.PRESENCE:
+                restart_at = self._presence(event.present) or restart_at
+                continue
+            if event.kind is Kind.HUNG:
+                restart_at = self._hung(event.stall) or restart_at
+                continue
+            if child is None or event.generation != child.generation or child.down:
+                continue  # an exit we already handled (a child we killed as frozen)
+            self._went_down(child, describe_exit(event.code))
+            if event.code == EXIT_CONFIG:
+                log.error("event=child_config_error detail=%r", "not restarting a config error")
+                return EXIT_CONFIG
+            restart_at = self._schedule(child)
+
+    def stop(self) -> None:
+        """SIGTERM (the daemon leaves its outputs safe and closes cleanly), bounded."""
+        child = self.child
+        if child is None or child.proc.poll() is not None:
+            return
+        child.down = True
+        child.proc.send_signal(signal.SIGTERM)
+        try:
+            child.proc.wait(timeout=self.options.stop_timeout_s)
+        except subprocess.TimeoutExpired:
+            log.error("event=child_stop_timeout pid=%d", child.proc.pid)
+            child.proc.kill()
+            child.proc.wait(timeout=self.options.stop_timeout_s)
+
+    def _presence(self, present: bool) -> float | None:
+        child = self.child
+        if child is None or child.down:
+            return None
+        now = time.monotonic()
+        if present:
+            if child.up_since is None:
+                child.up_since = now
+                self.bus.daemon_up()
+                log.info(
+                    "event=daemon_up generation=%d pid=%d start_s=%.3f",
+                    child.generation,
+                    child.proc.pid,
+                    now - child.started,
+                )
+            return None
+        if child.up_since is None:
+            return None  # the token of an earlier child, gone late
+        self._freeze(child, "the daemon stopped answering (its liveliness token is gone)")
+        return self._schedule(child)
+
+    def _hung(self, stall: Stall | None) -> float | None:
+        """The child's scan has not cycled for `hang_s`: kill it first (it can no longer
+        write), outputs safe, report, restart."""
+        child = self.child
+        if stall is None or child is None or child.down or child.proc.pid != stall.pid:
+            return None
+        seen = threads(child.proc.pid)
+        with contextlib.suppress(ProcessLookupError):
+            child.proc.kill()
+        log.error("event=child_threads pid=%d when=hung threads=%r", stall.pid, describe(seen))
+        self._went_down(
+            child,
+            f"the daemon's scan loop stopped cycling {stall.stalled_s:.2f} s ago (outputs"
+            f" {stall.outputs()}); killed",
+        )
+        try:
+            child.proc.wait(timeout=self.options.stop_timeout_s)
+        except subprocess.TimeoutExpired:  # stuck in the kernel: it dies when that returns
+            log.error("event=child_kill_pending pid=%d", child.proc.pid)
+        return self._schedule(child)
+
+    def _freeze(self, child: Child, reason: str) -> None:
+        """A child that is gone from the bus: outputs safe first, then find out why, then kill."""
+        self.force_safe()
+        first = threads(child.proc.pid)
+        try:
+            code = child.proc.wait(timeout=0.1)  # a crash closes its link before the exit shows
+        except subprocess.TimeoutExpired:
+            self._went_down(child, f"{reason}; killed after {self.options.exit_grace_s:g} s")
+            try:
+                child.proc.wait(timeout=self.options.exit_grace_s)
+            except subprocess.TimeoutExpired:
+                # where its threads were then and since, for the log: why it stopped answering
+                last = threads(child.proc.pid)
+                child.proc.kill()
+                log.error(
+                    "event=child_threads pid=%d when=gone_from_bus threads=%r since=%r",
+                    child.proc.pid,
+                    describe(first),
+                    describe(last, first),
+                )
+                child.proc.wait(timeout=self.options.stop_timeout_s)
+            return
+        self._went_down(child, describe_exit(code))
+
+    def _went_down(self, child: Child, reason: str) -> None:
+        t0 = time.monotonic()
+        self.force_safe()
+        if self.world is not None:
+            self.world.step_now()  # the world has seen the relays drop before anyone is told
+        safe_s = time.monotonic() - t0
+        child.down = True
+        self.bus.daemon_down(reason)
+        log.error(
+            "event=daemon_down generation=%d reason=%r safe_ms=%.2f",
+            child.generation,
+            reason,
+            safe_s * 1e3,
+        )
+
+    def _schedule(self, child: Child) -> float:
+        lived = time.monotonic() - child.up_since if child.up_since is not None else None
+        delay = self.backoff.delay(lived, self.options.stable_s)
+        self.child = None
+        log.info("event=restart_scheduled in_s=%.2f", delay)
+        return time.monotonic() + delay
+
+    def _spawn(self) -> None:
+        self.generation += 1
+        cmd = [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "run",
+            "--config",
+            str(self.files / "machine.toml"),
+            "--zenoh-config",
+            str(self.files / "zenoh-child.json5"),
+            "--log-level",
+            self.options.log_level,
+        ]
+        env = {
+            **os.environ,
+            SUPERVISOR_PID_ENV: str(os.getpid()),
+            BEAT_FD_ENV: str(self.beat_fd),
+        }
+        self.beat.reset()  # the new child's first beat arms the guard
+        proc = subprocess.Popen(cmd, env=env, pass_fds=(self.beat_fd,))
+        child = Child(proc, self.generation, time.monotonic())
+        self.child = child
+        log.info("event=child_started generation=%d pid=%d", child.generation, proc.pid)
+        NamedThread(
+            target=self._reap, args=(child,), name=f"reap-{child.generation}", daemon=True
+        ).start()
+
+    def _reap(self, child: Child) -> None:
+        code = child.proc.wait()
+        self.events.put(Event(Kind.EXITED, child.generation, code=code))
