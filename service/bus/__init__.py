@@ -16,21 +16,21 @@ touching state. Publishers drop rather than block under congestion.
 Modules by role: `request` (one query, one reply function), `routes` (the table and the
 wildcard rule), `commands`, `reads`, `writes`, `injection` (`sim/**` through `SimPort`),
 `publications`, `presence` (duplicates, Riders), `callbacks` (Zenoh's threads keep their
-Python state), `session` (config, open, close), `node` (the daemon's bus), `supervisor` (the
-supervisor's), `exposure`.
+Python state), `session` (config, open, close), `zenoh_bus` (the daemon's bus),
+`supervisor` (the supervisor's), `exposure`.
 """
 
 from common.runtime import use_runtime
 from common.zenoh_session import file_config, open_session
 from service.bus.commands import LOCK_TIMEOUT_S
 from service.bus.injection import SimPort
-from service.bus.node import ZenohBus
 from service.bus.presence import holders_of
 from service.bus.publications import Publications
 from service.bus.reads import ConfigChecker
 from service.bus.request import ENCODINGS, Request, reply_format
 from service.bus.session import DEFAULT_LISTEN, Session, close_session, zenoh_config
 from service.bus.writes import ParamService
+from service.bus.zenoh_bus import ZenohBus
 
 __all__ = [
     "DEFAULT_LISTEN",
