@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.procs import STOP_TIMEOUT_S, Daemon, signal_storm
+from tests.probes import signal_storm
+from tests.procs import STOP_TIMEOUT_S, Daemon
 from tests.reliability.support import start_machine, supervisor_child
 
 

@@ -9,7 +9,8 @@ import pytest
 from pydantic import ValidationError
 
 from service.config.model import LoopSection
-from tests.procs import call_among_threads, running_daemon, thread_cpus
+from tests.probes import call_among_threads, thread_cpus
+from tests.procs import running_daemon
 
 several_cpus = pytest.mark.skipif(
     len(os.sched_getaffinity(0)) < 2, reason="pinning to one CPU changes nothing on a single CPU"
@@ -19,7 +20,7 @@ several_cpus = pytest.mark.skipif(
 def thread_cpus_of(cpus: str) -> tuple[str, str]:
     """A child that pins itself to `cpus` with threads running: (applied, each thread's CPUs)."""
     return call_among_threads(
-        "from service.core.tuning import pin_process\nfrom tests.procs import thread_cpus",
+        "from service.core.tuning import pin_process\nfrom tests.probes import thread_cpus",
         "pin_process([int(c) for c in sys.argv[1].split(',')])",
         "sorted(set(map(tuple, thread_cpus(os.getpid()).values())))",
         cpus,

@@ -13,7 +13,8 @@ from bench.common import children
 from service.config.model import LoopSection
 from service.config.validate import validate_data
 from service.core.tuning import SCHED_SLICE_NS, sched_slice
-from tests.procs import call_among_threads, running_daemon, thread_slices
+from tests.probes import call_among_threads, thread_slices
+from tests.procs import running_daemon
 
 KERNEL_SLICE = thread_slices(os.getpid()).get(os.getpid())
 """This process's slice as the kernel gave it (the test process asks for none)."""
@@ -27,7 +28,7 @@ custom_slices = pytest.mark.skipif(
 def slices_of(ns: int) -> tuple[str, str]:
     """A child that asks for `ns` with threads running: (applied, each thread's slice)."""
     return call_among_threads(
-        "from service.core.tuning import slice_process\nfrom tests.procs import thread_slices",
+        "from service.core.tuning import slice_process\nfrom tests.probes import thread_slices",
         "slice_process(int(sys.argv[1]))",
         "sorted(thread_slices(os.getpid()).values())",
         str(ns),
