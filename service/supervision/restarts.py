@@ -18,7 +18,9 @@ class SupervisorOptions:
     """Restart policy and bounds."""
 
     backoff_s: float = 0.5
+    """The wait before the first restart; each one after waits twice the one before."""
     backoff_max_s: float = 8.0
+    """The longest wait before a restart."""
     stable_s: float = 10.0
     """A child up this long resets the back-off to `backoff_s`."""
     start_timeout_s: float = 30.0
@@ -26,12 +28,15 @@ class SupervisorOptions:
     exit_grace_s: float = 1.0
     """After the token goes: how long a child that is still running may take to exit."""
     stop_timeout_s: float = 10.0
+    """How long a child may take to end once signalled (a SIGTERM to stop, a SIGKILL when hung)."""
     hang_s: float | None = None
     """A daemon whose scan has completed no cycle for this long is killed and restarted,
     whatever its outputs (they were made safe at the watchdog limit if any was on); None:
     `HANG_S` (supervisor.py), or three watchdog limits when that is longer."""
     world_period_s: float = 0.005
+    """With the simulator: how often the plant steps its world (`sim.plant`)."""
     log_level: str = "info"
+    """The child daemon's `--log-level`."""
     plant_dir: Path | None = None
     """With the simulator: attach to a plant already running there (`--plant`, a compose
     service of its own) instead of starting one as a child."""
