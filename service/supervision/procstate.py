@@ -1,6 +1,6 @@
 """Where a frozen daemon's threads were, as the kernel saw them, for the log before it is killed.
 
-A daemon that stops cycling or answering is killed and replaced (`supervisor.py`), and why it
+A daemon that stops cycling or answering is killed and replaced (`children.py`), and why it
 stopped goes with it. Each thread's state, what it waited in and its time on and waiting for a
 CPU (`/proc/<pid>/task`) tell the usual causes apart: stopped by a signal (`T`), blocked on a
 lock or the GIL (`S` in a futex, no CPU time between two looks), starved by a busy host (`R`,
