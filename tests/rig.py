@@ -22,6 +22,7 @@ from service.core.devices import Calibration
 from service.core.events import EventSink
 from service.core.machine import Machine
 from service.core.persist import CalibrationStore
+from service.core.port import LoopPort
 from service.core.statemachine import Transition
 from service.core.tasks import PendingCommand
 from service.core.watchdog import GuardedHal
@@ -126,9 +127,11 @@ class Rig:
             on_transition=self.transitions.append,
             events=events,
             guard=self.guard,
+            clock=self.clock,  # a scan stall before the write moves it (sim/hal.py)
         )
         self.loop = self.machine.loop
-        self.loop.clock = self.clock  # a scan stall before the write moves it (sim/hal.py)
+        self.port = LoopPort(self.loop, self.clock)
+        """The loop as the bus sees it (a command between cycles, as from a Zenoh callback)."""
         self.loop.quiet_cycles = quiet_cycles
         self.loop.verify_quiet = True  # each quiet cycle checked against a fresh snapshot
         self.control = self.machine.control

@@ -24,7 +24,7 @@ class EmptyScan:
     """What `RealtimeRunner` needs of a `ScanLoop`, with no work in it."""
 
     def __init__(self) -> None:
-        self.inbox = Inbox()
+        self.inbox: Inbox[ScanLoop] = Inbox()
         self.commands_handled = 0
         self.lock = threading.Lock()
         self.guard = None  # no watchdog latch: nothing to stamp in a beat record

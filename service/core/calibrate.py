@@ -90,7 +90,7 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
             self.phase, self._samples = TiltCalPhase.STROKE, []
             self.timer.start(now, self.cfg.calibration_stroke_s)
             self._sup.reset()
-            self.axis.tilt_one(TiltDirection.UP)  # its scan was at rest: not a sample
+            self.axis.drive(TiltDirection.UP)  # its scan was at rest: not a sample
             return Step.BUSY
         return self._stroke(now)
 
@@ -237,7 +237,7 @@ class RotateCalibrate(Measurement[RotateAxis, RotateSection]):
                 f"rotate home switch not seen within {self.cfg.revolution_timeout_s:g} s"
                 " while measuring a revolution",
             )
-        self.axis.rotate_one(Direction.CW)
+        self.axis.drive(Direction.CW)
         return Step.BUSY
 
     def _on_switch(self, now: float, home: bool) -> Step:

@@ -184,7 +184,7 @@ class RotateRevolutions(AxisController[RotateAxis, RotateSection]):
         fault = self.check.overdue(now)
         if fault is not None:
             return self._fault(fault)
-        self.axis.rotate_one(self.direction)
+        self.axis.drive(self.direction)
         return Step.BUSY
 
     def _last_edge(self, now: float, before: float | None) -> Step:

@@ -66,7 +66,7 @@ class _RelayAxis:
         self.direction = direction
         self.home = home
 
-    def _drive(self, reverse: bool) -> None:
+    def _energise(self, reverse: bool) -> None:
         self.direction.set(reverse)
         self.relay.set(True)
 
@@ -81,9 +81,9 @@ class _RelayAxis:
 class RotateAxis(_RelayAxis):
     """Relay + direction output and a home switch that closes once per revolution."""
 
-    def rotate_one(self, direction: Direction) -> None:
+    def drive(self, direction: Direction) -> None:
         """Energise the drive in `direction` (revolutions are counted by the controller)."""
-        self._drive(direction is Direction.CCW)
+        self._energise(direction is Direction.CCW)
 
     def driven_direction(self) -> Direction | None:
         if not self.relay.value:
@@ -99,9 +99,9 @@ class TiltAxis(_RelayAxis):
         self.position = position
         self.calibration: TiltCalibration | None = None
 
-    def tilt_one(self, direction: TiltDirection) -> None:
+    def drive(self, direction: TiltDirection) -> None:
         """Energise the drive up or down."""
-        self._drive(direction is TiltDirection.UP)
+        self._energise(direction is TiltDirection.UP)
 
     def driven_direction(self) -> TiltDirection | None:
         if not self.relay.value:

@@ -87,7 +87,15 @@ class _Session:
 class EventRecorder:
     """Compares the machine before and after each command and cycle, and emits what changed."""
 
-    def __init__(self, sink: EventSink, *, wall_offset: float = 0.0, persisted: bool = False):
+    def __init__(
+        self,
+        sink: EventSink,
+        *,
+        period_s: float,
+        wall_offset: float = 0.0,
+        persisted: bool = False,
+    ):
+        """`period_s`: the scan's period, which bounds the commands held for a cycle."""
         self.sink = sink
         self.wall_offset = wall_offset
         self.persisted = persisted
@@ -104,8 +112,8 @@ class EventRecorder:
         self._storage_version = 0
         self._storage_seen: set[str] = set()
         self._held: deque[Held] = deque()
-        self.hold_limit = hold_limit(0.010)
-        """Commands held for the next cycle at most (the loop sets it from its period)."""
+        self.hold_limit = hold_limit(period_s)
+        """Commands held for the next cycle at most."""
 
     # --------------------------------------------------------------------------- inputs
     def transition(self, t: Transition) -> None:

@@ -362,7 +362,7 @@ class RotateHome(EdgeApproach[RotateAxis, RotateSection]):
         return self.cfg.revolution_timeout_s
 
     def _drive(self, now: float, away: bool) -> Step:
-        self.axis.rotate_one(Direction.CCW if away else Direction.CW)
+        self.axis.drive(Direction.CCW if away else Direction.CW)
         return Step.BUSY
 
     def _moving(self) -> None:

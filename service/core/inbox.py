@@ -1,25 +1,28 @@
 """The scan thread's inbox: work other threads hand it (`Task`), and the wake-up that comes with it.
 
 `Inbox.put` from any thread queues a task and wakes the runner early, so a reply is prompt; the
-scan thread takes a bounded number between and within cycles (`ScanLoop.service_inbox`).
+scan thread takes a bounded number between and within cycles (`ScanLoop.service_inbox`). The
+inbox knows nothing of the loop a task runs with: it is the type parameter (`Inbox[ScanLoop]`),
+so this module sits below the loop and the tasks (service/core/tasks.py) above it.
 """
 
 from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import TYPE_CHECKING, Protocol
+from typing import Generic, Protocol, TypeVar
 
 from schema.errors import Error
 
-if TYPE_CHECKING:
-    from service.core.loop import ScanLoop
+L = TypeVar("L")
+"""What the inbox's tasks run with (the scan loop)."""
+L_contra = TypeVar("L_contra", contravariant=True)
 
 
-class Task(Protocol):
-    """Work for the scan thread: `run` there, or `reject` if it can never run."""
+class Task(Protocol[L_contra]):
+    """Work for the scan thread: `run` there with the loop, or `reject` if it can never run."""
 
-    def run(self, loop: ScanLoop, now: float) -> None: ...
+    def run(self, loop: L_contra, now: float) -> None: ...
 
     def reject(self, error: Error) -> None: ...
 
@@ -61,17 +64,17 @@ class Wake:
         return True
 
 
-class Inbox:
+class Inbox(Generic[L]):
     """Thread-safe queue into the scan thread; `put` wakes the runner so replies are prompt."""
 
     def __init__(self, capacity: int = 1024) -> None:
         self.capacity = capacity
-        self._items: deque[Task] = deque()
+        self._items: deque[Task[L]] = deque()
         self._lock = threading.Lock()
         self.wake = Wake()
         self.closed = False
 
-    def put(self, task: Task) -> bool:
+    def put(self, task: Task[L]) -> bool:
         """Queue a task; False (and nothing queued) when full or closed."""
         with self._lock:
             if self.closed or len(self._items) >= self.capacity:
@@ -80,7 +83,7 @@ class Inbox:
         self.wake.set()
         return True
 
-    def take(self, limit: int) -> list[Task]:
+    def take(self, limit: int) -> list[Task[L]]:
         if not self._items and not self.wake.flag:
             return []  # the common case, every cycle: no lock
         with self._lock:
@@ -90,7 +93,7 @@ class Inbox:
                 self.wake.clear()
         return out
 
-    def close(self) -> list[Task]:
+    def close(self) -> list[Task[L]]:
         """Refuse further tasks and hand back the ones never run."""
         with self._lock:
             self.closed = True

@@ -4,7 +4,8 @@
 in `service/core/runner.py` calls it on absolute deadlines. Machine state has one writer at a time,
 `ScanLoop.lock`: the scan thread holds it for each cycle; other threads see the loop only through
 its port (`service/core/port.py`): a command between cycles under the lock, any other work put in
-the `Inbox`, the published records as one immutable value. It publishes through one sink.
+the `Inbox`, what the loop published as immutable values (the records, whether it is moving),
+read without the lock. It publishes through one sink.
 """
 
 from __future__ import annotations
@@ -14,16 +15,15 @@ import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from hal.base import Hal
+from hal.base import Hal, Inputs
 from schema.commands import Command, CommandRequest, Reply
 from schema.completion import Completion
-from schema.events import ClockEvent
+from schema.events import ClockEvent, RiderEvent
 from schema.status import FAULT_STATES, Fault, FaultCode, Status
 from service.config.model import LiveConfig, MachineConfig
 from service.core.axes import AxisTracker
 from service.core.devices import Devices
-from service.core.events import EventRecorder, NullEventSink
-from service.core.held import hold_limit
+from service.core.events import EventRecorder
 from service.core.identity import Identity
 from service.core.inbox import Inbox
 from service.core.io import IoPoints, ProcessImage
@@ -31,10 +31,9 @@ from service.core.publisher import Publisher
 from service.core.sink import LoopSink, NullSink, Published
 from service.core.statemachine import Snapshot, StateMachine
 from service.core.statemachine.deadman import Heartbeats, Verdict
-from service.core.tasks import rider_event
 from service.core.transactions import TransactionLog
 from service.core.watchdog import GuardedHal
-from service.errors import Busy, NotAvailable
+from service.errors import NotAvailable
 
 log = logging.getLogger("machine")
 
@@ -59,37 +58,37 @@ class _Rest:
 class ScanLoop:
     """One scan cycle per `step(now)`; commands between cycles with `service_inbox(now)`."""
 
-    def __init__(
+    def __init__(  # noqa: PLR0913 - keyword-only wiring of the loop's parts
         self,
         hal: Hal,
-        control: StateMachine,
+        state_machine: StateMachine,
+        recorder: EventRecorder,
         *,
         sink: LoopSink | None = None,
-        inbox: Inbox | None = None,
+        inbox: Inbox[ScanLoop] | None = None,
         started_at: float = 0.0,
         guard: GuardedHal | None = None,
-        recorder: EventRecorder | None = None,
         beats: Heartbeats | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
-        """`guard`: the watchdog's HAL wrapper, whose latch this loop turns into a fault;
-        `beats`: the Riders' heartbeats (the bus records them); without them (an in-process
-        rig) only the controlling Rider's token is watched."""
+        """`recorder`: the event history's; `guard`: the watchdog's HAL wrapper, whose latch
+        this loop turns into a fault; `beats`: the Riders' heartbeats (the bus records them);
+        without them (an in-process rig) only the controlling Rider's token is watched."""
         self.hal = hal
         self.guard = guard
-        self.control = control
-        self.live: LiveConfig = control.live
+        self.state_machine = state_machine
+        self.live: LiveConfig = state_machine.live
         config = self.live.current
-        self.devices: Devices = control.devices
+        self.devices: Devices = state_machine.devices
         self.points: IoPoints = self.devices.points
         self.image: ProcessImage = self.points.image
         self.beats = beats
-        self.inbox = inbox or Inbox(config.bus.inbox_capacity)
+        self.inbox: Inbox[ScanLoop] = inbox or Inbox(config.bus.inbox_capacity)
         self.transactions = TransactionLog(config.bus.transaction_window)
         self.axes = AxisTracker(self.devices, self.live)
-        self.recorder = recorder or EventRecorder(NullEventSink(), wall_offset=control.wall_offset)
-        self.recorder.hold_limit = hold_limit(config.loop.period_s)
+        self.recorder = recorder
         sink = NullSink() if sink is None else sink  # the loop's one outbound channel
-        parts = (control, self.axes, self.points, sink, self.recorder)
+        parts = (state_machine, self.axes, self.points, sink, self.recorder)
         self.publisher = Publisher(*parts, started_at=started_at)
         self.completions = self.publisher.completions
         self.started_at = started_at
@@ -112,10 +111,13 @@ class ScanLoop:
         self._rest: _Rest | None = None
         self._commands_seen = self._tasks_seen = 0
         self._pump = self.image.iomap.charge_pump is not None
-        self.clock: Callable[[], float] | None = None
+        self.clock = clock
         """The clock `now` is read from, when it is a real one: the output write is stamped on
         it, so the rotate's dead reckoning counts the time a cycle took from its input scan to
         its relays (docs/homing.md). None: outputs are written at `now` (a fake clock)."""
+        self.moving = state_machine.is_moving()
+        """Motion under way or resumable, as the latest cycle or command left it: a value any
+        thread reads without the lock (`LoopPort.moving`)."""
 
     @property
     def config(self) -> MachineConfig:
@@ -125,14 +127,14 @@ class ScanLoop:
     @property
     def wall_offset(self) -> float:
         """Wall time is `now + wall_offset`: the state machine's, which every part reads."""
-        return self.control.wall_offset
+        return self.state_machine.wall_offset
 
     def set_wall_offset(self, offset: float, now: float, *, record: bool = True) -> None:
         """The host's clock moved against the steady one: wall times from `now` on are
         `now + offset` (the runner follows the host's clock, `RealtimeRunner`). A step that
         was set (`record`) is logged and recorded; a drift followed bit by bit is not."""
-        step = offset - self.control.wall_offset
-        self.control.wall_offset = self.recorder.wall_offset = offset
+        step = offset - self.state_machine.wall_offset
+        self.state_machine.wall_offset = self.recorder.wall_offset = offset
         if record:
             log.warning("event=clock_set step_s=%.3f", step)
             self.recorder.emit(ClockEvent(step_s=round(step, 6)), now)
@@ -144,74 +146,42 @@ class ScanLoop:
 
     # ------------------------------------------------------------------------------ cycle
     def step(self, now: float) -> None:
-        """One scan cycle, in the design's order."""
-        self.cycle += 1
-        self.recorder.cycle = self.cycle
-        live = self.live
-        if live.offered is not live.current:
-            live.take()  # online parameter writes take effect here, between cycles
-        inputs = self.image.inputs = self.hal.scan_inputs()
-        rest, self._rest = self._rest, None
-        guard = self.guard
-        # Everything the cycle reads besides the machine itself as at `rest`. Written out
-        # here, where every idle cycle runs it: after a 10 ms sleep each Python call costs
-        # microseconds of cold caches (BENCHMARKS.md section 5).
-        if (
-            rest is not None
-            and inputs.di == rest.di
-            and inputs.ai == rest.ai
-            and now < self.publisher.status_due  # the status heartbeat is a full cycle
-            and self.commands_handled == rest.commands
-            and self.tasks_run == rest.tasks
-            and not self.inbox.wake.flag  # set whenever something is queued
-            and not any(self.image.outputs.ro.values())
-            and (guard is None or not guard.latched)
-            and live.current is rest.config  # new parameters: a full cycle takes them in
-        ):
-            # Of the state machine only the deadman runs here; whatever acts on it counts in
-            # `changes`, and of what it shows other threads change only the data dir's health.
-            # So the machine is as `rest.snapshot` unless these say otherwise (`verify_quiet`
-            # checks that against a fresh snapshot in the tests).
-            if rest.watched:
-                self._supervise(now)
-            control = self.control
-            storage = control.storage
-            if control.changes == rest.changes and (
-                storage is None or storage.version == rest.snapshot.storage
-            ):
-                # Quiet: what a full cycle does at rest, without the work that finds nothing.
-                self._rest = rest
-                self._write()
-                self.axes.tick(now)
-                self.quiet += 1
-                if self.verify_quiet:
-                    self._verify_quiet(rest)
-            else:
-                self._rest_of_cycle(now)
+        """One scan cycle, in the design's order (the runner sleeps to the next deadline)."""
+        self.cycle = self.recorder.cycle = self.cycle + 1
+        if self.live.offered is not self.live.current:
+            self.live.take()  # online parameter writes take effect here, between cycles
+        inputs = self.image.inputs = self.hal.scan_inputs()  # 1. the inputs
+        if self._quiet(inputs, now):  # nothing the cycle reads has changed (quiet cycles)
             return
         self._take_watchdog_trip(now)
-        if self.devices.safety.is_estop_active():
-            # Same cycle the input is seen: state, controllers and outputs, before anything else.
-            self.control.on_estop(now)
-            self.go_safe()
-            self._observe(now)
-            self.service_inbox(now)  # commands are refused with ESTOP_ACTIVE, checks answered
-            self.publisher.publish(now, self.cycle, now if self.clock is None else self.clock())
+        if self.devices.safety.is_estop_active():  # 2. E-stop, in the cycle it is seen
+            self._estop(now)
             return
-        self.service_inbox(now)
-        self._supervise(now)
-        self._rest_of_cycle(now)
+        self.service_inbox(now)  # 3. queued commands, one reply each
+        self._supervise(now)  # the controlling Rider's deadman
+        self.state_machine.update(now)  # 4. the state machine steps its controllers
+        self._write_and_publish(now)  # 5. the outputs, then what changed, published
 
-    def _rest_of_cycle(self, now: float) -> None:
-        """After the deadman: the control acts, outputs are written, changes recorded and
-        published; then whether the next cycles may be quiet ones."""
-        self.control.update(now)
+    def _estop(self, now: float) -> None:
+        """Same cycle the input is seen: state, controllers and outputs, before anything else;
+        then commands are refused with ESTOP_ACTIVE, checks answered, and it is published."""
+        self.state_machine.on_estop(now)
+        self.go_safe()
+        self._observe(now)
+        self.service_inbox(now)
+        self.publisher.publish(now, self.cycle, now if self.clock is None else self.clock())
+        self.moving = self.state_machine.is_moving()
+
+    def _write_and_publish(self, now: float) -> None:
+        """After the state machine acted: outputs written, changes recorded and published;
+        then whether the next cycles may be quiet ones."""
         self._write()
         written = now if self.clock is None else self.clock()
         # The events and log lines of commands answered since the last cycle, outputs written.
         self.recorder.release()
         self._observe(now)
         self.publisher.publish(now, self.cycle, written)
+        self.moving = self.state_machine.is_moving()
         commands, tasks = self.commands_handled, self.tasks_run
         if self.quiet_cycles and commands == self._commands_seen and tasks == self._tasks_seen:
             self._rest = self._at_rest()
@@ -226,7 +196,7 @@ class ScanLoop:
         latched watchdog and the E-stop's safe state write it low."""
         outputs = self.image.outputs
         if self._pump:
-            outputs.pump = not outputs.pump and self.control.state not in FAULT_STATES
+            outputs.pump = not outputs.pump and self.state_machine.state not in FAULT_STATES
         self.hal.scan_outputs(outputs)
 
     # ----------------------------------------------------------------------- quiet cycles
@@ -238,13 +208,59 @@ class ScanLoop:
     # history's compare and the publication work, whose results it knows (nothing). Anything
     # else runs the full cycle, which is the one definition of what a cycle does.
 
+    def _quiet(self, inputs: Inputs, now: float) -> bool:
+        """The cycle done here (True) when it reads nothing a full cycle at rest did not: the
+        same inputs, no command or task since, nothing queued, no output on, no latch, the
+        same parameters, the status heartbeat not due. Then the deadman runs, and if it did
+        not act the outputs are written; if it acted, the rest of a full cycle runs."""
+        rest, self._rest = self._rest, None
+        guard = self.guard
+        # Written out here, where every idle cycle runs it: after a 10 ms sleep each Python
+        # call costs microseconds of cold caches (BENCHMARKS.md section 5).
+        if (
+            rest is None
+            or inputs.di != rest.di
+            or inputs.ai != rest.ai
+            or now >= self.publisher.status_due  # the status heartbeat is a full cycle
+            or self.commands_handled != rest.commands
+            or self.tasks_run != rest.tasks
+            or self.inbox.wake.flag  # set whenever something is queued
+            or any(self.image.outputs.ro.values())
+            or (guard is not None and guard.latched)
+            or self.live.current is not rest.config  # new parameters: a full cycle takes them in
+        ):
+            return False
+        # Of the state machine only the deadman runs here; whatever acts on it counts in
+        # `changes`, and of what it shows other threads change only the data dir's health.
+        # So the machine is as `rest.snapshot` unless these say otherwise (`verify_quiet`
+        # checks that against a fresh snapshot in the tests).
+        if rest.watched:
+            self._supervise(now)
+        machine = self.state_machine
+        storage = machine.storage
+        if machine.changes != rest.changes or (
+            storage is not None and storage.version != rest.snapshot.storage
+        ):
+            machine.update(now)  # the deadman acted: the rest of a full cycle
+            self._write_and_publish(now)
+            return True
+        self._rest = (
+            rest  # quiet: what a full cycle does at rest, without the work that finds nothing
+        )
+        self._write()
+        self.axes.tick(now)
+        self.quiet += 1
+        if self.verify_quiet:
+            self._verify_quiet(rest)
+        return True
+
     def _at_rest(self) -> _Rest | None:
         """After a full cycle: what the next cycles must find to be quiet, or None when a
         repeat of this cycle could still do something (it would publish, record, move)."""
         shown = self.publisher.shown  # the machine as this cycle's publication found it
         if (
             shown is None
-            or not self.control.at_rest()
+            or not self.state_machine.at_rest()
             or self.publisher.unpublished
             or any(self.image.outputs.ro.values())  # `update` would switch them off
             or (self.guard is not None and self.guard.latched)
@@ -260,14 +276,14 @@ class ScanLoop:
             self.commands_handled,
             self.tasks_run,
         )
-        changes = self.control.changes
+        changes = self.state_machine.changes
         return _Rest(shown, changes, self.live.current, di, ai, commands, tasks, watched)
 
     def _verify_quiet(self, rest: _Rest) -> None:
         """What a quiet cycle took for granted, checked: nothing pending, the same machine."""
-        control = self.control
-        now = control.snapshot()
-        if not control.at_rest() or now != rest.snapshot:
+        machine = self.state_machine
+        now = machine.snapshot()
+        if not machine.at_rest() or now != rest.snapshot:
             raise AssertionError(f"cycle {self.cycle} was quiet, but {now} != {rest.snapshot}")
 
     def _take_watchdog_trip(self, now: float) -> bool:
@@ -278,7 +294,7 @@ class ScanLoop:
         if guard is None or not guard.latched:
             return False
         stalled = "" if guard.stalled_s is None else f" {guard.stalled_s * 1000:.0f} ms"
-        self.control.external_fault(
+        self.state_machine.external_fault(
             Fault(
                 code=FaultCode.WATCHDOG,
                 message=f"scan loop stalled{stalled}; the watchdog forced the outputs safe",
@@ -290,12 +306,12 @@ class ScanLoop:
 
     def _supervise(self, now: float) -> None:
         """Deadman: the controlling Rider's latest heartbeat (data from the bus) against `now`."""
-        control = self.control
-        rider = control.controller_rider
+        machine = self.state_machine
+        rider = machine.controller_rider
         if self.beats is None or rider is None:
             return
-        before = control.state
-        verdict = control.rider_heartbeat(self.beats.last_heartbeat(rider), now)
+        before = machine.state
+        verdict = machine.rider_heartbeat(self.beats.last_heartbeat(rider), now)
         if verdict is Verdict.LOST:
             loss = self.config.rider_loss
             log.warning(
@@ -304,7 +320,20 @@ class ScanLoop:
                 loss.timeout_s,
                 loss.policy,
             )
-            rider_event(self, "rider_lost", rider, control.state is not before, now)
+            self.rider_event("rider_lost", rider, machine.state is not before, now)
+
+    def rider_event(self, kind: str, rider: str, acted: bool, now: float) -> None:
+        """A Rider came back or was lost (`acted`: the policy paused or stopped it), into the
+        history through the recorder: after what it holds (the events of commands answered
+        since the last cycle), before the state change this causes."""
+        # Left at rest (the end of `rider start --wait`) or lost while its motion runs; after a
+        # stop only `acted` tells.
+        mid_motion = acted or self.state_machine.is_moving()
+        policy = str(self.config.rider_loss.policy)
+        event = RiderEvent(
+            kind=kind, rider=rider, policy=policy, acted=acted, mid_motion=mid_motion
+        )
+        self.recorder.emit(event, now)
 
     def service_inbox(self, now: float) -> int:
         """Run queued tasks (bounded per call so a storm cannot stretch a cycle unboundedly)."""
@@ -314,42 +343,6 @@ class ScanLoop:
             for task in tasks:
                 task.run(self, now)
         return len(tasks)
-
-    def execute_between_cycles(
-        self,
-        command: Command,
-        request: CommandRequest,
-        clock: Callable[[], float],
-        *,
-        sender: str | None = None,
-        identity: Identity | None = None,
-        timeout: float | None,
-    ) -> Reply | None:
-        """Run a command on the calling thread under the loop's lock, between two cycles.
-
-        The command sees the state the last cycle left, as a queued one would; its effect on
-        outputs comes with the next cycle, which reads inputs and handles E-stop first. None
-        before the first scan and after shutdown (queue it instead); a BUSY reply when the scan
-        thread holds the lock longer than `timeout` (stalled). `timeout=None` never waits: None,
-        and nothing run, while the scan thread holds the lock (mid-cycle).
-        """
-        if timeout is None:
-            if not self.lock.acquire(blocking=False):
-                return None
-        elif not self.lock.acquire(timeout=timeout):
-            return Reply.failure(
-                Busy("scan loop not responding; retry later").to_error(),
-                transaction_id=request.transaction_id,
-                command=command.value,
-                timecode=clock() + self.wall_offset,
-                request_timecode=request.timecode,
-            )
-        try:
-            if self.cycle == 0 or self.inbox.closed:
-                return None
-            return self.execute(command, request, clock(), sender=sender, identity=identity)
-        finally:
-            self.lock.release()
 
     def execute(
         self,
@@ -378,7 +371,7 @@ class ScanLoop:
         repeat = self.transactions.lookup(request.transaction_id, command._value_, stamp)
         if repeat is not None:
             self.recorder.command(
-                self.control,
+                self.state_machine,
                 command,
                 request,
                 repeat,
@@ -388,12 +381,13 @@ class ScanLoop:
                 repeat=True,
             )
             return repeat
-        reply = self.control.handle(command, request, now)
+        reply = self.state_machine.handle(command, request, now)
+        self.moving = self.state_machine.is_moving()  # before the reply: a write on its heels
         self.transactions.record(request.transaction_id, command._value_, reply)
         # Before the reply goes out: a Rider that asks for the notice at once finds the motion.
         self.publisher.collect()
         self.recorder.command(
-            self.control,
+            self.state_machine,
             command,
             request,
             reply,
@@ -403,15 +397,6 @@ class ScanLoop:
             logged=True,
         )
         return reply
-
-    def release_records(self, timeout: float) -> None:
-        """What the recorder holds for the next cycle, handed over now (a history read sees
-        every command answered before it); skipped if the loop holds its lock past `timeout`."""
-        if self.recorder.holding and self.lock.acquire(timeout=timeout):
-            try:
-                self.recorder.release()
-            finally:
-                self.lock.release()
 
     def remember(
         self, replies: Iterable[tuple[str, str, bytes]], notices: Iterable[Completion]
@@ -424,13 +409,15 @@ class ScanLoop:
             self.completions.record(notice)
 
     def _observe(self, now: float) -> None:
-        """After the control acted: its notices into the log, its changes into the history."""
+        """After the state machine acted: its notices into the log, its changes into the
+        history."""
         self.publisher.collect()
-        self.recorder.observe(self.control, now)
+        self.recorder.observe(self.state_machine, now)
 
     def abort_motion(self, now: float, why: str) -> None:
         """On shutdown (the runner has stopped): a motion still under way ends `ABORTED`."""
-        self.control.abort(now, why)
+        self.state_machine.abort(now, why)
+        self.moving = self.state_machine.is_moving()
         self._observe(now)
         self.publisher.publish_completions()
 

@@ -55,16 +55,12 @@ class Machine:
         self.image = ProcessImage(self.live.current.hal.iomap)
         self.points = IoPoints(self.image)
         self.devices = Devices(self.points)
-        found: list[str] = []
-        if store is not None:
-            calibration, warning = store.load()
-            if warning:
-                found.append(warning)
-                log.warning("event=calibration_load_failed detail=%r", warning)
-        else:
-            calibration = Calibration()
+        calibration, found = _stored_calibration(store)
         self.recorder = EventRecorder(
-            events or NullEventSink(), wall_offset=wall_offset, persisted=store is not None
+            events or NullEventSink(),
+            period_s=self.live.current.loop.period_s,
+            wall_offset=wall_offset,
+            persisted=store is not None,
         )
         self.control = StateMachine(
             devices=self.devices,
@@ -79,13 +75,24 @@ class Machine:
         self.loop = ScanLoop(
             hal,
             self.control,
+            self.recorder,
             sink=sink,
             started_at=now,
             guard=guard,
-            recorder=self.recorder,
             beats=beats,
+            clock=clock,
         )
-        self.loop.clock = clock
+
+
+def _stored_calibration(store: CalibrationStore | None) -> tuple[Calibration, list[str]]:
+    """The calibration the machine powers up with, and the warning a failed load gives."""
+    if store is None:
+        return Calibration(), []
+    calibration, warning = store.load()
+    if not warning:
+        return calibration, []
+    log.warning("event=calibration_load_failed detail=%r", warning)
+    return calibration, [warning]
 
 
 def _both(

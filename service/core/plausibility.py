@@ -58,7 +58,7 @@ class TiltSupervisor:
         """One cycle of drive `direction`, checked first: the fault that stops it, or None."""
         fault = self.check(now, direction)
         if fault is None:
-            self.axis.tilt_one(direction)
+            self.axis.drive(direction)
         return fault
 
     def check(self, now: float, direction: TiltDirection) -> Fault | None:

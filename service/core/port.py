@@ -2,8 +2,9 @@
 reader threads, the fast-data server). Nothing else of the loop is theirs to read.
 
 Commands run between two cycles under the loop's lock (`execute`); any other work is a task
-for the scan thread (`submit`); what the loop published is one immutable value (`snapshot`);
-a Rider's heartbeat is one write into the record the deadman reads (`heartbeat`).
+for the scan thread (`submit`); what the loop published is immutable values read without the
+lock (`snapshot`, `moving`); a Rider's heartbeat is one write into the record the deadman reads
+(`heartbeat`).
 """
 
 from __future__ import annotations
@@ -17,9 +18,7 @@ from service.core.identity import Identity
 from service.core.inbox import Task
 from service.core.loop import ScanLoop
 from service.core.sink import Published
-
-MOVING_LOCK_TIMEOUT_S = 0.5
-"""How long `moving` waits for a cycle in progress; past it (a stalled loop) it says moving."""
+from service.errors import Busy
 
 
 class LoopPort:
@@ -39,22 +38,40 @@ class LoopPort:
         timeout: float | None,
         identity: Identity | None = None,
     ) -> Reply | None:
-        """Run a command now, between two cycles (`ScanLoop.execute_between_cycles`): None
-        while it cannot (`timeout=None` and a cycle in progress, before the first scan, after
-        shutdown: `submit` it instead); a BUSY reply for a loop stalled past `timeout`. `sender`:
-        the Rider the request names, as claimed; `identity`: the same once it confirmed the
-        request (service/bus/confirm.py), for the history."""
-        loop = self._loop
-        return loop.execute_between_cycles(
-            command, request, self._clock, sender=sender, identity=identity, timeout=timeout
-        )
+        """Run a command now, on the calling thread under the loop's lock, between two cycles.
+
+        The command sees the state the last cycle left, as a queued one would; its effect on
+        outputs comes with the next cycle, which reads inputs and handles E-stop first. None
+        while it cannot: before the first scan and after shutdown (`submit` it instead), and
+        with `timeout=None` (never wait) while a cycle is in progress; a BUSY reply when the
+        scan thread holds the lock longer than `timeout` (stalled). `sender`: the Rider the
+        request names, as claimed; `identity`: the same once it confirmed the request
+        (service/bus/confirm.py), for the history."""
+        loop, clock = self._loop, self._clock
+        if timeout is None:
+            if not loop.lock.acquire(blocking=False):
+                return None
+        elif not loop.lock.acquire(timeout=timeout):
+            return Reply.failure(
+                Busy("scan loop not responding; retry later").to_error(),
+                transaction_id=request.transaction_id,
+                command=command.value,
+                timecode=clock() + loop.wall_offset,
+                request_timecode=request.timecode,
+            )
+        try:
+            if loop.cycle == 0 or loop.inbox.closed:
+                return None
+            return loop.execute(command, request, clock(), sender=sender, identity=identity)
+        finally:
+            loop.lock.release()
 
     def wire(self, reply: Reply) -> bytes | None:
         """`reply` as the msgpack bytes made when it was recorded, if it is the reply recorded
         last (one serialisation per command); None: encode it afresh."""
         return self._loop.transactions.wire(reply)
 
-    def submit(self, task: Task) -> bool:
+    def submit(self, task: Task[ScanLoop]) -> bool:
         """Queue work for the scan thread (service/core/tasks.py); False when the queue is
         full or the loop has stopped."""
         return self._loop.inbox.put(task)
@@ -71,21 +88,21 @@ class LoopPort:
         """Every remembered completion notice, oldest first."""
         return self._loop.completions.recent()
 
-    def moving(self, timeout: float = MOVING_LOCK_TIMEOUT_S) -> bool:
-        """Motion under way or resumable, read between two cycles; True for a loop stalled
-        past `timeout` (what is locked while moving stays locked)."""
-        loop = self._loop
-        if not loop.lock.acquire(timeout=timeout):
-            return True
-        try:
-            return loop.control.is_moving()
-        finally:
-            loop.lock.release()
+    def moving(self) -> bool:
+        """Motion under way or resumable, as the latest cycle or command left it: a value the
+        loop publishes, read without its lock (a Zenoh thread never waits on a cycle)."""
+        return self._loop.moving
 
     def release_records(self, timeout: float) -> None:
         """Hand the event history what the loop holds for its next cycle (a history read then
-        sees every command answered before it); skipped for a loop stalled past `timeout`."""
-        self._loop.release_records(timeout)
+        sees every command answered before it); skipped for a loop that holds its lock past
+        `timeout` (stalled)."""
+        loop = self._loop
+        if loop.recorder.holding and loop.lock.acquire(timeout=timeout):
+            try:
+                loop.recorder.release()
+            finally:
+                loop.lock.release()
 
     def heartbeat(self, rider: str) -> None:
         """`rider`'s heartbeat arrived now, on the loop's clock: for the deadman to judge

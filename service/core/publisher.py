@@ -26,7 +26,7 @@ class Publisher:
 
     def __init__(
         self,
-        control: StateMachine,
+        state_machine: StateMachine,
         axes: AxisTracker,
         points: IoPoints,
         sink: LoopSink,
@@ -34,9 +34,9 @@ class Publisher:
         *,
         started_at: float,
     ) -> None:
-        self.control = control
+        self.state_machine = state_machine
         self.axes = axes
-        self.live = control.live
+        self.live = state_machine.live
         self.sink = sink
         self.recorder = recorder
         self.started_at = started_at
@@ -57,18 +57,18 @@ class Publisher:
     @property
     def wall_offset(self) -> float:
         """Wall time is `now + wall_offset` (the state machine's: it follows the host's clock)."""
-        return self.control.wall_offset
+        return self.state_machine.wall_offset
 
     def collect(self) -> None:
         """Take the machine's new notices into the log and the history; they are published
         after the status."""
-        control = self.control
-        notices = control.take_completions()
+        machine = self.state_machine
+        notices = machine.take_completions()
         for notice in notices:
             self.completions.hold(notice)  # answered once published, after its status
             self.recorder.completion(notice)
         self.unpublished += notices
-        motion = control.action
+        motion = machine.action
         tid = motion.transaction_id if motion is not None else None
         if tid != self._active_tid:
             self._active_tid = tid
@@ -77,14 +77,14 @@ class Publisher:
     def publish(self, now: float, cycle: int, written: float) -> None:
         """A full cycle's publications; `written`: when its outputs were written."""
         wall = now + self.wall_offset
-        control, config = self.control, self.live.current
-        fault = control.fault
-        motion = control.motion()
+        machine, config = self.state_machine, self.live.current
+        fault = machine.fault
+        motion = machine.motion()
         self.axes.update(
             now,
-            control.state,
+            machine.state,
             fault.axis if fault else None,
-            control.calibration.rotate,
+            machine.calibration.rotate,
             motion,
             written,
         )
@@ -97,10 +97,10 @@ class Publisher:
         if changed:
             io = {**io, **{p.name: p for p in changed}}
         self.collect()
-        if control.calibration is not self._calibration_seen:
-            self._calibration_seen = control.calibration
-            calibration = calibration_record(control.calibration, config.machine.id, wall)
-        shown = control.snapshot()
+        if machine.calibration is not self._calibration_seen:
+            self._calibration_seen = machine.calibration
+            calibration = calibration_record(machine.calibration, config.machine.id, wall)
+        shown = machine.snapshot()
         if shown != self.shown or now >= self.status_due:
             self.shown = shown
             self.status_due = now + config.bus.heartbeat_s
@@ -147,13 +147,13 @@ class Publisher:
 
     def status(self, now: float, cycle: int, shown: Snapshot | None = None) -> Status:
         """The status of the machine as `shown` (default: as it is now)."""
-        control, config = self.control, self.live.current
+        machine, config = self.state_machine, self.live.current
         self._seq += 1
-        storage = control.storage
-        tilt = control.devices.tilt.read_position_degrees()
+        storage = machine.storage
+        tilt = machine.devices.tilt.read_position_degrees()
         rotate = self.axes.rotate.angle
         return status_of(
-            control.snapshot() if shown is None else shown,
+            machine.snapshot() if shown is None else shown,
             machine_id=config.machine.id,
             storage_warnings=storage.warnings() if storage is not None else [],
             tilt_deg=None if tilt is None else round(tilt, 2),

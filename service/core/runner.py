@@ -11,7 +11,7 @@ from schema.status import Fault, FaultCode
 from service.core.beat import BeatWriter
 from service.core.loop import ScanLoop
 from service.core.timing import CycleStats
-from service.core.watchdog import ARM_AFTER_CYCLES
+from service.core.watchdog import ARM_AFTER_CYCLES, Pulse, Watchdog
 
 log = logging.getLogger(__name__)
 
@@ -51,17 +51,18 @@ class RealtimeRunner:
         *,
         spin_s: float = 0.0,
         clock: Callable[[], float] = time.monotonic,
-        stall_limit_s: float | None = None,
+        watchdog: Watchdog | None = None,
         beat: BeatWriter | None = None,
         wall: Callable[[], float] | None = None,
     ) -> None:
-        """`stall_limit_s`: a cycle that starts this long after the previous one ended is a
-        stall, judged by `on_stall` before the cycle runs. `beat`: the record a supervisor
-        watches from its own process, stamped after every cycle. `wall`: the host's wall
-        clock, compared with `clock` before every cycle: when it was set (NTP's first sync on a
-        Revolution Pi, which has no battery clock; a resumed virtual machine) the loop's wall
-        times follow it (`ScanLoop.set_wall_offset`), or every motion command's timecode would
-        be judged against the clock the daemon started with."""
+        """`watchdog`: the runner beats its pulse after every cycle, and a cycle that starts
+        (or ends) longer than its limit after the previous one ended is a stall, which it
+        judges (`Watchdog.after_stall`) before the cycle runs; None: no stall is judged.
+        `beat`: the record a supervisor watches from its own process, stamped after every
+        cycle. `wall`: the host's wall clock, compared with `clock` before every cycle: when it
+        was set (NTP's first sync on a Revolution Pi, which has no battery clock; a resumed
+        virtual machine) the loop's wall times follow it (`ScanLoop.set_wall_offset`), or every
+        motion command's timecode would be judged against the clock the daemon started with."""
         self.loop = loop
         self.period = period_s
         self.stats = stats
@@ -70,16 +71,12 @@ class RealtimeRunner:
         self.stop_event = threading.Event()
         self._stopping = False
         """`stop_event` as a plain bool, read every cycle (an `Event` read is a Python call)."""
-        self.heartbeat = 0
-        """Incremented after every completed cycle; the watchdog reads it."""
-        self.beat_at = clock()
-        """The clock time the latest cycle ended (set just before `heartbeat` moves)."""
+        self.watchdog = watchdog
+        self.pulse = Pulse() if watchdog is None else watchdog.pulse
+        """Beaten after every completed cycle (the watchdog's thread reads it): its `count`
+        of cycles, the clock time the latest ended (`at`), `finished` once they have ended."""
+        self.pulse.at = clock()
         self.errors = 0
-        self.finished = False
-        """Set once the cycling has ended (stopped or failed), just before the outputs go safe."""
-        self.stall_limit = stall_limit_s
-        self.on_stall: Callable[[float, float], bool] | None = None
-        """`(now, stalled_s) -> tripped`, on the scan thread (the watchdog's `after_stall`)."""
         self.beat = beat
         self.wall = wall
 
@@ -93,7 +90,7 @@ class RealtimeRunner:
         try:
             self._run()
         finally:
-            self.finished = True  # no cycle runs any more: nothing for the watchdog to watch
+            self.pulse.finished = True  # no cycle runs any more: nothing for the watchdog to watch
             self.loop.go_safe()
             if self.beat is not None:
                 self.beat.finish()
@@ -101,8 +98,8 @@ class RealtimeRunner:
     def _run(self) -> None:
         clock, period = self.clock, self.period
         loop, stats = self.loop, self.stats
-        lock = loop.lock
-        limit = self.stall_limit if self.stall_limit is not None else float("inf")
+        lock, pulse = loop.lock, self.pulse
+        limit = self.watchdog.limit if self.watchdog is not None else float("inf")
         shared = self.beat.rec if self.beat is not None else None
         guard = loop.guard
         wall = self.wall
@@ -113,8 +110,8 @@ class RealtimeRunner:
                 start = clock()
                 if wall is not None:
                     self._follow_wall(wall, start)
-                if start - self.beat_at > limit:  # stopped between cycles
-                    self._stalled(start, start - self.beat_at)
+                if start - pulse.at > limit:  # stopped between cycles
+                    self._stalled(start, start - pulse.at)
                 try:
                     loop.step(start)
                     consecutive = 0
@@ -132,10 +129,10 @@ class RealtimeRunner:
                 deadline += missed * period
             stats.record(jitter, end - start, missed)
             stats.commands = loop.commands_handled
-            self.beat_at = end
-            self.heartbeat += 1
+            pulse.at = end
+            pulse.count = beats = pulse.count + 1
             if shared is not None:
-                shared.cycles = self.heartbeat  # the supervised world waits on scans (sim/world)
+                shared.cycles = beats  # the supervised world waits on scans (sim/world)
                 if guard is not None:  # what the relays did, for a stall found with them off
                     shared.energised = guard.energised
                 shared.beat_ns = int(end * 1e9)  # one store: what the supervisor watches
@@ -174,9 +171,9 @@ class RealtimeRunner:
         """No cycle for longer than the limit (the process was stopped, starved or blocked):
         the watchdog judges it before this cycle runs; it is counted either way. The first
         cycles (start-up work) are not judged."""
-        if self.heartbeat < ARM_AFTER_CYCLES:
+        if self.pulse.count < ARM_AFTER_CYCLES:
             return
-        tripped = self.on_stall(now, stalled_s) if self.on_stall is not None else False
+        tripped = self.watchdog.after_stall(now, stalled_s) if self.watchdog is not None else False
         self.stats.stall(stalled_s, tripped)
 
     def _on_error(self, exc: Exception, now: float, consecutive: int) -> None:
@@ -186,7 +183,7 @@ class RealtimeRunner:
         finally:
             if consecutive == 1:
                 log.error("event=loop_exception error=%r", exc, exc_info=exc)
-                self.loop.control.external_fault(
+                self.loop.state_machine.external_fault(
                     Fault(code=FaultCode.LOOP_EXCEPTION, message=f"scan loop failed: {exc!r}"),
                     now,
                 )

@@ -1,7 +1,8 @@
 """The work other threads hand the scan thread (`LoopPort.submit`): what each does there.
 
 The bus builds these from what it heard and never reaches into the loop itself: each task runs
-on the scan thread with the loop (`run`), or is refused if it never can (`reject`).
+on the scan thread with the loop (`run`), or is refused if it never can (`reject`). They sit
+above the loop (its inbox is typed by the loop they run with, `service/core/inbox.py`).
 """
 
 from __future__ import annotations
@@ -15,13 +16,12 @@ from typing import TYPE_CHECKING
 from schema.calibration import CalibrationRecord, CalibrationSet
 from schema.commands import Command, CommandRequest, Reply
 from schema.errors import Error
-from schema.events import RiderEvent
 from service.core.identity import Identity
+from service.core.loop import ScanLoop
 from service.core.sink import calibration_record
 from service.errors import MachineError, Rejected
 
 if TYPE_CHECKING:
-    from service.core.loop import ScanLoop
     from service.core.persist import SaveTicket
 
 log = logging.getLogger("machine")
@@ -93,7 +93,7 @@ class Duplicates:
     own: str
 
     def run(self, loop: ScanLoop, now: float) -> None:
-        loop.control.duplicate_id(self.others, self.own, now)
+        loop.state_machine.duplicate_id(self.others, self.own, now)
 
     def reject(self, error: Error) -> None:
         pass  # the daemon is stopping: nothing moves any more
@@ -107,16 +107,16 @@ class RiderPresence:
     alive: bool
 
     def run(self, loop: ScanLoop, now: float) -> None:
-        control = loop.control
-        if control.controller_rider != self.rider:
+        machine = loop.state_machine
+        if machine.controller_rider != self.rider:
             return
         policy = loop.config.rider_loss.policy
         acted = False
         if self.alive:
-            control.rider_back()
-        elif acted := control.rider_lost(now):
+            machine.rider_back()
+        elif acted := machine.rider_lost(now):
             log.warning("event=rider_lost rider=%s policy=%s", self.rider, policy)
-        rider_event(loop, "rider_returned" if self.alive else "rider_lost", self.rider, acted, now)
+        loop.rider_event("rider_returned" if self.alive else "rider_lost", self.rider, acted, now)
 
     def reject(self, error: Error) -> None:
         pass
@@ -133,23 +133,12 @@ class EnterCalibration:
 
     def run(self, loop: ScanLoop, now: float) -> None:
         try:
-            ticket = loop.control.enter_calibration(self.values, now)
+            ticket = loop.state_machine.enter_calibration(self.values, now)
         except MachineError as exc:
             self.refused(exc)
             return
-        self.done(calibration_record(loop.control.calibration, loop.config.machine.id, now), ticket)
+        calibration = loop.state_machine.calibration
+        self.done(calibration_record(calibration, loop.config.machine.id, now), ticket)
 
     def reject(self, error: Error) -> None:
         self.refused(Rejected(error))
-
-
-def rider_event(loop: ScanLoop, kind: str, rider: str, acted: bool, now: float) -> None:
-    """A Rider came back or was lost (`acted`: the policy paused or stopped it), into the
-    history through the recorder: after what it holds (the events of commands answered since
-    the last cycle), before the state change this causes."""
-    # Left at rest (the end of `rider start --wait`) or lost while its motion runs; after a
-    # stop only `acted` tells.
-    mid_motion = acted or loop.control.is_moving()
-    policy = str(loop.config.rider_loss.policy)
-    event = RiderEvent(kind=kind, rider=rider, policy=policy, acted=acted, mid_motion=mid_motion)
-    loop.recorder.emit(event, now)

@@ -33,6 +33,23 @@ ARM_AFTER_CYCLES = 10
 """The first cycles do one-off work (first publications, caches); the watchdog starts after."""
 
 
+class Pulse:
+    """The scan's sign of life: the runner writes it after every cycle, the watchdog's thread
+    reads it. Each field is one store, read whole: no lock between the two threads."""
+
+    __slots__ = ("at", "count", "finished")
+
+    def __init__(self) -> None:
+        self.count = 0
+        """Cycles completed."""
+        self.at = 0.0
+        """The clock time the latest cycle ended (set just before `count` moves)."""
+        self.finished = False
+        """True once the loop has left its cycle for good (a stop, a failure): beats end on
+        purpose, the outputs go safe on the loop's own way out, and the watchdog stands down
+        (a slow teardown is no stall)."""
+
+
 class GuardedHal:
     """A `Hal` whose outputs a watchdog can latch safe from another thread, and that knows
     whether the outputs it last wrote energise anything."""
@@ -96,36 +113,28 @@ class GuardedHal:
 
 
 class Watchdog(TimedThread):
-    """Trips when `heartbeat()` has not moved for `periods` periods (but never less than
-    `min_s`: at very short periods a fixed floor keeps ordinary OS hiccups from tripping it)
-    while an output is energised; with every output off it only says so.
-    It checks three times per limit, so a stall is caught between 1 and 4/3 limits. Given
-    `beat_at` (the clock time of the latest beat), a healthy loop is checked once, a third of
-    a limit after its latest beat would be `limit` old: one wake-up per limit instead of
-    three, and a stall is still tripped when it has lasted between 1 and 4/3 limits."""
+    """Trips when the scan's `pulse` has not moved for `limit_s` while an output is energised;
+    with every output off it only says so. It checks a third of a limit after the latest
+    beat would be `limit` old (one wake-up per limit on a healthy loop), then every third of
+    a limit, so a stall is tripped when it has lasted between 1 and 4/3 limits.
 
-    def __init__(  # noqa: PLR0913, PLR0917 - the runner's three read-outs (heartbeat, beat_at, finished), the HAL and the limits
+    Made before the runner, which it is given to: the runner beats its `pulse` and asks it to
+    judge a stall the scan thread saw itself (`after_stall`)."""
+
+    def __init__(
         self,
-        heartbeat: Callable[[], int],
         hal: GuardedHal,
-        period_s: float,
-        periods: int = 3,
-        min_s: float = 0.0,
+        limit_s: float,
+        *,
         on_trip: Callable[[float], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
-        beat_at: Callable[[], float] | None = None,
-        finished: Callable[[], bool] | None = None,
     ) -> None:
+        """`limit_s`: the config's `loop.watchdog_limit_s`, the one place it is worked out."""
         super().__init__("watchdog")
-        self.heartbeat = heartbeat
-        self.finished = finished
-        """True once the loop has left its cycle for good (a stop, a failure): beats end on
-        purpose, the outputs go safe on the loop's own way out, and the watchdog stands down
-        (a slow teardown is no stall)."""
-        self.beat_at = beat_at
+        self.pulse = Pulse()
         self.hal = hal
-        self.limit = max(period_s * periods, min_s)
-        self.period = self.limit / 3
+        self.limit = limit_s
+        self.period = limit_s / 3
         self.on_trip = on_trip
         self.clock = clock
         self.trips = 0
@@ -136,26 +145,26 @@ class Watchdog(TimedThread):
     def _run(self) -> None:
         # Armed once the first cycles have completed: before them the outputs are safe
         # anyway, and start-up work (imports, gc.freeze) must not count as a stall.
-        last_beat = self.heartbeat()
+        pulse = self.pulse
+        last_beat = pulse.count
         last_change = self.clock()
         armed = False
         wait = self.period
         # A wake-up per limit, ~25 a second at 10 ms: `TimedThread.sleep` (bench.cost).
         while self.sleep(wait):
             wait = self.period
-            if self.finished is not None and self.finished():
+            if pulse.finished:
                 return
-            beat = self.heartbeat()
+            beat = pulse.count
             now = self.clock()
             if not armed:
                 armed = beat >= ARM_AFTER_CYCLES
             if beat != last_beat:
-                last_beat, last_change = beat, now
+                last_beat = beat
                 self._said = False
-                if self.beat_at is not None:
-                    last_change = self.beat_at()
-                    if armed and self.tripped_at is None:
-                        wait = self.next_check(last_change, now)
+                last_change = pulse.at
+                if armed and self.tripped_at is None:
+                    wait = self.next_check(last_change, now)
                 if self.tripped_at is not None and not self.hal.latched:
                     self.tripped_at = None  # the loop recovered and took the fault
                 continue

@@ -106,22 +106,19 @@ class Harness:
         self.wake = FakeWake(self.clock, oversleep)
         loop.inbox.wake = self.wake  # type: ignore[assignment]
         self.stats = CycleStats(PERIOD, window=100, now=self.clock())
+        self.watchdog: Watchdog | None = None
+        if self.rig.guard is not None and stall_limit is not None:
+            self.watchdog = Watchdog(self.rig.guard, stall_limit)
         self.runner = RealtimeRunner(
             loop,
             PERIOD,
             self.stats,
             spin_s=spin_s,
             clock=self.clock,
-            stall_limit_s=stall_limit,
+            watchdog=self.watchdog,
             beat=beat,
             wall=wall,
         )
-        self.watchdog: Watchdog | None = None
-        if self.rig.guard is not None and stall_limit is not None:
-            self.watchdog = Watchdog(
-                lambda: self.runner.heartbeat, self.rig.guard, PERIOD, 2, stall_limit
-            )
-            self.runner.on_stall = self.watchdog.after_stall
         self.starts: list[float] = []
         self.ends: list[float] = []
         self.seen: list[tuple[MachineState, bool]] = []

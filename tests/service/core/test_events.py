@@ -234,7 +234,7 @@ def test_a_command_right_after_a_watchdog_trip_is_recorded_after_the_fault() -> 
     then the old motion's end, then the command (accepted against the fault)."""
     rig, sink, home, mark = tripped_while_homing()
     request = CommandRequest.model_validate({"transaction_id": "home-after-trip"})
-    reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
+    reply = rig.port.execute(Command.HOME, request, sender=None, timeout=1.0)
     assert reply is not None and reply.success
     rig.step()  # a command answered between cycles is written with the next one
     assert kinds(sink, mark)[:4] == ["state", "fault_raised", "completion", "command"]
@@ -262,7 +262,7 @@ def test_calibration_entered_by_hand_is_recorded_old_to_new() -> None:
 def between_cycles(rig: Rig, command: Command, tid: str) -> None:
     """A command the way the bus runs it: in a Zenoh callback, between two cycles."""
     request = CommandRequest.model_validate({"transaction_id": tid})
-    reply = rig.loop.execute_between_cycles(command, request, rig.clock, timeout=1.0)
+    reply = rig.port.execute(command, request, sender=None, timeout=1.0)
     assert reply is not None
 
 
@@ -382,12 +382,12 @@ def test_a_history_read_hands_over_held_records_unless_the_loop_is_stalled() -> 
     mark = len(sink.events)
     between_cycles(rig, Command.CHECK_HOME, "asked-before")
     with rig.loop.lock:  # a cycle in progress that outlasts the read's patience
-        done = threading.Thread(target=rig.loop.release_records, args=(0.05,))
+        done = threading.Thread(target=rig.port.release_records, args=(0.05,))
         done.start()
         done.join(5.0)
         assert not done.is_alive()
     assert kinds(sink, mark) == []  # nothing written behind the scan thread's back
-    rig.loop.release_records(0.05)
+    rig.port.release_records(0.05)
     assert kinds(sink, mark) == ["command"]
 
 

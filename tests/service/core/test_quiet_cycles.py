@@ -218,7 +218,7 @@ def test_queued_work_and_commands_between_cycles_act_as_before() -> None:
 
     def task(loop: ScanLoop, now: float) -> None:
         ran.append(loop.cycle)
-        loop.control.warnings.append("from a task")
+        loop.state_machine.warnings.append("from a task")
 
     twins.both(lambda rig: rig.loop.inbox.put(LoopCall(task)))
     twins.step()
@@ -327,7 +327,7 @@ def test_a_session_moves_settles_and_goes_quiet_again() -> None:
     )
     twins.both(
         lambda rig: rig.loop.inbox.put(
-            LoopCall(lambda loop, now: loop.control.enter_calibration(values, now))
+            LoopCall(lambda loop, now: loop.state_machine.enter_calibration(values, now))
         )
     )
     twins.step()
@@ -390,12 +390,12 @@ def test_an_output_set_in_the_image_between_cycles_is_switched_off_as_before() -
 
 
 def test_a_command_run_from_a_callback_between_cycles_is_seen_by_the_next_cycle() -> None:
-    """The Zenoh callback path (`execute_between_cycles`), which queues no task."""
+    """The Zenoh callback path (`LoopPort.execute`), which queues no task."""
     twins = Twins(calibration=known_calibration())  # not home: WARNING_NOT_HOME
     quiet_streak(twins)
     replies = twins.both(
-        lambda rig: rig.loop.execute_between_cycles(
-            C.START, REQUEST_MODELS[C.START](transaction_id="cb"), rig.clock, timeout=1.0
+        lambda rig: rig.port.execute(
+            C.START, REQUEST_MODELS[C.START](transaction_id="cb"), sender=None, timeout=1.0
         )
     )
     assert replies[0] == replies[1]

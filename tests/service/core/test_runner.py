@@ -34,7 +34,7 @@ def test_cycles_start_on_absolute_deadlines() -> None:
     assert h.starts[0] - h.t0 == pytest.approx(0.0, abs=20 * TICK)
     assert [round(o) for o in h.grid_offsets()] == list(range(300))
     assert_on_grid(h)
-    assert h.runner.heartbeat == 300
+    assert h.runner.pulse.count == 300
     assert h.stats.cycles == 300
     assert h.stats.overruns == 0
     assert h.stats.missed_cycles == 0
@@ -59,8 +59,8 @@ def test_each_cycle_stamps_its_count_and_its_end_in_the_supervisors_record() -> 
         writer.close()
         reader.close()
         os.close(fd)
-    assert beat.cycles == h.runner.heartbeat == 20
-    assert beat.beat_ns == int(h.runner.beat_at * 1e9)
+    assert beat.cycles == h.runner.pulse.count == 20
+    assert beat.beat_ns == int(h.runner.pulse.at * 1e9)
 
 
 def test_varying_execution_time_does_not_drift_the_schedule() -> None:

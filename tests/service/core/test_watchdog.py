@@ -10,7 +10,7 @@ import pytest
 
 from schema.commands import Command, CommandRequest
 from schema.status import FaultCode, MachineState
-from service.config.model import MachineConfig
+from service.config.model import LoopSection, MachineConfig
 from service.core.loop import ScanLoop
 from service.core.machine import Machine
 from service.core.runner import RealtimeRunner
@@ -74,7 +74,7 @@ def test_a_command_between_cycles_finds_the_watchdog_fault_first(path: str) -> N
     guard.latch_safe()
     if path == "callback":
         request = CommandRequest.model_validate({"transaction_id": "after-trip"})
-        reply = rig.loop.execute_between_cycles(Command.HOME, request, rig.clock, timeout=1.0)
+        reply = rig.port.execute(Command.HOME, request, sender=None, timeout=1.0)
     else:
         reply = rig.send(Command.HOME)
     assert reply is not None and reply.success, reply
@@ -97,17 +97,10 @@ class Threaded:
             self.config, guard, now=time.monotonic(), on_transition=None, guard=guard
         )
         self.loop: ScanLoop = self.machine.loop
-        self.runner = RealtimeRunner(self.loop, period, CycleStats(period))
         self.tripped = threading.Event()
         self.stalled: list[float] = []
-        self.dog = Watchdog(
-            lambda: self.runner.heartbeat,
-            guard,
-            period,
-            3,
-            on_trip=self.on_trip,
-            beat_at=lambda: self.runner.beat_at,  # as the daemon wires it
-        )
+        self.dog = Watchdog(guard, 3 * period, on_trip=self.on_trip)
+        self.runner = RealtimeRunner(self.loop, period, CycleStats(period), watchdog=self.dog)
 
     def on_trip(self, stalled_s: float) -> None:
         self.stalled.append(stalled_s)
@@ -147,7 +140,7 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     try:
         # relays on, and the watchdog armed
         moving = threaded.seen(
-            lambda lp: hal.outputs.any_on() and runner.heartbeat >= ARM_AFTER_CYCLES
+            lambda lp: hal.outputs.any_on() and runner.pulse.count >= ARM_AFTER_CYCLES
         )
         assert moving.wait(WAIT_S), "homing never energised a relay"
         loop.inbox.put(LoopCall(block))
@@ -156,7 +149,7 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
         assert threaded.stalled[0] >= 3 * threaded.config.loop.period_s
     finally:
         release.set()
-        seen = threaded.seen(lambda lp: lp.control.state is MachineState.FAULT_HW)
+        seen = threaded.seen(lambda lp: lp.state_machine.state is MachineState.FAULT_HW)
         got_fault = seen.wait(WAIT_S)
         dog.stop()
         runner.stop()
@@ -169,16 +162,22 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
     assert not thread.is_alive()
 
 
+def limit(period_s: float, periods: int, min_s: float) -> float:
+    """The watchdog limit as the config works it out (the one place it is)."""
+    return LoopSection(
+        period_s=period_s, watchdog_periods=periods, watchdog_min_s=min_s
+    ).watchdog_limit_s
+
+
 def test_watchdog_limit_is_periods_with_a_floor() -> None:
-    guard = GuardedHal(Rig().hal)
-    assert Watchdog(lambda: 0, guard, 0.010, 3, 0.02).limit == pytest.approx(0.030)
-    assert Watchdog(lambda: 0, guard, 0.001, 3, 0.02).limit == pytest.approx(0.020)
-    assert Watchdog(lambda: 0, guard, 0.001, 3, 0.0).limit == pytest.approx(0.003)
+    assert limit(0.010, 3, 0.02) == pytest.approx(0.030)
+    assert limit(0.001, 3, 0.02) == pytest.approx(0.020)
+    assert limit(0.001, 3, 0.0) == pytest.approx(0.003)
 
 
 def test_a_healthy_loop_is_checked_once_per_limit_after_its_latest_beat() -> None:
     guard = GuardedHal(Rig().hal)
-    dog = Watchdog(lambda: 0, guard, 0.010, 3, 0.02, beat_at=lambda: 0.0)
+    dog = Watchdog(guard, limit(0.010, 3, 0.02))
     # Limit 30 ms, checks every 10 ms: the next check 40 ms after the beat (one wake-up).
     assert dog.next_check(beat_at=5.000, now=5.004) == pytest.approx(0.036)  # 5.040 - 5.004
     # Never sooner than the plain check interval (limit / 3), even for an old beat.

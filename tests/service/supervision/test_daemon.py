@@ -80,7 +80,7 @@ def stop_after_cycles(daemon: Daemon, cycles: int) -> threading.Thread:
     def watch() -> None:
         for _ in range(1000):  # bounded: 10 s
             runner = daemon.runner
-            if runner is not None and runner.heartbeat >= cycles:
+            if runner is not None and runner.pulse.count >= cycles:
                 runner.stop()
                 return
             threading.Event().wait(0.01)
