@@ -23,23 +23,23 @@ class SupervisorOptions:
     """The longest wait before a restart."""
     stable_s: float = 10.0
     """A child up this long resets the back-off to `backoff_s`."""
+    hang_s: float | None = None
+    """A daemon whose scan has completed no cycle for this long is killed and restarted,
+    whatever its outputs (they were made safe at the watchdog limit if any was on); None:
+    `HANG_S` (supervisor.py), or three watchdog limits when that is longer."""
     start_timeout_s: float = 30.0
     """A child whose liveliness token has not appeared by then is killed and restarted."""
     exit_grace_s: float = 1.0
     """After the token goes: how long a child that is still running may take to exit."""
     stop_timeout_s: float = 10.0
     """How long a child may take to end once signalled (a SIGTERM to stop, a SIGKILL when hung)."""
-    hang_s: float | None = None
-    """A daemon whose scan has completed no cycle for this long is killed and restarted,
-    whatever its outputs (they were made safe at the watchdog limit if any was on); None:
-    `HANG_S` (supervisor.py), or three watchdog limits when that is longer."""
     world_period_s: float = 0.005
     """With the simulator: how often the plant steps its world (`sim.plant`)."""
-    log_level: str = "info"
-    """The child daemon's `--log-level`."""
     plant_dir: Path | None = None
     """With the simulator: attach to a plant already running there (`--plant`, a compose
     service of its own) instead of starting one as a child."""
+    log_level: str = "info"
+    """The child daemon's `--log-level`."""
 
 
 class Backoff:
