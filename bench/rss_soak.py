@@ -7,10 +7,15 @@
   service/supervision/malloc.py);
 - the same with glibc's default malloc arenas (8 per core): the daemon's default;
 - a bare zenoh-python echo under the same churn (a session, a liveliness token, one get): the
-  floor of what Zenoh itself keeps per connect.
+  floor of what Zenoh itself keeps per connect;
+- a daemon with rides (the fast simulator, its defaults otherwise): an operator Rider homes
+  and runs a session, back to back, so that its history process writes all the while;
+- the same with the history written on a thread of the daemon (`[events] process = false`).
 RSS (/proc/<pid>/status) and the malloc arenas (from /proc/<pid>/maps) of each process are
-sampled every few seconds; growth is taken after the warm-up (the first third of the run, at
-most 5 minutes). Results are printed and written to the `rss_soak` section of BENCHMARKS.md.
+sampled every few seconds, a daemon's with its history process's; growth is taken after the
+warm-up (the first third of the run, at most 5 minutes). Issue 59's footprint is judged on the
+riding daemons: the daemon and its history process together at most 70 MB at every sample.
+Results are printed and written to the `rss_soak` section of BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from bench.common import (
     Section,
     Table,
     Target,
+    children,
     command_line,
     growth_per_hour,
     measure_and_save,
@@ -41,9 +47,11 @@ from bench.common import (
     soak_parser,
     tenths,
 )
+from bench.soak import Rides, rides_worker
 from rider.client import RiderError
 from rider.client import zenoh_config as rider_zenoh_config
 from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS, TUNABLES_ENV
+from tests.integration.support import fast_args
 from tests.procs import Daemon, free_port, malloc_arenas, start_daemon, write_zenoh_config
 from tests.reliability.support import environ
 
@@ -52,11 +60,18 @@ PROGRESS_EVERY = 30
 """Samples between progress lines on stdout (5 minutes)."""
 WARMUP_MAX_S = 300.0
 REPLY_TIMEOUT_S = 2.0
+STEP_JOIN_S = 40.0
+"""How long the end waits for a worker: a ride in progress ends its step first (bench.soak's
+step timeout is 30 s)."""
 FLAT_MIB_PER_H = 1.0
 """The issue's "flat": at most this slope over the second half (0.5 MiB in a 30-minute run's)."""
 JUDGED_MINUTES = 10
 """Shorter runs report the slopes but judge nothing (a slope over seconds is start-up)."""
 ECHO_KEY = "bench/echo"
+PAIR_MAX = 70 * 10**6
+"""Issue 59: a daemon and its history process together, after an hour of rides (66.8 MiB)."""
+NO_ESTOPS = float("inf")
+"""The rides here press no E-stop (bench.soak does): a ride after a ride."""
 
 
 @dataclass(frozen=True)
@@ -79,6 +94,12 @@ class Proc:
     seen: list[int] = field(default_factory=list)
     """`connects` at each sample."""
     arenas: int = 0
+    rides: Rides | None = None
+    """The rides run on it (None: none)."""
+    daemon: Daemon | None = None
+    """The daemon the rides run on."""
+    own: list[int] = field(default_factory=list)
+    """Its own RSS at each sample, without its history process (`rss` has both)."""
 
 
 def _rider_churn(daemon: Daemon) -> Callable[[], None]:
@@ -118,12 +139,19 @@ def start_procs(stack: contextlib.ExitStack, tmp: Path, lifetime_s: float) -> li
         stack.callback(d.stop)
         return d
 
-    for name in ("idle", "churn", "churn-arenas", "echo"):
+    for name in ("idle", "churn", "churn-arenas", "echo", "rides", "rides-thread"):
         (tmp / name).mkdir()
     with environ({ARENA_ENV: None, TUNABLES_ENV: None}):  # theirs would win over the config
         idle = daemon("idle")
         churned = daemon("churn", f"malloc_arenas = {MALLOC_ARENAS}\n")
         unbounded = daemon("churn-arenas")
+        riding = start_daemon(tmp / "rides", "m1", extra=fast_args(tmp / "rides"))
+        stack.callback(riding.stop)
+        extra = fast_args(tmp / "rides-thread")
+        config = Path(extra[1])
+        config.write_text(config.read_text() + "\n[events]\nprocess = false\n")
+        threaded = start_daemon(tmp / "rides-thread", "m1", extra=extra)
+        stack.callback(threaded.stop)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     zconf = write_zenoh_config(tmp / "echo")
     echo = Child(
@@ -153,7 +181,13 @@ def start_procs(stack: contextlib.ExitStack, tmp: Path, lifetime_s: float) -> li
             _rider_churn(unbounded),
         ),
         Proc("bare Zenoh echo, same churn", echo.pid, _echo_churn(endpoint, zconf)),
+        Proc(RIDING, riding.proc.pid, rides=Rides(), daemon=riding),
+        Proc(THREADED, threaded.proc.pid, rides=Rides(), daemon=threaded),
     ]
+
+
+RIDING = "daemon + history process, rides"
+THREADED = "daemon, rides, history on a thread (process = false)"
 
 
 def soak(opts: RssOptions) -> Section:
@@ -170,6 +204,13 @@ def soak(opts: RssOptions) -> Section:
             for i, p in enumerate(procs)
             if p.connect is not None
         ]
+        workers += [
+            threading.Thread(
+                target=rides_worker, args=(p.daemon, p.rides, NO_ESTOPS, stop), name=f"rides-{i}"
+            )
+            for i, p in enumerate(procs)
+            if p.rides is not None
+        ]
         t0 = time.monotonic()
         for w in workers:
             w.start()
@@ -179,6 +220,7 @@ def soak(opts: RssOptions) -> Section:
                 times.append(t)
                 for p in procs:
                     p.rss.append(rss_bytes(p.pid, family=True))  # a history process too
+                    p.own.append(rss_bytes(p.pid))
                     p.seen.append(p.connects)
                 if t >= duration:
                     break
@@ -188,12 +230,19 @@ def soak(opts: RssOptions) -> Section:
         finally:
             stop.set()
             for w in workers:
-                w.join(timeout=REPLY_TIMEOUT_S * 5)
+                w.join(timeout=STEP_JOIN_S)
         for p in procs:
             p.arenas = malloc_arenas(p.pid)
+        riding = next(p for p in procs if p.label == RIDING)
+        held = holdings(riding.pid)
     warmup = min(WARMUP_MAX_S, duration / 3)
-    section.tables += [curve_table(times, procs), growth_table(times, procs, warmup)]
+    section.tables += [
+        curve_table(times, procs),
+        growth_table(times, procs, warmup),
+        pair_table(times, riding, held),
+    ]
     section.targets += flat_targets(times, procs, opts.minutes)
+    section.targets += [pair_target(p) for p in procs if p.rides is not None]
     section.notes.append(
         f"{opts.minutes:g} min; each churned process: connect, read, disconnect, then"
         f" {opts.every_s:g} s pause; RSS sampled every {sample_every:g} s. Warm-up left out of"
@@ -272,7 +321,7 @@ def flat_targets(times: list[float], procs: list[Proc], minutes: float) -> list[
     warmup = min(WARMUP_MAX_S, 60.0 * minutes / 3)
     late = _after(times, (warmup + times[-1]) / 2)
     targets = []
-    for p in procs[:2]:
+    for p in [*procs[:2], *(p for p in procs if p.rides is not None)]:
         what = f"RSS slope, {p.label} (2nd half)"
         if minutes < JUDGED_MINUTES:
             goal = f"≤ {FLAT_MIB_PER_H:.2f} MiB/h"
@@ -281,6 +330,58 @@ def flat_targets(times: list[float], procs: list[Proc], minutes: float) -> list[
         slope = growth_per_hour([times[i] for i in late], [p.rss[i] for i in late]) / 2**20
         targets.append(Target.at_most(what, slope, FLAT_MIB_PER_H, lambda v: f"{v:.2f} MiB/h"))
     return targets
+
+
+def holdings(pid: int) -> dict[str, dict[str, int]]:
+    """What the daemon `pid` and its history process hold, by kind (kB of `smaps_rollup`)."""
+    out: dict[str, dict[str, int]] = {}
+    for label, each in [("daemon", pid), *(("history process", c) for c in children(pid))]:
+        fields: dict[str, int] = {}
+        for name in ("status", "smaps_rollup"):
+            with contextlib.suppress(OSError), open(f"/proc/{each}/{name}") as fh:
+                for line in fh:
+                    key, _, value = line.partition(":")
+                    if value.strip().endswith("kB"):
+                        fields[key] = int(value.split()[0])
+        out[label] = fields
+    return out
+
+
+def pair_table(times: list[float], p: Proc, held: dict[str, dict[str, int]]) -> Table:
+    """The riding daemon and its history process: each one's RSS, and what they hold at the
+    end (files mapped: the interpreter, Zenoh's and pydantic's libraries; anonymous: the
+    Python objects and the malloc heaps)."""
+    assert p.rides is not None
+    history = [both - own for both, own in zip(p.rss, p.own, strict=True)]
+    t = Table(
+        f"{RIDING}: each process (MiB)",
+        ["", "daemon", "history process", "together"],
+    )
+    t.add("at start", *(f"{v[0] / 2**20:.2f}" for v in (p.own, history, p.rss)))
+    t.add("at the end", *(f"{v[-1] / 2**20:.2f}" for v in (p.own, history, p.rss)))
+    t.add("most", *(f"{max(v) / 2**20:.2f}" for v in (p.own, history, p.rss)))
+    for kind, key in (("files mapped", "RssFile"), ("anonymous", "RssAnon"), ("PSS", "Pss")):
+        cells = [held.get(who, {}).get(key) for who in ("daemon", "history process")]
+        if None not in cells:
+            total = sum(c or 0 for c in cells)
+            t.add(f"at the end: {kind}", *(f"{(c or 0) / 1024:.2f}" for c in [*cells, total]))
+    rides = p.rides
+    faults = ", ".join(f"{k} {n}" for k, n in rides.faults.items()) or "none"
+    t.note = (
+        f"{rides.done:,} rides (home, then a session of a tilt and 3 revolutions) in"
+        f" {times[-1] / 60:.1f} min; faults: {faults}; errors: {len(rides.errors)}."
+        " RSS counts a library's pages in each process that maps it; PSS shares them out."
+    )
+    return t
+
+
+def pair_target(p: Proc) -> Target:
+    return Target.at_most(
+        f"RSS, {p.label} (most of any sample)",
+        max(p.rss),
+        PAIR_MAX,
+        lambda v: f"{v / 2**20:.1f} MiB",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
