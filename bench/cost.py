@@ -32,6 +32,7 @@ from bench.common import (
     Table,
     Target,
     children,
+    cpu_seconds,
     main_for,
     mib,
     ms,
@@ -69,11 +70,40 @@ def _status_field(pid: int, name: str) -> int:
     return 0
 
 
+SETTLE_POLL_S = 0.5
+SETTLE_SHARE = 0.10
+"""Start-up is over once the process and its children spent less than this share of a core
+over a poll (idle, a daemon spends 1-6 %; importing, its history process a whole core)."""
+SETTLE_MAX_S = 15.0
+
+
+def _settle(pid: int) -> None:
+    """Wait until `pid` and its children are past their start-up (bounded): a daemon's history
+    process imports its models after the daemon serves, 0.3 s of CPU that a window opened 1 s
+    after the start counted as idle (seen at 1 ms: 6.5 % in that window, 3.0-3.6 % after)."""
+    deadline = time.monotonic() + SETTLE_MAX_S
+    before = cpu_seconds(pid, family=True)
+    while time.monotonic() < deadline:
+        time.sleep(SETTLE_POLL_S)
+        now = cpu_seconds(pid, family=True)
+        if children(pid) and now - before < SETTLE_SHARE * SETTLE_POLL_S:
+            return
+        before = now
+
+
 def _idle_of(
-    label: str, period_s: float | None, proc: subprocess.Popen[str], seconds: float
+    label: str,
+    period_s: float | None,
+    proc: subprocess.Popen[str],
+    seconds: float,
+    *,
+    history: bool = False,
 ) -> Idle:
+    """`history`: the process starts a history process, waited for (`_settle`)."""
     pid = proc.pid
     time.sleep(min(1.0, seconds))  # past start-up
+    if history:
+        _settle(pid)
     meter = CpuMeter(pid, family=True)  # a daemon's history process too
     meter.start()
     time.sleep(seconds)
@@ -93,7 +123,9 @@ def _idle_of(
 
 def idle_daemon(period_s: float, seconds: float) -> Idle:
     with bench_daemon(period_s) as daemon:
-        return _idle_of(f"daemon, {period_s * 1e3:g} ms", period_s, daemon.proc, seconds)
+        return _idle_of(
+            f"daemon, {period_s * 1e3:g} ms", period_s, daemon.proc, seconds, history=True
+        )
 
 
 def idle_bare(period_s: float, seconds: float, tmp: Path) -> Idle:
