@@ -1,118 +1,158 @@
-"""Calibration: a measured one when its motion ends, a technician's entered by hand, and the
-write that persists it. A calibration is used at once; its motion ends (and the table's
-`SAVED` row leaves CALIBRATING) only once the disk has answered, so the notice says whether
-it was saved.
+"""The calibration keeper: the calibration in use (measured when its motion ends, or a
+technician's entered by hand), the write that persists it, and which axes have a reference.
+
+A calibration is used at once; its motion ends (and the table's `SAVED` row leaves
+CALIBRATING) only once the disk has answered, so the notice says whether it was saved. The
+keeper says what happened; the state machine makes the state change.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from schema.calibration import CalibrationSet
-from schema.commands import REST_STATES
 from schema.completion import Outcome
 from schema.errors import ErrorCode
-from schema.status import MachineState
+from schema.status import AxesFlags
+from service.config.model import MachineConfig
 from service.core.calibrate import RotateCalibrate, TiltCalibrate
-from service.core.devices import Calibration
+from service.core.devices import Calibration, Devices
 from service.core.manual import manual_calibration
-from service.core.statemachine.context import Ending, Saving
-from service.core.statemachine.table import Event
-from service.errors import WrongState
+from service.core.statemachine.context import Ending, Motion
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # types only: the state machine does no IO
     from service.core.persist import SaveTicket
-    from service.core.statemachine.machine import StateMachine
 
-S = MachineState
 COMPLETE = "calibration complete"
 
-
-def tilt_measured(m: StateMachine, ctl: TiltCalibrate, now: float) -> Ending | None:
-    """CalibrateTilt's `on_done`: the tilt's zero is its reference now."""
-    assert ctl.result is not None  # it finished DONE
-    m.refs.tilt = True
-    tilt = dataclasses.replace(ctl.result, at=now + m.wall_offset)
-    return _measured(m, Calibration(tilt=tilt, rotate=m.calibration.rotate), now)
+OnCalibrated = Callable[[Calibration], "SaveTicket | None"]
+"""Persist a new calibration; a ticket that is not done keeps CALIBRATING until it is."""
 
 
-def verified(m: StateMachine) -> None:
-    """When a motion ends (done or faulted): an entered calibration its stroke verified
-    (`TiltVerify`) is the machine's calibration now, shown verified (not saved: a start
-    verifies an entered one again). A Home whose rotate part failed after the tilt's
-    verification keeps the verification."""
-    tilt, mine = m.devices.tilt.calibration, m.calibration.tilt
-    if tilt is None or mine is None or tilt is mine or not tilt.verified or mine.verified:
-        return
-    if dataclasses.replace(tilt, verified=False) == mine:
-        m.calibration = dataclasses.replace(m.calibration, tilt=tilt)
+@dataclass(frozen=True, slots=True)
+class Saving:
+    """A calibration's write under way, and the motion whose notice waits for it."""
+
+    ticket: SaveTicket
+    motion: Motion | None
 
 
-def rotate_measured(m: StateMachine, ctl: RotateCalibrate, now: float) -> Ending | None:
-    """CalibrateRotate's `on_done`: both axes were homed on the way."""
-    assert ctl.result is not None  # it finished DONE
-    m.refs.tilt = m.refs.rotate = True
-    rotate = dataclasses.replace(ctl.result, at=now + m.wall_offset)
-    return _measured(m, Calibration(tilt=m.calibration.tilt, rotate=rotate), now)
+@dataclass(slots=True)
+class Refs:
+    """Which axes have a position reference since power-up or the last hardware fault."""
+
+    tilt: bool = False
+    rotate: bool = False
 
 
-def enter(m: StateMachine, values: CalibrationSet, now: float) -> SaveTicket | None:
-    """A technician's values, recorded as manual: validated against the same plausible
-    ranges a measurement must meet, refused while a motion is under way, then used at once
-    and persisted (the ticket says when the write is done, and how)."""
-    if m.is_moving() or m.action is not None or m.saving is not None:
-        raise WrongState(
-            f"calibration values cannot be entered in state {m.state} while a motion"
-            " is under way (or its calibration is being saved); Stop it first"
+@dataclass(frozen=True, slots=True)
+class Saved:
+    """A write that ended: how its motion ended, the transition's reason, and that motion."""
+
+    ending: Ending
+    why: str
+    motion: Motion | None
+
+
+class CalibrationKeeper:
+    """The calibration in use, its write, and the axes' references."""
+
+    def __init__(
+        self, calibration: Calibration, devices: Devices, on_calibrated: OnCalibrated | None
+    ) -> None:
+        self.devices = devices
+        self.on_calibrated = on_calibrated
+        self.calibration = calibration
+        devices.tilt.calibration = calibration.tilt
+        self.refs = Refs()
+        self.saving: Saving | None = None
+        self.save_ticket: SaveTicket | None = None
+        """The write of the calibration in use (None: nothing to write it to, or not yet)."""
+
+    def homed(self) -> AxesFlags:
+        """An axis is home when it has a reference and its home switch is closed now."""
+        return AxesFlags(
+            tilt=self.refs.tilt and self.devices.tilt.is_home(),
+            rotate=self.refs.rotate and self.devices.rotate.is_home(),
         )
-    cal = manual_calibration(values, m.config, m.calibration, now + m.wall_offset)
-    # Not trusted until a Home has checked it with a measured move (docs/homing.md).
-    m.refs.tilt &= values.tilt is None
-    m.refs.rotate &= values.rotate is None
-    ticket = _use(m, cal)
-    if m.state in REST_STATES and m.state is not S.DONE:
-        m.go(Event.CALIBRATION_ENTERED, now, "calibration entered by hand")
-    return ticket
 
+    def lose_references(self) -> None:
+        """A hardware fault while moving: neither axis is trusted until homed again."""
+        self.refs.tilt = self.refs.rotate = False
 
-def save_done(m: StateMachine, saving: Saving, now: float) -> None:
-    """A background save finished: the calibration waiting for it (if any) has ended."""
-    ending = _saved(m, saving.ticket, now)
-    if m.action is not None and m.action is saving.motion:
-        m.end(ending, now)
+    def homed_both(self) -> None:
+        """A Home (or a rotate calibration, which homes both) ended: both axes referenced."""
+        self.refs.tilt = self.refs.rotate = True
 
+    def tilt_measured(self, ctl: TiltCalibrate, wall: float, motion: Motion | None) -> bool:
+        """CalibrateTilt ended: the tilt's zero is its reference now. True: the motion is
+        done; False: it waits for the write (`saved`)."""
+        assert ctl.result is not None  # it finished DONE
+        self.refs.tilt = True
+        tilt = dataclasses.replace(ctl.result, at=wall)
+        return self._measured(Calibration(tilt=tilt, rotate=self.calibration.rotate), motion)
 
-def _use(m: StateMachine, cal: Calibration) -> SaveTicket | None:
-    """Use `cal` from now on and persist it (the ticket of the write, if any)."""
-    m.calibration = cal
-    m.devices.tilt.calibration = cal.tilt
-    ticket = m.on_calibrated(cal) if m.on_calibrated is not None else None
-    m.save_ticket = ticket
-    return ticket
+    def rotate_measured(self, ctl: RotateCalibrate, wall: float, motion: Motion | None) -> bool:
+        """CalibrateRotate ended (both axes were homed on the way); as `tilt_measured`."""
+        assert ctl.result is not None  # it finished DONE
+        self.homed_both()
+        rotate = dataclasses.replace(ctl.result, at=wall)
+        return self._measured(Calibration(tilt=self.calibration.tilt, rotate=rotate), motion)
 
+    def verified(self) -> None:
+        """When a motion ends (done or faulted): an entered calibration its stroke verified
+        (`TiltVerify`) is the machine's calibration now, shown verified (not saved: a start
+        verifies an entered one again). A Home whose rotate part failed after the tilt's
+        verification keeps the verification."""
+        tilt, mine = self.devices.tilt.calibration, self.calibration.tilt
+        if tilt is None or mine is None or tilt is mine or not tilt.verified or mine.verified:
+            return
+        if dataclasses.replace(tilt, verified=False) == mine:
+            self.calibration = dataclasses.replace(self.calibration, tilt=tilt)
 
-def _measured(m: StateMachine, cal: Calibration, now: float) -> Ending | None:
-    """Use `cal` now and persist it; it has ended once the write has (None until then)."""
-    ticket = _use(m, cal)
-    if ticket is None:
-        m.go(Event.MOTION_DONE, now, COMPLETE)
-        return Ending(Outcome.DONE, COMPLETE)
-    # Still CALIBRATING (outputs off, no controller) until the disk answers: a Rider that
-    # waits for the calibration learns whether it was saved from the notice that ends it.
-    m.saving = Saving(ticket, m.action)
-    if ticket.done:
-        return _saved(m, ticket, now)
-    return None
+    def entered(
+        self, values: CalibrationSet, config: MachineConfig, wall: float
+    ) -> SaveTicket | None:
+        """A technician's values, recorded as manual: validated against the same plausible
+        ranges a measurement must meet, used at once and persisted (the ticket of the write)."""
+        cal = manual_calibration(values, config, self.calibration, wall)
+        # Not trusted until a Home has checked it with a measured move (docs/homing.md).
+        self.refs.tilt &= values.tilt is None
+        self.refs.rotate &= values.rotate is None
+        return self._use(cal)
 
+    def written(self) -> bool:
+        """The write a calibration's motion waits for has ended (`saved` says how)."""
+        return self.saving is not None and self.saving.ticket.done
 
-def _saved(m: StateMachine, ticket: SaveTicket, now: float) -> Ending:
-    m.saving = None
-    problem = ticket.problem
-    if problem:
-        ending = Ending(Outcome.STORAGE_FAILED, problem, ErrorCode.STORAGE_FAILED.value)
-    else:
-        ending = Ending(Outcome.DONE, COMPLETE)
-    if m.state is S.CALIBRATING and m.drive.controller is None:
-        m.go(Event.SAVED, now, COMPLETE + (", NOT saved" if problem else ""))
-    return ending
+    def saved(self) -> Saved:
+        """The write has ended: how the motion that waited for it ended."""
+        assert self.saving is not None
+        ticket, motion = self.saving.ticket, self.saving.motion
+        self.saving = None
+        problem = ticket.problem
+        if problem:
+            ending = Ending(Outcome.STORAGE_FAILED, problem, ErrorCode.STORAGE_FAILED.value)
+            return Saved(ending, COMPLETE + ", NOT saved", motion)
+        return Saved(Ending(Outcome.DONE, COMPLETE), COMPLETE, motion)
+
+    def _measured(self, cal: Calibration, motion: Motion | None) -> bool:
+        """Use `cal` now and persist it: True if there is nothing to wait for."""
+        ticket = self._use(cal)
+        if ticket is None:
+            return True
+        # Still CALIBRATING (outputs off, no controller) until the disk answers: a Rider that
+        # waits for the calibration learns whether it was saved from the notice that ends it.
+        self.saving = Saving(ticket, motion)
+        return False
+
+    def _use(self, cal: Calibration) -> SaveTicket | None:
+        """Use `cal` from now on and persist it (the ticket of the write, if any)."""
+        self.calibration = cal
+        self.devices.tilt.calibration = cal.tilt
+        ticket = self.on_calibrated(cal) if self.on_calibrated is not None else None
+        self.save_ticket = ticket
+        return ticket

@@ -2,23 +2,22 @@
 
 A motion (Home, Calibrate*, Start) is one `Motion` from `begin` until its one completion
 notice, like a ROS 2 action goal; its controller, session, and where Pause or the E-stop
-interrupted it are its `Drive`, reset in one go when it is cleared.
+interrupted it are its `Drive`, reset in one go when it is cleared. `MotionContext` owns the
+three (drive, action, notices not yet taken); the state machine changes the state around it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
-from schema.commands import Command
-from schema.completion import Outcome
-from schema.status import MachineState, MotionRef
+from schema.commands import Command, CommandRequest
+from schema.completion import Completion, Outcome
+from schema.status import FaultCode, MachineState, MotionRef
+from service.config.model import LiveConfig
 from service.core.controllers import SessionRun
+from service.core.devices import Devices
 from service.core.motion import Controller
-
-if TYPE_CHECKING:  # types only: the state machine does no IO
-    from service.core.persist import SaveTicket
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,11 +41,10 @@ def never(now: float) -> Ending | None:
 
 @dataclass(frozen=True, slots=True)
 class Plan:
-    """What a motion command begins: its controller runs in `state` (the table's target), and
-    `on_done` (bound now) acts when it finishes and says how the motion ended."""
+    """What a motion command begins: its controller runs in the state the table leads the
+    command to, and `on_done` (bound now) acts when it finishes and says how it ended."""
 
     command: Command
-    state: MachineState
     controller: Controller
     on_done: OnDone
     why: str | None = None
@@ -89,17 +87,106 @@ class Drive:
     estop_latched: bool = False
 
 
-@dataclass(frozen=True, slots=True)
-class Saving:
-    """A calibration's write under way, and the motion whose notice waits for it."""
+class MotionContext:
+    """The motion under way (`action`), what drives it (`drive`), and the completion notices
+    produced and not yet taken by the scan loop (`completions`)."""
 
-    ticket: SaveTicket
-    motion: Motion | None
+    def __init__(self, devices: Devices, live: LiveConfig) -> None:
+        self.devices = devices
+        self.live = live
+        self.drive = Drive()
+        self.action: Motion | None = None
+        """The motion command whose completion notice is still due (running, paused,
+        E-stopped), like a ROS 2 action goal."""
+        self.completions: list[Completion] = []
+        """Notices produced and not yet taken (`take`)."""
 
+    def begin(self, plan: Plan, request: CommandRequest, state: MachineState, wall: float) -> None:
+        """`plan`'s motion is under way from `wall`, asked for by `request` in `state`. Only a
+        motion halted by the E-stop can be replaced (Home, Calibrate*): it ended, replaced."""
+        by = plan.command.value
+        if state is MachineState.FAULT_ESTOP:
+            why = f"halted by the E-stop and not resumed; replaced by {by}"
+            self.end(Ending(Outcome.FAULT_ESTOP, why, FaultCode.ESTOP.value), state, wall)
+        else:
+            self.end(Ending(Outcome.STOPPED, f"replaced by {by}"), state, wall)
+        self.clear()
+        self.drive = Drive(controller=plan.controller, session_run=plan.session)
+        rider = request.rider
+        self.action = Motion(plan.command, request.transaction_id, rider, wall, plan.on_done)
 
-@dataclass(slots=True)
-class Refs:
-    """Which axes have a position reference since power-up or the last hardware fault."""
+    def refused(
+        self, request: CommandRequest, ending: Ending, state: MachineState, wall: float
+    ) -> None:
+        """A Start its checks refused ends with a notice too, though nothing began."""
+        motion = Motion(Command.START, request.transaction_id, request.rider, wall, never)
+        self.notify(motion, ending, state, wall)
 
-    tilt: bool = False
-    rotate: bool = False
+    def clear(self) -> None:
+        """Abandon the controller (outputs off) and forget the session, where Pause and the
+        E-stop came from, and the E-stop latch: a new motion, Stop or a fault starts clean."""
+        if self.drive.controller is not None:
+            self.drive.controller.abandon()
+        self.drive = Drive()
+        self.devices.stop_all()
+
+    def pause(self, interrupted: MachineState) -> None:
+        """Halt the controller; Resume goes back to `interrupted`."""
+        if self.drive.controller is not None:
+            self.drive.controller.halt()
+        self.drive.resume_to = interrupted
+
+    def estop(self, interrupted: MachineState | None) -> None:
+        """Halt, outputs off; latched, with the state it interrupted (None: latched already)."""
+        if self.drive.controller is not None:
+            self.drive.controller.halt()
+        self.devices.stop_all()
+        if interrupted is not None:
+            self.drive.estop_from = interrupted
+            self.drive.estop_latched = True
+
+    def resume(self, after_estop: bool, moving: bool, now: float) -> None:
+        """Forget what Pause (or the E-stop: its latch too) interrupted; `moving`: the
+        controller goes on."""
+        drive = self.drive
+        if after_estop:
+            drive.estop_latched = False
+            drive.estop_from = None
+        else:
+            drive.resume_to = None
+        if moving:
+            assert drive.controller is not None  # `Pick.BEFORE_*` chose a motion to run
+            drive.controller.resume(now)
+
+    def end(self, ending: Ending, state: MachineState, wall: float) -> None:
+        """The running motion has ended: its one notice (nothing if none is running)."""
+        motion, self.action = self.action, None
+        if motion is not None:
+            self.notify(motion, ending, state, wall)
+
+    def notify(self, motion: Motion, ending: Ending, state: MachineState, wall: float) -> None:
+        """`motion`'s completion notice: it ended as `ending`, in `state`, at `wall`."""
+        self.completions.append(
+            Completion(
+                machine_id=self.live.current.machine.id,
+                transaction_id=motion.transaction_id,
+                command=motion.command.value,
+                outcome=ending.outcome,
+                code=ending.code,
+                reason=ending.reason,
+                state=state,
+                rider=motion.rider,
+                started_at=motion.started_at,
+                time=wall,
+            )
+        )
+
+    def take(self) -> list[Completion]:
+        """The notices produced since the last call (the scan loop publishes them)."""
+        out, self.completions = self.completions, []
+        return out
+
+    def active(self) -> Controller | None:
+        """The controller that owns an axis now (running, paused or held by an E-stop)."""
+        ctl = self.drive.controller
+        return ctl.active() if ctl is not None else None

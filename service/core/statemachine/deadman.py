@@ -1,20 +1,16 @@
 """The Rider deadman: the controlling Rider (the sender of the last moving command) as the
-machine sees it, judged on its liveliness token and its heartbeats, and what its loss does:
-`rider_loss.policy`, through the table's `Event.RIDER_LOST` row (pause → PAUSED, stop → DONE).
+machine sees it, judged on its liveliness token and its heartbeats. The watch says what it
+found; the state machine applies `rider_loss.policy` through the table's `Event.RIDER_LOST`
+row (pause → PAUSED, stop → DONE).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
-from typing import TYPE_CHECKING
 
 from schema.status import MOTION_STATES, MachineState
 from service.config.model import RiderLossPolicy
-from service.core.statemachine.table import Event
-
-if TYPE_CHECKING:
-    from service.core.statemachine.machine import StateMachine
 
 
 class Verdict(Enum):
@@ -27,7 +23,7 @@ class Verdict(Enum):
 
 @dataclass(slots=True)
 class RiderWatch:
-    """The controlling Rider; a fresh one for each moving command."""
+    """The controlling Rider: each moving command's sender takes it over (`take`)."""
 
     id: str | None = None
     connected: bool = False
@@ -36,6 +32,11 @@ class RiderWatch:
     heard_at: float = 0.0
     """Its last sign of life: the command itself, then each heartbeat."""
     warning: str | None = None
+
+    def take(self, rider: str | None, now: float) -> None:
+        """A moving command from `rider`: it controls now (the command is a sign of life)."""
+        self.id, self.connected, self.heard_at = rider, rider is not None, now
+        self.gone_at = self.warning = None
 
     def gone(self, now: float, grace_s: float) -> bool:
         """Its token went: True if the rider-loss policy applies now (no grace period)."""
@@ -56,8 +57,10 @@ class RiderWatch:
 
     def heard(self, at: float | None, now: float, timeout_s: float) -> Verdict:
         """A heartbeat last arrived at `at` (None: never): LOST once silent past `timeout_s`;
-        BACK when one arrives after a loss (nothing moves by itself)."""
+        BACK when one arrives after a loss (nothing moves by itself); QUIET without a Rider."""
         verdict = Verdict.QUIET
+        if self.id is None:
+            return verdict
         if at is not None and at > self.heard_at:
             self.heard_at = at
             if not self.connected:
@@ -67,39 +70,14 @@ class RiderWatch:
             return Verdict.LOST
         return verdict
 
-
-def lost(m: StateMachine, now: float) -> bool:
-    """The controlling Rider is gone: apply the rider-loss policy now, or after the
-    configured grace period if it does not come back; True if it acted now."""
-    if m.watch.gone(now, m.config.rider_loss.grace_s):
-        return apply_loss(m, now)
-    return False
-
-
-def heard(m: StateMachine, at: float | None, now: float) -> Verdict:
-    """`at`: when the controlling Rider's heartbeat last arrived (None: never). Silent for
-    `rider_loss.timeout_s` → LOST (the policy applies); a heartbeat after a loss → BACK (a
-    paused ride stays paused)."""
-    if m.watch.id is None:
-        return Verdict.QUIET
-    verdict = m.watch.heard(at, now, m.config.rider_loss.timeout_s)
-    if verdict is Verdict.LOST:
-        lost(m, now)
-    return verdict
-
-
-def apply_loss(m: StateMachine, now: float) -> bool:
-    """The policy, now: True if it paused or stopped a motion."""
-    m.watch.gone_at = None
-    policy = m.config.rider_loss.policy
-    if m.state not in MOTION_STATES or policy is RiderLossPolicy.IGNORE:
-        return False
-    m.watch.warning = f"controlling Rider lost during {m.state}; policy {policy}"
-    if m.target(Event.RIDER_LOST) is MachineState.PAUSED:
-        m.pause(now, "Rider lost", Event.RIDER_LOST)
-    else:
-        m.stop(now, "Rider lost", "RIDER_LOST", Event.RIDER_LOST)
-    return True
+    def loss(self, state: MachineState, policy: RiderLossPolicy) -> bool:
+        """Its loss is judged now (the grace period, if any, is over): True if the policy
+        acts on `state` (a motion), with the warning the status shows."""
+        self.gone_at = None
+        if state not in MOTION_STATES or policy is RiderLossPolicy.IGNORE:
+            return False
+        self.warning = f"controlling Rider lost during {state}; policy {policy}"
+        return True
 
 
 MAX_RIDERS = 1024

@@ -1,229 +1,162 @@
-"""The machine's handlers: a command's admission and guard, then its one action, then its reply.
+"""The machine's handlers: what each command asks for, as one value the state machine carries
+out (`Order`); a motion's `on_done`, bound here, fires the trigger that ends it.
 
-An action does what its command does (begin a motion, pause, answer a check) and changes the
-state through the table (`StateMachine.go`/`enter`); a refusal raises a `MachineError`, which
-`handle` turns into the reply.
+A handler reads the machine's parts and builds: the motion to begin (`Plan`), a check's answer
+(`Check`), a Start its checks refused (`Refusal`), or the command itself, whose transition the
+machine makes (Pause, Resume, Stop). It never changes the state: `StateMachine.handle` calls
+it once and does what it returns.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import Protocol
 
-from schema.commands import (
-    DEFAULT_SESSION,
-    REST_STATES,
-    CheckResult,
-    Command,
-    CommandRequest,
-    Reply,
-    RotateStep,
-    Session,
-    StartRequest,
-    TiltStep,
-)
+from schema.commands import REST_STATES, CheckResult, Command, CommandRequest
 from schema.completion import Outcome
 from schema.status import Fault, FaultCode, MachineState
-from service.core.admission import admit
+from service.config.model import LiveConfig
 from service.core.calibrate import RotateCalibrate, TiltCalibrate, TiltVerify
 from service.core.controllers import SessionRun
+from service.core.devices import Devices
 from service.core.homing import RotateHome, TiltHome
 from service.core.motion import Chain, Controller
-from service.core.statemachine import calibration
-from service.core.statemachine.context import Ending, Motion, Plan, never
-from service.core.statemachine.deadman import RiderWatch
-from service.core.statemachine.table import ACCEPTED_TEXT, HANDLING, Event, allowed_states
-from service.errors import (
-    DuplicateId,
-    EstopActive,
-    InvalidSession,
-    MachineError,
-    NotCalibrated,
-    NotHome,
-    WrongState,
-)
-
-if TYPE_CHECKING:
-    from service.core.statemachine.machine import StateMachine
+from service.core.statemachine.calibration import COMPLETE, CalibrationKeeper
+from service.core.statemachine.context import Ending, MotionContext, OnDone, Plan
+from service.core.statemachine.guards import Facts, session_of, start_checks
+from service.core.statemachine.table import Event, Trigger
+from service.errors import InvalidSession, MachineError, NotCalibrated, NotHome
 
 S = MachineState
 C = Command
 
-Handler = Callable[["StateMachine", CommandRequest, float], "CheckResult | None"]
-"""A command's action: it changes the state (or raises a `MachineError`) and may return a
-check result for the reply."""
+
+class Machine(Protocol):
+    """What a handler reads of the state machine, and the one call a motion's end makes."""
+
+    devices: Devices
+    live: LiveConfig
+    keeper: CalibrationKeeper
+    context: MotionContext
+    wall_offset: float
+    state: MachineState
+
+    def go(self, trigger: Trigger, now: float, why: str) -> None: ...
 
 
-def handle(m: StateMachine, command: Command, request: CommandRequest, now: float) -> Reply:
-    """Act on one command and say what happened; refusals change nothing but the reply."""
-    stamp = now + m.wall_offset
-    handling = HANDLING[command]
-    try:
-        if handling.moves:
-            admit(command, request, stamp, m.config.bus.clock_margin_s)
-        if not handling.read_only:
-            _guard(m, command)
-        result = ACTIONS[command](m, request, now)
-    except MachineError as exc:
-        return Reply.failure(
-            exc.to_error(),
-            transaction_id=request.transaction_id,
-            command=command.value,
-            timecode=stamp,
-            state=m.state,
-            request_timecode=request.timecode,
-        )
-    if handling.moves:  # the command itself is a sign of life
-        m.watch = RiderWatch(request.rider, request.rider is not None, heard_at=now)
-    return Reply(
-        transaction_id=request.transaction_id,
-        command=command._value_,
-        timecode=stamp,
-        request_timecode=request.timecode,
-        success=True,
-        code=handling.reply,
-        state=m.state,
-        result=result,
-    )
+@dataclass(frozen=True, slots=True)
+class Check:
+    """A check's answer, and the reason of the state change it makes (None: none)."""
+
+    result: CheckResult
+    why: str | None = None
 
 
-def _guard(m: StateMachine, command: Command) -> None:
-    """Refuse a command this machine cannot take now: id held twice, E-stop, state."""
-    if m.duplicate_of:
-        raise DuplicateId(
-            f"{command.value} refused: machine id {m.config.machine.id} is also held by"
-            f" session {', '.join(m.duplicate_of)}; nothing is taken until one of the"
-            " two daemons is stopped or given another id"
-        )
-    if m.devices.safety.is_estop_active():
-        raise EstopActive(
-            f"{command.value} refused: the E-stop is active; release it, then Resume, Home or Stop"
-        )
-    if m.state not in allowed_states(command):
-        raise WrongState(
-            f"{command.value} is not accepted in state {m.state};"
-            f" accepted in: {ACCEPTED_TEXT[command]}"
-        )
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """A Start one of its checks refused: the state the table picked for it is entered (for
+    `fault`: FAULT_HW), the Start ends with a notice, and the reply is `error`."""
+
+    why: str
+    outcome: Outcome
+    error: MachineError
+    fault: Fault | None = None
 
 
-def calibrate_tilt(m: StateMachine, request: CommandRequest, now: float) -> None:
-    tilt = TiltCalibrate(m.devices.tilt, m.config.tilt)
-    plan = Plan(C.CALIBRATE_TILT, m.target(C.CALIBRATE_TILT), tilt, _tilt_done(m, tilt))
-    m.begin(request, plan, now)
+Order = Plan | Check | Refusal | Command
+"""What a handler asks of the machine (a `Command`: its own transition, Pause/Resume/Stop)."""
+
+Handler = Callable[[Machine, CommandRequest, Facts], Order]
+"""A command's handler: the machine, the request, and what the table's guards read now."""
 
 
-def calibrate_rotate(m: StateMachine, request: CommandRequest, now: float) -> None:
-    rotate = RotateCalibrate(m.devices.rotate, m.config.rotate)
-    chain = Chain([lambda: tilt_home(m), lambda: rotate])
-    target = m.target(C.CALIBRATE_ROTATE)
-    m.begin(request, Plan(C.CALIBRATE_ROTATE, target, chain, _rotate_done(m, rotate)), now)
+def calibrate_tilt(m: Machine, request: CommandRequest, facts: Facts) -> Plan:
+    tilt = TiltCalibrate(m.devices.tilt, m.live.current.tilt)
+
+    def measured(now: float) -> Ending | None:
+        wall = now + m.wall_offset
+        return _calibrated(m, m.keeper.tilt_measured(tilt, wall, m.context.action), now)
+
+    return Plan(C.CALIBRATE_TILT, tilt, measured)
 
 
-def _tilt_done(m: StateMachine, ctl: TiltCalibrate) -> Callable[[float], Ending | None]:
-    return lambda now: calibration.tilt_measured(m, ctl, now)
+def calibrate_rotate(m: Machine, request: CommandRequest, facts: Facts) -> Plan:
+    rotate = RotateCalibrate(m.devices.rotate, m.live.current.rotate)
+
+    def measured(now: float) -> Ending | None:
+        wall = now + m.wall_offset
+        return _calibrated(m, m.keeper.rotate_measured(rotate, wall, m.context.action), now)
+
+    return Plan(C.CALIBRATE_ROTATE, Chain([lambda: tilt_home(m), lambda: rotate]), measured)
 
 
-def _rotate_done(m: StateMachine, ctl: RotateCalibrate) -> Callable[[float], Ending | None]:
-    return lambda now: calibration.rotate_measured(m, ctl, now)
+def _calibrated(m: Machine, done: bool, now: float) -> Ending | None:
+    """A calibration in use: its motion is done now, or once its write ends (`SAVED`)."""
+    if not done:
+        return None
+    m.go(Event.MOTION_DONE, now, COMPLETE)
+    return Ending(Outcome.DONE, COMPLETE)
 
 
-def home(m: StateMachine, request: CommandRequest, now: float) -> None:
+def home(m: Machine, request: CommandRequest, facts: Facts) -> Plan:
     chain = Chain([lambda: tilt_home(m), lambda: rotate_home(m)])
 
     def homed(at: float) -> Ending:
-        m.refs.tilt = m.refs.rotate = True
+        m.keeper.homed_both()
         m.go(Event.MOTION_DONE, at, "Home complete")
         return Ending(Outcome.DONE, "Home complete")
 
-    m.begin(request, Plan(C.HOME, m.target(C.HOME), chain, homed), now)
+    return Plan(C.HOME, chain, homed)
 
 
-def tilt_home(m: StateMachine) -> Controller:
+def tilt_home(m: Machine) -> Controller:
     """The tilt's part of Home (and of CalibrateRotate): an entered calibration not verified
     yet is verified on the way (`TiltVerify`), a trusted one checked at its zero."""
-    tilt, cfg = m.devices.tilt, m.config.tilt
+    tilt, cfg = m.devices.tilt, m.live.current.tilt
     if tilt.calibration is not None and not tilt.calibration.verified:
         return TiltVerify(tilt, cfg)
     return TiltHome(tilt, cfg)
 
 
-def rotate_home(m: StateMachine) -> Controller:
-    cal = m.calibration.rotate
+def rotate_home(m: Machine) -> Controller:
+    cal = m.keeper.calibration.rotate
     speed = cal.speed_dps if cal is not None else None
-    return RotateHome(m.devices.rotate, m.config.rotate, speed)
+    return RotateHome(m.devices.rotate, m.live.current.rotate, speed)
 
 
-def start(m: StateMachine, request: CommandRequest, now: float) -> None:
+def start(m: Machine, request: CommandRequest, facts: Facts) -> Plan | Refusal:
     """The seed's Session(): CheckCalibrate, CheckHome, CheckSession, then run. A check that
     fails sets its state (the table's Start row picks it), then ends this Start with a notice
     (the seed's "send WARNING…, stop session, send DONE"), and the reply says why."""
-    session = request.session if isinstance(request, StartRequest) else None
-    session = session or DEFAULT_SESSION
-    target = m.target(C.START, session)
-    if target is S.RUNNING:
-        assert m.calibration.rotate is not None  # the checks passed: calibrated
-        run = SessionRun(session, m.devices, m.config, m.calibration.rotate)
-        why = f"Start session {session.name!r}"
-        m.begin(request, Plan(C.START, target, run, session_done(m), why, run), now)
-        return
-    outcome, error = _refused(m, target, session, now)
-    motion = Motion(C.START, request.transaction_id, request.rider, now + m.wall_offset, never)
-    m.notify(motion, Ending(outcome, error.message, error.code.value), now)
-    raise error
+    target = start_checks(facts)  # the table's pick for Start's row
+    if target is not S.RUNNING:
+        return _refused(target, facts)
+    session = session_of(request)
+    rotate = m.keeper.calibration.rotate
+    assert rotate is not None  # the checks passed: calibrated
+    run = SessionRun(session, m.devices, m.live.current, rotate)
+    return Plan(C.START, run, _session_done(m), f"Start session {session.name!r}", run)
 
 
-def start_target(m: StateMachine, session: Session | None) -> MachineState:
-    """`Pick.START_CHECKS`: the state of the first of Start's checks that fails, else RUNNING."""
-    if not m.calibration.complete:
-        return S.WARNING_NEEDS_CALIBRATION
-    home = m.homed()
-    if not (home.tilt and home.rotate):
-        return S.WARNING_NOT_HOME
-    if session is not None and session_problem(m, session) is not None:
-        return S.FAULT_HW
-    return S.RUNNING
-
-
-def _refused(
-    m: StateMachine, target: MachineState, session: Session, now: float
-) -> tuple[Outcome, MachineError]:
-    """Enter the state of the check that failed; how the Start ends, and its refusal."""
+def _refused(target: MachineState, facts: Facts) -> Refusal:
+    """The check that failed (the table picked its state): how the Start ends, and why."""
     if target is S.WARNING_NEEDS_CALIBRATION:
-        missing = [a for a in ("tilt", "rotate") if getattr(m.calibration, a) is None]
-        m.enter(C.START, target, now, "Start: not calibrated")
-        return Outcome.REFUSED, NotCalibrated(
-            f"Start refused: {' and '.join(missing)} not calibrated"
+        error: MachineError = NotCalibrated(
+            f"Start refused: {' and '.join(facts.uncalibrated)} not calibrated"
         )
+        return Refusal("Start: not calibrated", Outcome.REFUSED, error)
     if target is S.WARNING_NOT_HOME:
-        home = m.homed()
-        missing = [a for a in ("tilt", "rotate") if not getattr(home, a)]
-        m.enter(C.START, target, now, "Start: not home")
-        return Outcome.REFUSED, NotHome(
-            f"Start refused: {' and '.join(missing)} not home; send Home first"
-        )
-    problem = session_problem(m, session)
-    assert problem is not None  # the pick chose FAULT_HW for it
-    path, message = problem
+        missing = " and ".join(facts.not_home)
+        error = NotHome(f"Start refused: {missing} not home; send Home first")
+        return Refusal("Start: not home", Outcome.REFUSED, error)
+    assert facts.bad_session is not None  # the pick chose FAULT_HW for it
+    path, message = facts.bad_session
     fault = Fault(code=FaultCode.INVALID_SESSION, message=message)
-    m.enter_fault(fault, now, "Start: bad session", C.START, moved=False)
-    return Outcome.FAULT_HW, InvalidSession(message, path)
+    return Refusal("Start: bad session", Outcome.FAULT_HW, InvalidSession(message, path), fault)
 
 
-def session_problem(m: StateMachine, session: Session) -> tuple[str, str] | None:
-    """The first step this machine cannot do, as (JSON pointer, message)."""
-    lo, hi = m.config.tilt.min_deg, m.config.tilt.max_deg
-    for i, step in enumerate(session.steps):
-        if isinstance(step, TiltStep) and not lo <= step.degrees <= hi:
-            return (
-                f"/session/steps/{i}/degrees",
-                f"step {i}: tilt {step.degrees:g}° is outside this machine's range {lo:g}..{hi:g}°",
-            )
-        if isinstance(step, RotateStep) and step.revolutions < 1:
-            return (f"/session/steps/{i}/revolutions", f"step {i}: revolutions must be ≥ 1")
-    return None
-
-
-def session_done(m: StateMachine) -> Callable[[float], Ending]:
+def _session_done(m: Machine) -> OnDone:
     def done(now: float) -> Ending:
         m.go(Event.MOTION_DONE, now, "session complete")
         return Ending(Outcome.DONE, "session complete")
@@ -231,40 +164,35 @@ def session_done(m: StateMachine) -> Callable[[float], Ending]:
     return done
 
 
-def pause(m: StateMachine, request: CommandRequest, now: float) -> None:
-    m.pause(now, "Pause")
+def _its_own(command: Command) -> Handler:
+    """A command whose transition is all it does (Pause, Resume, Stop): the machine's."""
+    return lambda m, request, facts: command
 
 
-def resume(m: StateMachine, request: CommandRequest, now: float) -> None:
-    m.resume(now)
-
-
-def stop(m: StateMachine, request: CommandRequest, now: float) -> None:
-    m.stop(now, "Stop")
-
-
-def check_calibration(m: StateMachine, request: CommandRequest, now: float) -> CheckResult:
-    cal = m.calibration
-    result = CheckResult(ok=cal.complete, tilt=cal.tilt is not None, rotate=cal.rotate is not None)
+def check_calibration(m: Machine, request: CommandRequest, facts: Facts) -> Check:
+    missing = facts.uncalibrated
+    ok = not missing
+    result = CheckResult(ok=ok, tilt="tilt" not in missing, rotate="rotate" not in missing)
     state = m.state
     if state in REST_STATES:
-        if not result.ok and state is not S.WARNING_NEEDS_CALIBRATION:
-            m.go(C.CHECK_CALIBRATION, now, "CheckCalibration failed")
-        elif result.ok and state is S.WARNING_NEEDS_CALIBRATION:
-            m.go(C.CHECK_CALIBRATION, now, "CheckCalibration passed")
-    return result
+        if not ok and state is not S.WARNING_NEEDS_CALIBRATION:
+            return Check(result, "CheckCalibration failed")
+        if ok and state is S.WARNING_NEEDS_CALIBRATION:
+            return Check(result, "CheckCalibration passed")
+    return Check(result)
 
 
-def check_home(m: StateMachine, request: CommandRequest, now: float) -> CheckResult:
-    home = m.homed()
-    result = CheckResult(ok=home.tilt and home.rotate, tilt=home.tilt, rotate=home.rotate)
+def check_home(m: Machine, request: CommandRequest, facts: Facts) -> Check:
+    missing = facts.not_home
+    ok = not missing
+    result = CheckResult(ok=ok, tilt="tilt" not in missing, rotate="rotate" not in missing)
     # Needing calibration is the bigger problem: that warning is not hidden (no row moves it).
     state = m.state
-    if not result.ok and state in (S.IDLE, S.DONE):
-        m.go(C.CHECK_HOME, now, "CheckHome failed")
-    elif result.ok and state is S.WARNING_NOT_HOME:
-        m.go(C.CHECK_HOME, now, "CheckHome passed")
-    return result
+    if not ok and state in (S.IDLE, S.DONE):
+        return Check(result, "CheckHome failed")
+    if ok and state is S.WARNING_NOT_HOME:
+        return Check(result, "CheckHome passed")
+    return Check(result)
 
 
 ACTIONS: dict[Command, Handler] = {
@@ -272,10 +200,10 @@ ACTIONS: dict[Command, Handler] = {
     C.CALIBRATE_ROTATE: calibrate_rotate,
     C.HOME: home,
     C.START: start,
-    C.PAUSE: pause,
-    C.RESUME: resume,
-    C.STOP: stop,
+    C.PAUSE: _its_own(C.PAUSE),
+    C.RESUME: _its_own(C.RESUME),
+    C.STOP: _its_own(C.STOP),
     C.CHECK_CALIBRATION: check_calibration,
     C.CHECK_HOME: check_home,
 }
-"""One action per command (its reply and kind: `table.HANDLING`)."""
+"""One handler per command (its reply and kind: `table.HANDLING`)."""

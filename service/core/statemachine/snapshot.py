@@ -9,15 +9,11 @@ status needs is read from here, so it cannot be left out of the comparison.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from schema.status import AxesFlags, EstopInfo, Fault, MachineState, Status
 from service.core.controllers import SessionRun
 from service.core.devices import Calibration
 from service.core.statemachine.context import Motion
-
-if TYPE_CHECKING:
-    from service.core.statemachine.machine import StateMachine
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,35 +46,6 @@ class Snapshot:
     resume_to: MachineState | None
     estop_from: MachineState | None
     duplicate_of: tuple[str, ...]
-
-
-def snapshot_of(m: StateMachine) -> Snapshot:
-    """`m` now: a full cycle takes one (the quiet ones rely on `StateMachine.changes`)."""
-    drive, watch, refs, devices = m.drive, m.watch, m.refs, m.devices
-    run = drive.session_run
-    storage = m.storage
-    return Snapshot(
-        state=m.state,
-        previous_state=m.previous_state,
-        fault=m.fault,
-        estop_active=devices.safety.is_estop_active(),
-        estop_latched=drive.estop_latched,
-        calibration=m.calibration,
-        home_tilt=refs.tilt and devices.tilt.is_home(),
-        home_rotate=refs.rotate and devices.rotate.is_home(),
-        session=run,
-        step=run.index if run is not None else None,
-        revolutions=run.revolutions_done() if run is not None else None,
-        motion=m.action,
-        rider_connected=watch.connected,
-        warnings=tuple(m.warnings),
-        rider_warning=watch.warning,
-        storage=storage.version if storage is not None else 0,
-        rider=watch.id,
-        resume_to=drive.resume_to,
-        estop_from=drive.estop_from,
-        duplicate_of=m.duplicate_of,
-    )
 
 
 def status_of(  # noqa: PLR0913 - the status's own fields besides the machine's

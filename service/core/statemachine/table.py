@@ -35,7 +35,7 @@ Trigger = Command | Event
 
 
 class Pick(Enum):
-    """How a row with several targets chooses one; the state machine reads the facts it names."""
+    """How a row with several targets chooses one, from the facts it names (guards.py)."""
 
     REST = "the rest state: IDLE when calibrated and home, else the warning that says why"
     BEFORE_PAUSE = "the state Pause interrupted; the rest state if nothing is left to run"

@@ -43,7 +43,7 @@ def test_values_entered_by_hand_are_manual_used_at_once_and_saved() -> None:
     rig = Rig()  # a bare machine: needs calibration
     assert rig.state is S.WARNING_NEEDS_CALIBRATION
     saved: list[Calibration] = []
-    rig.control.on_calibrated = saved.append
+    rig.control.keeper.on_calibrated = saved.append
     ticket = rig.control.enter_calibration(
         entry(tilt=TILT.model_dump(), rotate=ROTATE.model_dump()), rig.clock()
     )

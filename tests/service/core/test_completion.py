@@ -256,7 +256,7 @@ def test_a_motion_still_running_at_shutdown_ends_aborted() -> None:
 def test_a_calibration_that_cannot_be_saved_ends_storage_failed() -> None:
     rig = Rig()
     store = SlowStore()  # the test finishes its write with a problem
-    rig.control.on_calibrated = store.save
+    rig.control.keeper.on_calibrated = store.save
     heard = Heard(rig)
     assert rig.send(C.CALIBRATE_TILT, transaction_id="ct").success
     rig.run_until(lambda: bool(store.tickets))

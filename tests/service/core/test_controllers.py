@@ -61,7 +61,7 @@ def test_rotate_home_backs_off_the_switch_dwells_then_seeks() -> None:
 def test_a_paused_tilt_stroke_measures_again_from_home() -> None:
     rig = Rig()
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.controller
+    cal = rig.control.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     rig.run_until(lambda: cal.phase is TiltCalPhase.STROKE)
     rig.step(20)
@@ -80,7 +80,7 @@ def test_a_paused_tilt_stroke_measures_again_from_home() -> None:
 def test_a_paused_rotate_measurement_measures_again_from_home() -> None:
     rig = Rig(calibration=known_calibration())
     assert rig.send(C.CALIBRATE_ROTATE).success
-    chain = rig.control.controller
+    chain = rig.control.context.drive.controller
     assert isinstance(chain, Chain)
     rig.run_until(lambda: isinstance(chain.current, RotateCalibrate))
     cal = chain.current

@@ -121,7 +121,7 @@ def test_a_tilt_edge_seen_across_a_stalled_scan_is_approached_again() -> None:
     rig = rig_on(start_tilt_deg=5.0)
     world = rig.hal.world
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.controller
+    cal = rig.control.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     first = cal.homing
 
@@ -281,7 +281,7 @@ def test_a_revolution_overdue_by_the_tolerance_stops_the_session() -> None:
 def test_a_tilt_zero_that_moves_between_its_two_latches_is_refused() -> None:
     rig = rig_on(start_tilt_deg=5.0)
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.controller
+    cal = rig.control.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     rig.run_until(lambda: len(cal.zeros) == 1)
     # The switch slips 0.5° down between the two latches (a loose cam).
@@ -345,7 +345,7 @@ def test_a_revolution_hidden_by_two_stalls_is_a_fault_never_done() -> None:
     assert rig.send(
         C.START, session=Session(steps=[RotateStep(revolutions=3)]).model_dump()
     ).success
-    step = rig.control.controller
+    step = rig.control.context.drive.controller
     rig.run_until(lambda: isinstance(step.current, RotateRevolutions) and step.current.done == 1)
     assert world.rotate_switch.closed
     for stall in (0.56, 0.45):  # from the arc past the next one; then on into the one after
@@ -365,7 +365,7 @@ def test_a_tilt_stroke_the_scan_stalled_through_is_refused_as_spoiled() -> None:
     scans is the scan's fault: the refusal says so, and is one a stall causes."""
     rig = Rig(config=FAST)
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.controller
+    cal = rig.control.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     rig.run_until(lambda: cal.phase.name == "STROKE")
     rig.step()

@@ -131,12 +131,12 @@ class SlowStore:
 def test_calibration_ends_only_when_the_disk_has_answered() -> None:
     rig = Rig()
     store = SlowStore()
-    rig.control.on_calibrated = store.save
+    rig.control.keeper.on_calibrated = store.save
     assert rig.send(Command.CALIBRATE_TILT).success
     rig.run_until(lambda: bool(store.tickets))
     rig.step(50)
     assert rig.state is S.CALIBRATING  # measured, but not yet saved
-    assert rig.control.controller is None and not rig.relays_on()
+    assert rig.control.context.drive.controller is None and not rig.relays_on()
     store.tickets[0].finish("disk on fire")
     rig.step()
     assert rig.state is S.WARNING_NEEDS_CALIBRATION  # rotate is still to calibrate

@@ -256,15 +256,15 @@ def test_a_silent_rider_is_lost_in_the_same_cycle() -> None:
         twins.beat("r1")
         quiet += twins.step(10)
     assert quiet > 200
-    assert twins.fast.control.rider_connected
+    assert twins.fast.control.watch.connected
     twins.step(100)  # silent: lost after 0.5 s
-    assert not twins.fast.control.rider_connected
+    assert not twins.fast.control.watch.connected
     lost = [e for e, _, _ in twins.sinks[1].events if isinstance(e, RiderEvent)]
     assert [e.kind for e in lost] == ["rider_lost"]
     assert twins.fast.sink.statuses[-1].rider_connected is False
     twins.beat("r1")  # back
     twins.step(50)
-    assert twins.fast.control.rider_connected
+    assert twins.fast.control.watch.connected
     twins.compare_all()
 
 

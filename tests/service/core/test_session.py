@@ -177,7 +177,7 @@ def test_stop_mid_session_drops_relays_and_clears_the_session() -> None:
     rig.step(500)
     assert rig.state is S.DONE
     assert rig.hal.world.rotate_travel_deg == where
-    assert rig.control.session_progress() is None
+    assert rig.control.session_run is None
 
 
 def test_a_second_session_needs_home_and_then_runs_again() -> None:
@@ -254,7 +254,7 @@ def test_a_start_refused_for_its_session_keeps_the_home_references() -> None:
     rig = rig_in(MachineState.IDLE)
     assert not rig.send(Command.START, session=BAD_SESSION.model_dump()).success
     assert rig.state is MachineState.FAULT_HW
-    assert rig.control.homed() == AxesFlags(tilt=True, rotate=True)
+    assert rig.control.keeper.homed() == AxesFlags(tilt=True, rotate=True)
     assert rig.send(Command.STOP).success
     rig.step()
     assert rig.send(Command.START).success, rig.replies[-1]

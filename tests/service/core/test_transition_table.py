@@ -7,7 +7,9 @@ import pytest
 
 from schema.commands import Command
 from schema.status import MachineState
-from service.core.statemachine import TABLE, Event, IllegalTransition, StateMachine
+from service.core.statemachine import TABLE, Event, IllegalTransition
+from service.core.statemachine.guards import PICKS
+from service.core.statemachine.table import Pick
 from tests.rig import rig_in
 
 S = MachineState
@@ -42,7 +44,7 @@ def test_a_pick_outside_its_row_stops_the_cycle_with_the_state_unchanged(
     """The table chooses where Home's end leads (the rest state); a pick that chose another
     state is refused in the cycle it happens (the runner makes any exception a FAULT_HW)."""
     rig = rig_in(S.HOMING)
-    monkeypatch.setattr(StateMachine, "rest_state", lambda self: S.RUNNING)
+    monkeypatch.setitem(PICKS, Pick.REST, lambda facts: S.RUNNING)
     with pytest.raises(IllegalTransition, match="motion done: HOMING → RUNNING"):
         rig.run_to_state(S.IDLE)
     assert rig.state is S.HOMING
