@@ -15,26 +15,7 @@ import pytest
 from pydantic import BaseModel
 
 from common.event_words import TEXTS, asker, describe, param_unit, rider_name
-from schema.events import (
-    CalibrationEvent,
-    ClockEvent,
-    CommandEvent,
-    CompletionEvent,
-    DaemonStartEvent,
-    DaemonStopEvent,
-    DroppedEvent,
-    EstopEvent,
-    EventKind,
-    FaultEvent,
-    KnownDetails,
-    ParamEvent,
-    RiderEvent,
-    SessionEndedEvent,
-    SessionStartedEvent,
-    StateEvent,
-    StorageEvent,
-    WatchdogEvent,
-)
+from schema import events
 from schema.status import MachineState as S
 from service.core.params import SPECS
 
@@ -47,7 +28,7 @@ TILT = {"offset_counts": 1300.0468123, "gain_counts_per_deg": 40.00049871}
 
 def union_kinds() -> set[str]:
     """Every `kind` the schema's details union can carry."""
-    union = get_args(KnownDetails)[0]
+    union = get_args(events.KnownDetails)[0]
     kinds: set[str] = set()
     for model in get_args(union):
         kinds |= set(get_args(model.model_fields["kind"].annotation))
@@ -58,7 +39,7 @@ def union_kinds() -> set[str]:
 # the awkward floats a measurement or a wall clock gives.
 SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
     (
-        CommandEvent(
+        events.CommandEvent(
             command="Start",
             transaction_id="2a671776-1",
             rider=RIDER,
@@ -71,7 +52,7 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
         (),
     ),
     (
-        CommandEvent(
+        events.CommandEvent(
             command="CheckHome",
             transaction_id="t9",
             rider=f"anonymous/{ZID}",
@@ -85,7 +66,7 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
         (),
     ),
     (
-        CompletionEvent(
+        events.CompletionEvent(
             command="Start",
             transaction_id="2a671776-1",
             outcome="DONE",
@@ -96,49 +77,51 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
         (),
     ),
     (
-        StateEvent(old=S.RUNNING, new=S.DONE, reason="session complete"),
+        events.StateEvent(old=S.RUNNING, new=S.DONE, reason="session complete"),
         "RUNNING → DONE (session complete)",
         (),
     ),
     (
-        FaultEvent(
+        events.FaultEvent(
             kind="fault_raised", code="TILT_NOT_FOLLOWING", message="stood still", axis="tilt"
         ),
         "TILT_NOT_FOLLOWING raised on the tilt axis: stood still",
         (),
     ),
     (
-        FaultEvent(kind="fault_cleared", code="TILT_NOT_FOLLOWING", axis="tilt"),
+        events.FaultEvent(kind="fault_cleared", code="TILT_NOT_FOLLOWING", axis="tilt"),
         "TILT_NOT_FOLLOWING cleared on the tilt axis",
         (),
     ),
     (
-        EstopEvent(kind="estop_pressed", state=S.FAULT_ESTOP),
+        events.EstopEvent(kind="estop_pressed", state=S.FAULT_ESTOP),
         "E-stop pressed, machine in FAULT_ESTOP",
         (),
     ),
     (
-        EstopEvent(kind="estop_released", state=S.FAULT_ESTOP),
+        events.EstopEvent(kind="estop_released", state=S.FAULT_ESTOP),
         "E-stop released, machine in FAULT_ESTOP",
         (),
     ),
     (
-        EstopEvent(kind="estop_latched", state=S.FAULT_ESTOP, reason="E-stop pressed"),
+        events.EstopEvent(kind="estop_latched", state=S.FAULT_ESTOP, reason="E-stop pressed"),
         "E-stop latch set (E-stop pressed), machine in FAULT_ESTOP",
         (),
     ),
     (
-        EstopEvent(kind="estop_reset", state=S.IDLE, reason="Resume"),
+        events.EstopEvent(kind="estop_reset", state=S.IDLE, reason="Resume"),
         "E-stop latch reset (Resume), machine in IDLE",
         (),
     ),
     (
-        SessionStartedEvent(name="default", steps=2, revolutions_total=3, transaction_id="t3"),
+        events.SessionStartedEvent(
+            name="default", steps=2, revolutions_total=3, transaction_id="t3"
+        ),
         "“default”: 2 steps, 3 revolutions [tx t3]",
         (),
     ),
     (
-        SessionEndedEvent(
+        events.SessionEndedEvent(
             name="thrill",
             steps=3,
             steps_done=1,
@@ -151,14 +134,14 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
         ("min", " s"),
     ),
     (
-        CalibrationEvent(
+        events.CalibrationEvent(
             axis="rotate", new={**ROTATE, "source": "measured", "at": AT}, persisted=True
         ),
         "rotate calibrated: revolution 4.000 s, home arc 9.9° (measured)",
         (" s", "°"),
     ),
     (
-        CalibrationEvent(
+        events.CalibrationEvent(
             axis="tilt",
             old={**TILT, "source": "measured", "at": AT, "verified": True},
             new={
@@ -177,14 +160,14 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
         ("counts", "counts/°"),
     ),
     (
-        CalibrationEvent(
+        events.CalibrationEvent(
             axis="rotate", old={**ROTATE, "source": "manual"}, new=None, persisted=True
         ),
         "rotate calibration dropped; before: revolution 4.000 s, home arc 9.9° (manual)",
         (" s", "°"),
     ),
     (
-        ParamEvent(
+        events.ParamEvent(
             name="tilt.max_deg",
             old=45.0,
             new=50.00000000001,
@@ -197,13 +180,13 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
         ("°",),
     ),
     (
-        ParamEvent(name="bus.heartbeat_s", old=2.0, new=1.0, persisted=False, reset=True),
+        events.ParamEvent(name="bus.heartbeat_s", old=2.0, new=1.0, persisted=False, reset=True),
         "bus.heartbeat_s reset to its default 1 s (was 2 s);"
         " NOT SAVED: back to the old value at the next restart",
         (" s",),
     ),
     (
-        ParamEvent(
+        events.ParamEvent(
             kind="safety_changed",
             name="rider_loss.grace_s",
             old=0.25,
@@ -218,56 +201,62 @@ SAMPLES: list[tuple[BaseModel, str, tuple[str, ...]]] = [
         (" s",),
     ),
     (
-        ParamEvent(
+        events.ParamEvent(
             kind="safety_changed", name="rider_loss.policy", old="pause", new="stop", persisted=True
         ),
         "rider_loss.policy set pause → stop",
         (),
     ),
     (
-        RiderEvent(kind="rider_lost", rider=RIDER, policy="pause", acted=True, mid_motion=True),
+        events.RiderEvent(
+            kind="rider_lost", rider=RIDER, policy="pause", acted=True, mid_motion=True
+        ),
         "rider bay1 · 9d617a lost mid-motion: policy pause applied",
         (),
     ),
     (
-        RiderEvent(kind="rider_lost", rider=RIDER, policy="pause", mid_motion=False),
+        events.RiderEvent(kind="rider_lost", rider=RIDER, policy="pause", mid_motion=False),
         "rider bay1 · 9d617a left at rest (nothing moving: policy pause not needed)",
         (),
     ),
     (
-        RiderEvent(kind="rider_returned", rider=RIDER, policy="pause"),
+        events.RiderEvent(kind="rider_returned", rider=RIDER, policy="pause"),
         "rider bay1 · 9d617a back (policy pause)",
         (),
     ),
     (
-        WatchdogEvent(stalled_s=0.2534567),
+        events.WatchdogEvent(stalled_s=0.2534567),
         "scan loop stalled 253 ms: outputs forced safe",
         ("ms",),
     ),
     (
-        ClockEvent(step_s=-11.61234567),
+        events.ClockEvent(step_s=-11.61234567),
         "host clock set back by 11.6 s (wall times follow it from here)",
         (" s",),
     ),
     (
-        ClockEvent(step_s=3 * 365 * 86400 + 4000.5),
+        events.ClockEvent(step_s=3 * 365 * 86400 + 4000.5),
         "host clock set forward by 1095 d 01 h (wall times follow it from here)",
         (" d", " h"),
     ),
     (
-        DaemonStartEvent(
+        events.DaemonStartEvent(
             pid=42, hal="sim", period_s=0.010000000000000002, previous_stop_clean=False
         ),
         "pid 42, sim HAL, scan period 10 ms; the previous run did not stop cleanly",
         ("ms",),
     ),
-    (DaemonStopEvent(reason="signal SIGTERM", exit_code=0), "signal SIGTERM, exit code 0", ()),
     (
-        StorageEvent(what="events", error="disk I/O error", lost=3),
+        events.DaemonStopEvent(reason="signal SIGTERM", exit_code=0),
+        "signal SIGTERM, exit code 0",
+        (),
+    ),
+    (
+        events.StorageEvent(what="events", error="disk I/O error", lost=3),
         "writing events failed: disk I/O error; 3 events lost",
         (),
     ),
-    (DroppedEvent(count=1), "1 event dropped (the writer's queue was full)", ()),
+    (events.DroppedEvent(count=1), "1 event dropped (the writer's queue was full)", ()),
 ]
 
 PYTHON_LOOKS = re.compile(r"[{}]|\bNone\b|\bTrue\b|\bFalse\b|\w=\S|'\w+':|->")
@@ -285,7 +274,7 @@ def kind_of(details: BaseModel) -> str:
 
 def test_every_kind_of_the_schema_has_a_text_and_a_sample_here() -> None:
     kinds = union_kinds()
-    assert kinds == set(EventKind), "the union and EventKind disagree"
+    assert kinds == set(events.EventKind), "the union and EventKind disagree"
     assert kinds == set(TEXTS), f"no text for {kinds - set(TEXTS)}"
     sampled = {kind_of(details) for details, _, _ in SAMPLES}
     assert kinds == sampled, f"no sample here for {kinds - sampled}"
@@ -307,7 +296,7 @@ def test_each_kind_reads_for_people(details: Any, text: str, units: tuple[str, .
 
 def test_the_issue_reproduction_reads_as_the_operator_expects() -> None:
     """Issue 58, point 11, word for word."""
-    details = CalibrationEvent(
+    details = events.CalibrationEvent(
         axis="rotate",
         old=None,
         new={**ROTATE, "source": "measured", "at": AT},

@@ -5,33 +5,14 @@ from __future__ import annotations
 from pydantic import BaseModel
 
 from common.event_summary import EventSummary
+from schema import events
 from schema.diag import EventsDiag
-from schema.events import (
-    CalibrationEvent,
-    ClockEvent,
-    CommandEvent,
-    CompletionEvent,
-    DaemonStartEvent,
-    DaemonStopEvent,
-    DroppedEvent,
-    EstopEvent,
-    Event,
-    EventPage,
-    FaultEvent,
-    ParamEvent,
-    RiderEvent,
-    SessionEndedEvent,
-    SessionStartedEvent,
-    StateEvent,
-    StorageEvent,
-    WatchdogEvent,
-)
 from schema.status import MachineState
 
 S = MachineState
 
 DETAILS: list[BaseModel] = [
-    CommandEvent(
+    events.CommandEvent(
         command="Start",
         transaction_id="t1",
         rider="abc",
@@ -40,14 +21,14 @@ DETAILS: list[BaseModel] = [
         message="Start is not accepted in RUNNING",
         state=S.RUNNING,
     ),
-    CompletionEvent(
+    events.CompletionEvent(
         command="Home", transaction_id="t2", outcome="DONE", state=S.IDLE, reason="Home complete"
     ),
-    StateEvent(old=S.IDLE, new=S.RUNNING, reason="Start session 'default'"),
-    FaultEvent(kind="fault_raised", code="TILT_TIMEOUT", message="late", axis="tilt"),
-    EstopEvent(kind="estop_latched", state=S.FAULT_ESTOP, reason="E-stop pressed"),
-    SessionStartedEvent(name="default", steps=2, revolutions_total=3, transaction_id="t3"),
-    SessionEndedEvent(
+    events.StateEvent(old=S.IDLE, new=S.RUNNING, reason="Start session 'default'"),
+    events.FaultEvent(kind="fault_raised", code="TILT_TIMEOUT", message="late", axis="tilt"),
+    events.EstopEvent(kind="estop_latched", state=S.FAULT_ESTOP, reason="E-stop pressed"),
+    events.SessionStartedEvent(name="default", steps=2, revolutions_total=3, transaction_id="t3"),
+    events.SessionEndedEvent(
         name="default",
         steps=2,
         steps_done=1,
@@ -56,27 +37,35 @@ DETAILS: list[BaseModel] = [
         duration_s=4.5,
         outcome="FAULT_HW",
     ),
-    CalibrationEvent(
+    events.CalibrationEvent(
         axis="tilt",
         old=None,
         new={"offset_counts": 1.0, "gain_counts_per_deg": 40.0},
         persisted=True,
     ),
-    ParamEvent(name="tilt.tolerance_deg", old=1.0, new=1.5, persisted=True, transaction_id="t4"),
-    RiderEvent(kind="rider_lost", rider="abc", policy="pause", acted=True),
-    RiderEvent(kind="rider_lost", rider="abd", policy="pause", acted=False, mid_motion=False),
-    WatchdogEvent(stalled_s=0.25),
-    ClockEvent(step_s=11.6),
-    DaemonStartEvent(pid=42, hal="sim", period_s=0.01, previous_stop_clean=False),
-    DaemonStopEvent(reason="signal SIGTERM", exit_code=0),
-    StorageEvent(what="events", error="disk I/O error", lost=3),
-    DroppedEvent(count=7),
+    events.ParamEvent(
+        name="tilt.tolerance_deg", old=1.0, new=1.5, persisted=True, transaction_id="t4"
+    ),
+    events.RiderEvent(kind="rider_lost", rider="abc", policy="pause", acted=True),
+    events.RiderEvent(
+        kind="rider_lost", rider="abd", policy="pause", acted=False, mid_motion=False
+    ),
+    events.WatchdogEvent(stalled_s=0.25),
+    events.ClockEvent(step_s=11.6),
+    events.DaemonStartEvent(pid=42, hal="sim", period_s=0.01, previous_stop_clean=False),
+    events.DaemonStopEvent(reason="signal SIGTERM", exit_code=0),
+    events.StorageEvent(what="events", error="disk I/O error", lost=3),
+    events.DroppedEvent(count=7),
 ]
-EVENT = Event(seq=9, time=1.5, cycle=100, machine_id="m1", kind="command", details=DETAILS[0])
+EVENT = events.Event(
+    seq=9, time=1.5, cycle=100, machine_id="m1", kind="command", details=DETAILS[0]
+)
 EVENT_SAMPLES: list[BaseModel] = [
     *DETAILS,
     EVENT,
-    EventPage(machine_id="m1", events=[EVENT], more=True, next_since=10, first_seq=1, last_seq=12),
+    events.EventPage(
+        machine_id="m1", events=[EVENT], more=True, next_since=10, first_seq=1, last_seq=12
+    ),
     EventSummary(
         machine_id="m1",
         since=0.0,
