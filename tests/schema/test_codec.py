@@ -12,6 +12,7 @@ import pytest
 from pydantic import BaseModel
 
 import schema
+from schema import sim
 from schema.axes import AxisRecord, PnStatus
 from schema.base import OpenWireModel, WireModel
 from schema.calibration import (
@@ -47,18 +48,6 @@ from schema.errors import Error, ErrorCode
 from schema.findings import Finding, Findings, Severity
 from schema.io import IoKind, IoValue
 from schema.params import ParamSet, ParamValue
-from schema.sim import (
-    SimAxis,
-    SimClear,
-    SimEstop,
-    SimHomeSwitch,
-    SimPlace,
-    SimStall,
-    SimStalls,
-    SimTiltSignal,
-    SimWorldState,
-    SwitchState,
-)
 from schema.status import (
     AxesFlags,
     EstopInfo,
@@ -217,15 +206,15 @@ SAMPLES: list[BaseModel] = [
         ok=False,
         findings=[Finding(category="c", severity=Severity.WARNING, path="", message="m")],
     ),
-    SimEstop(pressed=True),
-    SimHomeSwitch(transaction_id="h", axis=SimAxis.TILT, stuck=SwitchState.CLOSED),
-    SimHomeSwitch(axis=SimAxis.ROTATE),
-    SimTiltSignal(frozen=True, noise_counts=12.5),
-    SimStall(axis=SimAxis.ROTATE, stalled=False),
-    SimStalls(probability=0.05, max_s=0.05),
-    SimPlace(tilt_deg=-5.0),
-    SimClear(),
-    SimWorldState(
+    sim.SimEstop(pressed=True),
+    sim.SimHomeSwitch(transaction_id="h", axis=sim.SimAxis.TILT, stuck=sim.SwitchState.CLOSED),
+    sim.SimHomeSwitch(axis=sim.SimAxis.ROTATE),
+    sim.SimTiltSignal(frozen=True, noise_counts=12.5),
+    sim.SimStall(axis=sim.SimAxis.ROTATE, stalled=False),
+    sim.SimStalls(probability=0.05, max_s=0.05),
+    sim.SimPlace(tilt_deg=-5.0),
+    sim.SimClear(),
+    sim.SimWorldState(
         time=1.0,
         tilt_deg=2.0,
         rotate_deg=3.0,
