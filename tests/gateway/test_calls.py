@@ -12,7 +12,7 @@ from asyncua import Client, ua
 
 from rider.client import Rider
 from schema.event_models import CommandEvent
-from tests.gateway.support import Credentials, GatewayProc
+from tests.gateway.support import Credentials, GatewayProc, joined
 from tests.gateway.ua import call, call_on, connected, eventually, ns, read, run
 from tests.site.stand import Site
 
@@ -25,11 +25,8 @@ SERVER = ua.NodeId(ua.ObjectIds.Server)
 @pytest.fixture(scope="module")
 def other(plant: Site) -> Iterator[str]:
     """A second machine beside m1, whose Stop a wrong call must not reach."""
-    plant.start_daemons({"m4": "client"})
-    try:
+    with joined(plant, "m4"):
         yield "m4"
-    finally:
-        plant.daemons.pop("m4").stop()
 
 
 def _stops(plant: Site, machine_id: str) -> int:

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 import pytest
 from asyncua import Client, ua
 
-from tests.gateway.support import Credentials, GatewayProc, running_gateway
+from tests.gateway.support import Credentials, GatewayProc, joined, running_gateway
 from tests.gateway.ua import connected, eventually, ns, run
 from tests.site.stand import Site
 
@@ -24,11 +24,8 @@ TYPE = "gateway.RideMachineType"
 @pytest.fixture(scope="module")
 def later(plant: Site) -> Iterator[str]:
     """A machine that joins after m1."""
-    plant.start_daemons({"m5": "client"})
-    try:
+    with joined(plant, "m5"):
         yield "m5"
-    finally:
-        plant.daemons.pop("m5").stop()
 
 
 async def subtree(client: Client, root: ua.NodeId) -> dict[str, ua.NodeId]:
