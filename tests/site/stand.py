@@ -216,6 +216,22 @@ def wait_tokens(
 
 
 @contextlib.contextmanager
+def linked_peers(tmp: Path) -> Iterator[tuple[Daemon, Daemon]]:
+    """Two peer daemons on the shipped zenoh.json5 and no router, `fb` started with `--connect`
+    to `fa` (issue 22's case); both stopped after, `fb` first."""
+    zconf = ["--zenoh-config", str(PEER_CONFIG)]
+    fa = start_daemon(tmp, "fa", extra=zconf)
+    try:
+        fb = start_daemon(tmp, "fb", extra=[*zconf, "--connect", fa.endpoint])
+        try:
+            yield fa, fb
+        finally:
+            fb.stop()
+    finally:
+        fa.stop()
+
+
+@contextlib.contextmanager
 def site(tmp: Path) -> Iterator[Site]:
     """A running router and an empty site; everything is torn down on exit."""
     router = Router(write_doc_config(tmp, "router"), tmp)

@@ -15,7 +15,7 @@ from rider.cli import EXIT_AMBIGUOUS
 from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Lookahead
 from rider.link import Link
 from tests.procs import rider_cmd, run_bounded, start_daemon
-from tests.site.stand import PEER_CONFIG
+from tests.site.stand import PEER_CONFIG, linked_peers
 
 TRIES = 6
 
@@ -36,25 +36,17 @@ def _link(endpoint: str) -> Link:
 
 @pytest.mark.integration
 def test_the_cli_sees_both_of_two_linked_peer_daemons_every_time(tmp_path: Path) -> None:
-    zconf = ["--zenoh-config", str(PEER_CONFIG)]
-    fa = start_daemon(tmp_path, "fa", extra=zconf)
-    try:
-        fb = start_daemon(tmp_path, "fb", extra=[*zconf, "--connect", fa.endpoint])
-        try:
-            results = [
-                run_bounded(
-                    rider_cmd(
-                        *["--connect", (fb, fa)[n % 2].endpoint],
-                        *["--zenoh-config", str(PEER_CONFIG), "status"],
-                    ),
-                    timeout=60,
-                )
-                for n in range(TRIES)
-            ]
-        finally:
-            fb.stop()
-    finally:
-        fa.stop()
+    with linked_peers(tmp_path) as (fa, fb):
+        results = [
+            run_bounded(
+                rider_cmd(
+                    *["--connect", (fb, fa)[n % 2].endpoint],
+                    *["--zenoh-config", str(PEER_CONFIG), "status"],
+                ),
+                timeout=60,
+            )
+            for n in range(TRIES)
+        ]
     for done in results:
         assert done.returncode == EXIT_AMBIGUOUS, done.stderr
         assert "several machines are alive (fa, fb)" in done.stderr

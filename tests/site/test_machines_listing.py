@@ -14,8 +14,7 @@ from pathlib import Path
 import pytest
 
 from rider.client import Rider
-from tests.procs import start_daemon
-from tests.site.stand import PEER_CONFIG, run_cli
+from tests.site.stand import PEER_CONFIG, linked_peers, run_cli
 
 pytestmark = pytest.mark.integration
 
@@ -23,26 +22,18 @@ TRIES = 6
 
 
 def test_the_listing_names_every_machine_alive_the_pick_knows_of(tmp_path: Path) -> None:
-    zconf = ["--zenoh-config", str(PEER_CONFIG)]
-    fa = start_daemon(tmp_path, "fa", extra=zconf)
-    try:
-        fb = start_daemon(tmp_path, "fb", extra=[*zconf, "--connect", fa.endpoint])
-        try:
-            cli = [sys.executable, "-m", "rider.cli", "--connect", fa.endpoint]
-            cli += ["--zenoh-config", str(PEER_CONFIG), "--json", "machines"]
-            listed = []
-            for _ in range(TRIES):
-                done = run_cli(cli)
-                assert done.returncode == 0, done.stderr
-                listed.append(sorted(m["id"] for m in json.loads(done.stdout)))
-            assert listed == [["fa", "fb"]] * TRIES, listed
-            library = []
-            for _ in range(TRIES // 2):
-                with Rider(None, connect=[fa.endpoint], zenoh_config_path=PEER_CONFIG) as r:
-                    found = r.machines()
-                    library.append((sorted(m.id for m in found), found.complete))
-        finally:
-            fb.stop()
-    finally:
-        fa.stop()
+    with linked_peers(tmp_path) as (fa, _):
+        cli = [sys.executable, "-m", "rider.cli", "--connect", fa.endpoint]
+        cli += ["--zenoh-config", str(PEER_CONFIG), "--json", "machines"]
+        listed = []
+        for _ in range(TRIES):
+            done = run_cli(cli)
+            assert done.returncode == 0, done.stderr
+            listed.append(sorted(m["id"] for m in json.loads(done.stdout)))
+        assert listed == [["fa", "fb"]] * TRIES, listed
+        library = []
+        for _ in range(TRIES // 2):
+            with Rider(None, connect=[fa.endpoint], zenoh_config_path=PEER_CONFIG) as r:
+                found = r.machines()
+                library.append((sorted(m.id for m in found), found.complete))
     assert library == [(["fa", "fb"], True)] * (TRIES // 2), library
