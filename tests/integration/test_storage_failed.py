@@ -50,6 +50,17 @@ def tmpfs(path: Path, size: str) -> Iterator[Path]:
         _run("umount", "-l", str(path))
 
 
+@contextlib.contextmanager
+def data_on_tmpfs(tmp: Path, size: str) -> Iterator[tuple[Path, Path]]:
+    """A data dir holding the `OLD` calibration file on a tmpfs of `size` (`tmpfs`): the mount
+    and the data dir."""
+    with tmpfs(tmp / "mnt", size) as mount:
+        data = mount / "data"
+        data.mkdir()
+        (data / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+        yield mount, data
+
+
 def fill(mount: Path) -> None:
     """Write until the filesystem says it is full."""
     with (mount / "filler").open("wb", buffering=0) as fh, contextlib.suppress(OSError):
@@ -67,10 +78,7 @@ def storage_warnings(status: Status) -> list[str]:
 
 @pytest.mark.hazard("H38")
 def test_full_disk_calibration_and_parameter_are_not_reported_saved(tmp_path: Path) -> None:
-    with tmpfs(tmp_path / "mnt", "256k") as mount:
-        data = mount / "data"
-        data.mkdir()
-        (data / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+    with data_on_tmpfs(tmp_path, "256k") as (mount, data):
         fill(mount)
         daemon = machine_on(tmp_path, data)
         try:
@@ -115,10 +123,7 @@ def status_after_restart(tmp_path: Path, data: Path) -> Status:
 
 @pytest.mark.hazard("H39")
 def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: Path) -> None:
-    with tmpfs(tmp_path / "mnt", "1m") as mount:
-        data = mount / "data"
-        data.mkdir()
-        (data / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+    with data_on_tmpfs(tmp_path, "1m") as (mount, data):
         remount = _run("mount", "-o", "remount,ro", str(mount))
         assert remount.returncode == 0, remount.stderr
         daemon = machine_on(tmp_path, data)
@@ -149,10 +154,7 @@ def test_a_calibration_refused_by_a_read_only_dir_is_not_undone_by_a_restart(
     again, restart: the older file (gain 33) was loaded as current, calibrated, no warning.
     The calibration in use is saved once the dir takes it (at the latest as the daemon stops),
     and the refusal said what would happen otherwise."""
-    with tmpfs(tmp_path / "mnt", "1m") as mount:
-        data = mount / "data"
-        data.mkdir()
-        (data / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+    with data_on_tmpfs(tmp_path, "1m") as (mount, data):
         # No event history in the data dir: a file open for writing keeps a remount read-only
         # from happening (`mount point is busy`).
         config = write_fast_config(tmp_path)
