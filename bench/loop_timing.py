@@ -22,19 +22,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from bench.common import (
-    Child,
-    CpuMeter,
-    Options,
-    Section,
-    Table,
-    Target,
-    main_for,
-    ms,
-    python_module,
-    rss_bytes,
-    share,
-)
+from bench import common
+from bench.common import ms, share
 from bench.daemon import Tuning, bench_daemon
 from schema.diag import CycleDiag, TimingStats
 from tests.procs import Daemon
@@ -95,7 +84,7 @@ class Result:
 Groups = list[tuple[list[Run], float]]
 
 
-def plan(opts: Options) -> tuple[list[tuple[Run, float]], Groups, Groups]:
+def plan(opts: common.Options) -> tuple[list[tuple[Run, float]], Groups, Groups]:
     """(main runs, side-by-side groups, rounds beside CPU-bound neighbours), with durations;
     a group's runs run concurrently."""
     main_s = opts.pick(1.0, 60.0, 600.0)
@@ -134,7 +123,7 @@ def plan(opts: Options) -> tuple[list[tuple[Run, float]], Groups, Groups]:
     return main, side, neighbour_rounds(opts)
 
 
-def neighbour_rounds(opts: Options) -> Groups:
+def neighbour_rounds(opts: common.Options) -> Groups:
     """The daemon at 1 ms under load with a CPU-bound process per core beside it: what
     `loop.slice_s` is for. Its own slice and the kernel's alternate, round by round."""
     cores = len(os.sched_getaffinity(0))
@@ -155,10 +144,10 @@ def measure_daemon(run: Run, seconds: float, tmp: Path) -> Result:
             )
         )
         rider = stack.enter_context(daemon.rider(supervise=False))
-        load: Child | None = None
+        load: common.Child | None = None
         if run.load:
-            load = Child(
-                python_module(
+            load = common.Child(
+                common.python_module(
                     "bench.load",
                     "paced",
                     "--connect",
@@ -178,22 +167,24 @@ def measure_daemon(run: Run, seconds: float, tmp: Path) -> Result:
             stack.callback(load.stop)
             load.expect("ready", timeout=60.0)
         for i in range(run.neighbours):
-            burner = Child(
-                python_module("bench.baselines.burner", "--lifetime", seconds + 120.0),
+            burner = common.Child(
+                common.python_module("bench.baselines.burner", "--lifetime", seconds + 120.0),
                 tmp / f"burner-{i}.log",
             )
             stack.callback(burner.stop)
             burner.expect("ready")
         canary = BareRunner(Run(run.period_s, run.load, bare=True), seconds, tmp / "canary.log")
         stack.callback(canary.child.stop)
-        cpu = CpuMeter(daemon.proc.pid, family=True)
+        cpu = common.CpuMeter(daemon.proc.pid, family=True)
         before = rider.diag(reset=True)
         t0 = time.monotonic()
         cpu.start()
         time.sleep(seconds)
         after = rider.diag()
         elapsed = time.monotonic() - t0
-        result = Result(run, elapsed, after, cpu.percent(), rss_bytes(daemon.proc.pid, family=True))
+        result = Result(
+            run, elapsed, after, cpu.percent(), common.rss_bytes(daemon.proc.pid, family=True)
+        )
         result.expected_cycles = elapsed / run.period_s
         result.counted_cycles = after.cycles - before.cycles
         if load is not None:
@@ -223,9 +214,9 @@ class BareRunner:
             args.append("--kernel-timer-slack")
         if t.kernel_slice:
             args.append("--kernel-slice")
-        self.child = Child(python_module("bench.baselines.bare_loop", *args), log)
+        self.child = common.Child(common.python_module("bench.baselines.bare_loop", *args), log)
         self.child.expect("ready")
-        self.cpu = CpuMeter(self.child.pid)
+        self.cpu = common.CpuMeter(self.child.pid)
         self.cpu.start()
 
     def result(self) -> Result:
@@ -260,8 +251,8 @@ def _stats_cells(s: TimingStats) -> list[str]:
     return [ms(s.p50), ms(s.p99), ms(s.max)]
 
 
-def timing_table(title: str, results: list[Result]) -> Table:
-    table = Table(
+def timing_table(title: str, results: list[Result]) -> common.Table:
+    table = common.Table(
         title,
         [
             "run",
@@ -289,7 +280,7 @@ def timing_table(title: str, results: list[Result]) -> Table:
     return table
 
 
-def _timing_row(table: Table, r: Result, name: str) -> None:
+def _timing_row(table: common.Table, r: Result, name: str) -> None:
     d = r.diag
     table.add(
         name,
@@ -305,8 +296,8 @@ def _timing_row(table: Table, r: Result, name: str) -> None:
     )
 
 
-def crosscheck_table(results: list[Result]) -> Table:
-    table = Table(
+def crosscheck_table(results: list[Result]) -> common.Table:
+    table = common.Table(
         "Cross-checks from outside the daemon",
         [
             "run",
@@ -368,11 +359,11 @@ def _counted(items: list[str]) -> str:
     return ", ".join(f"{k} ×{n}" for k, n in Counter(items).items()) or "none"
 
 
-def targets(results: list[Result]) -> list[Target]:
+def targets(results: list[Result]) -> list[common.Target]:
     out = []
     for r in results:
         limit = (0.05 if r.run.period_s >= 0.010 else 0.20) * r.run.period_s
-        t = Target.at_most(
+        t = common.Target.at_most(
             f"p99 jitter, {r.run.name}", r.diag.jitter.p99, limit, lambda x: f"{ms(x)} ms"
         )
         if r.alongside is not None:
@@ -385,14 +376,16 @@ def targets(results: list[Result]) -> list[Target]:
             n = r.diag.overruns
             beside = f" (empty runner: {r.alongside.diag.overruns})" if r.alongside else ""
             out.append(
-                Target(f"overruns, {r.run.name}", "0", f"{n}{beside}", n == 0, f"{n} overruns")
+                common.Target(
+                    f"overruns, {r.run.name}", "0", f"{n}{beside}", n == 0, f"{n} overruns"
+                )
             )
     return out
 
 
-def run(opts: Options) -> Section:
+def run(opts: common.Options) -> common.Section:
     main, variants, rounds = plan(opts)
-    section = Section("loop_timing", "2. Scan loop timing")
+    section = common.Section("loop_timing", "2. Scan loop timing")
     main_results = [r for run, seconds in main for r in measure_group([run], seconds)]
     side_results = [r for runs, seconds in variants for r in measure_group(runs, seconds)]
     crowded = [r for runs, seconds in rounds for r in measure_group(runs, seconds)]
@@ -443,4 +436,4 @@ def run(opts: Options) -> Section:
 
 
 if __name__ == "__main__":
-    sys.exit(main_for("bench.loop_timing", __doc__ or "", run))
+    sys.exit(common.main_for("bench.loop_timing", __doc__ or "", run))

@@ -23,21 +23,8 @@ from pathlib import Path
 
 import zenoh
 
-from bench.common import (
-    Child,
-    Dist,
-    Options,
-    Section,
-    Table,
-    Target,
-    child_parser,
-    command_request,
-    main_or_child,
-    ms,
-    only_reply,
-    python_module,
-    run_lines,
-)
+from bench import common
+from bench.common import ms
 from bench.daemon import Tuning, bench_daemon
 from rider.client import zenoh_config as rider_zenoh_config
 from tests.procs import Daemon
@@ -65,7 +52,7 @@ def flooder(connect: str, zenoh_config: Path, key: str) -> int:
         key_expr = session.declare_keyexpr(key)
         pub = session.declare_publisher(SAMPLE_KEY, congestion_control=zenoh.CongestionControl.DROP)
         print("ready", flush=True)
-        for seconds, kind in run_lines():
+        for seconds, kind in common.run_lines():
             end = time.monotonic() + float(seconds)
             count = 0
             while time.monotonic() < end:
@@ -92,19 +79,19 @@ def _commands(
     out: list[float] = []
     end = time.monotonic() + seconds
     while time.monotonic() < end:
-        payload = command_request(f"rf-{next(ids)}")
+        payload = common.command_request(f"rf-{next(ids)}")
         t0 = time.perf_counter()
         replies = list(session.get(key, payload=payload, timeout=GET_TIMEOUT_S))
         out.append(time.perf_counter() - t0)
-        only_reply(replies, key)
+        common.only_reply(replies, key)
         time.sleep(COMMAND_GAP_S)
     return out
 
 
-def run(opts: Options) -> Section:
+def run(opts: common.Options) -> common.Section:
     seconds = opts.pick(1.0, 6.0, 15.0)
     rounds = opts.pick(1, 2, 3)
-    section = Section("read_flood", "10. Read flood and Zenoh's threads")
+    section = common.Section("read_flood", "10. Read flood and Zenoh's threads")
     phases = [(kind, n) for kind in KINDS for n in LAYOUTS]
     rtts: dict[tuple[str, int], list[float]] = {p: [] for p in phases}
     sent: dict[tuple[str, int], int] = dict.fromkeys(phases, 0)
@@ -120,10 +107,10 @@ def run(opts: Options) -> Section:
             )
             for n in LAYOUTS
         }
-        floods: dict[int, Child] = {}
+        floods: dict[int, common.Child] = {}
         for n, daemon in daemons.items():
-            flood = Child(
-                python_module(
+            flood = common.Child(
+                common.python_module(
                     "bench.read_flood",
                     "flooder",
                     "--connect",
@@ -179,7 +166,7 @@ def run(opts: Options) -> Section:
     }
     for kind in KINDS:
         title, rate = titles[kind]
-        table = Table(
+        table = common.Table(
             title,
             [
                 "Zenoh threads (bus.zenoh_threads)",
@@ -193,7 +180,7 @@ def run(opts: Options) -> Section:
         )
         for n in LAYOUTS:
             phase = (kind, n)
-            d = Dist.of(rtts[phase])
+            d = common.Dist.of(rtts[phase])
             table.add(
                 _label(n),
                 f"{sent[phase] / flooded_s[phase]:,.0f}",
@@ -208,7 +195,7 @@ def run(opts: Options) -> Section:
     for kind, what in (("reads", "the flood"), ("samples", "the sample flood")):
         phase = (kind, default)
         section.targets.append(
-            Target(
+            common.Target(
                 f"overruns at {PERIOD_S * 1e3:g} ms under {what}, {default} Zenoh thread (default)",
                 "0",
                 f"{overruns[phase]} in {flooded_s[phase]:.0f} s",
@@ -216,9 +203,9 @@ def run(opts: Options) -> Section:
             )
         )
     section.targets.append(
-        Target.at_most(
+        common.Target.at_most(
             f"command p99 beside the flood, {default} Zenoh thread (within one period)",
-            Dist.of(rtts[("reads", default)]).p99,
+            common.Dist.of(rtts[("reads", default)]).p99,
             PERIOD_S,
             lambda x: f"{ms(x)} ms",
         )
@@ -230,9 +217,9 @@ def run(opts: Options) -> Section:
         " it waits longer. The scan loop runs on its own thread either way; its jitter and"
         " overruns say what the flood cost it."
     )
-    samples = Dist.of(rtts[("samples", default)]).p50
+    samples = common.Dist.of(rtts[("samples", default)]).p50
     others = ", ".join(
-        f"{ms(Dist.of(rtts[('samples', n)]).p50)} ms with {_label(n)}"
+        f"{ms(common.Dist.of(rtts[('samples', n)]).p50)} ms with {_label(n)}"
         for n in LAYOUTS
         if n != default
     )
@@ -247,7 +234,7 @@ def run(opts: Options) -> Section:
 
 
 def flooder_main(argv: list[str]) -> int:
-    parser = child_parser("bench.read_flood flooder")
+    parser = common.child_parser("bench.read_flood flooder")
     parser.add_argument("--key", required=True)
     args = parser.parse_args(argv)
     return flooder(args.connect, args.zenoh_config, args.key)
@@ -255,7 +242,7 @@ def flooder_main(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     children = {"flooder": flooder_main}
-    return main_or_child("bench.read_flood", __doc__ or "", run, argv, children)
+    return common.main_or_child("bench.read_flood", __doc__ or "", run, argv, children)
 
 
 if __name__ == "__main__":

@@ -18,23 +18,9 @@ from pathlib import Path
 
 import zenoh
 
+from bench import common
 from bench.baselines.udp_echo import UdpClient
-from bench.common import (
-    Child,
-    Dist,
-    Options,
-    Section,
-    Table,
-    Target,
-    child_parser,
-    command_request,
-    main_or_child,
-    ms,
-    only_reply,
-    python_module,
-    run_lines,
-    share,
-)
+from bench.common import ms, share
 from bench.daemon import Tuning, bench_daemon, pinnable_cpu
 from rider.client import Rider, open_session
 from rider.client import zenoh_config as rider_zenoh_config
@@ -75,7 +61,7 @@ def worker(connect: str, zenoh_config: Path, threads: int, warmup: int) -> int:
         for _ in range(warmup):
             rider.check_home()
         print("ready", flush=True)
-        for (count,) in run_lines():
+        for (count,) in common.run_lines():
             took = []
             for _ in range(int(count)):
                 t0 = time.perf_counter()
@@ -87,15 +73,15 @@ def worker(connect: str, zenoh_config: Path, threads: int, warmup: int) -> int:
 
 def _get_one(session: zenoh.Session, key: str, payload: bytes) -> bytes:
     replies = list(session.get(key, payload=payload, encoding=Format.MSGPACK.value, timeout=2.0))
-    return only_reply(replies, key)
+    return common.only_reply(replies, key)
 
 
-def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark script: setup, measure, report, in order
+def run(opts: common.Options) -> common.Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark script: setup, measure, report, in order
     count = opts.pick(300, 5000, 20000)
     warmup = opts.pick(50, 500, 1000)
     rounds = opts.pick(2, 10, 20)
     per_round = max(1, count // rounds)
-    section = Section("roundtrip", "1. Command round trip")
+    section = common.Section("roundtrip", "1. Command round trip")
     calls: dict[str, Callable[[], object]] = {}
     with contextlib.ExitStack() as stack:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-rt-")))
@@ -107,8 +93,8 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
             endpoint."""
             endpoint = f"tcp/127.0.0.1:{free_port()}"
             module = "bench.baselines.zenoh_echo"
-            echo = Child(
-                python_module(module, "--listen", endpoint, "--zenoh-config", zconf, *extra),
+            echo = common.Child(
+                common.python_module(module, "--listen", endpoint, "--zenoh-config", zconf, *extra),
                 tmp / log,
             )
             stack.callback(echo.stop)
@@ -133,7 +119,7 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         one_echo_endpoint = echo_at("zenoh-echo-one.log", "--zenoh-threads", "1")
 
         echo_endpoint = echo_at("zenoh-echo.log")
-        udp = Child(python_module("bench.baselines.udp_echo"), tmp / "udp-echo.log")
+        udp = common.Child(common.python_module("bench.baselines.udp_echo"), tmp / "udp-echo.log")
         stack.callback(udp.stop)
         udp_client = UdpClient(int(udp.expect("ready")))
         stack.callback(udp_client.close)
@@ -144,8 +130,8 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
             grpc_missing = "grpcio is not installed (pip install -e '.[bench]'): no gRPC row"
         else:
             sock = tmp / "grpc.sock"
-            grpc_server = Child(
-                python_module("bench.baselines.grpc_uds", "--socket", sock), tmp / "grpc.log"
+            grpc_server = common.Child(
+                common.python_module("bench.baselines.grpc_uds", "--socket", sock), tmp / "grpc.log"
             )
             stack.callback(grpc_server.stop)
             grpc_server.expect("ready")
@@ -155,8 +141,8 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         rider = stack.enter_context(daemon.rider(supervise=False))
         # The same Rider in a process on Zenoh's own six threads (`zenoh_threads=0`), as a
         # Rider ran before the twelfth pass: its calls timed in that process, a batch a round.
-        six_rider = Child(
-            python_module(
+        six_rider = common.Child(
+            common.python_module(
                 "bench.roundtrip",
                 "worker",
                 "--connect",
@@ -203,21 +189,25 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
             )
             checked.append((pinned_session, pinned_key := "machine/m3/cmd/check/home"))
         ids = itertools.count()
-        echo_payload = command_request("echo-000000")
+        echo_payload = common.command_request("echo-000000")
         calls[RIDER] = rider.check_home
-        calls[RAW] = lambda: _get_one(rider.session, cmd_key, command_request(f"raw-{next(ids)}"))
+        calls[RAW] = lambda: _get_one(
+            rider.session, cmd_key, common.command_request(f"raw-{next(ids)}")
+        )
         calls[RAW_BARE] = lambda: _get_one(
-            bare_session, bare_key, command_request(f"bare-{next(ids)}")
+            bare_session, bare_key, common.command_request(f"bare-{next(ids)}")
         )
         calls[RAW_THREAD] = lambda: _get_one(
-            bare_session, thread_key, command_request(f"thread-{next(ids)}")
+            bare_session, thread_key, common.command_request(f"thread-{next(ids)}")
         )
-        calls[RAW_SIX] = lambda: _get_one(six_session, six_key, command_request(f"six-{next(ids)}"))
+        calls[RAW_SIX] = lambda: _get_one(
+            six_session, six_key, common.command_request(f"six-{next(ids)}")
+        )
         calls[ECHO] = lambda: _get_one(echo_session, "bench/echo", echo_payload)
         calls[ECHO_ONE] = lambda: _get_one(six_session, "bench/echo", echo_payload)
         if pin is not None:
             calls[RAW_PINNED] = lambda: _get_one(
-                pinned_session, pinned_key, command_request(f"pin-{next(ids)}")
+                pinned_session, pinned_key, common.command_request(f"pin-{next(ids)}")
             )
             calls[ECHO_PINNED] = lambda: _get_one(pinned_session, "bench/echo", echo_payload)
         calls[ECHO_DIRECT] = lambda: _get_one(echo_session, "bench/echo-direct", echo_payload)
@@ -227,7 +217,9 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         calls[UDP] = lambda: udp_client.call(echo_payload)
 
         for session, key in checked:
-            first = decode(Reply, _get_one(session, key, command_request("check")), Format.MSGPACK)
+            first = decode(
+                Reply, _get_one(session, key, common.command_request("check")), Format.MSGPACK
+            )
             if not first.success:
                 raise RuntimeError(f"{key} refused: {first.error}")
         for fn in calls.values():
@@ -248,8 +240,8 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
                     fn()
                     out.append(time.perf_counter() - t0)
 
-    dists = {name: Dist.of(s) for name, s in samples.items()}
-    table = Table(
+    dists = {name: common.Dist.of(s) for name, s in samples.items()}
+    table = common.Table(
         f"Round trip, {per_round * rounds} sequential requests each after {warmup} warm-up"
         f" (interleaved in {rounds} rounds); daemon loop at {PERIOD_S * 1e3:g} ms, simulator",
         ["path", "p50 ms", "p90 ms", "p99 ms", "max ms", "p50 vs zenoh echo"],
@@ -320,19 +312,21 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
     for name, goal in ((RAW, RAW_GOAL), (RIDER, RIDER_GOAL)):
         ratio = dists[name].p50 / echo_p50
         section.targets.append(
-            Target.at_most(f"{name} p50 ÷ zenoh echo p50", ratio, goal, lambda x: f"{x:.2f}×")
+            common.Target.at_most(
+                f"{name} p50 ÷ zenoh echo p50", ratio, goal, lambda x: f"{x:.2f}×"
+            )
         )
     if RAW_PINNED in dists:
         ratio = dists[RAW_PINNED].p50 / dists[ECHO_PINNED].p50
         section.targets.append(
-            Target.at_most(
+            common.Target.at_most(
                 f"{RAW_PINNED} p50 ÷ {ECHO_PINNED} p50", ratio, RAW_GOAL, lambda x: f"{x:.2f}×"
             )
         )
     if GRPC in dists:
         grpc_p50 = dists[GRPC].p50
         section.targets.append(
-            Target.at_most(
+            common.Target.at_most(
                 f"{RIDER} p50 × {GRPC_FACTOR:g} (below gRPC p50 by {GRPC_FACTOR:g}×)",
                 dists[RIDER].p50 * GRPC_FACTOR,
                 grpc_p50,
@@ -341,7 +335,7 @@ def run(opts: Options) -> Section:  # noqa: C901, PLR0912, PLR0915 - a benchmark
         )
     p99 = dists[RIDER].p99
     section.targets.append(
-        Target.at_most(f"{RIDER} p99 (< 10 % of the period)", p99, 0.1 * PERIOD_S, _ms_unit)
+        common.Target.at_most(f"{RIDER} p99 (< 10 % of the period)", p99, 0.1 * PERIOD_S, _ms_unit)
     )
     section.notes.append(
         f"p99 of the Rider path is {share(p99, PERIOD_S)} of the {PERIOD_S * 1e3:g} ms period."
@@ -354,7 +348,7 @@ def _ms_unit(seconds: float) -> str:
 
 
 def worker_main(argv: list[str]) -> int:
-    parser = child_parser("bench.roundtrip worker")
+    parser = common.child_parser("bench.roundtrip worker")
     parser.add_argument("--zenoh-threads", type=int, required=True)
     parser.add_argument("--warmup", type=int, required=True)
     args = parser.parse_args(argv)
@@ -362,7 +356,9 @@ def worker_main(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return main_or_child("bench.roundtrip", __doc__ or "", run, argv, {"worker": worker_main})
+    return common.main_or_child(
+        "bench.roundtrip", __doc__ or "", run, argv, {"worker": worker_main}
+    )
 
 
 if __name__ == "__main__":

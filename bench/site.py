@@ -43,23 +43,8 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from bench.common import (
-    Dist,
-    Options,
-    Section,
-    Table,
-    Target,
-    build_parser,
-    command_line,
-    cpu_seconds,
-    interrupts_as_exceptions,
-    measure,
-    mib,
-    ms,
-    options_from,
-    rss_bytes,
-    save,
-)
+from bench import common
+from bench.common import mib, ms
 from rider.client import Rider
 from tests.procs import REPO, Daemon, free_port, start_daemon, stop_process
 from tests.site.stand import PEER_CONFIG, Router, wait_tokens, write_doc_config
@@ -89,11 +74,11 @@ class Phase:
     machines: int
     join_tokens_s: float = float("nan")
     join_gateway_s: float = float("nan")
-    token_after_bus: Dist = field(default_factory=lambda: Dist.of([]))
+    token_after_bus: common.Dist = field(default_factory=lambda: common.Dist.of([]))
     """From a new daemon's bus up (its log) to its token at a Rider on the router."""
-    listing: Dist = field(default_factory=lambda: Dist.of([]))
+    listing: common.Dist = field(default_factory=lambda: common.Dist.of([]))
     listed: int = 0
-    events: Dist = field(default_factory=lambda: Dist.of([]))
+    events: common.Dist = field(default_factory=lambda: common.Dist.of([]))
     answered: int = 0
     cpu: dict[str, float] = field(default_factory=dict)
     """Share of one core over the quiet window, by process group."""
@@ -213,7 +198,7 @@ def join(site: Stand, count: int, phase: Phase) -> None:
         reached = wait_tokens(changes, wanted, timeout, site.daemons)
     phase.join_tokens_s = max(reached[mid] for mid in ids) - began
     bus_up = {mid: _bus_started(site.daemons[mid].log_path) for mid in ids}
-    phase.token_after_bus = Dist.of(
+    phase.token_after_bus = common.Dist.of(
         [reached[mid] + wall_offset - up for mid, up in bus_up.items() if up is not None]
     )
     deadline = time.monotonic() + timeout
@@ -273,7 +258,7 @@ def rounds(site: Stand, runs: int, phase: Phase) -> None:
     """`runs` of each Rider command, interleaved; the router's CPU meanwhile."""
     listings: list[float] = []
     queries: list[float] = []
-    c0, t0 = cpu_seconds(site.router_pid), time.monotonic()
+    c0, t0 = common.cpu_seconds(site.router_pid), time.monotonic()
     listed, answered = len(site.daemons), len(site.daemons)
     for _ in range(runs):
         took, n = listing_once(site)
@@ -282,19 +267,19 @@ def rounds(site: Stand, runs: int, phase: Phase) -> None:
         took, n = events_once(site)
         queries.append(took)
         answered = min(answered, n)
-    phase.router_busy = 100 * (cpu_seconds(site.router_pid) - c0) / (time.monotonic() - t0)
-    phase.listing, phase.listed = Dist.of(listings), listed
-    phase.events, phase.answered = Dist.of(queries), answered
+    phase.router_busy = 100 * (common.cpu_seconds(site.router_pid) - c0) / (time.monotonic() - t0)
+    phase.listing, phase.listed = common.Dist.of(listings), listed
+    phase.events, phase.answered = common.Dist.of(queries), answered
 
 
 def quiet_window(site: Stand, seconds: float, phase: Phase) -> None:
     """CPU shares and RSS over `seconds` with nothing asked of the site."""
     daemon_pids = [d.proc.pid for d in site.daemons.values()]
     groups: dict[str, Callable[[], float]] = {
-        "router": lambda: cpu_seconds(site.router_pid),
-        "gateway": lambda: cpu_seconds(site.gateway_pid),
+        "router": lambda: common.cpu_seconds(site.router_pid),
+        "gateway": lambda: common.cpu_seconds(site.gateway_pid),
         "daemons (with their history processes)": lambda: sum(
-            cpu_seconds(pid, family=True) for pid in daemon_pids
+            common.cpu_seconds(pid, family=True) for pid in daemon_pids
         ),
     }
     before = {name: read() for name, read in groups.items()}
@@ -303,10 +288,10 @@ def quiet_window(site: Stand, seconds: float, phase: Phase) -> None:
     dt = time.monotonic() - t0
     phase.cpu = {name: 100 * (read() - before[name]) / dt for name, read in groups.items()}
     phase.rss = {
-        "router": rss_bytes(site.router_pid),
-        "gateway": rss_bytes(site.gateway_pid),
+        "router": common.rss_bytes(site.router_pid),
+        "gateway": common.rss_bytes(site.gateway_pid),
         "one daemon + its history process (mean)": sum(
-            rss_bytes(pid, family=True) for pid in daemon_pids
+            common.rss_bytes(pid, family=True) for pid in daemon_pids
         )
         // len(daemon_pids),
     }
@@ -317,7 +302,7 @@ def quiet_window(site: Stand, seconds: float, phase: Phase) -> None:
     }
 
 
-def measure_site(opts: Options, machines: int, baseline: int, mode: str) -> list[Phase]:
+def measure_site(opts: common.Options, machines: int, baseline: int, mode: str) -> list[Phase]:
     runs = opts.pick(2, 10, 20)
     window = opts.pick(2.0, 10.0, 30.0)
     phases: list[Phase] = []
@@ -336,10 +321,10 @@ def _s(seconds: float) -> str:
     return "—" if math.isnan(seconds) else f"{seconds:.2f}"
 
 
-def report(phases: list[Phase], mode: str) -> Section:
+def report(phases: list[Phase], mode: str) -> common.Section:
     load = os.getloadavg()
     cols = [f"{p.machines} machines" for p in phases]
-    table = Table(
+    table = common.Table(
         f"The site, {' then '.join(cols)} (daemons as {mode}s, {PERIOD_S * 1e3:.0f} ms scan)",
         ["what", *cols],
         note="one router, one gateway on the router; the Rider commands are fresh client"
@@ -372,21 +357,21 @@ def report(phases: list[Phase], mode: str) -> Section:
     for name in phases[0].sockets:
         table.add(f"sockets open: {name}", *[f"{p.sockets[name]:.0f}" for p in phases])
     last = phases[-1]
-    return Section(
+    return common.Section(
         "site" if mode == "client" else f"site-{mode}",
         f"A site of many machines through one router ({mode} daemons)",
         tables=[table],
         targets=[
-            Target.at_most(
+            common.Target.at_most(
                 f"`rider machines` with {last.machines}, p50", last.listing.p50, LIST_TARGET_S, _s
             ),
-            Target(
+            common.Target(
                 f"`rider machines` lists all {last.machines}",
                 f"{last.machines}",
                 str(last.listed),
                 last.listed == last.machines,
             ),
-            Target(
+            common.Target(
                 f"site-wide `rider events` answered by all {last.machines}",
                 f"{last.machines}",
                 str(last.answered),
@@ -401,7 +386,7 @@ def report(phases: list[Phase], mode: str) -> Section:
     )
 
 
-def run(opts: Options) -> Section:
+def run(opts: common.Options) -> common.Section:
     """The `make bench` entry: the default site (a small one with `--quick`)."""
     machines, baseline = opts.pick((4, 2), (MACHINES, BASELINE))
     return report(measure_site(opts, machines, baseline, "client"), "client")
@@ -409,20 +394,20 @@ def run(opts: Options) -> Section:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    parser = build_parser("bench.site", __doc__.splitlines()[0])
+    parser = common.build_parser("bench.site", __doc__.splitlines()[0])
     parser.add_argument("--machines", type=int, default=MACHINES, help="the grown site's size")
     parser.add_argument("--baseline", type=int, default=BASELINE, help="the first phase's size")
     parser.add_argument("--mode", choices=["client", "peer"], default="client")
     args = parser.parse_args(argv)
     if not 1 <= args.baseline < args.machines:
         parser.error("--baseline must be at least 1 and smaller than --machines")
-    opts = options_from(args)
+    opts = common.options_from(args)
 
-    def run_site(o: Options) -> Section:
+    def run_site(o: common.Options) -> common.Section:
         return report(measure_site(o, args.machines, args.baseline, args.mode), args.mode)
 
-    with interrupts_as_exceptions():
-        save(measure(run_site, opts, command_line("bench.site", argv)), opts)
+    with common.interrupts_as_exceptions():
+        common.save(common.measure(run_site, opts, common.command_line("bench.site", argv)), opts)
     return 0
 
 

@@ -36,21 +36,8 @@ from pathlib import Path
 
 import zenoh
 
-from bench.common import (
-    Dist,
-    Options,
-    Section,
-    Table,
-    Target,
-    build_parser,
-    command_line,
-    command_request,
-    interrupts_as_exceptions,
-    measure,
-    ms,
-    options_from,
-    save,
-)
+from bench import common
+from bench.common import ms
 from bench.daemon import bench_daemon
 from rider.discovery import SETTLE_S
 from rider.link import zenoh_config
@@ -108,13 +95,13 @@ def timed_run(cmd: list[str], cwd: Path = REPO, env: dict[str, str] | None = Non
     return took
 
 
-def interleaved(runs: int, variants: dict[str, Callable[[], float]]) -> dict[str, Dist]:
+def interleaved(runs: int, variants: dict[str, Callable[[], float]]) -> dict[str, common.Dist]:
     """`runs` rounds, each variant once per round in turn."""
     samples: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(runs):
         for name, once in variants.items():
             samples[name].append(once())
-    return {name: Dist.of(s) for name, s in samples.items()}
+    return {name: common.Dist.of(s) for name, s in samples.items()}
 
 
 def load_now() -> str:
@@ -134,7 +121,7 @@ class Listener:
     def first_reply(self, proc: subprocess.Popen[str], key: str, began: float) -> float:
         """Seconds from `began` to the first reply on `key` (polling until one comes)."""
         while True:
-            payload = command_request(f"bench-startup-{next(self._ids)}")
+            payload = common.command_request(f"bench-startup-{next(self._ids)}")
             replies = self.session.get(key, payload=payload, timeout=REPLY_WAIT_S)
             if any(r.ok is not None for r in replies):
                 return time.perf_counter() - began
@@ -248,7 +235,7 @@ def cli_at(rev: str | None) -> Iterator[Cli | None]:
         yield Cli([sys.executable, "-c", CONSOLE_SCRIPT], cwd=tree, env=env)
 
 
-def _cli_rounds(runs: int, before: Cli | None, rev: str | None) -> dict[str, Dist]:
+def _cli_rounds(runs: int, before: Cli | None, rev: str | None) -> dict[str, common.Dist]:
     rider = Cli(rider_script())
     with bench_daemon() as daemon:
         to_daemon = ["--connect", daemon.endpoint, "--zenoh-config", str(daemon.zenoh_config)]
@@ -272,7 +259,7 @@ def _cli_rounds(runs: int, before: Cli | None, rev: str | None) -> dict[str, Dis
         return interleaved(runs, variants)
 
 
-def _serve_rounds(runs: int) -> tuple[dict[str, Dist], dict[str, Dist]]:
+def _serve_rounds(runs: int) -> tuple[dict[str, common.Dist], dict[str, common.Dist]]:
     with tempfile.TemporaryDirectory(prefix="bench-startup-") as tmp_name:
         tmp = Path(tmp_name)
         listener = Listener(write_zenoh_config(tmp))
@@ -287,21 +274,21 @@ def _serve_rounds(runs: int) -> tuple[dict[str, Dist], dict[str, Dist]]:
             )
         finally:
             listener.close()
-    return served, {row: Dist.of(s) for row, s in starts.steps.items()}
+    return served, {row: common.Dist.of(s) for row, s in starts.steps.items()}
 
 
 def _ms(seconds: float) -> str:
     return ms(seconds, 1)
 
 
-def _table(title: str, dists: dict[str, Dist], note: str) -> Table:
-    table = Table(title, ["what", "n", "p50", "p90", "max"], note=note)
+def _table(title: str, dists: dict[str, common.Dist], note: str) -> common.Table:
+    table = common.Table(title, ["what", "n", "p50", "p90", "max"], note=note)
     for name, d in dists.items():
         table.add(name, d.n, _ms(d.p50), _ms(d.p90), _ms(d.max))
     return table
 
 
-def run(opts: Options, rev: str | None = None) -> Section:
+def run(opts: common.Options, rev: str | None = None) -> common.Section:
     """The benchmark; with `rev`, that revision's `rider` too, in the same rounds."""
     runs = opts.pick(3, 20, 50)
     load_cli = load_now()
@@ -324,28 +311,28 @@ def run(opts: Options, rev: str | None = None) -> Section:
         f" before, {load_end} after",
     )
     daemon = served["machine run --sim (cold, fresh data dir)"]
-    return Section(
+    return common.Section(
         "startup",
         "Start-up: rider --help, rider status, exec → first command",
         tables=[cli_table, serve_table],
         targets=[
-            Target.at_most("rider --help, p50", cli["rider --help"].p50, HELP_TARGET_S, _ms),
-            Target.at_most(
+            common.Target.at_most("rider --help, p50", cli["rider --help"].p50, HELP_TARGET_S, _ms),
+            common.Target.at_most(
                 "loopback rider status, p50",
                 cli["rider status (discovery settles)"].p50,
                 STATUS_TARGET_S,
                 _ms,
             ),
-            Target.at_most(
+            common.Target.at_most(
                 "loopback rider -m m1 status, p50",
                 cli["rider -m m1 status"].p50,
                 STATUS_TARGET_S,
                 _ms,
             ),
-            Target.at_most(
+            common.Target.at_most(
                 "daemon exec → first command served, p50", daemon.p50, SERVED_TARGET_S, _ms
             ),
-            Target.at_most(
+            common.Target.at_most(
                 "daemon exec → first command served, max", daemon.max, SERVED_TARGET_S, _ms
             ),
         ],
@@ -361,15 +348,18 @@ def run(opts: Options, rev: str | None = None) -> Section:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    parser = build_parser("bench.startup", __doc__.splitlines()[0])
+    parser = common.build_parser("bench.startup", __doc__.splitlines()[0])
     parser.add_argument(
         "--against", metavar="REV", help="also time the rider of this git revision (a baseline)"
     )
     args = parser.parse_args(argv)
-    opts = options_from(args)
-    with interrupts_as_exceptions():
-        save(
-            measure(lambda o: run(o, args.against), opts, command_line("bench.startup", argv)), opts
+    opts = common.options_from(args)
+    with common.interrupts_as_exceptions():
+        common.save(
+            common.measure(
+                lambda o: run(o, args.against), opts, common.command_line("bench.startup", argv)
+            ),
+            opts,
         )
     return 0
 

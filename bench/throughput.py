@@ -18,20 +18,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.common import (
-    HISTORY,
-    Child,
-    Options,
-    Section,
-    Table,
-    Target,
-    child_parser,
-    command_request,
-    main_or_child,
-    python_module,
-    run_lines,
-    thread_cpu,
-)
+from bench import common
 from bench.daemon import bench_daemon
 from rider.client import Rider, open_session
 from rider.client import zenoh_config as rider_zenoh_config
@@ -50,12 +37,12 @@ def worker(connect: list[str], zenoh_config: Path, name: str) -> int:
     # Opened as a Rider opens its session (`open_session`: Zenoh on one worker thread).
     with open_session(rider_zenoh_config(zenoh_config, connect=connect)) as session:
         print("ready", flush=True)
-        for key, seconds_text in run_lines():
+        for key, seconds_text in common.run_lines():
             seconds = float(seconds_text)
             count = failed = 0
             end = time.monotonic() + seconds
             while time.monotonic() < end:
-                payload = command_request(f"{name}-{next(ids)}")
+                payload = common.command_request(f"{name}-{next(ids)}")
                 replies = list(session.get(key, payload=payload, timeout=GET_TIMEOUT_S))
                 if len(replies) == 1 and replies[0].ok is not None:
                     count += 1
@@ -71,7 +58,7 @@ THREAD_COLUMNS = (
     ("eventlog", "event writer"),
     ("log-writer", "log writer"),
     ("main", "scan thread"),
-    (HISTORY, "history process"),
+    (common.HISTORY, "history process"),
 )
 """The daemon's threads named in the CPU table (`bench.common.thread_cpu`), and its history
 process (`[events] process`, all its threads); the rest is `other`."""
@@ -87,13 +74,13 @@ class _Results:
     threads: dict[int, dict[str, float]] = field(default_factory=dict)
 
     def daemon_phase(
-        self, workers: list[Child], key: str, seconds: float, rider: Rider, pid: int
+        self, workers: list[common.Child], key: str, seconds: float, rider: Rider, pid: int
     ) -> None:
         riders = len(workers)
         rider.diag(reset=True)
-        before = thread_cpu(pid)
+        before = common.thread_cpu(pid)
         self.rows.setdefault(("daemon", riders), []).append(_phase(workers, key, seconds))
-        after = thread_cpu(pid)
+        after = common.thread_cpu(pid)
         spent = self.threads.setdefault(riders, {})
         for name, cpu_s in after.items():
             spent[name] = spent.get(name, 0.0) + cpu_s - before.get(name, 0.0)
@@ -103,9 +90,9 @@ class _Results:
 def _by_thread(
     rows: dict[tuple[str, int], list[tuple[int, int, float]]],
     threads: dict[int, dict[str, float]],
-) -> Table:
+) -> common.Table:
     """The daemon's CPU per command answered, by thread, over its phases."""
-    table = Table(
+    table = common.Table(
         "The daemon's CPU per command by thread, µs (its phases above; `/proc/<pid>/task/*`"
         " schedstat, threads named for the OS by service/threads.py; its history process's"
         " threads as one)",
@@ -120,7 +107,7 @@ def _by_thread(
     return table
 
 
-def _phase(workers: list[Child], key: str, seconds: float) -> tuple[int, int, float]:
+def _phase(workers: list[common.Child], key: str, seconds: float) -> tuple[int, int, float]:
     """All workers run against `key` at once; (commands answered, failed, wall seconds)."""
     t0 = time.monotonic()
     for w in workers:
@@ -133,17 +120,17 @@ def _phase(workers: list[Child], key: str, seconds: float) -> tuple[int, int, fl
     return count, failed, time.monotonic() - t0
 
 
-def run(opts: Options) -> Section:
+def run(opts: common.Options) -> common.Section:
     seconds = opts.pick(0.5, 3.0, 8.0)
     rounds = opts.pick(1, 3, 3)
-    section = Section("throughput", "8. Throughput")
+    section = common.Section("throughput", "8. Throughput")
     res = _Results()
     with contextlib.ExitStack() as stack:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-tp-")))
         daemon = stack.enter_context(bench_daemon(PERIOD_S))
         echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
-        echo = Child(
-            python_module(
+        echo = common.Child(
+            common.python_module(
                 "bench.baselines.zenoh_echo",
                 "--listen",
                 echo_endpoint,
@@ -156,8 +143,8 @@ def run(opts: Options) -> Section:
         echo.expect("ready")
         workers = []
         for i in range(4):
-            w = Child(
-                python_module(
+            w = common.Child(
+                common.python_module(
                     "bench.throughput",
                     "worker",
                     "--connect",
@@ -184,8 +171,10 @@ def run(opts: Options) -> Section:
         # The floor for overruns: the runner with an empty scan, at the same period, for the
         # whole measurement (daemon and echo phases alike load the host).
         bare_s = rounds * 4 * (seconds + 0.5) + 5.0
-        bare = Child(
-            python_module("bench.baselines.bare_loop", "--period", PERIOD_S, "--duration", bare_s),
+        bare = common.Child(
+            common.python_module(
+                "bench.baselines.bare_loop", "--period", PERIOD_S, "--duration", bare_s
+            ),
             tmp / "bare.log",
         )
         stack.callback(bare.stop)
@@ -205,7 +194,7 @@ def run(opts: Options) -> Section:
         floor = CycleDiag.model_validate(
             json.loads(bare.expect("result", timeout=bare_s + 10.0)), strict=False
         )
-    table = Table(
+    table = common.Table(
         f"Sequential `check/home` gets back to back, {rounds} × {seconds:g} s per row"
         f" (interleaved); daemon loop at {PERIOD_S * 1e3:g} ms, simulator",
         ["path", "Riders", "commands/s", "per Rider /s", "failed", "overruns", "vs echo"],
@@ -234,7 +223,7 @@ def run(opts: Options) -> Section:
         " client processes allow on this host."
     )
     section.targets.append(
-        Target(
+        common.Target(
             "1 Rider, sequential",
             "≥ 3,000 /s",
             f"{rate[('daemon', 1)]:,.0f} /s",
@@ -242,7 +231,7 @@ def run(opts: Options) -> Section:
         )
     )
     section.targets.append(
-        Target(
+        common.Target(
             "4 concurrent Riders",
             "≥ 5,000 /s",
             f"{rate[('daemon', 4)]:,.0f} /s",
@@ -255,7 +244,7 @@ def run(opts: Options) -> Section:
     )
     floor_s = floor.cycles * PERIOD_S
     section.targets.append(
-        Target(
+        common.Target(
             "overruns at 10 ms meanwhile",
             "0",
             f"{total} in {daemon_s:.0f} s (empty runner: {floor.overruns} in {floor_s:.0f} s)",
@@ -271,14 +260,16 @@ def run(opts: Options) -> Section:
 
 
 def worker_main(argv: list[str]) -> int:
-    parser = child_parser("bench.throughput worker", connect="append")
+    parser = common.child_parser("bench.throughput worker", connect="append")
     parser.add_argument("--name", required=True)
     args = parser.parse_args(argv)
     return worker(args.connect, args.zenoh_config, args.name)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return main_or_child("bench.throughput", __doc__ or "", run, argv, {"worker": worker_main})
+    return common.main_or_child(
+        "bench.throughput", __doc__ or "", run, argv, {"worker": worker_main}
+    )
 
 
 if __name__ == "__main__":
