@@ -21,7 +21,7 @@ from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
-from bench.common import Child, Options, Section, Table, Target, main_for, python_module
+from bench.common import Options, Section, Table, Target, burners, main_for
 from bench.daemon import Tuning, bench_daemon, pinnable_cpu
 from rider.client import CommandRefused, Rider
 from rider.errors import MachineTimeout
@@ -48,14 +48,8 @@ WAIT_S = 60.0
 @contextlib.contextmanager
 def neighbours(core: int, tmp: Path, seconds: float) -> Iterator[None]:
     """Two CPU-bound processes pinned to `core` for the block."""
-    with contextlib.ExitStack() as stack:
-        for i in range(2):
-            burner = Child(
-                python_module("bench.baselines.burner", "--lifetime", seconds),
-                tmp / f"burner-{i}.log",
-            )
-            stack.callback(burner.stop)
-            burner.expect("ready")
+    with burners(2, tmp, seconds) as started:
+        for burner in started:
             os.sched_setaffinity(burner.pid, {core})
         yield
 

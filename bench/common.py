@@ -515,6 +515,31 @@ def python_module(module: str, *args: object) -> list[str]:
     return [sys.executable, "-m", module, *(str(a) for a in args)]
 
 
+def start_module(
+    stack: contextlib.ExitStack, log: Path, module: str, *args: object, stdin: bool = False
+) -> Child:
+    """`python -m module args` as a `Child` that logs to `log`, stopped when `stack` closes."""
+    child = Child(python_module(module, *args), log, stdin=stdin)
+    stack.callback(child.stop)
+    return child
+
+
+@contextlib.contextmanager
+def burners(n: int, tmp: Path, lifetime_s: float) -> Iterator[list[Child]]:
+    """`n` CPU-bound processes (bench.baselines.burner, each gone after `lifetime_s` at the
+    latest) for the block, all ready when it begins."""
+    with contextlib.ExitStack() as stack:
+        started = [
+            start_module(
+                stack, tmp / f"burner-{i}.log", "bench.baselines.burner", "--lifetime", lifetime_s
+            )
+            for i in range(n)
+        ]
+        for burner in started:
+            burner.expect("ready")
+        yield started
+
+
 # ---------------------------------------------------------------------------------- /proc
 def host_cpu() -> tuple[int, int]:
     """(busy, total) CPU ticks of the whole host so far, from /proc/stat."""

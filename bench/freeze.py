@@ -30,7 +30,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from bench.common import Child, Dist, Options, Section, Table, Target, main_for, ms, python_module
+from bench import common
+from bench.common import Dist, Options, Section, Table, Target, main_for, ms
 from schema.status import FAULT_STATES
 from sim.settings import PhysicsParams
 from tests.freeze import (
@@ -55,14 +56,7 @@ replaces the frozen daemon once it runs again (the relay acts within a tenth of 
 @contextlib.contextmanager
 def burners(tmp: Path, on: bool, seconds: float) -> Iterator[None]:
     """One CPU-bound process per core for the block (none when `on` is False)."""
-    with contextlib.ExitStack() as stack:
-        for i in range(2 if on else 0):
-            child = Child(
-                python_module("bench.baselines.burner", "--lifetime", seconds + 120.0),
-                tmp / f"burner-{i}.log",
-            )
-            stack.callback(child.stop)
-            child.expect("ready")
+    with common.burners(2 if on else 0, tmp, seconds + 120.0):
         yield
 
 

@@ -15,18 +15,16 @@ calibration that did not repeat) is counted as refused, never as an error.
 
 from __future__ import annotations
 
-import contextlib
 import random
 import sys
 import tempfile
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.common import Child, Dist, Options, Section, Table, Target, main_for, python_module
+from bench.common import Dist, Options, Section, Table, Target, burners, main_for
 from rider.client import CommandRefused, MachineTimeout, Rider
 from schema.commands import REST_STATES, RotateStep, Session, TiltStep
 from schema.status import FAULT_STATES, MachineState, Status
@@ -175,27 +173,14 @@ def one_daemon(tmp: Path, index: int, plan: Plan, seed: int, errors: Errors) -> 
             errors.failures.append(exc)
 
 
-@contextlib.contextmanager
-def neighbours(n: int, tmp: Path, seconds: float) -> Iterator[None]:
-    with contextlib.ExitStack() as stack:
-        for i in range(n):
-            burner = Child(
-                python_module("bench.baselines.burner", "--lifetime", seconds),
-                tmp / f"burner-{i}.log",
-            )
-            stack.callback(burner.stop)
-            burner.expect("ready")
-        yield
-
-
-def condition(plan: Plan, burners: int, seed: int) -> tuple[Errors, float]:
-    """The plan's daemons side by side, its runs each, beside `burners` CPU-bound processes."""
+def condition(plan: Plan, neighbours: int, seed: int) -> tuple[Errors, float]:
+    """The plan's daemons side by side, its runs each, beside `neighbours` CPU-bound processes."""
     errors = Errors()
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="bench-homing-") as name:
         tmp = Path(name)
         (tmp / "machine-homing.toml").write_text(CONFIG)
-        with neighbours(burners, tmp, seconds=plan.runs * 120.0 + 300.0):
+        with burners(neighbours, tmp, plan.runs * 120.0 + 300.0):
             threads = [
                 threading.Thread(
                     target=one_daemon, args=(tmp, i, plan, seed + i, errors), name=f"h{i}"

@@ -146,33 +146,25 @@ def measure_daemon(run: Run, seconds: float, tmp: Path) -> Result:
         rider = stack.enter_context(daemon.rider(supervise=False))
         load: common.Child | None = None
         if run.load:
-            load = common.Child(
-                common.python_module(
-                    "bench.load",
-                    "paced",
-                    "--connect",
-                    daemon.endpoint,
-                    "--zenoh-config",
-                    daemon.zenoh_config,
-                    "--period",
-                    run.period_s,
-                    "--rate",
-                    LOAD_RATE,
-                    "--duration",
-                    seconds,
-                    "--motion",
-                ),
+            load = common.start_module(
+                stack,
                 tmp / "load.log",
+                "bench.load",
+                "paced",
+                "--connect",
+                daemon.endpoint,
+                "--zenoh-config",
+                daemon.zenoh_config,
+                "--period",
+                run.period_s,
+                "--rate",
+                LOAD_RATE,
+                "--duration",
+                seconds,
+                "--motion",
             )
-            stack.callback(load.stop)
             load.expect("ready", timeout=60.0)
-        for i in range(run.neighbours):
-            burner = common.Child(
-                common.python_module("bench.baselines.burner", "--lifetime", seconds + 120.0),
-                tmp / f"burner-{i}.log",
-            )
-            stack.callback(burner.stop)
-            burner.expect("ready")
+        stack.enter_context(common.burners(run.neighbours, tmp, seconds + 120.0))
         canary = BareRunner(Run(run.period_s, run.load, bare=True), seconds, tmp / "canary.log")
         stack.callback(canary.child.stop)
         cpu = common.CpuMeter(daemon.proc.pid, family=True)

@@ -109,22 +109,19 @@ def run(opts: common.Options) -> common.Section:
         }
         floods: dict[int, common.Child] = {}
         for n, daemon in daemons.items():
-            flood = common.Child(
-                common.python_module(
-                    "bench.read_flood",
-                    "flooder",
-                    "--connect",
-                    daemon.endpoint,
-                    "--zenoh-config",
-                    daemon.zenoh_config,
-                    "--key",
-                    f"machine/{daemon.machine_id}/status",
-                ),
+            floods[n] = common.start_module(
+                stack,
                 tmp / f"flooder-{n}.log",
+                "bench.read_flood",
+                "flooder",
+                "--connect",
+                daemon.endpoint,
+                "--zenoh-config",
+                daemon.zenoh_config,
+                "--key",
+                f"machine/{daemon.machine_id}/status",
                 stdin=True,
             )
-            stack.callback(flood.stop)
-            floods[n] = flood
         for flood in floods.values():
             flood.expect("ready")
         riders = {n: stack.enter_context(d.rider(supervise=False)) for n, d in daemons.items()}

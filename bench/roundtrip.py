@@ -93,11 +93,9 @@ def run(opts: common.Options) -> common.Section:  # noqa: C901, PLR0912, PLR0915
             endpoint."""
             endpoint = f"tcp/127.0.0.1:{free_port()}"
             module = "bench.baselines.zenoh_echo"
-            echo = common.Child(
-                common.python_module(module, "--listen", endpoint, "--zenoh-config", zconf, *extra),
-                tmp / log,
+            echo = common.start_module(
+                stack, tmp / log, module, "--listen", endpoint, "--zenoh-config", zconf, *extra
             )
-            stack.callback(echo.stop)
             echo.expect("ready")
             return endpoint
 
@@ -119,8 +117,7 @@ def run(opts: common.Options) -> common.Section:  # noqa: C901, PLR0912, PLR0915
         one_echo_endpoint = echo_at("zenoh-echo-one.log", "--zenoh-threads", "1")
 
         echo_endpoint = echo_at("zenoh-echo.log")
-        udp = common.Child(common.python_module("bench.baselines.udp_echo"), tmp / "udp-echo.log")
-        stack.callback(udp.stop)
+        udp = common.start_module(stack, tmp / "udp-echo.log", "bench.baselines.udp_echo")
         udp_client = UdpClient(int(udp.expect("ready")))
         stack.callback(udp_client.close)
         grpc_missing = ""
@@ -130,10 +127,9 @@ def run(opts: common.Options) -> common.Section:  # noqa: C901, PLR0912, PLR0915
             grpc_missing = "grpcio is not installed (pip install -e '.[bench]'): no gRPC row"
         else:
             sock = tmp / "grpc.sock"
-            grpc_server = common.Child(
-                common.python_module("bench.baselines.grpc_uds", "--socket", sock), tmp / "grpc.log"
+            grpc_server = common.start_module(
+                stack, tmp / "grpc.log", "bench.baselines.grpc_uds", "--socket", sock
             )
-            stack.callback(grpc_server.stop)
             grpc_server.expect("ready")
             grpc_client = GrpcClient(str(sock))
             stack.callback(grpc_client.close)
@@ -141,23 +137,21 @@ def run(opts: common.Options) -> common.Section:  # noqa: C901, PLR0912, PLR0915
         rider = stack.enter_context(daemon.rider(supervise=False))
         # The same Rider in a process on Zenoh's own six threads (`zenoh_threads=0`), as a
         # Rider ran before the twelfth pass: its calls timed in that process, a batch a round.
-        six_rider = common.Child(
-            common.python_module(
-                "bench.roundtrip",
-                "worker",
-                "--connect",
-                daemon.endpoint,
-                "--zenoh-config",
-                zconf,
-                "--zenoh-threads",
-                "0",
-                "--warmup",
-                warmup,
-            ),
+        six_rider = common.start_module(
+            stack,
             tmp / "rider-six.log",
+            "bench.roundtrip",
+            "worker",
+            "--connect",
+            daemon.endpoint,
+            "--zenoh-config",
+            zconf,
+            "--zenoh-threads",
+            "0",
+            "--warmup",
+            warmup,
             stdin=True,
         )
-        stack.callback(six_rider.stop)
         six_rider.expect("ready", timeout=60.0)
 
         def six_batch(n: int) -> list[float]:

@@ -129,38 +129,34 @@ def run(opts: common.Options) -> common.Section:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-tp-")))
         daemon = stack.enter_context(bench_daemon(PERIOD_S))
         echo_endpoint = f"tcp/127.0.0.1:{free_port()}"
-        echo = common.Child(
-            common.python_module(
-                "bench.baselines.zenoh_echo",
-                "--listen",
+        echo = common.start_module(
+            stack,
+            tmp / "echo.log",
+            "bench.baselines.zenoh_echo",
+            "--listen",
+            echo_endpoint,
+            "--zenoh-config",
+            daemon.zenoh_config,
+        )
+        echo.expect("ready")
+        workers = [
+            common.start_module(
+                stack,
+                tmp / f"worker-{i}.log",
+                "bench.throughput",
+                "worker",
+                "--connect",
+                daemon.endpoint,
+                "--connect",
                 echo_endpoint,
                 "--zenoh-config",
                 daemon.zenoh_config,
-            ),
-            tmp / "echo.log",
-        )
-        stack.callback(echo.stop)
-        echo.expect("ready")
-        workers = []
-        for i in range(4):
-            w = common.Child(
-                common.python_module(
-                    "bench.throughput",
-                    "worker",
-                    "--connect",
-                    daemon.endpoint,
-                    "--connect",
-                    echo_endpoint,
-                    "--zenoh-config",
-                    daemon.zenoh_config,
-                    "--name",
-                    f"tp{i}",
-                ),
-                tmp / f"worker-{i}.log",
+                "--name",
+                f"tp{i}",
                 stdin=True,
             )
-            stack.callback(w.stop)
-            workers.append(w)
+            for i in range(4)
+        ]
         for w in workers:
             w.expect("ready")
         rider = stack.enter_context(daemon.rider(supervise=False))
@@ -171,13 +167,15 @@ def run(opts: common.Options) -> common.Section:
         # The floor for overruns: the runner with an empty scan, at the same period, for the
         # whole measurement (daemon and echo phases alike load the host).
         bare_s = rounds * 4 * (seconds + 0.5) + 5.0
-        bare = common.Child(
-            common.python_module(
-                "bench.baselines.bare_loop", "--period", PERIOD_S, "--duration", bare_s
-            ),
+        bare = common.start_module(
+            stack,
             tmp / "bare.log",
+            "bench.baselines.bare_loop",
+            "--period",
+            PERIOD_S,
+            "--duration",
+            bare_s,
         )
-        stack.callback(bare.stop)
         bare.expect("ready")
         bare_t0 = time.monotonic()
         for r in range(rounds):
