@@ -562,21 +562,27 @@
     return [ROT.cx + r * Math.cos(a), ROT.cy + r * Math.sin(a)];
   }
 
+  // A gauge's scale: a tick every `step` degrees from 0 to `to`, from radius `inner` to `outer`
+  // (placed by `xy`), and `label: [every, radius]`, a label every so many degrees at that radius.
+  function scale(svg, xy, { to, step, inner, outer, label: [labelEvery, labelAt] }) {
+    for (let d = 0; d <= to; d += step) {
+      const [ax, ay] = xy(d, inner);
+      const [bx, by] = xy(d, outer);
+      el("line", { class: "tick", x1: ax, y1: ay, x2: bx, y2: by }, svg);
+      if (d % labelEvery === 0) {
+        const [lx, ly] = xy(d, labelAt);
+        el("text", { class: "tick-label", x: lx, y: ly }, svg).textContent = `${d}°`;
+      }
+    }
+  }
+
   function buildGauges() {
     const t = $("gauge-tilt");
     t.innerHTML = "";
     const [x0, y0] = tiltXY(TILT.lo, TILT.r);
     const [x1, y1] = tiltXY(TILT.hi, TILT.r);
     el("path", { class: "arc", d: `M${x0},${y0} A${TILT.r},${TILT.r} 0 0 0 ${x1},${y1}` }, t);
-    for (let d = 0; d <= 90; d += 15) {
-      const [ax, ay] = tiltXY(d, TILT.r - 8);
-      const [bx, by] = tiltXY(d, TILT.r + 6);
-      el("line", { class: "tick", x1: ax, y1: ay, x2: bx, y2: by }, t);
-      if (d % 30 === 0) {
-        const [lx, ly] = tiltXY(d, TILT.r - 22);
-        el("text", { class: "tick-label", x: lx, y: ly }, t).textContent = `${d}°`;
-      }
-    }
+    scale(t, tiltXY, { to: 90, step: 15, inner: TILT.r - 8, outer: TILT.r + 6, label: [30, TILT.r - 22] });
     el("polygon", { id: "tilt-target-mark", class: "target", points: "0,0 12,-7 12,7" }, t);
     const g = el("g", { id: "tilt-needle" }, t);
     el("line", { class: "needle", x1: TILT.cx, y1: TILT.cy, x2: TILT.cx + TILT.r - 14, y2: TILT.cy }, g);
@@ -585,15 +591,7 @@
     const r = $("gauge-rotate");
     r.innerHTML = "";
     el("circle", { class: "face", cx: ROT.cx, cy: ROT.cy, r: ROT.r + 8 }, r);
-    for (let d = 0; d < 360; d += 30) {
-      const [ax, ay] = rotXY(d, ROT.r - 6);
-      const [bx, by] = rotXY(d, ROT.r + 4);
-      el("line", { class: "tick", x1: ax, y1: ay, x2: bx, y2: by }, r);
-      if (d % 90 === 0) {
-        const [lx, ly] = rotXY(d, ROT.r - 26);
-        el("text", { class: "tick-label", x: lx, y: ly }, r).textContent = `${d}°`;
-      }
-    }
+    scale(r, rotXY, { to: 330, step: 30, inner: ROT.r - 6, outer: ROT.r + 4, label: [90, ROT.r - 26] });
     const [hx, hy] = rotXY(0, ROT.r + 1);
     el("circle", { class: "home", cx: hx, cy: hy, r: 5 }, r);
     const n = el("g", { id: "rotate-needle" }, r);
