@@ -35,23 +35,41 @@ class Tuning:
     kernel_slice: bool = False
     """`loop.slice_s = 0`: the daemon's threads on the kernel's time slice, not a short one."""
 
+    def changed(self) -> list[tuple[str, str, str]]:
+        """Each option set away from the config's default: its section, its line there, and
+        how a table names it."""
+        options = [
+            ("loop", f"spin_s = {self.spin_s!r}", f"spin {self.spin_s * 1e3:g} ms", self.spin_s),
+            ("loop", "gc_freeze = false", "no gc_freeze", not self.gc_freeze),
+            ("loop", f"cpu = {self.cpu}", f"pinned cpu {self.cpu}", self.cpu is not None),
+            (
+                "loop",
+                f"cpus = {list(self.cpus or ())}",
+                f"daemon on cpus {'+'.join(map(str, self.cpus or ()))}",
+                self.cpus is not None,
+            ),
+            (
+                "loop",
+                f"rt_priority = {self.rt_priority}",
+                f"SCHED_FIFO {self.rt_priority}",
+                self.rt_priority is not None,
+            ),
+            (
+                "bus",
+                f"zenoh_threads = {self.zenoh_threads}",
+                f"zenoh_threads {self.zenoh_threads}",
+                self.zenoh_threads is not None,
+            ),
+            ("loop", "slice_s = 0", "kernel time slice", self.kernel_slice),
+        ]
+        return [(section, line, label) for section, line, label, on in options if on]
+
     def label(self) -> str:
-        parts = []
-        if self.spin_s:
-            parts.append(f"spin {self.spin_s * 1e3:g} ms")
-        if not self.gc_freeze:
-            parts.append("no gc_freeze")
-        if self.cpu is not None:
-            parts.append(f"pinned cpu {self.cpu}")
-        if self.cpus is not None:
-            parts.append(f"daemon on cpus {'+'.join(map(str, self.cpus))}")
-        if self.rt_priority is not None:
-            parts.append(f"SCHED_FIFO {self.rt_priority}")
-        if self.zenoh_threads is not None:
-            parts.append(f"zenoh_threads {self.zenoh_threads}")
-        if self.kernel_slice:
-            parts.append("kernel time slice")
-        return ", ".join(parts) or "defaults"
+        return ", ".join(label for _, _, label in self.changed()) or "defaults"
+
+    def lines(self, section: str) -> list[str]:
+        """The config lines of the options set in `section` (`loop` or `bus`)."""
+        return [line for where, line, _ in self.changed() if where == section]
 
 
 def pinnable_cpu() -> int | None:
@@ -72,23 +90,13 @@ def config_toml(
     lines = [
         "[loop]",
         f"period_s = {period_s!r}",
-        f"spin_s = {tuning.spin_s!r}",
-        f"gc_freeze = {str(tuning.gc_freeze).lower()}",
         f"stats_window = {STATS_WINDOW}",
+        *tuning.lines("loop"),
     ]
-    if tuning.cpu is not None:
-        lines.append(f"cpu = {tuning.cpu}")
-    if tuning.rt_priority is not None:
-        lines.append(f"rt_priority = {tuning.rt_priority}")
-    if tuning.cpus is not None:
-        lines.append(f"cpus = {list(tuning.cpus)}")
-    if tuning.kernel_slice:
-        lines.append("slice_s = 0")
     if watchdog_periods is not None:
         lines.append(f"watchdog_periods = {watchdog_periods}")
     bus = [] if heartbeat_s is None else [f"heartbeat_s = {heartbeat_s!r}"]
-    if tuning.zenoh_threads is not None:
-        bus.append(f"zenoh_threads = {tuning.zenoh_threads}")
+    bus += tuning.lines("bus")
     if bus:
         lines += ["", "[bus]", *bus]
     if not events:
