@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.common import (
-    RESULTS,
     Dist,
     Section,
     Table,
@@ -62,16 +61,20 @@ WARMUP_S = 20.0
 """Memory samples before this are left out of the growth figures (imports, caches, pools)."""
 
 
+STORM_RIDERS = 4
+ESTOP_EVERY_S = 20.0
+CHURN_EVERY_S = 0.5
+
+
 @dataclass(frozen=True)
 class SoakOptions:
-    minutes: float = 10.0
-    rate: float = 200.0
+    """What the command line sets (its defaults: `build_parser`)."""
+
+    minutes: float
+    rate: float
     """Storm requests per second, over all storm Riders."""
-    storm_riders: int = 4
-    estop_every_s: float = 20.0
-    churn_every_s: float = 0.5
-    kills: int = 3
-    out: Path | None = RESULTS
+    kills: int
+    out: Path | None
 
 
 # ----------------------------------------------------------------------------- tallies
@@ -315,16 +318,16 @@ def soak(opts: SoakOptions) -> Section:
         workers = [
             threading.Thread(
                 target=storm_worker,
-                args=(daemon, storm, opts.rate / opts.storm_riders, stop),
+                args=(daemon, storm, opts.rate / STORM_RIDERS, stop),
                 name=f"storm-{i}",
             )
-            for i in range(opts.storm_riders)
+            for i in range(STORM_RIDERS)
         ]
         workers.append(
-            threading.Thread(target=rides_worker, args=(daemon, rides, opts.estop_every_s, stop))
+            threading.Thread(target=rides_worker, args=(daemon, rides, ESTOP_EVERY_S, stop))
         )
         workers.append(
-            threading.Thread(target=churn_worker, args=(daemon, churn, opts.churn_every_s, stop))
+            threading.Thread(target=churn_worker, args=(daemon, churn, CHURN_EVERY_S, stop))
         )
         t0 = time.monotonic()
         end = t0 + 60.0 * opts.minutes
@@ -370,7 +373,7 @@ def traffic_table(
     refused = ", ".join(f"{k} {v}" for k, v in storm.refused.most_common())
     faults = ", ".join(f"{k} {v}" for k, v in rides.faults.items()) or "no faults"
     t = Table("Traffic", ["what", "count", "detail"])
-    t.add("storm requests", storm.sent, f"{storm.sent / elapsed:.0f}/s, {opts.storm_riders} Riders")
+    t.add("storm requests", storm.sent, f"{storm.sent / elapsed:.0f}/s, {STORM_RIDERS} Riders")
     t.add("answered", storm.answered, f"p50 {ms(lat.p50)}, p99 {ms(lat.p99)}, max {ms(lat.max)} ms")
     t.add("**missed replies**", storm.missed, "requests with no reply within 2 s")
     t.add("refusals (expected)", sum(storm.refused.values()), refused)
