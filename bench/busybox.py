@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import tempfile
 from collections import Counter
 from collections.abc import Iterator
@@ -150,9 +151,5 @@ def run(opts: Options) -> Section:
     )
 
 
-def main(argv: list[str] | None = None) -> int:
-    return main_for("bench.busybox", __doc__.splitlines()[0], run, argv)
-
-
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main_for("bench.busybox", __doc__ or "", run))

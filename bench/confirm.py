@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import sys
 import time
 from collections.abc import Callable, Iterator
 
@@ -157,9 +158,5 @@ def run(opts: Options) -> Section:
     )
 
 
-def main(argv: list[str] | None = None) -> int:
-    return main_for("bench.confirm", __doc__.splitlines()[0], run, argv)
-
-
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main_for("bench.confirm", __doc__ or "", run))
