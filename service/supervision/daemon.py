@@ -149,8 +149,8 @@ class Daemon:
         """The setup steps in order (service/supervision/assembly.py); each registers its undo
         as soon as it has succeeded."""
         config = self.config
-        self.raw_hal, hal = guarded_hal(stack, config, self.beat)
-        raw_hal = self.raw_hal
+        raw_hal, hal = guarded_hal(stack, config, self.beat)
+        self.raw_hal = raw_hal  # the backend itself: what tests read the outputs of
         self.exit_deadline = threading.Timer(SHUTDOWN_DEADLINE_S, _exit_now, args=(raw_hal,))
         self.exit_deadline.daemon = True
         storage = open_storage(stack, config)
