@@ -257,7 +257,7 @@ class EventRecorder:
             )
 
     def _session_started(self, control: StateMachine, wall: float, emit: Emit) -> None:
-        run = control.session_run
+        run = control.context.drive.session_run
         if run is None or (self._session is not None and self._session.run is run):
             return
         action = control.action
@@ -319,7 +319,7 @@ class EventRecorder:
         old = self._calibration
         if cal is old:
             return
-        ticket = control.save_ticket
+        ticket = control.keeper.save_ticket
         if ticket is not None and not ticket.done:
             return  # not settled: the loop looks again each cycle until the disk answers
         persisted = self.persisted if ticket is None else ticket.problem is None

@@ -63,7 +63,7 @@ class Publisher:
         """Take the machine's new notices into the log and the history; they are published
         after the status."""
         machine = self.state_machine
-        notices = machine.take_completions()
+        notices = machine.context.take()
         for notice in notices:
             self.completions.hold(notice)  # answered once published, after its status
             self.recorder.completion(notice)

@@ -7,8 +7,7 @@
 - `context`: the motion context (what a motion begins, its drive, its notices);
 - `deadman`: the controlling Rider's watch; `calibration`: the calibration keeper;
 - `handlers`: what each command asks for, as one value `StateMachine.handle` carries out;
-- `changes`: the one place a change is counted; `snapshot`: the machine at one moment, as
-  one frozen value compared with `==`.
+- `snapshot`: the machine at one moment, as one frozen value compared with `==`.
 """
 
 from service.core.statemachine.machine import StateMachine

@@ -16,12 +16,13 @@ from typing import TYPE_CHECKING
 from schema.calibration import CalibrationSet
 from schema.completion import Outcome
 from schema.errors import ErrorCode
-from schema.status import AxesFlags
+from schema.status import AxesFlags, MachineState
 from service.config.model import MachineConfig
 from service.core.calibrate import RotateCalibrate, TiltCalibrate
 from service.core.devices import Calibration, Devices
 from service.core.manual import manual_calibration
 from service.core.statemachine.context import Ending, Motion
+from service.errors import WrongState
 
 if TYPE_CHECKING:  # types only: the state machine does no IO
     from service.core.persist import SaveTicket
@@ -114,10 +115,21 @@ class CalibrationKeeper:
             self.calibration = dataclasses.replace(self.calibration, tilt=tilt)
 
     def entered(
-        self, values: CalibrationSet, config: MachineConfig, wall: float
+        self,
+        values: CalibrationSet,
+        config: MachineConfig,
+        wall: float,
+        state: MachineState,
+        busy: bool,
     ) -> SaveTicket | None:
         """A technician's values, recorded as manual: validated against the same plausible
-        ranges a measurement must meet, used at once and persisted (the ticket of the write)."""
+        ranges a measurement must meet, used at once and persisted (the ticket of the write);
+        refused while a motion is under way (`busy`, in `state`) or a calibration is saved."""
+        if busy or self.saving is not None:
+            raise WrongState(
+                f"calibration values cannot be entered in state {state} while a motion"
+                " is under way (or its calibration is being saved); Stop it first"
+            )
         cal = manual_calibration(values, config, self.calibration, wall)
         # Not trusted until a Home has checked it with a measured move (docs/homing.md).
         self.refs.tilt &= values.tilt is None

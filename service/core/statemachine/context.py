@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from schema.commands import Command, CommandRequest
+from schema.commands import Command
 from schema.completion import Completion, Outcome
 from schema.status import FaultCode, MachineState, MotionRef
 from service.config.model import LiveConfig
@@ -101,10 +101,10 @@ class MotionContext:
         self.completions: list[Completion] = []
         """Notices produced and not yet taken (`take`)."""
 
-    def begin(self, plan: Plan, request: CommandRequest, state: MachineState, wall: float) -> None:
-        """`plan`'s motion is under way from `wall`, asked for by `request` in `state`. Only a
-        motion halted by the E-stop can be replaced (Home, Calibrate*): it ended, replaced."""
-        by = plan.command.value
+    def begin(self, plan: Plan, motion: Motion, state: MachineState, wall: float) -> None:
+        """`motion` is under way from `wall`, driven by `plan`, begun in `state`. Only a motion
+        halted by the E-stop can be replaced (Home, Calibrate*): it ended, replaced."""
+        by = motion.command.value
         if state is MachineState.FAULT_ESTOP:
             why = f"halted by the E-stop and not resumed; replaced by {by}"
             self.end(Ending(Outcome.FAULT_ESTOP, why, FaultCode.ESTOP.value), state, wall)
@@ -112,15 +112,7 @@ class MotionContext:
             self.end(Ending(Outcome.STOPPED, f"replaced by {by}"), state, wall)
         self.clear()
         self.drive = Drive(controller=plan.controller, session_run=plan.session)
-        rider = request.rider
-        self.action = Motion(plan.command, request.transaction_id, rider, wall, plan.on_done)
-
-    def refused(
-        self, request: CommandRequest, ending: Ending, state: MachineState, wall: float
-    ) -> None:
-        """A Start its checks refused ends with a notice too, though nothing began."""
-        motion = Motion(Command.START, request.transaction_id, request.rider, wall, never)
-        self.notify(motion, ending, state, wall)
+        self.action = motion
 
     def clear(self) -> None:
         """Abandon the controller (outputs off) and forget the session, where Pause and the
@@ -185,6 +177,10 @@ class MotionContext:
         """The notices produced since the last call (the scan loop publishes them)."""
         out, self.completions = self.completions, []
         return out
+
+    def at_rest(self) -> bool:
+        """No controller to step, no notice for the loop to take."""
+        return self.drive.controller is None and not self.completions
 
     def active(self) -> Controller | None:
         """The controller that owns an axis now (running, paused or held by an E-stop)."""

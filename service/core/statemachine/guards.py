@@ -10,18 +10,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from schema.commands import (
-    DEFAULT_SESSION,
-    Command,
-    CommandRequest,
-    RotateStep,
-    Session,
-    StartRequest,
-    TiltStep,
-)
+from schema.commands import RotateStep, Session, TiltStep
 from schema.status import MOTION_STATES, MachineState
 from service.config.model import TiltSection
-from service.core.statemachine.table import ACCEPTED_TEXT, Pick, Rule, allowed_states
+from service.core.statemachine.table import Accepts, Pick, Rule
 from service.errors import DuplicateId, EstopActive, MachineError, WrongState
 
 S = MachineState
@@ -47,8 +39,10 @@ class Facts:
     """The E-stop input as scanned."""
     held_by: tuple[str, ...]
     """Other sessions holding this machine's id."""
+    session: Session | None = None
+    """The session Start's checks judge (None: not a Start)."""
     bad_session: tuple[str, str] | None = None
-    """The first step of the session judged (Start) this machine cannot do: (path, message)."""
+    """The first of its steps this machine cannot do: (path, message)."""
 
 
 def rest(facts: Facts) -> MachineState:
@@ -91,33 +85,24 @@ def choose(rule: Rule, facts: Facts) -> MachineState:
 
 
 def refusal(
-    command: Command, state: MachineState, facts: Facts, machine_id: str
+    accepts: Accepts, state: MachineState, facts: Facts, machine_id: str
 ) -> MachineError | None:
-    """Why this machine cannot take `command` in `state` now (id held twice, E-stop, the
-    table's rows), or None."""
-    held_by = facts.held_by
+    """Why this machine cannot take the command `accepts` describes in `state` now (its id
+    held twice, the E-stop, a state none of its rows leaves from), or None."""
+    held_by, name = facts.held_by, accepts.name
     if held_by:
         return DuplicateId(
-            f"{command.value} refused: machine id {machine_id} is also held by"
+            f"{name} refused: machine id {machine_id} is also held by"
             f" session {', '.join(held_by)}; nothing is taken until one of the"
             " two daemons is stopped or given another id"
         )
     if facts.estop:
         return EstopActive(
-            f"{command.value} refused: the E-stop is active; release it, then Resume, Home or Stop"
+            f"{name} refused: the E-stop is active; release it, then Resume, Home or Stop"
         )
-    if state not in allowed_states(command):
-        return WrongState(
-            f"{command.value} is not accepted in state {state};"
-            f" accepted in: {ACCEPTED_TEXT[command]}"
-        )
+    if state not in accepts.states:
+        return WrongState(f"{name} is not accepted in state {state}; accepted in: {accepts.text}")
     return None
-
-
-def session_of(request: CommandRequest) -> Session:
-    """The session a Start runs: its own, or the default one."""
-    session = request.session if isinstance(request, StartRequest) else None
-    return session or DEFAULT_SESSION
 
 
 def session_problem(session: Session, tilt: TiltSection) -> tuple[str, str] | None:

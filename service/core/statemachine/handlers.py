@@ -4,7 +4,7 @@ out (`Order`); a motion's `on_done`, bound here, fires the trigger that ends it.
 A handler reads the machine's parts and builds: the motion to begin (`Plan`), a check's answer
 (`Check`), a Start its checks refused (`Refusal`), or the command itself, whose transition the
 machine makes (Pause, Resume, Stop). It never changes the state: `StateMachine.handle` calls
-it once and does what it returns.
+it once and does what it returns (the request stays with the machine).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from schema.commands import REST_STATES, CheckResult, Command, CommandRequest
+from schema.commands import REST_STATES, CheckResult, Command
 from schema.completion import Outcome
 from schema.status import Fault, FaultCode, MachineState
 from service.config.model import LiveConfig
@@ -24,7 +24,7 @@ from service.core.homing import RotateHome, TiltHome
 from service.core.motion import Chain, Controller
 from service.core.statemachine.calibration import COMPLETE, CalibrationKeeper
 from service.core.statemachine.context import Ending, MotionContext, OnDone, Plan
-from service.core.statemachine.guards import Facts, session_of, start_checks
+from service.core.statemachine.guards import Facts, start_checks
 from service.core.statemachine.table import Event, Trigger
 from service.errors import InvalidSession, MachineError, NotCalibrated, NotHome
 
@@ -67,11 +67,12 @@ class Refusal:
 Order = Plan | Check | Refusal | Command
 """What a handler asks of the machine (a `Command`: its own transition, Pause/Resume/Stop)."""
 
-Handler = Callable[[Machine, CommandRequest, Facts], Order]
-"""A command's handler: the machine, the request, and what the table's guards read now."""
+Handler = Callable[[Machine, Facts], Order]
+"""A command's handler: the machine's parts, and what the table's guards read now (a Start's
+session among them). The request is the machine's: who asked is its bookkeeping."""
 
 
-def calibrate_tilt(m: Machine, request: CommandRequest, facts: Facts) -> Plan:
+def calibrate_tilt(m: Machine, facts: Facts) -> Plan:
     tilt = TiltCalibrate(m.devices.tilt, m.live.current.tilt)
 
     def measured(now: float) -> Ending | None:
@@ -81,7 +82,7 @@ def calibrate_tilt(m: Machine, request: CommandRequest, facts: Facts) -> Plan:
     return Plan(C.CALIBRATE_TILT, tilt, measured)
 
 
-def calibrate_rotate(m: Machine, request: CommandRequest, facts: Facts) -> Plan:
+def calibrate_rotate(m: Machine, facts: Facts) -> Plan:
     rotate = RotateCalibrate(m.devices.rotate, m.live.current.rotate)
 
     def measured(now: float) -> Ending | None:
@@ -99,7 +100,7 @@ def _calibrated(m: Machine, done: bool, now: float) -> Ending | None:
     return Ending(Outcome.DONE, COMPLETE)
 
 
-def home(m: Machine, request: CommandRequest, facts: Facts) -> Plan:
+def home(m: Machine, facts: Facts) -> Plan:
     chain = Chain([lambda: tilt_home(m), lambda: rotate_home(m)])
 
     def homed(at: float) -> Ending:
@@ -125,14 +126,15 @@ def rotate_home(m: Machine) -> Controller:
     return RotateHome(m.devices.rotate, m.live.current.rotate, speed)
 
 
-def start(m: Machine, request: CommandRequest, facts: Facts) -> Plan | Refusal:
+def start(m: Machine, facts: Facts) -> Plan | Refusal:
     """The seed's Session(): CheckCalibrate, CheckHome, CheckSession, then run. A check that
     fails sets its state (the table's Start row picks it), then ends this Start with a notice
     (the seed's "send WARNING…, stop session, send DONE"), and the reply says why."""
     target = start_checks(facts)  # the table's pick for Start's row
     if target is not S.RUNNING:
         return _refused(target, facts)
-    session = session_of(request)
+    session = facts.session
+    assert session is not None  # the machine judges a Start's session
     rotate = m.keeper.calibration.rotate
     assert rotate is not None  # the checks passed: calibrated
     run = SessionRun(session, m.devices, m.live.current, rotate)
@@ -166,10 +168,10 @@ def _session_done(m: Machine) -> OnDone:
 
 def _its_own(command: Command) -> Handler:
     """A command whose transition is all it does (Pause, Resume, Stop): the machine's."""
-    return lambda m, request, facts: command
+    return lambda m, facts: command
 
 
-def check_calibration(m: Machine, request: CommandRequest, facts: Facts) -> Check:
+def check_calibration(m: Machine, facts: Facts) -> Check:
     missing = facts.uncalibrated
     ok = not missing
     result = CheckResult(ok=ok, tilt="tilt" not in missing, rotate="rotate" not in missing)
@@ -182,7 +184,7 @@ def check_calibration(m: Machine, request: CommandRequest, facts: Facts) -> Chec
     return Check(result)
 
 
-def check_home(m: Machine, request: CommandRequest, facts: Facts) -> Check:
+def check_home(m: Machine, facts: Facts) -> Check:
     missing = facts.not_home
     ok = not missing
     result = CheckResult(ok=ok, tilt="tilt" not in missing, rotate="rotate" not in missing)

@@ -10,42 +10,67 @@ does not have (`IllegalTransition`); where a trigger leads is the table's row, a
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Concatenate, ParamSpec, TypeVar
 
 from schema.calibration import CalibrationSet
-from schema.commands import REST_STATES, CheckResult, Command, CommandRequest, Reply, Session
-from schema.completion import Completion, Outcome
+from schema.commands import (
+    DEFAULT_SESSION,
+    REST_STATES,
+    CheckResult,
+    Command,
+    CommandRequest,
+    Reply,
+    Session,
+    StartRequest,
+)
+from schema.completion import Outcome
 from schema.status import MOTION_STATES, Fault, FaultCode, MachineState
 from service.config.model import LiveConfig, RiderLossPolicy
 from service.core.admission import admit
 from service.core.devices import Calibration, Devices
 from service.core.motion import Controller, Step
 from service.core.statemachine.calibration import CalibrationKeeper, OnCalibrated
-from service.core.statemachine.changes import acts
-from service.core.statemachine.context import Ending, Motion, MotionContext, Plan
+from service.core.statemachine.context import Ending, Motion, MotionContext, Plan, never
 from service.core.statemachine.deadman import RiderWatch, Verdict
-from service.core.statemachine.guards import Facts, choose, refusal, session_of, session_problem
+from service.core.statemachine.guards import Facts, choose, refusal, session_problem
 from service.core.statemachine.handlers import ACTIONS, Check, Order, Refusal
 from service.core.statemachine.snapshot import Snapshot
 from service.core.statemachine.table import (
+    ACCEPTS,
     HANDLING,
+    ONLY,
     POWER_UP,
     ROWS,
     Event,
     IllegalTransition,
     Transition,
     Trigger,
-    row,
 )
-from service.errors import MachineError, WrongState
+from service.errors import MachineError
 
 if TYPE_CHECKING:  # types only: the state machine does no IO
-    from service.core.controllers import SessionRun
     from service.core.persist import SaveTicket, StorageHealth
 
 S = MachineState
 C = Command
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def acts(
+    method: Callable[Concatenate[StateMachine, P], R],
+) -> Callable[Concatenate[StateMachine, P], R]:
+    """The one place a change is counted: a method that may change what the machine shows
+    counts each call in `changes`, first, whatever it then does (the quiet cycles compare it)."""
+
+    @functools.wraps(method)
+    def counted(self: StateMachine, /, *args: P.args, **kwargs: P.kwargs) -> R:
+        self.changes += 1
+        return method(self, *args, **kwargs)
+
+    return counted
 
 
 class StateMachine:
@@ -80,7 +105,7 @@ class StateMachine:
         self.duplicate_of: tuple[str, ...] = ()
         """Other sessions holding this machine's id (the bus watches `holder/<zid>`)."""
         self.changes = 0
-        """Calls that may have changed the machine (changes.py): the quiet cycles compare it."""
+        """Calls that may have changed the machine (`acts`): the quiet cycles compare it."""
         self.state = choose(POWER_UP, self.facts())  # never assumed home
         if self.state not in POWER_UP.targets:
             raise IllegalTransition(Event.POWER_UP, None, self.state)
@@ -100,17 +125,23 @@ class StateMachine:
             stop_on_loss=config.rider_loss.policy is RiderLossPolicy.STOP,
             estop=self.devices.safety.is_estop_active(),
             held_by=self.duplicate_of,
+            session=session,
             bad_session=None if session is None else session_problem(session, config.tilt),
         )
 
     def target(self, trigger: Trigger, facts: Facts | None = None) -> MachineState:
-        """Where `trigger` leads from the current state: the table's row chooses."""
-        rule = row(trigger, self.state)
+        """Where `trigger` leads from the current state: its row's target (chosen by the row's
+        `Pick` where it has several), else the state itself; a trigger without a row here is
+        refused unless it leads only here (an E-stop or a fault met again changes nothing)."""
+        state = self.state
+        rule = ROWS.get((trigger, state))
+        if rule is None and ONLY.get(trigger) is not state:
+            raise IllegalTransition(trigger, state, None)
         if rule is None or not rule.targets:
-            return self.state
+            return state
         chosen = choose(rule, facts or self.facts())
         if chosen not in rule.targets:
-            raise IllegalTransition(trigger, self.state, chosen)
+            raise IllegalTransition(trigger, state, chosen)
         return chosen
 
     def go(self, trigger: Trigger, now: float, why: str) -> None:
@@ -133,18 +164,19 @@ class StateMachine:
     @acts
     def handle(self, command: Command, request: CommandRequest, now: float) -> Reply:
         """Act on one command and say what happened: its handler says what to do (the one
-        call into handlers.py), this carries it out; refusals change nothing but the reply."""
+        call into handlers.py), the machine does it; refusals change nothing but the reply."""
         stamp = now + self.wall_offset
         handling = HANDLING[command]
         config = self.live.current
         try:
             if handling.moves:
                 admit(command, request, stamp, config.bus.clock_margin_s)
-            facts = self.facts(session_of(request) if command is C.START else None)
-            refused = refusal(command, self.state, facts, config.machine.id)
+            asked = request.session if isinstance(request, StartRequest) else None
+            facts = self.facts(asked or DEFAULT_SESSION if command is C.START else None)
+            refused = refusal(ACCEPTS[command], self.state, facts, config.machine.id)
             if refused is not None and not handling.read_only:
                 raise refused
-            order = ACTIONS[command](self, request, facts)
+            order = ACTIONS[command](self, facts)
             result = self._carry_out(command, order, request, facts, now)
         except MachineError as exc:
             return Reply.failure(
@@ -186,10 +218,12 @@ class StateMachine:
                 self.enter(C.START, target, now, order.why)
             error = order.error
             ending = Ending(order.outcome, error.message, error.code.value)
-            self.context.refused(request, ending, self.state, wall)
+            motion = Motion(C.START, request.transaction_id, request.rider, wall, never)
+            self.context.notify(motion, ending, self.state, wall)  # though nothing began
             raise error
         if isinstance(order, Plan):
-            self.context.begin(order, request, self.state, wall)
+            motion = Motion(command, request.transaction_id, request.rider, wall, order.on_done)
+            self.context.begin(order, motion, self.state, wall)
             self.fault = self.watch.warning = None
             self.enter(command, target, now, order.why or command.value)
         elif order is C.PAUSE:
@@ -289,12 +323,9 @@ class StateMachine:
     def enter_calibration(self, values: CalibrationSet, now: float) -> SaveTicket | None:
         """A technician's values (the keeper's `entered`): used at once, persisted (the
         ticket says when the write is done, and how); refused while a motion is under way."""
-        if self.is_moving() or self.context.action is not None or self.keeper.saving is not None:
-            raise WrongState(
-                f"calibration values cannot be entered in state {self.state} while a motion"
-                " is under way (or its calibration is being saved); Stop it first"
-            )
-        ticket = self.keeper.entered(values, self.live.current, now + self.wall_offset)
+        busy = self.is_moving() or self.context.action is not None
+        wall = now + self.wall_offset
+        ticket = self.keeper.entered(values, self.live.current, wall, self.state, busy)
         if self.state in REST_STATES and self.state is not S.DONE:
             self.go(Event.CALIBRATION_ENTERED, now, "calibration entered by hand")
         return ticket
@@ -363,16 +394,8 @@ class StateMachine:
         return self.keeper.calibration
 
     @property
-    def save_ticket(self) -> SaveTicket | None:
-        return self.keeper.save_ticket
-
-    @property
     def action(self) -> Motion | None:
         return self.context.action
-
-    @property
-    def session_run(self) -> SessionRun | None:
-        return self.context.drive.session_run
 
     @property
     def estop_latched(self) -> bool:
@@ -381,10 +404,6 @@ class StateMachine:
     @property
     def controller_rider(self) -> str | None:
         return self.watch.id
-
-    def take_completions(self) -> list[Completion]:
-        """The notices produced since the last call (the scan loop publishes them)."""
-        return self.context.take()
 
     def motion(self) -> Controller | None:
         """The controller that owns an axis now (running, paused or held by an E-stop)."""
@@ -398,13 +417,7 @@ class StateMachine:
         """Nothing pending that `update` acts on by itself as time passes (a controller, a
         calibration being saved, a lost Rider's grace period) or that the loop still has to
         take (a completion notice)."""
-        context = self.context
-        return (
-            context.drive.controller is None
-            and self.keeper.saving is None
-            and self.watch.gone_at is None
-            and not context.completions
-        )
+        return self.context.at_rest() and self.keeper.saving is None and self.watch.gone_at is None
 
     def snapshot(self) -> Snapshot:
         """The machine now, as one value; a full cycle takes one (the quiet ones rely on

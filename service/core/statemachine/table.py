@@ -1,8 +1,9 @@
 """The machine's behaviour as data: every `(trigger, states) → targets` row, and its vocabulary.
 
-`TABLE` is what runs: the state machine asks it where a trigger leads (`row`), lets a row with
-several targets choose by its `Pick`, and refuses any state change that is not one of its rows
-(`IllegalTransition`: a bug, raised loudly). The command guard reads the rows' sources; the
+`TABLE` is what runs: the state machine looks up where a trigger leads (`ROWS`), lets a row
+with several targets choose by its `Pick`, and refuses any state change that is not one of its
+rows (`IllegalTransition`: a bug, raised loudly). The command guard reads the rows' sources
+(`ACCEPTS`); the
 README's state table and docs/states.md are generated from them (`python -m
 service.core.control_doc`).
 """
@@ -264,21 +265,13 @@ ROWS = _index()
 POWER_UP = next(r for r in TABLE if r.trigger is Event.POWER_UP)
 """The row the machine starts by (it has no source state)."""
 
-_ONLY: dict[Trigger, MachineState] = {
+ONLY: dict[Trigger, MachineState] = {
     trigger: targets.pop()
     for trigger in (*Command, *Event)
     if len(targets := {t for r in TABLE if r.trigger is trigger for t in r.targets}) == 1
 }
 """Triggers that lead to one state only (E-stop, a fault): met there already, they change
 nothing (a fault while faulted replaces the fault, not the state)."""
-
-
-def row(trigger: Trigger, state: MachineState) -> Rule | None:
-    """The row `trigger` follows in `state`; None where it leads nowhere but `state` itself."""
-    rule = ROWS.get((trigger, state))
-    if rule is None and _ONLY.get(trigger) is not state:
-        raise IllegalTransition(trigger, state, None)
-    return rule
 
 
 EDGES = frozenset((s, t) for r in TABLE for s in r.sources for t in r.targets if s is not t)
@@ -290,14 +283,25 @@ def edges() -> frozenset[tuple[MachineState, MachineState]]:
     return EDGES
 
 
-_ACCEPTED: dict[Command, frozenset[MachineState]] = {
-    command: frozenset().union(*(r.sources for r in TABLE if r.trigger is command))
-    for command in Command
-}
-ACCEPTED_TEXT = {command: ", ".join(sorted(states)) for command, states in _ACCEPTED.items()}
-"""The states a WRONG_STATE refusal names, sorted once (a refusal per command under a storm)."""
+@dataclass(frozen=True, slots=True)
+class Accepts:
+    """Where a command is taken, as its rows say: the states, and how a refusal names them."""
+
+    name: str
+    states: frozenset[MachineState]
+    text: str
+    """The states, sorted once (a WRONG_STATE refusal per command under a storm)."""
+
+
+def _accepts(command: Command) -> Accepts:
+    states = frozenset().union(*(r.sources for r in TABLE if r.trigger is command))
+    return Accepts(command.value, states, ", ".join(sorted(states)))
+
+
+ACCEPTS = {command: _accepts(command) for command in Command}
+"""Each command's states, from the rows (the command guard reads them, guards.py)."""
 
 
 def allowed_states(command: Command) -> frozenset[MachineState]:
     """The states in which `command` is accepted (E-stop released), as the table says."""
-    return _ACCEPTED[command]
+    return ACCEPTS[command].states

@@ -338,13 +338,13 @@ def test_stop_clears_the_session_and_fault() -> None:
     assert rig.control.fault is not None
     assert rig.send(C.STOP).success
     assert rig.control.fault is None
-    assert rig.control.session_run is None
+    assert rig.control.context.drive.session_run is None
 
     rig = rig_in(S.RUNNING)
-    assert rig.control.session_run is not None
+    assert rig.control.context.drive.session_run is not None
     assert rig.send(C.STOP).success
     rig.step()
-    assert rig.control.session_run is None
+    assert rig.control.context.drive.session_run is None
     assert rig.loop.published.status is not None
     assert rig.loop.published.status.session is None
 

@@ -154,7 +154,7 @@ def test_home_after_release_rehomes(state: MachineState, seed: int) -> None:
     assert rig.state is (S.IDLE if calibrated else S.WARNING_NEEDS_CALIBRATION), rig.control.fault
     assert rig.control.keeper.homed().tilt
     assert rig.control.keeper.homed().rotate
-    assert rig.control.session_run is None
+    assert rig.control.context.drive.session_run is None
     assert not rig.relays_on()
 
 
@@ -211,7 +211,7 @@ def test_stop_after_release_clears_the_latch() -> None:
     rig.step()
     assert rig.send(C.STOP).state is S.DONE
     assert rig.control.estop_latched is False
-    assert rig.control.session_run is None
+    assert rig.control.context.drive.session_run is None
     rig.step(100)
     assert not rig.relays_on()
 

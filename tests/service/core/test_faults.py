@@ -57,7 +57,7 @@ def session_step(index: int) -> Callable[[Rig], None]:
     def setup(rig: Rig) -> None:
         rig.home()
         assert rig.send(C.START).success
-        run = rig.control.session_run
+        run = rig.control.context.drive.session_run
         assert run is not None
         rig.run_until(lambda: run.index == index and rig.relays_on())
         rig.step(30)

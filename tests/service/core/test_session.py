@@ -30,7 +30,7 @@ def run_session(rig: Rig, **payload: object) -> tuple[float, list[tuple[int, flo
     trace: list[tuple[int, float, float]] = []
 
     def record() -> bool:
-        run = rig.control.session_run
+        run = rig.control.context.drive.session_run
         if run is not None:
             trace.append((run.index, world.tilt_deg, world.rotate_travel_deg - travel0))
         return rig.state is not S.RUNNING
@@ -132,7 +132,7 @@ def started() -> tuple[Rig, SessionRun, float]:
     rig = rig_in(S.IDLE)
     travel0 = rig.hal.world.rotate_travel_deg
     assert rig.send(C.START).success
-    run = rig.control.session_run
+    run = rig.control.context.drive.session_run
     assert run is not None
     return rig, run, travel0
 
@@ -165,7 +165,7 @@ def test_pause_freezes_everything_and_resume_finishes_the_session(pause_in_step:
 def test_stop_mid_session_drops_relays_and_clears_the_session() -> None:
     rig = rig_in(S.IDLE)
     assert rig.send(C.START).success
-    run = rig.control.session_run
+    run = rig.control.context.drive.session_run
     assert run is not None
     rig.run_until(lambda: run.index == 1 and rig.relays_on())
     rig.step(30)
@@ -177,7 +177,7 @@ def test_stop_mid_session_drops_relays_and_clears_the_session() -> None:
     rig.step(500)
     assert rig.state is S.DONE
     assert rig.hal.world.rotate_travel_deg == where
-    assert rig.control.session_run is None
+    assert rig.control.context.drive.session_run is None
 
 
 def test_a_second_session_needs_home_and_then_runs_again() -> None:

@@ -148,7 +148,7 @@ def session_with_drift(rig: Rig, steps: list[float], after: int, **change: float
     is done; how it ended."""
     session = Session(name="drift", steps=[TiltStep(degrees=d) for d in steps])
     assert rig.send(C.START, session=session.model_dump()).success
-    run = rig.control.session_run
+    run = rig.control.context.drive.session_run
     assert run is not None
     rig.run_until(lambda: run.index > after or rig.state is not S.RUNNING)
     drift(rig, **change)
