@@ -41,6 +41,11 @@ make the scan thread's collections longer."""
 StoredRow = tuple[int, float, int | None, str, str, str]
 """An event as stored: seq, time, cycle, machine_id, kind, and its details as JSON text."""
 
+CACHE_KIB = 512
+"""SQLite's page cache per connection: a writer appends, and a page of a read is at most 500
+rows (~25 pages of 4 KiB); SQLite's default (2 MiB) filled up and stayed in every process that
+writes the history (bench.rss_soak)."""
+
 BUSY_TIMEOUT_S = 1.0
 """How long a write or read waits for a database another process holds locked before it
 counts as failed: short, so a locked file can never hold up start-up or the shutdown deadline."""
@@ -71,6 +76,7 @@ def connect(path: Path) -> sqlite3.Connection:
         conn.execute("PRAGMA journal_mode=WAL")
         conn.execute("PRAGMA synchronous=NORMAL")
         conn.execute("PRAGMA journal_size_limit=4194304")
+        conn.execute(f"PRAGMA cache_size = -{CACHE_KIB}")
         conn.executescript(_SCHEMA)
     except BaseException:
         conn.close()
