@@ -78,7 +78,7 @@ class Reads:
     def routes(self) -> list[Route]:
         b, port = self.base, self.port
         routes = [
-            Route("status", latest(f"{b}/status", lambda: port.snapshot().status), direct=True),
+            Route("status", latest(f"{b}/status", lambda: port.published().status), direct=True),
             Route("io/**", self.io, direct=True),
             Route("axis/**", self.axes, direct=True),
             Route("diag/cycle", self.cycle),  # sorts the stats window: not on Zenoh's thread
@@ -86,7 +86,7 @@ class Reads:
             Route("done/**", self.done, direct=True),
             Route(
                 "calibration",
-                latest(f"{b}/calibration", lambda: port.snapshot().calibration),
+                latest(f"{b}/calibration", lambda: port.published().calibration),
                 direct=True,
             ),
         ]
@@ -95,11 +95,11 @@ class Reads:
         return routes
 
     def io(self, request: Request) -> None:
-        points = self.port.snapshot().io.values()
+        points = self.port.published().io.values()
         matching(request, self.base, [(f"io/{p.kind}/{p.name}", p) for p in points])
 
     def axes(self, request: Request) -> None:
-        records = self.port.snapshot().axes.values()
+        records = self.port.published().axes.values()
         matching(request, self.base, [(f"axis/{r.axis}", r) for r in records])
 
     def cycle(self, request: Request) -> None:

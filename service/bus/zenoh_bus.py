@@ -75,7 +75,7 @@ class ZenohBus:
 
     def state(self) -> MachineState | None:
         """`Host`: the state a refusal states (the last one published)."""
-        status = self.port.snapshot().status
+        status = self.port.published().status
         return status.state if status is not None else None
 
     def _on_scan_thread(self, request: Request, fn: Callable[[], None]) -> None:

@@ -3,7 +3,7 @@ reader threads, the fast-data server). Nothing else of the loop is theirs to rea
 
 Commands run between two cycles under the loop's lock (`execute`); any other work is a task
 for the scan thread (`submit`); what the loop published is immutable values read without the
-lock (`snapshot`, `moving`); a Rider's heartbeat is one write into the record the deadman reads
+lock (`published`, `moving`); a Rider's heartbeat is one write into the record the deadman reads
 (`heartbeat`).
 """
 
@@ -76,7 +76,7 @@ class LoopPort:
         full or the loop has stopped."""
         return self._loop.inbox.put(task)
 
-    def snapshot(self) -> Published:
+    def published(self) -> Published:
         """The latest published records (status, calibration, IO, axes), as one value."""
         return self._loop.published
 

@@ -59,7 +59,7 @@ class NullSink:
 @dataclass(frozen=True, slots=True)
 class Published:
     """The latest records, as one value: the loop replaces it whole, so any thread may read
-    it (`LoopPort.snapshot`) without a lock."""
+    it (`LoopPort.published`) without a lock."""
 
     status: Status | None = None
     calibration: CalibrationRecord | None = None

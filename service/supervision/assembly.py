@@ -288,7 +288,7 @@ def start_fastdata(
 ) -> None:
     fd = config.fastdata
     server = FastDataServer(
-        lambda: port.snapshot().axes,
+        lambda: port.published().axes,
         fd.host,
         fd.port,
         cycle=port.cycle,
