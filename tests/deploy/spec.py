@@ -1,4 +1,5 @@
-"""The deployment files as data: compose services, Dockerfile instructions, the build context.
+"""The deployment files as data: compose services, Dockerfile instructions, the package's
+commands (the build context: dockerignore.py).
 
 Tests read compose.yaml and the Dockerfile through this module, check them against the
 package (entry points, the real argparse parsers, files in the repo), and turn a service's
@@ -12,12 +13,11 @@ import contextlib
 import copy
 import io
 import json
-import os
 import re
 import shlex
 import sys
 import tomllib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,6 @@ REVPI_OVERRIDE = REPO / "docker" / "compose.revpi.yaml"
 PLANT_OVERRIDE = REPO / "docker" / "compose.plant.yaml"
 ROUTER_OVERRIDE = REPO / "docker" / "compose.router.yaml"
 DOCKERFILE = REPO / "Dockerfile"
-DOCKERIGNORE = REPO / ".dockerignore"
 
 _VAR = re.compile(r"\$\$|\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:-|:\?)(?P<arg>[^}]*))?\}")
 
@@ -82,15 +81,18 @@ def _interpolate_tree(node: Any, env: Mapping[str, str]) -> Any:
 
 def merged(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
     """`-f base -f override` as compose merges them, for the keys our files use: a service's
-    `command` and other scalars replaced, its `volumes` and `depends_on` appended, its
+    `command` and other scalars replaced, its `volumes` appended, its `depends_on` and
     `environment` merged by name, new services and top-level `volumes` added."""
     out = copy.deepcopy(dict(base))
     services = out.setdefault("services", {})
     for name, svc in (override.get("services") or {}).items():
         mine = services.setdefault(name, {})
         for key, value in svc.items():
-            if key in ("volumes", "depends_on") and key in mine:
+            if key == "volumes" and key in mine:
                 mine[key] = [*mine[key], *value]
+            elif key == "depends_on" and key in mine:
+                both = {**depends_on(mine), **depends_on(svc)}
+                mine[key] = {dep: {"condition": cond} for dep, cond in both.items()}
             elif key == "environment" and key in mine:
                 mine[key] = {**environment(mine), **environment(svc)}
             else:
@@ -99,6 +101,14 @@ def merged(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, An
         if override.get(key):
             out[key] = {**(out.get(key) or {}), **override[key]}
     return out
+
+
+def depends_on(svc: Mapping[str, Any]) -> dict[str, str]:
+    """The service's dependencies → their condition (the short form's is service_started)."""
+    deps = svc.get("depends_on") or {}
+    if isinstance(deps, list):
+        return dict.fromkeys(deps, "service_started")
+    return {name: (cond or {}).get("condition", "service_started") for name, cond in deps.items()}
 
 
 def service(compose: Mapping[str, Any], name: str) -> dict[str, Any]:
@@ -282,66 +292,6 @@ def image_env(instructions: Sequence[Instruction], target: str | None = None) ->
     for args in image_args(instructions, "ENV", target):
         out.update(dict(pair.split("=", 1) for pair in shlex.split(args)))
     return out
-
-
-# ------------------------------------------------------------------------ build context
-def ignore_patterns(path: Path = DOCKERIGNORE) -> list[tuple[bool, re.Pattern[str]]]:
-    """(is_exception, regex) per `.dockerignore` line, in order (the last match wins)."""
-    out = []
-    for raw in path.read_text().splitlines():
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        negate = line.startswith("!")
-        pattern = line[1:] if negate else line
-        out.append((negate, _glob_regex(pattern.strip().strip("/"))))
-    return out
-
-
-def _glob_regex(pattern: str) -> re.Pattern[str]:
-    out = ""
-    i = 0
-    while i < len(pattern):
-        if pattern.startswith("**/", i):
-            out += "(?:.*/)?"
-            i += 3
-        elif pattern.startswith("**", i):
-            out += ".*"
-            i += 2
-        elif pattern[i] == "*":
-            out += "[^/]*"
-            i += 1
-        elif pattern[i] == "?":
-            out += "[^/]"
-            i += 1
-        else:
-            out += re.escape(pattern[i])
-            i += 1
-    return re.compile(out + r"\Z")
-
-
-def in_context(rel: str, patterns: Sequence[tuple[bool, re.Pattern[str]]]) -> bool:
-    """Whether Docker sends `rel` (relative to the context) to the build: a pattern excludes
-    a path when it matches the path or one of its parent directories."""
-    parts = rel.strip("/").split("/")
-    prefixes = ["/".join(parts[: i + 1]) for i in range(len(parts))]
-    excluded = False
-    for negate, regex in patterns:
-        if any(regex.match(p) for p in prefixes):
-            excluded = not negate
-    return not excluded
-
-
-def context_files(root: Path = REPO) -> Iterator[str]:
-    """Every file of the build context, relative to `root` (version-control data skipped)."""
-    patterns = ignore_patterns(root / ".dockerignore")
-    for dirpath, dirnames, filenames in os.walk(root):
-        rel_dir = os.path.relpath(dirpath, root)
-        dirnames[:] = [d for d in dirnames if d != ".git"]
-        for name in filenames:
-            rel = name if rel_dir == "." else f"{rel_dir}/{name}"
-            if in_context(rel, patterns):
-                yield rel
 
 
 # ------------------------------------------------------------------------------ package

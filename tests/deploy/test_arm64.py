@@ -21,14 +21,10 @@ from pathlib import Path
 import pytest
 
 from schema.status import MachineState, Status
+from tests.deploy.engines import ENGINE, Done, build_args, build_context, engine
 from tests.deploy.test_container import (
-    ENGINE,
-    Done,
-    build_args,
-    build_context,
     calibrate,
     container,
-    engine,
     rider,
     run_rider,
     wait_healthy,

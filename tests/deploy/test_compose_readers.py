@@ -1,17 +1,15 @@
 """compose.yaml as each compose implementation on this host hands it to its engine, no engine
-needed: podman-compose (Debian 12's 1.0.3, PyPI's 1.6) runs against a stand-in `podman` that
-records the commands it is given and, like podman, refuses a container whose bind source is
-missing; docker-compose 1.29 (and `docker compose` v2 where present) prints its resolved file
-(`config`).
+needed (tests/deploy/compose_tools.py: a stand-in `podman` for podman-compose 1.0.3 and 1.6,
+docker-compose's `config`).
 
 For each, the healthcheck the engine would run (podman: a JSON array is exec form, any other
 string is `/bin/sh -c STRING`; docker: `CMD` exec form, `CMD-SHELL` via `/bin/sh -c`) is run
 here against a fresh heartbeat file and a stand-in of the UI's endpoint, container paths mapped
-to this test's; every implementation starts exactly the machine and the rider by default; an
-override file's machine command replaces compose.yaml's; the router file merges as written
-(its machine keeps compose.yaml's variables and mounts). podman-compose without the
-login files stops at once. Each implementation not installed is skipped, with the reason.
-"""
+to this test's; every implementation starts exactly the logins check, the machine and the rider
+by default; an override file's machine command replaces compose.yaml's; the router file merges
+as written (its machine keeps compose.yaml's variables and mounts); the hardening is handed on.
+Without the login files: test_logins_check.py. Each implementation not installed is skipped,
+with the reason."""
 
 from __future__ import annotations
 
@@ -20,165 +18,32 @@ import functools
 import http.server
 import json
 import os
-import re
-import shlex
 import shutil
 import socket
 import subprocess
-import sys
 import tempfile
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import yaml
 
-from service.adapters.credentials import identities, init_credentials
-from service.adapters.opcua_credentials import opcua_files
 from sim.plant import SOCKET as PLANT_SOCKET
 from tests.deploy import spec
-from tests.procs import REPO
+from tests.deploy.compose_tools import (
+    IMAGE,
+    OVERRIDES,
+    Reader,
+    docker_config,
+    given_command,
+    is_debian_podman_compose,
+    podman_runs,
+    python_bin,
+)
 
-TOOL_TIMEOUT_S = 60.0
 HEARTBEAT = "/dev/shm/machine.heartbeat"
 UI = "127.0.0.1:8080"
-IMAGE = "localhost/ride-machine:0.1.0"
-COMPOSE_ENV = {**os.environ, "PICONTROL_GID": "996"}  # docker/compose.revpi.yaml asks for it
-OVERRIDES = ("compose.plant.yaml", "compose.revpi.yaml", "compose.router.yaml")
-FAKE_PODMAN = """#!{python}
-import json, os, sys
-args = sys.argv[1:]
-log_path = os.environ["FAKE_PODMAN_LOG"]
-with open(log_path, "a") as log:
-    log.write(json.dumps(args) + "\\n")
-made = log_path + ".containers"
-names = set(open(made).read().split()) if os.path.exists(made) else set()
-if args[:1] in (["--version"], ["-v"]):
-    print("podman version 4.3.1")
-elif args[:1] == ["version"]:
-    print("4.3.1")
-elif args[:1] in (["create"], ["run"]):
-    # As podman 4.3: a bind source that does not exist refuses the container (exit 125).
-    for i, a in enumerate(args[:-1]):
-        source = args[i + 1].split(":")[0] if a in ("-v", "--volume") else ""
-        if source.startswith(("/", ".")) and not os.path.exists(source):
-            sys.exit(print(f"Error: statfs {{source}}: no such file or directory") or 125)
-    name = next(a.split("=", 1)[1] for a in args if a.startswith("--name="))
-    with open(made, "a") as f:
-        f.write(name + "\\n")
-elif args[:1] in (["start"], ["wait"]):
-    missing = [a for a in args[1:] if not a.startswith("-") and a not in names]
-    if missing:
-        sys.exit(print(f"Error: no container with name or ID {{missing[0]!r}} found") or 125)
-elif "inspect" in args[:2]:
-    print('[{{"Id": "0"}}]')
-elif "json" in args:
-    print("[]")
-"""
-
-
-@dataclass(frozen=True)
-class Reader:
-    """One compose implementation: how to call it, and which kind it is."""
-
-    label: str
-    argv: tuple[str, ...]
-    kind: str  # "podman-compose" or "docker"
-
-
-def _version(argv: list[str]) -> str | None:
-    try:
-        done = subprocess.run(
-            [*argv, "version"], capture_output=True, text=True, timeout=30, check=False
-        )
-    except OSError:
-        return None
-    return done.stdout.strip().splitlines()[-1] if done.returncode == 0 and done.stdout else None
-
-
-def readers() -> list[Reader]:
-    found: list[Reader] = []
-    podman_composes = {"/usr/bin/podman-compose", str(REPO / ".venv/bin/podman-compose")}
-    podman_composes |= {p for p in [shutil.which("podman-compose")] if p}
-    for path in sorted(podman_composes):
-        if Path(path).exists():
-            found.append(Reader(f"podman-compose ({path})", (path,), "podman-compose"))
-    if (path := shutil.which("docker-compose")) is not None:
-        found.append(Reader(f"docker-compose ({path})", (path,), "docker"))
-    docker = shutil.which("docker")
-    if docker is not None and _version([docker, "compose"]) is not None:
-        found.append(Reader("docker compose (v2)", (docker, "compose"), "docker"))
-    return found
-
-
-def _shebang_python(path: str) -> str:
-    """podman-compose's own interpreter (Debian's is /usr/bin/python3, PyPI's the venv's)."""
-    first = Path(path).read_text().splitlines()[0]
-    return first[2:].strip() if first.startswith("#!") else sys.executable
-
-
-READERS = readers()
-
-
-@pytest.fixture(params=READERS or [None], ids=lambda r: r.label if r else "none")
-def reader(request: pytest.FixtureRequest) -> Reader:
-    """Each compose implementation installed; the test skips when there is none."""
-    if request.param is None:
-        pytest.skip("no compose implementation (podman-compose, docker-compose) installed")
-    found: Reader = request.param
-    return found
-
-
-@pytest.fixture
-def project(tmp_path: Path) -> Path:
-    """compose.yaml's files in a project directory, with the logins made as the docs say."""
-    root = tmp_path / "site"
-    for rel in ("compose.yaml", "machine.toml", "zenoh.json5", "zenoh/acl.json5"):
-        (root / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(REPO / rel, root / rel)
-    for name in ("compose.gateway.yaml", *OVERRIDES):
-        (root / "docker").mkdir(exist_ok=True)
-        shutil.copy2(REPO / "docker" / name, root / "docker" / name)
-    init_credentials(root / "secrets", (*identities(), "router"))
-    for path in opcua_files(root / "secrets"):  # the gateway's, made by the same command
-        path.write_text("")
-    for name in ("site-ca.crt", "router.crt", "router.key"):  # docker/site-certs.sh's files
-        (root / "secrets" / name).write_text("")
-    return root
-
-
-def podman_up(reader: Reader, root: Path, *files: str) -> subprocess.CompletedProcess[str]:
-    """podman-compose's `up -d` against the stand-in podman (bounded: a hang fails the test)."""
-    fake = root.parent / "fake-bin"
-    fake.mkdir(exist_ok=True)
-    podman = fake / "podman"
-    podman.write_text(FAKE_PODMAN.format(python=sys.executable))
-    podman.chmod(0o755)
-    log = root.parent / "podman.jsonl"
-    log.unlink(missing_ok=True)
-    Path(f"{log}.containers").unlink(missing_ok=True)
-    python = _shebang_python(reader.argv[-1])
-    argv = [python, reader.argv[-1], *(f for name in files for f in ("-f", name))]
-    env = {**COMPOSE_ENV, "PATH": f"{fake}:{os.environ['PATH']}", "FAKE_PODMAN_LOG": str(log)}
-    return subprocess.run(
-        [*argv, "-p", "readers", "up", "-d", "--no-build"],
-        cwd=root, capture_output=True, text=True, timeout=TOOL_TIMEOUT_S, env=env, check=False,
-    )  # fmt: skip
-
-
-def podman_runs(reader: Reader, root: Path, *files: str) -> dict[str, list[str]]:
-    """Service → the `podman run`/`create` argv podman-compose gives for `up -d`."""
-    done = podman_up(reader, root, *files)
-    assert done.returncode == 0, done.stdout + done.stderr
-    runs = {}
-    for line in (root.parent / "podman.jsonl").read_text().splitlines():
-        args = json.loads(line)
-        if args and args[0] in ("run", "create"):
-            label = next(a for a in args if a.startswith("com.docker.compose.service="))
-            runs[label.partition("=")[2]] = args
-    return runs
 
 
 def podman_test(value: str) -> list[str]:
@@ -202,17 +67,6 @@ def podman_health(args: list[str]) -> list[str]:
     raise AssertionError(f"no healthcheck in {args}")
 
 
-def docker_config(reader: Reader, root: Path, *files: str) -> dict[str, dict[str, object]]:
-    argv = [*reader.argv, *(f for name in files for f in ("-f", name)), "config"]
-    done = subprocess.run(
-        argv, cwd=root, capture_output=True, text=True, timeout=TOOL_TIMEOUT_S, check=False,
-        env=COMPOSE_ENV,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout + done.stderr
-    services: dict[str, dict[str, object]] = yaml.safe_load(done.stdout)["services"]
-    return services
-
-
 def docker_health(svc: dict[str, object]) -> list[str]:
     test = svc["healthcheck"]["test"]  # type: ignore[index]
     if isinstance(test, str):
@@ -225,10 +79,12 @@ def engine_view(reader: Reader, root: Path) -> tuple[set[str], dict[str, list[st
     """(services started by default, service → healthcheck argv) as the engine gets them."""
     if reader.kind == "podman-compose":
         runs = podman_runs(reader, root, "compose.yaml")
-        return set(runs), {name: podman_health(args) for name, args in runs.items()}
+        checks = {name: podman_health(args) for name, args in runs.items() if name != "logins"}
+        return set(runs), checks
     services = docker_config(reader, root, "compose.yaml")
     started = {n for n, s in services.items() if not s.get("profiles")}
-    return started, {name: docker_health(svc) for name, svc in services.items()}
+    checks = {name: docker_health(svc) for name, svc in services.items() if name != "logins"}
+    return started, checks
 
 
 @contextlib.contextmanager
@@ -254,15 +110,6 @@ def ui_stand_in(root: Path) -> Iterator[int]:
         yield port
 
 
-def python_bin(project: Path) -> Path:
-    """A bin/ beside the project whose `python` is this interpreter (the healthchecks run
-    `python`)."""
-    bin_dir = project.parent / "bin"
-    bin_dir.mkdir()
-    (bin_dir / "python").symlink_to(sys.executable)
-    return bin_dir
-
-
 def run_here(argv: list[str], mapping: dict[str, str], path: Path) -> int:
     """A healthcheck argv with container paths and addresses mapped, `python` this one."""
     mapped = []
@@ -278,7 +125,8 @@ def test_every_compose_implementation_passes_the_healthchecks_on_intact(
     reader: Reader, project: Path
 ) -> None:
     started, checks = engine_view(reader, project)
-    assert started == {"machine", "rider"}, f"{reader.label} starts {started} by default"
+    # the logins check first (it exits), then the machine and the rider
+    assert started == {"logins", "machine", "rider"}, f"{reader.label} starts {started}"
     bin_dir = python_bin(project)
     heartbeat = project.parent / "machine.heartbeat"
     heartbeat.touch()
@@ -288,10 +136,6 @@ def test_every_compose_implementation_passes_the_healthchecks_on_intact(
         assert run_here(checks["rider"], mapping, bin_dir) == 0, checks["rider"]
     heartbeat.unlink()
     assert run_here(checks["machine"], mapping, bin_dir) != 0
-
-
-def given_command(value: object) -> list[str]:
-    return shlex.split(value) if isinstance(value, str) else [str(a) for a in value]  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize("override", OVERRIDES)
@@ -337,37 +181,6 @@ def test_every_compose_implementation_merges_the_router_file_as_written(
     volumes = machine["volumes"]
     targets = {v["target"] if isinstance(v, dict) else v.split(":")[1] for v in volumes}  # type: ignore[attr-defined]
     assert {"/etc/machine/zenoh.json5", "/etc/machine/site-ca.crt", "/var/lib/machine"} <= targets
-
-
-def test_podman_compose_stops_at_once_without_the_login_files(
-    reader: Reader, project: Path
-) -> None:
-    """Issue 57, reproduction 5: podman-compose 1.6 waited for the machine to run for ever (it
-    could not be created: its secret files were missing); docker's compose tools refuse such
-    a file themselves (run with the engine, docs/deploy.md "Engines")."""
-    if reader.kind != "podman-compose":
-        pytest.skip(f"{reader.label} needs its engine for `up` (refuses missing secrets itself)")
-    shutil.rmtree(project / "secrets")
-    try:
-        done = podman_up(reader, project, "compose.yaml", "docker/compose.gateway.yaml")
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"{reader.label}: up -d still running after {TOOL_TIMEOUT_S:g} s")
-    output = done.stdout + done.stderr
-    missing = [line for line in output.splitlines() if "no such file or directory" in line]
-    assert any("secrets/" in line for line in missing), output  # the engine names the file
-    if is_debian_podman_compose(reader):
-        # Debian 12's ignores every podman error and exits 0 (documented)
-        return
-    assert done.returncode != 0, output
-
-
-def is_debian_podman_compose(reader: Reader) -> bool:
-    """Whether `reader` is podman-compose 1.0.3 (Debian 12's)."""
-    version = subprocess.run(
-        [_shebang_python(reader.argv[-1]), reader.argv[-1], "version"],
-        capture_output=True, text=True, timeout=TOOL_TIMEOUT_S, check=False,
-    )  # fmt: skip
-    return re.search(r"version\s+1\.0\.3\b", version.stdout) is not None
 
 
 HARDENING_FILES = (

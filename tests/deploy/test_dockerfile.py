@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from service.adapters.heartbeat import HEARTBEAT_FILE_ENV, INTERVAL_S
-from tests.deploy import spec
+from tests.deploy import dockerignore, spec
 from tests.deploy.test_lock import LOCKS, pins
 from tests.deploy.test_static import machine_toml_id
 from tests.procs import REPO
@@ -210,36 +210,36 @@ def test_no_credentials_in_the_image(docker: list[spec.Instruction]) -> None:
     for i in docker:
         if i.keyword in ("ENV", "ARG"):
             assert not SECRET_NAME.search(i.args), i
-    leaks = [f for f in spec.context_files() if SECRET_FILE.search(f)]
+    leaks = [f for f in dockerignore.context_files() if SECRET_FILE.search(f)]
     assert not leaks, f"the build context would send these to the builder: {leaks}"
 
 
 def test_copied_files_are_in_the_build_context(docker: list[spec.Instruction]) -> None:
-    patterns = spec.ignore_patterns()
+    patterns = dockerignore.ignore_patterns()
     for i in docker:
         if i.keyword != "COPY" or i.args.startswith("--from"):
             continue
         *sources, _ = i.args.split()
         for src in sources:
             assert (REPO / src).exists(), f"COPY {src}: not in the repo"
-            assert spec.in_context(src, patterns), f"COPY {src}: excluded by .dockerignore"
-    context = set(spec.context_files())
+            assert dockerignore.in_context(src, patterns), f"COPY {src}: excluded by .dockerignore"
+    context = set(dockerignore.context_files())
     assert "tests/procs.py" not in context and not any(f.startswith(".git/") for f in context)
 
 
 def test_dockerignore_matching() -> None:
-    patterns = [(False, spec._glob_regex("*")), (True, spec._glob_regex("rider"))]
-    patterns.append((False, spec._glob_regex("**/__pycache__")))
-    assert spec.in_context("rider/cli.py", patterns)
-    assert not spec.in_context("rider/__pycache__/cli.cpython-311.pyc", patterns)
-    assert not spec.in_context("tests/procs.py", patterns)
+    patterns = [(False, dockerignore.glob_regex("*")), (True, dockerignore.glob_regex("rider"))]
+    patterns.append((False, dockerignore.glob_regex("**/__pycache__")))
+    assert dockerignore.in_context("rider/cli.py", patterns)
+    assert not dockerignore.in_context("rider/__pycache__/cli.cpython-311.pyc", patterns)
+    assert not dockerignore.in_context("tests/procs.py", patterns)
 
 
 def test_the_build_context_makes_a_complete_wheel(tmp_path: Path) -> None:
     """What `pip wheel` in the builder stage sees, built here offline: every module and
     static file of the package and both entry points must be in the wheel."""
     context = tmp_path / "context"
-    files = sorted(spec.context_files())
+    files = sorted(dockerignore.context_files())
     for rel in files:
         (context / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(REPO / rel, context / rel)

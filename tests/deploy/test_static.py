@@ -34,6 +34,7 @@ LINT_TIMEOUT_S = 60.0
 PICONTROL_ENV = {"PICONTROL_GID": "996"}
 ROUTER_PROGRAM = "/opt/site-router/site_router.py"
 SITE_CA = "./secrets/site-ca.crt"
+PROJECT_DIR = "./"  # the logins check's mount: the directory itself (test_logins_check.py)
 RIDERS_PORT, SITE_PORT = 7447, 7448
 
 
@@ -82,9 +83,11 @@ def machine_toml_id() -> str:
 def test_machine_and_rider_run_by_default_and_the_router_only_from_its_own_file(
     compose: dict[str, Any], router: dict[str, Any]
 ) -> None:
-    """No `profiles:` anywhere: podman-compose 1.0.3 ignores them and starts every service."""
-    assert set(compose["services"]) == {"machine", "rider"}
-    assert set(router["services"]) == {"router", "machine"}  # the machine dials its router
+    """No `profiles:` anywhere: podman-compose 1.0.3 ignores them and starts every service.
+    The `logins` check runs before them (test_logins_check.py)."""
+    assert set(compose["services"]) == {"logins", "machine", "rider"}
+    # the machine dials its router; the router's login files join the check
+    assert set(router["services"]) == {"logins", "router", "machine"}
     for name, svc in [*compose["services"].items(), *router["services"].items()]:
         assert "profiles" not in svc, name
 
@@ -139,7 +142,7 @@ def test_mounted_files_exist_and_are_read_only(
         for m in spec.mounts(svc):
             if m.is_bind:
                 assert m.read_only, f"{name}: {m.source} should be mounted :ro"
-                if m.source == SITE_CA:
+                if m.source == SITE_CA or (name, m.source) == ("logins", PROJECT_DIR):
                     continue  # made by docker/site-certs.sh on the site, like the secrets
                 assert repo_file(m).is_file(), f"{name}: {m.source} is not a file in the repo"
                 assert repo_file(m).is_relative_to(REPO), f"{name}: {m.source} leaves the repo"
@@ -189,7 +192,8 @@ def test_services_restart_and_stop_gracefully(
     compose: dict[str, Any], router: dict[str, Any]
 ) -> None:
     for name, svc in [*compose["services"].items(), ("router", spec.service(router, "router"))]:
-        assert svc.get("restart") == "unless-stopped", name
+        # the logins check runs once per `up`, and again only with the next
+        assert svc.get("restart") == ("no" if name == "logins" else "unless-stopped"), name
         assert svc.get("stop_signal", "SIGTERM") == "SIGTERM", name
     grace = spec.seconds(spec.service(compose, "machine")["stop_grace_period"])
     # Outputs go safe at once; the grace period must outlast the bounded Zenoh close after it.
