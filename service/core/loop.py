@@ -146,12 +146,13 @@ class ScanLoop:
 
     # ------------------------------------------------------------------------------ cycle
     def step(self, now: float) -> None:
-        """One scan cycle, in the design's order (the runner sleeps to the next deadline)."""
+        """One scan cycle, in the design's order (6., the sleep to the next deadline, is the
+        runner's)."""
         self.cycle = self.recorder.cycle = self.cycle + 1
         if self.live.offered is not self.live.current:
             self.live.take()  # online parameter writes take effect here, between cycles
         inputs = self.image.inputs = self.hal.scan_inputs()  # 1. the inputs
-        if self._quiet(inputs, now):  # nothing the cycle reads has changed (quiet cycles)
+        if self._rest is not None and self._quiet(self._rest, inputs, now):  # see quiet cycles
             return
         self._take_watchdog_trip(now)
         if self.devices.safety.is_estop_active():  # 2. E-stop, in the cycle it is seen
@@ -208,18 +209,18 @@ class ScanLoop:
     # history's compare and the publication work, whose results it knows (nothing). Anything
     # else runs the full cycle, which is the one definition of what a cycle does.
 
-    def _quiet(self, inputs: Inputs, now: float) -> bool:
-        """The cycle done here (True) when it reads nothing a full cycle at rest did not: the
-        same inputs, no command or task since, nothing queued, no output on, no latch, the
-        same parameters, the status heartbeat not due. Then the deadman runs, and if it did
-        not act the outputs are written; if it acted, the rest of a full cycle runs."""
-        rest, self._rest = self._rest, None
+    def _quiet(self, rest: _Rest, inputs: Inputs, now: float) -> bool:
+        """After a full cycle that left the machine at `rest`: this cycle done here (True)
+        when it reads nothing that one did not: the same inputs, no command or task since,
+        nothing queued, no output on, no latch, the same parameters, the status heartbeat not
+        due. Then the deadman runs, and if it did not act the outputs are written; if it
+        acted, the rest of a full cycle runs."""
+        self._rest = None  # until this cycle is found quiet
         guard = self.guard
         # Written out here, where every idle cycle runs it: after a 10 ms sleep each Python
         # call costs microseconds of cold caches (BENCHMARKS.md section 5).
         if (
-            rest is None
-            or inputs.di != rest.di
+            inputs.di != rest.di
             or inputs.ai != rest.ai
             or now >= self.publisher.status_due  # the status heartbeat is a full cycle
             or self.commands_handled != rest.commands
@@ -244,9 +245,8 @@ class ScanLoop:
             machine.update(now)  # the deadman acted: the rest of a full cycle
             self._write_and_publish(now)
             return True
-        self._rest = (
-            rest  # quiet: what a full cycle does at rest, without the work that finds nothing
-        )
+        # Quiet: what a full cycle does at rest, without the work that finds nothing.
+        self._rest = rest
         self._write()
         self.axes.tick(now)
         self.quiet += 1
