@@ -13,6 +13,7 @@ from tests.procs import REPO
 CALLER = """
 from typing import assert_type
 
+from common.event_summary import EventSummary
 from rider.client import AsyncRider, Listing, MachineInfo, Subscription, Update
 from rider.pinning import Holders
 from schema.axes import AxisRecord
@@ -20,7 +21,7 @@ from schema.calibration import CalibrationRecord
 from schema.commands import CheckResult, Command, Reply
 from schema.completion import Completion
 from schema.diag import CycleDiag
-from schema.events import Event, EventPage, EventQuery, EventSummary
+from schema.events import Event, EventPage, EventQuery
 from schema.findings import Findings
 from schema.io import IoValue
 from schema.params import ParamValue
