@@ -141,7 +141,7 @@ class ScanLoop:
 
     @property
     def published(self) -> Published:
-        """The latest records, one immutable value (`LoopPort.snapshot`)."""
+        """The latest records, one immutable value (`LoopPort.published`)."""
         return self.publisher.published
 
     # ------------------------------------------------------------------------------ cycle
