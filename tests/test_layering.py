@@ -189,6 +189,45 @@ def test_no_import_cycle_between_sub_packages(package: str) -> None:
     assert _cycle(subpackage_graph(package)) is None
 
 
+def module_of(name: str) -> Path | None:
+    """The file of ours that importing `name` runs last (a module, or a package's
+    __init__.py), or None when `name` is not ours or names a class or function in one."""
+    path = REPO.joinpath(*name.split("."))
+    for found in (path.with_suffix(".py"), path / "__init__.py"):
+        if name.split(".", 1)[0] in PACKAGES and found.is_file():
+            return found
+    return None
+
+
+def module_graph() -> dict[str, set[str]]:
+    """Edges between our modules (files): every import counts, at the top, in a function or
+    under TYPE_CHECKING, since each ties the two files' designs together. A module's own
+    packages (the __init__.py of each folder it sits in) are no edge: Python runs them before
+    the module whatever it imports, and `from package import sibling` names one of them."""
+    graph: dict[str, set[str]] = {}
+    for path in modules():
+        targets = {module_of(name) for name, _ in imports(path)} - {None, path}
+        own = {folder / "__init__.py" for folder in path.parents}
+        graph[rel(path)] = {rel(t) for t in targets if t is not None and t not in own}
+    return graph
+
+
+def test_no_import_cycle_between_modules() -> None:
+    """No two files of the product import each other, however far round (issue 54)."""
+    assert _cycle(module_graph()) is None
+
+
+def test_the_module_graph_has_the_arrows_the_code_has() -> None:
+    """The edges name real files (the CLI's config loading among them), and no module is
+    drawn importing its own folder's face."""
+    graph = module_graph()
+    assert all((REPO / target).is_file() for targets in graph.values() for target in targets)
+    assert "service/config/load.py" in graph["service/cli.py"]
+    assert (
+        "service/core/statemachine/__init__.py" not in graph["service/core/statemachine/machine.py"]
+    )
+
+
 def test_the_cycle_check_finds_a_cycle() -> None:
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert _cycle({"a": {"b"}, "b": set()}) is None
