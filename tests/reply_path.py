@@ -73,9 +73,9 @@ class PathTracer:
     def _zenoh_call(self, frame: FrameType, function: object) -> None:
         """The query goes out, or the reply: a hand-off."""
         owner = getattr(function, "__self__", None)
-        if isinstance(owner, zenoh.Session | zenoh.Query):
-            if getattr(function, "__name__", "") in ("get", "reply"):
-                self._stack(frame)
+        sends = getattr(function, "__name__", "") in ("get", "reply")
+        if sends and isinstance(owner, zenoh.Session | zenoh.Query):
+            self._stack(frame)
 
     def _hop(self, frame: FrameType) -> None:
         """`frame` is on the path if the command travels in its arguments."""
