@@ -74,7 +74,9 @@ def write_all(out: Any, data: bytes) -> None:
 
 def messages(fd: int) -> Iterator[tuple[Any, ...]]:
     """Each message read from `fd`, until the other end closes it."""
-    unpacker = msgpack.Unpacker(raw=False, use_list=False)
+    # Its buffer sized to a read (it grows for a longer message): msgpack's default, 1 MiB,
+    # ended up resident on both sides of the pipe as messages went through it.
+    unpacker = msgpack.Unpacker(raw=False, use_list=False, read_size=READ_BYTES)
     while data := os.read(fd, READ_BYTES):
         unpacker.feed(data)
         yield from unpacker
