@@ -50,7 +50,7 @@ from rider.ui.guard import HostGuard
 from rider.ui.guard import error as _error
 from rider.ui.hosts import BadHostRule, HostPolicy, HostRule, parse_rule
 from rider.ui.hub import Hub
-from rider.ui.view import HISTORY_S, SAMPLE_PERIOD_S, Event, LiveView, Update
+from rider.ui.view import HISTORY_S, SAMPLE_PERIOD_S, LiveView, Push, Update
 from schema.base import WireModel
 from schema.codec import DecodeError, Format, decode_raw, validate
 from schema.commands import Command, Reply, Session
@@ -177,7 +177,7 @@ async def events(request: Request) -> Response:
                 try:
                     event = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
                 except TimeoutError:
-                    event = Event("tick", {"now": time.time(), "link": ui.view.link.up})
+                    event = Push("tick", {"now": time.time(), "link": ui.view.link.up})
                 if event is None:
                     return
                 yield _sse(event.kind, event.data)

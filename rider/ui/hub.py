@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from rider.ui.view import Event
+from rider.ui.view import Push
 
 QUEUE_CAPACITY = 512
 
@@ -16,26 +16,26 @@ class Hub:
 
     def __init__(self, capacity: int = QUEUE_CAPACITY) -> None:
         self.capacity = capacity
-        self._subs: set[asyncio.Queue[Event | None]] = set()
+        self._subs: set[asyncio.Queue[Push | None]] = set()
         self.closed = False
         self.dropped = 0
 
     def __len__(self) -> int:
         return len(self._subs)
 
-    def subscribe(self) -> asyncio.Queue[Event | None]:
+    def subscribe(self) -> asyncio.Queue[Push | None]:
         """A queue of events; `None` means the stream is over."""
-        q: asyncio.Queue[Event | None] = asyncio.Queue(self.capacity + 1)
+        q: asyncio.Queue[Push | None] = asyncio.Queue(self.capacity + 1)
         if self.closed:
             q.put_nowait(None)
         else:
             self._subs.add(q)
         return q
 
-    def unsubscribe(self, q: asyncio.Queue[Event | None]) -> None:
+    def unsubscribe(self, q: asyncio.Queue[Push | None]) -> None:
         self._subs.discard(q)
 
-    def publish(self, event: Event) -> None:
+    def publish(self, event: Push) -> None:
         for q in list(self._subs):
             if q.qsize() >= self.capacity:
                 self._end(q)
@@ -49,7 +49,7 @@ class Hub:
         for q in list(self._subs):
             self._end(q)
 
-    def _end(self, q: asyncio.Queue[Event | None]) -> None:
+    def _end(self, q: asyncio.Queue[Push | None]) -> None:
         self._subs.discard(q)
         while not q.empty():
             with contextlib.suppress(asyncio.QueueEmpty):

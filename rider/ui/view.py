@@ -1,7 +1,7 @@
 """`LiveView`: what the operator page shows, kept up to date from machine updates.
 
 Pure logic: no Zenoh, no asyncio, no clock reads; time comes in as arguments. Every change
-becomes an `Event` for the browsers; a browser that (re)connects starts from `snapshot()`.
+becomes a `Push` for the browsers; a browser that (re)connects starts from `snapshot()`.
 """
 
 from __future__ import annotations
@@ -69,8 +69,9 @@ Update = (
 
 
 @dataclass(frozen=True, slots=True)
-class Event:
-    """One message to every browser: a type and a JSON-ready body."""
+class Push:
+    """One message pushed to every browser (an event of the page's stream): a type and a
+    JSON-ready body. Not the machine's history `Event` (schema.events)."""
 
     kind: str
     data: Any
@@ -117,32 +118,32 @@ class LiveView:
         return lost_after(self.heartbeat_s)
 
     # ------------------------------------------------------------------------------ input
-    def apply(self, update: Update, now: float) -> list[Event]:
+    def apply(self, update: Update, now: float) -> list[Push]:
         """Take one update (at monotonic `now`); return the events to send at once."""
-        events: list[Event] = []
+        events: list[Push] = []
         if isinstance(update, Status):
             self.status = update
             self._status_at = now
             self.heartbeat_s = update.heartbeat_s or DEFAULT_HEARTBEAT_S  # None: an older machine
             self._alive = True  # a fresh status proves the machine is there
-            events.append(Event("status", shown(update).model_dump(mode="json")))
+            events.append(Push("status", shown(update).model_dump(mode="json")))
         elif isinstance(update, IoValue):
             self.io[update.name] = update
             if update.kind is IoKind.AI:
                 self._pending_ai[update.name] = update  # analog changes batch to the next tick
             else:
-                events.append(Event("io", [update.model_dump(mode="json")]))
+                events.append(Push("io", [update.model_dump(mode="json")]))
         elif isinstance(update, AxisRecord):
             self.axes[update.axis] = update
         elif isinstance(update, CycleDiag):
             self.diag = update
-            events.append(Event("diag", update.model_dump(mode="json")))
+            events.append(Push("diag", update.model_dump(mode="json")))
         elif isinstance(update, CalibrationRecord):
             self.calibration = update
-            events.append(Event("calibration", update.model_dump(mode="json")))
+            events.append(Push("calibration", update.model_dump(mode="json")))
         elif isinstance(update, Completion):
             # The page that sent the command waits for its own transaction's notice.
-            events.append(Event("done", update.model_dump(mode="json")))
+            events.append(Push("done", update.model_dump(mode="json")))
         elif isinstance(update, Presence):
             self._alive = update.alive
         elif isinstance(update, Note):
@@ -153,19 +154,19 @@ class LiveView:
         events += self._relink(now)
         return events
 
-    def tick(self, now: float, wall: float) -> list[Event]:
+    def tick(self, now: float, wall: float) -> list[Push]:
         """Called every sample period: link timeout, batched analog IO, one plot sample."""
         events = self._relink(now)
         if self._pending_ai:
             events.append(
-                Event("io", [p.model_dump(mode="json") for p in self._pending_ai.values()])
+                Push("io", [p.model_dump(mode="json") for p in self._pending_ai.values()])
             )
             self._pending_ai.clear()
         if self.link.up and now >= self._next_sample:
             self._next_sample = now + self.sample_period_s * 0.5
             sample = self.sample(wall)
             self.history.append(sample)
-            events.append(Event("sample", sample))
+            events.append(Push("sample", sample))
         return events
 
     # ----------------------------------------------------------------------------- output
@@ -204,12 +205,12 @@ class LiveView:
             return round(record.position_fb, 2)
         return from_status
 
-    def _relink(self, now: float) -> list[Event]:
+    def _relink(self, now: float) -> list[Push]:
         up, reason = self._judge(now)
         if up == self.link.up and reason == self.link.reason:
             return []
         self.link = Link(up, reason)
-        return [Event("link", self.link.as_json(self.machine_id))]
+        return [Push("link", self.link.as_json(self.machine_id))]
 
     def _judge(self, now: float) -> tuple[bool, str]:
         name = f"machine {self.machine_id}" if self.machine_id else "the machine"

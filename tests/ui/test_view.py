@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from rider.ui.view import LOST_AFTER_S, Event, LiveView, MachineFound, Note, Presence, lost_after
+from rider.ui.view import LOST_AFTER_S, LiveView, MachineFound, Note, Presence, Push, lost_after
 from schema.axes import AxisRecord, PnStatus
 from schema.diag import CycleDiag, TimingStats
 from schema.io import IoKind, IoValue
@@ -37,7 +37,7 @@ def io(name: str, kind: IoKind, value: bool | int) -> IoValue:
     return IoValue(name=name, kind=kind, channel="X", value=value, time=WALL)
 
 
-def kinds(events: list[Event]) -> list[str]:
+def kinds(events: list[Push]) -> list[str]:
     return [e.kind for e in events]
 
 
