@@ -35,7 +35,7 @@ from schema.sim import SIM_REQUESTS
 from schema.status import MachineState
 from tests.integration import rider_proc
 from tests.integration.support import raw_get
-from tests.procs import REPO, Daemon, free_port, stop_process
+from tests.procs import REPO, Daemon, free_port, rider_cmd, stop_process
 from tests.reliability.forger import FORGED_SEQ
 from tests.reliability.support import (
     ACL_PROFILE,
@@ -310,7 +310,7 @@ def test_rider_watch_sees_no_forged_status(machine: Daemon, ids: Identities, who
     """The real CLI, on Zenoh's defaults, while a forger publishes on machine/m1/status."""
     env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
     env.update(ids.env(RIDER, "rider"))
-    cmd = [sys.executable, "-m", "rider.cli", "--connect", machine.endpoint, "--machine", "m1"]
+    cmd = rider_cmd("--connect", machine.endpoint, "--machine", "m1")
     cmd += ["--json", "watch", "--keys", "status", "--for", "2"]
     with forger(machine, ids.env(RIDER, who), *FORGED_MACHINE):
         done = subprocess.run(
@@ -390,7 +390,7 @@ def test_a_refused_login_says_authentication_refused(
     env.update(ids.env(RIDER, "rider", ids.wrong_password))
     args = ["--connect", machine.endpoint, "--zenoh-config", str(machine.zenoh_config)]
     done = subprocess.run(
-        [sys.executable, "-m", "rider.cli", *args, "--timeout", "1", *command],
+        rider_cmd(*args, "--timeout", "1", *command),
         check=False, capture_output=True, text=True, timeout=60, cwd=REPO, env=env,
     )  # fmt: skip
     said = done.stderr + done.stdout
@@ -406,7 +406,7 @@ def test_a_rider_without_a_login_is_not_told_its_login_was_refused(machine: Daem
     env = {k: v for k, v in os.environ.items() if k not in RIDER_VARIABLES}
     args = ["--connect", machine.endpoint, "--zenoh-config", str(machine.zenoh_config)]
     done = subprocess.run(
-        [sys.executable, "-m", "rider.cli", *args, "--timeout", "1", "status"],
+        rider_cmd(*args, "--timeout", "1", "status"),
         check=False, capture_output=True, text=True, timeout=60, cwd=REPO, env=env,
     )  # fmt: skip
     said = done.stderr + done.stdout
@@ -418,7 +418,7 @@ def test_a_rider_without_a_login_is_not_told_its_login_was_refused(machine: Daem
 def test_nothing_listening_is_not_called_a_refused_login() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     done = subprocess.run(
-        [sys.executable, "-m", "rider.cli", "--connect", endpoint, "--timeout", "1", "status"],
+        rider_cmd("--connect", endpoint, "--timeout", "1", "status"),
         check=False, capture_output=True, text=True, timeout=60, cwd=REPO,
     )  # fmt: skip
     assert done.returncode == 3, done.stderr
