@@ -14,7 +14,7 @@ from pathlib import Path
 
 from schema.commands import REST_STATES, Command
 from schema.status import MachineState
-from service.core.statemachine.table import HANDLING, TABLE, Event, Rule
+from service.core.statemachine.table import HANDLING, TABLE, Occurrence, Rule
 
 S = MachineState
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").exists())
@@ -85,14 +85,14 @@ def command_table(*, per_row: bool = False) -> str:
 def event_table() -> str:
     lines = ["| event | in | → state | what happens |", "|---|---|---|---|"]
     for rule in TABLE:
-        if isinstance(rule.trigger, Event):
+        if isinstance(rule.trigger, Occurrence):
             where = states(rule.sources) if rule.sources else "—"
             to = states(rule.targets) if rule.targets else "unchanged"
             lines.append(f"| {rule.trigger} | {where} | {to} | {rule.does} |")
     return "\n".join(lines) + "\n"
 
 
-def _label(trigger: Command | Event) -> str:
+def _label(trigger: Command | Occurrence) -> str:
     return trigger.value if isinstance(trigger, Command) else str(trigger)
 
 

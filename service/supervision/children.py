@@ -28,7 +28,7 @@ from service.supervision.procstate import describe, threads
 from service.supervision.restarts import (
     Backoff,
     Child,
-    Event,
+    Happening,
     Kind,
     SupervisorOptions,
     describe_exit,
@@ -47,7 +47,7 @@ class ChildKeeper:
         options: SupervisorOptions,
         files: Path,
         beat: tuple[BeatReader, int],
-        events: queue.SimpleQueue[Event],
+        happenings: queue.SimpleQueue[Happening],
         bus: SupervisorBus,
         force_safe: Callable[[], None],
         world: World | None,
@@ -58,7 +58,7 @@ class ChildKeeper:
         """Where the child's machine.toml and zenoh-child.json5 are."""
         self.beat, self.beat_fd = beat
         """The record the child stamps every cycle, and its descriptor the child inherits."""
-        self.events = events
+        self.happenings = happenings
         self.bus = bus
         self.force_safe = force_safe
         self.world = world
@@ -69,7 +69,7 @@ class ChildKeeper:
         self.backoff = Backoff(options.backoff_s, options.backoff_max_s)
 
     def keep(self) -> int:
-        """Until a `STOP` event (0) or a child that ends with a config error (2)."""
+        """Until a `STOP` happening (0) or a child that ends with a config error (2)."""
         restart_at: float | None = time.monotonic()
         while True:
             now = time.monotonic()
@@ -83,7 +83,7 @@ class ChildKeeper:
             if child is not None and child.up_since is None and not child.down:
                 timeout = min(timeout, max(0.0, child.started + self.options.start_timeout_s - now))
             try:
-                event = self.events.get(timeout=timeout)
+                happening = self.happenings.get(timeout=timeout)
             except queue.Empty:
                 limit = self.options.start_timeout_s
                 if (
@@ -97,18 +97,18 @@ class ChildKeeper:
                 else:
                     self.bus.republish()
                 continue
-            if event.kind is Kind.STOP:
+            if happening.kind is Kind.STOP:
                 return EXIT_OK
-            if event.kind is Kind.PRESENCE:
-                restart_at = self._presence(event.present) or restart_at
+            if happening.kind is Kind.PRESENCE:
+                restart_at = self._presence(happening.present) or restart_at
                 continue
-            if event.kind is Kind.HUNG:
-                restart_at = self._hung(event.stall) or restart_at
+            if happening.kind is Kind.HUNG:
+                restart_at = self._hung(happening.stall) or restart_at
                 continue
-            if child is None or event.generation != child.generation or child.down:
+            if child is None or happening.generation != child.generation or child.down:
                 continue  # an exit we already handled (a child we killed as frozen)
-            self._went_down(child, describe_exit(event.code))
-            if event.code == EXIT_CONFIG:
+            self._went_down(child, describe_exit(happening.code))
+            if happening.code == EXIT_CONFIG:
                 log.error("event=child_config_error detail=%r", "not restarting a config error")
                 return EXIT_CONFIG
             restart_at = self._schedule(child)
@@ -245,4 +245,4 @@ class ChildKeeper:
 
     def _reap(self, child: Child) -> None:
         code = child.proc.wait()
-        self.events.put(Event(Kind.EXITED, child.generation, code=code))
+        self.happenings.put(Happening(Kind.EXITED, child.generation, code=code))

@@ -70,7 +70,7 @@ class Kind(Enum):
 
 
 @dataclass(frozen=True)
-class Event:
+class Happening:
     """One thing for the supervisor's loop, queued from the thread that saw it."""
 
     kind: Kind

@@ -45,7 +45,7 @@ from service.supervision.field import SafeOutputs, open_field
 from service.supervision.malloc import bound_malloc_arenas
 from service.supervision.outcome import EXIT_CONFIG, EXIT_FAILED, EXIT_OK, StartRefused
 from service.supervision.outputguard import OutputGuard, Stall
-from service.supervision.restarts import Event, Kind, SupervisorOptions
+from service.supervision.restarts import Happening, Kind, SupervisorOptions
 from service.supervision.simport import sim_port
 from service.supervision.toml_out import to_toml, write_private
 
@@ -66,7 +66,7 @@ class Supervisor:
         self.zenoh = zenoh
         self.options = options
         self.dir = Path(config.data_dir).resolve() / SUPERVISOR_DIR
-        self.events: queue.SimpleQueue[Event] = queue.SimpleQueue()  # put() is signal-safe
+        self.happenings: queue.SimpleQueue[Happening] = queue.SimpleQueue()  # put() is signal-safe
         self._stop_asked = False
         self.signals_repeated = 0
         self.signals_after: signal.Handlers | None = None
@@ -198,7 +198,7 @@ class Supervisor:
             self.beat,
             self.safe,
             on_trip=self._on_guard_trip,
-            on_hang=lambda stall: self.events.put(Event(Kind.HUNG, stall=stall)),
+            on_hang=lambda stall: self.happenings.put(Happening(Kind.HUNG, stall=stall)),
             hang_s=self.hang_s,
             after_safe=self.world.step_now if self.world is not None else None,
         )
@@ -211,7 +211,7 @@ class Supervisor:
             self.options,
             self.dir,
             (self.beat, self.beat_fd),
-            self.events,
+            self.happenings,
             self.bus,
             self._force_safe,
             self.world,
@@ -251,10 +251,10 @@ class Supervisor:
             return
         self._stop_asked = True
         log.info("event=signal signal=%s", signal.Signals(signum).name)
-        self.events.put(Event(Kind.STOP))
+        self.happenings.put(Happening(Kind.STOP))
 
     def _on_presence(self, present: bool) -> None:
-        self.events.put(Event(Kind.PRESENCE, present=present))
+        self.happenings.put(Happening(Kind.PRESENCE, present=present))
 
 
 def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: SupervisorOptions) -> int:

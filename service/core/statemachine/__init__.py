@@ -15,8 +15,8 @@ from service.core.statemachine.snapshot import Snapshot
 from service.core.statemachine.table import (
     HANDLING,
     TABLE,
-    Event,
     IllegalTransition,
+    Occurrence,
     Rule,
     Transition,
     allowed_states,
@@ -26,8 +26,8 @@ from service.core.statemachine.table import (
 __all__ = [
     "HANDLING",
     "TABLE",
-    "Event",
     "IllegalTransition",
+    "Occurrence",
     "Rule",
     "Snapshot",
     "StateMachine",

@@ -1,6 +1,6 @@
 """The Rider deadman: the controlling Rider (the sender of the last moving command) as the
 machine sees it, judged on its liveliness token and its heartbeats. The watch says what it
-found; the state machine applies `rider_loss.policy` through the table's `Event.RIDER_LOST`
+found; the state machine applies `rider_loss.policy` through the table's `Occurrence.RIDER_LOST`
 row (pause → PAUSED, stop → DONE).
 """
 

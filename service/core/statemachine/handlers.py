@@ -25,7 +25,7 @@ from service.core.motion import Chain, Controller
 from service.core.statemachine.calibration import COMPLETE, CalibrationKeeper
 from service.core.statemachine.context import Ending, MotionContext, OnDone, Plan
 from service.core.statemachine.guards import Facts, start_checks
-from service.core.statemachine.table import Event, Trigger
+from service.core.statemachine.table import Occurrence, Trigger
 from service.errors import InvalidSession, MachineError, NotCalibrated, NotHome
 
 S = MachineState
@@ -96,7 +96,7 @@ def _calibrated(m: Machine, done: bool, now: float) -> Ending | None:
     """A calibration in use: its motion is done now, or once its write ends (`SAVED`)."""
     if not done:
         return None
-    m.go(Event.MOTION_DONE, now, COMPLETE)
+    m.go(Occurrence.MOTION_DONE, now, COMPLETE)
     return Ending(Outcome.DONE, COMPLETE)
 
 
@@ -105,7 +105,7 @@ def home(m: Machine, facts: Facts) -> Plan:
 
     def homed(at: float) -> Ending:
         m.keeper.homed_both()
-        m.go(Event.MOTION_DONE, at, "Home complete")
+        m.go(Occurrence.MOTION_DONE, at, "Home complete")
         return Ending(Outcome.DONE, "Home complete")
 
     return Plan(C.HOME, chain, homed)
@@ -160,7 +160,7 @@ def _refused(target: MachineState, facts: Facts) -> Refusal:
 
 def _session_done(m: Machine) -> OnDone:
     def done(now: float) -> Ending:
-        m.go(Event.MOTION_DONE, now, "session complete")
+        m.go(Occurrence.MOTION_DONE, now, "session complete")
         return Ending(Outcome.DONE, "session complete")
 
     return done

@@ -43,8 +43,8 @@ from service.core.statemachine.table import (
     ONLY,
     POWER_UP,
     ROWS,
-    Event,
     IllegalTransition,
+    Occurrence,
     Transition,
     Trigger,
 )
@@ -108,7 +108,7 @@ class StateMachine:
         """Calls that may have changed the machine (`acts`): the quiet cycles compare it."""
         self.state = choose(POWER_UP, self.facts())  # never assumed home
         if self.state not in POWER_UP.targets:
-            raise IllegalTransition(Event.POWER_UP, None, self.state)
+            raise IllegalTransition(Occurrence.POWER_UP, None, self.state)
         devices.stop_all()
 
     # ------------------------------------------------------------------------ the table
@@ -260,12 +260,12 @@ class StateMachine:
         fault: Fault,
         now: float,
         why: str | None = None,
-        trigger: Trigger = Event.FAULT,
+        trigger: Trigger = Occurrence.FAULT,
         *,
         moved: bool = True,
     ) -> None:
         """`FAULT_HW`: raised outside the controllers (watchdog, supervisor, loop exception),
-        or by a motion (`Event.MOTION_FAULT`). The axes' references are lost unless nothing
+        or by a motion (`Occurrence.MOTION_FAULT`). The axes' references are lost unless nothing
         moved (`moved=False`: a Start refused for its session before any motion began)."""
         self.context.clear()  # a still-pressed E-stop latches again next cycle
         self.fault = fault
@@ -287,7 +287,7 @@ class StateMachine:
         latched = self.state is S.FAULT_ESTOP
         self.context.estop(None if latched else self.state)
         if not latched:
-            self.go(Event.ESTOP, now, "E-stop pressed")
+            self.go(Occurrence.ESTOP, now, "E-stop pressed")
 
     @acts
     def update(self, now: float) -> None:
@@ -304,7 +304,7 @@ class StateMachine:
             if step is Step.FAULT:
                 assert ctl.fault is not None
                 why = f"{motion.command.value if motion else 'motion'} failed"
-                self.external_fault(ctl.fault, now, why, Event.MOTION_FAULT)
+                self.external_fault(ctl.fault, now, why, Occurrence.MOTION_FAULT)
                 return
             assert motion is not None, "a controller runs only as part of a motion"
             context.drive.controller = None
@@ -315,7 +315,7 @@ class StateMachine:
         if self.keeper.written():
             saved = self.keeper.saved()
             if self.state is S.CALIBRATING and context.drive.controller is None:
-                self.go(Event.SAVED, now, saved.why)
+                self.go(Occurrence.SAVED, now, saved.why)
             if context.action is not None and context.action is saved.motion:
                 context.end(saved.ending, self.state, now + self.wall_offset)
 
@@ -327,7 +327,7 @@ class StateMachine:
         wall = now + self.wall_offset
         ticket = self.keeper.entered(values, self.live.current, wall, self.state, busy)
         if self.state in REST_STATES and self.state is not S.DONE:
-            self.go(Event.CALIBRATION_ENTERED, now, "calibration entered by hand")
+            self.go(Occurrence.CALIBRATION_ENTERED, now, "calibration entered by hand")
         return ticket
 
     @acts
@@ -382,10 +382,10 @@ class StateMachine:
         """The watch judged the Rider lost: the policy, now; True if it paused or stopped."""
         if not self.watch.loss(self.state, self.live.current.rider_loss.policy):
             return False
-        if self.target(Event.RIDER_LOST) is S.PAUSED:
-            self.pause(now, "Rider lost", Event.RIDER_LOST)
+        if self.target(Occurrence.RIDER_LOST) is S.PAUSED:
+            self.pause(now, "Rider lost", Occurrence.RIDER_LOST)
         else:
-            self.stop(now, "Rider lost", "RIDER_LOST", Event.RIDER_LOST)
+            self.stop(now, "Rider lost", "RIDER_LOST", Occurrence.RIDER_LOST)
         return True
 
     # -------------------------------------------------------- what the loop reads of it

@@ -19,7 +19,7 @@ from schema.status import MOTION_STATES, MachineState
 S = MachineState
 
 
-class Event(StrEnum):
+class Occurrence(StrEnum):
     """What changes the state besides a command: the table's rows that no Rider sends."""
 
     POWER_UP = "power-up"
@@ -32,7 +32,7 @@ class Event(StrEnum):
     CALIBRATION_ENTERED = "calibration entered"
 
 
-Trigger = Command | Event
+Trigger = Command | Occurrence
 
 
 class Pick(Enum):
@@ -95,7 +95,7 @@ class IllegalTransition(RuntimeError):
 _ANY = frozenset(S)
 _REST = (S.IDLE, S.WARNING_NOT_HOME, S.WARNING_NEEDS_CALIBRATION)
 """The rest state, in the order it is chosen: IDLE when calibrated and home, else the warning."""
-_C, _R, _E = Command, ReplyCode, Event
+_C, _R, _E = Command, ReplyCode, Occurrence
 
 
 def _to_rest(
@@ -262,12 +262,12 @@ def _index() -> dict[tuple[Trigger, MachineState], Rule]:
 
 ROWS = _index()
 """`(trigger, state) → Rule`: what the machine does, looked up in one step."""
-POWER_UP = next(r for r in TABLE if r.trigger is Event.POWER_UP)
+POWER_UP = next(r for r in TABLE if r.trigger is Occurrence.POWER_UP)
 """The row the machine starts by (it has no source state)."""
 
 ONLY: dict[Trigger, MachineState] = {
     trigger: targets.pop()
-    for trigger in (*Command, *Event)
+    for trigger in (*Command, *Occurrence)
     if len(targets := {t for r in TABLE if r.trigger is trigger for t in r.targets}) == 1
 }
 """Triggers that lead to one state only (E-stop, a fault): met there already, they change

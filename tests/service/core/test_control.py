@@ -11,7 +11,7 @@ from schema.commands import ALLOWED_STATES, CheckResult, Command, ReplyCode
 from schema.errors import ErrorCode
 from schema.status import MOTION_STATES, MachineState
 from service.config.model import MachineConfig
-from service.core.statemachine import HANDLING, TABLE, Event, allowed_states, edges
+from service.core.statemachine import HANDLING, TABLE, Occurrence, allowed_states, edges
 from tests.rig import BAD_SESSION, Rig, known_calibration, rig_in
 
 S = MachineState
@@ -265,7 +265,7 @@ def test_command_in_state(situation: str, command: Command) -> None:
         assert not rig.relays_on()
 
 
-def table_targets(state: MachineState, trigger: Command | Event) -> set[MachineState]:
+def table_targets(state: MachineState, trigger: Command | Occurrence) -> set[MachineState]:
     return {t for r in TABLE if r.trigger is trigger and state in r.sources for t in r.targets}
 
 
@@ -278,7 +278,7 @@ def test_transition_table_agrees_with_allowed_states() -> None:
         assert rows, command
         assert set().union(*(r.sources for r in rows)) == ALLOWED_STATES[command]
         assert allowed_states(command) == ALLOWED_STATES[command]
-    assert {r.trigger for r in TABLE if isinstance(r.trigger, Event)} == set(Event)
+    assert {r.trigger for r in TABLE if isinstance(r.trigger, Occurrence)} == set(Occurrence)
 
 
 def test_transitions_seen_on_a_whole_ride_are_in_the_table() -> None:

@@ -9,7 +9,7 @@ import pytest
 from schema.commands import Command
 from schema.status import MachineState
 from service.core import control_doc
-from service.core.statemachine import Event
+from service.core.statemachine import Occurrence
 
 
 def test_readme_and_states_page_match_the_transition_table() -> None:
@@ -45,5 +45,5 @@ def test_generated_docs_name_every_state_command_and_event() -> None:
     for command in Command:
         assert f"`{command.key}`" in control_doc.command_table()
         assert command.value in diagram
-    for event in Event:
+    for event in Occurrence:
         assert f"| {event} |" in page

@@ -7,7 +7,7 @@ import pytest
 
 from schema.commands import Command
 from schema.status import MachineState
-from service.core.statemachine import TABLE, Event, IllegalTransition
+from service.core.statemachine import TABLE, IllegalTransition, Occurrence
 from service.core.statemachine.guards import PICKS
 from service.core.statemachine.table import Pick
 from tests.rig import rig_in
@@ -17,7 +17,7 @@ C = Command
 
 
 def test_each_trigger_has_one_row_per_state_and_a_pick_where_it_has_several_targets() -> None:
-    seen: set[tuple[Command | Event, MachineState]] = set()
+    seen: set[tuple[Command | Occurrence, MachineState]] = set()
     for rule in TABLE:
         assert (len(rule.targets) > 1) is (rule.pick is not None), rule
         for state in rule.sources:
@@ -29,11 +29,11 @@ def test_a_state_change_the_table_does_not_have_is_refused_at_run_time() -> None
     rig = rig_in(S.IDLE)
     transitions = len(rig.transitions)
     with pytest.raises(IllegalTransition, match="motion done: IDLE → RUNNING"):
-        rig.control.enter(Event.MOTION_DONE, S.RUNNING, rig.clock(), "no such row in IDLE")
+        rig.control.enter(Occurrence.MOTION_DONE, S.RUNNING, rig.clock(), "no such row in IDLE")
     with pytest.raises(IllegalTransition, match="Stop: IDLE → RUNNING"):
         rig.control.enter(C.STOP, S.RUNNING, rig.clock(), "Stop's row leads to DONE only")
     with pytest.raises(IllegalTransition, match="calibration saved: IDLE → None"):
-        rig.control.go(Event.SAVED, rig.clock(), "no calibration is being saved")
+        rig.control.go(Occurrence.SAVED, rig.clock(), "no calibration is being saved")
     assert rig.state is S.IDLE
     assert len(rig.transitions) == transitions
 
