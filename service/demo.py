@@ -37,7 +37,7 @@ class _Demo:
             raise NoBackend(f"the HAL backend {HalBackend.SIM.value!r} simulates nothing")
         self.world = world
         self.machine = Machine(config, self.hal, now=self.clock())
-        self.loop, self.control = self.machine.loop, self.machine.control
+        self.loop, self.state_machine = self.machine.loop, self.machine.state_machine
         self.period = config.loop.period_s
         self.speed, self.max_sim_s = speed, max_sim_s
         self.replies: list[Reply] = []
@@ -63,7 +63,7 @@ class _Demo:
     def run_while(self, busy: set[MachineState]) -> None:
         clock = self.clock
         next_report = clock.t
-        while self.control.state in busy:
+        while self.state_machine.state in busy:
             if clock.t > self.max_sim_s:
                 raise TimeoutError(f"demo did not finish within {self.max_sim_s} simulated seconds")
             clock.t += self.period
@@ -79,7 +79,7 @@ class _Demo:
         log.info(
             "event=progress t=%.1f state=%s tilt_deg=%.1f rotate_deg=%.0f revolutions=%.2f",
             self.clock.t,
-            self.control.state,
+            self.state_machine.state,
             w.tilt_deg,
             w.rotate_deg,
             w.revolutions,
@@ -89,7 +89,7 @@ class _Demo:
 def run_demo(config: MachineConfig, speed: float = 1.0, max_sim_s: float = 300.0) -> int:
     """Calibrate, home and run the default session; `speed` 0 means as fast as possible."""
     demo = _Demo(config, speed, max_sim_s)
-    control, clock = demo.control, demo.clock
+    control, clock = demo.state_machine, demo.clock
     demo.loop.step(clock.t)
     motion = {MachineState.CALIBRATING, MachineState.HOMING, MachineState.RUNNING}
     for command in (Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE, Command.HOME, Command.START):

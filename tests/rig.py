@@ -134,13 +134,13 @@ class Rig:
         """The loop as the bus sees it (a command between cycles, as from a Zenoh callback)."""
         self.loop.quiet_cycles = quiet_cycles
         self.loop.verify_quiet = True  # each quiet cycle checked against a fresh snapshot
-        self.control = self.machine.control
+        self.state_machine = self.machine.state_machine
         self.replies: list[Reply] = []
         self.step()
 
     @property
     def state(self) -> MachineState:
-        return self.control.state
+        return self.state_machine.state
 
     def step(self, n: int = 1) -> None:
         for _ in range(n):
@@ -198,12 +198,12 @@ class Rig:
         for cmd in (Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE):
             assert self.send(cmd).success
             self.run_until(lambda: self.state is not MachineState.CALIBRATING)
-        assert self.control.calibration.complete, self.state
+        assert self.state_machine.calibration.complete, self.state
 
     def home(self) -> None:
         assert self.send(Command.HOME).success
         self.run_to_state(MachineState.IDLE, MachineState.FAULT_HW, MachineState.WARNING_NOT_HOME)
-        assert self.state is MachineState.IDLE, self.control.fault
+        assert self.state is MachineState.IDLE, self.state_machine.fault
 
     def ready(self) -> Rig:
         """Calibrated and homed: IDLE, ready to Start."""
@@ -217,7 +217,7 @@ def known_calibration() -> Calibration:
     """What a real calibration run on the default simulator finds (run once per test session)."""
     rig = Rig()
     rig.calibrate()
-    return rig.control.calibration
+    return rig.state_machine.calibration
 
 
 BAD_SESSION = Session(name="too-steep", steps=[TiltStep(degrees=80.0)])
@@ -265,5 +265,5 @@ def rig_in(state: MachineState, *, estop_held: bool = True) -> Rig:
         assert rig.send(Command.START).success
         rig.run_to_state(S.FAULT_HW)
         rig.hal.clear_faults()
-    assert rig.state is state, (state, rig.state, rig.control.fault)
+    assert rig.state is state, (state, rig.state, rig.state_machine.fault)
     return rig

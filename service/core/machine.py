@@ -62,7 +62,7 @@ class Machine:
             wall_offset=wall_offset,
             persisted=store is not None,
         )
-        self.control = StateMachine(
+        self.state_machine = StateMachine(
             devices=self.devices,
             live=self.live,
             calibration=calibration,
@@ -74,7 +74,7 @@ class Machine:
         )
         self.loop = ScanLoop(
             hal,
-            self.control,
+            self.state_machine,
             self.recorder,
             sink=sink,
             started_at=now,

@@ -246,11 +246,11 @@ class RevPiRide:
         self.hal = RevPiHal(iomap, self.image, configrsc)
         self.machine = Machine(self.config, self.hal, now=self.clock(), on_transition=None)
         self.loop = self.machine.loop
-        self.control = self.machine.control
+        self.state_machine = self.machine.state_machine
 
     @property
     def state(self) -> MachineState:
-        return self.control.state
+        return self.state_machine.state
 
     def step(self) -> None:
         self.clock.advance(self.period)
@@ -295,9 +295,9 @@ def test_full_session_through_the_process_image(ride: RevPiRide) -> None:
     assert ride.state is not MachineState.FAULT_ESTOP  # the sim wrote a released E-stop
     _finish(ride, Command.CALIBRATE_TILT, MachineState.CALIBRATING)
     _finish(ride, Command.CALIBRATE_ROTATE, MachineState.CALIBRATING)
-    assert ride.control.calibration.complete, ride.state
+    assert ride.state_machine.calibration.complete, ride.state
     _finish(ride, Command.HOME, MachineState.HOMING)
-    assert ride.state is MachineState.IDLE, ride.control.fault
+    assert ride.state is MachineState.IDLE, ride.state_machine.fault
     revs_before = ride.sim.world.revolutions
     assert ride.send(Command.START).success
     seen_on: set[str] = set()
@@ -307,7 +307,7 @@ def test_full_session_through_the_process_image(ride: RevPiRide) -> None:
         return ride.state in (MachineState.DONE, MachineState.FAULT_HW)
 
     ride.run_until(done)
-    assert ride.state is MachineState.DONE, ride.control.fault
+    assert ride.state is MachineState.DONE, ride.state_machine.fault
     # The default session (tilt to 45°, three revolutions CW) happened in the physics.
     assert ride.sim.world.tilt_deg == pytest.approx(45.0, abs=ride.config.tilt.tolerance_deg)
     assert ride.sim.world.revolutions - revs_before == pytest.approx(3.0, abs=0.1)
@@ -326,8 +326,8 @@ def test_a_seat_below_its_switch_calibrates_to_the_true_zero_through_the_image(
         ride.step()
         assert ride.sim.world.tilt_switch.closed
         _finish(ride, Command.CALIBRATE_TILT, MachineState.CALIBRATING)
-        tilt = ride.control.calibration.tilt
-        assert tilt is not None, ride.control.fault
+        tilt = ride.state_machine.calibration.tilt
+        assert tilt is not None, ride.state_machine.fault
         p = ride.config.hal.sim
         assert abs(tilt.offset_counts - p.ai_offset_counts) / p.ai_gain_counts_per_deg <= 0.25
     finally:

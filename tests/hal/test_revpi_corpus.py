@@ -197,7 +197,7 @@ def test_a_compact_runs_a_whole_session_on_bits_of_its_bytes(tmp_path: Path) -> 
         ride.run_until(lambda: ride.state is not MachineState.HOMING)
         assert ride.send(Command.START).success
         ride.run_until(lambda: ride.state in (MachineState.DONE, MachineState.FAULT_HW))
-        assert ride.state is MachineState.DONE, ride.control.fault
+        assert ride.state is MachineState.DONE, ride.state_machine.fault
         assert ride.sim.world.tilt_deg == pytest.approx(45.0, abs=ride.config.tilt.tolerance_deg)
         assert Path(ride.image).read_bytes()[lamp[0]] == 1 << 6  # relays off, the lamp still on
     finally:

@@ -159,7 +159,7 @@ def test_a_session_on_a_stalling_host_turns_exactly_its_revolutions() -> None:
     for _ in range(20_000):
         if rig.state is not MachineState.RUNNING:
             break
-        revs = rig.control.motion()
+        revs = rig.state_machine.motion()
         counting = isinstance(revs, RotateRevolutions) and revs.final is None
         finals += isinstance(revs, RotateRevolutions) and revs.final is not None
         approaching = (
@@ -169,7 +169,7 @@ def test_a_session_on_a_stalling_host_turns_exactly_its_revolutions() -> None:
         rig.clock.advance(0.3 if approaching else rig.period)
         rig.loop.step(rig.clock())
     assert stalls >= 3
-    assert rig.state is MachineState.DONE, rig.control.fault
+    assert rig.state is MachineState.DONE, rig.state_machine.fault
     assert finals > 0
     assert rig.hal.world.revolutions - start == pytest.approx(3.0, abs=0.02)
     angle = rig.loop.axes.rotate.angle

@@ -93,7 +93,9 @@ def test_rotate_tracks_the_world_through_a_whole_session() -> None:
 def test_rotate_tracks_across_pause_and_resume() -> None:
     rig = homed_rig()
     assert rig.send(Command.START).success
-    run_checking(rig, lambda: rig.control.motion() is not None and rig.loop.axes.rotate.turns > 0.4)
+    run_checking(
+        rig, lambda: rig.state_machine.motion() is not None and rig.loop.axes.rotate.turns > 0.4
+    )
     assert rig.send(Command.PAUSE).success
     rig.step(50)
     rec = latest(rig, "rotate")
@@ -244,13 +246,13 @@ def test_a_calibration_entered_at_rest_republishes_the_tilt_record() -> None:
     rig = homed_rig()
     rig.step(200)  # long at rest: quiet cycles
     before = latest(rig, "tilt")
-    cal = rig.control.calibration.tilt
+    cal = rig.state_machine.calibration.tilt
     assert cal is not None
     entered = CalibrationSet(
         transaction_id="c1",
         tilt=TiltCalibrationSet(offset_counts=cal.offset_counts + 6, gain_counts_per_deg=40.0),
     )
-    rig.control.enter_calibration(entered, rig.clock())
+    rig.state_machine.enter_calibration(entered, rig.clock())
     rig.step()
     after = latest(rig, "tilt")
     status = rig.loop.published.status
@@ -266,13 +268,13 @@ def test_a_calibration_entered_at_rest_is_no_speed() -> None:
     offset in one cycle). A calibration change resets the speed estimate."""
     rig = homed_rig()
     rig.step(50)
-    cal = rig.control.calibration.tilt
+    cal = rig.state_machine.calibration.tilt
     assert cal is not None
     entered = CalibrationSet(
         transaction_id="c9",
         tilt=TiltCalibrationSet(offset_counts=cal.offset_counts + 100, gain_counts_per_deg=40.0),
     )
-    rig.control.enter_calibration(entered, rig.clock())
+    rig.state_machine.enter_calibration(entered, rig.clock())
     for _ in range(3):
         rig.step()
         assert latest(rig, "tilt").velocity_fb == 0.0

@@ -31,7 +31,7 @@ def test_measured_calibration_says_measured_and_when() -> None:
     rig = Rig()
     assert rig.send(Command.CALIBRATE_TILT).success
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
-    tilt = rig.control.calibration.tilt
+    tilt = rig.state_machine.calibration.tilt
     assert tilt is not None and tilt.source is CalibrationSource.MEASURED
     assert tilt.at is not None and abs(tilt.at - rig.clock()) < 1.0
     record = rig.loop.published.calibration
@@ -43,12 +43,12 @@ def test_values_entered_by_hand_are_manual_used_at_once_and_saved() -> None:
     rig = Rig()  # a bare machine: needs calibration
     assert rig.state is S.WARNING_NEEDS_CALIBRATION
     saved: list[Calibration] = []
-    rig.control.keeper.on_calibrated = saved.append
-    ticket = rig.control.enter_calibration(
+    rig.state_machine.keeper.on_calibrated = saved.append
+    ticket = rig.state_machine.enter_calibration(
         entry(tilt=TILT.model_dump(), rotate=ROTATE.model_dump()), rig.clock()
     )
     assert ticket is None
-    cal = rig.control.calibration
+    cal = rig.state_machine.calibration
     assert cal.tilt is not None and cal.rotate is not None
     assert (cal.tilt.offset_counts, cal.tilt.gain_counts_per_deg) == (1190.0, 40.5)
     assert cal.tilt.source is cal.rotate.source is CalibrationSource.MANUAL
@@ -65,9 +65,9 @@ def test_values_entered_by_hand_are_manual_used_at_once_and_saved() -> None:
 
 def test_one_axis_keeps_the_other_axis_values() -> None:
     rig = Rig()
-    rig.control.enter_calibration(entry(rotate=ROTATE.model_dump()), rig.clock())
-    rig.control.enter_calibration(entry(tilt=TILT.model_dump()), rig.clock())
-    cal = rig.control.calibration
+    rig.state_machine.enter_calibration(entry(rotate=ROTATE.model_dump()), rig.clock())
+    rig.state_machine.enter_calibration(entry(tilt=TILT.model_dump()), rig.clock())
+    cal = rig.state_machine.calibration
     assert cal.rotate is not None and cal.rotate.revolution_s == 4.05
 
 
@@ -87,9 +87,11 @@ def test_implausible_values_are_refused_and_change_nothing(
 ) -> None:
     rig = Rig()
     with pytest.raises(MachineError) as info:
-        rig.control.enter_calibration(entry(**values), rig.clock())
+        rig.state_machine.enter_calibration(entry(**values), rig.clock())
     assert (info.value.code, info.value.path) == (ErrorCode(code), path)
-    assert rig.control.calibration.tilt is None and rig.control.calibration.rotate is None
+    assert (
+        rig.state_machine.calibration.tilt is None and rig.state_machine.calibration.rotate is None
+    )
 
 
 @pytest.mark.hazard("H21")
@@ -100,11 +102,11 @@ def test_values_are_refused_while_a_motion_is_under_way_or_paused() -> None:
     for state in (S.CALIBRATING, S.PAUSED):
         assert rig.state is state
         with pytest.raises(MachineError) as info:
-            rig.control.enter_calibration(entry(tilt=TILT.model_dump()), rig.clock())
+            rig.state_machine.enter_calibration(entry(tilt=TILT.model_dump()), rig.clock())
         assert info.value.code is ErrorCode.WRONG_STATE
         if state is S.CALIBRATING:
             assert rig.send(Command.PAUSE).success
-    assert rig.control.calibration.tilt is None
+    assert rig.state_machine.calibration.tilt is None
 
 
 def test_the_wire_refuses_bad_numbers() -> None:

@@ -75,7 +75,7 @@ def test_a_fault_stops_the_pump_the_relay_drops_and_home_picks_it_up_again() -> 
     assert world.pump is not None and not world.pump.powered(world.time)
     assert rig.send(C.HOME).success
     rig.run_to_state(S.IDLE, S.FAULT_HW)
-    assert rig.state is S.IDLE, rig.control.fault
+    assert rig.state is S.IDLE, rig.state_machine.fault
     assert world.pump.powered(world.time) and world.pump.drops == 1
 
 
@@ -161,6 +161,6 @@ def test_a_watchdog_trip_names_the_stall_and_the_pump_resumes_after_home() -> No
     assert rig.guard is not None
     rig.guard.latch_safe(0.3)
     rig.step()
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert rig.state is S.FAULT_HW and fault is not None and fault.code is FaultCode.WATCHDOG
     assert set(levels(rig, 5)) == {False}

@@ -123,7 +123,7 @@ def test_pause_and_resume_do_not_end_a_motion_and_stop_ends_it_stopped() -> None
     rig.step(20)
     assert rig.send(C.PAUSE).success
     rig.step(100)
-    assert rig.sink.statuses[-1].motion == rig.control.action.ref()  # type: ignore[union-attr]
+    assert rig.sink.statuses[-1].motion == rig.state_machine.action.ref()  # type: ignore[union-attr]
     assert rig.send(C.RESUME).success
     rig.step(20)
     assert heard.of("s1") == []
@@ -237,7 +237,7 @@ def test_the_rider_loss_stop_policy_ends_the_motion_stopped() -> None:
     rig.home()
     assert rig.send(C.START, transaction_id="s1", rider="r1").success
     rig.step(10)
-    assert rig.control.rider_lost(rig.clock())
+    assert rig.state_machine.rider_lost(rig.clock())
     rig.step()
     notice = heard.one("s1")
     assert (notice.outcome, notice.code) == (Outcome.STOPPED, "RIDER_LOST")
@@ -256,7 +256,7 @@ def test_a_motion_still_running_at_shutdown_ends_aborted() -> None:
 def test_a_calibration_that_cannot_be_saved_ends_storage_failed() -> None:
     rig = Rig()
     store = SlowStore()  # the test finishes its write with a problem
-    rig.control.keeper.on_calibrated = store.save
+    rig.state_machine.keeper.on_calibrated = store.save
     heard = Heard(rig)
     assert rig.send(C.CALIBRATE_TILT, transaction_id="ct").success
     rig.run_until(lambda: bool(store.tickets))

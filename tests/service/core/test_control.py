@@ -316,8 +316,8 @@ def test_start_with_invalid_session_is_refused_and_faults() -> None:
     assert reply.error.path == "/session/steps/0/degrees"
     assert "80" in reply.error.message
     assert rig.state is S.FAULT_HW
-    assert rig.control.fault is not None
-    assert rig.control.fault.code == "INVALID_SESSION"
+    assert rig.state_machine.fault is not None
+    assert rig.state_machine.fault.code == "INVALID_SESSION"
     rig.step(100)
     assert not rig.relays_on()
     assert rig.hal.world.tilt_deg == tilt
@@ -335,16 +335,16 @@ def test_session_range_comes_from_the_machine_config() -> None:
 
 def test_stop_clears_the_session_and_fault() -> None:
     rig = rig_in(S.FAULT_HW)
-    assert rig.control.fault is not None
+    assert rig.state_machine.fault is not None
     assert rig.send(C.STOP).success
-    assert rig.control.fault is None
-    assert rig.control.context.drive.session_run is None
+    assert rig.state_machine.fault is None
+    assert rig.state_machine.context.drive.session_run is None
 
     rig = rig_in(S.RUNNING)
-    assert rig.control.context.drive.session_run is not None
+    assert rig.state_machine.context.drive.session_run is not None
     assert rig.send(C.STOP).success
     rig.step()
-    assert rig.control.context.drive.session_run is None
+    assert rig.state_machine.context.drive.session_run is None
     assert rig.loop.published.status is not None
     assert rig.loop.published.status.session is None
 

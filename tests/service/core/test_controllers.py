@@ -48,20 +48,20 @@ def test_rotate_home_backs_off_the_switch_dwells_then_seeks() -> None:
     assert rig.send(C.HOME).success
 
     def record() -> bool:
-        ctl = rig.control.motion()
+        ctl = rig.state_machine.motion()
         if isinstance(ctl, RotateHome) and (not seen or seen[-1] is not ctl.phase):
             seen.append(ctl.phase)
         return rig.state is not S.HOMING
 
     rig.run_until(record)
-    assert rig.state is S.IDLE, rig.control.fault
+    assert rig.state is S.IDLE, rig.state_machine.fault
     assert seen == [Phase.BACKOFF, Phase.RUNUP, Phase.DWELL, Phase.SEEK, Phase.STOPPED]
 
 
 def test_a_paused_tilt_stroke_measures_again_from_home() -> None:
     rig = Rig()
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.context.drive.controller
+    cal = rig.state_machine.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     rig.run_until(lambda: cal.phase is TiltCalPhase.STROKE)
     rig.step(20)
@@ -71,8 +71,8 @@ def test_a_paused_tilt_stroke_measures_again_from_home() -> None:
     assert cal.phase is TiltCalPhase.FIRST  # the interrupted stroke is thrown away
     assert not cal.zeros
     rig.run_to_state(S.WARNING_NEEDS_CALIBRATION, S.FAULT_HW)
-    assert rig.control.fault is None
-    tilt, expected = rig.control.calibration.tilt, known_calibration().tilt
+    assert rig.state_machine.fault is None
+    tilt, expected = rig.state_machine.calibration.tilt, known_calibration().tilt
     assert tilt is not None and expected is not None
     assert tilt.gain_counts_per_deg == pytest.approx(expected.gain_counts_per_deg, rel=0.05)
 
@@ -80,7 +80,7 @@ def test_a_paused_tilt_stroke_measures_again_from_home() -> None:
 def test_a_paused_rotate_measurement_measures_again_from_home() -> None:
     rig = Rig(calibration=known_calibration())
     assert rig.send(C.CALIBRATE_ROTATE).success
-    chain = rig.control.context.drive.controller
+    chain = rig.state_machine.context.drive.controller
     assert isinstance(chain, Chain)
     rig.run_until(lambda: isinstance(chain.current, RotateCalibrate))
     cal = chain.current
@@ -92,8 +92,8 @@ def test_a_paused_rotate_measurement_measures_again_from_home() -> None:
     assert rig.send(C.RESUME).success
     assert cal.homing is not None
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
-    assert rig.control.fault is None
-    rotate = rig.control.calibration.rotate
+    assert rig.state_machine.fault is None
+    rotate = rig.state_machine.calibration.rotate
     expected = known_calibration().rotate
     assert rotate is not None and expected is not None
     assert rotate.revolution_s == pytest.approx(expected.revolution_s, rel=0.02)

@@ -100,7 +100,7 @@ def test_resume_after_release_returns_to_the_previous_state(state: MachineState,
     rig = enter(state)
     back_to = S.IDLE if state is S.FAULT_ESTOP else state  # the recipe pressed it while IDLE
     travel0 = rig.hal.world.rotate_travel_deg
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     press_at_random_cycle(rig, state, seed)
     rig.step(20)
     refused = rig.send(C.RESUME)  # still held
@@ -114,21 +114,21 @@ def test_resume_after_release_returns_to_the_previous_state(state: MachineState,
     assert reply.success, reply.error
     assert reply.state is back_to
     assert rig.state is back_to
-    assert rig.control.estop_latched is False
-    assert rig.control.fault == fault
+    assert rig.state_machine.estop_latched is False
+    assert rig.state_machine.fault == fault
     if state is S.PAUSED:
         assert rig.send(C.RESUME).state is S.RUNNING
     if state in (S.RUNNING, S.PAUSED):
         rig.run_to_state(S.DONE, S.FAULT_HW)
-        assert rig.state is S.DONE, rig.control.fault
+        assert rig.state is S.DONE, rig.state_machine.fault
         turned = rig.hal.world.rotate_travel_deg - travel0
         assert turned == pytest.approx(1080.0, abs=ROTATE_STEP_DEG)
     elif state is S.HOMING:
         rig.run_to_state(S.IDLE, S.FAULT_HW)
-        assert rig.state is S.IDLE, rig.control.fault
+        assert rig.state is S.IDLE, rig.state_machine.fault
     elif state is S.CALIBRATING:
         rig.run_until(lambda: rig.state is not S.CALIBRATING)
-        assert rig.control.calibration.tilt is not None, rig.control.fault
+        assert rig.state_machine.calibration.tilt is not None, rig.state_machine.fault
         assert rig.state is S.WARNING_NEEDS_CALIBRATION  # rotate still to calibrate
     else:
         rig.step(100)
@@ -150,11 +150,13 @@ def test_home_after_release_rehomes(state: MachineState, seed: int) -> None:
     assert reply.success, reply.error
     assert rig.state is S.HOMING
     rig.run_until(lambda: rig.state is not S.HOMING)
-    calibrated = rig.control.calibration.complete
-    assert rig.state is (S.IDLE if calibrated else S.WARNING_NEEDS_CALIBRATION), rig.control.fault
-    assert rig.control.keeper.homed().tilt
-    assert rig.control.keeper.homed().rotate
-    assert rig.control.context.drive.session_run is None
+    calibrated = rig.state_machine.calibration.complete
+    assert rig.state is (S.IDLE if calibrated else S.WARNING_NEEDS_CALIBRATION), (
+        rig.state_machine.fault
+    )
+    assert rig.state_machine.keeper.homed().tilt
+    assert rig.state_machine.keeper.homed().rotate
+    assert rig.state_machine.context.drive.session_run is None
     assert not rig.relays_on()
 
 
@@ -169,7 +171,7 @@ def test_estops_anywhere_in_a_session_keep_the_revolution_count(seed: int) -> No
         rig.step(rng.randrange(1, 400))
         if rig.state is S.DONE:
             break
-        assert rig.state is S.RUNNING, rig.control.fault
+        assert rig.state is S.RUNNING, rig.state_machine.fault
         rig.hal.press_estop()
         rig.step()
         assert not rig.relays_on()
@@ -210,8 +212,8 @@ def test_stop_after_release_clears_the_latch() -> None:
     rig.hal.release_estop()
     rig.step()
     assert rig.send(C.STOP).state is S.DONE
-    assert rig.control.estop_latched is False
-    assert rig.control.context.drive.session_run is None
+    assert rig.state_machine.estop_latched is False
+    assert rig.state_machine.context.drive.session_run is None
     rig.step(100)
     assert not rig.relays_on()
 

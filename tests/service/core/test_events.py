@@ -191,7 +191,7 @@ def test_an_idle_machine_records_nothing() -> None:
 def test_a_failed_write_to_data_dir_is_recorded_once_per_problem() -> None:
     rig, sink = ready_rig()
     storage = StorageHealth()
-    rig.control.storage = storage  # what the daemon wires in (service/supervision/daemon.py)
+    rig.state_machine.storage = storage  # what the daemon wires in (service/supervision/daemon.py)
     mark = len(sink.events)
     storage.failed(StorageHealth.CALIBRATION, "calibration.json: No space left on device")
     rig.step(3)
@@ -245,11 +245,11 @@ def test_a_command_right_after_a_watchdog_trip_is_recorded_after_the_fault() -> 
 
 def test_calibration_entered_by_hand_is_recorded_old_to_new() -> None:
     rig, sink = ready_rig()
-    before = rig.control.calibration.tilt
+    before = rig.state_machine.calibration.tilt
     assert before is not None
     mark = len(sink.events)
     values = {"offset_counts": before.offset_counts + 10, "gain_counts_per_deg": 41.0}
-    rig.control.enter_calibration(
+    rig.state_machine.enter_calibration(
         CalibrationSet.model_validate({"transaction_id": "c1", "tilt": values}), rig.clock()
     )
     rig.step()

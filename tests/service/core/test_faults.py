@@ -57,7 +57,7 @@ def session_step(index: int) -> Callable[[Rig], None]:
     def setup(rig: Rig) -> None:
         rig.home()
         assert rig.send(C.START).success
-        run = rig.control.context.drive.session_run
+        run = rig.state_machine.context.drive.session_run
         assert run is not None
         rig.run_until(lambda: run.index == index and rig.relays_on())
         rig.step(30)
@@ -157,7 +157,7 @@ def test_fault_ends_in_fault_hw_with_safe_outputs_within_timeout(case: FaultCase
 
     assert taken <= case.timeout_s + MARGIN
     assert not rig.relays_on()  # in the very cycle the fault was raised
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None
     assert fault.code in case.codes
     assert fault.axis == case.axis
@@ -213,22 +213,22 @@ def test_recovery_after_a_fault_needs_home_and_then_runs_a_session() -> None:
     travel0 = rig.hal.world.rotate_travel_deg
     assert rig.send(C.START).success
     rig.run_to_state(S.DONE, S.FAULT_HW)
-    assert rig.state is S.DONE, rig.control.fault
-    assert rig.control.fault is None
+    assert rig.state is S.DONE, rig.state_machine.fault
+    assert rig.state_machine.fault is None
     assert rig.hal.world.rotate_travel_deg - travel0 == pytest.approx(1080.0, abs=1.0)
 
 
 @pytest.mark.hazard("H14", "H24")
 def test_failed_tilt_calibration_keeps_the_previous_one() -> None:
     rig = Rig(config=CONFIG, calibration=known_calibration())
-    before = rig.control.calibration
+    before = rig.state_machine.calibration
     assert rig.send(C.CALIBRATE_TILT).success
     rig.run_until(lambda: rig.hal.relay(Signal.TILT_DIR))  # the measuring stroke (up) began
     rig.hal.freeze_tilt_ai()
     rig.run_to_state(S.FAULT_HW, max_s=CONFIG.tilt.calibration_stroke_s + 1)
-    assert rig.control.fault is not None
-    assert rig.control.fault.code in (F.TILT_NOT_FOLLOWING, F.CALIBRATION_IMPLAUSIBLE)
-    assert rig.control.calibration == before
+    assert rig.state_machine.fault is not None
+    assert rig.state_machine.fault.code in (F.TILT_NOT_FOLLOWING, F.CALIBRATION_IMPLAUSIBLE)
+    assert rig.state_machine.calibration == before
     assert rig.machine.devices.tilt.calibration == before.tilt
     assert rig.memory is not None
     assert rig.memory.saved == []
@@ -239,9 +239,9 @@ def test_failed_rotate_calibration_stores_nothing() -> None:
     rig.hal.stick_home("rotate", SwitchFault.STUCK_OPEN)
     assert rig.send(C.CALIBRATE_ROTATE).success
     rig.run_to_state(S.FAULT_HW, max_s=30)
-    assert rig.control.fault is not None
-    assert rig.control.fault.code is F.ROTATE_HOME_TIMEOUT
-    assert rig.control.calibration.rotate is None
+    assert rig.state_machine.fault is not None
+    assert rig.state_machine.fault.code is F.ROTATE_HOME_TIMEOUT
+    assert rig.state_machine.calibration.rotate is None
     assert not rig.relays_on()
 
 
@@ -252,9 +252,9 @@ def test_rotate_speed_far_from_nominal_fails_calibration() -> None:
     assert rig.send(C.CALIBRATE_ROTATE).success
     rig.run_to_state(S.FAULT_HW, S.WARNING_NEEDS_CALIBRATION, max_s=60)
     assert rig.state is S.FAULT_HW
-    assert rig.control.fault is not None
-    assert rig.control.fault.code is F.CALIBRATION_IMPLAUSIBLE
-    assert rig.control.calibration.rotate is None
+    assert rig.state_machine.fault is not None
+    assert rig.state_machine.fault.code is F.CALIBRATION_IMPLAUSIBLE
+    assert rig.state_machine.calibration.rotate is None
 
 
 @pytest.mark.hazard("H13", "H24")
@@ -267,6 +267,6 @@ def test_inverted_tilt_wiring_fails_calibration() -> None:
     assert rig.send(C.CALIBRATE_TILT).success
     rig.run_until(lambda: rig.state is not S.CALIBRATING, max_s=60)
     assert rig.state is S.FAULT_HW
-    assert rig.control.fault is not None
-    assert rig.control.fault.code is F.CALIBRATION_IMPLAUSIBLE
-    assert rig.control.calibration.tilt is None
+    assert rig.state_machine.fault is not None
+    assert rig.state_machine.fault.code is F.CALIBRATION_IMPLAUSIBLE
+    assert rig.state_machine.calibration.tilt is None

@@ -42,8 +42,8 @@ def rig_on(**physics: float) -> Rig:
 
 
 def offset_error_deg(rig: Rig) -> float:
-    tilt = rig.control.calibration.tilt
-    assert tilt is not None, rig.control.fault
+    tilt = rig.state_machine.calibration.tilt
+    assert tilt is not None, rig.state_machine.fault
     return abs(tilt.offset_counts - ZERO) / GAIN
 
 
@@ -59,7 +59,7 @@ def phases_of(
     """A `run_until` predicate that records each phase the `kind` controller passes."""
 
     def record() -> bool:
-        ctl = rig.control.motion()
+        ctl = rig.state_machine.motion()
         if isinstance(ctl, TiltCalibrate):
             ctl = ctl.homing
         phase = ctl.phase if isinstance(ctl, kind) else None
@@ -95,9 +95,9 @@ def test_home_from_on_the_switch_backs_off_and_lands_on_the_calibrated_zero() ->
     seen: list[Phase] = []
     assert rig.send(C.HOME).success
     rig.run_until(phases_of(rig, TiltApproach, seen))
-    assert rig.state is S.IDLE, rig.control.fault
+    assert rig.state is S.IDLE, rig.state_machine.fault
     assert seen[:4] == [Phase.BACKOFF, Phase.RUNUP, Phase.DWELL, Phase.SEEK]
-    tilt = rig.control.devices.tilt.read_position_degrees()
+    tilt = rig.state_machine.devices.tilt.read_position_degrees()
     assert tilt is not None and abs(tilt - rig.hal.world.tilt_deg) <= 0.25
 
 
@@ -121,7 +121,7 @@ def test_a_tilt_edge_seen_across_a_stalled_scan_is_approached_again() -> None:
     rig = rig_on(start_tilt_deg=5.0)
     world = rig.hal.world
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.context.drive.controller
+    cal = rig.state_machine.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     first = cal.homing
 
@@ -129,7 +129,7 @@ def test_a_tilt_edge_seen_across_a_stalled_scan_is_approached_again() -> None:
         return world.drive.tilt_on and not world.drive.tilt_up and 0.0 < world.tilt_deg < 0.3
 
     assert stall_at(rig, near, 0.06, times=1) == 1
-    assert rig.state is S.WARNING_NEEDS_CALIBRATION, rig.control.fault
+    assert rig.state is S.WARNING_NEEDS_CALIBRATION, rig.state_machine.fault
     assert first is not None and first.attempts == 1
     assert "60 ms apart" in first.refused[0]
     assert offset_error_deg(rig) <= 0.25
@@ -146,10 +146,10 @@ def test_an_edge_stalled_at_every_approach_is_refused_never_done() -> None:
     assert rig.send(C.CALIBRATE_TILT).success
     stall_at(rig, near, 0.06, times=100)
     assert rig.state is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.HOME_EDGE_UNCERTAIN and fault.axis == "tilt"
     assert fault.message.count("60 ms apart") == CONFIG.tilt.latch_attempts
-    assert rig.control.calibration.tilt is None
+    assert rig.state_machine.calibration.tilt is None
     assert not rig.relays_on()
 
 
@@ -161,14 +161,14 @@ def test_a_session_ending_across_a_stall_approaches_its_last_edge_again() -> Non
     world = rig.hal.world
     assert rig.send(C.START, session=Session(steps=[RotateStep()]).model_dump()).success
     rig.step()
-    revs = rig.control.motion()
+    revs = rig.state_machine.motion()
     assert isinstance(revs, RotateRevolutions)
 
     def near() -> bool:
         return revs.final is None and world.drive.rotate_on and world.rotate_deg > 358.0
 
     assert stall_at(rig, near, 0.04, times=1) == 1
-    assert rig.state is S.DONE, rig.control.fault
+    assert rig.state is S.DONE, rig.state_machine.fault
     assert revs.final is not None and revs.final.latch is not None
     assert rig.rotate_estimate_error_deg() <= CONFIG.rotate.latch_tolerance_deg
 
@@ -196,7 +196,7 @@ def enter(
     rig: Rig, tilt: TiltCalibrationSet | None = None, rotate: RotateCalibrationSet | None = None
 ) -> None:
     values = CalibrationSet(transaction_id="c", tilt=tilt, rotate=rotate)
-    rig.control.enter_calibration(values, rig.clock())
+    rig.state_machine.enter_calibration(values, rig.clock())
     rig.step()
 
 
@@ -212,7 +212,7 @@ def test_a_hand_entered_gain_typo_is_stopped_by_home_within_a_speed_window(start
     refused = rig.send(C.START)
     assert refused.error is not None and refused.error.code == "NOT_HOME"
     assert finish(rig, C.HOME) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.TILT_SPEED_IMPLAUSIBLE, fault
     assert "gain 400" in fault.message
     assert abs(rig.hal.world.tilt_deg - start) <= SPEED_WINDOW_DEG + 2 * TILT_SCAN_DEG
@@ -224,7 +224,9 @@ def test_a_sensor_that_reads_a_tenth_stops_a_session_within_a_speed_window() -> 
     rig.home()
     world = rig.hal.world
     assert rig.send(C.START).success
-    rig.run_until(lambda: isinstance(rig.control.motion(), TiltMove) and world.tilt_deg > 10.0)
+    rig.run_until(
+        lambda: isinstance(rig.state_machine.motion(), TiltMove) and world.tilt_deg > 10.0
+    )
     broken = world.tilt_deg
     p = world.params
     tenth = p.ai_gain_counts_per_deg / 10
@@ -233,7 +235,7 @@ def test_a_sensor_that_reads_a_tenth_stops_a_session_within_a_speed_window() -> 
         update={"ai_gain_counts_per_deg": tenth, "ai_offset_counts": offset}
     )
     rig.run_to_state(S.FAULT_HW, max_s=5)
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.TILT_SPEED_IMPLAUSIBLE, fault
     assert world.tilt_deg - broken <= 2 * SPEED_WINDOW_DEG
 
@@ -243,7 +245,7 @@ def test_home_that_finds_the_edge_off_the_calibrated_zero_says_so() -> None:
     rig = Rig(calibration=known_calibration())
     rig.hal.world.params = rig.hal.world.params.model_copy(update={"tilt_home_deg": 1.0})
     assert finish(rig, C.HOME) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.HOME_OFF_ZERO, fault
     assert "+1.0" in fault.message
 
@@ -260,7 +262,7 @@ def test_a_hand_entered_rotate_time_is_found_out_at_the_first_revolution() -> No
     enter(rig, rotate=RotateCalibrationSet(revolution_s=6.0, home_arc_deg=10.0))
     rig.home()
     assert finish(rig, C.START, session=Session(steps=[RotateStep()]).model_dump()) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.ROTATE_SPEED_IMPLAUSIBLE, fault
 
 
@@ -271,7 +273,7 @@ def test_a_revolution_overdue_by_the_tolerance_stops_the_session() -> None:
     rig.home()
     assert rig.send(C.START, session=Session(steps=[RotateStep()]).model_dump()).success
     taken = rig.run_to_state(S.FAULT_HW, S.DONE, max_s=10)
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.ROTATE_HOME_TIMEOUT, fault
     assert taken == pytest.approx(2.5 * (1 + CONFIG.rotate.revolution_tolerance), abs=0.05)
 
@@ -281,31 +283,31 @@ def test_a_revolution_overdue_by_the_tolerance_stops_the_session() -> None:
 def test_a_tilt_zero_that_moves_between_its_two_latches_is_refused() -> None:
     rig = rig_on(start_tilt_deg=5.0)
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.context.drive.controller
+    cal = rig.state_machine.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     rig.run_until(lambda: len(cal.zeros) == 1)
     # The switch slips 0.5° down between the two latches (a loose cam).
     rig.hal.world.params = rig.hal.world.params.model_copy(update={"tilt_home_deg": -0.5})
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.CALIBRATION_NOT_REPEATABLE, fault
     first, second = (z.raw for z in cal.zeros)
     assert first is not None and second is not None
     assert f"{first:.1f}" in fault.message and f"{second:.1f}" in fault.message
-    assert rig.control.calibration.tilt is None
+    assert rig.state_machine.calibration.tilt is None
 
 
 @pytest.mark.hazard("H24")
 def test_a_rotate_whose_speed_changes_mid_calibration_is_refused() -> None:
     rig = Rig(calibration=known_calibration())
     assert rig.send(C.CALIBRATE_ROTATE).success
-    rig.run_until(lambda: isinstance(rig.control.motion(), RotateCalibrate))
-    cal = rig.control.motion()
+    rig.run_until(lambda: isinstance(rig.state_machine.motion(), RotateCalibrate))
+    cal = rig.state_machine.motion()
     assert isinstance(cal, RotateCalibrate)
     rig.run_until(lambda: len(cal.edges) == 2)  # opening, closing: the first revolution's half
     rig.hal.world.params = rig.hal.world.params.model_copy(update={"rotate_speed_dps": 80.0})
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.CALIBRATION_NOT_REPEATABLE, fault
     assert "closing edges" in fault.message and "opening edges" in fault.message
 
@@ -317,7 +319,7 @@ def test_rotate_home_never_latches_the_edge_across_a_stall() -> None:
     homes: list[RotateHome] = []
 
     def near() -> bool:
-        ctl = rig.control.motion()
+        ctl = rig.state_machine.motion()
         if not isinstance(ctl, RotateHome):
             return False
         if ctl not in homes:
@@ -325,7 +327,7 @@ def test_rotate_home_never_latches_the_edge_across_a_stall() -> None:
         return ctl.phase is Phase.SEEK and world.rotate_deg > 359.0
 
     assert stall_at(rig, near, 0.04, times=1) == 1
-    assert rig.state is S.IDLE, rig.control.fault
+    assert rig.state is S.IDLE, rig.state_machine.fault
     (home,) = homes
     assert home.attempts == 1 and "40 ms apart" in home.refused[0]
     assert rig.rotate_estimate_error_deg() <= CONFIG.rotate.latch_tolerance_deg
@@ -345,14 +347,14 @@ def test_a_revolution_hidden_by_two_stalls_is_a_fault_never_done() -> None:
     assert rig.send(
         C.START, session=Session(steps=[RotateStep(revolutions=3)]).model_dump()
     ).success
-    step = rig.control.context.drive.controller
+    step = rig.state_machine.context.drive.controller
     rig.run_until(lambda: isinstance(step.current, RotateRevolutions) and step.current.done == 1)
     assert world.rotate_switch.closed
     for stall in (0.56, 0.45):  # from the arc past the next one; then on into the one after
         rig.clock.advance(stall)
         rig.step()
     rig.run_to_state(S.FAULT_HW, S.DONE, max_s=10)
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.ROTATE_HOME_TIMEOUT, (fault, world.revolutions)
     assert "passed unseen" in fault.message
     assert world.revolutions - before == pytest.approx(3.0, abs=0.1)  # stopped at the edge
@@ -365,13 +367,13 @@ def test_a_tilt_stroke_the_scan_stalled_through_is_refused_as_spoiled() -> None:
     scans is the scan's fault: the refusal says so, and is one a stall causes."""
     rig = Rig(config=FAST)
     assert rig.send(C.CALIBRATE_TILT).success
-    cal = rig.control.context.drive.controller
+    cal = rig.state_machine.context.drive.controller
     assert isinstance(cal, TiltCalibrate)
     rig.run_until(lambda: cal.phase.name == "STROKE")
     rig.step()
     rig.clock.advance(0.35)
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.CALIBRATION_NOT_REPEATABLE, fault
     assert "the scan stalled" in fault.message and "calibrate again" in fault.message
 
@@ -411,7 +413,7 @@ def test_a_drive_whose_first_write_comes_late_is_not_judged_slow() -> None:
     rig.step()
     rig.hal.stall_scans(0.0, 0.0)
     assert len(replies) == 1
-    assert isinstance(rig.control.motion(), TiltMove)
+    assert isinstance(rig.state_machine.motion(), TiltMove)
     assert rig.hal.stalled_s - stalled > CONFIG.tilt.speed_window_s * CONFIG.tilt.speed_tolerance
     rig.run_to_state(S.DONE, S.FAULT_HW)
-    assert rig.state is S.DONE, rig.control.fault
+    assert rig.state is S.DONE, rig.state_machine.fault

@@ -52,14 +52,16 @@ def test_a_home_whose_stop_is_written_late_approaches_again_and_ends_on_the_swit
     rotate backs off through the switch and approaches again."""
     rig = Rig(calibration=known_calibration())
     assert rig.send(C.HOME).success
-    rig.run_until(lambda: isinstance(rig.control.motion(), RotateHome) and edge_next_scan(rig))
-    home = rig.control.motion()
+    rig.run_until(
+        lambda: isinstance(rig.state_machine.motion(), RotateHome) and edge_next_scan(rig)
+    )
+    home = rig.state_machine.motion()
     assert isinstance(home, RotateHome)
     rig.step_late(LATE_S)
     assert home.phase is Phase.STOPPED and home.latch is not None
     assert not rig.hal.world.sense().rotate_home, "the rotate ran on past the switch"
     rig.run_to_state(S.IDLE, S.WARNING_NOT_HOME, S.FAULT_HW)
-    assert rig.state is S.IDLE, rig.control.fault
+    assert rig.state is S.IDLE, rig.state_machine.fault
     assert home.attempts == 1 and "off the switch" in home.refused[0], home.refused
     on_the_switch(rig)
     rig.step()  # a scan after the state said IDLE: Start reads the switch as it is now
@@ -76,14 +78,14 @@ def test_a_session_whose_last_stop_is_written_late_ends_on_the_switch() -> None:
     session = Session(steps=[RotateStep(revolutions=2)])
     assert rig.send(C.START, session=session.model_dump()).success
     rig.step()
-    revs = rig.control.motion()
+    revs = rig.state_machine.motion()
     assert isinstance(revs, RotateRevolutions)
     rig.run_until(lambda: revs.done == 1 and edge_next_scan(rig))
     rig.step_late(LATE_S)
     assert revs.done == 2 and revs.stopped is not None and revs.final is None
     assert not rig.hal.world.sense().rotate_home, "the rotate ran on past the switch"
     rig.run_to_state(S.DONE, S.FAULT_HW)
-    assert rig.state is S.DONE, rig.control.fault
+    assert rig.state is S.DONE, rig.state_machine.fault
     assert revs.final is not None and revs.final.latch is not None
     on_the_switch(rig)
     travel = rig.hal.world.rotate_travel_deg - travel0
@@ -95,8 +97,8 @@ def test_a_rotate_calibration_whose_last_stop_is_written_late_ends_on_the_switch
     the switch: the rotate is homed again, and what it measured is kept."""
     rig = Rig(calibration=known_calibration())
     assert rig.send(C.CALIBRATE_ROTATE).success
-    rig.run_until(lambda: isinstance(rig.control.motion(), RotateCalibrate))
-    cal = rig.control.motion()
+    rig.run_until(lambda: isinstance(rig.state_machine.motion(), RotateCalibrate))
+    cal = rig.state_machine.motion()
     assert isinstance(cal, RotateCalibrate)
 
     def last_edge_next() -> bool:
@@ -115,9 +117,9 @@ def test_a_rotate_calibration_whose_last_stop_is_written_late_ends_on_the_switch
         return rig.state is not S.CALIBRATING
 
     rig.run_until(record)
-    assert rig.state is S.IDLE, rig.control.fault
+    assert rig.state is S.IDLE, rig.state_machine.fault
     assert len(homes) == 1 and homes[0].attempts == 0
-    kept = rig.control.calibration.rotate
+    kept = rig.state_machine.calibration.rotate
     assert kept is not None
     assert (kept.revolution_s, kept.home_arc_deg) == (
         cal.result.revolution_s,

@@ -82,7 +82,7 @@ def finish(rig: Rig, command: Command, tally: Tally, **payload: object) -> bool:
     assert rig.send(command, **payload).success
     rig.run_until(lambda: rig.state not in (S.CALIBRATING, S.HOMING, S.RUNNING), max_s=300)
     tally.measured[command.value] += 1
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     if rig.state is S.FAULT_HW:
         assert fault is not None and fault.code in REFUSALS, (command, fault)
         tally.refused[f"{command.value}: {fault.code}"] += 1
@@ -94,7 +94,7 @@ def finish(rig: Rig, command: Command, tally: Tally, **payload: object) -> bool:
 def check_positions(rig: Rig, world: PhysicsParams, tally: Tally, when: str) -> None:
     """What the machine reports against the simulator's truth."""
     truth = rig.hal.world
-    tilt = rig.control.devices.tilt.read_position_degrees()
+    tilt = rig.state_machine.devices.tilt.read_position_degrees()
     angle = rig.loop.axes.rotate.angle
     assert tilt is not None and angle is not None, when
     context = (when, world)
@@ -110,7 +110,7 @@ def trial(rng: random.Random, tally: Tally, calibrate_rotate: bool) -> None:
     rig = rig_for(world)
     if not finish(rig, C.CALIBRATE_TILT, tally):
         return
-    cal = rig.control.calibration.tilt
+    cal = rig.state_machine.calibration.tilt
     assert cal is not None
     zero = world.ai_offset_counts + world.ai_gain_counts_per_deg * world.tilt_home_deg
     offset_err = abs(cal.offset_counts - zero) / world.ai_gain_counts_per_deg

@@ -65,9 +65,9 @@ def test_machine_makes_outputs_safe_before_anything_else() -> None:
 
     assert hal.calls[0] == "force_safe"
     assert not hal.outputs.any_on()
-    assert machine.control.state is S.WARNING_NEEDS_CALIBRATION
-    assert machine.control.keeper.homed().tilt is False
-    assert machine.control.keeper.homed().rotate is False
+    assert machine.state_machine.state is S.WARNING_NEEDS_CALIBRATION
+    assert machine.state_machine.keeper.homed().tilt is False
+    assert machine.state_machine.keeper.homed().rotate is False
 
 
 def test_one_input_scan_and_one_output_write_per_cycle_in_order() -> None:
@@ -273,7 +273,7 @@ def test_a_narrower_deadband_publishes_an_analog_change_it_held_back() -> None:
     rig.hal.world.tilt_deg += deadband / gain  # within the deadband: held back
     rig.step(5)
     assert rig.sink.io == []
-    rig.control.live.offer(rig.config.with_overrides(bus={"ai_deadband_counts": 0}))
+    rig.state_machine.live.offer(rig.config.with_overrides(bus={"ai_deadband_counts": 0}))
     rig.step(5)  # the image has not changed since, yet the held-back value goes out once
     assert [p.name for p in rig.sink.io] == [Signal.TILT_POSITION]
 
@@ -332,9 +332,9 @@ def test_an_online_write_reaches_every_reader_at_the_next_cycle(tmp_path: Path) 
         "rider_loss.policy", ParamSet(transaction_id="p2", value="stop"), moving=False, now=0.0
     )
     # Offered from the writer's thread; the cycle under way keeps the config it started with.
-    assert loop.config.bus.heartbeat_s == machine.control.live.current.bus.heartbeat_s == 1.0
+    assert loop.config.bus.heartbeat_s == machine.state_machine.live.current.bus.heartbeat_s == 1.0
     clock.advance(0.01)
     loop.step(clock())
-    assert loop.config is machine.control.live.current is loop.axes.config is registry.config
+    assert loop.config is machine.state_machine.live.current is loop.axes.config is registry.config
     assert loop.config.bus.heartbeat_s == 7.0
-    assert machine.control.live.current.rider_loss.policy == "stop"
+    assert machine.state_machine.live.current.rider_loss.policy == "stop"

@@ -35,18 +35,18 @@ def kept_aside(data_dir: Path) -> list[Path]:
 def test_calibration_survives_a_restart(tmp_path: Path) -> None:
     first = Rig(data_dir=tmp_path)
     first.calibrate()
-    found = first.control.calibration
+    found = first.state_machine.calibration
     assert (tmp_path / CALIBRATION_FILE).is_file()
     first.hal.close()
 
     second = Rig(data_dir=tmp_path)
 
-    assert second.control.calibration == found
+    assert second.state_machine.calibration == found
     assert second.machine.devices.tilt.calibration == found.tilt
     # Calibrated, but never assumed home after a restart, and outputs safe.
     assert second.state is S.WARNING_NOT_HOME
     assert not second.relays_on()
-    assert second.control.warnings == []
+    assert second.state_machine.warnings == []
     status = second.loop.published.status
     assert status is not None
     assert status.calibrated.tilt and status.calibrated.rotate
@@ -55,7 +55,7 @@ def test_calibration_survives_a_restart(tmp_path: Path) -> None:
     travel0 = second.hal.world.rotate_travel_deg
     assert second.send(Command.START).success
     second.run_to_state(S.DONE, S.FAULT_HW)
-    assert second.state is S.DONE, second.control.fault
+    assert second.state is S.DONE, second.state_machine.fault
     assert second.hal.world.rotate_travel_deg - travel0 == pytest.approx(1080.0, abs=0.9)
     assert second.hal.world.tilt_deg == pytest.approx(45.0, abs=1.0)
 
@@ -64,21 +64,21 @@ def test_a_partial_calibration_survives_as_partial(tmp_path: Path) -> None:
     first = Rig(data_dir=tmp_path)
     assert first.send(Command.CALIBRATE_TILT).success
     first.run_until(lambda: first.state is not S.CALIBRATING)
-    assert first.control.calibration.tilt is not None
+    assert first.state_machine.calibration.tilt is not None
 
     second = Rig(data_dir=tmp_path)
-    assert second.control.calibration.tilt == first.control.calibration.tilt
-    assert second.control.calibration.rotate is None
+    assert second.state_machine.calibration.tilt == first.state_machine.calibration.tilt
+    assert second.state_machine.calibration.rotate is None
     assert second.state is S.WARNING_NEEDS_CALIBRATION
 
 
 def test_recalibration_replaces_the_stored_file(tmp_path: Path) -> None:
     CalibrationStore(tmp_path).save(CAL)
     rig = Rig(data_dir=tmp_path)
-    assert rig.control.calibration == CAL
+    assert rig.state_machine.calibration == CAL
     rig.calibrate()
-    assert rig.control.calibration != CAL
-    assert Rig(data_dir=tmp_path).control.calibration == rig.control.calibration
+    assert rig.state_machine.calibration != CAL
+    assert Rig(data_dir=tmp_path).state_machine.calibration == rig.state_machine.calibration
     assert list(tmp_path.iterdir()) == [tmp_path / CALIBRATION_FILE]  # no temp files left
 
 
@@ -108,7 +108,7 @@ def test_corrupt_calibration_file_is_kept_aside_with_a_warning(
     rig = Rig(data_dir=tmp_path)
 
     assert rig.state is S.WARNING_NEEDS_CALIBRATION
-    assert rig.control.calibration == Calibration()
+    assert rig.state_machine.calibration == Calibration()
     assert not rig.relays_on()
     status = rig.loop.published.status
     assert status is not None
@@ -125,7 +125,7 @@ def test_corrupt_calibration_file_is_kept_aside_with_a_warning(
     assert (tmp_path / CALIBRATION_FILE).is_file()
     assert kept_aside(tmp_path) == aside
     assert aside[0].read_bytes() == content
-    assert Rig(data_dir=tmp_path).control.calibration == rig.control.calibration
+    assert Rig(data_dir=tmp_path).state_machine.calibration == rig.state_machine.calibration
 
 
 def test_repeated_corruption_keeps_every_copy(tmp_path: Path) -> None:
@@ -142,7 +142,7 @@ def test_repeated_corruption_keeps_every_copy(tmp_path: Path) -> None:
 def test_missing_file_is_not_a_warning(tmp_path: Path) -> None:
     rig = Rig(data_dir=tmp_path / "not-yet")
     assert rig.state is S.WARNING_NEEDS_CALIBRATION
-    assert rig.control.warnings == []
+    assert rig.state_machine.warnings == []
     rig.calibrate()
     assert (tmp_path / "not-yet" / CALIBRATION_FILE).is_file()
 

@@ -142,7 +142,7 @@ def test_machine_starts_needing_calibration_on_a_corrupt_calibration_file(
     (tmp_path / CALIBRATION_FILE).write_bytes(b"\x00\x00garbage")
     rig = Rig(data_dir=tmp_path)
     assert rig.state is MachineState.WARNING_NEEDS_CALIBRATION
-    assert any("corrupt" in w for w in rig.control.warnings)
+    assert any("corrupt" in w for w in rig.state_machine.warnings)
     assert not rig.relays_on()
     assert [p.read_bytes() for p in _kept(tmp_path, CALIBRATION_FILE)] == [b"\x00\x00garbage"]
 

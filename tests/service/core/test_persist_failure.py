@@ -51,7 +51,7 @@ def test_a_failed_calibration_save_is_a_warning_and_the_older_file_goes(
 ) -> None:
     (tmp_path / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
     rig = Rig(data_dir=tmp_path)
-    assert rig.control.calibration == OLD
+    assert rig.state_machine.calibration == OLD
     monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
 
     assert rig.send(Command.CALIBRATE_TILT).success
@@ -67,7 +67,7 @@ def test_a_failed_calibration_save_is_a_warning_and_the_older_file_goes(
 
     monkeypatch.undo()
     restarted = Rig(data_dir=tmp_path)
-    assert restarted.control.calibration == Calibration()  # not the older one
+    assert restarted.state_machine.calibration == Calibration()  # not the older one
     assert restarted.state is S.WARNING_NEEDS_CALIBRATION
 
 
@@ -87,10 +87,12 @@ def test_the_history_says_whether_a_calibration_was_saved(
         monkeypatch.setattr("service.core.persist.atomic_write", disk_full)
     assert rig.send(Command.CALIBRATE_TILT).success
     rig.run_until(lambda: rig.state is not S.CALIBRATING)
-    cal = rig.control.calibration.tilt
+    cal = rig.state_machine.calibration.tilt
     assert cal is not None
     entered = TiltCalibrationSet(offset_counts=cal.offset_counts + 4, gain_counts_per_deg=40.0)
-    rig.control.enter_calibration(CalibrationSet(transaction_id="c1", tilt=entered), rig.clock())
+    rig.state_machine.enter_calibration(
+        CalibrationSet(transaction_id="c1", tilt=entered), rig.clock()
+    )
     rig.run_until(lambda: len(calibration_events(sink)) == 2, max_s=5)
     measured, manual = calibration_events(sink)
     assert measured.new is not None and manual.new is not None
@@ -131,12 +133,12 @@ class SlowStore:
 def test_calibration_ends_only_when_the_disk_has_answered() -> None:
     rig = Rig()
     store = SlowStore()
-    rig.control.keeper.on_calibrated = store.save
+    rig.state_machine.keeper.on_calibrated = store.save
     assert rig.send(Command.CALIBRATE_TILT).success
     rig.run_until(lambda: bool(store.tickets))
     rig.step(50)
     assert rig.state is S.CALIBRATING  # measured, but not yet saved
-    assert rig.control.context.drive.controller is None and not rig.relays_on()
+    assert rig.state_machine.context.drive.controller is None and not rig.relays_on()
     store.tickets[0].finish("disk on fire")
     rig.step()
     assert rig.state is S.WARNING_NEEDS_CALIBRATION  # rotate is still to calibrate

@@ -190,7 +190,7 @@ def test_an_estop_acts_in_the_cycle_its_input_changes() -> None:
     twins.both(lambda rig: rig.hal.press_estop())
     twins.step()
     assert twins.fast.state is S.FAULT_ESTOP
-    assert twins.fast.control.estop_latched
+    assert twins.fast.state_machine.estop_latched
     twins.step(200)  # held: every cycle forces the outputs safe, none of them is quiet
     twins.both(lambda rig: rig.hal.release_estop())
     twins.step(200)
@@ -256,15 +256,15 @@ def test_a_silent_rider_is_lost_in_the_same_cycle() -> None:
         twins.beat("r1")
         quiet += twins.step(10)
     assert quiet > 200
-    assert twins.fast.control.watch.connected
+    assert twins.fast.state_machine.watch.connected
     twins.step(100)  # silent: lost after 0.5 s
-    assert not twins.fast.control.watch.connected
+    assert not twins.fast.state_machine.watch.connected
     lost = [e for e, _, _ in twins.sinks[1].events if isinstance(e, RiderEvent)]
     assert [e.kind for e in lost] == ["rider_lost"]
     assert twins.fast.sink.statuses[-1].rider_connected is False
     twins.beat("r1")  # back
     twins.step(50)
-    assert twins.fast.control.watch.connected
+    assert twins.fast.state_machine.watch.connected
     twins.compare_all()
 
 
@@ -274,7 +274,7 @@ def test_a_rider_lost_with_a_grace_period_runs_its_clock() -> None:
     twins.home(rider="r1")
     twins.beat("r1")
     quiet_streak(twins, 20)  # within its heartbeat timeout
-    twins.both(lambda rig: rig.control.rider_lost(rig.clock()))  # its token went
+    twins.both(lambda rig: rig.state_machine.rider_lost(rig.clock()))  # its token went
     twins.step(100)
     twins.compare_all()
 
@@ -296,8 +296,8 @@ def test_storage_warnings_from_another_thread_are_published_at_once(tmp_path: Pa
     twins = Twins(tmp_path)
     quiet_streak(twins)
     for rig in twins.rigs:
-        assert rig.control.storage is not None
-        rig.control.storage.failed("data_dir", "disk full")
+        assert rig.state_machine.storage is not None
+        rig.state_machine.storage.failed("data_dir", "disk full")
     twins.step()
     assert any(w.startswith("STORAGE_FAILED") for w in twins.fast.sink.statuses[-1].warnings)
     assert isinstance(twins.sinks[1].events[-1][0], StorageEvent)
@@ -413,7 +413,7 @@ def test_a_quiet_cycle_is_checked_against_a_fresh_snapshot_of_the_machine() -> N
     twins.home()
     quiet_streak(twins)
     fast = twins.fast
-    fast.control.duplicate_of = ("elsewhere",)  # not through a method: `changes` stays put
+    fast.state_machine.duplicate_of = ("elsewhere",)  # not through a method: `changes` stays put
     with pytest.raises(AssertionError, match="was quiet, but"):
         fast.step(200)  # the next quiet one (a status heartbeat may come first)
     # Through the machine's own method the same change ends the quiet streak, as it should.
@@ -421,7 +421,7 @@ def test_a_quiet_cycle_is_checked_against_a_fresh_snapshot_of_the_machine() -> N
     quiet_streak(twins)
     fast = twins.fast
     quiet = fast.loop.quiet
-    fast.control.duplicate_id(("elsewhere",), "me", fast.clock())
+    fast.state_machine.duplicate_id(("elsewhere",), "me", fast.clock())
     fast.step()
     assert fast.loop.quiet == quiet
     assert fast.sink.statuses[-1].fault is not None

@@ -26,7 +26,7 @@ def _running(policy: str, grace_s: float = 0.0) -> Rig:
     assert rig.send(Command.START, rider="r1").success
     rig.step(5)
     assert rig.relays_on()
-    assert rig.control.watch.connected
+    assert rig.state_machine.watch.connected
     return rig
 
 
@@ -36,48 +36,48 @@ def _running(policy: str, grace_s: float = 0.0) -> Rig:
 )
 def test_losing_the_controlling_rider_applies_the_policy(policy: str, state: S) -> None:
     rig = _running(policy)
-    rig.control.rider_lost(rig.clock())
+    rig.state_machine.rider_lost(rig.clock())
     rig.step()
     assert rig.state is state
     assert rig.relays_on() is (state is S.RUNNING)
-    assert not rig.control.watch.connected
+    assert not rig.state_machine.watch.connected
 
 
 def test_grace_period_waits_then_pauses() -> None:
     rig = _running("pause", grace_s=0.5)
-    rig.control.rider_lost(rig.clock())
+    rig.state_machine.rider_lost(rig.clock())
     rig.step(int(0.4 / rig.period))
     assert rig.state is S.RUNNING
     rig.run_to_state(S.PAUSED, max_s=0.2)
     assert not rig.relays_on()
-    assert rig.control.watch.warning is not None
+    assert rig.state_machine.watch.warning is not None
 
 
 def test_rider_back_within_grace_changes_nothing() -> None:
     rig = _running("pause", grace_s=0.5)
-    rig.control.rider_lost(rig.clock())
+    rig.state_machine.rider_lost(rig.clock())
     rig.step(10)
-    rig.control.rider_back()
+    rig.state_machine.rider_back()
     rig.step(int(1.0 / rig.period))
     assert rig.state is S.RUNNING
-    assert rig.control.watch.connected
+    assert rig.state_machine.watch.connected
 
 
 def test_loss_outside_motion_does_nothing() -> None:
     rig = Rig().ready()
-    rig.control.rider_lost(rig.clock())
+    rig.state_machine.rider_lost(rig.clock())
     rig.step(10)
     assert rig.state is S.IDLE
 
 
 def test_resume_by_another_rider_clears_the_rider_lost_warning() -> None:
     rig = _running("pause")
-    rig.control.rider_lost(rig.clock())
+    rig.state_machine.rider_lost(rig.clock())
     rig.step()
-    assert rig.control.watch.warning is not None
+    assert rig.state_machine.watch.warning is not None
     assert rig.send(Command.RESUME, rider="r2").success
-    assert rig.control.watch.warning is None
-    assert rig.control.controller_rider == "r2"
+    assert rig.state_machine.watch.warning is None
+    assert rig.state_machine.controller_rider == "r2"
 
 
 def _supervised(timeout_s: float = 0.5, grace_s: float = 0.0) -> tuple[Rig, Heartbeats]:
@@ -101,7 +101,7 @@ def test_a_beating_rider_keeps_the_ride_running() -> None:
     rig, beats = _supervised()
     _beat_for(rig, beats, 3.0)
     assert rig.state is S.RUNNING
-    assert rig.control.watch.connected
+    assert rig.state_machine.watch.connected
 
 
 @pytest.mark.hazard("H07")
@@ -114,8 +114,8 @@ def test_a_silent_heartbeat_pauses_within_the_timeout_and_two_cycles() -> None:
     assert rig.clock() - last <= 0.5 + 2 * rig.period
     assert took > 0
     assert not rig.relays_on()
-    assert not rig.control.watch.connected
-    assert rig.control.watch.warning is not None
+    assert not rig.state_machine.watch.connected
+    assert rig.state_machine.watch.warning is not None
 
 
 @pytest.mark.hazard("H07")
@@ -131,7 +131,7 @@ def test_heartbeat_back_reconnects_but_moves_nothing() -> None:
     rig, beats = _supervised(timeout_s=0.3)
     rig.run_to_state(S.PAUSED, max_s=1.0)
     _beat_for(rig, beats, 0.5)
-    assert rig.control.watch.connected
+    assert rig.state_machine.watch.connected
     assert rig.state is S.PAUSED
     assert not rig.relays_on()
 
@@ -139,10 +139,10 @@ def test_heartbeat_back_reconnects_but_moves_nothing() -> None:
 def test_heartbeat_back_within_grace_changes_nothing() -> None:
     rig, beats = _supervised(timeout_s=0.3, grace_s=1.0)
     rig.step(round(0.5 / rig.period))  # lost, grace running
-    assert not rig.control.watch.connected
+    assert not rig.state_machine.watch.connected
     _beat_for(rig, beats, 2.0)
     assert rig.state is S.RUNNING
-    assert rig.control.watch.connected
+    assert rig.state_machine.watch.connected
 
 
 def test_timeout_is_an_online_parameter_checked_against_the_heartbeat() -> None:
@@ -192,7 +192,7 @@ def test_a_rider_silent_after_its_motion_ended_left_at_rest() -> None:
     rig, _, sink = _homed_by_a_beating_rider()
     assert rig.state is S.IDLE
     rig.step(round(0.5 / rig.period))  # silent now
-    assert not rig.control.watch.connected
+    assert not rig.state_machine.watch.connected
     [gone] = _departures(sink)
     assert (gone.rider, gone.acted, gone.mid_motion) == ("r1", False, False)
     assert rig.state is S.IDLE
@@ -219,12 +219,12 @@ def test_a_heartbeat_that_arrives_after_the_riders_token_went_brings_nothing_bac
     RiderPresence("r1", alive=False).run(rig.loop, rig.clock())
     beats.beat("r1", rig.clock())  # the overtaken heartbeat
     rig.step(round(1.0 / rig.period))
-    assert not rig.control.watch.connected
+    assert not rig.state_machine.watch.connected
     assert [(e.rider, e.acted) for e in _departures(sink)] == [("r1", False)]
     beats.returned("r1")  # its token is back: its heartbeats count again
     beats.beat("r1", rig.clock())
     rig.step()
-    assert rig.control.watch.connected
+    assert rig.state_machine.watch.connected
 
 
 def test_the_riders_gone_are_remembered_within_a_bound() -> None:

@@ -183,7 +183,7 @@ def test_exception_in_a_cycle_forces_outputs_safe_and_faults(
     state, relays = h.seen[11]  # what the failed cycle left behind
     assert state is S.FAULT_HW
     assert not relays
-    fault = h.rig.control.fault
+    fault = h.rig.state_machine.fault
     assert fault is not None
     assert fault.code is FaultCode.LOOP_EXCEPTION
     assert "injected failure" in fault.message

@@ -30,13 +30,13 @@ def run_session(rig: Rig, **payload: object) -> tuple[float, list[tuple[int, flo
     trace: list[tuple[int, float, float]] = []
 
     def record() -> bool:
-        run = rig.control.context.drive.session_run
+        run = rig.state_machine.context.drive.session_run
         if run is not None:
             trace.append((run.index, world.tilt_deg, world.rotate_travel_deg - travel0))
         return rig.state is not S.RUNNING
 
     rig.run_until(record, max_s=300)
-    assert rig.state is S.DONE, rig.control.fault
+    assert rig.state is S.DONE, rig.state_machine.fault
     return world.rotate_travel_deg - travel0, trace
 
 
@@ -132,7 +132,7 @@ def started() -> tuple[Rig, SessionRun, float]:
     rig = rig_in(S.IDLE)
     travel0 = rig.hal.world.rotate_travel_deg
     assert rig.send(C.START).success
-    run = rig.control.context.drive.session_run
+    run = rig.state_machine.context.drive.session_run
     assert run is not None
     return rig, run, travel0
 
@@ -157,7 +157,7 @@ def test_pause_freezes_everything_and_resume_finishes_the_session(pause_in_step:
     reply = rig.send(C.RESUME)
     assert reply.state is S.RUNNING
     rig.run_to_state(S.DONE, S.FAULT_HW)
-    assert rig.state is S.DONE, rig.control.fault
+    assert rig.state is S.DONE, rig.state_machine.fault
     assert world.rotate_travel_deg - travel0 == pytest.approx(1080.0, abs=ROTATE_STEP_DEG)
     assert world.tilt_deg == pytest.approx(45.0, abs=TILT_TOL)
 
@@ -165,7 +165,7 @@ def test_pause_freezes_everything_and_resume_finishes_the_session(pause_in_step:
 def test_stop_mid_session_drops_relays_and_clears_the_session() -> None:
     rig = rig_in(S.IDLE)
     assert rig.send(C.START).success
-    run = rig.control.context.drive.session_run
+    run = rig.state_machine.context.drive.session_run
     assert run is not None
     rig.run_until(lambda: run.index == 1 and rig.relays_on())
     rig.step(30)
@@ -177,7 +177,7 @@ def test_stop_mid_session_drops_relays_and_clears_the_session() -> None:
     rig.step(500)
     assert rig.state is S.DONE
     assert rig.hal.world.rotate_travel_deg == where
-    assert rig.control.context.drive.session_run is None
+    assert rig.state_machine.context.drive.session_run is None
 
 
 def test_a_second_session_needs_home_and_then_runs_again() -> None:
@@ -210,7 +210,7 @@ def test_session_with_a_slower_machine_still_counts_revolutions() -> None:
     )
     rig = Rig(config=config)
     rig.calibrate()
-    cal = rig.control.calibration.rotate
+    cal = rig.state_machine.calibration.rotate
     assert cal is not None
     assert cal.revolution_s == pytest.approx(6.0, abs=0.02)
     rig.home()
@@ -243,7 +243,7 @@ def test_an_edge_read_in_the_scan_that_pauses_is_counted(edge: int) -> None:
     assert run.revolutions_done() == edge
     assert rig.send(C.RESUME).state is S.RUNNING
     rig.run_to_state(S.DONE, S.FAULT_HW)
-    assert rig.state is S.DONE, rig.control.fault
+    assert rig.state is S.DONE, rig.state_machine.fault
     assert world.sense().rotate_home and not rig.relays_on()
     assert world.rotate_travel_deg - travel0 == pytest.approx(1080.0, abs=2 * ROTATE_STEP_DEG)
 
@@ -254,9 +254,9 @@ def test_a_start_refused_for_its_session_keeps_the_home_references() -> None:
     rig = rig_in(MachineState.IDLE)
     assert not rig.send(Command.START, session=BAD_SESSION.model_dump()).success
     assert rig.state is MachineState.FAULT_HW
-    assert rig.control.keeper.homed() == AxesFlags(tilt=True, rotate=True)
+    assert rig.state_machine.keeper.homed() == AxesFlags(tilt=True, rotate=True)
     assert rig.send(Command.STOP).success
     rig.step()
     assert rig.send(Command.START).success, rig.replies[-1]
     rig.run_to_state(MachineState.DONE, MachineState.FAULT_HW)
-    assert rig.state is MachineState.DONE, rig.control.fault
+    assert rig.state is MachineState.DONE, rig.state_machine.fault

@@ -20,7 +20,7 @@ MOTION = [Command.HOME, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE]
 
 
 def wall(rig: Rig) -> float:
-    return rig.clock() + rig.control.wall_offset
+    return rig.clock() + rig.state_machine.wall_offset
 
 
 @pytest.mark.hazard("H27")

@@ -39,7 +39,7 @@ def test_a_stall_at_rest_is_counted_and_changes_nothing(where: str) -> None:
     h = stalled(where, homed=True)
     rig = h.rig
     assert rig.state is MachineState.IDLE
-    assert rig.control.fault is None
+    assert rig.state_machine.fault is None
     diag = h.stats.diag(h.clock())
     assert diag.stalls == 1
     assert diag.watchdog_trips == 0
@@ -54,8 +54,8 @@ def test_a_stall_while_moving_drops_the_relays_and_is_the_fault_reported(where: 
     h = stalled(where, running=True)
     rig = h.rig
     assert rig.state is MachineState.FAULT_HW
-    assert rig.control.fault is not None
-    assert rig.control.fault.code is FaultCode.WATCHDOG, rig.control.fault
+    assert rig.state_machine.fault is not None
+    assert rig.state_machine.fault.code is FaultCode.WATCHDOG, rig.state_machine.fault
     faults = [t for t in rig.transitions if t.new is MachineState.FAULT_HW]
     assert len(faults) == 1, faults  # the watchdog's, not a tilt timeout after it
     # Relays on up to the stall; off from the cycle that saw it, for good (a stall between

@@ -144,7 +144,7 @@ class RideMachine(RuleBasedStateMachine):
         rig = self.rig
         for command in (Command.STOP, Command.CALIBRATE_TILT, Command.CALIBRATE_ROTATE,
                         Command.HOME):  # fmt: skip
-            if command.value.startswith("Calibrate") and rig.control.calibration.complete:
+            if command.value.startswith("Calibrate") and rig.state_machine.calibration.complete:
                 continue
             self.check_reply(command, tid := self.new_tid(), rig.send(command, transaction_id=tid))
             for _ in range(3000):
@@ -244,7 +244,7 @@ class RideMachine(RuleBasedStateMachine):
         for change in self.rig.transitions:
             assert (change.old, change.new) in edges(), change
         if self.rig.state in (S.FAULT_HW,):
-            assert self.rig.control.fault is not None
+            assert self.rig.state_machine.fault is not None
 
 
 PROFILE = "stateful-" + os.environ.get("STATEFUL_PROFILE", "ci")

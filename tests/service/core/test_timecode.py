@@ -12,7 +12,9 @@ from tests.rig import Rig
 
 def test_the_request_timecode_is_echoed_and_logged(caplog: pytest.LogCaptureFixture) -> None:
     rig = Rig()
-    sent = rig.clock() + rig.control.wall_offset - 0.375  # the sender's clock, a little behind
+    sent = (
+        rig.clock() + rig.state_machine.wall_offset - 0.375
+    )  # the sender's clock, a little behind
     with caplog.at_level(logging.INFO, logger="machine"):
         accepted = rig.send(Command.CALIBRATE_TILT, transaction_id="tc1", timecode=sent)
         refused = rig.send(Command.HOME, transaction_id="tc2", timecode=sent + 0.25)

@@ -29,11 +29,13 @@ def test_a_state_change_the_table_does_not_have_is_refused_at_run_time() -> None
     rig = rig_in(S.IDLE)
     transitions = len(rig.transitions)
     with pytest.raises(IllegalTransition, match="motion done: IDLE → RUNNING"):
-        rig.control.enter(Occurrence.MOTION_DONE, S.RUNNING, rig.clock(), "no such row in IDLE")
+        rig.state_machine.enter(
+            Occurrence.MOTION_DONE, S.RUNNING, rig.clock(), "no such row in IDLE"
+        )
     with pytest.raises(IllegalTransition, match="Stop: IDLE → RUNNING"):
-        rig.control.enter(C.STOP, S.RUNNING, rig.clock(), "Stop's row leads to DONE only")
+        rig.state_machine.enter(C.STOP, S.RUNNING, rig.clock(), "Stop's row leads to DONE only")
     with pytest.raises(IllegalTransition, match="calibration saved: IDLE → None"):
-        rig.control.go(Occurrence.SAVED, rig.clock(), "no calibration is being saved")
+        rig.state_machine.go(Occurrence.SAVED, rig.clock(), "no calibration is being saved")
     assert rig.state is S.IDLE
     assert len(rig.transitions) == transitions
 

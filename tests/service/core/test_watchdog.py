@@ -52,9 +52,11 @@ def test_loop_takes_the_watchdog_fault_before_writing_again() -> None:
     assert not rig.relays_on()
     rig.step()
     assert rig.state is MachineState.FAULT_HW
-    assert rig.control.fault is not None and rig.control.fault.code is FaultCode.WATCHDOG
+    assert (
+        rig.state_machine.fault is not None and rig.state_machine.fault.code is FaultCode.WATCHDOG
+    )
     # The status after the trip keeps saying how long (the watchdog thread's first one does).
-    assert rig.control.fault.message.startswith("scan loop stalled 1304 ms;")
+    assert rig.state_machine.fault.message.startswith("scan loop stalled 1304 ms;")
     assert not guard.latched
     rig.step(50)
     assert not rig.relays_on()
@@ -78,7 +80,7 @@ def test_a_command_between_cycles_finds_the_watchdog_fault_first(path: str) -> N
     else:
         reply = rig.send(Command.HOME)
     assert reply is not None and reply.success, reply
-    assert rig.control.fault is None and rig.state is MachineState.HOMING
+    assert rig.state_machine.fault is None and rig.state is MachineState.HOMING
     assert not guard.latched
     faults = [t for t in rig.transitions if t.new is MachineState.FAULT_HW]
     assert len(faults) == 1 and "watchdog" in faults[0].reason
@@ -155,9 +157,12 @@ def test_stuck_loop_is_caught_by_the_watchdog_thread() -> None:
         runner.stop()
         thread.join(WAIT_S)
     assert got_fault
-    assert threaded.machine.control.fault is not None
-    assert threaded.machine.control.fault.code is FaultCode.WATCHDOG
-    assert f"stalled {threaded.stalled[0] * 1000:.0f} ms" in threaded.machine.control.fault.message
+    assert threaded.machine.state_machine.fault is not None
+    assert threaded.machine.state_machine.fault.code is FaultCode.WATCHDOG
+    assert (
+        f"stalled {threaded.stalled[0] * 1000:.0f} ms"
+        in threaded.machine.state_machine.fault.message
+    )
     assert not hal.outputs.any_on()
     assert not thread.is_alive()
 

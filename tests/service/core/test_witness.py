@@ -33,7 +33,7 @@ def finish(rig: Rig, command: Command, **payload: object) -> MachineState:
 def enter(rig: Rig, offset: float, gain: float) -> None:
     tilt = {"offset_counts": offset, "gain_counts_per_deg": gain}
     values = CalibrationSet.model_validate({"transaction_id": "typed", "tilt": tilt})
-    rig.control.enter_calibration(values, rig.clock())
+    rig.state_machine.enter_calibration(values, rig.clock())
     rig.step()
 
 
@@ -83,10 +83,10 @@ def test_the_issue_calibration_is_stopped_by_home_and_never_ridden() -> None:
     """Issue 53, point 1 on the fake clock: 1197 / 52 for the measured 1197 / 40."""
     rig = Rig(calibration=known_calibration())
     enter(rig, 1197.0, 52.0)
-    assert rig.control.calibration.tilt is not None
-    assert rig.control.calibration.tilt.verified is False
+    assert rig.state_machine.calibration.tilt is not None
+    assert rig.state_machine.calibration.tilt.verified is False
     assert finish(rig, C.HOME) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.TILT_GAIN_MISMATCH, fault
     assert not rig.relays_on() and rig.hal.world.tilt_deg < CONFIG.tilt.max_deg
     refused = rig.send(C.START)
@@ -98,14 +98,14 @@ def test_a_right_entry_is_verified_by_home_and_shown_verified() -> None:
     enter(rig, ZERO, GAIN)
     record = rig.loop.published.calibration
     assert record is not None and record.tilt is not None and record.tilt.verified is False
-    assert finish(rig, C.HOME) is S.IDLE, rig.control.fault
-    tilt = rig.control.calibration.tilt
+    assert finish(rig, C.HOME) is S.IDLE, rig.state_machine.fault
+    tilt = rig.state_machine.calibration.tilt
     assert tilt is not None and tilt.verified and tilt.source is CalibrationSource.MANUAL
     rig.step()
     record = rig.loop.published.calibration
     assert record is not None and record.tilt is not None and record.tilt.verified is True
     assert finish(rig, C.START, **tilt_to(60.0)) is S.DONE
-    reported = rig.control.devices.tilt.read_position_degrees()
+    reported = rig.state_machine.devices.tilt.read_position_degrees()
     assert reported is not None and abs(reported - rig.hal.world.tilt_deg) <= 0.1
 
 
@@ -113,7 +113,7 @@ def test_calibrate_rotate_verifies_an_entered_tilt_on_its_way() -> None:
     rig = Rig(calibration=known_calibration())
     enter(rig, ZERO + 200.0, GAIN)  # 5° off
     assert finish(rig, C.CALIBRATE_ROTATE) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.HOME_OFF_ZERO, fault
 
 
@@ -137,7 +137,7 @@ def test_a_gain_that_drifted_stops_a_session_before_it_passes_its_target_by_a_de
 
     assert rig.send(C.START, **tilt_to(60.0)).success
     rig.run_until(ended)
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert rig.state is S.FAULT_HW and fault is not None, rig.state
     assert fault.code is F.TILT_GAIN_MISMATCH, fault
     assert highest < 60.0 + 1.0
@@ -148,7 +148,7 @@ def session_with_drift(rig: Rig, steps: list[float], after: int, **change: float
     is done; how it ended."""
     session = Session(name="drift", steps=[TiltStep(degrees=d) for d in steps])
     assert rig.send(C.START, session=session.model_dump()).success
-    run = rig.control.context.drive.session_run
+    run = rig.state_machine.context.drive.session_run
     assert run is not None
     rig.run_until(lambda: run.index > after or rig.state is not S.RUNNING)
     drift(rig, **change)
@@ -163,7 +163,7 @@ def test_a_zero_that_moved_is_found_at_the_next_pass_down_through_the_switch() -
     rig = Rig(calibration=known_calibration())
     rig.home()
     assert session_with_drift(rig, [30.0, 0.0], after=0, offset_deg=1.0) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.HOME_OFF_ZERO, fault
     assert "closed on the way down at +1.0" in fault.message
 
@@ -176,7 +176,7 @@ def test_below_zero_by_the_calibration_the_switch_must_be_closed() -> None:
     rig = Rig(config=config, calibration=known_calibration())
     rig.home()
     assert session_with_drift(rig, [10.0, -1.0], after=0, offset_deg=-1.5) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.code is F.HOME_OFF_ZERO, fault
     assert "is still open" in fault.message
 
@@ -191,7 +191,7 @@ def test_a_measured_calibration_rides_on_a_stalling_host_without_a_false_witness
         rig.home()
         steps = [TiltStep(degrees=d) for d in (60.0, 0.0, 45.0, 5.0, 60.0)]
         session = Session(name="up-and-down", steps=steps).model_dump()
-        assert finish(rig, C.START, session=session) is S.DONE, rig.control.fault
+        assert finish(rig, C.START, session=session) is S.DONE, rig.state_machine.fault
     assert rig.hal.stalled_s > 1.0
 
 
@@ -200,7 +200,7 @@ def test_a_home_whose_rotate_fails_keeps_the_tilts_verification() -> None:
     enter(rig, ZERO, GAIN)
     rig.hal.stall("rotate")  # the rotate's home times out after the tilt's part passed
     assert finish(rig, C.HOME) is S.FAULT_HW
-    fault = rig.control.fault
+    fault = rig.state_machine.fault
     assert fault is not None and fault.axis == "rotate", fault
-    tilt = rig.control.calibration.tilt
+    tilt = rig.state_machine.calibration.tilt
     assert tilt is not None and tilt.verified

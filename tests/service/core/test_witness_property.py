@@ -107,7 +107,7 @@ def run(rig: Rig, command: Command, tally: Tally, **payload: object) -> S:
 
 
 def reported_error(rig: Rig) -> float:
-    reported = rig.control.devices.tilt.read_position_degrees()
+    reported = rig.state_machine.devices.tilt.read_position_degrees()
     assert reported is not None
     return abs(reported - rig.hal.world.tilt_deg)
 
@@ -123,7 +123,7 @@ def trial(rng: random.Random, tally: Tally) -> None:
         calibration=Calibration(rotate=known_calibration().rotate),
     )
     entry = {"offset_counts": offset, "gain_counts_per_deg": gain}
-    rig.control.enter_calibration(
+    rig.state_machine.enter_calibration(
         CalibrationSet.model_validate({"transaction_id": "typed", "tilt": entry}), rig.clock()
     )
     context = (world, offset, gain, f"wrong by {wrong:.2f}°")
@@ -133,7 +133,7 @@ def trial(rng: random.Random, tally: Tally) -> None:
         state = run(rig, command, tally, **payload)
         assert tally.highest_deg <= cfg.max_deg + OVERRUN_DEG, ("overran", context)
         if state is S.FAULT_HW:
-            fault = rig.control.fault
+            fault = rig.state_machine.fault
             assert fault is not None
             if fault.code in SPOILED:
                 tally.outcomes["spoiled: " + fault.code] += 1
