@@ -3,15 +3,18 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+TYPECHECK := .mypy_cache/tree/ride_machine
 
 .PHONY: run test test-under-load install browser prometheus js schema states hazards lint bench clean
 
 # The locked versions (requirements/dev.txt, hashes checked), then the project itself on top.
-$(STAMP): pyproject.toml requirements/dev.txt
+$(STAMP): pyproject.toml requirements/dev.txt requirements/neighbours.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet --require-hashes -r requirements/dev.txt
 	$(BIN)/python -m pip install --quiet --no-deps --no-build-isolation -e .
+	$(BIN)/python -m pip download --quiet --no-deps --require-hashes -r requirements/neighbours.txt \
+	  --dest $(VENV)/wheels
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -56,9 +59,9 @@ schema: $(STAMP)
 	$(BIN)/machine schema schema/json
 
 ## Regenerate the README's state table and docs/states.md from the transition table
-## (service/core/statemachine/table.py TABLE); tests/service/core/test_control_doc.py fails while they differ.
+## (service/core/statemachine/table.py TABLE); tests/service/core/statemachine/test_control_doc.py fails while they differ.
 states: $(STAMP)
-	$(BIN)/python -m service.core.control_doc
+	$(BIN)/python -m ride_machine.service.core.statemachine.control_doc
 
 ## Run every test the hazard log names, record the results and rewrite docs/hazards.md from
 ## docs/hazards.toml (tests/test_hazards.py fails while the page, the table and the suite differ).
@@ -69,7 +72,7 @@ hazards: $(STAMP)
 ## taking a whole test file at a time (a file's tests share fixtures and daemons).
 ## PARALLEL= runs it in one process.
 PARALLEL ?= -n 2 --dist loadfile
-test: $(STAMP) browser prometheus js
+test: $(STAMP) browser prometheus js $(TYPECHECK)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
@@ -81,9 +84,15 @@ ORDER ?= normal
 test-under-load: $(STAMP) browser js
 	$(BIN)/python -m tests.under_load $(PARALLEL) --order $(ORDER)
 
-lint: $(STAMP)
+lint: $(STAMP) $(TYPECHECK)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
+
+## mypy reads the code under the name it is installed as (ride_machine.<folder>, pyproject.toml's
+## package-dir): a tree of links to the folders, in mypy's own cache folder.
+$(TYPECHECK):
+	mkdir -p $@
+	for p in schema common hal service sim rider; do ln -sfn ../../../$$p $@/$$p; done
 
 ## Run every benchmark and rewrite BENCHMARKS.md.
 bench: $(STAMP)

@@ -24,10 +24,10 @@ from pathlib import Path
 
 from bench.common import Options, Section, Table, Target, burners, main_for
 from bench.daemon import Tuning, bench_daemon, pinnable_cpu
-from rider.client import CommandRefused, Rider
-from rider.errors import MachineTimeout
-from schema.commands import Reply, RotateStep, Session, TiltStep
-from schema.status import MachineState, Status
+from ride_machine.rider.client import CommandRefused, Rider
+from ride_machine.rider.errors import MachineTimeout
+from ride_machine.schema.commands import Reply, RotateStep, Session, TiltStep
+from ride_machine.schema.status import MachineState, Status
 
 PRIORITY = 50
 SESSION = Session(

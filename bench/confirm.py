@@ -26,15 +26,15 @@ import zenoh
 
 from bench.common import Dist, Options, Section, Table, Target, main_for, ms, only_reply
 from bench.daemon import bench_daemon, home_and_start
-from rider.client import Rider
-from rider.confirm import Confirmations, Ledger
-from rider.errors import CommandRefused
-from rider.link import zenoh_config
-from schema.codec import Format, decode, encode
-from schema.commands import Reply, StartRequest
-from schema.errors import ErrorCode
-from schema.rider import rider_id
-from schema.status import MachineState
+from ride_machine.rider.client import Rider
+from ride_machine.rider.confirm import Confirmations, Ledger
+from ride_machine.rider.errors import CommandRefused
+from ride_machine.rider.link import zenoh_config
+from ride_machine.schema.codec import Format, decode, encode
+from ride_machine.schema.commands import Reply, StartRequest
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.rider import rider_id
+from ride_machine.schema.status import MachineState
 from tests.procs import Daemon
 
 HOME_TRIES = 3

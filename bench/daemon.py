@@ -11,9 +11,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from rider.client import CommandRefused, Rider
-from schema.status import MachineState
-from service.core.persist import CALIBRATION_FILE
+from ride_machine.rider.client import CommandRefused, Rider
+from ride_machine.schema.status import MachineState
+from ride_machine.service.core.storage.persist import CALIBRATION_FILE
 from tests.procs import Daemon, start_daemon
 
 STATS_WINDOW = 100_000
@@ -111,7 +111,7 @@ def calibration_file(config_toml: str = "") -> bytes:
     """What a calibration run of the simulator stores (found once, with a fake clock): the
     default machine's, or that of the machine `config_toml` describes. A daemon must run on
     its own machine's calibration: the revolution check refuses another's revolution time."""
-    from service.config.model import MachineConfig
+    from ride_machine.service.config.model import MachineConfig
     from tests.rig import Rig
 
     config = MachineConfig.model_validate(tomllib.loads(config_toml))

@@ -23,11 +23,11 @@ import zenoh
 
 from bench.common import Dist, Options, Section, Table, Target, main_for, ms, share
 from bench.daemon import HomingFailed, bench_daemon, home_and_start
-from rider.client import CommandRefused, Rider
-from schema.codec import DecodeError, Format, decode
-from schema.commands import Command
-from schema.io import IoKind, IoValue
-from schema.status import MOTION_STATES, MachineState
+from ride_machine.rider.client import CommandRefused, Rider
+from ride_machine.schema.codec import DecodeError, Format, decode
+from ride_machine.schema.commands import Command
+from ride_machine.schema.io import IoKind, IoValue
+from ride_machine.schema.status import MOTION_STATES, MachineState
 from tests.rig import Rig, known_calibration
 
 PERIOD_S = 0.010

@@ -24,18 +24,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.common import Options, Section, Table, Target, main_quiet, ms
-from schema.commands import Command, CommandRequest, Reply
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.history import HistoryProcess
-from service.config.model import EventsSection, MachineConfig
-from service.core.loop import ScanLoop
-from service.core.machine import Machine
-from service.core.runner import RealtimeRunner
-from service.core.tasks import LoopCall, PendingCommand
-from service.core.timing import CycleStats
-from service.core.tuning import slice_process, tune_thread
-from sim.hal import SimHal
-from sim.settings import PhysicsParams
+from ride_machine.schema.commands import Command, CommandRequest, Reply
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.history import HistoryProcess
+from ride_machine.service.config.model import EventsSection, MachineConfig
+from ride_machine.service.core.scan.loop import ScanLoop
+from ride_machine.service.core.scan.machine import Machine
+from ride_machine.service.core.scan.runner import RealtimeRunner
+from ride_machine.service.core.scan.tasks import LoopCall, PendingCommand
+from ride_machine.service.core.scan.timing import CycleStats
+from ride_machine.service.core.scan.tuning import slice_process, tune_thread
+from ride_machine.sim.hal import SimHal
+from ride_machine.sim.settings import PhysicsParams
 
 PERIOD_S = 0.010
 COMMAND_RATE = 500.0

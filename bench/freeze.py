@@ -32,8 +32,8 @@ from pathlib import Path
 
 from bench import common
 from bench.common import Dist, Options, Section, Table, Target, main_for, ms
-from schema.status import FAULT_STATES
-from sim.settings import PhysicsParams
+from ride_machine.schema.status import FAULT_STATES
+from ride_machine.sim.settings import PhysicsParams
 from tests.freeze import (
     LIMIT_S,
     PERIOD_S,

@@ -52,7 +52,7 @@ from bench.common import (
     rss_bytes,
 )
 from bench.daemon import Tuning, config_toml
-from schema.diag import CycleDiag
+from ride_machine.schema.diag import CycleDiag
 from tests.procs import REPO, Daemon, free_port, start_daemon, stop_process, write_zenoh_config
 
 MACHINES = 10
@@ -112,7 +112,13 @@ def gateway(
     """`rider gateway` on every daemon's endpoint, its cache in `tmp` (made at its first start);
     (process, OPC UA port, metrics port) once it shows all ten machines."""
     opcua, metrics = free_port(), free_port()
-    cmd = [sys.executable, "-m", "rider.cli", "--zenoh-config", str(write_zenoh_config(tmp))]
+    cmd = [
+        sys.executable,
+        "-m",
+        "ride_machine.rider.cli",
+        "--zenoh-config",
+        str(write_zenoh_config(tmp)),
+    ]
     for d in daemons:
         cmd += ["--connect", d.endpoint]
     cmd += ["gateway", "--opcua", f"127.0.0.1:{opcua}", "--metrics", f"127.0.0.1:{metrics}"]

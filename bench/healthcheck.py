@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from bench.common import NAN, CpuMeter, Options, Section, Table, Target, main_for
-from service.adapters.heartbeat import HEARTBEAT_FILE_ENV
+from ride_machine.service.adapters.heartbeat import HEARTBEAT_FILE_ENV
 from tests.procs import rider_cmd, start_daemon
 
 NEW_CHECK = "find {file} -mmin -0.1 | grep -q ."

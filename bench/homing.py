@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.common import Dist, Options, Section, Table, Target, burners, main_for
-from rider.client import CommandRefused, MachineTimeout, Rider
-from schema.commands import REST_STATES, RotateStep, Session, TiltStep
-from schema.status import FAULT_STATES, MachineState, Status
+from ride_machine.rider.client import CommandRefused, MachineTimeout, Rider
+from ride_machine.schema.commands import REST_STATES, RotateStep, Session, TiltStep
+from ride_machine.schema.status import FAULT_STATES, MachineState, Status
 from tests.procs import Daemon, start_daemon
 
 CONFIG = """\

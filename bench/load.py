@@ -24,9 +24,9 @@ import zenoh
 
 from bench.common import CpuMeter, Dist
 from bench.daemon import HomingFailed, home_and_start
-from rider.client import Rider, RiderError
-from schema.axes import AxisRecord
-from schema.status import MachineState, Status
+from ride_machine.rider.client import Rider, RiderError
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.status import MachineState, Status
 
 STEP_TIMEOUT_S = 2.0
 RESTART = frozenset(

@@ -25,7 +25,7 @@ from typing import Any
 from bench import common
 from bench.common import ms, share
 from bench.daemon import Tuning, bench_daemon
-from schema.diag import CycleDiag, TimingStats
+from ride_machine.schema.diag import CycleDiag, TimingStats
 from tests.procs import Daemon
 
 LOAD_RATE = 200.0

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from bench.common import Dist, Options, Section, Table, Target, main_for, ms
 from bench.daemon import bench_daemon
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 from tests.site.stand import PEER_CONFIG, site
 
 

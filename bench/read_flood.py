@@ -26,7 +26,7 @@ import zenoh
 from bench import common
 from bench.common import ms
 from bench.daemon import Tuning, bench_daemon
-from rider.client import zenoh_config as rider_zenoh_config
+from ride_machine.rider.client import zenoh_config as rider_zenoh_config
 from tests.procs import Daemon
 
 PERIOD_S = 0.010

@@ -22,15 +22,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.common import Options, Section, Table, Target, main_quiet, ms
-from schema.codec import dump_json
-from schema.events import CommandEvent, EstopEvent, FaultEvent, KnownDetails, RiderEvent
-from schema.status import MachineState
-from service.adapters.eventdb import connect
-from service.adapters.eventlog import EVENTS_FILE
-from service.adapters.replay import recall
-from service.adapters.retention import SAFETY_KINDS, prune, used_bytes
-from service.config.model import EventsSection
-from service.core.transactions import TransactionLog
+from ride_machine.schema.codec import dump_json
+from ride_machine.schema.events import (
+    CommandEvent,
+    EstopEvent,
+    FaultEvent,
+    KnownDetails,
+    RiderEvent,
+)
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.eventdb import connect
+from ride_machine.service.adapters.eventlog import EVENTS_FILE
+from ride_machine.service.adapters.replay import recall
+from ride_machine.service.adapters.retention import SAFETY_KINDS, prune, used_bytes
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.commands.transactions import TransactionLog
 
 T0 = 1_800_000_000.0
 SAFETY_ROWS = 2000

@@ -25,7 +25,7 @@ import zenoh
 
 from bench.common import Options, Section, Table, Target, main_for, only_reply
 from bench.daemon import bench_daemon
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 
 GOAL_US = 25.0
 """Issue 18: a Rider command costs its client at most this much CPU over the raw get."""

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from bench.common import CpuMeter, Dist, Options, Section, Table, Target, main_for, ms
 from bench.daemon import bench_daemon, calibration_file
-from service.core.persist import CALIBRATION_FILE
+from ride_machine.service.core.storage.persist import CALIBRATION_FILE
 from tests.integration.support import write_fast_config
 from tests.netns import NetnsUnavailable, NsPair, veth_pair
 from tests.procs import REPO, Daemon, LineReader, free_port, start_daemon, stop_process
@@ -38,8 +38,8 @@ KINDS = ("SIGKILL", "SIGSTOP", "veth down")
 
 RIDER_CHILD = """
 import sys
-from rider.client import Rider
-from schema.commands import RotateStep, Session, TiltStep
+from ride_machine.rider.client import Rider
+from ride_machine.schema.commands import RotateStep, Session, TiltStep
 endpoint, action = sys.argv[1], sys.argv[2]
 with Rider("m1", connect=[endpoint]) as r:  # Zenoh's defaults: a 10 s lease
     if action == "idle":
@@ -57,8 +57,8 @@ with Rider("m1", connect=[endpoint]) as r:  # Zenoh's defaults: a 10 s lease
 
 OBSERVER_CHILD = """
 import json, sys
-from rider.client import Rider
-from schema.status import MachineState as S, Status
+from ride_machine.rider.client import Rider
+from ride_machine.schema.status import MachineState as S, Status
 endpoint = sys.argv[1]
 with Rider("m1", connect=[endpoint], supervise=False, timeout=5.0) as r:
     reply = r.home()
@@ -273,7 +273,7 @@ def run(opts: Options) -> Section:
 
 WAIT_UP = """
 import sys
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 with Rider("m1", connect=[sys.argv[1]], supervise=False, timeout=5.0) as r:
     for _ in range(100):
         try:

@@ -22,10 +22,10 @@ from bench import common
 from bench.baselines.udp_echo import UdpClient
 from bench.common import ms, share
 from bench.daemon import Tuning, bench_daemon, pinnable_cpu
-from rider.client import Rider, open_session
-from rider.client import zenoh_config as rider_zenoh_config
-from schema.codec import Format, decode
-from schema.commands import Reply
+from ride_machine.rider.client import Rider, open_session
+from ride_machine.rider.client import zenoh_config as rider_zenoh_config
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.commands import Reply
 from tests.procs import free_port
 
 PERIOD_S = 0.010

@@ -48,9 +48,9 @@ from bench.common import (
     tenths,
 )
 from bench.soak import Rides, rides_worker
-from rider.client import RiderError
-from rider.client import zenoh_config as rider_zenoh_config
-from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS, TUNABLES_ENV
+from ride_machine.rider.client import RiderError
+from ride_machine.rider.client import zenoh_config as rider_zenoh_config
+from ride_machine.service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS, TUNABLES_ENV
 from tests.integration.support import fast_args
 from tests.procs import Daemon, free_port, malloc_arenas, start_daemon, write_zenoh_config
 from tests.reliability.support import environ

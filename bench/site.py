@@ -45,7 +45,7 @@ from pathlib import Path
 
 from bench import common
 from bench.common import mib, ms
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 from tests.procs import REPO, Daemon, free_port, start_daemon, stop_process
 from tests.site.stand import PEER_CONFIG, Router, wait_tokens, write_doc_config
 
@@ -127,7 +127,7 @@ class Stand:
 
     def rider_cmd(self, *args: str) -> list[str]:
         return [
-            *[sys.executable, "-m", "rider.cli", "--connect", self.router.endpoint],
+            *[sys.executable, "-m", "ride_machine.rider.cli", "--connect", self.router.endpoint],
             *["--zenoh-config", str(self.client_config), *args],
         ]
 

@@ -42,11 +42,11 @@ from bench.common import (
     soak_parser,
     tenths,
 )
-from rider.client import CommandRefused, MachineTimeout, Rider, RiderError
-from schema.codec import Format, decode, pack
-from schema.commands import REST_STATES, Command, Reply, RotateStep, Session, TiltStep
-from schema.diag import CycleDiag
-from schema.status import FAULT_STATES, FaultCode, MachineState, Status
+from ride_machine.rider.client import CommandRefused, MachineTimeout, Rider, RiderError
+from ride_machine.schema.codec import Format, decode, pack
+from ride_machine.schema.commands import REST_STATES, Command, Reply, RotateStep, Session, TiltStep
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests.integration.support import raw_get
 from tests.procs import Daemon
 from tests.reliability.support import StatusFeed, start_machine, supervisor_child

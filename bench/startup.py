@@ -39,8 +39,8 @@ import zenoh
 from bench import common
 from bench.common import ms
 from bench.daemon import bench_daemon
-from rider.discovery import SETTLE_S
-from rider.link import zenoh_config
+from ride_machine.rider.discovery import SETTLE_S
+from ride_machine.rider.link import zenoh_config
 from tests.procs import REPO, free_port, machine_cmd, stop_process, write_zenoh_config
 
 HELP_TARGET_S = 0.15
@@ -80,7 +80,7 @@ def rider_script() -> list[str]:
     script = Path(sys.executable).with_name("rider")
     if script.exists():
         return [sys.executable, str(script)]
-    return [sys.executable, "-m", "rider.cli"]
+    return [sys.executable, "-m", "ride_machine.rider.cli"]
 
 
 def timed_run(cmd: list[str], cwd: Path = REPO, env: dict[str, str] | None = None) -> float:
@@ -210,7 +210,7 @@ class Cli:
         return timed_run([*self.argv, *args], cwd=self.cwd, env=self.env)
 
 
-CONSOLE_SCRIPT = "import sys; from rider.cli import main; sys.exit(main())"
+CONSOLE_SCRIPT = "import sys; from ride_machine.rider.cli import main; sys.exit(main())"
 """What the `rider` console script runs, for a tree that is not installed."""
 
 

@@ -20,9 +20,9 @@ import zenoh
 
 from bench.common import Dist, Options, Section, Table, Target, main_for, ms, share
 from bench.daemon import bench_daemon
-from rider.client import Rider
-from schema.codec import Format, decode
-from schema.status import Status
+from ride_machine.rider.client import Rider
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.status import Status
 
 
 @dataclass

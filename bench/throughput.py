@@ -20,9 +20,9 @@ from pathlib import Path
 
 from bench import common
 from bench.daemon import bench_daemon
-from rider.client import Rider, open_session
-from rider.client import zenoh_config as rider_zenoh_config
-from schema.diag import CycleDiag
+from ride_machine.rider.client import Rider, open_session
+from ride_machine.rider.client import zenoh_config as rider_zenoh_config
+from ride_machine.schema.diag import CycleDiag
 from tests.procs import free_port
 
 PERIOD_S = 0.010

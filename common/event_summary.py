@@ -6,9 +6,9 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Iterable
 
-from schema.base import OpenWireModel
-from schema.event_kinds import EventKind
-from schema.event_models import (
+from ride_machine.schema.base import OpenWireModel
+from ride_machine.schema.event_kinds import EventKind
+from ride_machine.schema.event_models import (
     CommandEvent,
     DaemonStartEvent,
     DroppedEvent,

@@ -22,9 +22,8 @@ from collections.abc import Callable, Mapping
 from datetime import datetime
 from typing import Any
 
-from common.departure import departure_text
-from schema.event_kinds import EventKind
-from schema.event_models import (
+from ride_machine.schema.event_kinds import EventKind
+from ride_machine.schema.event_models import (
     CalibrationEvent,
     ClockEvent,
     CommandEvent,
@@ -43,6 +42,8 @@ from schema.event_models import (
     StorageEvent,
     WatchdogEvent,
 )
+
+from .departure import departure_text
 
 SHORT_ID = 6
 """Hex digits of a Rider's session id shown beside its login: 16.7 million to tell apart."""
@@ -120,7 +121,7 @@ PARAM_UNITS: tuple[tuple[str, str, int], ...] = (
     ("_s", "s", 3),
 )
 """A parameter's unit and decimals by the end of its name (`tilt.max_deg`, `bus.heartbeat_s`):
-the same units as the parameter table (service/core/params.py, checked by the test)."""
+the same units as the parameter table (service/core/storage/params.py, checked by the test)."""
 
 
 def param_unit(name: str) -> tuple[str, int | None]:

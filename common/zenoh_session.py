@@ -17,8 +17,8 @@ from pathlib import Path
 
 import zenoh
 
-from common.credentials import MACHINE, RIDER, zenoh_settings
-from common.runtime import first_session_on, unreadable_layout
+from .credentials import MACHINE, RIDER, zenoh_settings
+from .runtime import first_session_on, unreadable_layout
 
 LOCAL_ENDPOINT = "tcp/127.0.0.1:7447"
 """Where the daemon listens and a Rider connects without a config file or endpoints: this host

@@ -34,11 +34,11 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
-from common.credentials import CredentialError
-from common.zenoh_session import open_session
-from service.bus.session import close_session, zenoh_config
-from service.bus.stations import StationError
-from service.logfmt import flush_logs, setup_logging
+from ride_machine.common.credentials import CredentialError
+from ride_machine.common.zenoh_session import open_session
+from ride_machine.service.bus.session import close_session, zenoh_config
+from ride_machine.service.bus.stations import StationError
+from ride_machine.service.logfmt import flush_logs, setup_logging
 
 if TYPE_CHECKING:
     import zenoh

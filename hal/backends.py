@@ -17,9 +17,10 @@ from typing import Protocol, runtime_checkable
 
 from pydantic import BaseModel
 
-from hal.base import Hal
-from hal.iomap import IoMap
-from schema.sim import SimWorldState
+from ride_machine.schema.sim import SimWorldState
+
+from .base import Hal
+from .iomap import IoMap
 
 GROUP = "ride_machine.hal"
 """The entry-point group a backend registers in (`[project.entry-points]` of pyproject.toml)."""

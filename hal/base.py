@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
-from schema.findings import Finding
+from ride_machine.schema.findings import Finding
 
 
 @dataclass(frozen=True, slots=True)

@@ -11,8 +11,9 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from hal.base import HalConfigError
-from schema.findings import Finding, Severity
+from ride_machine.schema.findings import Finding, Severity
+
+from .base import HalConfigError
 
 CONFIG_PATH = "/hal/revpi/configrsc"
 IMAGE_BYTES = 4096

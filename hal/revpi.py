@@ -22,9 +22,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from hal.base import HalConfigError, HalError, Inputs, Outputs
-from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from hal.pictory import (
+from ride_machine.schema.findings import Finding, Severity
+from ride_machine.schema.io import IoKind
+
+from .base import HalConfigError, HalError, Inputs, Outputs
+from .iomap import RELAY_OUTPUTS, IoMap, Signal
+from .pictory import (
     CONFIG_PATH,
     RevPiConfigError,
     error,
@@ -32,10 +35,8 @@ from hal.pictory import (
     layout_findings,
     read_config,
 )
-from hal.revpi_bind import KIND, BoundIo, bind_ios, shared_output_findings
-from hal.revpi_open import locate_configrsc, open_modio, procimg_findings, raise_for_errors
-from schema.findings import Finding, Severity
-from schema.io import IoKind
+from .revpi_bind import KIND, BoundIo, bind_ios, shared_output_findings
+from .revpi_open import locate_configrsc, open_modio, procimg_findings, raise_for_errors
 
 __all__ = [
     "RevPiConfigError",

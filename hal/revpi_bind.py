@@ -7,11 +7,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, OPTIONAL_OUTPUTS, RELAY_OUTPUTS, IoMap, Signal
-from hal.pictory import BYTE_IO_BASES, CONFIG_PATH, STATUS_MODULES, Module, error, product_name
-from hal.revpi_open import import_revpimodio2
-from schema.findings import Finding, Severity
-from schema.io import IoKind
+from ride_machine.schema.findings import Finding, Severity
+from ride_machine.schema.io import IoKind
+
+from .iomap import ANALOG_INPUTS, DIGITAL_INPUTS, OPTIONAL_OUTPUTS, RELAY_OUTPUTS, IoMap, Signal
+from .pictory import BYTE_IO_BASES, CONFIG_PATH, STATUS_MODULES, Module, error, product_name
+from .revpi_open import import_revpimodio2
 
 KIND = {
     **dict.fromkeys(DIGITAL_INPUTS, IoKind.DI),

@@ -9,8 +9,9 @@ import warnings
 from types import ModuleType
 from typing import Any
 
-from hal.pictory import CONFIG_PATH, RevPiConfigError, error
-from schema.findings import Finding, Severity
+from ride_machine.schema.findings import Finding, Severity
+
+from .pictory import CONFIG_PATH, RevPiConfigError, error
 
 KNOWN_CONFIGRSC = ("/etc/revpi/config.rsc", "/opt/KUNBUS/config.rsc")
 """Where piCtory saves its config on a device; searched when none is configured."""

@@ -6,9 +6,9 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
-from hal.backends import Clock, Simulator, Sleep, World
-from hal.base import Hal
-from hal.iomap import IoMap
+from .backends import Clock, Simulator, Sleep, World
+from .base import Hal
+from .iomap import IoMap
 
 
 class RevPiSettings(BaseModel):
@@ -33,7 +33,7 @@ class RevPiBackend:
     def open(self, iomap: IoMap, settings: object, clock: Clock, sleep: Sleep | None) -> Hal:
         # On use: the config reads `settings` in every process, and the simulator never
         # needs the RevPi backend's 800 lines (which load revpimodio2 on use in their turn).
-        from hal.revpi import RevPiHal
+        from .revpi import RevPiHal
 
         rp = RevPiSettings.model_validate(settings)
         return RevPiHal(iomap, rp.procimg, rp.configrsc, hw_watchdog=rp.hw_watchdog)

@@ -10,7 +10,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Iterat
 from pathlib import Path
 from typing import Concatenate, Generic, ParamSpec, Self, TypedDict, TypeVar, Unpack, overload
 
-from rider.blocking import Rider
+from .blocking import Rider
 
 P = ParamSpec("P")
 R = TypeVar("R")

@@ -10,31 +10,44 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 
 import zenoh
 
-from rider.commands import Commands
-from rider.discovery import Discovery, Listing, Lookahead
-from rider.link import DEFAULT_TIMEOUT_S, Link
-from rider.machines import MachineInfo, Machines
-from rider.pinning import Holders
-from rider.reads import Reads
-from rider.replies import Update, check_result
-from rider.subscriptions import Subscription, Subscriptions
-from rider.transport import Transport
-from schema.axes import AxisRecord
-from schema.calibration import CalibrationRecord, RotateCalibrationSet, TiltCalibrationSet
-from schema.commands import CheckResult, Command, CommandRequest, Reply, Session, StartRequest
-from schema.diag import CycleDiag
-from schema.findings import Findings
-from schema.io import IoValue
-from schema.params import ParamValue
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import (
+    CalibrationRecord,
+    RotateCalibrationSet,
+    TiltCalibrationSet,
+)
+from ride_machine.schema.commands import (
+    CheckResult,
+    Command,
+    CommandRequest,
+    Reply,
+    Session,
+    StartRequest,
+)
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.findings import Findings
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.params import ParamValue
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
+
+from .commands import Commands
+from .discovery import Discovery, Listing, Lookahead
+from .link import DEFAULT_TIMEOUT_S, Link
+from .machines import MachineInfo, Machines
+from .pinning import Holders
+from .reads import Reads
+from .replies import Update, check_result
+from .subscriptions import Subscription, Subscriptions
+from .transport import Transport
 
 if TYPE_CHECKING:  # loaded by the first event query or wait: `rider status` needs neither
-    from common.event_summary import EventSummary
-    from rider.completions import Completions
-    from rider.events import Events
-    from schema.completion import Completion
-    from schema.events import Event, EventPage, EventQuery
+    from ride_machine.common.event_summary import EventSummary
+    from ride_machine.schema.completion import Completion
+    from ride_machine.schema.events import Event, EventPage, EventQuery
+
+    from .completions import Completions
+    from .events import Events
 
 T = TypeVar("T")
 
@@ -124,14 +137,14 @@ class Rider:
     @functools.cached_property
     def _events(self) -> Events:
         """The event history's part, made at its first use (its models are the largest)."""
-        from rider.events import Events
+        from .events import Events
 
         return Events(self.link, self._machines, self.transport, self._subs)
 
     @functools.cached_property
     def _completions(self) -> Completions:
         """Completion notices and waits, made at their first use."""
-        from rider.completions import Completions
+        from .completions import Completions
 
         return Completions(self._machines, self.transport, self._subs, self._reads)
 

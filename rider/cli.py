@@ -21,8 +21,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
-from rider.errors import CommandRefused, DuplicateMachine, RiderError
-from rider.exits import (
+from .errors import CommandRefused, DuplicateMachine, RiderError
+from .exits import (
     EXIT_AMBIGUOUS,
     EXIT_DUPLICATE,
     EXIT_LINK_LOST,
@@ -33,8 +33,8 @@ from rider.exits import (
     EXITS,
     UsageError,
 )
-from rider.subcommands import parsers
-from rider.text import printable
+from .subcommands import parsers
+from .text import printable
 
 N = TypeVar("N", int, float)
 
@@ -158,15 +158,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
     if args.cmd == "fastdata" and (code := _fastdata(args, rest)) is not None:
         return code
-    from rider.link import env_connect  # Zenoh: only for a command that runs
+    from .link import env_connect  # Zenoh: only for a command that runs
 
     connect = args.connect or env_connect()
     if args.cmd == "gateway":
-        from rider.gateway.cli import main as gateway_main
+        from ride_machine.rider.gateway.cli import main as gateway_main
 
         return gateway_main(rest, connect, args.zenoh_config, args.zenoh_threads)
     if args.cmd == "ui":
-        from rider.ui.app import main as ui_main
+        from ride_machine.rider.ui.app import main as ui_main
 
         return int(
             ui_main(
@@ -183,8 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _fastdata(args: argparse.Namespace, rest: list[str]) -> int | None:
     """`rider fastdata …` reads the UDP stream; `rider fastdata set …` writes a user register,
     an online parameter, over Zenoh like `params set` (None: run that)."""
-    from rider.fastdata import SET_COMMANDS, parse_set
-    from rider.fastdata import main as fastdata_main
+    from .fastdata import SET_COMMANDS, parse_set
+    from .fastdata import main as fastdata_main
 
     if not rest or rest[0] not in SET_COMMANDS:
         return int(fastdata_main(rest))
@@ -200,8 +200,8 @@ def _run(args: argparse.Namespace, connect: list[str]) -> int:
     The session opens before the client and the wire models load (Zenoh alone), and without
     `--machine` the default machine's lookup starts at once on its own thread: its settle
     window (rider/discovery.py) runs while Python imports the rest, instead of after."""
-    from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Lookahead
-    from rider.link import Link
+    from .discovery import MOTION_SETTLE_S, SETTLE_S, Lookahead
+    from .link import Link
 
     link: Link | None = None
     lookahead: Lookahead | None = None
@@ -222,7 +222,7 @@ def _run(args: argparse.Namespace, connect: list[str]) -> int:
         if args.machine is None:
             settle = MOTION_SETTLE_S if getattr(args, "sends_command", False) else SETTLE_S
             lookahead = Lookahead(settle, link.lookup)
-        from rider.blocking import Rider  # the client, loaded while the lookup settles
+        from .blocking import Rider  # the client, loaded while the lookup settles
 
         with Rider.on_link(link, args.machine, lookahead) as rider:
             code: int = args.func(args, rider)

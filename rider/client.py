@@ -18,11 +18,11 @@ transaction id; on a timeout the same id is retried, so a retry can never act tw
 
 from __future__ import annotations
 
-from rider.aio import AsyncRider
-from rider.blocking import Rider
-from rider.completions import DONE_RECHECK_S
-from rider.discovery import DISCOVERY_MIN_S, Listing
-from rider.errors import (
+from .aio import AsyncRider
+from .blocking import Rider
+from .completions import DONE_RECHECK_S
+from .discovery import DISCOVERY_MIN_S, Listing
+from .errors import (
     AmbiguousMachine,
     BadCredentials,
     BadReply,
@@ -37,7 +37,7 @@ from rider.errors import (
     UnknownTransaction,
     UnsureMachine,
 )
-from rider.link import (
+from .link import (
     DEFAULT_CONNECT,
     DEFAULT_TIMEOUT_S,
     HINT_PROBE_S,
@@ -49,12 +49,12 @@ from rider.link import (
     rider_login,
     zenoh_config,
 )
-from rider.link import direct as _direct  # tests/service/bus/test_bus_callbacks.py compares it
-from rider.machines import MachineInfo
-from rider.pinning import KEY_CACHE, Holders
-from rider.replies import Update
-from rider.subscriptions import FOREIGN_LOG_EVERY_S, Subscription, Throttle
-from rider.transport import EMPTY_RETRY_S
+from .link import direct as _direct  # tests/service/bus/test_bus_callbacks.py compares it
+from .machines import MachineInfo
+from .pinning import KEY_CACHE, Holders
+from .replies import Update
+from .subscriptions import FOREIGN_LOG_EVERY_S, Subscription, Throttle
+from .transport import EMPTY_RETRY_S
 
 __all__ = [
     "DEFAULT_CONNECT",

@@ -8,12 +8,13 @@ import time
 import uuid
 from typing import Any
 
-from rider.errors import CommandRefused, MachineTimeout, RiderError
-from rider.link import Link
-from rider.machines import Machines
-from rider.transport import Transport
-from schema.codec import encode, pack
-from schema.commands import VALID_FOR_MAX_S, Command, CommandRequest, Reply
+from ride_machine.schema.codec import encode, pack
+from ride_machine.schema.commands import VALID_FOR_MAX_S, Command, CommandRequest, Reply
+
+from .errors import CommandRefused, MachineTimeout, RiderError
+from .link import Link
+from .machines import Machines
+from .transport import Transport
 
 
 class Commands:

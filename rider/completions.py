@@ -11,17 +11,18 @@ from dataclasses import dataclass
 
 import zenoh
 
-from rider.errors import BadReply, CommandRefused, LinkLost, MachineTimeout, UnknownTransaction
-from rider.machines import Machines
-from rider.reads import Reads
-from rider.replies import Update, decode_update
-from rider.subscriptions import Subscriptions
-from rider.transport import Transport
-from rider.waiting import Silence
-from schema.commands import Reply
-from schema.completion import Completion
-from schema.errors import ErrorCode
-from schema.status import MachineState, Status
+from ride_machine.schema.commands import Reply
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.status import MachineState, Status
+
+from .errors import BadReply, CommandRefused, LinkLost, MachineTimeout, UnknownTransaction
+from .machines import Machines
+from .reads import Reads
+from .replies import Update, decode_update
+from .subscriptions import Subscriptions
+from .transport import Transport
+from .waiting import Silence
 
 DONE_RECHECK_S = 1.0
 """`wait_done` asks for the notice this often besides listening for it."""

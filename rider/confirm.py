@@ -15,7 +15,14 @@ from typing import Any
 
 import zenoh
 
-from schema.rider import CONFIRM_QUERY_BYTES, DENIED, LEDGER_SIZE, confirm_key, confirmation, digest
+from ride_machine.schema.rider import (
+    CONFIRM_QUERY_BYTES,
+    DENIED,
+    LEDGER_SIZE,
+    confirm_key,
+    confirmation,
+    digest,
+)
 
 
 class Ledger:

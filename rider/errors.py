@@ -6,7 +6,7 @@ from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the wire models load only where a reply is decoded: `rider --help` needs none
-    from schema.commands import Reply
+    from ride_machine.schema.commands import Reply
 
 
 class RiderError(Exception):
@@ -21,7 +21,10 @@ class CommandRefused(RiderError):
     """The machine answered with an error (wrong state, bad payload, ...)."""
 
     def __init__(self, reply: Reply) -> None:
-        from schema.errors import Error, ErrorCode  # loaded already: `reply` is a wire model
+        from ride_machine.schema.errors import (  # loaded already: `reply` is a wire model
+            Error,
+            ErrorCode,
+        )
 
         error = reply.error or Error(code=ErrorCode.INTERNAL, message="refused without reason")
         where = f" at {error.path}" if error.path else ""

@@ -14,15 +14,16 @@ from typing import Any
 
 import zenoh
 
-from common.event_summary import EventSummary, summarize
-from rider.errors import BadReply, RiderError
-from rider.link import Link
-from rider.machines import Machines
-from rider.replies import decode_reply, decode_sample
-from rider.subscriptions import Subscriptions
-from rider.transport import EMPTY_RETRY_S, Transport
-from schema.codec import MAX_REPLY_BYTES
-from schema.events import Event, EventPage, EventQuery
+from ride_machine.common.event_summary import EventSummary, summarize
+from ride_machine.schema.codec import MAX_REPLY_BYTES
+from ride_machine.schema.events import Event, EventPage, EventQuery
+
+from .errors import BadReply, RiderError
+from .link import Link
+from .machines import Machines
+from .replies import decode_reply, decode_sample
+from .subscriptions import Subscriptions
+from .transport import EMPTY_RETRY_S, Transport
 
 log = logging.getLogger("rider.client")  # one logger for the whole client, as before its split
 

@@ -8,7 +8,7 @@ import argparse
 import logging
 from collections.abc import Sequence
 
-from rider import errors
+from ride_machine.rider import errors
 
 EXIT_OK = 0
 EXIT_REFUSED = 1

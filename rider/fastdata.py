@@ -11,8 +11,8 @@ import time
 from collections.abc import Iterable, Sequence
 from typing import TextIO
 
-from schema.axes import PnStatus
-from schema.fastdata import (
+from ride_machine.schema.axes import PnStatus
+from ride_machine.schema.fastdata import (
     DEFAULT_PORT,
     MAX_REQUEST_BYTES,
     USER_REGISTER_LENGTH,

@@ -11,23 +11,24 @@ from typing import TYPE_CHECKING, TypeVar
 
 from pydantic import BaseModel
 
-from rider.machines import MachineInfo
-from rider.replies import Update
-from rider.text import printable, shown
-from schema.axes import AxisRecord, PnStatus
-from schema.calibration import CalibrationRecord
-from schema.commands import CheckResult, Reply
-from schema.completion import Completion
-from schema.diag import CycleDiag
-from schema.findings import Findings
-from schema.io import IoValue
-from schema.params import ParamValue
-from schema.sim import SimWorldState
-from schema.status import Status
+from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.calibration import CalibrationRecord
+from ride_machine.schema.commands import CheckResult, Reply
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.findings import Findings
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.params import ParamValue
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import Status
+
+from .machines import MachineInfo
+from .replies import Update
+from .text import printable, shown
 
 if TYPE_CHECKING:
-    from common.event_summary import EventSummary
-    from schema.events import Event
+    from ride_machine.common.event_summary import EventSummary
+    from ride_machine.schema.events import Event
 
 T = TypeVar("T")
 
@@ -238,7 +239,7 @@ def fmt_machine(m: MachineInfo) -> str:
 
 
 def fmt_event(e: Event, with_machine: bool = False) -> str:
-    from common.event_words import describe
+    from ride_machine.common.event_words import describe
 
     stamp = datetime.fromtimestamp(e.time).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
     who = f"{e.machine_id:8} " if with_machine else ""

@@ -18,15 +18,12 @@ from pathlib import Path
 
 import zenoh
 
-from common.credentials import RIDER, CredentialError, login
-from common.threadstate import keeping_state
-from common.zenoh_session import RIDER_SIDE, UnreadableRuntime
-from common.zenoh_session import open_session as shared_open
-from common.zenoh_session import zenoh_config as shared_config
-from rider.confirm import Confirmations, Ledger
-from rider.discovery import DISCOVERY_MIN_S, PROBE_TIMEOUT_S, Discovery, discover
-from rider.errors import BadCredentials, BadRuntime, BusError, MachineTimeout, RiderError
-from schema.rider import (
+from ride_machine.common.credentials import RIDER, CredentialError, login
+from ride_machine.common.threadstate import keeping_state
+from ride_machine.common.zenoh_session import RIDER_SIDE, UnreadableRuntime
+from ride_machine.common.zenoh_session import open_session as shared_open
+from ride_machine.common.zenoh_session import zenoh_config as shared_config
+from ride_machine.schema.rider import (
     ANONYMOUS,
     HEARTBEAT_INTERVAL_S,
     alive_key,
@@ -34,6 +31,10 @@ from schema.rider import (
     login_ok,
     rider_id,
 )
+
+from .confirm import Confirmations, Ledger
+from .discovery import DISCOVERY_MIN_S, PROBE_TIMEOUT_S, Discovery, discover
+from .errors import BadCredentials, BadRuntime, BusError, MachineTimeout, RiderError
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 DEFAULT_TIMEOUT_S = 2.0

@@ -10,12 +10,13 @@ from typing import Any
 
 import zenoh
 
-from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Discovery, Listing, Lookahead
-from rider.errors import AmbiguousMachine, NoMachine, RiderError, UnsureMachine
-from rider.link import Link, direct
-from rider.replies import decode_reply
-from rider.transport import Transport
-from schema.status import MachineState, Status
+from ride_machine.schema.status import MachineState, Status
+
+from .discovery import MOTION_SETTLE_S, SETTLE_S, Discovery, Listing, Lookahead
+from .errors import AmbiguousMachine, NoMachine, RiderError, UnsureMachine
+from .link import Link, direct
+from .replies import decode_reply
+from .transport import Transport
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import zenoh
 
-from rider.errors import DuplicateMachine
-from rider.link import Link, bus_errors
+from .errors import DuplicateMachine
+from .link import Link, bus_errors
 
 KEY_CACHE = 256
 """Keys whose machine id a Rider remembers (the same few keys are asked again and again)."""

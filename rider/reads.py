@@ -7,23 +7,24 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from rider.commands import Commands
-from rider.machines import Machines
-from rider.transport import Transport
-from schema.axes import AxisRecord
-from schema.calibration import (
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import (
     CalibrationRecord,
     CalibrationSet,
     RotateCalibrationSet,
     TiltCalibrationSet,
 )
-from schema.codec import encode, pack
-from schema.diag import CycleDiag
-from schema.findings import Findings
-from schema.io import IoValue
-from schema.params import ParamSet, ParamValue
-from schema.sim import SimWorldState
-from schema.status import Status
+from ride_machine.schema.codec import encode, pack
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.findings import Findings
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.params import ParamSet, ParamValue
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import Status
+
+from .commands import Commands
+from .machines import Machines
+from .transport import Transport
 
 
 @dataclass

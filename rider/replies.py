@@ -10,15 +10,22 @@ import msgpack
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from rider.errors import BadReply, CommandRefused
-from schema.axes import AxisRecord
-from schema.calibration import CalibrationRecord
-from schema.codec import MAX_PAYLOAD_BYTES, MAX_REPLY_BYTES, DecodeError, Format, decode
-from schema.commands import CheckResult, Reply
-from schema.completion import Completion
-from schema.diag import CycleDiag
-from schema.io import IoValue
-from schema.status import Status
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import CalibrationRecord
+from ride_machine.schema.codec import (
+    MAX_PAYLOAD_BYTES,
+    MAX_REPLY_BYTES,
+    DecodeError,
+    Format,
+    decode,
+)
+from ride_machine.schema.commands import CheckResult, Reply
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.status import Status
+
+from .errors import BadReply, CommandRefused
 
 M = TypeVar("M", bound=BaseModel)
 

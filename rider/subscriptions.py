@@ -14,12 +14,13 @@ from typing import Any
 
 import zenoh
 
-from rider.errors import BadReply, BusError
-from rider.link import Link, bus_errors, direct
-from rider.machines import Machines
-from rider.pinning import Pinning
-from rider.replies import Update, decode_update
-from schema.status import Status
+from ride_machine.schema.status import Status
+
+from .errors import BadReply, BusError
+from .link import Link, bus_errors, direct
+from .machines import Machines
+from .pinning import Pinning
+from .replies import Update, decode_update
 
 log = logging.getLogger("rider.client")  # one logger for the whole client, as before its split
 

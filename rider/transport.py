@@ -7,10 +7,10 @@ import time
 
 import zenoh
 
-from rider.errors import MachineTimeout
-from rider.link import Link, bus_error
-from rider.pinning import Pinning
-from rider.replies import MSGPACK, M, decode_ok, decode_reply, zenoh_timeout
+from .errors import MachineTimeout
+from .link import Link, bus_error
+from .pinning import Pinning
+from .replies import MSGPACK, M, decode_ok, decode_reply, zenoh_timeout
 
 EMPTY_RETRY_S = 0.05
 _ALL = zenoh.ConsolidationMode.NONE

@@ -18,8 +18,9 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 
-from rider.text import printable
-from schema.status import MachineState, Status
+from ride_machine.schema.status import MachineState, Status
+
+from .text import printable
 
 
 def tell(text: str) -> None:

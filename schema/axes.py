@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from enum import IntFlag
 
-from schema.base import OpenWireModel
+from .base import OpenWireModel
 
 AXIS_RECORD_VERSION = 1
 

@@ -7,9 +7,10 @@ from enum import StrEnum
 
 from pydantic import Field, FiniteFloat
 
-from schema import SCHEMA_VERSION
-from schema.base import OpenWireModel, WireModel
-from schema.commands import TransactionId
+from ride_machine.schema import SCHEMA_VERSION
+
+from .base import OpenWireModel, WireModel
+from .commands import TransactionId
 
 
 class CalibrationSource(StrEnum):

@@ -10,7 +10,7 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from schema.errors import Error, ErrorCode
+from .errors import Error, ErrorCode
 
 MAX_PAYLOAD_BYTES = 64 * 1024
 """Larger requests are refused before any parsing."""

@@ -8,10 +8,11 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, FiniteFloat, StringConstraints, field_validator
 
-from schema import SCHEMA_VERSION
-from schema.base import OpenWireModel, WireModel
-from schema.errors import Error
-from schema.status import MOTION_STATES, MachineState
+from ride_machine.schema import SCHEMA_VERSION
+
+from .base import OpenWireModel, WireModel
+from .errors import Error
+from .status import MOTION_STATES, MachineState
 
 
 class Command(StrEnum):

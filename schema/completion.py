@@ -12,9 +12,10 @@ from enum import StrEnum
 
 from pydantic import Field
 
-from schema import SCHEMA_VERSION
-from schema.base import OpenWireModel
-from schema.status import MachineState
+from ride_machine.schema import SCHEMA_VERSION
+
+from .base import OpenWireModel
+from .status import MachineState
 
 
 class Outcome(StrEnum):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from schema.base import OpenWireModel
+from .base import OpenWireModel
 
 
 class TimingStats(OpenWireModel):

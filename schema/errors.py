@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 
-from schema.base import OpenWireModel
+from .base import OpenWireModel
 
 
 class ErrorCode(StrEnum):

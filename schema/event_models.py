@@ -7,8 +7,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, model_validator
 
-from schema.base import OpenWireModel
-from schema.status import MachineState
+from .base import OpenWireModel
+from .status import MachineState
 
 ParamScalar = bool | int | float | str
 
@@ -112,7 +112,7 @@ class CalibrationEvent(OpenWireModel):
 
 class ParamEvent(OpenWireModel):
     """An online parameter written (or reset to its default) over the bus; a safety setting's
-    write (service/core/safety.py) is a `safety_changed` event, refused ones included."""
+    write (service/core/storage/safety.py) is a `safety_changed` event, refused ones included."""
 
     kind: Literal["param_changed", "safety_changed"] = "param_changed"
     name: str

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import TypeVar
 
-from schema.event_kinds import EventKind
-from schema.event_models import Event
+from .event_kinds import EventKind
+from .event_models import Event
 
 
 class QueryError(ValueError):

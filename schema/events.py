@@ -12,6 +12,6 @@ history counted).
 
 from __future__ import annotations
 
-from schema.event_kinds import *  # noqa: F403 - this module is the one import for all of them
-from schema.event_models import *  # noqa: F403
-from schema.event_query import *  # noqa: F403
+from .event_kinds import *  # noqa: F403 - this module is the one import for all of them
+from .event_models import *  # noqa: F403
+from .event_query import *  # noqa: F403

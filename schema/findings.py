@@ -6,7 +6,7 @@ from enum import StrEnum
 
 from pydantic import Field
 
-from schema.base import OpenWireModel
+from .base import OpenWireModel
 
 
 class Severity(StrEnum):

@@ -11,8 +11,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-from schema import SCHEMA_VERSION
-from schema.keys import ERROR_REPLY, KEYS, models
+from ride_machine.schema import SCHEMA_VERSION
+
+from .keys import ERROR_REPLY, KEYS, models
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
 

@@ -14,17 +14,17 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from schema.axes import AxisRecord
-from schema.calibration import CalibrationRecord, CalibrationSet
-from schema.commands import REQUEST_MODELS, Command, Reply
-from schema.completion import Completion
-from schema.diag import CycleDiag
-from schema.events import Event, EventPage
-from schema.findings import Findings
-from schema.io import IoValue
-from schema.params import ParamSet, ParamValue
-from schema.sim import SIM_REQUESTS, SimWorldState
-from schema.status import Status
+from .axes import AxisRecord
+from .calibration import CalibrationRecord, CalibrationSet
+from .commands import REQUEST_MODELS, Command, Reply
+from .completion import Completion
+from .diag import CycleDiag
+from .events import Event, EventPage
+from .findings import Findings
+from .io import IoValue
+from .params import ParamSet, ParamValue
+from .sim import SIM_REQUESTS, SimWorldState
+from .status import Status
 
 
 class Direction(StrEnum):

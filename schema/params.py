@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pydantic import FiniteFloat
 
-from schema.base import OpenWireModel, WireModel
-from schema.commands import TransactionId
+from .base import OpenWireModel, WireModel
+from .commands import TransactionId
 
 
 class ParamValue(OpenWireModel):

@@ -7,8 +7,8 @@ from typing import Literal
 
 from pydantic import Field
 
-from schema.base import OpenWireModel, WireModel
-from schema.commands import TransactionId
+from .base import OpenWireModel, WireModel
+from .commands import TransactionId
 
 
 class SimAxis(StrEnum):

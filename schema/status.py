@@ -6,8 +6,9 @@ from enum import StrEnum
 
 from pydantic import Field
 
-from schema import SCHEMA_VERSION
-from schema.base import OpenWireModel
+from ride_machine.schema import SCHEMA_VERSION
+
+from .base import OpenWireModel
 
 
 class MachineState(StrEnum):

@@ -10,15 +10,16 @@ from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, TextIO
 
-from hal.backends import names
-from schema.findings import Findings, Severity
-from service.config.load import load, override_source
-from service.config.model import MachineConfig
-from service.config.validate import finding_line, findings_of, hardware_findings
-from service.logfmt import flush_logs, setup_logging
+from ride_machine.hal.backends import names
+from ride_machine.schema.findings import Findings, Severity
+from ride_machine.service.config.load import load, override_source
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.config.validate import finding_line, findings_of, hardware_findings
+
+from .logfmt import flush_logs, setup_logging
 
 if TYPE_CHECKING:
-    from service.supervision.assembly import DaemonOptions
+    from ride_machine.service.supervision.assembly import DaemonOptions
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -249,7 +250,7 @@ def credentials_init(
     directory: Path, force: bool, stations: Sequence[str] = (), shared: bool = False
 ) -> int:
     """`machine credentials init`: `stations` as given (each a name or a comma list)."""
-    from service.adapters.credentials import (
+    from ride_machine.service.adapters.credentials import (
         DICTIONARY,
         CredentialsExist,
         identities,
@@ -292,7 +293,7 @@ def _opcua_credentials() -> ModuleType | None:
     """The gateway's OPC UA credentials module; None where the gateway's libraries are not
     installed (the machine's image: docs/deploy.md)."""
     try:
-        from service.adapters import opcua_credentials
+        from .adapters import opcua_credentials
     except ModuleNotFoundError as exc:
         if exc.name != "cryptography":
             raise
@@ -334,7 +335,7 @@ def _credentials(args: argparse.Namespace) -> int:
 
 
 def _schema(args: argparse.Namespace) -> int:
-    from schema.jsonschema import write
+    from ride_machine.schema.jsonschema import write
 
     try:
         paths = write(args.directory)
@@ -364,13 +365,13 @@ def _with_config(run: Callable[[argparse.Namespace, MachineConfig], int]) -> Han
 
 
 def _events(args: argparse.Namespace, config: MachineConfig) -> int:
-    from service.adapters.export import export_events
+    from ride_machine.service.adapters.export import export_events
 
     return export_events(args, args.data_dir or Path(config.data_dir))
 
 
 def _demo(args: argparse.Namespace, config: MachineConfig) -> int:
-    from service.demo import run_demo
+    from .demo import run_demo
 
     return run_demo(config, speed=args.speed)
 
@@ -378,7 +379,7 @@ def _demo(args: argparse.Namespace, config: MachineConfig) -> int:
 def _run(args: argparse.Namespace, config: MachineConfig) -> int:
     if args.once_session:
         return _demo(args, config)
-    from service.supervision.daemon import run_daemon
+    from ride_machine.service.supervision.daemon import run_daemon
 
     # The backend's own check, on the config that will run: the same findings, the same way,
     # for `run` and `supervise`, before anything opens.
@@ -388,8 +389,8 @@ def _run(args: argparse.Namespace, config: MachineConfig) -> int:
 
 
 def _supervise(args: argparse.Namespace, config: MachineConfig) -> int:
-    from service.supervision.restarts import SupervisorOptions
-    from service.supervision.supervisor import run_supervisor
+    from ride_machine.service.supervision.restarts import SupervisorOptions
+    from ride_machine.service.supervision.supervisor import run_supervisor
 
     if not check_hardware(config, str(args.config or "machine")):
         return EXIT_CONFIG
@@ -414,7 +415,7 @@ def _supervise(args: argparse.Namespace, config: MachineConfig) -> int:
 
 
 def _daemon_options(args: argparse.Namespace) -> DaemonOptions:
-    from service.supervision.assembly import DaemonOptions
+    from ride_machine.service.supervision.assembly import DaemonOptions
 
     return DaemonOptions(zenoh_config=args.zenoh_config, listen=args.listen, connect=args.connect)
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 import logging
 import time
 
-from hal.backends import NoBackend, backend
-from schema.commands import Command, CommandRequest, Reply, StartRequest
-from schema.status import MachineState
-from service.config.model import HalBackend, MachineConfig
-from service.core.machine import Machine
-from service.core.tasks import PendingCommand
+from ride_machine.hal.backends import NoBackend, backend
+from ride_machine.schema.commands import Command, CommandRequest, Reply, StartRequest
+from ride_machine.schema.status import MachineState
+from ride_machine.service.config.model import HalBackend, MachineConfig
+from ride_machine.service.core.scan.machine import Machine
+from ride_machine.service.core.scan.tasks import PendingCommand
 
 log = logging.getLogger("demo")
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from schema.errors import Error, ErrorCode
+from ride_machine.schema.errors import Error, ErrorCode
 
 
 class MachineError(Exception):

@@ -24,7 +24,7 @@ import time
 from collections import deque
 from typing import Any
 
-from service.threads import NamedThread
+from .threads import NamedThread
 
 _second: tuple[int, str] = (-1, "")
 """The last second formatted, and its text: one tuple, so a thread reads both of one second."""
@@ -43,7 +43,8 @@ def _stamp(created: float) -> str:
 
 def _line(created: float, level: str, logger: str, message: str) -> str:
     """One log line: `ts=... level=... logger=... <message>`."""
-    return f"ts={_stamp(created)} level={level} logger={logger} {message}"
+    name = logger.removeprefix("ride_machine.")  # as the folders name it: service.bus
+    return f"ts={_stamp(created)} level={level} logger={name} {message}"
 
 
 class KeyValueFormatter(logging.Formatter):
@@ -111,7 +112,7 @@ class LineQueue:
     def _dropped_line(self) -> logging.LogRecord:
         dropped, self.dropped = self.dropped, 0
         return logging.LogRecord(
-            "service.logfmt",
+            "ride_machine.service.logfmt",
             logging.WARNING,
             __file__,
             0,

@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable
 from types import FrameType
 from typing import Any
 
-from service.threads import NamedThread
+from .threads import NamedThread
 
 log = logging.getLogger(__name__)
 

@@ -7,8 +7,8 @@ callback read as Zenoh's own (`app-0`). `NamedThread` gives the OS the thread's 
 starts (Linux keeps its first 15 bytes); `name_callback_threads` names the threads zenoh-python
 starts for its callbacks, from the outside (`/proc/self/task/<tid>/comm`). `prctl` is the
 process's one call of the Linux `prctl(2)` (thread names here, timer slack and the parent's
-death signal in service/core/runner.py), through `libc`, its one handle on the C library
-(`sched_setattr(2)` in service/core/runner.py too)."""
+death signal in service/core/scan/runner.py), through `libc`, its one handle on the C library
+(`sched_setattr(2)` in service/core/scan/runner.py too)."""
 
 from __future__ import annotations
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hal.backends import Clock, Simulator, Sleep, World
-from hal.base import Hal
-from hal.iomap import IoMap
-from sim.settings import PhysicsParams
+from ride_machine.hal.backends import Clock, Simulator, Sleep, World
+from ride_machine.hal.base import Hal
+from ride_machine.hal.iomap import IoMap
+
+from .settings import PhysicsParams
 
 
 class SimBackend:
@@ -19,20 +20,20 @@ class SimBackend:
     # The physics and the world are imported on use: the config reads `settings` in every
     # process, on hardware too, and a hardware daemon never loads the simulator.
     def open(self, iomap: IoMap, settings: object, clock: Clock, sleep: Sleep | None) -> Hal:
-        from sim.hal import SimHal
+        from .hal import SimHal
 
         return SimHal(clock, iomap, PhysicsParams.model_validate(settings), sleep=sleep)
 
     def simulator(self, hal: Hal) -> Simulator | None:
-        from sim.faults import HalSim
-        from sim.hal import SimHal
+        from .faults import HalSim
+        from .hal import SimHal
 
         return HalSim(hal) if isinstance(hal, SimHal) else None
 
     def world(
         self, iomap: IoMap, settings: object, directory: Path, period_s: float, attach: bool = False
     ) -> World:
-        from sim.plant_link import PlantProcess
+        from .plant_link import PlantProcess
 
         params = PhysicsParams.model_validate(settings)
         return PlantProcess(iomap, params, directory, period_s, attach=attach)

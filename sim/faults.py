@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from pydantic import BaseModel
 
-from schema.codec import DecodeError, decode_raw, sniff_format, validate
-from schema.errors import Error, ErrorCode
-from schema.sim import (
+from ride_machine.schema.codec import DecodeError, decode_raw, sniff_format, validate
+from ride_machine.schema.errors import Error, ErrorCode
+from ride_machine.schema.sim import (
     SIM_REQUESTS,
     SimClear,
     SimEstop,
@@ -22,8 +22,9 @@ from schema.sim import (
     SimWorldState,
     SwitchState,
 )
-from sim.hal import SimHal
-from sim.physics import SwitchFault
+
+from .hal import SimHal
+from .physics import SwitchFault
 
 WORLD = "world"
 """`sim/world`: read the world, change nothing."""

@@ -5,10 +5,11 @@ from __future__ import annotations
 import random
 from collections.abc import Callable
 
-from hal.base import Inputs, Outputs
-from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from sim.physics import ChargePumpRelay, SwitchFault, World, WorldInputs
-from sim.settings import PhysicsParams
+from ride_machine.hal.base import Inputs, Outputs
+from ride_machine.hal.iomap import RELAY_OUTPUTS, IoMap, Signal
+
+from .physics import ChargePumpRelay, SwitchFault, World, WorldInputs
+from .settings import PhysicsParams
 
 
 class SimHal:

@@ -8,7 +8,7 @@ import random
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from sim.settings import PhysicsParams
+from .settings import PhysicsParams
 
 INT16_MIN, INT16_MAX = -32768, 32767
 

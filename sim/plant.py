@@ -6,7 +6,8 @@ controller's processes — SIGSTOP of the supervisor and the daemon, a cgroup fr
 interpreter — stops this clock, so a freeze of the whole controller is measured as a ride would
 live it: the charge pump stops toggling and the external relay cuts the drives.
 
-    python -m sim.plant --dir DIR --config FILE [--socket PATH] [--period S] [--parent PID]
+    python -m ride_machine.sim.plant --dir DIR --config FILE [--socket PATH] [--period S] [--parent
+    PID]
                         [--beat-fd FD --beat-offset N] [--make-image]
 
 DIR gets the process image (`procimg`, made by whoever starts the plant, or by the plant with
@@ -40,10 +41,11 @@ from typing import Any
 
 import msgpack
 
-from hal.iomap import IoMap
-from schema.sim import SIM_REQUESTS
-from sim.settings import PhysicsParams
-from sim.world import CONFIG_RSC, SimWorld, make_image
+from ride_machine.hal.iomap import IoMap
+from ride_machine.schema.sim import SIM_REQUESTS
+
+from .settings import PhysicsParams
+from .world import CONFIG_RSC, SimWorld, make_image
 
 log = logging.getLogger("plant")
 
@@ -171,7 +173,7 @@ class Plant:
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m sim.plant", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m ride_machine.sim.plant", description=__doc__)
     p.add_argument("--dir", type=Path, required=True)
     p.add_argument("--config", type=Path, required=True)
     p.add_argument("--socket", type=Path, default=None, help="(default: DIR/plant.sock)")

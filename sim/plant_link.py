@@ -26,13 +26,14 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from hal.base import HalError
-from hal.iomap import IoMap
-from schema.sim import SIM_REQUESTS, SimWorldState
-from sim import faults as simfaults
-from sim.plant import ENDPOINT, IMAGE, SOCKET, recv_frame, send_frame
-from sim.settings import PhysicsParams
-from sim.world import CONFIG_RSC, make_image
+from ride_machine.hal.base import HalError
+from ride_machine.hal.iomap import IoMap
+from ride_machine.schema.sim import SIM_REQUESTS, SimWorldState
+from ride_machine.sim import faults as simfaults
+
+from .plant import ENDPOINT, IMAGE, SOCKET, recv_frame, send_frame
+from .settings import PhysicsParams
+from .world import CONFIG_RSC, make_image
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +46,8 @@ STOP_TIMEOUT_S = 5.0
 
 
 class PlantProcess:
-    """The plant as a child process: `start()` runs `python -m sim.plant` on a fresh process
-    image in `directory`; every other call is one request over its socket. `attach`: a plant
+    """The plant as a child process: `start()` runs `python -m ride_machine.sim.plant` on a fresh
+    process image in `directory`; every other call is one request over its socket. `attach`: a plant
     someone else runs in `directory` (a compose service of its own), found, never stopped."""
 
     def __init__(
@@ -88,7 +89,7 @@ class PlantProcess:
         if self.attach:
             self._find()
             return
-        cmd = [sys.executable, "-m", "sim.plant", "--dir", str(self.dir), "--config"]
+        cmd = [sys.executable, "-m", "ride_machine.sim.plant", "--dir", str(self.dir), "--config"]
         cmd += [str(self._config), "--socket", str(self.socket), "--period", str(self.period)]
         cmd += ["--parent", str(os.getpid())]
         fds: tuple[int, ...] = ()

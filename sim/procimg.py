@@ -10,13 +10,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from hal.base import HalError, Outputs
-from hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
-from hal.pictory import read_config
-from hal.revpi import bind_ios, open_modio, raise_for_errors
-from sim.hal import SimHal
-from sim.physics import World
-from sim.settings import PhysicsParams
+from ride_machine.hal.base import HalError, Outputs
+from ride_machine.hal.iomap import ANALOG_INPUTS, DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
+from ride_machine.hal.pictory import read_config
+from ride_machine.hal.revpi import bind_ios, open_modio, raise_for_errors
+
+from .hal import SimHal
+from .physics import World
+from .settings import PhysicsParams
 
 
 class ProcImgSim:

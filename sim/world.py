@@ -15,12 +15,13 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from hal.base import HalError
-from hal.iomap import IoMap
-from schema.sim import SimWorldState
-from sim import faults as simfaults
-from sim.procimg import ProcImgSim
-from sim.settings import PhysicsParams
+from ride_machine.hal.base import HalError
+from ride_machine.hal.iomap import IoMap
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.sim import faults as simfaults
+
+from .procimg import ProcImgSim
+from .settings import PhysicsParams
 
 log = logging.getLogger(__name__)
 

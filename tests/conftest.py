@@ -27,7 +27,7 @@ def _configure_zenoh() -> None:
     fixed here, not by whichever test happens to open a session first."""
     import zenoh
 
-    from rider.client import open_session
+    from ride_machine.rider.client import open_session
 
     conf = zenoh.Config()
     conf.insert_json5("scouting/multicast/enabled", "false")

@@ -20,11 +20,11 @@ from enum import StrEnum
 from pathlib import Path
 
 from bench.daemon import calibration_file
-from rider.client import MachineTimeout, Rider
-from schema.commands import Reply, Session, TiltStep
-from schema.sim import SimWorldState
-from schema.status import FaultCode, MachineState, Status
-from service.core.persist import CALIBRATION_FILE
+from ride_machine.rider.client import MachineTimeout, Rider
+from ride_machine.schema.commands import Reply, Session, TiltStep
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import FaultCode, MachineState, Status
+from ride_machine.service.core.storage.persist import CALIBRATION_FILE
 from tests.fixtures.revpi import CONFIG_RSC, address
 from tests.integration.support import Preparation, late_steps
 from tests.procs import (
@@ -157,7 +157,7 @@ def child_of(supervisor: Daemon, timeout: float = 20.0) -> int:
     """The pid of the supervisor's daemon child, once there is exactly one."""
     deadline = time.monotonic() + timeout
     while True:
-        out = children_running(supervisor.proc.pid, "service.cli")
+        out = children_running(supervisor.proc.pid, "ride_machine.service.cli")
         if len(out) == 1:
             return out[0]
         if time.monotonic() > deadline:

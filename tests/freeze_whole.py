@@ -25,11 +25,11 @@ from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 
-from rider.client import Rider
-from schema.commands import Reply
-from schema.sim import SimWorldState
-from schema.status import Status
-from sim.plant import ENDPOINT, recv_frame, send_frame
+from ride_machine.rider.client import Rider
+from ride_machine.schema.commands import Reply
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import Status
+from ride_machine.sim.plant import ENDPOINT, recv_frame, send_frame
 from tests.freeze import TILT_DPS, child_of, image_relays, ready, replaced, ride_the_tilt
 from tests.procs import Daemon, child_pids
 

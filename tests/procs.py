@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from rider.client import Rider
-from service.supervision.procstate import describe, threads
+from ride_machine.rider.client import Rider
+from ride_machine.service.supervision.procstate import describe, threads
 
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT_S = 20.0
@@ -251,11 +251,11 @@ def children_running(pid: int, module: str) -> list[int]:
 
 
 def machine_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "service.cli", *args]
+    return [sys.executable, "-m", "ride_machine.service.cli", *args]
 
 
 def rider_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "rider.cli", *args]
+    return [sys.executable, "-m", "ride_machine.rider.cli", *args]
 
 
 def run_rider(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:

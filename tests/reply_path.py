@@ -29,10 +29,10 @@ from typing import Any
 
 import zenoh
 
-from schema.commands import Command, CommandRequest, Reply
-from service.config.model import MachineConfig
-from service.supervision.assembly import DaemonOptions
-from service.supervision.daemon import Daemon
+from ride_machine.schema.commands import Command, CommandRequest, Reply
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.supervision.assembly import DaemonOptions
+from ride_machine.service.supervision.daemon import Daemon
 from tests.procs import free_port, write_zenoh_config
 
 REPO = Path(__file__).resolve().parent.parent
@@ -203,7 +203,7 @@ def _serve(daemon: Daemon, endpoint: str, commands: Callable[[list[str]], None])
 def trace_home() -> dict[str, Any]:
     """Calibrate a daemon (untraced, at its normal period), then run it again from the same
     data folder (calibrated, relaxed, every thread profiled) and trace one `rider home`."""
-    from rider.cli import main
+    from ride_machine.rider.cli import main
 
     tracer = PathTracer()
     out: dict[str, Any] = {}

@@ -9,25 +9,25 @@ from pathlib import Path
 from typing import Any
 from unittest.mock import patch
 
-from hal.base import Outputs
-from schema.axes import AxisRecord
-from schema.calibration import CalibrationRecord
-from schema.commands import Command, Reply, Session, StartRequest, TiltStep
-from schema.commands import CommandRequest as Req
-from schema.completion import Completion
-from schema.io import IoValue
-from schema.status import MachineState, Status
-from service.config.model import MachineConfig
-from service.core.devices import Calibration
-from service.core.events import EventSink
-from service.core.machine import Machine
-from service.core.persist import CalibrationStore
-from service.core.port import LoopPort
-from service.core.statemachine import Transition
-from service.core.tasks import PendingCommand
-from service.core.watchdog import GuardedHal
-from sim.hal import SimHal
-from sim.settings import PhysicsParams
+from ride_machine.hal.base import Outputs
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import CalibrationRecord
+from ride_machine.schema.commands import Command, Reply, Session, StartRequest, TiltStep
+from ride_machine.schema.commands import CommandRequest as Req
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.status import MachineState, Status
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.history.events import EventSink
+from ride_machine.service.core.motion.devices import Calibration
+from ride_machine.service.core.scan.machine import Machine
+from ride_machine.service.core.scan.port import LoopPort
+from ride_machine.service.core.scan.tasks import PendingCommand
+from ride_machine.service.core.scan.watchdog import GuardedHal
+from ride_machine.service.core.statemachine import Transition
+from ride_machine.service.core.storage.persist import CalibrationStore
+from ride_machine.sim.hal import SimHal
+from ride_machine.sim.settings import PhysicsParams
 
 
 class FakeClock:

@@ -102,6 +102,28 @@ def test_every_package_imports_only_down_its_arrows() -> None:
     assert not wrong, "\n".join(wrong)
 
 
+def test_our_code_is_imported_by_its_installed_name() -> None:
+    """Installed, the folders are ride_machine.<folder> (pyproject.toml's package-dir): an
+    import by a bare folder name (`import schema`) works only from the repository, and where
+    PyPI's `schema` is installed it takes that one."""
+    wrong = []
+    trees = [REPO / top for top in ("tests", "bench", "docker")]
+    paths = [*modules(), *(p for top in trees for p in sorted(top.rglob("*.py")))]
+    for path in paths:
+        if "node_modules" in path.parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            bare = [name for name in names if name.split(".", 1)[0] in PACKAGES]
+            wrong += [f"{rel(path)}:{node.lineno} imports {name}" for name in bare]
+    assert not wrong, "\n".join(wrong)
+
+
 def test_schema_imports_only_pydantic_msgpack_and_the_standard_library() -> None:
     wrong = [
         f"{rel(path)}:{line} imports {name}"
@@ -187,7 +209,7 @@ def test_no_import_cycle_between_packages() -> None:
     assert _cycle(package_graph()) is None
 
 
-@pytest.mark.parametrize("package", [*PACKAGES, "service.core"])
+@pytest.mark.parametrize("package", [*PACKAGES, "ride_machine.service.core"])
 def test_no_import_cycle_between_sub_packages(package: str) -> None:
     assert _cycle(subpackage_graph(package)) is None
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from schema.keys import KEYS, match
+from ride_machine.schema.keys import KEYS, match
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "seeds.md"

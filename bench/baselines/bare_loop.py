@@ -13,11 +13,16 @@ import threading
 import time
 from typing import Any, cast
 
-from service.core.inbox import Inbox
-from service.core.loop import ScanLoop
-from service.core.runner import RealtimeRunner
-from service.core.timing import CycleStats
-from service.core.tuning import SCHED_SLICE_NS, TIMER_SLACK_NS, slice_process, tune_thread
+from ride_machine.service.core.scan.inbox import Inbox
+from ride_machine.service.core.scan.loop import ScanLoop
+from ride_machine.service.core.scan.runner import RealtimeRunner
+from ride_machine.service.core.scan.timing import CycleStats
+from ride_machine.service.core.scan.tuning import (
+    SCHED_SLICE_NS,
+    TIMER_SLACK_NS,
+    slice_process,
+    tune_thread,
+)
 
 
 class EmptyScan:

@@ -17,8 +17,8 @@ from pathlib import Path
 import zenoh
 
 from bench.baselines.lifetime import stop_event
-from service.bus import use_runtime, zenoh_config
-from service.core.tuning import pin_process
+from ride_machine.service.bus import use_runtime, zenoh_config
+from ride_machine.service.core.scan.tuning import pin_process
 
 KEY = "bench/echo"
 DIRECT_KEY = "bench/echo-direct"

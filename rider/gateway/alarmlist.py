@@ -24,9 +24,10 @@ from asyncua import ua
 from asyncua.common import event_objects
 from asyncua.server.internal_server import InternalServer
 
-from rider.gateway.calls import Calls, Invocation, Role
-from rider.gateway.conditions import AckRefused, Condition, ConditionClass, MachineConditions
-from schema.status import Status
+from ride_machine.schema.status import Status
+
+from .calls import Calls, Invocation, Role
+from .conditions import AckRefused, Condition, ConditionClass, MachineConditions
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-from schema.events import (
+from ride_machine.schema.events import (
     CompletionEvent,
     EstopEvent,
     Event,

@@ -16,7 +16,7 @@ from typing import Any
 
 import zenoh
 
-from rider.client import (
+from ride_machine.rider.client import (
     Heartbeat,
     MachineTimeout,
     Rider,
@@ -26,15 +26,15 @@ from rider.client import (
     open_session,
     zenoh_config,
 )
-from rider.confirm import Confirmations, Ledger
-from schema.axes import AxisRecord
-from schema.codec import MAX_PAYLOAD_BYTES, DecodeError, Format, decode
-from schema.commands import Command, CommandRequest, Reply
-from schema.diag import CycleDiag
-from schema.events import Event
-from schema.io import IoValue
-from schema.rider import alive_key
-from schema.status import Status
+from ride_machine.rider.confirm import Confirmations, Ledger
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.codec import MAX_PAYLOAD_BYTES, DecodeError, Format, decode
+from ride_machine.schema.commands import Command, CommandRequest, Reply
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.events import Event
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.rider import alive_key
+from ride_machine.schema.status import Status
 
 log = logging.getLogger(__name__)
 

@@ -28,7 +28,7 @@ from typing import Any
 from asyncua import Node, ua
 from asyncua.server.internal_session import InternalSession
 
-from rider.gateway.security import Caller
+from .security import Caller
 
 log = logging.getLogger(__name__)
 

@@ -11,12 +11,13 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from rider.client import BadCredentials, BadRuntime, MachineTimeout
-from rider.exits import own_options
-from rider.gateway import nodeset_cache
-from rider.gateway.identity import Limits
-from rider.gateway.security import BadUsers, read_certificates, read_users
-from rider.gateway.server import Gateway, Options
+from ride_machine.rider.client import BadCredentials, BadRuntime, MachineTimeout
+from ride_machine.rider.exits import own_options
+from ride_machine.rider.gateway import nodeset_cache
+
+from .identity import Limits
+from .security import BadUsers, read_certificates, read_users
+from .server import Gateway, Options
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import Enum
 
-from schema.status import FAULT_STATES, FaultCode, Status
+from ride_machine.schema.status import FAULT_STATES, FaultCode, Status
 
 ESTOP = "Estop"
 FAULTED = "Faulted"

@@ -10,7 +10,7 @@ from importlib import metadata
 
 from asyncua import Server, ua
 
-from rider.gateway.calls import MAX_ARGUMENT_BYTES, MAX_ARGUMENTS
+from .calls import MAX_ARGUMENT_BYTES, MAX_ARGUMENTS
 
 PRODUCT_URI = "urn:ride-machine:product:gateway"
 MANUFACTURER = "ride-machine"

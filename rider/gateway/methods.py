@@ -17,12 +17,13 @@ from dataclasses import dataclass
 from asyncua import ua
 from pydantic import ValidationError
 
-from rider.client import MachineTimeout, NoMachine, RiderError
-from rider.gateway.calls import MAX_ARGUMENT_BYTES, Calls, Invocation, Role
-from rider.gateway.security import Caller
-from schema.codec import json_pointer
-from schema.commands import Command, CommandRequest, Reply, Session, StartRequest
-from schema.errors import ErrorCode
+from ride_machine.rider.client import MachineTimeout, NoMachine, RiderError
+from ride_machine.schema.codec import json_pointer
+from ride_machine.schema.commands import Command, CommandRequest, Reply, Session, StartRequest
+from ride_machine.schema.errors import ErrorCode
+
+from .calls import MAX_ARGUMENT_BYTES, Calls, Invocation, Role
+from .security import Caller
 
 log = logging.getLogger(__name__)
 

@@ -19,10 +19,11 @@ from dataclasses import dataclass
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
-from rider.gateway.model import MachineView
-from schema.commands import ReplyCode
-from schema.errors import ErrorCode
-from schema.status import MachineState
+from ride_machine.schema.commands import ReplyCode
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.status import MachineState
+
+from .model import MachineView
 
 COMMAND_CODES: tuple[str, ...] = tuple(c.value for c in ReplyCode) + tuple(
     e.value for e in ErrorCode

@@ -9,15 +9,15 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
-from schema.axes import AxisRecord
-from schema.diag import CycleDiag
-from schema.errors import ErrorCode
-from schema.events import CommandEvent, Event
-from schema.io import IoValue
-from schema.status import Status
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import CommandEvent, Event
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.status import Status
 
 STORAGE_WARNING = ErrorCode.STORAGE_FAILED.value
-"""How every status warning about the data directory starts (service/core/persist.py)."""
+"""How every status warning about the data directory starts (service/core/storage/persist.py)."""
 
 
 @dataclass

@@ -82,7 +82,7 @@ def ensure(cache_dir: Path) -> Path | None:
         if _ready(shelf).exists():
             return shelf
         done = subprocess.run(
-            [sys.executable, "-m", "rider.gateway.nodeset_cache", str(shelf)],
+            [sys.executable, "-m", "ride_machine.rider.gateway.nodeset_cache", str(shelf)],
             capture_output=True,
             text=True,
             timeout=BUILD_TIMEOUT_S,

@@ -25,13 +25,17 @@ from prometheus_client import (
     ProcessCollector,
 )
 
-from rider.client import NoMachine, rider_login
-from rider.gateway import nodeset_cache
-from rider.gateway.alarmlist import AlarmList
-from rider.gateway.alarms import alarm_of
-from rider.gateway.bus import Attached, Deliver, GatewayBus, Snapshot
-from rider.gateway.exposition import serve
-from rider.gateway.identity import (
+from ride_machine.rider.client import NoMachine, rider_login
+from ride_machine.rider.gateway import nodeset_cache
+from ride_machine.schema.commands import Command, CommandRequest, Reply
+from ride_machine.schema.events import Event
+from ride_machine.schema.status import Status
+
+from .alarmlist import AlarmList
+from .alarms import alarm_of
+from .bus import Attached, Deliver, GatewayBus, Snapshot
+from .exposition import serve
+from .identity import (
     MANUFACTURER,
     PRODUCT_NAME,
     PRODUCT_URI,
@@ -41,16 +45,13 @@ from rider.gateway.identity import (
     enable_diagnostics,
     version,
 )
-from rider.gateway.methods import Commander, bind_methods
-from rider.gateway.metrics import GatewayStats, MachineCollector
-from rider.gateway.model import MachineView
-from rider.gateway.security import Rules, Users
-from rider.gateway.space import NAMESPACE, Space
-from rider.gateway.supervision import Supervisor, open_session_keys
-from rider.gateway.uaserver import POLICIES, GatewayInternalServer, GatewayServer, open_sessions
-from schema.commands import Command, CommandRequest, Reply
-from schema.events import Event
-from schema.status import Status
+from .methods import Commander, bind_methods
+from .metrics import GatewayStats, MachineCollector
+from .model import MachineView
+from .security import Rules, Users
+from .space import NAMESPACE, Space
+from .supervision import Supervisor, open_session_keys
+from .uaserver import POLICIES, GatewayInternalServer, GatewayServer, open_sessions
 
 log = logging.getLogger(__name__)
 

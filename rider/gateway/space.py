@@ -17,9 +17,15 @@ from typing import Any
 from asyncua import Node, Server, ua
 from asyncua.common.manage_nodes import delete_nodes
 
-from rider.gateway.alarms import Alarm
-from rider.gateway.parking import Parking
-from rider.gateway.typemodel import (
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.commands import Command
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.status import Status
+
+from .alarms import Alarm
+from .parking import Parking
+from .typemodel import (
     MACHINE_TYPE,
     MACHINES,
     Builder,
@@ -30,12 +36,7 @@ from rider.gateway.typemodel import (
     instance,
     types,
 )
-from rider.gateway.variables import DIAG_VARS, STATUS_VARS, V, io_var
-from schema.axes import AxisRecord
-from schema.commands import Command
-from schema.diag import CycleDiag
-from schema.io import IoValue
-from schema.status import Status
+from .variables import DIAG_VARS, STATUS_VARS, V, io_var
 
 log = logging.getLogger(__name__)
 

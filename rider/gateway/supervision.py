@@ -22,9 +22,10 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rider.gateway.security import Caller
-from rider.gateway.uaserver import open_sessions
-from schema.rider import rider_id
+from ride_machine.schema.rider import rider_id
+
+from .security import Caller
+from .uaserver import open_sessions
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,9 @@ from typing import Any
 
 from asyncua import ua
 
-from rider.gateway.variables import (
+from ride_machine.schema.commands import Command
+
+from .variables import (
     AXES,
     DIAG_VARS,
     STATUS_VARS,
@@ -26,7 +28,6 @@ from rider.gateway.variables import (
     Var,
     axis_vars,
 )
-from schema.commands import Command
 
 OWN = "gateway."
 """The gateway's own node ids start so: a machine id never has a dot, so no machine's object

@@ -20,10 +20,11 @@ from asyncua.server.internal_server import InternalServer
 from asyncua.server.internal_session import InternalSession, SessionState
 from asyncua.ua.uaprotocol_auto import DataChangeFilter
 
-from rider.gateway import nodeset_cache
-from rider.gateway.calls import Calls, Invocation, Role
-from rider.gateway.identity import Counts, Limits
-from rider.gateway.security import Caller
+from ride_machine.rider.gateway import nodeset_cache
+
+from .calls import Calls, Invocation, Role
+from .identity import Counts, Limits
+from .security import Caller
 
 _S = ua.StatusCodes
 _FILTER_NOT_ALLOWED: int = _S.BadFilterNotAllowed

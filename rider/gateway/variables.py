@@ -12,10 +12,10 @@ from typing import Any
 
 from asyncua import ua
 
-from schema.axes import AxisRecord
-from schema.diag import CycleDiag
-from schema.io import IoKind, IoValue
-from schema.status import Status
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.io import IoKind, IoValue
+from ride_machine.schema.status import Status
 
 V = ua.VariantType
 

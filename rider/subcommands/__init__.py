@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from rider.blocking import Rider
+    from ride_machine.rider.blocking import Rider
 
 Subparsers = argparse._SubParsersAction
 """The type of what `add_subparsers()` returns (`Subparsers[argparse.ArgumentParser]`)."""
@@ -37,7 +37,7 @@ class Lazy:
 
     def load(self) -> Handler:
         found: Handler = getattr(
-            importlib.import_module(f"rider.subcommands.{self.kind}"), self.name
+            importlib.import_module(f"ride_machine.rider.subcommands.{self.kind}"), self.name
         )
         return found
 

@@ -9,12 +9,12 @@ import json
 import sys
 import time
 
-from rider.blocking import Rider
-from rider.exits import EXIT_DUPLICATE, EXIT_NO_REPLY, EXIT_OK, UsageError
-from rider.formats import emit, fmt_event, fmt_machine, fmt_summary, fmt_update
-from rider.text import printable, shown
-from schema.events import EventQuery, query_of
-from schema.status import MachineState, Status
+from ride_machine.rider.blocking import Rider
+from ride_machine.rider.exits import EXIT_DUPLICATE, EXIT_NO_REPLY, EXIT_OK, UsageError
+from ride_machine.rider.formats import emit, fmt_event, fmt_machine, fmt_summary, fmt_update
+from ride_machine.rider.text import printable, shown
+from ride_machine.schema.events import EventQuery, query_of
+from ride_machine.schema.status import MachineState, Status
 
 
 def watch(args: argparse.Namespace, rider: Rider) -> int:

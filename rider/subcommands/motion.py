@@ -13,15 +13,15 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from rider.blocking import Rider
-from rider.errors import RiderError
-from rider.exits import EXIT_OK, EXIT_REFUSED, UsageError
-from rider.formats import emit, fmt_completion, fmt_reply, fmt_status
-from rider.text import printable
-from rider.waiting import WaitTeller, quiet_limit
-from schema.commands import Reply, Session
-from schema.completion import Outcome
-from schema.status import MachineState
+from ride_machine.rider.blocking import Rider
+from ride_machine.rider.errors import RiderError
+from ride_machine.rider.exits import EXIT_OK, EXIT_REFUSED, UsageError
+from ride_machine.rider.formats import emit, fmt_completion, fmt_reply, fmt_status
+from ride_machine.rider.text import printable
+from ride_machine.rider.waiting import WaitTeller, quiet_limit
+from ride_machine.schema.commands import Reply, Session
+from ride_machine.schema.completion import Outcome
+from ride_machine.schema.status import MachineState
 
 
 def motion(args: argparse.Namespace, rider: Rider) -> int:

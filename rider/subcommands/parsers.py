@@ -9,8 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rider.subcommands import Lazy, Subparsers
-from schema.event_kinds import EventKind
+from ride_machine.rider.subcommands import Lazy, Subparsers
+from ride_machine.schema.event_kinds import EventKind
 
 LINK_LIMIT_S = 30.0
 """`--link-limit`'s default: the wait gives up after this long without a word from the machine
@@ -66,7 +66,7 @@ def _transaction_id(text: str) -> str:
     # The wire's own rule, loaded only when an id is given.
     from pydantic import TypeAdapter, ValidationError
 
-    from schema.commands import TransactionId
+    from ride_machine.schema.commands import TransactionId
 
     try:
         return TypeAdapter(TransactionId).validate_python(text)

@@ -8,9 +8,9 @@ import sys
 from collections.abc import Callable
 from typing import TypeVar
 
-from rider.blocking import Rider
-from rider.exits import EXIT_OK, EXIT_REFUSED, UsageError
-from rider.formats import (
+from ride_machine.rider.blocking import Rider
+from ride_machine.rider.exits import EXIT_OK, EXIT_REFUSED, UsageError
+from ride_machine.rider.formats import (
     emit,
     fmt_axis,
     fmt_check,
@@ -20,10 +20,10 @@ from rider.formats import (
     fmt_io,
     fmt_status,
 )
-from rider.subcommands import Handler
-from schema.axes import AxisRecord
-from schema.commands import CheckResult
-from schema.completion import Outcome
+from ride_machine.rider.subcommands import Handler
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.commands import CheckResult
+from ride_machine.schema.completion import Outcome
 
 T = TypeVar("T")
 

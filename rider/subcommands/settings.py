@@ -11,10 +11,10 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from rider.blocking import Rider
-from rider.exits import EXIT_OK, UsageError
-from rider.formats import emit, fmt_calibration, fmt_param, fmt_sim_world
-from schema.calibration import RotateCalibrationSet, TiltCalibrationSet
+from ride_machine.rider.blocking import Rider
+from ride_machine.rider.exits import EXIT_OK, UsageError
+from ride_machine.rider.formats import emit, fmt_calibration, fmt_param, fmt_sim_world
+from ride_machine.schema.calibration import RotateCalibrationSet, TiltCalibrationSet
 
 
 def calibration(args: argparse.Namespace, rider: Rider) -> int:

@@ -40,21 +40,22 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
         f"`rider ui` needs the ui extra: pip install 'ride-machine[ui]' (missing {exc.name})"
     ) from exc
 
-from common.event_words import describe
-from rider.client import MachineTimeout, Rider, RiderError
-from rider.exits import own_options
-from rider.text import printable, shown
-from rider.ui.bridge import Bridge, NotReady
-from rider.ui.catalog import BY_KEY, EVENTS_SHOWN, event_tone, ui_config
-from rider.ui.guard import HostGuard
-from rider.ui.guard import error as _error
-from rider.ui.hosts import BadHostRule, HostPolicy, HostRule, parse_rule
-from rider.ui.hub import Hub
-from rider.ui.view import HISTORY_S, SAMPLE_PERIOD_S, LiveView, Push, Update
-from schema.base import WireModel
-from schema.codec import DecodeError, Format, decode_raw, validate
-from schema.commands import Command, Reply, Session
-from schema.events import EventQuery, QueryError
+from ride_machine.common.event_words import describe
+from ride_machine.rider.client import MachineTimeout, Rider, RiderError
+from ride_machine.rider.exits import own_options
+from ride_machine.rider.text import printable, shown
+from ride_machine.schema.base import WireModel
+from ride_machine.schema.codec import DecodeError, Format, decode_raw, validate
+from ride_machine.schema.commands import Command, Reply, Session
+from ride_machine.schema.events import EventQuery, QueryError
+
+from .bridge import Bridge, NotReady
+from .catalog import BY_KEY, EVENTS_SHOWN, event_tone, ui_config
+from .guard import HostGuard
+from .guard import error as _error
+from .hosts import BadHostRule, HostPolicy, HostRule, parse_rule
+from .hub import Hub
+from .view import HISTORY_S, SAMPLE_PERIOD_S, LiveView, Push, Update
 
 log = logging.getLogger("rider.ui")
 

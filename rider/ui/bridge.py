@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from rider.client import (
+from ride_machine.rider.client import (
     AmbiguousMachine,
     BusError,
     CommandRefused,
@@ -23,7 +23,15 @@ from rider.client import (
     RiderError,
     Subscription,
 )
-from rider.ui.view import (
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import CalibrationRecord
+from ride_machine.schema.commands import Command, Reply, Session
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.events import Event, EventQuery
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.status import Status
+
+from .view import (
     DEFAULT_HEARTBEAT_S,
     MachineFound,
     Note,
@@ -31,13 +39,6 @@ from rider.ui.view import (
     Update,
     lost_after,
 )
-from schema.axes import AxisRecord
-from schema.calibration import CalibrationRecord
-from schema.commands import Command, Reply, Session
-from schema.diag import CycleDiag
-from schema.events import Event, EventQuery
-from schema.io import IoValue
-from schema.status import Status
 
 log = logging.getLogger("rider.ui")
 

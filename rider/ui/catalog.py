@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from schema.commands import (
+from ride_machine.schema.commands import (
     ALLOWED_STATES,
     DEFAULT_SESSION,
     READ_ONLY_COMMANDS,
@@ -16,8 +16,8 @@ from schema.commands import (
     Session,
     TiltStep,
 )
-from schema.events import Details, EventKind, RiderEvent
-from schema.status import FAULT_STATES, MOTION_STATES, MachineState
+from ride_machine.schema.events import Details, EventKind, RiderEvent
+from ride_machine.schema.status import FAULT_STATES, MOTION_STATES, MachineState
 
 S = MachineState
 

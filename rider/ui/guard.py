@@ -9,8 +9,9 @@ from starlette.datastructures import Headers
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from rider.text import printable
-from rider.ui.hosts import HostPolicy
+from ride_machine.rider.text import printable
+
+from .hosts import HostPolicy
 
 log = logging.getLogger("rider.ui")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from rider.ui.view import Push
+from .view import Push
 
 QUEUE_CAPACITY = 512
 

@@ -10,13 +10,13 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from rider.text import shown
-from schema.axes import AxisRecord, PnStatus
-from schema.calibration import CalibrationRecord
-from schema.completion import Completion
-from schema.diag import CycleDiag
-from schema.io import IoKind, IoValue
-from schema.status import Status
+from ride_machine.rider.text import shown
+from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.calibration import CalibrationRecord
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.io import IoKind, IoValue
+from ride_machine.schema.status import Status
 
 DEFAULT_HEARTBEAT_S = 1.0
 """The machine's status heartbeat (`bus.heartbeat_s`) until it has told its own."""

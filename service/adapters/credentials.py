@@ -14,8 +14,8 @@ from __future__ import annotations
 import secrets
 from pathlib import Path
 
-from schema.rider import login_ok
-from service.core.atomic import atomic_write
+from ride_machine.schema.rider import login_ok
+from ride_machine.service.core.storage.atomic import atomic_write
 
 IDENTITIES = ("machine", "rider", "monitor")
 """One login per ACL subject of zenoh/acl.json5 and zenoh/tls.json5 (the shared `rider`)."""

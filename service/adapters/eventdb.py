@@ -12,8 +12,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from schema.codec import dump_json
-from schema.events import KnownDetails
+from ride_machine.schema.codec import dump_json
+from ride_machine.schema.events import KnownDetails
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (

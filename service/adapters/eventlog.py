@@ -28,14 +28,15 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from schema.diag import EventsDiag
-from schema.events import EventPage, EventQuery, KnownDetails
-from service.adapters.eventdb import BUSY_TIMEOUT_S, WRITER_WAIT_S, Row, as_row, file_bytes
-from service.adapters.eventread import Reader
-from service.adapters.eventwriter import EventWriter, Listener
-from service.config.model import EventsSection
-from service.core.held import Held, LogLine
-from service.threads import NamedThread
+from ride_machine.schema.diag import EventsDiag
+from ride_machine.schema.events import EventPage, EventQuery, KnownDetails
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.history.held import Held, LogLine
+from ride_machine.service.threads import NamedThread
+
+from .eventdb import BUSY_TIMEOUT_S, WRITER_WAIT_S, Row, as_row, file_bytes
+from .eventread import Reader
+from .eventwriter import EventWriter, Listener
 
 log = logging.getLogger(__name__)
 

@@ -11,10 +11,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from schema.codec import pack
-from schema.events import Event, EventPage, EventQuery
-from service.adapters.eventdb import StoredRow, connect, connect_readonly
-from service.threads import NamedThread
+from ride_machine.schema.codec import pack
+from ride_machine.schema.events import Event, EventPage, EventQuery
+from ride_machine.service.threads import NamedThread
+
+from .eventdb import StoredRow, connect, connect_readonly
 
 MAX_PAGE_BYTES = 256 * 1024
 """A reply page stops growing past this many bytes of event JSON (and says `more`)."""

@@ -15,8 +15,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Protocol
 
-from schema.events import DroppedEvent, EventKind, KnownDetails, StorageEvent
-from service.adapters.eventdb import (
+from ride_machine.schema.events import DroppedEvent, EventKind, KnownDetails, StorageEvent
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.history.held import Held
+
+from .eventdb import (
     Row,
     StoredRow,
     as_row,
@@ -26,10 +29,8 @@ from service.adapters.eventdb import (
     open_log,
     stored,
 )
-from service.adapters.retention import prune_and_vacuum
-from service.adapters.unwritten import Unwritten
-from service.config.model import EventsSection
-from service.core.held import Held
+from .retention import prune_and_vacuum
+from .unwritten import Unwritten
 
 log = logging.getLogger(__name__)
 

@@ -17,11 +17,12 @@ from datetime import datetime
 from pathlib import Path
 from typing import TextIO
 
-from common.event_words import describe
-from schema.events import Event, query_of
-from service.adapters.eventdb import connect_readonly
-from service.adapters.eventlog import EVENTS_FILE
-from service.adapters.eventread import iter_events
+from ride_machine.common.event_words import describe
+from ride_machine.schema.events import Event, query_of
+
+from .eventdb import connect_readonly
+from .eventlog import EVENTS_FILE
+from .eventread import iter_events
 
 EXIT_OK = 0
 EXIT_FAILED = 1

@@ -15,8 +15,8 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-from schema.axes import AxisRecord, PnStatus
-from schema.fastdata import (
+from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.fastdata import (
     DEFAULT_PORT,
     MAX_REQUEST_BYTES,
     SERVERDATA_VERSION,
@@ -24,8 +24,8 @@ from schema.fastdata import (
     FastAxisData,
     encode,
 )
-from service.config.model import MachineConfig
-from service.threads import NamedThread
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 

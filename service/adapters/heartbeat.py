@@ -17,7 +17,7 @@ import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from service.threads import NamedThread
+from ride_machine.service.threads import NamedThread
 
 log = logging.getLogger("service.heartbeat")
 

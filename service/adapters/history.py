@@ -9,7 +9,7 @@ woken command thread at once instead of after the writer's time slice.
 
 `HistoryProcess` is an `EventLog` whose writer thread only sends: what the scan loop and the
 commands queue (`emit`, `defer`) goes down a pipe, a batch at a time, as msgpack, to
-`python -m service.adapters.history` (its code: service/adapters/history_writer.py; the
+`python -m ride_machine.service.adapters.history` (its code: service/adapters/history_writer.py; the
 messages: service/adapters/history_pipe.py). That process makes the events (a command's
 `CommandEvent` and its log line from its `CommandFacts`) and writes them with an `EventLog` of
 its own: the same batches, retention, failure handling and `storage_failed` records. It sends
@@ -35,10 +35,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from schema.diag import EventsDiag
-from service.adapters.eventdb import Row, claim_writer
-from service.adapters.eventlog import EventLog
-from service.adapters.history_pipe import (
+from ride_machine.schema.diag import EventsDiag
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.history.held import Held
+from ride_machine.service.logfmt import put_text
+from ride_machine.service.threads import NamedThread
+
+from .eventdb import Row, claim_writer
+from .eventlog import EventLog
+from .history_pipe import (
     BATCH,
     FAILED,
     FLUSH,
@@ -52,10 +57,6 @@ from service.adapters.history_pipe import (
     rows_in,
     write_all,
 )
-from service.config.model import EventsSection
-from service.core.held import Held
-from service.logfmt import put_text
-from service.threads import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,8 @@ PYTHON = sys.executable
 
 
 class HistoryProcess(EventLog):
-    """An `EventLog` whose events are made and written by `python -m service.adapters.history`."""
+    """An `EventLog` whose events are made and written by `python -m
+    ride_machine.service.adapters.history`."""
 
     def __init__(self, path: Path, machine_id: str, settings: EventsSection, **kw: Any) -> None:
         super().__init__(path, machine_id, settings, **kw)
@@ -131,7 +133,7 @@ class HistoryProcess(EventLog):
                 [
                     PYTHON,
                     "-m",
-                    "service.adapters.history",
+                    "ride_machine.service.adapters.history",
                     str(self.path),
                     self.machine_id,
                     self.settings.model_dump_json(),
@@ -381,7 +383,7 @@ class HistoryProcess(EventLog):
 
 
 if __name__ == "__main__":
-    from service.adapters.history_writer import main
+    from .history_writer import main
 
     code = main(sys.argv[1:])
     os._exit(code)  # everything is written: no interpreter teardown for the daemon to wait on

@@ -9,9 +9,10 @@ from typing import Any
 
 import msgpack
 
-from schema.codec import dump_json
-from service.adapters.eventdb import Row
-from service.core.held import CommandFacts, Held, LogLine
+from ride_machine.schema.codec import dump_json
+from ride_machine.service.core.history.held import CommandFacts, Held, LogLine
+
+from .eventdb import Row
 
 # daemon → history process (`[FLUSH, token, timeout_s]`: the daemon waits no longer for the
 # answer, so the process answers by then, written or not, and reads the pipe again)

@@ -1,5 +1,6 @@
-"""The history process (`python -m service.adapters.history`): makes the events the daemon sends
-down the pipe and writes them with an `EventLog` of its own, sending back what it wrote, its
+"""The history process (`python -m ride_machine.service.adapters.history`): makes the events the
+daemon sends down the pipe and writes them with an `EventLog` of its own, sending back what it
+wrote, its
 counters and its log lines (service/adapters/history.py has the daemon's side)."""
 
 from __future__ import annotations
@@ -12,9 +13,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from service.adapters.eventdb import Row, StoredRow, as_row
-from service.adapters.eventlog import EventLog
-from service.adapters.history_pipe import (
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.history.held import COMMAND_LOG, CommandFacts
+from ride_machine.service.logfmt import flush_logs, info, setup_logging
+from ride_machine.service.threads import name_os_thread
+
+from .eventdb import Row, StoredRow, as_row
+from .eventlog import EventLog
+from .history_pipe import (
     BATCH,
     FAILED,
     FLUSH,
@@ -28,10 +34,6 @@ from service.adapters.history_pipe import (
     messages,
     write_all,
 )
-from service.config.model import EventsSection
-from service.core.held import COMMAND_LOG, CommandFacts
-from service.logfmt import flush_logs, info, setup_logging
-from service.threads import name_os_thread
 
 SLICE_S = 0.0001
 """The history process gives way (`sched_yield`) after this much work at a time."""
@@ -137,7 +139,7 @@ def _make(items: tuple[Item, ...]) -> list[Row]:
 
 
 def main(argv: list[str]) -> int:
-    """`python -m service.adapters.history PATH MACHINE_ID SETTINGS_JSON LEVEL`: reads
+    """`python -m ride_machine.service.adapters.history PATH MACHINE_ID SETTINGS_JSON LEVEL`: reads
     batches on stdin until it closes, then writes what it has and exits."""
     # The daemon decides when this process ends (it closes the pipe): a Ctrl-C or a TERM sent
     # to the daemon's process group must not cut the history short of the daemon's last events.

@@ -21,7 +21,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from service.core.atomic import atomic_write
+from ride_machine.service.core.storage.atomic import atomic_write
 
 APPLICATION_URI = "urn:ride-machine:gateway"
 """The gateway's OPC UA application URI (rider/gateway/server.py); its certificate names it."""

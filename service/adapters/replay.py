@@ -1,12 +1,12 @@
 """At most once across a restart: the answers of recent commands, read back from the event history.
 
 The scan loop remembers the last `bus.transaction_window` replies by transaction id (a retry gets
-the first reply; service/core/transactions.py) and the completion notices (`done/<id>`); both
-lived in memory only, so a Start answered and run to DONE, the daemon restarted, and the same
-request sent again started a second ride. Every command the loop answers is also a `command`
-event in `<data_dir>/events.db` (id, command, accepted, code, message, state), and every motion's
-end a `completion` event: at start-up the daemon reads the newest of them back and fills both
-memories, so a repeat after a restart gets the recorded outcome, not a second motion.
+the first reply; service/core/commands/transactions.py) and the completion notices (`done/<id>`);
+both lived in memory only, so a Start answered and run to DONE, the daemon restarted, and the same
+request sent again started a second ride. Every command the loop answers is also a `command` event
+in `<data_dir>/events.db` (id, command, accepted, code, message, state), and every motion's end a
+`completion` event: at start-up the daemon reads the newest of them back and fills both memories, so
+a repeat after a restart gets the recorded outcome, not a second motion.
 
 How far back it holds: the newest `bus.transaction_window` commands (4096 by default) that the
 history still keeps (its retention, `[events]`), as in memory. What the history never got is
@@ -26,14 +26,15 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from schema import SCHEMA_VERSION
-from schema.codec import pack
-from schema.commands import ReplyCode
-from schema.completion import Completion
-from schema.errors import ErrorCode
-from schema.events import CompletionEvent
-from schema.status import MachineState
-from service.adapters.eventdb import WRITER_WAIT_S, claim_writer, connect_readonly
+from ride_machine.schema import SCHEMA_VERSION
+from ride_machine.schema.codec import pack
+from ride_machine.schema.commands import ReplyCode
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import CompletionEvent
+from ride_machine.schema.status import MachineState
+
+from .eventdb import WRITER_WAIT_S, claim_writer, connect_readonly
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 import sqlite3
 from collections.abc import Callable
 
-from schema.events import EventKind
-from service.config.model import EventsSection
+from ride_machine.schema.events import EventKind
+from ride_machine.service.config.model import EventsSection
 
 _K = EventKind
 PROTECTED = (

@@ -24,8 +24,8 @@ import os
 from collections import deque
 from pathlib import Path
 
-from service.adapters.eventdb import Row
-from service.adapters.retention import SAFETY_KINDS
+from .eventdb import Row
+from .retention import SAFETY_KINDS
 
 log = logging.getLogger(__name__)
 

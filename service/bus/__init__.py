@@ -7,8 +7,8 @@ cycles, under the loop's lock (one writer at a time; the next cycle still reads 
 handles E-stop before any output changes) and is answered from the same thread: no hand-off.
 It never waits there: while the scan holds the lock, the command waits on a thread of its own
 (`commands.Deferred`), in arrival order.
-The bus sees the loop only through its port (`service.core.port.LoopPort`): a command between
-cycles, any other work as a task for the scan thread (`service.core.tasks`), the published
+The bus sees the loop only through its port (`service.core.scan.port.LoopPort`): a command between
+cycles, any other work as a task for the scan thread (`service.core.scan.tasks`), the published
 records as one immutable value; the loop publishes through the bus's `Publications`, its sink.
 Read-only queries (status, IO, axes, diagnostics) are answered from those records without
 touching state. Publishers drop rather than block under congestion.
@@ -20,17 +20,18 @@ Python state), `session` (config, open, close), `zenoh_bus` (the daemon's bus),
 `supervisor` (the supervisor's), `exposure`.
 """
 
-from common.runtime import use_runtime
-from common.zenoh_session import file_config, open_session
-from service.bus.commands import LOCK_TIMEOUT_S
-from service.bus.injection import SimPort
-from service.bus.presence import holders_of
-from service.bus.publications import Publications
-from service.bus.reads import ConfigChecker
-from service.bus.request import ENCODINGS, Request, reply_format
-from service.bus.session import DEFAULT_LISTEN, Session, close_session, zenoh_config
-from service.bus.writes import ParamService
-from service.bus.zenoh_bus import ZenohBus
+from ride_machine.common.runtime import use_runtime
+from ride_machine.common.zenoh_session import file_config, open_session
+
+from .commands import LOCK_TIMEOUT_S
+from .injection import SimPort
+from .presence import holders_of
+from .publications import Publications
+from .reads import ConfigChecker
+from .request import ENCODINGS, Request, reply_format
+from .session import DEFAULT_LISTEN, Session, close_session, zenoh_config
+from .writes import ParamService
+from .zenoh_bus import ZenohBus
 
 __all__ = [
     "DEFAULT_LISTEN",

@@ -7,7 +7,7 @@ from typing import Any, TypeVar
 
 import zenoh
 
-from common.threadstate import keeping_state
+from ride_machine.common.threadstate import keeping_state
 
 T = TypeVar("T")
 

@@ -23,19 +23,16 @@ from collections.abc import Callable
 
 import zenoh
 
-from schema.commands import REQUEST_MODELS, Command, CommandRequest, Reply
-from schema.events import CommandEvent
-from schema.status import MachineState
-from service.adapters.eventlog import EventLog
-from service.bus.confirm import Confirmer, Verdict
-from service.bus.request import Request, sender_of
-from service.bus.routes import Handler, Route, Wildcard
-from service.core.admission import watchable
-from service.core.identity import Identity
-from service.core.port import LoopPort
-from service.core.statemachine import HANDLING
-from service.core.tasks import PendingCommand
-from service.errors import (
+from ride_machine.schema.commands import REQUEST_MODELS, Command, CommandRequest, Reply
+from ride_machine.schema.events import CommandEvent
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.eventlog import EventLog
+from ride_machine.service.core.commands.admission import watchable
+from ride_machine.service.core.commands.identity import Identity
+from ride_machine.service.core.scan.port import LoopPort
+from ride_machine.service.core.scan.tasks import PendingCommand
+from ride_machine.service.core.statemachine import HANDLING
+from ride_machine.service.errors import (
     BadRequest,
     Busy,
     EstopActive,
@@ -45,7 +42,11 @@ from service.errors import (
     UnknownCommand,
     WildcardCommand,
 )
-from service.threads import NamedThread
+from ride_machine.service.threads import NamedThread
+
+from .confirm import Confirmer, Verdict
+from .request import Request, sender_of
+from .routes import Handler, Route, Wildcard
 
 log = logging.getLogger(__name__)
 

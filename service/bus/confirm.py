@@ -20,8 +20,8 @@ from enum import Enum
 
 import zenoh
 
-from schema.rider import confirm_key, digest, is_rider_id, operator_of
-from service.core.identity import Identity
+from ride_machine.schema.rider import confirm_key, digest, is_rider_id, operator_of
+from ride_machine.service.core.commands.identity import Identity
 
 log = logging.getLogger(__name__)
 

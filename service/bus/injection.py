@@ -13,9 +13,10 @@ from typing import Protocol
 
 from pydantic import BaseModel
 
-from service.bus.request import Request
-from service.bus.routes import Route, Wildcard
-from service.errors import NotAvailable
+from ride_machine.service.errors import NotAvailable
+
+from .request import Request
+from .routes import Route, Wildcard
 
 WORLD = "world"
 """`sim/world`: read the world, change nothing."""

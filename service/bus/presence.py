@@ -10,11 +10,12 @@ from typing import Any
 
 import zenoh
 
-from schema import rider as rider_keys
-from service.bus.callbacks import direct
-from service.config.model import MachineConfig
-from service.core.port import LoopPort
-from service.core.tasks import Duplicates, RiderPresence
+from ride_machine.schema import rider as rider_keys
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.scan.port import LoopPort
+from ride_machine.service.core.scan.tasks import Duplicates, RiderPresence
+
+from .callbacks import direct
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """What the machine publishes: status, IO, axes, completions, calibration, diagnostics, events.
 
-`Publications` is the scan loop's sink (`service.core.sink.LoopSink`), made before the loop it
+`Publications` is the scan loop's sink (`service.core.scan.sink.LoopSink`), made before the loop it
 serves and knowing nothing of it. Every publication names this session (its source info), so a
 Rider drops samples of any other session that holds (or forges) this machine's keys.
 Publishers drop rather than block.
@@ -16,20 +16,20 @@ from typing import Any
 
 import zenoh
 
-from schema import keys as machine_keys
-from schema.axes import AxisRecord
-from schema.calibration import CalibrationRecord
-from schema.codec import Format, encode
-from schema.completion import Completion
-from schema.diag import CycleDiag
-from schema.io import IoValue
-from schema.status import Fault, FaultCode, MachineState, Status
-from service.adapters.eventdb import StoredRow
-from service.adapters.eventlog import EventLog
-from service.adapters.eventread import row_payload
-from service.config.model import MachineConfig
-from service.core.timing import CycleStats
-from service.threads import NamedThread
+from ride_machine.schema import keys as machine_keys
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import CalibrationRecord
+from ride_machine.schema.codec import Format, encode
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.status import Fault, FaultCode, MachineState, Status
+from ride_machine.service.adapters.eventdb import StoredRow
+from ride_machine.service.adapters.eventlog import EventLog
+from ride_machine.service.adapters.eventread import row_payload
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.scan.timing import CycleStats
+from ride_machine.service.threads import NamedThread
 
 MSGPACK = zenoh.Encoding(Format.MSGPACK.value)
 """Prebuilt for one-off publications (no encoding string parsed per put)."""

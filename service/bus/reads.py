@@ -11,16 +11,14 @@ from typing import Protocol
 import zenoh
 from pydantic import BaseModel
 
-from schema.codec import MAX_PAYLOAD_BYTES, Format
-from schema.completion import Completion
-from schema.diag import CycleDiag
-from schema.events import EventPage, EventQuery, QueryError, selector_params
-from schema.findings import Findings
-from service.adapters.eventlog import EventLog
-from service.bus.request import Request, put
-from service.bus.routes import Handler, Route
-from service.core.port import LoopPort
-from service.errors import (
+from ride_machine.schema.codec import MAX_PAYLOAD_BYTES, Format
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.events import EventPage, EventQuery, QueryError, selector_params
+from ride_machine.schema.findings import Findings
+from ride_machine.service.adapters.eventlog import EventLog
+from ride_machine.service.core.scan.port import LoopPort
+from ride_machine.service.errors import (
     BadKey,
     BadRequest,
     Busy,
@@ -30,6 +28,9 @@ from service.errors import (
     StorageFailed,
     UnknownTransaction,
 )
+
+from .request import Request, put
+from .routes import Handler, Route
 
 
 class ConfigChecker(Protocol):

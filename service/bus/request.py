@@ -9,11 +9,18 @@ from typing import Any, Protocol, TypeVar
 import zenoh
 from pydantic import BaseModel
 
-from schema.codec import DecodeError, Format, decode_raw, encode, sniff_format, validate
-from schema.commands import Reply, transaction_id_of
-from schema.rider import is_rider_id
-from schema.status import MachineState
-from service.errors import MachineError, Rejected
+from ride_machine.schema.codec import (
+    DecodeError,
+    Format,
+    decode_raw,
+    encode,
+    sniff_format,
+    validate,
+)
+from ride_machine.schema.commands import Reply, transaction_id_of
+from ride_machine.schema.rider import is_rider_id
+from ride_machine.schema.status import MachineState
+from ride_machine.service.errors import MachineError, Rejected
 
 M = TypeVar("M", bound=BaseModel)
 

@@ -14,10 +14,11 @@ from typing import Any
 
 import zenoh
 
-from schema.codec import sniff_format
-from service.bus.callbacks import direct
-from service.bus.request import Host, Request, encoding_of, reply_format
-from service.errors import BadKey, MachineError
+from ride_machine.schema.codec import sniff_format
+from ride_machine.service.errors import BadKey, MachineError
+
+from .callbacks import direct
+from .request import Host, Request, encoding_of, reply_format
 
 Handler = Callable[[Request], None]
 

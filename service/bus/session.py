@@ -10,10 +10,11 @@ from pathlib import Path
 
 import zenoh
 
-from common.zenoh_session import LOCAL_ENDPOINT, MACHINE_SIDE
-from common.zenoh_session import zenoh_config as shared_config
-from service.bus.stations import expand, fill_stations, without_role
-from service.threads import NamedThread
+from ride_machine.common.zenoh_session import LOCAL_ENDPOINT, MACHINE_SIDE
+from ride_machine.common.zenoh_session import zenoh_config as shared_config
+from ride_machine.service.threads import NamedThread
+
+from .stations import expand, fill_stations, without_role
 
 log = logging.getLogger(__name__)
 

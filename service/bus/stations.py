@@ -25,8 +25,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from schema.rider import login_ok
-from service.adapters.credentials import ROLES, SHARED
+from ride_machine.schema.rider import login_ok
+from ride_machine.service.adapters.credentials import ROLES, SHARED
 
 log = logging.getLogger(__name__)
 

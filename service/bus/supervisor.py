@@ -21,22 +21,23 @@ from typing import Any
 
 import zenoh
 
-from common.zenoh_session import file_config
-from hal.base import HalError
-from schema import keys as machine_keys
-from schema.codec import DecodeError, Format, decode, encode
-from schema.completion import Completion, Outcome
-from schema.status import Fault, FaultCode, MachineState, Status
-from service.bus.commands import command_route
-from service.bus.injection import Injection, SimPort
-from service.bus.publications import faulted
-from service.bus.reads import latest, matching
-from service.bus.request import Request
-from service.bus.routes import Route, declare
-from service.bus.session import zenoh_config
-from service.config.model import MachineConfig
-from service.errors import Busy, MachineError, NotAvailable
-from service.threads import NamedThread
+from ride_machine.common.zenoh_session import file_config
+from ride_machine.hal.base import HalError
+from ride_machine.schema import keys as machine_keys
+from ride_machine.schema.codec import DecodeError, Format, decode, encode
+from ride_machine.schema.completion import Completion, Outcome
+from ride_machine.schema.status import Fault, FaultCode, MachineState, Status
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.errors import Busy, MachineError, NotAvailable
+from ride_machine.service.threads import NamedThread
+
+from .commands import command_route
+from .injection import Injection, SimPort
+from .publications import faulted
+from .reads import latest, matching
+from .request import Request
+from .routes import Route, declare
+from .session import zenoh_config
 
 log = logging.getLogger(__name__)
 

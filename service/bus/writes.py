@@ -9,24 +9,25 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from schema.calibration import CalibrationRecord, CalibrationSet
-from schema.diag import CycleDiag
-from schema.errors import Error
-from schema.events import ParamEvent
-from schema.params import ParamSet, ParamValue
-from service.adapters.eventlog import EventLog
-from service.bus.confirm import Confirmer
-from service.bus.reads import matching
-from service.bus.request import Request, sender_of
-from service.bus.routes import Route, Wildcard
-from service.core.identity import Identity
-from service.core.persist import SaveTicket
-from service.core.port import LoopPort
-from service.core.safety import is_safety
-from service.core.tasks import EnterCalibration, OnScanThread
-from service.core.timing import CycleStats
-from service.errors import BadRequest, Busy, MachineError, Rejected, StorageFailed
-from service.threads import NamedThread
+from ride_machine.schema.calibration import CalibrationRecord, CalibrationSet
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.errors import Error
+from ride_machine.schema.events import ParamEvent
+from ride_machine.schema.params import ParamSet, ParamValue
+from ride_machine.service.adapters.eventlog import EventLog
+from ride_machine.service.core.commands.identity import Identity
+from ride_machine.service.core.scan.port import LoopPort
+from ride_machine.service.core.scan.tasks import EnterCalibration, OnScanThread
+from ride_machine.service.core.scan.timing import CycleStats
+from ride_machine.service.core.storage.persist import SaveTicket
+from ride_machine.service.core.storage.safety import is_safety
+from ride_machine.service.errors import BadRequest, Busy, MachineError, Rejected, StorageFailed
+from ride_machine.service.threads import NamedThread
+
+from .confirm import Confirmer
+from .reads import matching
+from .request import Request, sender_of
+from .routes import Route, Wildcard
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ SAVE_WAIT_S = 5.0
 
 
 class ParamService(Protocol):
-    """What the bus needs from the parameter registry (service/core/params.py)."""
+    """What the bus needs from the parameter registry (service/core/storage/params.py)."""
 
     def list(self) -> list[ParamValue]: ...
 

@@ -10,17 +10,18 @@ import logging
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from schema.status import MachineState
-from service.bus.commands import Commands
-from service.bus.confirm import Confirmer
-from service.bus.injection import Injection, SimPort
-from service.bus.presence import Presence
-from service.bus.publications import Publications
-from service.bus.reads import ConfigChecker, Reads
-from service.bus.request import Request
-from service.bus.routes import Route, declare
-from service.bus.writes import ParamService, Writes, on_scan_thread
-from service.core.port import LoopPort
+from ride_machine.schema.status import MachineState
+from ride_machine.service.core.scan.port import LoopPort
+
+from .commands import Commands
+from .confirm import Confirmer
+from .injection import Injection, SimPort
+from .presence import Presence
+from .publications import Publications
+from .reads import ConfigChecker, Reads
+from .request import Request
+from .routes import Route, declare
+from .writes import ParamService, Writes, on_scan_thread
 
 log = logging.getLogger("service.bus")
 

@@ -14,9 +14,10 @@ from __future__ import annotations
 import os
 import threading
 
-from schema.findings import Finding
-from service.config.model import MachineConfig
-from service.config.report import Category, warning
+from ride_machine.schema.findings import Finding
+
+from .model import MachineConfig
+from .report import Category, warning
 
 PATH = "/loop/rt_priority"
 

@@ -14,9 +14,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from schema.findings import Finding, Findings
-from service.config.model import MachineConfig
-from service.config.validate import (
+from ride_machine.schema.findings import Finding, Findings
+
+from .model import MachineConfig
+from .validate import (
     Category,
     findings_of,
     one_error,

@@ -10,10 +10,10 @@ from typing import Annotated, Any, Protocol, cast
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_core import ErrorDetails, InitErrorDetails, PydanticCustomError
 
-from hal.backends import names, settings_of
-from hal.iomap import IoMap
-from hal.revpibackend import RevPiSettings
-from schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
+from ride_machine.hal.backends import names, settings_of
+from ride_machine.hal.iomap import IoMap
+from ride_machine.hal.revpibackend import RevPiSettings
+from ride_machine.schema.fastdata import INT32_MAX, INT32_MIN, USER_REGISTER_LENGTH
 
 Int32 = Annotated[int, Field(ge=INT32_MIN, le=INT32_MAX)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]

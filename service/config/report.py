@@ -7,7 +7,7 @@ import math
 from enum import StrEnum
 from typing import Any
 
-from schema.findings import Finding, Findings, Severity
+from ride_machine.schema.findings import Finding, Findings, Severity
 
 
 class Category(StrEnum):

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from hal.iomap import IoMap
-from schema.commands import DEFAULT_SESSION, TiltStep
-from schema.findings import Finding
-from schema.rider import HEARTBEAT_INTERVAL_S
-from service.config.model import MIN_SLICE_S, HalBackend, MachineConfig
-from service.config.report import Category, error, warning
+from ride_machine.hal.iomap import IoMap
+from ride_machine.schema.commands import DEFAULT_SESSION, TiltStep
+from ride_machine.schema.findings import Finding
+from ride_machine.schema.rider import HEARTBEAT_INTERVAL_S
+
+from .model import MIN_SLICE_S, HalBackend, MachineConfig
+from .report import Category, error, warning
 
 # Below this the wake-up jitter of a Python thread on a general-purpose kernel is of the
 # same order as the period itself: the loop runs, but overruns become routine.

@@ -16,12 +16,13 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from schema.codec import json_pointer
-from schema.findings import Finding, Findings
-from service.config.host import realtime_findings
-from service.config.model import HalBackend, MachineConfig, read_toml
-from service.config.report import Category, error, finding_line, findings_of, one_error, show
-from service.config.rules import MIN_RELIABLE_PERIOD_S, semantic_findings
+from ride_machine.schema.codec import json_pointer
+from ride_machine.schema.findings import Finding, Findings
+
+from .host import realtime_findings
+from .model import HalBackend, MachineConfig, read_toml
+from .report import Category, error, finding_line, findings_of, one_error, show
+from .rules import MIN_RELIABLE_PERIOD_S, semantic_findings
 
 __all__ = [
     "MIN_RELIABLE_PERIOD_S",
@@ -177,7 +178,9 @@ def hardware_findings(config: MachineConfig) -> list[Finding]:
     found = realtime_findings(config)
     if config.hal.backend is not HalBackend.REVPI:
         return found
-    from hal.revpi import check_revpi_io  # only with that backend: it pulls in revpimodio2
+    from ride_machine.hal.revpi import (
+        check_revpi_io,  # only with that backend: it pulls in revpimodio2
+    )
 
     revpi = config.hal.revpi
     return [*check_revpi_io(config.hal.iomap, revpi.configrsc, revpi.procimg), *found]

@@ -15,32 +15,33 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hal.backends import backend
-from hal.base import Hal, HalConfigError, HalError
-from schema.events import DaemonStartEvent
-from service import bus as zbus
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.fastdata import FastDataServer, user_registers
-from service.adapters.heartbeat import HeartbeatFile
-from service.adapters.history import HistoryProcess
-from service.adapters.replay import Recalled, recall
-from service.bus.exposure import warn_if_exposed
-from service.config.load import check_candidate
-from service.config.model import MachineConfig
-from service.config.validate import Category, finding_line, one_error
-from service.core.beat import BeatWriter
-from service.core.loop import ScanLoop
-from service.core.machine import Machine
-from service.core.params import ParamRegistry
-from service.core.persist import BackgroundWriter, CalibrationStore, ParamStore
-from service.core.port import LoopPort
-from service.core.runner import RealtimeRunner
-from service.core.safety import in_effect
-from service.core.statemachine.deadman import Heartbeats
-from service.core.timing import CycleStats
-from service.core.watchdog import GuardedHal, Watchdog
-from service.supervision.outcome import EXIT_CONFIG, EXIT_FAILED, StartRefused
-from service.supervision.simport import sim_port
+from ride_machine.hal.backends import backend
+from ride_machine.hal.base import Hal, HalConfigError, HalError
+from ride_machine.schema.events import DaemonStartEvent
+from ride_machine.service import bus as zbus
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.fastdata import FastDataServer, user_registers
+from ride_machine.service.adapters.heartbeat import HeartbeatFile
+from ride_machine.service.adapters.history import HistoryProcess
+from ride_machine.service.adapters.replay import Recalled, recall
+from ride_machine.service.bus.exposure import warn_if_exposed
+from ride_machine.service.config.load import check_candidate
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.config.validate import Category, finding_line, one_error
+from ride_machine.service.core.scan.beat import BeatWriter
+from ride_machine.service.core.scan.loop import ScanLoop
+from ride_machine.service.core.scan.machine import Machine
+from ride_machine.service.core.scan.port import LoopPort
+from ride_machine.service.core.scan.runner import RealtimeRunner
+from ride_machine.service.core.scan.timing import CycleStats
+from ride_machine.service.core.scan.watchdog import GuardedHal, Watchdog
+from ride_machine.service.core.statemachine.deadman import Heartbeats
+from ride_machine.service.core.storage.params import ParamRegistry
+from ride_machine.service.core.storage.persist import BackgroundWriter, CalibrationStore, ParamStore
+from ride_machine.service.core.storage.safety import in_effect
+
+from .outcome import EXIT_CONFIG, EXIT_FAILED, StartRefused
+from .simport import sim_port
 
 log = logging.getLogger("machine")
 

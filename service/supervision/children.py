@@ -18,14 +18,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from hal.backends import World
-from service.bus.supervisor import SupervisorBus
-from service.core.beat import BEAT_FD_ENV, BeatReader
-from service.core.tuning import SUPERVISOR_PID_ENV
-from service.supervision.outcome import EXIT_CONFIG, EXIT_OK
-from service.supervision.outputguard import Stall
-from service.supervision.procstate import describe, threads
-from service.supervision.restarts import (
+from ride_machine.hal.backends import World
+from ride_machine.service.bus.supervisor import SupervisorBus
+from ride_machine.service.core.scan.beat import BEAT_FD_ENV, BeatReader
+from ride_machine.service.core.scan.tuning import SUPERVISOR_PID_ENV
+from ride_machine.service.threads import NamedThread
+
+from .outcome import EXIT_CONFIG, EXIT_OK
+from .outputguard import Stall
+from .procstate import describe, threads
+from .restarts import (
     Backoff,
     Child,
     Happening,
@@ -33,7 +35,6 @@ from service.supervision.restarts import (
     SupervisorOptions,
     describe_exit,
 )
-from service.threads import NamedThread
 
 log = logging.getLogger("machine.supervisor")
 
@@ -220,7 +221,7 @@ class ChildKeeper:
         cmd = [
             sys.executable,
             "-m",
-            "service.cli",
+            "ride_machine.service.cli",
             "run",
             "--config",
             str(self.files / "machine.toml"),

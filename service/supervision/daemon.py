@@ -11,15 +11,15 @@ import signal
 import threading
 import time
 
-from hal.base import Hal
-from schema.events import DaemonStopEvent, WatchdogEvent
-from service import bus as zbus
-from service.adapters.eventlog import EventLog
-from service.config.model import MachineConfig
-from service.core.beat import BeatWriter, beat_from_env
-from service.core.runner import LoopFailed, RealtimeRunner
-from service.core.timing import CycleStats
-from service.core.tuning import (
+from ride_machine.hal.base import Hal
+from ride_machine.schema.events import DaemonStopEvent, WatchdogEvent
+from ride_machine.service import bus as zbus
+from ride_machine.service.adapters.eventlog import EventLog
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.scan.beat import BeatWriter, beat_from_env
+from ride_machine.service.core.scan.runner import LoopFailed, RealtimeRunner
+from ride_machine.service.core.scan.timing import CycleStats
+from ride_machine.service.core.scan.tuning import (
     SUPERVISOR_PID_ENV,
     die_with_parent,
     gc_threshold,
@@ -28,9 +28,11 @@ from service.core.tuning import (
     switch_interval,
     tune_thread,
 )
-from service.logfmt import flush_logs
-from service.signals import SignalThread
-from service.supervision.assembly import (
+from ride_machine.service.logfmt import flush_logs
+from ride_machine.service.signals import SignalThread
+from ride_machine.service.threads import name_callback_threads
+
+from .assembly import (
     Built,
     DaemonOptions,
     Wiring,
@@ -47,9 +49,8 @@ from service.supervision.assembly import (
     start_heartbeat_file,
     start_watchdog,
 )
-from service.supervision.malloc import bound_malloc_arenas
-from service.supervision.outcome import EXIT_FAILED, EXIT_OK, StartRefused
-from service.threads import name_callback_threads
+from .malloc import bound_malloc_arenas
+from .outcome import EXIT_FAILED, EXIT_OK, StartRefused
 
 log = logging.getLogger("machine")
 
@@ -105,7 +106,7 @@ class Daemon:
         """What SIGTERM and SIGINT get once `run` returns; None: the handlers from before."""
         self._stop_recorded = False
         self.beat: BeatWriter | None = beat_from_env() if supervised else None
-        """The shared record the supervisor's output guard watches (`service.core.beat`)."""
+        """The shared record the supervisor's output guard watches (`service.core.scan.beat`)."""
         self.raw_hal: Hal
         self.stats: CycleStats
         self.built: Built

@@ -8,11 +8,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from hal.backends import World, backend
-from hal.base import HalConfigError
-from schema.findings import Finding, Severity
-from service.config.model import HalBackend, MachineConfig
-from service.core.beat import CYCLES_OFFSET
+from ride_machine.hal.backends import World, backend
+from ride_machine.hal.base import HalConfigError
+from ride_machine.schema.findings import Finding, Severity
+from ride_machine.service.config.model import HalBackend, MachineConfig
+from ride_machine.service.core.scan.beat import CYCLES_OFFSET
 
 
 class SafeOutputs(Protocol):
@@ -41,7 +41,7 @@ def open_field(
     """Open the safe-output path (outputs safe at once) and, with the simulator, start the plant
     in `directory` (or find the one running in `plant`), which reads the daemon's scan count
     from the beat record `beat_fd`."""
-    from hal.revpi import RevPiHal  # revpimodio2 is an optional extra: import on use
+    from ride_machine.hal.revpi import RevPiHal  # revpimodio2 is an optional extra: import on use
 
     directory.mkdir(parents=True, exist_ok=True)
     hal = config.hal

@@ -1,6 +1,6 @@
 """The supervisor's output guard: outputs safe when the daemon's scan stops, from outside it.
 
-The daemon stamps a shared record after every cycle (`service.core.beat`). A thread here reads
+The daemon stamps a shared record after every cycle (`service.core.scan.beat`). A thread here reads
 the stamp and sleeps until it would be `limit` old; if it has not moved by then, the scan has
 stopped. If any of the ride's relays is on in the process image at that moment, the guard
 latches the record (the daemon, should it wake, writes nothing but the safe state until it has
@@ -22,9 +22,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from service.core.beat import Beat, BeatReader
-from service.core.tuning import SCHED_SLICE_NS, set_sched_slice
-from service.threads import TimedThread
+from ride_machine.service.core.scan.beat import Beat, BeatReader
+from ride_machine.service.core.scan.tuning import SCHED_SLICE_NS, set_sched_slice
+from ride_machine.service.threads import TimedThread
 
 log = logging.getLogger("machine.supervisor")
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
-from service.supervision.outputguard import Stall
+from .outputguard import Stall
 
 
 @dataclass(frozen=True)

@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from hal.backends import Simulator
-from schema.codec import DecodeError
-from service.bus.injection import SimPort
-from service.errors import Rejected
+from ride_machine.hal.backends import Simulator
+from ride_machine.schema.codec import DecodeError
+from ride_machine.service.bus.injection import SimPort
+from ride_machine.service.errors import Rejected
 
 
 @dataclass(frozen=True)

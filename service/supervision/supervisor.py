@@ -24,30 +24,31 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common.credentials import MACHINE, CredentialError, env_name
-from hal.backends import World
-from hal.base import HalConfigError, HalError
-from service import bus as zbus
-from service.bus.exposure import warn_if_exposed
-from service.bus.supervisor import (
+from ride_machine.common.credentials import MACHINE, CredentialError, env_name
+from ride_machine.hal.backends import World
+from ride_machine.hal.base import HalConfigError, HalError
+from ride_machine.service import bus as zbus
+from ride_machine.service.bus.exposure import warn_if_exposed
+from ride_machine.service.bus.supervisor import (
     SupervisorBus,
     child_config,
     requires_credentials,
     router_config,
 )
-from service.config.model import MachineConfig
-from service.config.validate import finding_line
-from service.core.beat import BeatReader, create_beat_fd
-from service.signals import SignalThread
-from service.supervision.assembly import DaemonOptions
-from service.supervision.children import ChildKeeper
-from service.supervision.field import SafeOutputs, open_field
-from service.supervision.malloc import bound_malloc_arenas
-from service.supervision.outcome import EXIT_CONFIG, EXIT_FAILED, EXIT_OK, StartRefused
-from service.supervision.outputguard import OutputGuard, Stall
-from service.supervision.restarts import Happening, Kind, SupervisorOptions
-from service.supervision.simport import sim_port
-from service.supervision.toml_out import to_toml, write_private
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.config.validate import finding_line
+from ride_machine.service.core.scan.beat import BeatReader, create_beat_fd
+from ride_machine.service.signals import SignalThread
+
+from .assembly import DaemonOptions
+from .children import ChildKeeper
+from .field import SafeOutputs, open_field
+from .malloc import bound_malloc_arenas
+from .outcome import EXIT_CONFIG, EXIT_FAILED, EXIT_OK, StartRefused
+from .outputguard import OutputGuard, Stall
+from .restarts import Happening, Kind, SupervisorOptions
+from .simport import sim_port
+from .toml_out import to_toml, write_private
 
 log = logging.getLogger("machine.supervisor")
 
@@ -78,7 +79,7 @@ class Supervisor:
         """The daemon child's keeper (service/supervision/children.py), once the bus is up."""
         self.beat_fd = create_beat_fd()
         self.beat = BeatReader(self.beat_fd)
-        """The record the daemon child stamps every cycle (`service.core.beat`)."""
+        """The record the daemon child stamps every cycle (`service.core.scan.beat`)."""
         self.guard: OutputGuard | None = None
         self._sockdir = Path(tempfile.mkdtemp(prefix="machine-sup-"))
         self.private = f"unixsock-stream/{self._sockdir / 'zenoh.sock'}"
@@ -262,7 +263,7 @@ def run_supervisor(config: MachineConfig, zenoh: DaemonOptions, options: Supervi
     if bound_malloc_arenas(config.loop.malloc_arenas):  # before its Zenoh threads start
         log.info("event=malloc_arenas limit=%d", config.loop.malloc_arenas)
     # A Zenoh callback must not keep the GIL for Python's default 5 ms while the output
-    # guard wakes to a stall (service/core/runner.py `switch_interval`).
+    # guard wakes to a stall (service/core/scan/runner.py `switch_interval`).
     sys.setswitchinterval(config.loop.switch_interval_s)
     supervisor = Supervisor(config, zenoh, options)
     # The process ends when `run` returns: a signal from then on must not kill it (the

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from service.supervision.malloc import MALLOC_ARENAS
+from ride_machine.service.supervision.malloc import MALLOC_ARENAS
 from tests.procs import run_module
 
 pytestmark = pytest.mark.integration

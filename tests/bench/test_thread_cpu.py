@@ -11,7 +11,7 @@ import time
 import pytest
 
 from bench.common import HISTORY, children, cpu_seconds, rss_bytes, thread_cpu
-from service.threads import NamedThread
+from ride_machine.service.threads import NamedThread
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 

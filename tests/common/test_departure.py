@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from common.event_words import describe
-from schema.events import RiderEvent
+from ride_machine.common.event_words import describe
+from ride_machine.schema.events import RiderEvent
 
 
 def lost(**kw: object) -> RiderEvent:

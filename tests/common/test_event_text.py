@@ -14,10 +14,10 @@ from typing import Any, get_args
 import pytest
 from pydantic import BaseModel
 
-from common.event_words import TEXTS, asker, describe, param_unit, rider_name
-from schema import events
-from schema.status import MachineState as S
-from service.core.params import SPECS
+from ride_machine.common.event_words import TEXTS, asker, describe, param_unit, rider_name
+from ride_machine.schema import events
+from ride_machine.schema.status import MachineState as S
+from ride_machine.service.core.storage.params import SPECS
 
 ZID = "9d617a41f205ef9851e789b64de01ca7"
 RIDER = f"bay1/{ZID}"

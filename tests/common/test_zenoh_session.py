@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 import zenoh
 
-from common.credentials import MACHINE, RIDER, CredentialError, env_name
-from common.zenoh_session import LOCAL_ENDPOINT, MACHINE_SIDE, RIDER_SIDE, zenoh_config
+from ride_machine.common.credentials import MACHINE, RIDER, CredentialError, env_name
+from ride_machine.common.zenoh_session import LOCAL_ENDPOINT, MACHINE_SIDE, RIDER_SIDE, zenoh_config
 
 FILE = """{
   mode: "peer",

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import yaml
 
-from service.adapters.credentials import identities, init_credentials
-from service.adapters.opcua_credentials import opcua_files
+from ride_machine.service.adapters.credentials import identities, init_credentials
+from ride_machine.service.adapters.opcua_credentials import opcua_files
 from tests.procs import REPO
 
 TOOL_TIMEOUT_S = 60.0

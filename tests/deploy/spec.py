@@ -316,18 +316,18 @@ def parse_cli(argv: Sequence[str]) -> argparse.Namespace:
     if program not in scripts:
         raise SpecError(f"{program!r} is not an entry point of the package ({sorted(scripts)})")
     if program == "machine":
-        from service.cli import build_parser as machine_parser
+        from ride_machine.service.cli import build_parser as machine_parser
 
         return _parse(machine_parser(), args, argv)
-    from rider.cli import build_parser as rider_parser
+    from ride_machine.rider.cli import build_parser as rider_parser
 
     ns, rest = _parse_known(rider_parser(), args, argv)
     if ns.cmd == "ui":
-        from rider.ui.app import build_parser as ui_parser
+        from ride_machine.rider.ui.app import build_parser as ui_parser
 
         ns.ui = _parse(ui_parser(), rest, argv)
     elif ns.cmd == "gateway":
-        from rider.gateway.cli import build_parser as gateway_parser
+        from ride_machine.rider.gateway.cli import build_parser as gateway_parser
 
         ns.gateway = _parse(gateway_parser(), rest, argv)
     elif rest:

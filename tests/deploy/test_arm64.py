@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from schema.status import MachineState, Status
+from ride_machine.schema.status import MachineState, Status
 from tests.deploy.engines import ENGINE, Done, build_args, build_context, engine
 from tests.deploy.test_container import (
     calibrate,

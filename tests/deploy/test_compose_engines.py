@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from schema.status import Status
+from ride_machine.schema.status import Status
 from tests.deploy import spec
 from tests.deploy.engines import (
     BASE_IMAGE,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sim.plant import parse as plant_parse
+from ride_machine.sim.plant import parse as plant_parse
 from tests.deploy import spec
 
 
@@ -17,7 +17,7 @@ def test_the_plant_overlay_gives_the_simulated_ride_a_container_of_its_own() -> 
     both = spec.merged(compose, spec.load_compose(spec.PLANT_OVERRIDE))
     plant_svc = spec.service(both, "plant")
     argv = spec.command(plant_svc)
-    assert argv[:3] == ["python", "-m", "sim.plant"]
+    assert argv[:3] == ["python", "-m", "ride_machine.sim.plant"]
     plant_args = plant_parse(argv[3:])
     assert plant_args.make_image
     machine_svc = spec.service(both, "machine")

@@ -29,7 +29,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from sim.plant import SOCKET as PLANT_SOCKET
+from ride_machine.sim.plant import SOCKET as PLANT_SOCKET
 from tests.deploy import spec
 from tests.deploy.compose_tools import (
     IMAGE,

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import pytest
 
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
 from tests.deploy.engines import (
     BUILD_TIMEOUT_S,
     ENGINE,

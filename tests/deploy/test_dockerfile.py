@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from service.adapters.heartbeat import HEARTBEAT_FILE_ENV, INTERVAL_S
+from ride_machine.service.adapters.heartbeat import HEARTBEAT_FILE_ENV, INTERVAL_S
 from tests.deploy import dockerignore, spec
 from tests.deploy.test_lock import LOCKS, pins
 from tests.deploy.test_static import machine_toml_id
@@ -256,9 +256,11 @@ def test_the_build_context_makes_a_complete_wheel(tmp_path: Path) -> None:
         (entry_points,) = [n for n in names if n.endswith("entry_points.txt")]
         scripts = z.read(entry_points).decode()
     packages = ("schema/", "common/", "hal/", "service/", "sim/", "rider/")
-    wanted = {f for f in files if f.startswith(packages) and not f.endswith(".pyc")}
+    wanted = {
+        f"ride_machine/{f}" for f in files if f.startswith(packages) and not f.endswith(".pyc")
+    }
     assert wanted - names == set()
-    assert any(n.startswith("rider/ui/static/") for n in names)
+    assert any(n.startswith("ride_machine/rider/ui/static/") for n in names)
     for name, target in spec.pyproject()["project"]["scripts"].items():
         assert f"{name} = {target}" in scripts  # as pyproject.toml names them (rider.cli:entry)
     # The HAL backends are found by name through these (hal/backends.py): the image's

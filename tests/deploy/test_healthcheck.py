@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from service.adapters.heartbeat import HEARTBEAT_FILE_ENV
+from ride_machine.service.adapters.heartbeat import HEARTBEAT_FILE_ENV
 from tests.deploy import spec
 from tests.procs import Daemon, start_daemon
 

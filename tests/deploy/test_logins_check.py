@@ -26,7 +26,7 @@ from typing import Any
 
 import pytest
 
-from service.adapters.credentials import identities, init_credentials
+from ride_machine.service.adapters.credentials import identities, init_credentials
 from tests.deploy import spec
 from tests.deploy.compose_tools import (
     IMAGE,

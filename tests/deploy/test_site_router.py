@@ -23,12 +23,17 @@ from pathlib import Path
 
 import pytest
 
-from common.credentials import MACHINE, RIDER, env_name
-from rider.errors import MachineTimeout
-from schema.errors import ErrorCode
-from schema.events import EventQuery, RiderEvent
-from schema.status import MachineState
-from service.adapters.credentials import DICTIONARY, identities, init_credentials, password_file
+from ride_machine.common.credentials import MACHINE, RIDER, env_name
+from ride_machine.rider.errors import MachineTimeout
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import EventQuery, RiderEvent
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.credentials import (
+    DICTIONARY,
+    identities,
+    init_credentials,
+    password_file,
+)
 from tests.deploy import spec
 from tests.deploy.test_topology import Child
 from tests.integration import rider_proc

@@ -19,12 +19,12 @@ from urllib.parse import urlsplit
 import pytest
 import zenoh
 
-from service.adapters.credentials import DICTIONARY, identities, password_file
-from service.adapters.heartbeat import HEARTBEAT_FILE_ENV, INTERVAL_S
-from service.adapters.opcua_credentials import opcua_files
-from service.bus import close_session
-from service.config.model import MachineConfig
-from service.supervision.daemon import SHUTDOWN_DEADLINE_S
+from ride_machine.service.adapters.credentials import DICTIONARY, identities, password_file
+from ride_machine.service.adapters.heartbeat import HEARTBEAT_FILE_ENV, INTERVAL_S
+from ride_machine.service.adapters.opcua_credentials import opcua_files
+from ride_machine.service.bus import close_session
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.supervision.daemon import SHUTDOWN_DEADLINE_S
 from tests.deploy import spec
 from tests.procs import REPO
 

@@ -28,10 +28,10 @@ from typing import Any
 
 import pytest
 
-from rider.cli import EXIT_OK
-from schema.commands import RotateStep, Session
-from schema.status import MachineState, Status
-from service.adapters.credentials import identities, init_credentials
+from ride_machine.rider.cli import EXIT_OK
+from ride_machine.schema.commands import RotateStep, Session
+from ride_machine.schema.status import MachineState, Status
+from ride_machine.service.adapters.credentials import identities, init_credentials
 from tests.deploy import spec
 from tests.freeze_whole import plant_world
 from tests.integration.support import write_fast_config

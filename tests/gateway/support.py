@@ -15,7 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
-from service.adapters.opcua_credentials import CERTIFICATE, OPERATOR, PRIVATE_KEY, USERS, init_opcua
+from ride_machine.service.adapters.opcua_credentials import (
+    CERTIFICATE,
+    OPERATOR,
+    PRIVATE_KEY,
+    USERS,
+    init_opcua,
+)
 from tests.procs import REPO, Daemon, free_port, stop_process
 from tests.site.stand import Lines, Site
 

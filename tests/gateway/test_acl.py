@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import pytest
 from asyncua import Client, ua
 
-from common.credentials import MACHINE, RIDER, env_name
+from ride_machine.common.credentials import MACHINE, RIDER, env_name
 from tests.gateway.support import Credentials, running_gateway
 from tests.gateway.ua import call, connected, eventually, read, run
 from tests.procs import Daemon, rider_cmd

@@ -10,8 +10,8 @@ from collections.abc import Iterator
 import pytest
 from asyncua import Client, ua
 
-from rider.client import Rider
-from schema.event_models import CommandEvent
+from ride_machine.rider.client import Rider
+from ride_machine.schema.event_models import CommandEvent
 from tests.gateway.support import Credentials, GatewayProc, joined
 from tests.gateway.ua import call, call_on, connected, eventually, ns, read, run
 from tests.site.stand import Site

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from service.adapters.credentials import password_file
-from service.adapters.opcua_credentials import CERTIFICATE, PRIVATE_KEY, USERS
+from ride_machine.service.adapters.credentials import password_file
+from ride_machine.service.adapters.opcua_credentials import CERTIFICATE, PRIVATE_KEY, USERS
 from tests.deploy import spec
 from tests.procs import REPO
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from rider.gateway.conditions import AckRefused, MachineConditions
-from schema.status import EstopInfo, Fault, FaultCode, MachineState, Status
+from ride_machine.rider.gateway.conditions import AckRefused, MachineConditions
+from ride_machine.schema.status import EstopInfo, Fault, FaultCode, MachineState, Status
 
 
 def _status(seq: int, state: MachineState = MachineState.IDLE, **more: object) -> Status:

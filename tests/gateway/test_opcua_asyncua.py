@@ -11,7 +11,7 @@ import pytest
 from asyncua import ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 from tests.gateway.support import (
     Credentials,
     GatewayProc,

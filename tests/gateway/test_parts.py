@@ -10,14 +10,14 @@ import pytest
 from asyncua import ua
 from asyncua.crypto.permission_rules import UserRole
 
-from rider.gateway.alarms import Severity, alarm_of
-from rider.gateway.cli import build_parser, options_from
-from rider.gateway.model import MachineView
-from rider.gateway.security import OPERATOR, BadUsers, Caller, Rules, Users, read_users
-from rider.gateway.supervision import Supervisor
-from rider.gateway.variables import DEGREE, SECOND
-from schema.events import Event
-from schema.status import MachineState, Status
+from ride_machine.rider.gateway.alarms import Severity, alarm_of
+from ride_machine.rider.gateway.cli import build_parser, options_from
+from ride_machine.rider.gateway.model import MachineView
+from ride_machine.rider.gateway.security import OPERATOR, BadUsers, Caller, Rules, Users, read_users
+from ride_machine.rider.gateway.supervision import Supervisor
+from ride_machine.rider.gateway.variables import DEGREE, SECOND
+from ride_machine.schema.events import Event
+from ride_machine.schema.status import MachineState, Status
 
 CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
 READ = ua.NodeId(ua.ObjectIds.ReadRequest_Encoding_DefaultBinary)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from schema.status import MachineState
+from ride_machine.schema.status import MachineState
 from tests.gateway.support import GatewayProc, joined, until
 from tests.procs import REPO, free_port, stop_process
 from tests.site.stand import Site

@@ -8,9 +8,9 @@ import asyncio
 
 from asyncua import Client, Server, ua
 
-from rider.gateway.parking import Parking
-from rider.gateway.security import Rules, Users
-from rider.gateway.supervision import open_session_keys
+from ride_machine.rider.gateway.parking import Parking
+from ride_machine.rider.gateway.security import Rules, Users
+from ride_machine.rider.gateway.supervision import open_session_keys
 from tests.gateway.ua import Changes
 from tests.procs import free_port
 

@@ -10,7 +10,7 @@ import time
 import pytest
 from asyncua import ua
 
-from schema.status import MachineState
+from ride_machine.schema.status import MachineState
 from tests.gateway.support import SESSION_TIMEOUT_S, Credentials, GatewayProc, python_client, until
 from tests.gateway.ua import call, connected, run
 from tests.integration.support import prepare

@@ -14,18 +14,18 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from hal.backends import Backend, NoBackend, backend
-from hal.base import Hal
-from hal.iomap import IoMap
-from hal.revpibackend import RevPiSettings
-from schema.errors import ErrorCode
-from schema.sim import SimEstop, SimWorldState
-from service.config.load import load_data
-from service.config.model import HalBackend, HalSection, MachineConfig
-from service.errors import Rejected
-from service.supervision.simport import sim_port
-from sim.settings import PhysicsParams
-from sim.world import CONFIG_RSC, SimWorld, make_image
+from ride_machine.hal.backends import Backend, NoBackend, backend
+from ride_machine.hal.base import Hal
+from ride_machine.hal.iomap import IoMap
+from ride_machine.hal.revpibackend import RevPiSettings
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.sim import SimEstop, SimWorldState
+from ride_machine.service.config.load import load_data
+from ride_machine.service.config.model import HalBackend, HalSection, MachineConfig
+from ride_machine.service.errors import Rejected
+from ride_machine.service.supervision.simport import sim_port
+from ride_machine.sim.settings import PhysicsParams
+from ride_machine.sim.world import CONFIG_RSC, SimWorld, make_image
 from tests.fixtures.revpi import address
 from tests.rig import FakeClock
 
@@ -127,7 +127,7 @@ def test_a_late_step_of_the_world_is_counted_and_said_at_most_once_a_second(
         IoMap(), make_image(tmp_path / "procimg"), str(CONFIG_RSC), PhysicsParams(), 0.005, clock
     )
     try:
-        with caplog.at_level(logging.WARNING, logger="sim.world"):
+        with caplog.at_level(logging.WARNING, logger="ride_machine.sim.world"):
             world._late(clock(), 0.01)  # within LATE_S: a step as planned
             world._late(clock(), 0.08)
             world._late(clock(), 0.05)  # the same second: counted, not said again
@@ -187,17 +187,19 @@ def test_the_supervised_world_holds_the_rotate_in_its_arc_until_a_scan_has_seen_
 # the backend lookup. Run in a fresh interpreter: this one has loaded the simulator.
 HARDWARE_ONLY = """
 import sys
-import service.cli, service.supervision.daemon, service.supervision.supervisor
-import service.supervision.field
-from hal.backends import backend
-from service.config.load import load_data
-from service.config.validate import semantic_findings
+import ride_machine.service.cli
+import ride_machine.service.supervision.daemon
+import ride_machine.service.supervision.supervisor
+import ride_machine.service.supervision.field
+from ride_machine.hal.backends import backend
+from ride_machine.service.config.load import load_data
+from ride_machine.service.config.validate import semantic_findings
 config, report = load_data({"hal": {"backend": "revpi", "sim": {"seed": 3}}})
 assert config is not None and report.ok, report
 semantic_findings(config)
 assert config.hal.settings().procimg == "/dev/piControl0"
 backend(config.hal.backend)
-print(sorted(m for m in sys.modules if m == "sim" or m.startswith("sim.")))
+print(sorted(m for m in sys.modules if m.split(".")[:2] == ["ride_machine", "sim"]))
 """
 
 

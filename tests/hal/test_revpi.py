@@ -9,16 +9,16 @@ from pathlib import Path
 
 import pytest
 
-from hal.base import Hal, HalError, Outputs
-from hal.iomap import DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
-from hal.revpi import RevPiHal, check_revpi_io
-from schema.commands import Command, CommandRequest, Reply, StartRequest
-from schema.findings import Severity
-from schema.status import MachineState
-from service.config.model import MachineConfig
-from service.core.machine import Machine
-from service.core.tasks import PendingCommand
-from sim.procimg import ProcImgSim
+from ride_machine.hal.base import Hal, HalError, Outputs
+from ride_machine.hal.iomap import DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
+from ride_machine.hal.revpi import RevPiHal, check_revpi_io
+from ride_machine.schema.commands import Command, CommandRequest, Reply, StartRequest
+from ride_machine.schema.findings import Severity
+from ride_machine.schema.status import MachineState
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.scan.machine import Machine
+from ride_machine.service.core.scan.tasks import PendingCommand
+from ride_machine.sim.procimg import ProcImgSim
 from tests.fixtures.revpi import (
     CONFIG_RSC,
     address,
@@ -382,7 +382,7 @@ def _set_led(image: str, value: int) -> None:
 def test_the_hardware_watchdog_bit_flips_from_the_scan_and_only_it(
     image: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr("hal.revpi.WD_TOGGLE_S", 0.0)  # every scan, for the test
+    monkeypatch.setattr("ride_machine.hal.revpi.WD_TOGGLE_S", 0.0)  # every scan, for the test
     _set_led(image, 0b0000_0101)  # LEDs A1, A2 green: another program's bits
     h = RevPiHal(MAP, image, CONFIG, hw_watchdog=True)
     try:
@@ -401,7 +401,7 @@ def test_the_hardware_watchdog_bit_flips_from_the_scan_and_only_it(
 def test_the_hardware_watchdog_bit_is_never_written_unless_asked(
     image: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr("hal.revpi.WD_TOGGLE_S", 0.0)
+    monkeypatch.setattr("ride_machine.hal.revpi.WD_TOGGLE_S", 0.0)
     h = RevPiHal(MAP, image, CONFIG)
     try:
         for _ in range(3):

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from hal.iomap import IoMap
-from service.config.model import MachineConfig
-from service.supervision.assembly import DaemonOptions, open_hal
-from service.supervision.restarts import SupervisorOptions
-from service.supervision.supervisor import Supervisor
+from ride_machine.hal.iomap import IoMap
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.supervision.assembly import DaemonOptions, open_hal
+from ride_machine.service.supervision.restarts import SupervisorOptions
+from ride_machine.service.supervision.supervisor import Supervisor
 from tests.fixtures.revpi import CONFIG_RSC, make_image
 from tests.fixtures.revpi.corpus import path
 from tests.procs import run_machine

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from hal.base import Outputs
-from hal.iomap import DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
-from hal.revpi import RevPiConfigError, RevPiHal, check_revpi_io
-from schema.commands import Command
-from schema.findings import Finding, Severity
-from schema.status import MachineState
+from ride_machine.hal.base import Outputs
+from ride_machine.hal.iomap import DIGITAL_INPUTS, RELAY_OUTPUTS, IoMap, Signal
+from ride_machine.hal.revpi import RevPiConfigError, RevPiHal, check_revpi_io
+from ride_machine.schema.commands import Command
+from ride_machine.schema.findings import Finding, Severity
+from ride_machine.schema.status import MachineState
 from tests.fixtures.revpi import IMAGE_BYTES, address, load, make_image, write_config
 from tests.fixtures.revpi.corpus import LAYOUTS, path, render
 from tests.hal.test_revpi import RevPiRide

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from hal.base import Outputs
-from hal.iomap import IoMap
-from hal.revpi import RevPiConfigError, RevPiHal, check_revpi_io
-from schema.findings import Finding, Severity
+from ride_machine.hal.base import Outputs
+from ride_machine.hal.iomap import IoMap
+from ride_machine.hal.revpi import RevPiConfigError, RevPiHal, check_revpi_io
+from ride_machine.schema.findings import Finding, Severity
 from tests.fixtures.revpi import (
     address,
     find_entry,
@@ -225,7 +225,7 @@ def test_package_imports_without_revpimodio2() -> None:
     code = (
         "import sys; sys.modules['revpimodio2'] = None\n"
         "import hal.revpi, sim.procimg\n"
-        "from hal.iomap import IoMap\n"
+        "from ride_machine.hal.iomap import IoMap\n"
         "f = hal.revpi.check_revpi_io(IoMap(), sys.argv[1], sys.argv[1])\n"
         "print(f[-1].category)\n"
         "try:\n"

@@ -26,10 +26,10 @@ from typing import Any
 
 import zenoh
 
-from rider.client import Rider, RiderError
-from schema.codec import Format, decode
-from schema.commands import Reply, RotateStep, Session, TiltStep
-from schema.status import MachineState, Status
+from ride_machine.rider.client import Rider, RiderError
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.commands import Reply, RotateStep, Session, TiltStep
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import (
     SETTLED,
     STEP_TIMEOUT_S,

@@ -16,10 +16,10 @@ from typing import Any, TypeVar
 import pytest
 import zenoh
 
-from rider.client import Rider
-from schema.codec import Format
-from schema.commands import REST_STATES, Reply
-from schema.status import FAULT_STATES, FaultCode, MachineState, Status
+from ride_machine.rider.client import Rider
+from ride_machine.schema.codec import Format
+from ride_machine.schema.commands import REST_STATES, Reply
+from ride_machine.schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests.procs import Daemon, running_daemon
 
 FAST_ROTATE = """\

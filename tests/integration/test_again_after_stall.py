@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from schema.status import Fault, FaultCode, MachineState, Status
+from ride_machine.schema.status import Fault, FaultCode, MachineState, Status
 from tests.integration.support import (
     HostStalled,
     again_after_stall,

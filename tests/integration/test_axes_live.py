@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import Rider
-from rider.fastdata import FastDataClient
-from schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
-from schema.commands import Direction, RotateStep, Session, TiltStep
-from schema.fastdata import USER_REGISTER_LENGTH, FastAxisData
-from schema.status import MachineState
+from ride_machine.rider.client import Rider
+from ride_machine.rider.fastdata import FastDataClient
+from ride_machine.schema.axes import ROTATE_AXIS_NUMBER, TILT_AXIS_NUMBER, AxisRecord, PnStatus
+from ride_machine.schema.commands import Direction, RotateStep, Session, TiltStep
+from ride_machine.schema.fastdata import USER_REGISTER_LENGTH, FastAxisData
+from ride_machine.schema.status import MachineState
 from tests.integration.support import FAST_CONFIG, STEP_TIMEOUT_S, prepare, settle
 from tests.procs import Daemon, free_port, running_daemon
 

@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from rider.client import CommandRefused
-from schema.codec import pack
-from schema.commands import RotateStep, Session, StartRequest
-from schema.errors import ErrorCode
+from ride_machine.rider.client import CommandRefused
+from ride_machine.schema.codec import pack
+from ride_machine.schema.commands import RotateStep, Session, StartRequest
+from ride_machine.schema.errors import ErrorCode
 from tests.fixtures.revpi import CONFIG_RSC, make_image
 from tests.integration.support import module_machine
 from tests.procs import (

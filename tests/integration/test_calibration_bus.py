@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from schema.calibration import CalibrationRecord, CalibrationSource
-from schema.codec import Format, decode
-from schema.status import MachineState, Status
+from ride_machine.schema.calibration import CalibrationRecord, CalibrationSource
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import fast_args
 from tests.procs import Daemon, running_daemon
 

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import Rider
-from schema.codec import Format, decode, pack
-from schema.commands import Command, Reply
-from schema.events import CommandEvent, EstopEvent, Event, EventQuery
-from schema.status import MachineState
+from ride_machine.rider.client import Rider
+from ride_machine.schema.codec import Format, decode, pack
+from ride_machine.schema.commands import Command, Reply
+from ride_machine.schema.events import CommandEvent, EstopEvent, Event, EventQuery
+from ride_machine.schema.status import MachineState
 from tests.integration.support import fast_daemon, prepare
 
 RIDERS = 4

@@ -12,11 +12,11 @@ import time
 import pytest
 import zenoh
 
-from rider.client import UnknownTransaction
-from schema.codec import Format, decode
-from schema.commands import Command, Session
-from schema.completion import Completion, Outcome
-from schema.status import MachineState, Status
+from ride_machine.rider.client import UnknownTransaction
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.commands import Command, Session
+from ride_machine.schema.completion import Completion, Outcome
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, module_machine, prepare
 from tests.procs import REPO, Daemon, rider_cmd
 

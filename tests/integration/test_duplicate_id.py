@@ -17,13 +17,13 @@ from typing import TypeVar
 import pytest
 from pydantic import BaseModel
 
-from rider.cli import EXIT_DUPLICATE
-from rider.client import DuplicateMachine, Rider
-from schema.codec import Format, decode, encode
-from schema.commands import CommandRequest, Reply
-from schema.errors import ErrorCode
-from schema.sim import SimWorldState
-from schema.status import FaultCode, MachineState, Status
+from ride_machine.rider.cli import EXIT_DUPLICATE
+from ride_machine.rider.client import DuplicateMachine, Rider
+from ride_machine.schema.codec import Format, decode, encode
+from ride_machine.schema.commands import CommandRequest, Reply
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import FaultCode, MachineState, Status
 from tests.integration import rider_proc
 from tests.integration.support import STEP_TIMEOUT_S, fast_args
 from tests.procs import REPO, Daemon, run_rider, start_daemon

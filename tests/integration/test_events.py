@@ -14,11 +14,11 @@ from typing import Any
 import pytest
 import zenoh
 
-from rider.client import Rider
-from schema.codec import Format, decode
-from schema.events import Event, EventPage, EventQuery
-from schema.status import MachineState, Status
-from service.adapters.eventlog import EVENTS_FILE
+from ride_machine.rider.client import Rider
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.events import Event, EventPage, EventQuery
+from ride_machine.schema.status import MachineState, Status
+from ride_machine.service.adapters.eventlog import EVENTS_FILE
 from tests.integration.support import fast_args, one_reply, prepare, settle
 from tests.procs import (
     REPO,

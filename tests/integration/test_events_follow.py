@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import Rider
-from schema.events import Event
+from ride_machine.rider.client import Rider
+from ride_machine.schema.events import Event
 from tests import linkproxy
 from tests.integration.support import STEP_TIMEOUT_S, fast_daemon
 from tests.procs import Daemon, free_port, start_daemon, stop_process

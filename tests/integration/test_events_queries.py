@@ -12,8 +12,8 @@ import msgpack
 import pytest
 import zenoh
 
-from schema.commands import Reply
-from schema.events import EventPage
+from ride_machine.schema.commands import Reply
+from ride_machine.schema.events import EventPage
 from tests.integration.support import one_reply
 from tests.procs import Daemon, running_daemon
 

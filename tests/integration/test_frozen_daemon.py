@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import MachineTimeout
-from schema.commands import Command, CommandRequest
-from schema.errors import ErrorCode
-from schema.events import CommandEvent, EventQuery
-from schema.status import MachineState
+from ride_machine.rider.client import MachineTimeout
+from ride_machine.schema.commands import Command, CommandRequest
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import CommandEvent, EventQuery
+from ride_machine.schema.status import MachineState
 from tests.integration.support import write_fast_config
 from tests.procs import running_daemon, sigstop
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import MachineTimeout
-from schema.status import MachineState
-from service.core.persist import CALIBRATION_FILE
+from ride_machine.rider.client import MachineTimeout
+from ride_machine.schema.status import MachineState
+from ride_machine.service.core.storage.persist import CALIBRATION_FILE
 from tests.freeze import FREEZE_CONFIG
 from tests.integration.support import prepare
 from tests.procs import REPO, Daemon, LineReader, rider_cmd, sigstop, start_daemon, stop_process

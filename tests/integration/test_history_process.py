@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from bench.common import children
-from service.adapters.eventlog import EVENTS_FILE
+from ride_machine.service.adapters.eventlog import EVENTS_FILE
 from tests.procs import Daemon, start_daemon
 
 pytestmark = pytest.mark.integration

@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import Rider
-from rider.fastdata import FastDataClient
-from schema.axes import TILT_AXIS_NUMBER
-from schema.commands import RotateStep, Session, TiltStep
-from schema.events import CalibrationEvent
-from schema.status import FaultCode, MachineState, Status
+from ride_machine.rider.client import Rider
+from ride_machine.rider.fastdata import FastDataClient
+from ride_machine.schema.axes import TILT_AXIS_NUMBER
+from ride_machine.schema.commands import RotateStep, Session, TiltStep
+from ride_machine.schema.events import CalibrationEvent
+from ride_machine.schema.status import FaultCode, MachineState, Status
 from tests.integration.support import FAST_ROTATE, SPOILED, settle
 from tests.procs import Daemon, free_port, running_daemon
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from schema.status import MachineState
+from ride_machine.schema.status import MachineState
 from tests import linkproxy
 from tests.integration.support import STEP_TIMEOUT_S, fast_daemon, prepare, states_over
 from tests.procs import REPO, Daemon, LineReader, free_port, rider_cmd, stop_process

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from schema.completion import Outcome
-from schema.status import MachineState
+from ride_machine.schema.completion import Outcome
+from ride_machine.schema.status import MachineState
 from tests.procs import LineReader, running_daemon
 
 pytestmark = pytest.mark.integration

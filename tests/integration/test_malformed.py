@@ -16,16 +16,16 @@ import msgpack
 import pytest
 import zenoh
 
-from rider.client import Rider
-from schema.axes import AxisRecord
-from schema.codec import MAX_PAYLOAD_BYTES, Format, decode, pack
-from schema.commands import Command, Reply, ReplyCode
-from schema.diag import CycleDiag
-from schema.errors import ErrorCode
-from schema.findings import Findings
-from schema.io import IoValue
-from schema.sim import SIM_REQUESTS, SimWorldState
-from schema.status import FAULT_STATES, MachineState, Status
+from ride_machine.rider.client import Rider
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.codec import MAX_PAYLOAD_BYTES, Format, decode, pack
+from ride_machine.schema.commands import Command, Reply, ReplyCode
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.findings import Findings
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.sim import SIM_REQUESTS, SimWorldState
+from ride_machine.schema.status import FAULT_STATES, MachineState, Status
 from tests.integration.support import (
     STEP_TIMEOUT_S,
     module_machine,

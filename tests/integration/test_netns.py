@@ -17,8 +17,8 @@ from typing import Any
 
 import pytest
 
-from rider.client import MachineTimeout, Rider
-from schema.status import MachineState, Status
+from ride_machine.rider.client import MachineTimeout, Rider
+from ride_machine.schema.status import MachineState, Status
 from tests.integration import rider_proc
 from tests.integration.support import STEP_TIMEOUT_S, fast_args
 from tests.netns import NetnsUnavailable, NsPair, unavailable_reason, veth_pair

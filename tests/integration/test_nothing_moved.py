@@ -16,13 +16,13 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import Rider
-from rider.errors import CommandRefused
-from schema.axes import AxisRecord
-from schema.calibration import TiltCalibrationSet
-from schema.commands import RotateStep, Session, TiltStep
-from schema.errors import ErrorCode
-from schema.status import MachineState
+from ride_machine.rider.client import Rider
+from ride_machine.rider.errors import CommandRefused
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import TiltCalibrationSet
+from ride_machine.schema.commands import RotateStep, Session, TiltStep
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.status import MachineState
 from tests.integration.support import fast_daemon, prepare
 
 pytestmark = pytest.mark.integration

@@ -12,9 +12,9 @@ import time
 
 import pytest
 
-from schema.codec import Format, decode, encode
-from schema.commands import Command, CommandRequest, Reply
-from schema.errors import ErrorCode
+from ride_machine.schema.codec import Format, decode, encode
+from ride_machine.schema.commands import Command, CommandRequest, Reply
+from ride_machine.schema.errors import ErrorCode
 from tests.integration.support import module_machine
 from tests.procs import Daemon
 

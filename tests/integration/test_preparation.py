@@ -12,8 +12,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from schema.commands import Reply, ReplyCode
-from schema.status import AxesFlags, Fault, FaultCode, MachineState, Status
+from ride_machine.schema.commands import Reply, ReplyCode
+from ride_machine.schema.status import AxesFlags, Fault, FaultCode, MachineState, Status
 from tests.integration.support import Preparation
 
 Outcome = (

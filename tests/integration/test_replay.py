@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import Rider
-from schema.commands import Command, ReplyCode, StartRequest
-from schema.completion import Outcome
-from schema.events import CommandEvent, EventQuery
-from schema.status import MachineState
+from ride_machine.rider.client import Rider
+from ride_machine.schema.commands import Command, ReplyCode, StartRequest
+from ride_machine.schema.completion import Outcome
+from ride_machine.schema.events import CommandEvent, EventQuery
+from ride_machine.schema.status import MachineState
 from tests.integration.support import fast_args, prepare, settle, states_over
 from tests.procs import Daemon, start_daemon
 

@@ -15,14 +15,14 @@ from typing import Any
 import pytest
 import zenoh
 
-from rider.client import Rider
-from schema.commands import Reply, ReplyCode
-from schema.completion import Completion, Outcome
-from schema.diag import CycleDiag
-from schema.errors import ErrorCode
-from schema.io import IoValue
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.rider.client import Rider
+from ride_machine.schema.commands import Reply, ReplyCode
+from ride_machine.schema.completion import Completion, Outcome
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, fast_daemon, module_machine, prepare
 from tests.procs import REPO, Daemon, free_port, rider_cmd
 

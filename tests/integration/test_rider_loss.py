@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from schema.commands import ReplyCode
-from schema.status import MachineState, Status
+from ride_machine.schema.commands import ReplyCode
+from ride_machine.schema.status import MachineState, Status
 from tests.integration import rider_proc
 from tests.integration.support import (
     STEP_TIMEOUT_S,

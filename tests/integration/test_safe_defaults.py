@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from common.credentials import RIDER, zenoh_settings
-from service.adapters.credentials import DICTIONARY, identities, password_file
+from ride_machine.common.credentials import RIDER, zenoh_settings
+from ride_machine.service.adapters.credentials import DICTIONARY, identities, password_file
 from tests import procs
 from tests.netns import NetnsUnavailable, veth_pair
 from tests.procs import REPO, START_TIMEOUT_S, free_port, machine_cmd, stop_process

@@ -19,13 +19,13 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from rider.client import Rider
-from schema.calibration import TiltCalibrationSet
-from schema.codec import Format, encode
-from schema.commands import CommandRequest
-from schema.events import EventQuery
-from schema.status import MachineState
-from service.adapters.eventlog import EVENTS_FILE
+from ride_machine.rider.client import Rider
+from ride_machine.schema.calibration import TiltCalibrationSet
+from ride_machine.schema.codec import Format, encode
+from ride_machine.schema.commands import CommandRequest
+from ride_machine.schema.events import EventQuery
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.eventlog import EVENTS_FILE
 from tests.integration.support import write_fast_config
 from tests.procs import Daemon, start_daemon
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from schema.events import EventQuery, ParamEvent
-from schema.status import MachineState
+from ride_machine.schema.events import EventQuery, ParamEvent
+from ride_machine.schema.status import MachineState
 from tests.integration import rider_proc
 from tests.integration.support import fast_daemon, relays_off
 

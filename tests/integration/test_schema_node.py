@@ -12,8 +12,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from rider.client import Rider
-from schema.keys import KEYS, Direction
+from ride_machine.rider.client import Rider
+from ride_machine.schema.keys import KEYS, Direction
 from tests.integration.support import fast_daemon, prepare
 from tests.nodejs import JS, node_module
 from tests.procs import REPO

@@ -11,11 +11,11 @@ from collections.abc import Iterator
 
 import pytest
 
-from rider.client import CommandRefused, Rider
-from schema.commands import ReplyCode
-from schema.errors import ErrorCode
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.rider.client import CommandRefused, Rider
+from ride_machine.schema.commands import ReplyCode
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import (
     STEP_TIMEOUT_S,
     again_after_stall,

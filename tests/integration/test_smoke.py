@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from schema.status import MachineState
+from ride_machine.schema.status import MachineState
 from tests.procs import Daemon
 
 

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from schema.events import StorageEvent
-from schema.status import MachineState, Status
-from service.core.devices import Calibration, RotateCalibration, TiltCalibration
-from service.core.persist import CALIBRATION_FILE, calibration_to_json
+from ride_machine.schema.events import StorageEvent
+from ride_machine.schema.status import MachineState, Status
+from ride_machine.service.core.motion.devices import Calibration, RotateCalibration, TiltCalibration
+from ride_machine.service.core.storage.persist import CALIBRATION_FILE, calibration_to_json
 from tests.integration.support import fast_args, write_fast_config
 from tests.procs import Daemon, start_daemon
 

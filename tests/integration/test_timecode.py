@@ -14,8 +14,8 @@ import time
 
 import pytest
 
-from schema.codec import Format
-from schema.status import MachineState
+from ride_machine.schema.codec import Format
+from ride_machine.schema.status import MachineState
 from tests.integration.support import module_machine, raw_get, states_over
 from tests.procs import Daemon
 

@@ -16,12 +16,12 @@ from typing import Any
 import pytest
 import zenoh
 
-from schema.commands import Reply, ReplyCode
-from schema.diag import CycleDiag
-from schema.errors import ErrorCode
-from schema.io import IoValue
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.schema.commands import Reply, ReplyCode
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, module_machine, settle, states_over
 from tests.procs import REPO, Daemon, run_bounded, stop_process
 

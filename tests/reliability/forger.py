@@ -19,10 +19,10 @@ import time
 
 import zenoh
 
-from common.credentials import RIDER, zenoh_settings
-from schema.codec import Format, encode
-from schema.commands import Reply, ReplyCode
-from schema.status import MachineState, SessionProgress, Status
+from ride_machine.common.credentials import RIDER, zenoh_settings
+from ride_machine.schema.codec import Format, encode
+from ride_machine.schema.commands import Reply, ReplyCode
+from ride_machine.schema.status import MachineState, SessionProgress, Status
 
 FAKE_TX = "forged"
 FORGED_SEQ = 10**9

@@ -20,11 +20,11 @@ from typing import Any
 import msgpack
 from hypothesis import strategies as st
 
-from schema.codec import DecodeError, Format, decode_raw, sniff_format, validate
-from schema.commands import REQUEST_MODELS, Command
-from schema.params import ParamSet
-from schema.sim import SIM_REQUESTS
-from sim import faults as simfaults
+from ride_machine.schema.codec import DecodeError, Format, decode_raw, sniff_format, validate
+from ride_machine.schema.commands import REQUEST_MODELS, Command
+from ride_machine.schema.params import ParamSet
+from ride_machine.schema.sim import SIM_REQUESTS
+from ride_machine.sim import faults as simfaults
 
 
 class Expect(Enum):

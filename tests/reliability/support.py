@@ -17,12 +17,17 @@ from typing import Any
 
 import zenoh
 
-from common.credentials import MACHINE, RIDER, env_name
-from rider.client import Rider
-from schema.codec import Format, decode
-from schema.commands import REST_STATES, Reply
-from schema.status import FAULT_STATES, Status
-from service.adapters.credentials import DICTIONARY, IDENTITIES, init_credentials, password_file
+from ride_machine.common.credentials import MACHINE, RIDER, env_name
+from ride_machine.rider.client import Rider
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.commands import REST_STATES, Reply
+from ride_machine.schema.status import FAULT_STATES, Status
+from ride_machine.service.adapters.credentials import (
+    DICTIONARY,
+    IDENTITIES,
+    init_credentials,
+    password_file,
+)
 from tests.integration.support import STEP_TIMEOUT_S, write_fast_config
 from tests.procs import (
     REPO,
@@ -213,7 +218,7 @@ def secured_machine(
 
 def supervisor_child(daemon: Daemon) -> int:
     """The pid of the daemon child of a `machine supervise` process."""
-    out = children_running(daemon.proc.pid, "service.cli")
+    out = children_running(daemon.proc.pid, "ride_machine.service.cli")
     assert len(out) == 1, f"expected one daemon child of the supervisor, found {out}"
     return out[0]
 

@@ -23,16 +23,16 @@ from typing import Any
 import pytest
 import zenoh
 
-from common.credentials import MACHINE, RIDER, env_name
-from rider.client import Rider
-from schema.calibration import CalibrationSet, TiltCalibrationSet
-from schema.codec import Format, decode, encode, pack
-from schema.commands import Command, CommandRequest, Reply, StartRequest
-from schema.errors import ErrorCode
-from schema.events import EventQuery
-from schema.params import ParamSet
-from schema.sim import SIM_REQUESTS
-from schema.status import MachineState
+from ride_machine.common.credentials import MACHINE, RIDER, env_name
+from ride_machine.rider.client import Rider
+from ride_machine.schema.calibration import CalibrationSet, TiltCalibrationSet
+from ride_machine.schema.codec import Format, decode, encode, pack
+from ride_machine.schema.commands import Command, CommandRequest, Reply, StartRequest
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import EventQuery
+from ride_machine.schema.params import ParamSet
+from ride_machine.schema.sim import SIM_REQUESTS
+from ride_machine.schema.status import MachineState
 from tests.integration import rider_proc
 from tests.integration.support import raw_get
 from tests.procs import REPO, Daemon, free_port, rider_cmd, stop_process
@@ -226,7 +226,7 @@ def test_monitor_reads_status_io_axes_diag_and_subscribes(machine: Daemon, ids: 
 
 
 def test_missing_password_file_is_a_clear_error(machine: Daemon, tmp_path: Path) -> None:
-    from rider.client import BadCredentials
+    from ride_machine.rider.client import BadCredentials
 
     env = {env_name(RIDER, "USER"): "rider", env_name(RIDER, "PASSWORD_FILE"): "/nonexistent"}
     with environ(env), pytest.raises(BadCredentials, match="RIDER_ZENOH_PASSWORD_FILE"):

@@ -18,16 +18,16 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from common.credentials import RIDER
-from rider.client import Rider
-from rider.link import zenoh_config
-from schema.codec import Format, decode, encode
-from schema.commands import Reply, StartRequest
-from schema.errors import ErrorCode
-from schema.events import CommandEvent, EventQuery, ParamEvent
-from schema.params import ParamSet, ParamValue
-from schema.rider import CONFIRMED, confirm_key
-from schema.status import MachineState
+from ride_machine.common.credentials import RIDER
+from ride_machine.rider.client import Rider
+from ride_machine.rider.link import zenoh_config
+from ride_machine.schema.codec import Format, decode, encode
+from ride_machine.schema.commands import Reply, StartRequest
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import CommandEvent, EventQuery, ParamEvent
+from ride_machine.schema.params import ParamSet, ParamValue
+from ride_machine.schema.rider import CONFIRMED, confirm_key
+from ride_machine.schema.status import MachineState
 from tests.integration.support import prepare
 from tests.procs import Daemon
 from tests.reliability.support import RIDER_VARIABLES, Identities, environ, rider_as

@@ -19,9 +19,9 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from rider.client import Rider
-from schema.codec import DecodeError, Format, decode
-from schema.commands import Reply
+from ride_machine.rider.client import Rider
+from ride_machine.schema.codec import DecodeError, Format, decode
+from ride_machine.schema.commands import Reply
 from tests.procs import Daemon, running_daemon
 from tests.reliability.fuzz import (
     Case,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from service.core.tuning import SUPERVISOR_PID_ENV, die_with_parent
+from ride_machine.service.core.scan.tuning import SUPERVISOR_PID_ENV, die_with_parent
 from tests.procs import REPO, free_port, machine_cmd, write_zenoh_config
 
 TIMEOUT_S = 30.0

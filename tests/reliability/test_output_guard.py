@@ -15,8 +15,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from rider.client import Rider
-from schema.status import MachineState
+from ride_machine.rider.client import Rider
+from ride_machine.schema.status import MachineState
 from tests.freeze import LIMIT_S, Freeze, ride_and_freeze
 from tests.freeze import supervised as supervised_machine
 from tests.procs import Daemon

@@ -17,10 +17,15 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from common.credentials import MACHINE, RIDER, env_name
-from schema.events import EventQuery, RiderEvent
-from service.adapters.credentials import DICTIONARY, identities, init_credentials, password_file
-from service.bus.stations import expand
+from ride_machine.common.credentials import MACHINE, RIDER, env_name
+from ride_machine.schema.events import EventQuery, RiderEvent
+from ride_machine.service.adapters.credentials import (
+    DICTIONARY,
+    identities,
+    init_credentials,
+    password_file,
+)
+from ride_machine.service.bus.stations import expand
 from tests.integration import rider_proc
 from tests.reliability.support import (
     ACL_PROFILE,

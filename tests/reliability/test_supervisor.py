@@ -19,13 +19,13 @@ from pathlib import Path
 
 import pytest
 
-from common.credentials import MACHINE, RIDER, env_name
-from rider.client import CommandRefused, Rider
-from schema.codec import Format, encode
-from schema.commands import Reply, RotateStep, Session, TiltStep
-from schema.completion import Completion, Outcome
-from schema.errors import ErrorCode
-from schema.status import FAULT_STATES, FaultCode, MachineState, Status
+from ride_machine.common.credentials import MACHINE, RIDER, env_name
+from ride_machine.rider.client import CommandRefused, Rider
+from ride_machine.schema.codec import Format, encode
+from ride_machine.schema.commands import Reply, RotateStep, Session, TiltStep
+from ride_machine.schema.completion import Completion, Outcome
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.status import FAULT_STATES, FaultCode, MachineState, Status
 from tests import freeze
 from tests.integration.support import STEP_TIMEOUT_S, Preparation
 from tests.procs import STOP_TIMEOUT_S, Daemon

@@ -9,13 +9,19 @@ from pathlib import Path
 
 import pytest
 
-from common.credentials import MACHINE, RIDER, CredentialError, env_name, zenoh_settings
-from hal.revpi import check_revpi_io
-from service.bus.supervisor import child_config, requires_credentials, router_config
-from service.config.model import HalBackend, MachineConfig
-from service.supervision.restarts import Backoff, describe_exit
-from service.supervision.toml_out import to_toml
-from sim.world import CONFIG_RSC
+from ride_machine.common.credentials import (
+    MACHINE,
+    RIDER,
+    CredentialError,
+    env_name,
+    zenoh_settings,
+)
+from ride_machine.hal.revpi import check_revpi_io
+from ride_machine.service.bus.supervisor import child_config, requires_credentials, router_config
+from ride_machine.service.config.model import HalBackend, MachineConfig
+from ride_machine.service.supervision.restarts import Backoff, describe_exit
+from ride_machine.service.supervision.toml_out import to_toml
+from ride_machine.sim.world import CONFIG_RSC
 from tests.reliability.support import ACL_PROFILE
 
 PRIVATE = "unixsock-stream//tmp/machine-sup-x/zenoh.sock"

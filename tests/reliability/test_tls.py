@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from common.credentials import MACHINE, RIDER, env_name
-from rider.client import MachineTimeout, Rider
-from schema.commands import RotateStep, Session, TiltStep
-from schema.status import MachineState
+from ride_machine.common.credentials import MACHINE, RIDER, env_name
+from ride_machine.rider.client import MachineTimeout, Rider
+from ride_machine.schema.commands import RotateStep, Session, TiltStep
+from ride_machine.schema.status import MachineState
 from tests.integration.support import prepare
 from tests.procs import Daemon
 from tests.reliability.support import (

@@ -20,7 +20,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 from tests.fixtures.revpi import write_bit
 from tests.freeze import (
     PERIOD_S,

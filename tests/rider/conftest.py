@@ -10,7 +10,7 @@ import msgpack
 import pytest
 import zenoh
 
-from schema.codec import encode
+from ride_machine.schema.codec import encode
 from tests.procs import free_port
 from tests.rider.scripted import MSGPACK, Scripted, good_reply
 

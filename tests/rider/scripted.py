@@ -12,10 +12,10 @@ from pathlib import Path
 import msgpack
 import zenoh
 
-from rider.client import Rider
-from schema.codec import Format, encode
-from schema.commands import CheckResult, Reply, ReplyCode
-from schema.status import MachineState
+from ride_machine.rider.client import Rider
+from ride_machine.schema.codec import Format, encode
+from ride_machine.schema.commands import CheckResult, Reply, ReplyCode
+from ride_machine.schema.status import MachineState
 from tests.procs import write_zenoh_config
 
 MSGPACK = zenoh.Encoding(Format.MSGPACK.value)

@@ -13,20 +13,20 @@ from tests.procs import REPO
 CALLER = """
 from typing import assert_type
 
-from common.event_summary import EventSummary
-from rider.client import AsyncRider, Listing, MachineInfo, Subscription, Update
-from rider.pinning import Holders
-from schema.axes import AxisRecord
-from schema.calibration import CalibrationRecord
-from schema.commands import CheckResult, Command, Reply
-from schema.completion import Completion
-from schema.diag import CycleDiag
-from schema.events import Event, EventPage, EventQuery
-from schema.findings import Findings
-from schema.io import IoValue
-from schema.params import ParamValue
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.common.event_summary import EventSummary
+from ride_machine.rider.client import AsyncRider, Listing, MachineInfo, Subscription, Update
+from ride_machine.rider.pinning import Holders
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.calibration import CalibrationRecord
+from ride_machine.schema.commands import CheckResult, Command, Reply
+from ride_machine.schema.completion import Completion
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.events import Event, EventPage, EventQuery
+from ride_machine.schema.findings import Findings
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.params import ParamValue
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
 
 
 def on_update(update: Update) -> None:
@@ -77,7 +77,7 @@ async def caller() -> None:
 """
 
 WRONG = """
-from rider.client import AsyncRider
+from ride_machine.rider.client import AsyncRider
 
 
 async def caller(r: AsyncRider) -> None:

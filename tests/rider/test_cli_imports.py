@@ -14,13 +14,13 @@ from collections.abc import Iterator
 
 import pytest
 
-from rider import cli
-from rider.subcommands import Lazy
+from ride_machine.rider import cli
+from ride_machine.rider.subcommands import Lazy
 from tests.procs import REPO, free_port
 
 PROBE = """
 import contextlib, json, sys
-from rider.cli import main
+from ride_machine.rider.cli import main
 code = 0
 with contextlib.redirect_stdout(sys.stderr):
     try:
@@ -31,10 +31,24 @@ print(json.dumps({"code": code, "modules": sorted(sys.modules)}))
 """
 """Runs `rider ARGS` in this interpreter and prints its exit code and every module loaded."""
 
-HEAVY = ("zenoh", "pydantic", "pydantic_core", "msgpack", "rider.blocking", "rider.link")
+HEAVY = (
+    "zenoh",
+    "pydantic",
+    "pydantic_core",
+    "msgpack",
+    "ride_machine.rider.blocking",
+    "ride_machine.rider.link",
+)
 """What `--help` must not load: the network stack, the validation library and the client."""
 
-NOT_FOR_READS = ("rider.ui", "rider.gateway", "asyncua", "starlette", "uvicorn", "schema.events")
+NOT_FOR_READS = (
+    "ride_machine.rider.ui",
+    "ride_machine.rider.gateway",
+    "asyncua",
+    "starlette",
+    "uvicorn",
+    "ride_machine.schema.events",
+)
 """What a plain read must not load: the UI, the plant gateway and the event history's models."""
 
 
@@ -65,14 +79,17 @@ def test_help_and_bad_usage_load_no_zenoh_no_pydantic_no_client(args: list[str])
     code, modules = _loaded(*args)
     assert code in (cli.EXIT_OK, cli.EXIT_USAGE)
     assert _under(modules, HEAVY) == []
-    assert _under(modules, ("schema",)) == ["schema", "schema.event_kinds"]
+    assert _under(modules, ("ride_machine.schema",)) == [
+        "ride_machine.schema",
+        "ride_machine.schema.event_kinds",
+    ]
 
 
 def test_a_read_loads_the_client_but_not_the_ui_gateway_or_event_models() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens: no reply, exit 3
     code, modules = _loaded("--connect", endpoint, "--timeout", "0.3", "-m", "m1", "status")
     assert code == cli.EXIT_NO_REPLY
-    assert "rider.blocking" in modules and "schema.status" in modules
+    assert "ride_machine.rider.blocking" in modules and "ride_machine.schema.status" in modules
     assert _under(modules, NOT_FOR_READS) == []
 
 

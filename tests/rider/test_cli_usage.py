@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from rider import cli
+from ride_machine.rider import cli
 from tests.procs import free_port
 
 

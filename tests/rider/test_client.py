@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from rider.client import (
+from ride_machine.rider.client import (
     AmbiguousMachine,
     AsyncRider,
     BusError,
@@ -22,13 +22,13 @@ from rider.client import (
     Throttle,
     Update,
 )
-from schema.axes import AxisRecord
-from schema.codec import encode
-from schema.commands import Command, CommandRequest, ReplyCode
-from schema.diag import CycleDiag
-from schema.errors import ErrorCode
-from schema.io import IoValue
-from schema.status import MachineState, Status
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.codec import encode
+from ride_machine.schema.commands import Command, CommandRequest, ReplyCode
+from ride_machine.schema.diag import CycleDiag
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import SETTLED, STEP_TIMEOUT_S, fast_daemon, module_machine
 from tests.procs import Daemon, free_port, write_zenoh_config
 
@@ -216,7 +216,7 @@ def test_async_watch_ends_cleanly_once_its_event_loop_is_gone(machine: Daemon) -
 
 @pytest.mark.hazard("H34", "H35", "H51")
 def test_the_pinned_holder_and_its_supervisor_may_answer_and_no_one_else() -> None:
-    from rider.client import Holders
+    from ride_machine.rider.client import Holders
 
     known = Holders()
     known.update("holder", "a", True)
@@ -233,7 +233,7 @@ def test_the_pinned_holder_and_its_supervisor_may_answer_and_no_one_else() -> No
 
 
 def test_the_machine_a_key_is_under_is_remembered_within_a_bound() -> None:
-    from rider.client import KEY_CACHE
+    from ride_machine.rider.client import KEY_CACHE
 
     rider = Rider("m1")  # not opened: the key arithmetic needs no session
     cases = {

@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 import zenoh
 
-from rider.discovery import (
+from ride_machine.rider.discovery import (
     Discovery,
     Listing,
     _apply,

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from rider.fastdata import (
+from ride_machine.rider.fastdata import (
     EXIT_NO_DATA,
     EXIT_OK,
     EXIT_USAGE,
@@ -25,8 +25,8 @@ from rider.fastdata import (
     main,
     status_flags,
 )
-from schema.axes import AxisRecord, PnStatus
-from schema.fastdata import (
+from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.fastdata import (
     AXIS,
     HEADER,
     MAX_REQUEST_BYTES,
@@ -34,7 +34,7 @@ from schema.fastdata import (
     encode,
     pack_reply,
 )
-from service.adapters.fastdata import FastDataServer, to_fast_axis
+from ride_machine.service.adapters.fastdata import FastDataServer, to_fast_axis
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "fastdata.md"
 

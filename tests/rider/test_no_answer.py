@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from rider import cli
-from rider.client import MachineTimeout, Rider
+from ride_machine.rider import cli
+from ride_machine.rider.client import MachineTimeout, Rider
 from tests.procs import free_port, write_zenoh_config
 
 TIMEOUT_S = 0.3

@@ -14,9 +14,9 @@ import msgpack
 import pytest
 import zenoh
 
-from rider.client import DuplicateMachine, Rider
-from schema.codec import encode
-from schema.commands import CommandRequest
+from ride_machine.rider.client import DuplicateMachine, Rider
+from ride_machine.schema.codec import encode
+from ride_machine.schema.commands import CommandRequest
 from tests.procs import free_port, write_zenoh_config
 from tests.rider.scripted import MSGPACK, Scripted, good_reply, rider_for
 

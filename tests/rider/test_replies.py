@@ -20,9 +20,9 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
-from rider.client import BadReply, CommandRefused, Update
-from schema.codec import MAX_PAYLOAD_BYTES, MAX_REPLY_BYTES, Format, encode
-from schema.commands import (
+from ride_machine.rider.client import BadReply, CommandRefused, Update
+from ride_machine.schema.codec import MAX_PAYLOAD_BYTES, MAX_REPLY_BYTES, Format, encode
+from ride_machine.schema.commands import (
     VALID_FOR_MAX_S,
     CheckResult,
     Command,
@@ -30,8 +30,8 @@ from schema.commands import (
     Reply,
     StartRequest,
 )
-from schema.errors import Error, ErrorCode
-from schema.status import MachineState, Status
+from ride_machine.schema.errors import Error, ErrorCode
+from ride_machine.schema.status import MachineState, Status
 from tests.rider.scripted import (
     BLOCK,
     DROP,

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from rider.text import printable, shown
-from schema.status import MachineState, SessionProgress, Status
+from ride_machine.rider.text import printable, shown
+from ride_machine.schema.status import MachineState, SessionProgress, Status
 
 
 def test_printable_escapes_control_format_and_bidi_characters() -> None:

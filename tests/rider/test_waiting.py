@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from rider.waiting import Silence, WaitTeller, quiet_limit
-from schema.status import MachineState, Status
+from ride_machine.rider.waiting import Silence, WaitTeller, quiet_limit
+from ride_machine.schema.status import MachineState, Status
 
 
 def status(state: MachineState, *warnings: str) -> Status:

@@ -9,7 +9,7 @@ import tomllib
 import msgpack
 import pytest
 
-from rider.zenoh_codec import decode_msgpack, encode_msgpack
+from ride_machine.rider.zenoh_codec import decode_msgpack, encode_msgpack
 from tests.procs import REPO
 
 

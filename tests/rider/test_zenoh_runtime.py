@@ -12,17 +12,17 @@ import threading
 
 import pytest
 
-from common import runtime
-from common.runtime import RUNTIME_ENV, runtime_layout
-from rider import cli
-from rider.client import MachineTimeout, Rider
+from ride_machine.common import runtime
+from ride_machine.common.runtime import RUNTIME_ENV, runtime_layout
+from ride_machine.rider import cli
+from ride_machine.rider.client import MachineTimeout, Rider
 from tests.procs import REPO, free_port
 from tests.service.supervision.test_zenoh_runtime import run_child, runtimes
 
 CHILD = """
 import os, subprocess, sys, time
 import zenoh
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 threads, endpoint, first = int(sys.argv[1]), sys.argv[2], sys.argv[3]
 def config():
     conf = zenoh.Config()
@@ -117,7 +117,16 @@ def test_a_zenoh_runtime_zenoh_cannot_read_is_a_usage_error_that_names_it() -> N
     environ = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.run(
-        [sys.executable, "-m", "rider.cli", "--connect", endpoint, "-m", "m1", "status"],
+        [
+            sys.executable,
+            "-m",
+            "ride_machine.rider.cli",
+            "--connect",
+            endpoint,
+            "-m",
+            "m1",
+            "status",
+        ],
         check=False,
         cwd=REPO,
         capture_output=True,

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pydantic import BaseModel
 
-from common.event_summary import EventSummary
-from schema import events
-from schema.diag import EventsDiag
-from schema.status import MachineState
+from ride_machine.common.event_summary import EventSummary
+from ride_machine.schema import events
+from ride_machine.schema.diag import EventsDiag
+from ride_machine.schema.status import MachineState
 
 S = MachineState
 

@@ -11,11 +11,11 @@ import msgpack
 import pytest
 from pydantic import BaseModel
 
-import schema
-from schema import sim
-from schema.axes import AxisRecord, PnStatus
-from schema.base import OpenWireModel, WireModel
-from schema.calibration import (
+from ride_machine import schema
+from ride_machine.schema import sim
+from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.base import OpenWireModel, WireModel
+from ride_machine.schema.calibration import (
     CalibrationRecord,
     CalibrationSet,
     CalibrationSource,
@@ -24,13 +24,13 @@ from schema.calibration import (
     TiltCalibrationSet,
     TiltCalibrationValues,
 )
-from schema.codec import (
+from ride_machine.schema.codec import (
     Format,
     decode,
     encode,
     sniff_format,
 )
-from schema.commands import (
+from ride_machine.schema.commands import (
     DEFAULT_SESSION,
     CheckResult,
     CommandRequest,
@@ -42,13 +42,13 @@ from schema.commands import (
     StartRequest,
     TiltStep,
 )
-from schema.completion import Completion, Outcome
-from schema.diag import CycleDiag, TimingStats
-from schema.errors import Error, ErrorCode
-from schema.findings import Finding, Findings, Severity
-from schema.io import IoKind, IoValue
-from schema.params import ParamSet, ParamValue
-from schema.status import (
+from ride_machine.schema.completion import Completion, Outcome
+from ride_machine.schema.diag import CycleDiag, TimingStats
+from ride_machine.schema.errors import Error, ErrorCode
+from ride_machine.schema.findings import Finding, Findings, Severity
+from ride_machine.schema.io import IoKind, IoValue
+from ride_machine.schema.params import ParamSet, ParamValue
+from ride_machine.schema.status import (
     AxesFlags,
     EstopInfo,
     Fault,
@@ -232,7 +232,7 @@ def wire_models() -> set[type[BaseModel]]:
     """Every pydantic model defined in the `schema` package."""
     found: set[type[BaseModel]] = set()
     for info in pkgutil.iter_modules(schema.__path__):
-        module = importlib.import_module(f"schema.{info.name}")
+        module = importlib.import_module(f"ride_machine.schema.{info.name}")
         for _, obj in inspect.getmembers(module, inspect.isclass):
             if (
                 issubclass(obj, BaseModel)

@@ -14,10 +14,10 @@ import msgpack
 import pytest
 from pydantic import BaseModel
 
-from schema.codec import Format, dump_json, encode, pack
-from schema.commands import CheckResult, Command, Reply, ReplyCode
-from schema.errors import Error, ErrorCode
-from schema.status import MachineState
+from ride_machine.schema.codec import Format, dump_json, encode, pack
+from ride_machine.schema.commands import CheckResult, Command, Reply, ReplyCode
+from ride_machine.schema.errors import Error, ErrorCode
+from ride_machine.schema.status import MachineState
 from tests.schema.test_codec import IDS, SAMPLES
 
 

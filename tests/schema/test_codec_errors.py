@@ -9,8 +9,8 @@ import msgpack
 import pytest
 from pydantic import BaseModel
 
-from schema.axes import AxisRecord
-from schema.codec import (
+from ride_machine.schema.axes import AxisRecord
+from ride_machine.schema.codec import (
     MAX_PAYLOAD_BYTES,
     MAX_REPLY_BYTES,
     DecodeError,
@@ -23,16 +23,16 @@ from schema.codec import (
     sniff_format,
     validate,
 )
-from schema.commands import (
+from ride_machine.schema.commands import (
     CommandRequest,
     Session,
     StartRequest,
     TiltStep,
     transaction_id_of,
 )
-from schema.errors import Error, ErrorCode
-from schema.events import EventPage
-from schema.status import (
+from ride_machine.schema.errors import Error, ErrorCode
+from ride_machine.schema.events import EventPage
+from ride_machine.schema.status import (
     MachineState,
     Status,
 )

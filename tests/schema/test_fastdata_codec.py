@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from schema.fastdata import (
+from ride_machine.schema.fastdata import (
     AXIS,
     HEADER,
     SERVERDATA_VERSION,

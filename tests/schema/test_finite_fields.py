@@ -15,11 +15,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 from pydantic import BaseModel
 
-from schema.calibration import CalibrationSet
-from schema.codec import DecodeError, Format, decode
-from schema.commands import CommandRequest, StartRequest
-from schema.params import ParamSet
-from schema.sim import SIM_REQUESTS
+from ride_machine.schema.calibration import CalibrationSet
+from ride_machine.schema.codec import DecodeError, Format, decode
+from ride_machine.schema.commands import CommandRequest, StartRequest
+from ride_machine.schema.params import ParamSet
+from ride_machine.schema.sim import SIM_REQUESTS
 
 TID = "t-1"
 BASES: list[tuple[type[BaseModel], dict[str, Any]]] = [

@@ -8,9 +8,9 @@ import re
 import subprocess
 from pathlib import Path
 
-from schema.commands import Command
-from schema.jsonschema import DIALECT, documents, render
-from schema.keys import KEYS, Direction, markdown_table, match
+from ride_machine.schema.commands import Command
+from ride_machine.schema.jsonschema import DIALECT, documents, render
+from ride_machine.schema.keys import KEYS, Direction, markdown_table, match
 from tests.procs import REPO, machine_cmd
 
 CHECKED_IN = REPO / "schema" / "json"

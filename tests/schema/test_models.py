@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from schema import SCHEMA_VERSION
-from schema.axes import AXIS_RECORD_VERSION, AxisRecord, PnStatus
-from schema.commands import (
+from ride_machine.schema import SCHEMA_VERSION
+from ride_machine.schema.axes import AXIS_RECORD_VERSION, AxisRecord, PnStatus
+from ride_machine.schema.commands import (
     ALLOWED_STATES,
     DEFAULT_SESSION,
     READ_ONLY_COMMANDS,
@@ -24,10 +24,10 @@ from schema.commands import (
     StartRequest,
     TiltStep,
 )
-from schema.errors import Error, ErrorCode
-from schema.findings import Finding, Findings, Severity
-from schema.params import ParamSet
-from schema.status import (
+from ride_machine.schema.errors import Error, ErrorCode
+from ride_machine.schema.findings import Finding, Findings, Severity
+from ride_machine.schema.params import ParamSet
+from ride_machine.schema.status import (
     FAULT_STATES,
     MOTION_STATES,
     EstopInfo,

@@ -6,13 +6,13 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from service.adapters.credentials import DICTIONARY, identities, password_file
-from service.adapters.opcua_credentials import opcua_files
+from ride_machine.service.adapters.credentials import DICTIONARY, identities, password_file
+from ride_machine.service.adapters.opcua_credentials import opcua_files
 from tests.procs import REPO, run_bounded
 
 WITHOUT_CRYPTOGRAPHY = (
     "import sys; sys.path.insert(0, sys.argv.pop(1)); sys.modules['cryptography'] = None; "
-    "from service.cli import main; sys.exit(main(sys.argv[1:]))"
+    "from ride_machine.service.cli import main; sys.exit(main(sys.argv[1:]))"
 )
 """`machine ARGS` in a Python that cannot import cryptography, as in the machine's image."""
 
@@ -21,7 +21,7 @@ def test_the_hints_name_the_directory_as_given(tmp_path: Path) -> None:
     """Reproduction 7: run in the image (`-w /site`), the hints named /site/secrets/…, a path
     of the container, not of the host where the files are."""
     done = run_bounded(
-        [sys.executable, "-m", "service.cli", "credentials", "init", "secrets"],
+        [sys.executable, "-m", "ride_machine.service.cli", "credentials", "init", "secrets"],
         timeout=60.0, cwd=tmp_path, env={"PYTHONPATH": str(REPO)},
     )  # fmt: skip
     assert done.returncode == 0, done.stderr

@@ -6,8 +6,8 @@ import logging
 
 import pytest
 
-from service.config.model import MachineConfig
-from service.demo import run_demo
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.demo import run_demo
 
 
 def test_the_demo_runs_the_default_session_to_done(caplog: pytest.LogCaptureFixture) -> None:

@@ -11,9 +11,9 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from schema.rider import digest
-from service.adapters.eventdb import CACHE_KIB, connect
-from service.adapters.history_pipe import (
+from ride_machine.schema.rider import digest
+from ride_machine.service.adapters.eventdb import CACHE_KIB, connect
+from ride_machine.service.adapters.history_pipe import (
     BATCH,
     FLUSH,
     MADE,
@@ -29,7 +29,7 @@ import sys
 import service
 import service.adapters.history  # the history process's module, which brings pydantic
 import secrets
-from schema.rider import digest
+from ride_machine.schema.rider import digest
 maps = open("/proc/self/maps").read()
 print(sys.modules["_hashlib"] is None, "libcrypto" in maps, digest(b"ride").hex(),
       len(secrets.token_urlsafe(16)))

@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from service import logfmt
-from service.logfmt import KeyValueFormatter, LineHandler, LineQueue, LineWriter
+from ride_machine.service import logfmt
+from ride_machine.service.logfmt import KeyValueFormatter, LineHandler, LineQueue, LineWriter
 
 
 def _record(created: float) -> logging.LogRecord:

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from service.signals import SignalThread
+from ride_machine.service.signals import SignalThread
 
 WAIT_S = 10.0
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from service.threads import (
+from ride_machine.service.threads import (
     CALLBACK_THREAD,
     OS_NAME_MAX,
     NamedThread,

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from hal.base import HalError, Outputs
-from hal.iomap import IoMap
-from hal.revpi import RevPiConfigError, RevPiHal
-from sim.physics import SwitchFault
-from sim.procimg import ProcImgSim
-from sim.settings import PhysicsParams
+from ride_machine.hal.base import HalError, Outputs
+from ride_machine.hal.iomap import IoMap
+from ride_machine.hal.revpi import RevPiConfigError, RevPiHal
+from ride_machine.sim.physics import SwitchFault
+from ride_machine.sim.procimg import ProcImgSim
+from ride_machine.sim.settings import PhysicsParams
 from tests.fixtures.revpi import (
     CONFIG_RSC,
     address,

@@ -7,11 +7,11 @@ from collections.abc import Callable
 
 import pytest
 
-from hal.base import Hal, Outputs
-from hal.iomap import RELAY_OUTPUTS, IoMap, Signal
-from sim.hal import SimHal
-from sim.physics import SwitchFault, World
-from sim.settings import PhysicsParams
+from ride_machine.hal.base import Hal, Outputs
+from ride_machine.hal.iomap import RELAY_OUTPUTS, IoMap, Signal
+from ride_machine.sim.hal import SimHal
+from ride_machine.sim.physics import SwitchFault, World
+from ride_machine.sim.settings import PhysicsParams
 from tests.rig import FakeClock
 
 DT = 0.01

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import pytest
 
-from hal.iomap import Signal
-from service.config.model import MachineConfig
-from sim.physics import SwitchFault
-from sim.settings import PhysicsParams
+from ride_machine.hal.iomap import Signal
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.sim.physics import SwitchFault
+from ride_machine.sim.settings import PhysicsParams
 from tests.sim.test_sim import DT, PARAMS, Sim, rising_edges
 
 
@@ -147,9 +147,9 @@ def test_a_session_on_a_stalling_host_turns_exactly_its_revolutions() -> None:
     revolutions on, not four or more. That last edge, seen across the stall, is approached
     again from the defined side (the final approach, not stalled), so the angle reported at
     the end is the world's."""
-    from schema.commands import Command
-    from schema.status import MachineState
-    from service.core.controllers import RotateRevolutions
+    from ride_machine.schema.commands import Command
+    from ride_machine.schema.status import MachineState
+    from ride_machine.service.core.motion.controllers import RotateRevolutions
     from tests.rig import Rig
 
     rig = Rig().ready()

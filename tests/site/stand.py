@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 from tests.integration.support import fast_args
 from tests.procs import REPO, START_TIMEOUT_S, Daemon, free_port, start_daemon, stop_process
 
@@ -172,7 +172,7 @@ class Site:
 
     def rider_cmd(self, *args: str) -> list[str]:
         return [
-            *[sys.executable, "-m", "rider.cli", "--connect", self.router.endpoint],
+            *[sys.executable, "-m", "ride_machine.rider.cli", "--connect", self.router.endpoint],
             *["--zenoh-config", str(self.client_config), *args],
         ]
 

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from rider.blocking import Rider
-from rider.cli import EXIT_AMBIGUOUS
-from rider.discovery import MOTION_SETTLE_S, SETTLE_S, Lookahead
-from rider.link import Link
+from ride_machine.rider.blocking import Rider
+from ride_machine.rider.cli import EXIT_AMBIGUOUS
+from ride_machine.rider.discovery import MOTION_SETTLE_S, SETTLE_S, Lookahead
+from ride_machine.rider.link import Link
 from tests.procs import rider_cmd, run_bounded, start_daemon
 from tests.site.stand import PEER_CONFIG, linked_peers
 

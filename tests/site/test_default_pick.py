@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import AmbiguousMachine, NoMachine, Rider, UnsureMachine
+from ride_machine.rider.client import AmbiguousMachine, NoMachine, Rider, UnsureMachine
 from tests.procs import REPO, START_TIMEOUT_S, free_port, start_daemon, stop_process
 from tests.site.stand import (
     PEER_CONFIG,
@@ -317,7 +317,7 @@ def test_issue_22_two_peer_daemons_the_rider_never_picks_the_one_it_connected_to
 
 def rider_cli(endpoint: str, *args: str) -> subprocess.CompletedProcess[str]:
     """`rider --connect ENDPOINT --zenoh-config zenoh.json5 ARGS` (a peer Rider), bounded."""
-    cmd = [sys.executable, "-m", "rider.cli", "--connect", endpoint]
+    cmd = [sys.executable, "-m", "ride_machine.rider.cli", "--connect", endpoint]
     return run_cli([*cmd, "--zenoh-config", str(PEER_CONFIG), *args])
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import Rider
+from ride_machine.rider.client import Rider
 from tests.site.stand import PEER_CONFIG, linked_peers, run_cli
 
 pytestmark = pytest.mark.integration
@@ -23,7 +23,7 @@ TRIES = 6
 
 def test_the_listing_names_every_machine_alive_the_pick_knows_of(tmp_path: Path) -> None:
     with linked_peers(tmp_path) as (fa, _):
-        cli = [sys.executable, "-m", "rider.cli", "--connect", fa.endpoint]
+        cli = [sys.executable, "-m", "ride_machine.rider.cli", "--connect", fa.endpoint]
         cli += ["--zenoh-config", str(PEER_CONFIG), "--json", "machines"]
         listed = []
         for _ in range(TRIES):

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from rider.client import MachineTimeout, Rider
-from schema.commands import (
+from ride_machine.rider.client import MachineTimeout, Rider
+from ride_machine.schema.commands import (
     Command,
     CommandRequest,
     Direction,
@@ -28,8 +28,8 @@ from schema.commands import (
     Session,
     TiltStep,
 )
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import (
     STEP_TIMEOUT_S,
     prepare,

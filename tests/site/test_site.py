@@ -20,14 +20,14 @@ from typing import Any
 import pytest
 import zenoh
 
-from rider.client import CommandRefused, Rider
-from schema.codec import Format, decode, encode, pack
-from schema.commands import CommandRequest, Reply, ReplyCode
-from schema.errors import ErrorCode
-from schema.io import IoValue
-from schema.params import ParamSet
-from schema.sim import SimWorldState
-from schema.status import MachineState, Status
+from ride_machine.rider.client import CommandRefused, Rider
+from ride_machine.schema.codec import Format, decode, encode, pack
+from ride_machine.schema.commands import CommandRequest, Reply, ReplyCode
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.io import IoValue
+from ride_machine.schema.params import ParamSet
+from ride_machine.schema.sim import SimWorldState
+from ride_machine.schema.status import MachineState, Status
 from tests.integration.support import STEP_TIMEOUT_S, relays_off, settle, wait_cycles
 from tests.procs import REPO, START_TIMEOUT_S
 from tests.site.stand import Lines, Mode, Site, run_cli, wait_tokens

@@ -9,7 +9,7 @@ import time
 import pytest
 import zenoh
 
-from schema.events import EventPage
+from ride_machine.schema.events import EventPage
 from tests.site.stand import Site, run_cli
 
 pytestmark = pytest.mark.integration

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from rider.ui.catalog import event_tone
-from schema.events import CommandEvent, FaultEvent, RiderEvent
+from ride_machine.rider.ui.catalog import event_tone
+from ride_machine.schema.events import CommandEvent, FaultEvent, RiderEvent
 
 
 def test_a_rider_left_at_rest_is_routine_one_lost_mid_motion_is_an_incident() -> None:

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from schema.status import MachineState
+from ride_machine.schema.status import MachineState
 from tests.procs import Daemon
 from tests.ui.conftest import shot
 from tests.ui.test_page import RIDE_S, SHORT, open_page

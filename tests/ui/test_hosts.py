@@ -6,8 +6,8 @@ import socket
 
 import pytest
 
-from rider.ui.app import build_parser
-from rider.ui.hosts import BadHostRule, HostPolicy, HostRule, parse_rule
+from ride_machine.rider.ui.app import build_parser
+from ride_machine.rider.ui.hosts import BadHostRule, HostPolicy, HostRule, parse_rule
 
 
 @pytest.mark.hazard("H49")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import asyncio
 
-from rider.ui.hub import Hub
-from rider.ui.view import Push
+from ride_machine.rider.ui.hub import Hub
+from ride_machine.rider.ui.view import Push
 
 
 def drain(q: asyncio.Queue[Push | None]) -> list[Push | None]:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from schema.commands import ALLOWED_STATES, Command
+from ride_machine.schema.commands import ALLOWED_STATES, Command
 from tests.probes import signal_storm
 from tests.procs import REPO, STOP_TIMEOUT_S, Daemon, free_port, rider_cmd
 from tests.ui.uiproc import UiServer, events, request

@@ -4,11 +4,19 @@ from __future__ import annotations
 
 import pytest
 
-from rider.ui.view import LOST_AFTER_S, LiveView, MachineFound, Note, Presence, Push, lost_after
-from schema.axes import AxisRecord, PnStatus
-from schema.diag import CycleDiag, TimingStats
-from schema.io import IoKind, IoValue
-from schema.status import MachineState, Status
+from ride_machine.rider.ui.view import (
+    LOST_AFTER_S,
+    LiveView,
+    MachineFound,
+    Note,
+    Presence,
+    Push,
+    lost_after,
+)
+from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.diag import CycleDiag, TimingStats
+from ride_machine.schema.io import IoKind, IoValue
+from ride_machine.schema.status import MachineState, Status
 
 WALL = 1_700_000_000.0
 
@@ -181,7 +189,7 @@ def test_snapshot_has_everything_a_new_page_needs() -> None:
 
 
 def test_calibration_values_reach_the_page_and_its_snapshot() -> None:
-    from schema.calibration import CalibrationRecord, CalibrationSource
+    from ride_machine.schema.calibration import CalibrationRecord, CalibrationSource
 
     view = LiveView()
     record = CalibrationRecord.model_validate(
@@ -198,7 +206,7 @@ def test_calibration_values_reach_the_page_and_its_snapshot() -> None:
 
 
 def test_a_completion_notice_is_forwarded_to_the_page() -> None:
-    from schema.completion import Completion
+    from ride_machine.schema.completion import Completion
 
     notice = Completion.model_validate(
         {

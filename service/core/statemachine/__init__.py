@@ -10,9 +10,9 @@
 - `snapshot`: the machine at one moment, as one frozen value compared with `==`.
 """
 
-from service.core.statemachine.machine import StateMachine
-from service.core.statemachine.snapshot import Snapshot
-from service.core.statemachine.table import (
+from .machine import StateMachine
+from .snapshot import Snapshot
+from .table import (
     HANDLING,
     TABLE,
     IllegalTransition,

@@ -13,19 +13,20 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from schema.calibration import CalibrationSet
-from schema.completion import Outcome
-from schema.errors import ErrorCode
-from schema.status import AxesFlags, MachineState
-from service.config.model import MachineConfig
-from service.core.calibrate import RotateCalibrate, TiltCalibrate
-from service.core.devices import Calibration, Devices
-from service.core.manual import manual_calibration
-from service.core.statemachine.context import Ending, Motion
-from service.errors import WrongState
+from ride_machine.schema.calibration import CalibrationSet
+from ride_machine.schema.completion import Outcome
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.status import AxesFlags, MachineState
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.motion.calibrate import RotateCalibrate, TiltCalibrate
+from ride_machine.service.core.motion.devices import Calibration, Devices
+from ride_machine.service.core.motion.manual import manual_calibration
+from ride_machine.service.errors import WrongState
+
+from .context import Ending, Motion
 
 if TYPE_CHECKING:  # types only: the state machine does no IO
-    from service.core.persist import SaveTicket
+    from ride_machine.service.core.storage.persist import SaveTicket
 
 COMPLETE = "calibration complete"
 

@@ -11,13 +11,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from schema.commands import Command
-from schema.completion import Completion, Outcome
-from schema.status import FaultCode, MachineState, MotionRef
-from service.config.model import LiveConfig
-from service.core.controllers import SessionRun
-from service.core.devices import Devices
-from service.core.motion import Controller
+from ride_machine.schema.commands import Command
+from ride_machine.schema.completion import Completion, Outcome
+from ride_machine.schema.status import FaultCode, MachineState, MotionRef
+from ride_machine.service.config.model import LiveConfig
+from ride_machine.service.core.motion.base import Controller
+from ride_machine.service.core.motion.controllers import SessionRun
+from ride_machine.service.core.motion.devices import Devices
 
 
 @dataclass(frozen=True, slots=True)

@@ -9,8 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
-from schema.status import MOTION_STATES, MachineState
-from service.config.model import RiderLossPolicy
+from ride_machine.schema.status import MOTION_STATES, MachineState
+from ride_machine.service.config.model import RiderLossPolicy
 
 
 class Verdict(Enum):

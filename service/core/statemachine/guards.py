@@ -10,11 +10,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from schema.commands import RotateStep, Session, TiltStep
-from schema.status import MOTION_STATES, MachineState
-from service.config.model import TiltSection
-from service.core.statemachine.table import Accepts, Pick, Rule
-from service.errors import DuplicateId, EstopActive, MachineError, WrongState
+from ride_machine.schema.commands import RotateStep, Session, TiltStep
+from ride_machine.schema.status import MOTION_STATES, MachineState
+from ride_machine.service.config.model import TiltSection
+from ride_machine.service.errors import DuplicateId, EstopActive, MachineError, WrongState
+
+from .table import Accepts, Pick, Rule
 
 S = MachineState
 

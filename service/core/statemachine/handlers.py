@@ -13,20 +13,21 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from schema.commands import REST_STATES, CheckResult, Command
-from schema.completion import Outcome
-from schema.status import Fault, FaultCode, MachineState
-from service.config.model import LiveConfig
-from service.core.calibrate import RotateCalibrate, TiltCalibrate, TiltVerify
-from service.core.controllers import SessionRun
-from service.core.devices import Devices
-from service.core.homing import RotateHome, TiltHome
-from service.core.motion import Chain, Controller
-from service.core.statemachine.calibration import COMPLETE, CalibrationKeeper
-from service.core.statemachine.context import Ending, MotionContext, OnDone, Plan
-from service.core.statemachine.guards import Facts, start_checks
-from service.core.statemachine.table import Occurrence, Trigger
-from service.errors import InvalidSession, MachineError, NotCalibrated, NotHome
+from ride_machine.schema.commands import REST_STATES, CheckResult, Command
+from ride_machine.schema.completion import Outcome
+from ride_machine.schema.status import Fault, FaultCode, MachineState
+from ride_machine.service.config.model import LiveConfig
+from ride_machine.service.core.motion.base import Chain, Controller
+from ride_machine.service.core.motion.calibrate import RotateCalibrate, TiltCalibrate, TiltVerify
+from ride_machine.service.core.motion.controllers import SessionRun
+from ride_machine.service.core.motion.devices import Devices
+from ride_machine.service.core.motion.homing import RotateHome, TiltHome
+from ride_machine.service.errors import InvalidSession, MachineError, NotCalibrated, NotHome
+
+from .calibration import COMPLETE, CalibrationKeeper
+from .context import Ending, MotionContext, OnDone, Plan
+from .guards import Facts, start_checks
+from .table import Occurrence, Trigger
 
 S = MachineState
 C = Command

@@ -14,8 +14,8 @@ import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Concatenate, ParamSpec, TypeVar
 
-from schema.calibration import CalibrationSet
-from schema.commands import (
+from ride_machine.schema.calibration import CalibrationSet
+from ride_machine.schema.commands import (
     DEFAULT_SESSION,
     REST_STATES,
     CheckResult,
@@ -25,19 +25,21 @@ from schema.commands import (
     Session,
     StartRequest,
 )
-from schema.completion import Outcome
-from schema.status import MOTION_STATES, Fault, FaultCode, MachineState
-from service.config.model import LiveConfig, RiderLossPolicy
-from service.core.admission import admit
-from service.core.devices import Calibration, Devices
-from service.core.motion import Controller, Step
-from service.core.statemachine.calibration import CalibrationKeeper, OnCalibrated
-from service.core.statemachine.context import Ending, Motion, MotionContext, Plan, never
-from service.core.statemachine.deadman import RiderWatch, Verdict
-from service.core.statemachine.guards import Facts, choose, refusal, session_problem
-from service.core.statemachine.handlers import ACTIONS, Check, Order, Refusal
-from service.core.statemachine.snapshot import Snapshot
-from service.core.statemachine.table import (
+from ride_machine.schema.completion import Outcome
+from ride_machine.schema.status import MOTION_STATES, Fault, FaultCode, MachineState
+from ride_machine.service.config.model import LiveConfig, RiderLossPolicy
+from ride_machine.service.core.commands.admission import admit
+from ride_machine.service.core.motion.base import Controller, Step
+from ride_machine.service.core.motion.devices import Calibration, Devices
+from ride_machine.service.errors import MachineError
+
+from .calibration import CalibrationKeeper, OnCalibrated
+from .context import Ending, Motion, MotionContext, Plan, never
+from .deadman import RiderWatch, Verdict
+from .guards import Facts, choose, refusal, session_problem
+from .handlers import ACTIONS, Check, Order, Refusal
+from .snapshot import Snapshot
+from .table import (
     ACCEPTS,
     HANDLING,
     ONLY,
@@ -48,10 +50,9 @@ from service.core.statemachine.table import (
     Transition,
     Trigger,
 )
-from service.errors import MachineError
 
 if TYPE_CHECKING:  # types only: the state machine does no IO
-    from service.core.persist import SaveTicket, StorageHealth
+    from ride_machine.service.core.storage.persist import SaveTicket, StorageHealth
 
 S = MachineState
 C = Command

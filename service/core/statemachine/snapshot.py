@@ -2,7 +2,7 @@
 
 It holds everything the status shows of the machine and everything else the next cycle acts
 on; the scan loop builds the status from it, publishes when it differs from the last one, and
-lets a cycle be quiet while nothing could make it differ (service/core/loop.py). A field the
+lets a cycle be quiet while nothing could make it differ (service/core/scan/loop.py). A field the
 status needs is read from here, so it cannot be left out of the comparison.
 """
 
@@ -10,10 +10,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from schema.status import AxesFlags, EstopInfo, Fault, MachineState, Status
-from service.core.controllers import SessionRun
-from service.core.devices import Calibration
-from service.core.statemachine.context import Motion
+from ride_machine.schema.status import AxesFlags, EstopInfo, Fault, MachineState, Status
+from ride_machine.service.core.motion.controllers import SessionRun
+from ride_machine.service.core.motion.devices import Calibration
+
+from .context import Motion
 
 
 @dataclass(frozen=True, slots=True)

@@ -5,7 +5,7 @@ with several targets choose by its `Pick`, and refuses any state change that is 
 rows (`IllegalTransition`: a bug, raised loudly). The command guard reads the rows' sources
 (`ACCEPTS`); the
 README's state table and docs/states.md are generated from them (`python -m
-service.core.control_doc`).
+service.core.statemachine.control_doc`).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum, StrEnum
 
-from schema.commands import ALLOWED_STATES, REST_STATES, Command, ReplyCode
-from schema.status import MOTION_STATES, MachineState
+from ride_machine.schema.commands import ALLOWED_STATES, REST_STATES, Command, ReplyCode
+from ride_machine.schema.status import MOTION_STATES, MachineState
 
 S = MachineState
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.history import HistoryProcess
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.history import HistoryProcess
 from tests.service.adapters.eventlog_support import open_log
 
 

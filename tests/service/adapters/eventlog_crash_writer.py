@@ -14,10 +14,10 @@ import sys
 import time
 from pathlib import Path
 
-from schema.events import DaemonStopEvent
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.config.model import EventsSection
-from tests.service.core.persist_crash_writer import _say, serve
+from ride_machine.schema.events import DaemonStopEvent
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.config.model import EventsSection
+from tests.service.core.storage.persist_crash_writer import _say, serve
 
 PACE_S = 0.0002
 """Seconds between events: thousands per second, far busier than a real ride."""

@@ -5,14 +5,14 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from schema.commands import Command, CommandRequest, Reply, ReplyCode
-from schema.events import EventPage, EventQuery, SessionEndedEvent
-from schema.status import MachineState
-from service.adapters.eventdb import connect
-from service.adapters.eventlog import EventLog
-from service.adapters.eventread import read_page
-from service.config.model import EventsSection
-from service.core.held import CommandFacts
+from ride_machine.schema.commands import Command, CommandRequest, Reply, ReplyCode
+from ride_machine.schema.events import EventPage, EventQuery, SessionEndedEvent
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.eventdb import connect
+from ride_machine.service.adapters.eventlog import EventLog
+from ride_machine.service.adapters.eventread import read_page
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.history.held import CommandFacts
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""

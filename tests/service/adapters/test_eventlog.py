@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from schema.codec import dump_json, encode
-from schema.events import (
+from ride_machine.schema.codec import dump_json, encode
+from ride_machine.schema.events import (
     CommandEvent,
     DaemonStartEvent,
     DaemonStopEvent,
@@ -23,13 +23,13 @@ from schema.events import (
     QueryError,
     StorageEvent,
 )
-from service.adapters import eventdb, eventlog
-from service.adapters.eventdb import StoredRow, connect
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.eventread import iter_events, row_event, row_payload
-from service.adapters.retention import used_bytes
-from service.config.model import EventsSection
-from service.core.held import Held, LogLine
+from ride_machine.service.adapters import eventdb, eventlog
+from ride_machine.service.adapters.eventdb import StoredRow, connect
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.eventread import iter_events, row_event, row_payload
+from ride_machine.service.adapters.retention import used_bytes
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.history.held import Held, LogLine
 from tests.schema.event_samples import DETAILS
 from tests.service.adapters.eventlog_support import (
     FLUSH_S,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from service.adapters.eventlog import EVENTS_FILE
+from ride_machine.service.adapters.eventlog import EVENTS_FILE
 from tests.service.adapters import eventlog_crash_writer as writer
 from tests.service.crash import CrashServer
 

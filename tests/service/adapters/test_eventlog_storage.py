@@ -17,15 +17,15 @@ from pathlib import Path
 
 import pytest
 
-from schema.events import (
+from ride_machine.schema.events import (
     EventPage,
     EventQuery,
     StorageEvent,
 )
-from service.adapters import eventdb
-from service.adapters.eventdb import BUSY_TIMEOUT_S
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.config.model import EventsSection
+from ride_machine.service.adapters import eventdb
+from ride_machine.service.adapters.eventdb import BUSY_TIMEOUT_S
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.config.model import EventsSection
 from tests.service.adapters.eventlog_support import T0, note, open_log, page
 
 

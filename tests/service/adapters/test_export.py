@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from schema.events import CommandEvent, DaemonStopEvent, Event, parse_point
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.export import CSV_COLUMNS
-from service.cli import main
-from service.config.model import EventsSection
+from ride_machine.schema.events import CommandEvent, DaemonStopEvent, Event, parse_point
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.export import CSV_COLUMNS
+from ride_machine.service.cli import main
+from ride_machine.service.config.model import EventsSection
 from tests.procs import REPO, machine_cmd
 
 

@@ -8,17 +8,17 @@ from collections.abc import Callable, Iterator, Mapping
 
 import pytest
 
-from schema.axes import AxisRecord, PnStatus
-from schema.commands import Command
-from schema.fastdata import (
+from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.commands import Command
+from ride_machine.schema.fastdata import (
     MAX_REQUEST_BYTES,
     SERVERDATA_VERSION,
     USER_REGISTER_LENGTH,
     ServerData,
     decode,
 )
-from schema.status import MachineState
-from service.adapters.fastdata import (
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.fastdata import (
     DRV_STAT_FAULT,
     FastDataServer,
     RequestBudget,

@@ -6,7 +6,7 @@ import os
 import time
 from pathlib import Path
 
-from service.adapters.heartbeat import HEARTBEAT_FILE_ENV, HeartbeatFile
+from ride_machine.service.adapters.heartbeat import HEARTBEAT_FILE_ENV, HeartbeatFile
 
 OLD = 1_000_000.0
 """An mtime far in the past: a touch is seen as the mtime leaving it."""

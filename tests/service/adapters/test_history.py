@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from bench.common import children
-from schema.events import (
+from ride_machine.schema.events import (
     CommandEvent,
     DaemonStartEvent,
     DaemonStopEvent,
@@ -29,15 +29,15 @@ from schema.events import (
     StorageEvent,
     WatchdogEvent,
 )
-from schema.status import MachineState
-from service.adapters import eventlog, history
-from service.adapters.eventdb import WRITER_WAIT_S, StoredRow, connect
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.eventread import read_page
-from service.adapters.history import HistoryProcess
-from service.adapters.history_writer import _Pipe, _Writer
-from service.config.model import EventsSection
-from service.core.held import CommandFacts, Held, LogLine
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters import eventlog, history
+from ride_machine.service.adapters.eventdb import WRITER_WAIT_S, StoredRow, connect
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.eventread import read_page
+from ride_machine.service.adapters.history import HistoryProcess
+from ride_machine.service.adapters.history_writer import _Pipe, _Writer
+from ride_machine.service.config.model import EventsSection
+from ride_machine.service.core.history.held import CommandFacts, Held, LogLine
 from tests.service.adapters.eventlog_support import FLUSH_S, command_tids, facts, open_log
 
 T0 = time.time()

@@ -8,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from schema.codec import Format, decode
-from schema.commands import Reply, ReplyCode
-from schema.errors import ErrorCode
-from schema.events import CommandEvent, CompletionEvent
-from schema.status import MachineState
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.replay import recall
-from service.config.model import EventsSection
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.commands import Reply, ReplyCode
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import CommandEvent, CompletionEvent
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.replay import recall
+from ride_machine.service.config.model import EventsSection
 
 T0 = 1_800_000_000.0
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from schema.events import (
+from ride_machine.schema.events import (
     CalibrationEvent,
     CommandEvent,
     EstopEvent,
@@ -24,12 +24,12 @@ from schema.events import (
     RiderEvent,
     StorageEvent,
 )
-from schema.status import MachineState
-from service.adapters.eventdb import connect
-from service.adapters.eventlog import EVENTS_FILE, EventLog
-from service.adapters.eventread import read_page
-from service.adapters.retention import SAFETY_KINDS, safety_bytes, used_bytes
-from service.config.model import EventsSection
+from ride_machine.schema.status import MachineState
+from ride_machine.service.adapters.eventdb import connect
+from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
+from ride_machine.service.adapters.eventread import read_page
+from ride_machine.service.adapters.retention import SAFETY_KINDS, safety_bytes, used_bytes
+from ride_machine.service.config.model import EventsSection
 
 T0 = 1_800_000_000.0
 MB = 1024 * 1024

@@ -19,11 +19,11 @@ from typing import Any
 import pytest
 import zenoh
 
-from common import threadstate
-from common.runtime import RUNTIME_ENV, use_runtime
-from common.zenoh_session import open_session
-from rider.client import _direct as riders_direct
-from service.bus.callbacks import direct
+from ride_machine.common import threadstate
+from ride_machine.common.runtime import RUNTIME_ENV, use_runtime
+from ride_machine.common.zenoh_session import open_session
+from ride_machine.rider.client import _direct as riders_direct
+from ride_machine.service.bus.callbacks import direct
 from tests.procs import free_port, run_bounded
 
 KEY = "test/callbacks/echo"

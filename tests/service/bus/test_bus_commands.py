@@ -16,15 +16,15 @@ import msgpack
 import pytest
 import zenoh
 
-from schema.codec import Format, decode
-from schema.commands import Reply
-from schema.errors import ErrorCode
-from schema.events import CommandEvent
-from service.bus import commands
-from service.bus.commands import Commands, Deferred
-from service.bus.routes import declare
-from service.core.events import ListEventSink
-from service.core.port import LoopPort
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.commands import Reply
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import CommandEvent
+from ride_machine.service.bus import commands
+from ride_machine.service.bus.commands import Commands, Deferred
+from ride_machine.service.bus.routes import declare
+from ride_machine.service.core.history.events import ListEventSink
+from ride_machine.service.core.scan.port import LoopPort
 from tests.rig import Rig
 from tests.service.bus.test_bus_routes import Host
 

@@ -14,18 +14,18 @@ import pytest
 import zenoh
 from pydantic import BaseModel
 
-from schema.codec import Format, decode
-from schema.commands import Reply
-from schema.errors import ErrorCode
-from schema.sim import SimEstop, SimWorldState
-from schema.status import MachineState
-from service.bus.commands import command_route
-from service.bus.injection import Injection
-from service.bus.request import Request
-from service.bus.routes import Route, Wildcard, declare
-from service.bus.supervisor import SupervisorBus
-from service.config.model import MachineConfig
-from service.errors import Busy, MachineError, UnknownCommand
+from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.commands import Reply
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.sim import SimEstop, SimWorldState
+from ride_machine.schema.status import MachineState
+from ride_machine.service.bus.commands import command_route
+from ride_machine.service.bus.injection import Injection
+from ride_machine.service.bus.request import Request
+from ride_machine.service.bus.routes import Route, Wildcard, declare
+from ride_machine.service.bus.supervisor import SupervisorBus
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.errors import Busy, MachineError, UnknownCommand
 
 BASE = "machine/t1"
 WALL = 1234.5
@@ -273,7 +273,7 @@ def test_the_supervisor_refuses_a_wildcard_injection(session: zenoh.Session) -> 
 
 
 def test_every_refusal_is_a_machine_error_with_a_wire_code() -> None:
-    from service import errors
+    from ride_machine.service import errors
 
     classes = [
         c

@@ -14,14 +14,14 @@ import msgpack
 import pytest
 import zenoh
 
-from schema.errors import ErrorCode
-from schema.events import CommandEvent
-from schema.rider import CONFIRMED, DENIED, confirm_key, digest
-from service.bus.commands import Commands
-from service.bus.confirm import Confirmer, Verdict
-from service.bus.routes import declare
-from service.core.events import ListEventSink
-from service.core.port import LoopPort
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.events import CommandEvent
+from ride_machine.schema.rider import CONFIRMED, DENIED, confirm_key, digest
+from ride_machine.service.bus.commands import Commands
+from ride_machine.service.bus.confirm import Confirmer, Verdict
+from ride_machine.service.bus.routes import declare
+from ride_machine.service.core.history.events import ListEventSink
+from ride_machine.service.core.scan.port import LoopPort
 from tests.rig import Rig
 from tests.service.bus.test_bus_commands import BASE, reply_of, until
 from tests.service.bus.test_bus_routes import Host

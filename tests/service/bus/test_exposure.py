@@ -7,8 +7,8 @@ import json
 import pytest
 import zenoh
 
-from service.bus import DEFAULT_LISTEN, zenoh_config
-from service.bus.exposure import is_loopback, unauthenticated_exposure
+from ride_machine.service.bus import DEFAULT_LISTEN, zenoh_config
+from ride_machine.service.bus.exposure import is_loopback, unauthenticated_exposure
 
 
 @pytest.mark.parametrize(

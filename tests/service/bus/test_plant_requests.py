@@ -8,11 +8,11 @@ from typing import Any, cast
 
 import pytest
 
-from hal.base import HalError
-from schema.errors import Error, ErrorCode
-from service.bus.request import Request
-from service.bus.supervisor import PlantRequests
-from service.errors import Busy, MachineError, NotAvailable, Rejected
+from ride_machine.hal.base import HalError
+from ride_machine.schema.errors import Error, ErrorCode
+from ride_machine.service.bus.request import Request
+from ride_machine.service.bus.supervisor import PlantRequests
+from ride_machine.service.errors import Busy, MachineError, NotAvailable, Rejected
 
 
 class Asked:

@@ -9,8 +9,14 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from service.adapters.credentials import identities
-from service.bus.stations import STATIONS, StationError, expand, fill_stations, without_role
+from ride_machine.service.adapters.credentials import identities
+from ride_machine.service.bus.stations import (
+    STATIONS,
+    StationError,
+    expand,
+    fill_stations,
+    without_role,
+)
 from tests.reliability.support import ACL_PROFILE
 
 

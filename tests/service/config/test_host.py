@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from service.config.host import fifo_refused
+from ride_machine.service.config.host import fifo_refused
 from tests.procs import REPO, machine_cmd
 
 SETPRIV = shutil.which("setpriv") if shutil.which("prlimit") else None

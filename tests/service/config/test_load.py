@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import load_config, main
-from service.config.load import check_candidate, load, load_data
-from service.config.model import MachineConfig
+from ride_machine.service.cli import load_config, main
+from ride_machine.service.config.load import check_candidate, load, load_data
+from ride_machine.service.config.model import MachineConfig
 
 # Each bad value fails the same check whether the file or the command line gives it.
 BAD = [

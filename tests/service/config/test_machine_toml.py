@@ -7,9 +7,9 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from service.config.load import load
-from service.config.model import HalBackend, MachineConfig
-from service.config.validate import Category
+from ride_machine.service.config.load import load
+from ride_machine.service.config.model import HalBackend, MachineConfig
+from ride_machine.service.config.validate import Category
 
 ROOT = Path(__file__).resolve().parents[3]
 EXAMPLE = ROOT / "machine.toml"

@@ -9,10 +9,10 @@ from typing import Any
 
 import pytest
 
-from schema.findings import Finding, Severity
-from service.config.load import load
-from service.config.model import MachineConfig
-from service.config.validate import semantic_findings, validate_data
+from ride_machine.schema.findings import Finding, Severity
+from ride_machine.service.config.load import load
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.config.validate import semantic_findings, validate_data
 from tests.procs import run_machine
 
 E, W = Severity.ERROR, Severity.WARNING

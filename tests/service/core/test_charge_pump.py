@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from hal.base import Outputs
-from hal.iomap import IoMap
-from hal.revpi import RevPiHal
-from schema.commands import Command, Session, TiltStep
-from schema.status import FaultCode, MachineState
-from service.config.model import MachineConfig
-from sim.physics import ChargePumpRelay
+from ride_machine.hal.base import Outputs
+from ride_machine.hal.iomap import IoMap
+from ride_machine.hal.revpi import RevPiHal
+from ride_machine.schema.commands import Command, Session, TiltStep
+from ride_machine.schema.status import FaultCode, MachineState
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.sim.physics import ChargePumpRelay
 from tests.fixtures.revpi import CONFIG_RSC, make_image, read_bit
 from tests.rig import BAD_SESSION, Rig, known_calibration
 

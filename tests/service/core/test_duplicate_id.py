@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from schema.commands import Command
-from schema.errors import ErrorCode
-from schema.status import FaultCode
-from schema.status import MachineState as S
+from ride_machine.schema.commands import Command
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.status import FaultCode
+from ride_machine.schema.status import MachineState as S
 from tests.rig import Rig
 
 

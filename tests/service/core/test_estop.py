@@ -6,12 +6,12 @@ import random
 
 import pytest
 
-from hal.iomap import IoMap
-from schema.commands import Command, CommandRequest, Reply
-from schema.errors import ErrorCode
-from schema.status import MOTION_STATES, MachineState
-from service.config.model import MachineConfig
-from service.core.tasks import PendingCommand
+from ride_machine.hal.iomap import IoMap
+from ride_machine.schema.commands import Command, CommandRequest, Reply
+from ride_machine.schema.errors import ErrorCode
+from ride_machine.schema.status import MOTION_STATES, MachineState
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.scan.tasks import PendingCommand
 from tests.rig import Rig, known_calibration, rig_in
 
 S = MachineState

@@ -7,11 +7,11 @@ from dataclasses import dataclass
 
 import pytest
 
-from hal.iomap import Signal
-from schema.commands import Command
-from schema.status import FaultCode, MachineState
-from service.config.model import MachineConfig
-from sim.physics import SwitchFault
+from ride_machine.hal.iomap import Signal
+from ride_machine.schema.commands import Command
+from ride_machine.schema.status import FaultCode, MachineState
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.sim.physics import SwitchFault
 from tests.rig import Rig, known_calibration
 
 S = MachineState

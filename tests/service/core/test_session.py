@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import pytest
 
-from hal.iomap import Signal
-from schema.commands import Command, Direction, Reply, RotateStep, Session, TiltStep
-from schema.commands import CommandRequest as Req
-from schema.status import AxesFlags, MachineState
-from service.config.model import MachineConfig
-from service.core.controllers import SessionRun
-from service.core.tasks import PendingCommand
+from ride_machine.hal.iomap import Signal
+from ride_machine.schema.commands import Command, Direction, Reply, RotateStep, Session, TiltStep
+from ride_machine.schema.commands import CommandRequest as Req
+from ride_machine.schema.status import AxesFlags, MachineState
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.motion.controllers import SessionRun
+from ride_machine.service.core.scan.tasks import PendingCommand
 from tests.rig import BAD_SESSION, Rig, known_calibration, rig_in
 
 S = MachineState

@@ -7,11 +7,11 @@ import logging
 
 import pytest
 
-from schema.commands import Command, Reply, StartRequest
-from schema.events import ClockEvent
-from service.core.events import ListEventSink
-from service.core.tasks import PendingCommand
-from tests.service.core.runner_harness import (
+from ride_machine.schema.commands import Command, Reply, StartRequest
+from ride_machine.schema.events import ClockEvent
+from ride_machine.service.core.history.events import ListEventSink
+from ride_machine.service.core.scan.tasks import PendingCommand
+from tests.service.core.scan.runner_harness import (
     PERIOD,
     Harness,
     TickingClock,

@@ -13,16 +13,16 @@ from pathlib import Path
 
 import pytest
 
-from schema.events import DaemonStopEvent, EventQuery
-from service.adapters.eventdb import connect_readonly
-from service.adapters.eventlog import EVENTS_FILE
-from service.adapters.eventread import iter_events
-from service.config.model import MachineConfig
-from service.core.loop import ScanLoop
-from service.core.tuning import set_timer_slack, timer_slack
-from service.supervision.assembly import DaemonOptions
-from service.supervision.daemon import Daemon
-from service.supervision.outcome import EXIT_FAILED, EXIT_OK
+from ride_machine.schema.events import DaemonStopEvent, EventQuery
+from ride_machine.service.adapters.eventdb import connect_readonly
+from ride_machine.service.adapters.eventlog import EVENTS_FILE
+from ride_machine.service.adapters.eventread import iter_events
+from ride_machine.service.config.model import MachineConfig
+from ride_machine.service.core.scan.loop import ScanLoop
+from ride_machine.service.core.scan.tuning import set_timer_slack, timer_slack
+from ride_machine.service.supervision.assembly import DaemonOptions
+from ride_machine.service.supervision.daemon import Daemon
+from ride_machine.service.supervision.outcome import EXIT_FAILED, EXIT_OK
 from tests.procs import free_port, write_zenoh_config
 
 # Setup order reversed: the outputs first, the HAL last.

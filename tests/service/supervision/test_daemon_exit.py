@@ -10,8 +10,8 @@ from tests.procs import run_bounded
 
 SCRIPT = """
 import time
-from sim.hal import SimHal
-from service.supervision.daemon import _exit_now
+from ride_machine.sim.hal import SimHal
+from ride_machine.service.supervision.daemon import _exit_now
 
 hal = SimHal(time.monotonic)
 hal.scan_outputs(hal.outputs.__class__(ro=dict.fromkeys(hal.outputs.ro, True)))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS, TUNABLES_ENV
+from ride_machine.service.supervision.malloc import ARENA_ENV, MALLOC_ARENAS, TUNABLES_ENV
 from tests.procs import REPO, malloc_arenas, running_daemon
 
 glibc_only = pytest.mark.skipif(
@@ -22,7 +22,7 @@ glibc_only = pytest.mark.skipif(
 THREADS = 8
 CHILD = """
 import sys, threading
-from service.supervision.malloc import bound_malloc_arenas
+from ride_machine.service.supervision.malloc import bound_malloc_arenas
 from tests.procs import malloc_arenas
 applied = bound_malloc_arenas() if sys.argv[1] == "bound" else None
 held = threading.Barrier({threads} + 1)

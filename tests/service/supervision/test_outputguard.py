@@ -9,8 +9,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from service.core.beat import BeatReader, BeatWriter, create_beat_fd
-from service.supervision.outputguard import GUARD_LATE_S, OutputGuard, Stall
+from ride_machine.service.core.scan.beat import BeatReader, BeatWriter, create_beat_fd
+from ride_machine.service.supervision.outputguard import GUARD_LATE_S, OutputGuard, Stall
 
 LIMIT_S = 0.1
 T0 = 1_000_000_000_000

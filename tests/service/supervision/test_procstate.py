@@ -10,8 +10,8 @@ import sys
 import threading
 import time
 
-from service.supervision.procstate import describe, threads
-from service.threads import NamedThread
+from ride_machine.service.supervision.procstate import describe, threads
+from ride_machine.service.threads import NamedThread
 
 
 def test_a_thread_blocked_on_a_lock_sleeps_in_a_futex_and_does_not_run() -> None:

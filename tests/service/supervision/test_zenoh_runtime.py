@@ -12,16 +12,16 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from common.runtime import RUNTIME_ENV, runtime_layout
-from service.config.model import BusSection
-from service.supervision.outcome import EXIT_FAILED
+from ride_machine.common.runtime import RUNTIME_ENV, runtime_layout
+from ride_machine.service.config.model import BusSection
+from ride_machine.service.supervision.outcome import EXIT_FAILED
 from tests.procs import REPO, free_port, running_daemon, start_daemon
 
 CHILD = """
 import os, sys
 import zenoh
-from common.runtime import use_runtime
-from common.zenoh_session import open_session
+from ride_machine.common.runtime import use_runtime
+from ride_machine.common.zenoh_session import open_session
 applied = use_runtime(int(sys.argv[1]))
 def config(**endpoints):
     conf = zenoh.Config()

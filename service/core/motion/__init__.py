@@ -1,0 +1,1 @@
+"""The axes and their motions: devices, controllers, homing, calibration, plausibility."""

@@ -1,0 +1,1 @@
+"""The data directory: atomic files, the calibration and parameter stores."""
