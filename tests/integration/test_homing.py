@@ -164,6 +164,10 @@ def test_a_gain_typed_30_percent_wrong_is_never_done_at_the_wrong_angle(tmp_path
         typed = ["--tilt-offset", "1197", "--tilt-gain", "52", *rotate]
         assert daemon.cli("calibration", "set", *typed).returncode == 0
         record = r.calibration()
+        deadline = time.monotonic() + 2.0  # published with the cycle after the write (bounded)
+        while record.tilt is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+            record = r.calibration()
         assert record.tilt is not None and record.tilt.verified is False
         home = daemon.cli("home", "--wait", timeout=CLI_TIMEOUT_S)
         assert home.returncode == 1, home.stdout + home.stderr
