@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import os
 import random
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -96,6 +97,19 @@ def pytest_report_header(config: pytest.Config) -> str:
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
     if str(terminalreporter.config.getoption("--order")) != "normal":
         terminalreporter.write_line(_order_line(terminalreporter.config))
+
+
+@pytest.fixture(autouse=True)
+def _stop_signals_as_they_were() -> Iterator[None]:
+    """SIGINT and SIGTERM as before each test: product code run on pytest's own main thread
+    (the daemon, the UI server) leaves them ignored once it has served, and every process a
+    later test of this worker starts would inherit an ignored signal across exec (a Ctrl-C
+    sent to it then does nothing)."""
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for sig, handler in saved.items():
+        if handler is not None and signal.getsignal(sig) is not handler:
+            signal.signal(sig, handler)
 
 
 @pytest.fixture

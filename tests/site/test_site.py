@@ -290,12 +290,20 @@ def test_a_command_for_one_machine_is_answered_by_that_machine_only(abc: Site) -
     assert reply.success and reply.transaction_id == "only-b-1"
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """SIGINT's default action in the child, as a terminal's foreground job has it: a suite
+    started in the background (`make test &` from a script) ignores SIGINT, and a child
+    inherits an ignored signal across exec, so Ctrl-C would not reach the watch."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def watch_cli(abc: Site, seconds: float) -> subprocess.Popen[str]:
     return subprocess.Popen(
         abc.rider_cmd("--json", "machines", "--watch", "--for", str(seconds)),
         stdout=subprocess.PIPE,
         text=True,
         cwd=REPO,
+        preexec_fn=_ctrl_c_as_in_a_terminal,  # noqa: PLW1509 - one signal reset before exec
     )
 
 
