@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import signal
 import socket
 import sys
 import threading
@@ -42,15 +41,12 @@ UNDO_ORDER = [
 
 @pytest.fixture(autouse=True)
 def keep_process_state() -> Iterator[None]:
-    """The daemon runs on this (pytest's main) thread: it traps SIGTERM/SIGINT and tunes the
-    thread's timer slack and the process's GIL switch interval. Give pytest its own back, or
-    later tests inherit the daemon's."""
-    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    """The daemon runs on this (pytest's main) thread: it tunes the thread's timer slack and
+    the process's GIL switch interval. Give pytest its own back, or later tests inherit the
+    daemon's (its SIGTERM/SIGINT handlers tests/conftest.py gives back after every test)."""
     slack = timer_slack()
     interval = sys.getswitchinterval()
     yield
-    for s, handler in saved.items():
-        signal.signal(s, handler)
     if slack is not None:
         set_timer_slack(slack)
     sys.setswitchinterval(interval)
