@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
+import subprocess
+import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -69,3 +72,22 @@ def context_files(root: Path = REPO) -> Iterator[str]:
             rel = name if rel_dir == "." else f"{rel_dir}/{name}"
             if in_context(rel, patterns):
                 yield rel
+
+
+def context_wheel(tmp: Path, timeout: float) -> tuple[list[str], Path]:
+    """The build context copied under `tmp` and made into the project's wheel offline, as the
+    image's builder stage makes it (`pip wheel`, no index, no build isolation): the context's
+    files and the wheel."""
+    context, out = tmp / "context", tmp / "wheels"
+    files = sorted(context_files())
+    for rel in files:
+        (context / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(REPO / rel, context / rel)
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
+         "--wheel-dir", str(out), str(context)],
+        capture_output=True, text=True, timeout=timeout, check=False,
+    )  # fmt: skip
+    assert build.returncode == 0, build.stdout + build.stderr
+    (wheel,) = out.glob("ride_machine-*.whl")
+    return files, wheel

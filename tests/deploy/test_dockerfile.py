@@ -238,19 +238,7 @@ def test_dockerignore_matching() -> None:
 def test_the_build_context_makes_a_complete_wheel(tmp_path: Path) -> None:
     """What `pip wheel` in the builder stage sees, built here offline: every module and
     static file of the package and both entry points must be in the wheel."""
-    context = tmp_path / "context"
-    files = sorted(dockerignore.context_files())
-    for rel in files:
-        (context / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(REPO / rel, context / rel)
-    out = tmp_path / "wheels"
-    build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
-         "--wheel-dir", str(out), str(context)],
-        capture_output=True, text=True, timeout=BUILD_TIMEOUT_S, check=False,
-    )  # fmt: skip
-    assert build.returncode == 0, build.stdout + build.stderr
-    (wheel,) = out.glob("ride_machine-*.whl")
+    files, wheel = dockerignore.context_wheel(tmp_path, BUILD_TIMEOUT_S)
     with zipfile.ZipFile(wheel) as z:
         names = set(z.namelist())
         (entry_points,) = [n for n in names if n.endswith("entry_points.txt")]

@@ -6,7 +6,6 @@ an application using PyPI's `schema` could not import the Rider library beside i
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 import sysconfig
@@ -14,6 +13,8 @@ import tomllib
 from pathlib import Path
 
 import pytest
+
+from tests.deploy.dockerignore import context_wheel
 
 REPO = Path(__file__).resolve().parents[2]
 FOLDERS = ("schema", "common", "hal", "service", "sim", "rider")
@@ -47,25 +48,6 @@ def test_every_package_of_the_tree_is_in_the_wheel_under_the_one_name() -> None:
     assert mapping == {f"ride_machine.{folder}": folder for folder in FOLDERS}
 
 
-def _wheel(tmp: Path) -> Path:
-    """The project's wheel, built offline from a copy of what it is made of."""
-    source = tmp / "source"
-    for name in ("pyproject.toml", "README.md"):
-        (source / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(REPO / name, source / name)
-    for folder in FOLDERS:
-        skip = shutil.ignore_patterns("__pycache__", "node_modules")
-        shutil.copytree(REPO / folder, source / folder, ignore=skip)
-    build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
-         "--wheel-dir", str(tmp / "dist"), str(source)],
-        capture_output=True, text=True, timeout=300, check=False,
-    )  # fmt: skip
-    assert build.returncode == 0, build.stdout + build.stderr
-    (wheel,) = (tmp / "dist").glob("ride_machine-*.whl")
-    return wheel
-
-
 @pytest.mark.integration
 def test_the_wheel_installs_and_imports_beside_pypis_schema(tmp_path: Path) -> None:
     if not list(WHEELS.glob("schema-*.whl")):
@@ -73,9 +55,10 @@ def test_the_wheel_installs_and_imports_beside_pypis_schema(tmp_path: Path) -> N
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     python = venv / "bin" / "python"
+    _, wheel = context_wheel(tmp_path, 300.0)  # as the image's builder stage makes it
     install = subprocess.run(
         [sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-index",
-         "--no-deps", "--find-links", str(WHEELS), "schema", str(_wheel(tmp_path))],
+         "--no-deps", "--find-links", str(WHEELS), "schema", str(wheel)],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     assert install.returncode == 0, install.stdout + install.stderr
