@@ -37,6 +37,9 @@ class MachineView:
     events_seen: int = 0
     left_at: float | None = None
     """When its token went (monotonic seconds); None while alive."""
+    status_current: bool = False
+    """Whether `status` was published or read since the machine (re)appeared: one kept from
+    before its token went may be another run's, whose `seq` a restarted daemon begins again."""
 
     def apply(
         self, update: Status | CycleDiag | IoValue | AxisRecord, snapshot: bool = False
@@ -44,8 +47,8 @@ class MachineView:
         """Keep a publication (a newer status never loses to an older one arriving late); a
         `snapshot` (a value read on request) never replaces a newer one."""
         if isinstance(update, Status):
-            if self.status is None or update.seq >= self.status.seq or update.seq < 2:
-                self.status = update  # seq restarts at 1 with the daemon
+            if self._takes(update, snapshot):
+                self.status, self.status_current = update, True
         elif isinstance(update, CycleDiag):
             if not (snapshot and _newer(self.diag, update)):
                 self.diag = update
@@ -56,6 +59,14 @@ class MachineView:
         elif not (snapshot and _newer(self.axes.get(update.axis), update)):
             self.axes[update.axis] = update
 
+    def _takes(self, update: Status, snapshot: bool) -> bool:
+        """Whether `update` is newer than the status kept. A status read on request is taken
+        by its `seq` alone: one read just before a publication may arrive after it (an
+        E-stop pressed while the gateway was attaching read released, latched, released)."""
+        if self.status is None or not self.status_current or update.seq >= self.status.seq:
+            return True
+        return not snapshot and update.seq < 2  # a publication that begins again: a restart
+
     def count(self, event: Event) -> None:
         """An event from the machine's history stream: commands are counted by code."""
         self.events_seen += 1
@@ -63,6 +74,8 @@ class MachineView:
             self.commands[event.details.code] += 1
 
     def presence(self, alive: bool, now: float) -> None:
+        if alive != self.alive:
+            self.status_current = False
         self.alive = alive
         self.left_at = None if alive else now
 

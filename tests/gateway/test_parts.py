@@ -62,6 +62,29 @@ def test_a_late_status_never_replaces_a_newer_one_but_a_restart_does() -> None:
     assert view.status.state is MachineState.WARNING_NOT_HOME
 
 
+def test_a_status_read_on_attach_never_replaces_the_publication_that_overtook_it() -> None:
+    """The gateway reads a machine's status as it attaches; an E-stop pressed meanwhile is
+    published (seq 2) before the read's reply (seq 1) arrives. The E-stop stays (the CI run of
+    stop 62 found the `Estop` condition inactive: the late read had been taken as a restart)."""
+    view = MachineView("m1")
+    view.apply(_status(2, MachineState.FAULT_ESTOP))
+    view.apply(_status(1, MachineState.IDLE), snapshot=True)
+    assert view.status is not None and view.status.state is MachineState.FAULT_ESTOP
+
+
+def test_a_machine_back_after_its_token_went_is_read_again_whatever_its_seq() -> None:
+    """A daemon restarted begins its `seq` again: once its token went and came back, the read
+    of its status (seq 7 of the new run against 900 of the old) is taken."""
+    view = MachineView("m1")
+    view.apply(_status(900, MachineState.RUNNING))
+    view.presence(False, 10.0)
+    view.presence(True, 12.0)
+    view.apply(_status(7, MachineState.WARNING_NOT_HOME), snapshot=True)
+    assert view.status is not None and view.status.state is MachineState.WARNING_NOT_HOME
+    view.apply(_status(6, MachineState.IDLE), snapshot=True)  # an older read of the new run
+    assert view.status.state is MachineState.WARNING_NOT_HOME
+
+
 def test_commands_are_counted_by_code_and_storage_warnings_by_prefix() -> None:
     view = MachineView("m1")
     for code, repeat in (
