@@ -28,6 +28,12 @@ from .context import Ending, Motion
 if TYPE_CHECKING:  # types only: the state machine does no IO
     from ride_machine.service.core.storage.persist import SaveTicket
 
+AXES_OFF: dict[tuple[bool, bool], tuple[str, ...]] = {
+    (tilt, rotate): ("tilt",) * tilt + ("rotate",) * rotate
+    for tilt in (False, True)
+    for rotate in (False, True)
+}
+"""The axes named by (tilt, rotate) flags, in that order: the guards' tuples, made once."""
 COMPLETE = "calibration complete"
 
 OnCalibrated = Callable[[Calibration], "SaveTicket | None"]
@@ -80,6 +86,19 @@ class CalibrationKeeper:
             tilt=self.refs.tilt and self.devices.tilt.is_home(),
             rotate=self.refs.rotate and self.devices.rotate.is_home(),
         )
+
+    def not_home(self) -> tuple[str, ...]:
+        """The axes `homed` says are not (without making its flags: read per command)."""
+        refs, devices = self.refs, self.devices
+        return AXES_OFF[
+            not (refs.tilt and devices.tilt.is_home()),
+            not (refs.rotate and devices.rotate.is_home()),
+        ]
+
+    def uncalibrated(self) -> tuple[str, ...]:
+        """The axes without a calibration."""
+        cal = self.calibration
+        return AXES_OFF[cal.tilt is None, cal.rotate is None]
 
     def lose_references(self) -> None:
         """A hardware fault while moving: neither axis is trusted until homed again."""

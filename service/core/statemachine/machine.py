@@ -115,11 +115,11 @@ class StateMachine:
     # ------------------------------------------------------------------------ the table
     def facts(self, session: Session | None = None) -> Facts:
         """What the table's guards read now (`session`: the one Start's checks judge)."""
-        cal, home, drive = self.keeper.calibration, self.keeper.homed(), self.context.drive
+        keeper, drive = self.keeper, self.context.drive
         config = self.live.current
         return Facts(
-            uncalibrated=tuple(a for a in ("tilt", "rotate") if getattr(cal, a) is None),
-            not_home=tuple(a for a in ("tilt", "rotate") if not getattr(home, a)),
+            uncalibrated=keeper.uncalibrated(),
+            not_home=keeper.not_home(),
             resume_to=drive.resume_to,
             estop_from=drive.estop_from,
             runnable=drive.controller is not None,
