@@ -33,7 +33,8 @@ from ride_machine.service.core.motion.controllers import SessionRun
 from ride_machine.service.core.motion.devices import Calibration
 from ride_machine.service.core.statemachine import Snapshot, StateMachine, Transition
 
-from .held import CommandFacts, Emit, Held, Lazy, LogLine, hold_limit
+from .facts import CommandFacts
+from .held import Emit, Held, Lazy, LogLine, hold_limit
 
 S = MachineState
 

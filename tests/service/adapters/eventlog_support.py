@@ -12,7 +12,7 @@ from ride_machine.service.adapters.eventdb import connect
 from ride_machine.service.adapters.eventlog import EventLog
 from ride_machine.service.adapters.eventread import read_page
 from ride_machine.service.config.model import EventsSection
-from ride_machine.service.core.history.held import CommandFacts
+from ride_machine.service.core.history.facts import CommandFacts
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""

@@ -22,8 +22,8 @@ from ride_machine.schema.events import (
     StorageEvent,
 )
 from ride_machine.schema.status import MachineState
-from ride_machine.service.core.history import held as held_module
 from ride_machine.service.core.history.events import ListEventSink
+from ride_machine.service.core.history.facts import CommandFacts
 from ride_machine.service.core.history.held import Held, hold_limit
 from ride_machine.service.core.storage.persist import StorageHealth
 from tests.rig import Rig, known_calibration
@@ -360,13 +360,13 @@ def test_without_a_history_a_held_record_writes_its_log_line_and_makes_no_event(
     """`[events] enabled = false`: the command's line is logged, in order, and none of its
     events is made (they would only be dropped)."""
     made: list[str] = []
-    command_event = held_module.CommandEvent
+    make = CommandFacts.__call__
 
-    def counting(**fields: object) -> CommandEvent:
-        made.append(str(fields["transaction_id"]))
-        return command_event(**fields)  # type: ignore[arg-type]
+    def counting(facts: CommandFacts) -> CommandEvent:
+        made.append(facts.transaction_id)
+        return make(facts)
 
-    monkeypatch.setattr(held_module, "CommandEvent", counting)
+    monkeypatch.setattr(CommandFacts, "__call__", counting)
     rig = Rig(calibration=known_calibration())
     caplog.set_level(logging.INFO, logger="machine")
     between_cycles(rig, Command.CHECK_HOME, "first")
