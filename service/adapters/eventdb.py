@@ -9,11 +9,11 @@ import os
 import sqlite3
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
-from ride_machine.schema.codec import dump_json
-from ride_machine.schema.events import KnownDetails
+from ride_machine.schema.event_kinds import EventKind
+from ride_machine.service.core.history.facts import wire_json
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
@@ -142,10 +142,11 @@ def set_aside(path: Path, stamp: float) -> Path:
     return aside
 
 
-@dataclass(frozen=True)
-class Opened:
+class Opened(NamedTuple):
     """What `open_log` found: a connection (None: none could be made, `error` says why) and
-    the newest event's kind; `aside`, where a file that was no event log went (`error`: why)."""
+    the newest event's kind; `aside`, where a file that was no event log went (`error`: why).
+    A tuple, not a dataclass: the history process loads no `dataclasses` (and its `inspect`,
+    1.3 MiB resident)."""
 
     conn: sqlite3.Connection | None
     last_kind: str | None = None
@@ -228,6 +229,15 @@ def stored(last: int, machine_id: str, rows: list[Row]) -> list[StoredRow]:
     ]
 
 
-def as_row(details: KnownDetails, wall: float, cycle: int | None) -> Row:
-    """An event as it is queued and written."""
-    return (details.kind, dump_json(details), wall, cycle)
+def storage_failed_row(error: str, lost: int, wall: float) -> Row:
+    """A `storage_failed` event of the event log (a `StorageEvent` of `what="events"`) as it is
+    written, made without the model (the history process loads no pydantic)."""
+    kind = EventKind.STORAGE_FAILED._value_
+    text = wire_json({"kind": kind, "what": "events", "error": error, "lost": lost})
+    return (kind, text, wall, None)
+
+
+def dropped_row(count: int, wall: float) -> Row:
+    """An `events_dropped` event (a `DroppedEvent`) as it is written, made without the model."""
+    kind = EventKind.EVENTS_DROPPED._value_
+    return (kind, wire_json({"kind": kind, "count": count}), wall, None)

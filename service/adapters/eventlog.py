@@ -28,26 +28,29 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from ride_machine.schema.codec import dump_json
 from ride_machine.schema.diag import EventsDiag
 from ride_machine.schema.events import EventPage, EventQuery, KnownDetails
 from ride_machine.service.config.model import EventsSection
 from ride_machine.service.core.history.held import Held, LogLine
 from ride_machine.service.threads import NamedThread
 
-from .eventdb import BUSY_TIMEOUT_S, WRITER_WAIT_S, Row, as_row, file_bytes
+from .eventdb import BUSY_TIMEOUT_S, WRITER_WAIT_S, Row, file_bytes
 from .eventread import Reader
-from .eventwriter import EventWriter, Listener
+from .eventwriter import COALESCE_S, EventWriter, Listener
 
 log = logging.getLogger(__name__)
 
 EVENTS_FILE = "events.db"
 
-COALESCE_S = 0.02
-"""How long the writer gathers events after the first one before writing them in one batch."""
-
 DEFER_MAX = 1024
 """Commands' held records (`defer`) queued at most: they are objects the garbage collector
 scans, where a queued event is text; beyond this (a stalled disk) the scan thread makes them."""
+
+
+def as_row(details: KnownDetails, wall: float, cycle: int | None) -> Row:
+    """An event as it is queued and written."""
+    return (details.kind, dump_json(details), wall, cycle)
 
 
 def made_here(held: Held) -> list[Row | str]:

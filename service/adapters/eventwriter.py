@@ -13,24 +13,26 @@ import os
 import sqlite3
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-from ride_machine.schema.events import DroppedEvent, EventKind, KnownDetails, StorageEvent
-from ride_machine.service.config.model import EventsSection
-from ride_machine.service.core.history.held import Held
+from ride_machine.schema.event_kinds import EventKind
 
 from .eventdb import (
     Row,
     StoredRow,
-    as_row,
     claim_writer,
     connect,
+    dropped_row,
     insert,
     open_log,
+    storage_failed_row,
     stored,
 )
-from .retention import prune_and_vacuum
+from .retention import Limits, prune_and_vacuum
 from .unwritten import Unwritten
+
+if TYPE_CHECKING:  # the history process writes rows alone, and loads no pydantic
+    from ride_machine.service.core.history.held import Held
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +41,20 @@ STOP_BUSY_TIMEOUT_S = 0.2
 deadline (the daemon ends the history process at it), and what is not written by then goes
 into the file the next start writes (service/adapters/unwritten.py), safety events first."""
 
+COALESCE_S = 0.02
+"""How long a writer thread gathers events after the first one before writing them in one batch
+(the daemon's `EventLog`, the history process's writer)."""
+
 Listener = Callable[[list[StoredRow]], None]
 """Called with each committed batch, as stored (eventread's `row_event` makes a row an `Event`,
 `row_payload` its wire bytes)."""
+
+
+class Settings(Limits, Protocol):
+    """What the writer reads of `[events]`: retention's limits and how often it prunes."""
+
+    @property
+    def prune_every_s(self) -> float: ...
 
 
 class Counts(Protocol):
@@ -67,7 +80,7 @@ class EventWriter:
         counts: Counts,
         path: Path,
         machine_id: str,
-        settings: EventsSection,
+        settings: Settings,
         pace: Callable[[], None] | None,
     ) -> None:
         self.counts = counts
@@ -147,15 +160,14 @@ class EventWriter:
         """`batch`, after a `storage_failed` for an earlier loss (stamped `now`), an
         `events_dropped` for the drops not yet recorded (of `dropped_total`) and the safety
         events held."""
-        extra: list[KnownDetails] = []
+        items: list[Row] = []
         if self.failure is not None:
-            error, lost = self.failure
-            extra.append(StorageEvent(what="events", error=error, lost=lost))
+            items.append(storage_failed_row(*self.failure, now))
         dropped = dropped_total - self.dropped_recorded
         if dropped:
-            extra.append(DroppedEvent(count=dropped))
+            items.append(dropped_row(dropped, now))
         held = self.unwritten.take()
-        items = [as_row(d, now, None) for d in extra] + held + batch
+        items += held + batch
         conn = self.conn
         if conn is None:
             conn = self._reopen()
@@ -230,7 +242,7 @@ class EventWriter:
     def spill(self, queued: Sequence[Row | Held], dropped_total: int) -> None:
         """At the stop: what is unwritten (held safety events, events lost or dropped and not
         yet recorded) into the file the next start reads (service/adapters/unwritten.py)."""
-        rows = [item for item in queued if not isinstance(item, Held)]
+        rows = [item for item in queued if isinstance(item, tuple)]  # not a `Held`
         error, failed = self.failure or (None, 0)
         lost = dropped_total - self.dropped_recorded + len(queued) - len(rows) + failed
         lost += self.unwritten.hold(rows)

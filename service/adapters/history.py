@@ -9,13 +9,16 @@ woken command thread at once instead of after the writer's time slice.
 
 `HistoryProcess` is an `EventLog` whose writer thread only sends: what the scan loop and the
 commands queue (`emit`, `defer`) goes down a pipe, a batch at a time, as msgpack, to
-`python -m ride_machine.service.adapters.history` (its code: service/adapters/history_writer.py; the
-messages: service/adapters/history_pipe.py). That process makes the events (a command's
-`CommandEvent` and its log line from its `CommandFacts`) and writes them with an `EventLog` of
-its own: the same batches, retention, failure handling and `storage_failed` records. It sends
-back what it wrote (the bus publishes it), its counters and its log lines (written to the
-daemon's stderr by the daemon's log writer, so lines never interleave). Reads stay in the
-daemon, on a connection of their own: WAL lets them read while the other process writes.
+`python -m ride_machine.service.adapters.history_writer` (the messages:
+service/adapters/history_pipe.py; what a queued event, command or line is sent as:
+service/adapters/history_items.py). That process makes the events (a command's event and its
+log line from its `CommandFacts`) and writes them with an `EventWriter` of its own: the same
+batches, retention, failure handling and `storage_failed` records. It loads no pydantic (half
+its memory): a command's event is made from its facts as plain JSON, and its settings come as
+plain values. It sends back what it wrote (the bus publishes it), its counters and its log
+lines (written to the daemon's stderr by the daemon's log writer, so lines never interleave).
+Reads stay in the daemon, on a connection of their own: WAL lets them read while the other
+process writes.
 
 If the process ends unexpectedly, the events it had not confirmed are counted lost, a new one
 is started (at most once a second), and its first write records a `storage_failed` event. It
@@ -43,6 +46,7 @@ from ride_machine.service.threads import NamedThread
 
 from .eventdb import Row, claim_writer
 from .eventlog import EventLog
+from .history_items import batch_items, rows_in
 from .history_pipe import (
     BATCH,
     FAILED,
@@ -51,10 +55,8 @@ from .history_pipe import (
     LOG,
     WROTE,
     Item,
-    batch_items,
     encode,
     messages,
-    rows_in,
     write_all,
 )
 
@@ -71,7 +73,7 @@ PYTHON = sys.executable
 
 class HistoryProcess(EventLog):
     """An `EventLog` whose events are made and written by `python -m
-    ride_machine.service.adapters.history`."""
+    ride_machine.service.adapters.history_writer`."""
 
     def __init__(self, path: Path, machine_id: str, settings: EventsSection, **kw: Any) -> None:
         super().__init__(path, machine_id, settings, **kw)
@@ -133,7 +135,7 @@ class HistoryProcess(EventLog):
                 [
                     PYTHON,
                     "-m",
-                    "ride_machine.service.adapters.history",
+                    "ride_machine.service.adapters.history_writer",
                     str(self.path),
                     self.machine_id,
                     self.settings.model_dump_json(),
@@ -380,10 +382,3 @@ class HistoryProcess(EventLog):
     def diag(self) -> EventsDiag:
         d = super().diag()
         return d.model_copy(update={"dropped": self.dropped + self._child_dropped})
-
-
-if __name__ == "__main__":
-    from .history_writer import main
-
-    code = main(sys.argv[1:])
-    os._exit(code)  # everything is written: no interpreter teardown for the daemon to wait on

@@ -1,25 +1,34 @@
-"""The history process (`python -m ride_machine.service.adapters.history`): makes the events the
-daemon sends down the pipe and writes them with an `EventLog` of its own, sending back what it
-wrote, its
-counters and its log lines (service/adapters/history.py has the daemon's side)."""
+"""The history process (`python -m ride_machine.service.adapters.history_writer`): makes the events
+the daemon sends down the pipe and writes them with an `EventWriter` of its own, sending back
+what it wrote, its counters and its log lines (service/adapters/history.py has the daemon's side).
+
+It loads no pydantic: its settings are plain values, a command's event is made as JSON from
+its facts (service/core/history/facts.py), and its own `storage_failed` and `events_dropped`
+events too (service/adapters/eventdb.py). The wire models were half of its resident memory
+(bench.rss_soak: 33 MiB with them); tests/service/adapters/test_history_footprint.py holds it so.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
+import sys
 import threading
 import time
+from collections import deque
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
-from ride_machine.service.config.model import EventsSection
-from ride_machine.service.core.history.held import COMMAND_LOG, CommandFacts
+from ride_machine.schema.event_kinds import EventKind
+from ride_machine.service.core.history.facts import COMMAND_LOG, CommandFacts
 from ride_machine.service.logfmt import flush_logs, info, setup_logging
-from ride_machine.service.threads import name_os_thread
+from ride_machine.service.threads import NamedThread, name_os_thread
 
-from .eventdb import Row, StoredRow, as_row
-from .eventlog import EventLog
+from .eventdb import WRITER_WAIT_S, Row, StoredRow
+from .eventwriter import COALESCE_S, EventWriter
 from .history_pipe import (
     BATCH,
     FAILED,
@@ -37,6 +46,26 @@ from .history_pipe import (
 
 SLICE_S = 0.0001
 """The history process gives way (`sched_yield`) after this much work at a time."""
+COMMAND = EventKind.COMMAND._value_
+
+
+class WriterSettings(NamedTuple):
+    """`[events]` as the history process reads it: plain values taken by name from the daemon's
+    `EventsSection` (its JSON, checked there). A tuple: no `dataclasses` (its `inspect` is
+    1.3 MiB resident) in this process."""
+
+    queue_capacity: int
+    batch_max: int
+    max_age_days: float
+    max_mb: float
+    safety_max_age_days: float
+    safety_max_mb: float
+    prune_every_s: float
+
+    @classmethod
+    def from_json(cls, text: str) -> WriterSettings:
+        values = json.loads(text)
+        return cls(**{name: values[name] for name in cls._fields})
 
 
 class _Pipe:
@@ -65,47 +94,98 @@ class _LogStream:
         pass
 
 
-class _Writer(EventLog):
-    """The `EventLog` of the history process: after each write, its rows and counters go
-    back to the daemon."""
+class _Writer:
+    """The daemon's batches, queued and written by a thread of this process, as `EventLog`'s
+    writer thread does in the daemon (a batch per wake-up, retention between batches, a stop
+    that spills what it could not write); after each write, its rows and counters go back."""
 
-    def __init__(self, pipe: _Pipe, path: Path, machine_id: str, settings: EventsSection) -> None:
-        # Between a batch's chunks of inserts it gives way, as `_make` does between events.
-        super().__init__(path, machine_id, settings, pace=os.sched_yield)
+    def __init__(
+        self,
+        pipe: _Pipe,
+        path: Path,
+        machine_id: str,
+        settings: WriterSettings,
+        *,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
         self.pipe = pipe
+        self.settings = settings
+        self.wall = wall
+        # Between a batch's chunks of inserts it gives way, as `_make` does between events.
+        self.writer = EventWriter(self, path, machine_id, settings, os.sched_yield)
+        self.written = self.lost = self.failures = self.dropped = 0
+        self.last_error: str | None = None
         self.received = 0
         self.forwarded = 0
         """Of `dropped`, those the daemon dropped (it counts them itself)."""
         self._wrote: list[StoredRow] = []
-        self.subscribe(self._wrote.extend)
+        self.writer.listeners.append(self._wrote.extend)
+        self._items: deque[Row] = deque()
         self._in_flight = 0
         """Rows of the batch being written."""
+        self._busy = False
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._hurry = threading.Event()
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Claim and open the log (the daemon has set aside a file that is none), queue what
+        the last run left unwritten, and start the writer thread."""
+        self.writer.claim(WRITER_WAIT_S)
+        self.writer.open_or_replace(self.wall())
+        self._queue(self.writer.resume_unwritten())
+        self._thread = NamedThread(target=self._run, name="eventlog", daemon=True)
+        self._thread.start()
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Write what is queued and stop, within `timeout`; what is left is spilled."""
+        with self._lock:
+            self._stopping = True
+        self._wake.set()
+        self._hurry.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        if self._thread is None or not self._thread.is_alive():
+            with self._lock:
+                queued = list(self._items)
+                self._items.clear()
+            self.writer.spill(queued, self.dropped)
+            self.writer.release()
 
     def receive(self, rows: list[Row], dropped: int) -> None:
         with self._lock:
             self.received += len(rows)
             self.dropped += dropped
             self.forwarded += dropped
-        self.put_rows(rows)
+        self._queue(rows)
+
+    def _queue(self, rows: list[Row]) -> None:
+        """Rows beyond the queue's capacity are dropped and counted, as `EventLog` does."""
+        with self._lock:
+            room = 0 if self._stopping else max(0, self.settings.queue_capacity - len(self._items))
+            self._items.extend(rows[:room])
+            self.dropped += len(rows[room:])
+        if not self._wake.is_set():
+            self._wake.set()
 
     def record_failure(self, error: str, lost: int) -> None:
         """A failure the daemon saw (an earlier process ended): written with the next batch."""
         with self._lock:
             self.writer.failure = (error, lost)
 
-    def _take(self) -> list[Row]:
-        batch = super()._take()
-        self._in_flight = len(batch)
-        return batch
-
-    def _write(self, batch: list[Row]) -> None:
-        super()._write(batch)
-        self._in_flight = 0
-        rows, self._wrote[:] = list(self._wrote), []
-        # A daemon killed before this write: the rows are stored all the same (not lost), and
-        # the end of its pipe ends this process.
-        with contextlib.suppress(BrokenPipeError):
-            self.pipe.send([WROTE, rows, self.status()])
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until everything queued so far is written (at most `timeout`)."""
+        deadline = time.monotonic() + timeout
+        self._hurry.set()
+        while True:
+            with self._lock:
+                if not self._items and not self._busy:
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.002)
 
     def status(self) -> list[Any]:
         """Its counters, and how many of the daemon's events are settled: written, dropped or
@@ -114,6 +194,60 @@ class _Writer(EventLog):
             settled = self.received - len(self._items) - self._in_flight
             own_dropped = self.dropped - self.forwarded
         return [self.written, self.lost, self.failures, self.last_error, own_dropped, settled]
+
+    # ---------------------------------------------------------------------------- thread
+    def _run(self) -> None:
+        writer = self.writer
+        while True:
+            if self._wake.wait(min(1.0, self.settings.prune_every_s)):
+                self._hurry.wait(COALESCE_S)  # a batch per wake-up, not per message
+            self._hurry.clear()
+            batch: list[Row] = []
+            failures = self.failures
+            try:
+                batch = self._take()
+                if batch or writer.owes(self.dropped):
+                    self._write(batch)
+            except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
+                writer.fail(f"event writer failed: {exc!r}", len(batch), exc)
+            finally:
+                self._busy = False
+            gave_up = self._stopping and self.failures > failures
+            if self.wall() >= writer.prune_due and not self._stopping:
+                try:
+                    writer.prune(self.wall(), self._write_queued)
+                except Exception as exc:  # noqa: BLE001 - nor one bad prune
+                    writer.fail(f"event prune failed: {exc!r}", 0, exc)
+            with self._lock:
+                # A write that failed in the stop is not tried again (the daemon's deadline):
+                # `close` spills the rest, safety events kept (service/adapters/unwritten.py).
+                if self._stopping and (not self._items or gave_up):
+                    return
+
+    def _take(self) -> list[Row]:
+        with self._lock:
+            n = min(len(self._items), self.settings.batch_max)
+            batch = [self._items.popleft() for _ in range(n)]
+            self._busy = bool(batch) or self.dropped > self.writer.dropped_recorded
+            self._in_flight = len(batch)
+            if not self._items:
+                self._wake.clear()
+        return batch
+
+    def _write(self, batch: list[Row]) -> None:
+        self.writer.write(batch, self.dropped, self._stopping, self.wall())
+        self._in_flight = 0
+        rows, self._wrote[:] = list(self._wrote), []
+        # A daemon killed before this write: the rows are stored all the same (not lost), and
+        # the end of its pipe ends this process.
+        with contextlib.suppress(BrokenPipeError):
+            self.pipe.send([WROTE, rows, self.status()])
+
+    def _write_queued(self) -> None:
+        """Between retention's chunks: what came in meanwhile."""
+        batch = self._take()
+        if batch:
+            self._write(batch)
 
 
 def _make(items: tuple[Item, ...]) -> list[Row]:
@@ -129,7 +263,7 @@ def _make(items: tuple[Item, ...]) -> list[Row]:
         else:
             _, wall, cycle, values, logged = item
             facts = CommandFacts(*values)
-            rows.append(as_row(facts(), wall, cycle))
+            rows.append((COMMAND, facts.details(), wall, cycle))
             if logged:
                 info(COMMAND_LOG, facts.log_line())
         if time.perf_counter() - start >= SLICE_S:
@@ -139,8 +273,8 @@ def _make(items: tuple[Item, ...]) -> list[Row]:
 
 
 def main(argv: list[str]) -> int:
-    """`python -m ride_machine.service.adapters.history PATH MACHINE_ID SETTINGS_JSON LEVEL`: reads
-    batches on stdin until it closes, then writes what it has and exits."""
+    """`python -m ride_machine.service.adapters.history_writer PATH MACHINE_ID SETTINGS_JSON
+    LEVEL`: reads batches on stdin until it closes, then writes what it has and exits."""
     # The daemon decides when this process ends (it closes the pipe): a Ctrl-C or a TERM sent
     # to the daemon's process group must not cut the history short of the daemon's last events.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -149,7 +283,7 @@ def main(argv: list[str]) -> int:
     path, machine_id, settings, level = argv
     pipe = _Pipe()
     setup_logging(level, stream=_LogStream(pipe))
-    writer = _Writer(pipe, Path(path), machine_id, EventsSection.model_validate_json(settings))
+    writer = _Writer(pipe, Path(path), machine_id, WriterSettings.from_json(settings))
     writer.start()
     try:
         for message in messages(0):
@@ -167,3 +301,8 @@ def main(argv: list[str]) -> int:
         writer.close(timeout=10.0)
         flush_logs()
     return 0
+
+
+if __name__ == "__main__":
+    code = main(sys.argv[1:])
+    os._exit(code)  # everything is written: no interpreter teardown for the daemon to wait on

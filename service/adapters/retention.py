@@ -13,9 +13,27 @@ from __future__ import annotations
 
 import sqlite3
 from collections.abc import Callable
+from typing import Protocol
 
-from ride_machine.schema.events import EventKind
-from ride_machine.service.config.model import EventsSection
+from ride_machine.schema.event_kinds import EventKind
+
+
+class Limits(Protocol):
+    """What retention reads of `[events]` (`EventsSection`, or the history process's own plain
+    copy of it, service/adapters/history_writer.py: no pydantic there)."""
+
+    @property
+    def max_age_days(self) -> float: ...
+
+    @property
+    def max_mb(self) -> float: ...
+
+    @property
+    def safety_max_age_days(self) -> float: ...
+
+    @property
+    def safety_max_mb(self) -> float: ...
+
 
 _K = EventKind
 PROTECTED = (
@@ -60,7 +78,7 @@ _SAFETY = _in(SAFETY_KINDS)
 
 
 def prune(
-    conn: sqlite3.Connection, settings: EventsSection, now: float, between: Callable[[], None]
+    conn: sqlite3.Connection, settings: Limits, now: float, between: Callable[[], None]
 ) -> None:
     """Drop what retention says, a chunk at a time (`between` writes what was queued meanwhile)."""
     routine = f"kind NOT IN ({_SAFETY})"
@@ -94,7 +112,7 @@ def prune(
 
 
 def prune_and_vacuum(
-    conn: sqlite3.Connection, settings: EventsSection, now: float, between: Callable[[], None]
+    conn: sqlite3.Connection, settings: Limits, now: float, between: Callable[[], None]
 ) -> None:
     """`prune`, then the freed pages given back to the file system and the WAL truncated."""
     prune(conn, settings, now, between)

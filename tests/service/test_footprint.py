@@ -27,7 +27,7 @@ from tests.procs import REPO
 _PROBE = """
 import sys
 import service
-import service.adapters.history  # the history process's module, which brings pydantic
+import service.adapters.history  # the daemon's side of the history, which brings pydantic
 import secrets
 from ride_machine.schema.rider import digest
 maps = open("/proc/self/maps").read()

@@ -35,9 +35,10 @@ from ride_machine.service.adapters.eventdb import WRITER_WAIT_S, StoredRow, conn
 from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
 from ride_machine.service.adapters.eventread import read_page
 from ride_machine.service.adapters.history import HistoryProcess
-from ride_machine.service.adapters.history_writer import _Pipe, _Writer
+from ride_machine.service.adapters.history_writer import WriterSettings, _Pipe, _Writer
 from ride_machine.service.config.model import EventsSection
-from ride_machine.service.core.history.held import CommandFacts, Held, LogLine
+from ride_machine.service.core.history.facts import CommandFacts
+from ride_machine.service.core.history.held import Held, LogLine
 from tests.service.adapters.eventlog_support import FLUSH_S, command_tids, facts, open_log
 
 T0 = time.time()
@@ -302,7 +303,8 @@ def test_rows_written_after_the_daemon_died_are_kept_not_counted_lost(tmp_path: 
     """A daemon killed before its history process wrote its last rows: they are stored, and
     the next start records no `storage_failed` for them (only the report back failed)."""
     pipe = _GonePipe()
-    writer = _Writer(pipe, tmp_path / EVENTS_FILE, "m1", EventsSection())
+    settings = WriterSettings.from_json(EventsSection().model_dump_json())
+    writer = _Writer(pipe, tmp_path / EVENTS_FILE, "m1", settings)
     writer.start()
     try:
         writer.receive([("watchdog_trip", '{"kind":"watchdog_trip","stalled_s":0.1}', T0, 1)], 0)
