@@ -3,7 +3,9 @@ written held (safety events) or counted (the rest) and recorded as `storage_fail
 works, retention between batches, and the rows written handed to the listeners.
 
 `EventLog` (service/adapters/eventlog.py) is the façade the daemon calls: it queues, and its
-writer thread hands each batch to the `EventWriter` it owns.
+writer thread hands each batch to the `EventWriter` it owns. The history process's writer
+(service/adapters/history_writer.py) drives one the same way; for it, this module and those it
+imports load no pydantic (the rows it makes itself are plain JSON, eventdb.py).
 """
 
 from __future__ import annotations
