@@ -79,6 +79,7 @@ class Transport:
             if payload is None:
                 handler = session.get(target, timeout=timeout or link.timeout, consolidation=_ALL)
             else:
+                link.confirming()  # the machine asks this Rider about what it sends
                 link.ledger.sent(payload)  # before it goes: the machine may ask at once
                 handler = session.get(
                     target,
