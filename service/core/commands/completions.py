@@ -5,13 +5,18 @@ A notice is answered only once the status its motion ended with is the published
 status query answers), just before the two are published: a command serviced between two
 cycles (a Stop) ends a motion at once, and a Rider that got the notice then and asked for the
 status found the one before it (FAULT_ESTOP after "STOPPED"); a Rider that heard that status
-and asked for the notice at once is not told the motion is under way."""
+and asked for the notice at once is not told the motion is under way.
+
+Each notice is kept as its msgpack bytes, as `TransactionLog` keeps replies: a full window of
+4,096 held 6.1 MiB as models and 1.5 MiB as bytes (a riding daemon filled it at ~3,000 motion
+commands an hour, most of its growth in bench.rss_soak's rides); a read decodes it again."""
 
 from __future__ import annotations
 
 import threading
 from collections import OrderedDict
 
+from ride_machine.schema.codec import Format, decode, encode
 from ride_machine.schema.completion import Completion
 from ride_machine.schema.status import MotionRef
 
@@ -22,7 +27,8 @@ class CompletionLog:
     def __init__(self, capacity: int = 4096) -> None:
         self.capacity = capacity
         self._lock = threading.Lock()
-        self._notices: OrderedDict[str, Completion] = OrderedDict()
+        self._notices: OrderedDict[str, bytes] = OrderedDict()
+        """Each notice's msgpack bytes by transaction id, oldest first."""
         self._active: MotionRef | None = None
         self._held: dict[str, MotionRef] = {}
         """Motions that ended, whose notices wait for their status: still under way here."""
@@ -41,8 +47,9 @@ class CompletionLog:
                 self._active = None
 
     def record(self, notice: Completion) -> None:
+        packed = encode(notice, Format.MSGPACK)
         with self._lock:
-            self._notices[notice.transaction_id] = notice
+            self._notices[notice.transaction_id] = packed
             self._notices.move_to_end(notice.transaction_id)
             self._held.pop(notice.transaction_id, None)
             if len(self._notices) > self.capacity:
@@ -60,13 +67,13 @@ class CompletionLog:
         its status; None if unknown (never a motion, forgotten, or from before the daemon
         started)."""
         with self._lock:
-            notice = self._notices.get(transaction_id)
-            if notice is not None:
-                return notice
+            packed = self._notices.get(transaction_id)
             held = self._held.get(transaction_id)
-            if held is not None:
-                return held
             active = self._active
+        if packed is not None:  # decoded outside the lock: the scan thread records under it
+            return _notice(packed)
+        if held is not None:
+            return held
         if active is not None and active.transaction_id == transaction_id:
             return active
         return None
@@ -74,7 +81,12 @@ class CompletionLog:
     def recent(self) -> list[Completion]:
         """Every remembered notice, oldest first."""
         with self._lock:
-            return list(self._notices.values())
+            kept = list(self._notices.values())
+        return [_notice(packed) for packed in kept]
 
     def __len__(self) -> int:
         return len(self._notices)
+
+
+def _notice(packed: bytes) -> Completion:
+    return decode(Completion, packed, Format.MSGPACK, limit=len(packed))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tracemalloc
 from dataclasses import dataclass
 from typing import Any
 
@@ -290,6 +291,39 @@ def test_the_log_knows_notices_the_motion_under_way_and_forgets_the_oldest() -> 
         log.record(notice(tid))
     assert log.lookup("a") is None  # forgotten (and no longer under way)
     assert [n.transaction_id for n in log.recent()] == ["b", "c"]
+
+
+def test_a_full_window_of_notices_is_kept_small_and_read_back_as_it_was() -> None:
+    """4,096 notices held 6.1 MiB as models (a riding daemon's growth, bench.rss_soak), 1.5 MiB
+    as their msgpack bytes."""
+    log = CompletionLog(capacity=4096)
+    rider = "bay1/" + "ab" * 16
+
+    def notice(i: int) -> Completion:
+        tid = f"rider-{i:012x}-{i}"
+        return Completion(
+            machine_id="m1",
+            transaction_id=tid,
+            command="Start",
+            outcome=Outcome.DONE,
+            state=S.DONE,
+            rider=rider,
+            started_at=1.5e9 + i,
+            time=1.5e9 + i + 0.25,
+        )
+
+    first = notice(0)
+    tracemalloc.start()
+    try:
+        log.record(first)
+        for i in range(1, 4096):
+            log.record(notice(i))
+        held, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert held < 2.5 * 2**20, f"{held / 2**20:.1f} MiB for a full window"
+    assert log.lookup(first.transaction_id) == first
+    assert log.recent()[0] == first and len(log.recent()) == 4096
 
 
 def test_a_newer_outcome_is_kept_as_its_string() -> None:
