@@ -22,9 +22,7 @@ service/adapters/retention.py.
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -33,11 +31,11 @@ from ride_machine.schema.diag import EventsDiag
 from ride_machine.schema.events import EventPage, EventQuery, KnownDetails
 from ride_machine.service.config.model import EventsSection
 from ride_machine.service.core.history.held import Held, LogLine
-from ride_machine.service.threads import NamedThread
 
 from .eventdb import BUSY_TIMEOUT_S, WRITER_WAIT_S, Row, file_bytes
 from .eventread import Reader
-from .eventwriter import COALESCE_S, EventWriter, Listener
+from .eventwriter import EventWriter, Listener
+from .writer_thread import WriterThread
 
 log = logging.getLogger(__name__)
 
@@ -74,9 +72,10 @@ def without_lines(items: Sequence[Row | Held | str]) -> list[Row | Held]:
     return [item for item in items if not isinstance(item, str)]
 
 
-class EventLog:
+class EventLog(WriterThread[EventsSection]):
     """The event history as the daemon and the bus use it: `emit` never blocks; a writer thread
-    hands what is queued to the `EventWriter`, a reader thread answers queries."""
+    (`WriterThread`) hands what is queued to the `EventWriter`, a reader thread answers
+    queries."""
 
     def __init__(
         self,
@@ -88,6 +87,7 @@ class EventLog:
         writer_wait_s: float = WRITER_WAIT_S,
         pace: Callable[[], None] | None = None,
     ) -> None:
+        super().__init__()
         self.path = path
         self.machine_id = machine_id
         self.settings = settings
@@ -95,17 +95,10 @@ class EventLog:
         self.capacity = settings.queue_capacity
         self.writer_wait_s = writer_wait_s
         self.writer = EventWriter(self, path, machine_id, settings, pace)
-        """What a batch does to the database; it counts in the attributes below."""
-        self._items: deque[Row | Held | str] = deque()  # str: a log line (`defer`)
+        """What a batch does to the database; it counts in `WriterThread`'s attributes."""
+        # `_items`: rows, `Held` records (`defer`) and log lines (str) in their place.
         self._deferred = 0
         """`Held` records among `_items`."""
-        self._lock = threading.Lock()
-        self._wake = threading.Event()
-        self._hurry = threading.Event()
-        """Set by a reader or `flush`: write what is queued now, without gathering more."""
-        self._stopping = False
-        self._thread: threading.Thread | None = None
-        """The writer thread (`_run`)."""
         self._reader = Reader(
             path,
             machine_id,
@@ -113,11 +106,6 @@ class EventLog:
             stopping=lambda: self._stopping,
             catch_up=self._catch_up,
         )
-        self.dropped = 0
-        self.written = 0
-        self.lost = 0
-        self.failures = 0
-        self.last_error: str | None = None
         self.previous_stop_clean: bool | None = None
         """Whether the last run in this log ended with a `daemon_stop` (None: empty log)."""
 
@@ -131,8 +119,7 @@ class EventLog:
         self._start_threads()
 
     def _start_threads(self) -> None:
-        self._thread = NamedThread(target=self._run, name="eventlog", daemon=True)
-        self._thread.start()
+        self._start_writing()
         self._reader.start()
 
     def close(self, timeout: float = 2.0) -> None:
@@ -140,23 +127,15 @@ class EventLog:
         thread still waiting on a locked file is left behind, it is a daemon thread)."""
         deadline = time.monotonic() + timeout
         self._stop()
-        if self._thread is not None:
-            self._thread.join(max(0.0, deadline - time.monotonic()))
+        ended = self._join(deadline)
         self._reader.join(max(0.0, deadline - time.monotonic()))
-        if self._thread is None or not self._thread.is_alive():
-            with self._lock:
-                queued = without_lines(self._items)
-                self._items.clear()
-            self.writer.spill(queued, self.dropped)
-            self.writer.release()  # the next writer of this log may start
+        if ended:
+            self._spill(without_lines(self._take_all()))
 
     def _stop(self) -> None:
         """No more events taken; the writer hurried to the end of the queue, the reader told
         to end."""
-        with self._lock:
-            self._stopping = True
-        self._wake.set()
-        self._hurry.set()
+        self._stop_taking()
         self._reader.stop()
 
     def subscribe(self, listener: Listener) -> None:
@@ -175,8 +154,7 @@ class EventLog:
                 self.dropped += 1
                 return
             self._items.append(row)
-        if not self._wake.is_set():  # set() takes a Condition's lock: once per batch is enough
-            self._wake.set()
+        self._wake_writer()
 
     def put_rows(self, rows: Sequence[Row | str]) -> None:
         """Queue events already made, and log lines in their place, in order; events beyond
@@ -185,8 +163,7 @@ class EventLog:
             room = 0 if self._stopping else max(0, self.capacity - len(self._items))
             self._items.extend(rows[:room])
             self.dropped += len(without_lines(rows[room:]))
-        if not self._wake.is_set():
-            self._wake.set()
+        self._wake_writer()
 
     def defer(self, held: Held) -> bool:
         """Queue a command's held record, made (events, log line) on the writer thread in its
@@ -202,29 +179,13 @@ class EventLog:
                 self._deferred += 1
         if not queued:
             self.put_rows(made_here(held))
-        elif not self._wake.is_set():
-            self._wake.set()
+        else:
+            self._wake_writer()
         return True
 
     def emit_now(self, details: KnownDetails, cycle: int | None = None) -> None:
         """An event from outside the scan loop, stamped with the wall clock and `cycle`."""
         self.emit(details, self.wall(), cycle)
-
-    def flush(self, timeout: float = 5.0) -> bool:
-        """Wait until everything queued so far is written (tests and shutdown)."""
-        return self._drained(time.monotonic() + timeout, lambda: not self._items and not self._busy)
-
-    def _drained(self, deadline: float, done: Callable[[], bool]) -> bool:
-        """Hurry the writer, then wait until `done()` (read under the queue's lock), at most
-        until `deadline`."""
-        self._hurry.set()
-        while True:
-            with self._lock:
-                if done():
-                    return True
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.002)
 
     @property
     def queued(self) -> int:
@@ -235,20 +196,14 @@ class EventLog:
         return bool(self._items) or self._busy
 
     # ---------------------------------------------------------------------------- thread
-    _busy = False
+    def _taken(self, batch: list[Row | Held | str]) -> None:
+        if self._deferred:
+            self._deferred -= sum(isinstance(item, Held) for item in batch)
 
     def _take(self) -> list[Row]:
         """The next batch, held records made into its events in their place."""
-        with self._lock:
-            n = min(len(self._items), self.settings.batch_max)
-            batch = [self._items.popleft() for _ in range(n)]
-            self._busy = bool(batch) or self.dropped > self.writer.dropped_recorded
-            if not self._items:
-                self._wake.clear()
-            if self._deferred:
-                self._deferred -= sum(isinstance(item, Held) for item in batch)
         rows: list[Row] = []
-        for item in batch:
+        for item in self._pop_batch():
             if isinstance(item, Held):
                 self._make(item, rows)
             elif isinstance(item, str):
@@ -268,54 +223,6 @@ class EventLog:
         except Exception as exc:  # one bad record must not stop the writer
             self.lost += 1
             log.error("event=events_make_failed error=%r", str(exc), exc_info=exc)
-
-    def _gather(self, timeout: float) -> None:
-        """Wait for the next event (at most `timeout`), then gather what follows for a moment
-        (unless hurried): a write (and its publications) per event took the GIL from the Zenoh
-        thread replying to the next command."""
-        if self._wake.wait(timeout):
-            self._hurry.wait(COALESCE_S)
-        self._hurry.clear()
-
-    def _run(self) -> None:
-        writer = self.writer
-        while True:
-            self._gather(min(1.0, self.settings.prune_every_s))
-            batch: list[Row] = []
-            failures = self.failures
-            try:
-                batch = self._take()
-                if batch or writer.owes(self.dropped):
-                    self._write(batch)
-            except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
-                writer.fail(f"event writer failed: {exc!r}", len(batch), exc)
-            finally:
-                self._busy = False
-            gave_up = self._stopping and self.failures > failures
-            if self.wall() >= writer.prune_due and not self._stopping:
-                try:
-                    self._prune()
-                except Exception as exc:  # noqa: BLE001 - nor one bad prune
-                    writer.fail(f"event prune failed: {exc!r}", 0, exc)
-            with self._lock:
-                # A write that failed in the stop (a locked or full disk) is not tried again:
-                # waiting on it would pass the stop's deadline, and the process killed there
-                # spills nothing; `close` puts the rest, safety events kept, in the file.
-                if self._stopping and (not self._items or gave_up):
-                    return
-
-    def _write(self, batch: list[Row]) -> None:
-        """One batch to the writer, with the drops it has yet to record."""
-        self.writer.write(batch, self.dropped, self._stopping, self.wall())
-
-    def _prune(self) -> None:
-        """Retention (`EventWriter.prune`), writing first what comes in while it runs."""
-        self.writer.prune(self.wall(), self._write_queued)
-
-    def _write_queued(self) -> None:
-        batch = self._take()
-        if batch:
-            self._write(batch)
 
     # ----------------------------------------------------------------------------- reads
     def read(

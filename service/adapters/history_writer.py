@@ -17,7 +17,6 @@ import signal
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -25,10 +24,10 @@ from typing import Any, NamedTuple
 from ride_machine.schema.event_kinds import EventKind
 from ride_machine.service.core.history.facts import COMMAND_LOG, CommandFacts
 from ride_machine.service.logfmt import flush_logs, info, setup_logging
-from ride_machine.service.threads import NamedThread, name_os_thread
+from ride_machine.service.threads import name_os_thread
 
 from .eventdb import WRITER_WAIT_S, Row, StoredRow
-from .eventwriter import COALESCE_S, EventWriter
+from .eventwriter import EventWriter
 from .history_pipe import (
     BATCH,
     FAILED,
@@ -43,6 +42,7 @@ from .history_pipe import (
     messages,
     write_all,
 )
+from .writer_thread import WriterThread
 
 SLICE_S = 0.0001
 """The history process gives way (`sched_yield`) after this much work at a time."""
@@ -94,10 +94,9 @@ class _LogStream:
         pass
 
 
-class _Writer:
-    """The daemon's batches, queued and written by a thread of this process, as `EventLog`'s
-    writer thread does in the daemon (a batch per wake-up, retention between batches, a stop
-    that spills what it could not write); after each write, its rows and counters go back."""
+class _Writer(WriterThread[WriterSettings]):
+    """The daemon's batches, queued and written by a thread of this process as `EventLog`'s
+    are in the daemon (`WriterThread`); after each write, its rows and counters go back."""
 
     def __init__(
         self,
@@ -108,27 +107,19 @@ class _Writer:
         *,
         wall: Callable[[], float] = time.time,
     ) -> None:
+        super().__init__()
         self.pipe = pipe
         self.settings = settings
         self.wall = wall
         # Between a batch's chunks of inserts it gives way, as `_make` does between events.
         self.writer = EventWriter(self, path, machine_id, settings, os.sched_yield)
-        self.written = self.lost = self.failures = self.dropped = 0
-        self.last_error: str | None = None
         self.received = 0
         self.forwarded = 0
         """Of `dropped`, those the daemon dropped (it counts them itself)."""
         self._wrote: list[StoredRow] = []
         self.writer.listeners.append(self._wrote.extend)
-        self._items: deque[Row] = deque()
         self._in_flight = 0
         """Rows of the batch being written."""
-        self._busy = False
-        self._lock = threading.Lock()
-        self._wake = threading.Event()
-        self._hurry = threading.Event()
-        self._stopping = False
-        self._thread: threading.Thread | None = None
 
     def start(self) -> None:
         """Claim and open the log (the daemon has set aside a file that is none), queue what
@@ -136,23 +127,13 @@ class _Writer:
         self.writer.claim(WRITER_WAIT_S)
         self.writer.open_or_replace(self.wall())
         self._queue(self.writer.resume_unwritten())
-        self._thread = NamedThread(target=self._run, name="eventlog", daemon=True)
-        self._thread.start()
+        self._start_writing()
 
     def close(self, timeout: float = 2.0) -> None:
         """Write what is queued and stop, within `timeout`; what is left is spilled."""
-        with self._lock:
-            self._stopping = True
-        self._wake.set()
-        self._hurry.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-        if self._thread is None or not self._thread.is_alive():
-            with self._lock:
-                queued = list(self._items)
-                self._items.clear()
-            self.writer.spill(queued, self.dropped)
-            self.writer.release()
+        self._stop_taking()
+        if self._join(time.monotonic() + timeout):
+            self._spill(self._take_all())
 
     def receive(self, rows: list[Row], dropped: int) -> None:
         with self._lock:
@@ -167,25 +148,12 @@ class _Writer:
             room = 0 if self._stopping else max(0, self.settings.queue_capacity - len(self._items))
             self._items.extend(rows[:room])
             self.dropped += len(rows[room:])
-        if not self._wake.is_set():
-            self._wake.set()
+        self._wake_writer()
 
     def record_failure(self, error: str, lost: int) -> None:
         """A failure the daemon saw (an earlier process ended): written with the next batch."""
         with self._lock:
             self.writer.failure = (error, lost)
-
-    def flush(self, timeout: float = 5.0) -> bool:
-        """Wait until everything queued so far is written (at most `timeout`)."""
-        deadline = time.monotonic() + timeout
-        self._hurry.set()
-        while True:
-            with self._lock:
-                if not self._items and not self._busy:
-                    return True
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.002)
 
     def status(self) -> list[Any]:
         """Its counters, and how many of the daemon's events are settled: written, dropped or
@@ -196,58 +164,17 @@ class _Writer:
         return [self.written, self.lost, self.failures, self.last_error, own_dropped, settled]
 
     # ---------------------------------------------------------------------------- thread
-    def _run(self) -> None:
-        writer = self.writer
-        while True:
-            if self._wake.wait(min(1.0, self.settings.prune_every_s)):
-                self._hurry.wait(COALESCE_S)  # a batch per wake-up, not per message
-            self._hurry.clear()
-            batch: list[Row] = []
-            failures = self.failures
-            try:
-                batch = self._take()
-                if batch or writer.owes(self.dropped):
-                    self._write(batch)
-            except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
-                writer.fail(f"event writer failed: {exc!r}", len(batch), exc)
-            finally:
-                self._busy = False
-            gave_up = self._stopping and self.failures > failures
-            if self.wall() >= writer.prune_due and not self._stopping:
-                try:
-                    writer.prune(self.wall(), self._write_queued)
-                except Exception as exc:  # noqa: BLE001 - nor one bad prune
-                    writer.fail(f"event prune failed: {exc!r}", 0, exc)
-            with self._lock:
-                # A write that failed in the stop is not tried again (the daemon's deadline):
-                # `close` spills the rest, safety events kept (service/adapters/unwritten.py).
-                if self._stopping and (not self._items or gave_up):
-                    return
-
-    def _take(self) -> list[Row]:
-        with self._lock:
-            n = min(len(self._items), self.settings.batch_max)
-            batch = [self._items.popleft() for _ in range(n)]
-            self._busy = bool(batch) or self.dropped > self.writer.dropped_recorded
-            self._in_flight = len(batch)
-            if not self._items:
-                self._wake.clear()
-        return batch
+    def _taken(self, batch: list[Row]) -> None:
+        self._in_flight = len(batch)
 
     def _write(self, batch: list[Row]) -> None:
-        self.writer.write(batch, self.dropped, self._stopping, self.wall())
+        super()._write(batch)
         self._in_flight = 0
         rows, self._wrote[:] = list(self._wrote), []
         # A daemon killed before this write: the rows are stored all the same (not lost), and
         # the end of its pipe ends this process.
         with contextlib.suppress(BrokenPipeError):
             self.pipe.send([WROTE, rows, self.status()])
-
-    def _write_queued(self) -> None:
-        """Between retention's chunks: what came in meanwhile."""
-        batch = self._take()
-        if batch:
-            self._write(batch)
 
 
 def _make(items: tuple[Item, ...]) -> list[Row]:
