@@ -228,6 +228,14 @@ def test_calibration_set_republishes_the_idle_tilt_and_the_history_tells_a_faile
             status = r.status()
         (tilt,) = fast.query([TILT_AXIS_NUMBER]).axes
         assert round(tilt.pFb, 2) == status.tilt_deg
-        events = [e.details for e in r.events(kinds=("calibration",))]
-        tilts = [d for d in events if isinstance(d, CalibrationEvent) and d.axis == "tilt"]
+        # The history records a calibration once its write has ended, at the first cycle after
+        # (service/core/history/events.py): a read right after the reply may come before it.
+        deadline = time.monotonic() + 5.0
+        while len(tilts := _tilt_calibrations(r)) < 2 and time.monotonic() < deadline:
+            pass
         assert [d.persisted for d in tilts] == [False, True], tilts
+
+
+def _tilt_calibrations(r: Rider) -> list[CalibrationEvent]:
+    events = [e.details for e in r.events(kinds=("calibration",))]
+    return [d for d in events if isinstance(d, CalibrationEvent) and d.axis == "tilt"]
