@@ -99,7 +99,10 @@ class Completions:
                     )
                 if now >= recheck:
                     recheck = now + DONE_RECHECK_S
-                    if (notice := self._asked(tid)) is not None:
+                    # Asked for no longer than until the next recheck: a frozen machine must
+                    # not hold the silence's word back by a whole reply timeout.
+                    within = min(DONE_RECHECK_S, self.transport.link.timeout)
+                    if (notice := self._asked(tid, within)) is not None:
                         return notice
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -114,10 +117,11 @@ class Completions:
                     silence.heard(time.monotonic())
                     on_status(update)
 
-    def _asked(self, tid: str) -> Completion | None:
-        """The notice, asked for; None while the motion runs or the machine is down for now."""
+    def _asked(self, tid: str, within: float) -> Completion | None:
+        """The notice, asked for (waiting at most `within` s); None while the motion runs or
+        the machine is down for now."""
         with contextlib.suppress(MachineTimeout):  # down for now: keep waiting
-            return self.done(tid)
+            return self.done(tid, timeout=within)
         return None
 
     def wait_for(
