@@ -82,18 +82,18 @@ class CalibrationKeeper:
 
     def homed(self) -> AxesFlags:
         """An axis is home when it has a reference and its home switch is closed now."""
-        return AxesFlags(
-            tilt=self.refs.tilt and self.devices.tilt.is_home(),
-            rotate=self.refs.rotate and self.devices.rotate.is_home(),
-        )
+        tilt, rotate = self._home()
+        return AxesFlags(tilt=tilt, rotate=rotate)
+
+    def _home(self) -> tuple[bool, bool]:
+        """(tilt, rotate): each has a reference and its home switch is closed now."""
+        refs, devices = self.refs, self.devices
+        return refs.tilt and devices.tilt.is_home(), refs.rotate and devices.rotate.is_home()
 
     def not_home(self) -> tuple[str, ...]:
         """The axes `homed` says are not (without making its flags: read per command)."""
-        refs, devices = self.refs, self.devices
-        return AXES_OFF[
-            not (refs.tilt and devices.tilt.is_home()),
-            not (refs.rotate and devices.rotate.is_home()),
-        ]
+        tilt, rotate = self._home()
+        return AXES_OFF[not tilt, not rotate]
 
     def uncalibrated(self) -> tuple[str, ...]:
         """The axes without a calibration."""
