@@ -154,10 +154,9 @@ class Link:
         self._token: zenoh.LivelinessToken | None = None
         self._heartbeat: Heartbeat | None = None
         self._confirmations: Confirmations | None = None
-        self._confirms = False
-        """Whether this link answers the machine's confirmation queries itself (a session of
-        its own; a borrowed one is answered by its owner): from its first request (`confirming`)."""
         self._confirm_lock = threading.Lock()
+        """Held to declare the confirmation queryable (`confirming`) and to end the session, so
+        none is declared on a session being closed."""
 
     def open(self) -> None:
         """Open the session, declare this Rider's liveliness token, start its heartbeat."""
@@ -170,7 +169,7 @@ class Link:
             raise MachineTimeout(f"cannot open the Zenoh session: {where}") from exc
         self._session, self._owned = session, True
         self._named(rider_id(self.login, str(session.zid())))
-        self._confirms = True  # declared with the first request (`confirming`), not here
+        # The confirmation queryable is declared with the first request (`confirming`).
         self._token = session.liveliness().declare_token(alive_key(self.rider_id))
         if self.supervise:
             self._heartbeat = Heartbeat(session, self.rider_id)
@@ -197,11 +196,10 @@ class Link:
             self._token.undeclare()
             self._token = None
         with self._confirm_lock:
-            self._confirms = False
             if self._confirmations is not None:
                 self._confirmations.close()
                 self._confirmations = None
-        session, self._session = self._session, None
+            session, self._session = self._session, None
         if session is not None:
             for key_expr in self.keys.values():
                 with contextlib.suppress(zenoh.ZError):
@@ -228,8 +226,8 @@ class Link:
         Rider that only reads is never asked, and every remote queryable on a key of its own
         left the machine's Zenoh (1.10) ~0.4 KiB the poorer for good after the session closed
         (0.42 KiB per connect under read-only Rider churn, 0.06 without the queryable)."""
-        if self._confirmations is not None or not self._confirms:
-            return
+        if self._confirmations is not None or not self._owned:
+            return  # declared already, or a borrowed session, whose owner answers
         with self._confirm_lock:
             if self._confirmations is None and self._session is not None:
                 self._confirmations = Confirmations(self._session, self.rider_id, self.ledger)
