@@ -143,6 +143,15 @@ class Target:
         detail = "" if met else f"{100 * (value / limit - 1):.0f} % over"
         return cls(what, f"≤ {fmt(limit)}", fmt(value), met, detail)
 
+    @classmethod
+    def at_least(cls, what: str, value: float, limit: float, fmt: Callable[[float], str]) -> Target:
+        """Met when `value >= limit`; otherwise says by how much it fell short."""
+        if math.isnan(value):
+            return cls(what, f"≥ {fmt(limit)}", "—", None, "not measured")
+        met = value >= limit
+        detail = "" if met else f"{100 * (1 - value / limit):.0f} % short"
+        return cls(what, f"≥ {fmt(limit)}", fmt(value), met, detail)
+
     @property
     def verdict(self) -> str:
         if self.met is None:

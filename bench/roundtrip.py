@@ -46,6 +46,15 @@ UDP = "raw UDP echo"
 RAW_GOAL = 1.3
 RIDER_GOAL = 1.4
 GRPC_FACTOR = 1.5
+LIKE_GOAL = 1.15
+"""Issue 59: the raw get's p50 at most this times the echo's on the same Zenoh thread layout."""
+GRPC_FASTER = 1.6
+"""Issue 59: the Rider API's p50 at least this much faster than gRPC's."""
+BURNERS = 2
+BURNER_LIFETIME_S = 600.0
+"""A neighbour left behind by a killed run ends by itself after this."""
+LOADED = (RIDER, RAW, ECHO_ONE, ECHO, GRPC)
+"""The paths measured again beside the neighbours."""
 
 
 def worker(connect: str, zenoh_config: Path, threads: int, warmup: int) -> int:
@@ -219,22 +228,14 @@ def run(opts: common.Options) -> common.Section:  # noqa: C901, PLR0912, PLR0915
         for fn in calls.values():
             for _ in range(warmup):
                 fn()
-        samples: dict[str, list[float]] = {name: [] for name in [*calls, *batches]}
-        names = [RIDER, *batches, *(n for n in calls if n != RIDER)]
-        for r in range(rounds):
-            # Rotate the order each round, so no transport always follows the same neighbour.
-            for name in names[r % len(names) :] + names[: r % len(names)]:
-                out = samples[name]
-                if name in batches:
-                    out += batches[name](per_round)
-                    continue
-                fn = calls[name]
-                for _ in range(per_round):
-                    t0 = time.perf_counter()
-                    fn()
-                    out.append(time.perf_counter() - t0)
+        samples = _interleaved(calls, batches, rounds, per_round)
+        # The same paths again beside two CPU-bound processes (issue 59: a busy box).
+        near = {name: calls[name] for name in LOADED if name in calls}
+        with common.burners(BURNERS, tmp, BURNER_LIFETIME_S):
+            loaded = _interleaved(near, {}, rounds, per_round)
 
     dists = {name: common.Dist.of(s) for name, s in samples.items()}
+    loaded_dists = {name: common.Dist.of(s) for name, s in loaded.items()}
     table = common.Table(
         f"Round trip, {per_round * rounds} sequential requests each after {warmup} warm-up"
         f" (interleaved in {rounds} rounds); daemon loop at {PERIOD_S * 1e3:g} ms, simulator",
@@ -331,10 +332,74 @@ def run(opts: common.Options) -> common.Section:  # noqa: C901, PLR0912, PLR0915
     section.targets.append(
         common.Target.at_most(f"{RIDER} p99 (< 10 % of the period)", p99, 0.1 * PERIOD_S, _ms_unit)
     )
+    section.tables.append(_loaded_table(loaded_dists, per_round * rounds))
+    busy = f"beside {BURNERS} CPU-bound processes"
+    for where, measured in (("quiet", dists), (busy, loaded_dists)):
+        section.targets += _like_for_like(where, measured)
     section.notes.append(
         f"p99 of the Rider path is {share(p99, PERIOD_S)} of the {PERIOD_S * 1e3:g} ms period."
     )
     return section
+
+
+def _interleaved(
+    calls: dict[str, Callable[[], object]],
+    batches: dict[str, Callable[[int], list[float]]],
+    rounds: int,
+    per_round: int,
+) -> dict[str, list[float]]:
+    """Each path's round trips, s: `per_round` sequential calls of each in turn, `rounds` times
+    (a batch is timed by the process that makes it)."""
+    samples: dict[str, list[float]] = {name: [] for name in [*calls, *batches]}
+    names = [RIDER, *batches, *(n for n in calls if n != RIDER)]
+    for r in range(rounds):
+        # Rotate the order each round, so no transport always follows the same neighbour.
+        for name in names[r % len(names) :] + names[: r % len(names)]:
+            out = samples[name]
+            if name in batches:
+                out += batches[name](per_round)
+                continue
+            fn = calls[name]
+            for _ in range(per_round):
+                t0 = time.perf_counter()
+                fn()
+                out.append(time.perf_counter() - t0)
+    return samples
+
+
+def _loaded_table(dists: dict[str, common.Dist], count: int) -> common.Table:
+    table = common.Table(
+        f"The same, beside {BURNERS} CPU-bound processes (bench/baselines/burner.py),"
+        f" {count} sequential requests each, interleaved alike",
+        ["path", "p50 ms", "p90 ms", "p99 ms", "max ms", f"p50 vs {ECHO_ONE}"],
+    )
+    one = dists[ECHO_ONE].p50
+    for name, d in dists.items():
+        table.add(name, ms(d.p50), ms(d.p90), ms(d.p99), ms(d.max), f"{d.p50 / one:.2f}×")
+    return table
+
+
+def _like_for_like(where: str, dists: dict[str, common.Dist]) -> list[common.Target]:
+    """Issue 59's two: the raw get against the echo on the daemon's Zenoh thread layout (one
+    thread), and the Rider API against gRPC over a Unix socket."""
+    out = [
+        common.Target.at_most(
+            f"{where}: {RAW} p50 ÷ {ECHO_ONE} p50 (like for like)",
+            dists[RAW].p50 / dists[ECHO_ONE].p50,
+            LIKE_GOAL,
+            lambda x: f"{x:.2f}×",
+        )
+    ]
+    if GRPC in dists:
+        out.append(
+            common.Target.at_least(
+                f"{where}: {GRPC} p50 ÷ {RIDER} p50",
+                dists[GRPC].p50 / dists[RIDER].p50,
+                GRPC_FASTER,
+                lambda x: f"{x:.2f}×",
+            )
+        )
+    return out
 
 
 def _ms_unit(seconds: float) -> str:
