@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -44,6 +45,8 @@ from tests.procs import free_port, write_zenoh_config
 from tests.rig import Rig, known_calibration
 
 RATES = (250, 500, 1000, 2000, 4000)
+FLOOR_GOAL = 1.2
+"""Issue 59: the idle daemon's CPU against the empty runner's, at most."""
 IDLE_ROUNDS = 3
 """Idle rounds per process: one 10 s window gave the same daemon 1.6 % and 2.3 % in two runs
 minutes apart on this host."""
@@ -249,6 +252,27 @@ def scan_cycles(rounds: int, cold: int, hot: int) -> Table:
     return table
 
 
+def floor_targets(idles: list[Idle]) -> list[Target]:
+    """Issue 59: the idle daemon's CPU at most `FLOOR_GOAL` times the empty runner's at the same
+    period, in the same run (each one's median round)."""
+    out = []
+    for period_s in sorted({i.period_s for i in idles if i.period_s is not None}, reverse=True):
+        daemon, floor = (
+            next(i for i in idles if i.period_s == period_s and i.label.startswith(kind))
+            for kind in ("daemon", "empty runner")
+        )
+        ratio = daemon.cpu / floor.cpu if floor.cpu > 0 else math.nan
+        out.append(
+            Target.at_most(
+                f"CPU idle, {daemon.label} ÷ {floor.label}",
+                ratio,
+                FLOOR_GOAL,
+                lambda x: f"{x:.2f}×",
+            )
+        )
+    return out
+
+
 def sustained(step: dict[str, Any]) -> bool:
     return bool(
         step["overruns"] == 0
@@ -325,6 +349,7 @@ def run(opts: Options) -> Section:
             section.targets.append(
                 Target.at_most(f"CPU idle, {i.label}", i.cpu, limit, lambda x: f"{x:.1f} %")
             )
+    section.targets += floor_targets(idles)
     best = max((s["target"] for s in steps if sustained(s)), default=0)
     clean = [s for s in steps if s["overruns"] == s["failed"] == s["unanswered"] == 0]
     handled = max((s["achieved"] for s in clean), default=0.0)
