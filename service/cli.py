@@ -17,6 +17,7 @@ from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.config.validate import finding_line, findings_of, hardware_findings
 
 from .logfmt import flush_logs, setup_logging
+from .signals import dump_stacks_on_signal
 
 if TYPE_CHECKING:
     from ride_machine.service.supervision.assembly import DaemonOptions
@@ -381,6 +382,8 @@ def _run(args: argparse.Namespace, config: MachineConfig) -> int:
         return _demo(args, config)
     from ride_machine.service.supervision.daemon import run_daemon
 
+    dump_stacks_on_signal()  # `kill -USR2 <pid>`: every thread's stack in the log
+
     # The backend's own check, on the config that will run: the same findings, the same way,
     # for `run` and `supervise`, before anything opens.
     if not check_hardware(config, str(args.config or "machine")):
@@ -392,6 +395,7 @@ def _supervise(args: argparse.Namespace, config: MachineConfig) -> int:
     from ride_machine.service.supervision.restarts import SupervisorOptions
     from ride_machine.service.supervision.supervisor import run_supervisor
 
+    dump_stacks_on_signal()
     if not check_hardware(config, str(args.config or "machine")):
         return EXIT_CONFIG
     if not 0 < args.backoff <= args.backoff_max:

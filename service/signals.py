@@ -11,9 +11,12 @@ and a thread reads the pipe and calls the real handler, where a lock is only wai
 
 from __future__ import annotations
 
+import faulthandler
+import io
 import logging
 import os
 import signal
+import sys
 from collections.abc import Callable, Iterable
 from types import FrameType
 from typing import Any
@@ -24,6 +27,21 @@ log = logging.getLogger(__name__)
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 JOIN_TIMEOUT_S = 1.0
+STACKS_SIGNAL = signal.SIGUSR2
+"""Every thread's stack to stderr, and the process runs on (`dump_stacks_on_signal`)."""
+
+
+def dump_stacks_on_signal(sig: int = STACKS_SIGNAL) -> bool:
+    """On `sig`, write every thread's Python stack to stderr (`faulthandler`): what a hung or
+    slow process is doing, asked from outside (`kill -USR2 <pid>`) without stopping it. The
+    dump is written by the C-level handler, so it comes even while a thread holds the GIL or a
+    lock for ever, where a Python handler would never run. False where stderr is no file
+    (an in-process caller's capture): nothing is registered."""
+    try:
+        faulthandler.register(sig, file=sys.stderr, all_threads=True, chain=False)
+    except (AttributeError, ValueError, OSError, io.UnsupportedOperation):
+        return False
+    return True
 
 
 def _nothing(signum: int, frame: FrameType | None) -> None:

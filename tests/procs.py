@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from ride_machine.rider.client import Rider
+from ride_machine.service.signals import STACKS_SIGNAL
 from ride_machine.service.supervision.procstate import describe, threads
 
 REPO = Path(__file__).resolve().parent.parent
@@ -156,6 +157,24 @@ def write_zenoh_config(directory: Path) -> Path:
     return path
 
 
+STACKS_WAIT_S = 2.0
+STACKS_SETTLE_S = 0.2
+STACKS_MARK = "(most recent call first)"
+"""How `faulthandler` heads each thread's stack."""
+
+
+def catches(pid: int, sig: int) -> bool:
+    """Whether process `pid` has a handler for `sig` (its `SigCgt` mask in /proc)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    mask = next(
+        (line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), "0"
+    )
+    return bool(int(mask, 16) >> (sig - 1) & 1)
+
+
 @dataclass
 class Daemon:
     """A `machine run` child process; `stop()` sends SIGTERM and waits (bounded)."""
@@ -207,6 +226,25 @@ class Daemon:
     def stop(self, sig: int = signal.SIGTERM) -> int:
         return stop_process(self.proc, sig)
 
+    def stacks(self, timeout: float = STACKS_WAIT_S) -> list[str]:
+        """Every thread's stack, as the running process writes it to its log when asked
+        (`STACKS_SIGNAL`, service/signals.py); [] when it does not catch that signal (yet: it
+        is caught from the config's load on, and would kill the process before) or wrote
+        nothing within `timeout` (a process stopped by SIGSTOP)."""
+        if not catches(self.proc.pid, STACKS_SIGNAL):
+            return []
+        start = len(self.log())
+        os.kill(self.proc.pid, STACKS_SIGNAL)
+        deadline = time.monotonic() + timeout
+        while STACKS_MARK not in self.log()[start:]:
+            if time.monotonic() > deadline:
+                return []
+            time.sleep(0.02)
+        time.sleep(STACKS_SETTLE_S)  # the handler writes thread after thread
+        lines = self.log()[start:].splitlines()
+        first = next(i for i, line in enumerate(lines) if STACKS_MARK in line)
+        return lines[max(first - 1, 0) :]
+
 
 _STARTED: list[weakref.ref[Daemon]] = []
 """The daemons this test process started, for the logs of a failed test (`logs_since`): weak, so
@@ -227,6 +265,9 @@ def logs_since(since: float) -> list[tuple[str, str]]:
         lines = daemon.log().splitlines()[-LOG_TAIL_LINES:]
         title = f"daemon {daemon.machine_id} (pid {daemon.proc.pid}) log, last {len(lines)} lines"
         sections.append((title, "\n".join(line[:400] for line in lines)))
+        if daemon.proc.poll() is None and (stacks := daemon.stacks()):
+            title = f"daemon {daemon.machine_id} (pid {daemon.proc.pid}), its threads' stacks"
+            sections.append((title, "\n".join(line[:400] for line in stacks)))
     return sections
 
 
