@@ -16,6 +16,7 @@ import pytest
 
 from bench import all as bench_all
 from bench.common import Dist, Options, Section, Table, Target, pct, write_section
+from bench.cost import Idle, floor_targets
 
 REPO = Path(__file__).resolve().parents[2]
 MODULES = [
@@ -183,6 +184,23 @@ def test_targets_say_by_how_much_they_were_missed() -> None:
     missed = Target.at_most("x", 3.0, 2.0, str)
     assert met.met and met.verdict == "met"
     assert missed.met is False and "50 % over" in missed.verdict
+    floor = Target.at_least("y", 1.5, 1.6, str)
+    assert floor.goal == "≥ 1.6" and floor.met is False and "6 % short" in floor.verdict
+    assert Target.at_least("y", 1.6, 1.6, str).verdict == "met"
+    assert Target.at_least("y", float("nan"), 1.6, str).met is None
+
+
+def test_cost_judges_the_idle_daemon_against_the_empty_runner_of_its_period() -> None:
+    idles = [
+        Idle("daemon, 10 ms", 0.010, 1.8, 0, 0, 20),
+        Idle("empty runner, 10 ms", 0.010, 1.5, 0, 0, 2),
+        Idle("daemon, 1 ms", 0.001, 7.0, 0, 0, 20),
+        Idle("empty runner, 1 ms", 0.001, 5.0, 0, 0, 2),
+        Idle("bare Zenoh session (echo queryable)", None, 0.8, 0, 0, 8),
+    ]
+    at_10, at_1 = floor_targets(idles)
+    assert (at_10.measured, at_10.met) == ("1.20×", True)
+    assert (at_1.measured, at_1.met) == ("1.40×", False)
 
 
 def test_a_table_refuses_a_row_of_the_wrong_width() -> None:
