@@ -78,8 +78,8 @@ class Freeze(StrEnum):
 
 SIGNALS = {
     Freeze.SIGSTOP: signal.SIGSTOP,
-    Freeze.GIL: signal.SIGUSR1,
-    Freeze.SYSCALL: signal.SIGUSR2,
+    Freeze.GIL: signal.SIGRTMIN + 1,  # the hooks' (tests/fixtures/freeze/sitecustomize.py)
+    Freeze.SYSCALL: signal.SIGRTMIN + 2,
 }
 
 
