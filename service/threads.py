@@ -83,11 +83,14 @@ def os_name(name: str) -> bytes:
 def name_os_thread(name: str) -> bool:
     """Name the calling thread for the OS (its `/proc/thread-self/comm`, what `prctl(PR_SET_NAME)`
     sets); False where the OS cannot: the thread runs on unnamed, nothing else changes."""
-    if not sys.platform.startswith("linux"):
-        return False
+    return sys.platform.startswith("linux") and _write_comm(Path("/proc/thread-self/comm"), name)
+
+
+def _write_comm(comm: Path, name: str) -> bool:
+    """`name` into a thread's `comm` file in /proc; False where it cannot be written (no such
+    thread any more, no /proc)."""
     try:
-        with open("/proc/thread-self/comm", "wb", buffering=0) as comm:
-            comm.write(os_name(name))
+        comm.write_bytes(os_name(name))
     except OSError:
         return False
     return True
@@ -134,9 +137,5 @@ def name_callback_threads() -> int:
         tid = thread.native_id
         if tid is None or not thread.name.endswith(CALLBACK_SUFFIX):
             continue
-        try:
-            Path(f"/proc/self/task/{tid}/comm").write_bytes(os_name(CALLBACK_THREAD))
-        except OSError:
-            continue  # ended meanwhile
-        named += 1
+        named += _write_comm(Path(f"/proc/self/task/{tid}/comm"), CALLBACK_THREAD)  # or ended
     return named
