@@ -220,6 +220,18 @@ def known_calibration() -> Calibration:
     return rig.state_machine.calibration
 
 
+WIDE_SCALE = {
+    "gain_min_counts_per_deg": 5.0,
+    "gain_max_counts_per_deg": 500.0,
+    "zero_min_counts": -1_000_000.0,
+    "zero_max_counts": 1_000_000.0,
+}
+UNCOMMISSIONED = MachineConfig().with_overrides(tilt=WIDE_SCALE)
+"""A machine whose tilt sensor scale is as wide as the config allows (never commissioned
+narrower): the witnesses alone judge a calibration. Tests of the witnesses use it, so that the
+scale (service/core/motion/scale.py) does not refuse their wrong values first."""
+
+
 BAD_SESSION = Session(name="too-steep", steps=[TiltStep(degrees=80.0)])
 """Outside the default machine's tilt range (0..60°): Start with it ends in FAULT_HW."""
 

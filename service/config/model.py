@@ -124,8 +124,18 @@ class TiltSection(_Section):
     noise_max_jumps: int = Field(default=3, ge=1, le=1000)
     calibration_stroke_s: float = Field(default=2.0, gt=0, le=60)
     calibration_samples: int = Field(default=10, ge=1, le=1000)
-    gain_min_counts_per_deg: float = Field(default=5.0, gt=0)
-    gain_max_counts_per_deg: float = Field(default=500.0, gt=0)
+    gain_min_counts_per_deg: float = Field(default=38.0, gt=0)
+    gain_max_counts_per_deg: float = Field(default=42.0, gt=0)
+    """The tilt sensor's commissioned scale: its gain (counts per degree, rising going up) from
+    the datasheet and the gearing, ± what they allow (here the simulator's 40 ± 5 %), and its
+    raw value at the home switch (`zero_min_counts`..`zero_max_counts`). A calibration measured,
+    entered or loaded outside either is refused: the stroke's gain comes from the drive's
+    nominal speed, so a drive off its speed calibrates off by as much and every speed witness
+    agrees with it; this band is what bounds that error (docs/homing.md)."""
+    zero_min_counts: float = Field(default=1160.0, ge=-1_000_000, le=1_000_000)
+    zero_max_counts: float = Field(default=1240.0, ge=-1_000_000, le=1_000_000)
+    """The raw value at the home switch, commissioned (here the simulator's 1200 ± 1°): a tilt
+    zero outside is a switch that moved or a sensor that slipped on its shaft."""
     latch_tolerance_deg: float = Field(default=0.15, gt=0, le=10)
     """Half the travel between the scans either side of the home edge (nominal speed × gap
     / 2) may be at most this, or the edge is approached again."""
@@ -243,6 +253,18 @@ class SimView(Protocol):
 
     @property
     def charge_pump_timeout_s(self) -> float: ...
+
+    @property
+    def tilt_speed_dps(self) -> float: ...
+
+    @property
+    def tilt_home_deg(self) -> float: ...
+
+    @property
+    def ai_offset_counts(self) -> float: ...
+
+    @property
+    def ai_gain_counts_per_deg(self) -> float: ...
 
 
 class HalSection(_Section):

@@ -16,6 +16,8 @@ from .report import Category, error, warning
 # Below this the wake-up jitter of a Python thread on a general-purpose kernel is of the
 # same order as the period itself: the loop runs, but overruns become routine.
 MIN_RELIABLE_PERIOD_S = 0.002
+GAIN_BAND_MAX = 0.10
+"""The widest tilt gain band (± of its middle) the check takes without a warning."""
 
 
 def _io_conflicts(iomap: IoMap) -> Iterator[Finding]:
@@ -65,6 +67,16 @@ def _ranges(config: MachineConfig) -> Iterator[Finding]:
             value=tilt.gain_min_counts_per_deg,
             lt="/tilt/gain_max_counts_per_deg",
             other=tilt.gain_max_counts_per_deg,
+        )
+    if tilt.zero_min_counts >= tilt.zero_max_counts:
+        yield error(
+            Category.OUT_OF_RANGE,
+            "/tilt/zero_min_counts",
+            f"tilt.zero_min_counts {tilt.zero_min_counts:g} must be below"
+            f" tilt.zero_max_counts {tilt.zero_max_counts:g}",
+            value=tilt.zero_min_counts,
+            lt="/tilt/zero_max_counts",
+            other=tilt.zero_max_counts,
         )
 
 
@@ -210,6 +222,30 @@ def _calibration(config: MachineConfig) -> Iterator[Finding]:
             f"a {tilt.calibration_stroke_s:g} s stroke at {tilt.nominal_speed_dps:g}°/s drives"
             f" {stroke_deg:g}°, beyond the {span:g}° tilt range",
         )
+    # The band is the one bound on a calibration that the drive's speed cannot fool: a wide
+    # one lets a drive off its nominal speed calibrate (and ride) off by as much.
+    lo, hi = tilt.gain_min_counts_per_deg, tilt.gain_max_counts_per_deg
+    if lo < hi and (hi - lo) / (hi + lo) > GAIN_BAND_MAX:
+        far = max(abs(tilt.min_deg), abs(tilt.max_deg))
+        yield warning(
+            Category.CALIBRATION,
+            "/tilt/gain_min_counts_per_deg",
+            f"the tilt sensor's gain band {lo:g}..{hi:g} counts/° is wider than"
+            f" ±{GAIN_BAND_MAX * 100:g} %: a calibration off by up to"
+            f" {(hi - lo) / lo * 100:.0f} % passes it, {far * (hi - lo) / lo:.3g}° at {far:g}°;"
+            " set it from the sensor's datasheet",
+        )
+    # A latch may be `latch_tolerance_deg` off each time: a zero band narrower than two of
+    # them (in degrees even at the lowest gain) refuses good calibrations now and then.
+    half_deg = (tilt.zero_max_counts - tilt.zero_min_counts) / (2 * lo)
+    if lo < hi and 0 < half_deg < 2 * tilt.latch_tolerance_deg:
+        yield warning(
+            Category.CALIBRATION,
+            "/tilt/zero_min_counts",
+            f"the tilt zero band is ±{half_deg:.2g}° wide, less than twice"
+            f" tilt.latch_tolerance_deg {tilt.latch_tolerance_deg:g}°: a good calibration whose"
+            " latch falls at the edge of its tolerance may be refused",
+        )
     # The follow check must see at least `follow_min_counts` even at the lowest plausible gain.
     counts = tilt.nominal_speed_dps * tilt.follow_window_s * tilt.gain_min_counts_per_deg
     if counts < tilt.follow_min_counts:
@@ -241,6 +277,27 @@ def _simulator(config: MachineConfig) -> Iterator[Finding]:
             "/hal/sim/home_arc_deg",
             f"the simulated home arc {sim.home_arc_deg:g}° is narrower than rotate.home_arc_deg"
             f" {rotate.home_arc_deg:g}° that the scan-period check assumes",
+        )
+    measured = sim.ai_gain_counts_per_deg * sim.tilt_speed_dps / tilt.nominal_speed_dps
+    lo, hi = tilt.gain_min_counts_per_deg, tilt.gain_max_counts_per_deg
+    if lo < hi and not lo <= measured <= hi:  # an inverted band is an error of its own
+        yield warning(
+            Category.SIMULATOR,
+            "/hal/sim/ai_gain_counts_per_deg",
+            f"the simulated tilt ({sim.ai_gain_counts_per_deg:g} counts/° at"
+            f" {sim.tilt_speed_dps:g}°/s) calibrates to {measured:.3g} counts/°, outside"
+            f" tilt.gain_min..max_counts_per_deg {tilt.gain_min_counts_per_deg:g}.."
+            f"{tilt.gain_max_counts_per_deg:g}: CalibrateTilt will refuse it",
+        )
+    zero = sim.ai_offset_counts + sim.ai_gain_counts_per_deg * sim.tilt_home_deg
+    bottom, top = tilt.zero_min_counts, tilt.zero_max_counts
+    if bottom < top and not bottom <= zero <= top:
+        yield warning(
+            Category.SIMULATOR,
+            "/hal/sim/ai_offset_counts",
+            f"the simulated tilt reads {zero:g} counts at its home switch, outside"
+            f" tilt.zero_min..max_counts {tilt.zero_min_counts:g}..{tilt.zero_max_counts:g}:"
+            " CalibrateTilt will refuse its zero",
         )
     if sim.tilt_max_deg < tilt.max_deg:
         yield warning(

@@ -53,6 +53,9 @@ repeat_tolerance_deg = 3.0
 home_tolerance_deg = 3.0
 runup_s = 0.12
 speed_window_s = 0.1
+# The home switch's raw value ± 3° (a latch here may be 1.5° off): 1200 ± 120 counts.
+zero_min_counts = 1080.0
+zero_max_counts = 1320.0
 
 [loop]
 # A shared 2-core host stalls the scan thread for tens of ms now and then; 3 periods (the

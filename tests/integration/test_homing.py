@@ -22,6 +22,7 @@ from ride_machine.schema.events import CalibrationEvent
 from ride_machine.schema.status import FaultCode, MachineState, Status
 from tests.integration.support import FAST_ROTATE, SPOILED, settle
 from tests.procs import Daemon, free_port, running_daemon
+from tests.rig import WIDE_SCALE
 
 pytestmark = pytest.mark.integration
 
@@ -34,6 +35,7 @@ timeout_s = 1.0
 
 [tilt]
 calibration_stroke_s = 1.0
+{tilt}
 
 {fast_rotate}
 [hal.sim]
@@ -50,9 +52,15 @@ GAIN = 40.0
 CLI_TIMEOUT_S = 90.0
 
 
-def config(tmp: Path, start_tilt: float = 12.0, extra: str = "") -> list[str]:
+UNCOMMISSIONED = "\n".join(f"{key} = {value!r}" for key, value in WIDE_SCALE.items())
+"""`[tilt]` lines of a sensor scale as wide as the config allows: the witnesses alone judge."""
+
+
+def config(tmp: Path, start_tilt: float = 12.0, extra: str = "", tilt: str = "") -> list[str]:
     path = tmp / "machine-homing.toml"
-    text = HOMING_CONFIG.format(fast_rotate=FAST_ROTATE, start_tilt=start_tilt, extra=extra)
+    text = HOMING_CONFIG.format(
+        fast_rotate=FAST_ROTATE, start_tilt=start_tilt, extra=extra, tilt=tilt
+    )
     path.write_text(text)
     return ["--config", str(path)]
 
@@ -138,7 +146,8 @@ def test_a_tilt_gain_typo_stops_within_a_few_degrees_not_at_the_end_stop(tmp_pat
     trusted until a Home has checked them with a measured move: Start is refused until then,
     and the Home stops within one speed window (0.2 s, 3° at 15°/s), from above the switch
     and from on it."""
-    with running_daemon(tmp_path, extra=config(tmp_path)) as daemon:
+    # A machine whose sensor scale was never narrowed (the default's refuses 400 at entry).
+    with running_daemon(tmp_path, extra=config(tmp_path, tilt=UNCOMMISSIONED)) as daemon:
         typo = ["--tilt-offset", "1194", "--tilt-gain", "400"]
         rotate = ["--rotate-revolution-s", "0.5", "--rotate-home-arc", "30"]
         entered = daemon.cli("calibration", "set", *typo, *rotate)
@@ -159,7 +168,8 @@ def test_a_gain_typed_30_percent_wrong_is_never_done_at_the_wrong_angle(tmp_path
     one-step session to 60° DONE at "59.6°" with the tilt at 77.3°, past `tilt.max_deg`: 23 %
     slow is inside the speed window's ±30 %. Now the Home verifies the entered values (a zero, a
     stroke, the zero again) and stops on the speed witness's code; nothing rides on them."""
-    with running_daemon(tmp_path, extra=config(tmp_path)) as daemon, daemon.rider() as r:
+    extra = config(tmp_path, tilt=UNCOMMISSIONED)  # the scale's refusal: tests/…/test_scale.py
+    with running_daemon(tmp_path, extra=extra) as daemon, daemon.rider() as r:
         rotate = ["--rotate-revolution-s", "0.5", "--rotate-home-arc", "30"]
         typed = ["--tilt-offset", "1197", "--tilt-gain", "52", *rotate]
         assert daemon.cli("calibration", "set", *typed).returncode == 0

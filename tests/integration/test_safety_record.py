@@ -106,7 +106,7 @@ def test_a_command_flood_prunes_commands_never_the_e_stop(tmp_path: Path) -> Non
         with daemon.rider(supervise=False) as r:
             estop(r)
             assert r.events(EventQuery(kinds=("command",), last=1)) == []  # none before it
-            r.set_calibration(tilt=TiltCalibrationSet(offset_counts=2000, gain_counts_per_deg=40))
+            r.set_calibration(tilt=TiltCalibrationSet(offset_counts=1210, gain_counts_per_deg=40))
             r.set_param("bus.heartbeat_s", 2.0)
             deadline = time.monotonic() + WAIT_S
             while sorted(changes := kept_changes(r)) != ["calibration", "param_changed"]:

@@ -25,7 +25,7 @@ from tests.procs import Daemon, start_daemon
 pytestmark = pytest.mark.integration
 
 OLD = Calibration(
-    tilt=TiltCalibration(offset_counts=1000.0, gain_counts_per_deg=33.0),
+    tilt=TiltCalibration(offset_counts=1190.0, gain_counts_per_deg=39.0),  # within the scale
     rotate=RotateCalibration(revolution_s=0.5, home_arc_deg=30.0),
 )
 CLI_TIMEOUT_S = 60.0
@@ -150,8 +150,8 @@ def test_read_only_data_dir_warns_from_start_and_trusts_no_older_file(tmp_path: 
 def test_a_calibration_refused_by_a_read_only_dir_is_not_undone_by_a_restart(
     tmp_path: Path,
 ) -> None:
-    """Issue 43, reproduction 4: read-only during `calibration set` (gain 33 -> 50), writable
-    again, restart: the older file (gain 33) was loaded as current, calibrated, no warning.
+    """Issue 43, reproduction 4: read-only during `calibration set` (gain 39 -> 41), writable
+    again, restart: the older file (gain 39) was loaded as current, calibrated, no warning.
     The calibration in use is saved once the dir takes it (at the latest as the daemon stops),
     and the refusal said what would happen otherwise."""
     with data_on_tmpfs(tmp_path, "1m") as (mount, data):
@@ -162,7 +162,7 @@ def test_a_calibration_refused_by_a_read_only_dir_is_not_undone_by_a_restart(
         daemon = start_daemon(tmp_path, extra=["--config", str(config), "--data-dir", str(data)])
         try:
             assert _run("mount", "-o", "remount,ro", str(mount)).returncode == 0
-            manual = daemon.cli("calibration", "set", "--tilt-offset", "1194", "--tilt-gain", "50")
+            manual = daemon.cli("calibration", "set", "--tilt-offset", "1194", "--tilt-gain", "41")
             assert _run("mount", "-o", "remount,rw", str(mount)).returncode == 0
             with daemon.rider() as r:
                 in_use = r.calibration().tilt
@@ -177,10 +177,10 @@ def test_a_calibration_refused_by_a_read_only_dir_is_not_undone_by_a_restart(
             daemon.stop()
     assert manual.returncode == 1, manual.stdout + manual.stderr
     said = manual.stderr.replace("\n", " ")
-    assert "could not be moved aside" in said and "tilt gain 33 counts/°" in said, said
+    assert "could not be moved aside" in said and "tilt gain 39 counts/°" in said, said
     assert "loads the older file as current" in said  # what a kill before any retry does
-    assert in_use is not None and in_use.gain_counts_per_deg == 50.0
-    assert after is not None and after.gain_counts_per_deg == 50.0, after
+    assert in_use is not None and in_use.gain_counts_per_deg == 41.0
+    assert after is not None and after.gain_counts_per_deg == 41.0, after
     assert storage_warnings(status) == []
 
 

@@ -29,6 +29,7 @@ from .devices import (
 )
 from .homing import Latch, OnSwitch, RotateHome, TiltApproach
 from .plausibility import TiltSupervisor
+from .scale import gain_problem, zero_problem
 from .witness import half_travel, judge_entered, line
 
 
@@ -108,7 +109,6 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
         cfg = self.cfg
         n = len(self._samples)
         gain = line(self._samples)[2] / cfg.nominal_speed_dps
-        lo, hi = cfg.gain_min_counts_per_deg, cfg.gain_max_counts_per_deg
         if n < cfg.calibration_samples:  # a sample each scan: the scan stalled, not the sensor
             return self._fail(
                 FaultCode.CALIBRATION_NOT_REPEATABLE,
@@ -116,11 +116,10 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
                 f" {cfg.calibration_samples}: the scan stalled during it (a loaded host);"
                 " calibrate again",
             )
-        if not lo <= gain <= hi:
+        outside = gain_problem(gain, cfg)
+        if outside is not None:
             return self._fail(
-                FaultCode.CALIBRATION_IMPLAUSIBLE,
-                f"tilt gain {gain:.2f} counts/° from {n} samples is outside {lo:g}..{hi:g}"
-                " (analog input not wired, frozen, or direction output inverted)",
+                FaultCode.CALIBRATION_IMPLAUSIBLE, f"{outside.message}; from {n} samples"
             )
         if self.axis.is_home():
             stroke_deg = cfg.nominal_speed_dps * cfg.calibration_stroke_s
@@ -145,6 +144,9 @@ class TiltCalibrate(Measurement[TiltAxis, TiltSection]):
                 f" apart (gain {self._gain:.2f} counts/°); they must agree within {tol:g}°"
                 " (a bouncing or loose home switch, or a noisy sensor)",
             )
+        outside = zero_problem((first + second) / 2, self.cfg)
+        if outside is not None:
+            return self._fail(FaultCode.CALIBRATION_IMPLAUSIBLE, outside.message)
         return self._finish((first + second) / 2)
 
     def _finish(self, offset: float) -> Step:

@@ -9,6 +9,7 @@ from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.errors import BadRequest, ParamOutOfRange
 
 from .devices import Calibration, RotateCalibration, TiltCalibration
+from .scale import scale_problem
 
 
 def manual_calibration(
@@ -22,13 +23,9 @@ def manual_calibration(
     tilt, rotate = current.tilt, current.rotate
     if values.tilt is not None:
         t = values.tilt
-        lo, hi = config.tilt.gain_min_counts_per_deg, config.tilt.gain_max_counts_per_deg
-        if not lo <= t.gain_counts_per_deg <= hi:
-            raise ParamOutOfRange(
-                f"tilt gain {t.gain_counts_per_deg:g} counts/° is outside this machine's"
-                f" plausible {lo:g}..{hi:g} (tilt.gain_min/max_counts_per_deg)",
-                "/tilt/gain_counts_per_deg",
-            )
+        outside = scale_problem(t.offset_counts, t.gain_counts_per_deg, config.tilt)
+        if outside is not None:
+            raise ParamOutOfRange(outside.message, outside.path)
         # Unverified until a Home's stroke confirms it (`TiltVerify`).
         tilt = TiltCalibration(t.offset_counts, t.gain_counts_per_deg, manual, wall, False)
     if values.rotate is not None:

@@ -26,7 +26,7 @@ class TiltSupervisor:
     speed, and not jump.
 
     Following: over each `follow_window_s` the raw value must move at least `follow_min_counts`
-    the driven way (either way before calibration tells the sign). Speed: over each
+    the driven way (up is rising counts, as the commissioned gain is positive). Speed: over each
     `speed_window_s` a calibrated position must move at the nominal speed ± `speed_tolerance`.
     Noise: a change between two samples larger than the drive can cause is a jump; too many
     within a second is a fault. The gain: the whole stroke's speed (`GainWitness`), calibrated.
@@ -103,10 +103,10 @@ class TiltSupervisor:
         return None
 
     def _followed(self, moved: int, direction: TiltDirection) -> bool:
-        cal = self.axis.calibration
-        if cal is None:
-            return abs(moved) >= self.cfg.follow_min_counts
-        sign = 1.0 if (direction is TiltDirection.UP) == (cal.gain_counts_per_deg > 0) else -1.0
+        # The commissioned gain is positive (`tilt.gain_min_counts_per_deg` > 0): the counts
+        # rise going up, calibrated or not, so a direction output wired inverted stops within a
+        # window instead of driving the other way until the end stop.
+        sign = 1 if direction is TiltDirection.UP else -1
         return moved * sign >= self.cfg.follow_min_counts
 
     def _check_speed(self, now: float, raw: int, direction: TiltDirection) -> Fault | None:

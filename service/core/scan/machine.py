@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 
 from ride_machine.hal.base import Hal
-from ride_machine.service.config.model import LiveConfig, MachineConfig
+from ride_machine.service.config.model import LiveConfig, MachineConfig, TiltSection
 from ride_machine.service.core.history.events import EventRecorder, EventSink, NullEventSink
 from ride_machine.service.core.motion.devices import Calibration, Devices
 from ride_machine.service.core.motion.io import IoPoints, ProcessImage
+from ride_machine.service.core.motion.scale import scale_problem
 from ride_machine.service.core.statemachine import StateMachine, Transition
 from ride_machine.service.core.statemachine.deadman import Heartbeats
 from ride_machine.service.core.storage.persist import CalibrationStore
@@ -56,7 +58,7 @@ class Machine:
         self.image = ProcessImage(self.live.current.hal.iomap)
         self.points = IoPoints(self.image)
         self.devices = Devices(self.points)
-        calibration, found = _stored_calibration(store)
+        calibration, found = _stored_calibration(store, self.live.current.tilt)
         self.recorder = EventRecorder(
             events or NullEventSink(),
             period_s=self.live.current.loop.period_s,
@@ -85,15 +87,27 @@ class Machine:
         )
 
 
-def _stored_calibration(store: CalibrationStore | None) -> tuple[Calibration, list[str]]:
-    """The calibration the machine powers up with, and the warning a failed load gives."""
+def _stored_calibration(
+    store: CalibrationStore | None, tilt: TiltSection
+) -> tuple[Calibration, list[str]]:
+    """The calibration the machine powers up with, and the warnings its load gives: a file that
+    could not be read, or a tilt calibration outside the sensor's commissioned scale (a file
+    from another machine, edited, or from before the scale was commissioned), which is not
+    used: the tilt needs calibrating again, and the file stays as it is."""
     if store is None:
         return Calibration(), []
     calibration, warning = store.load()
-    if not warning:
-        return calibration, []
-    log.warning("event=calibration_load_failed detail=%r", warning)
-    return calibration, [warning]
+    warnings = [warning] if warning else []
+    cal = calibration.tilt
+    outside = (
+        None if cal is None else scale_problem(cal.offset_counts, cal.gain_counts_per_deg, tilt)
+    )
+    if outside is not None:
+        calibration = dataclasses.replace(calibration, tilt=None)
+        warnings.append(f"stored {outside.message}; not used: calibrate the tilt again")
+    for found in warnings:
+        log.warning("event=calibration_load_failed detail=%r", found)
+    return calibration, warnings
 
 
 def _both(

@@ -259,7 +259,8 @@ def test_rotate_speed_far_from_nominal_fails_calibration() -> None:
 
 @pytest.mark.hazard("H13", "H24")
 def test_inverted_tilt_wiring_fails_calibration() -> None:
-    """An analog input that falls as the seat rises gives a negative gain: refused."""
+    """An analog input that falls as the seat rises: the counts must rise going up (the
+    commissioned gain is positive), so the first seek down stops within a follow window."""
     config = CONFIG.with_overrides(
         hal={"sim": {"ai_gain_counts_per_deg": -40.0, "ai_offset_counts": 8000.0}}
     )
@@ -268,5 +269,5 @@ def test_inverted_tilt_wiring_fails_calibration() -> None:
     rig.run_until(lambda: rig.state is not S.CALIBRATING, max_s=60)
     assert rig.state is S.FAULT_HW
     assert rig.state_machine.fault is not None
-    assert rig.state_machine.fault.code is F.CALIBRATION_IMPLAUSIBLE
+    assert rig.state_machine.fault.code is F.TILT_NOT_FOLLOWING
     assert rig.state_machine.calibration.tilt is None

@@ -272,7 +272,7 @@ def test_a_calibration_entered_at_rest_is_no_speed() -> None:
     assert cal is not None
     entered = CalibrationSet(
         transaction_id="c9",
-        tilt=TiltCalibrationSet(offset_counts=cal.offset_counts + 100, gain_counts_per_deg=40.0),
+        tilt=TiltCalibrationSet(offset_counts=cal.offset_counts + 30, gain_counts_per_deg=40.0),
     )
     rig.state_machine.enter_calibration(entered, rig.clock())
     for _ in range(3):

@@ -22,7 +22,7 @@ from ride_machine.service.core.motion.plausibility import RevolutionCheck
 from ride_machine.service.core.scan.tasks import PendingCommand
 from ride_machine.sim.settings import PhysicsParams
 from tests.integration.support import FAST_CONFIG
-from tests.rig import Rig, known_calibration
+from tests.rig import UNCOMMISSIONED, Rig, known_calibration
 
 S = MachineState
 C = Command
@@ -205,7 +205,7 @@ def enter(
 def test_a_hand_entered_gain_typo_is_stopped_by_home_within_a_speed_window(start: float) -> None:
     """Issue 37, point 4: gain 400 for 40 (in range) drove the tilt into its end stop. Typed-in
     values need Home before Start; Home measures the speed and stops within one window."""
-    rig = Rig(calibration=known_calibration())
+    rig = Rig(config=UNCOMMISSIONED, calibration=known_calibration())  # witnesses alone
     rig.home()
     rig.hal.place(tilt_deg=start)
     enter(rig, tilt=TiltCalibrationSet(offset_counts=1194.0, gain_counts_per_deg=400.0))

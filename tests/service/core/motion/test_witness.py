@@ -14,7 +14,7 @@ from ride_machine.schema.commands import Command, Session, TiltStep
 from ride_machine.schema.status import FaultCode, MachineState
 from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.core.motion.witness import StrokeFit, judge_entered
-from tests.rig import Rig, known_calibration
+from tests.rig import UNCOMMISSIONED, Rig, known_calibration
 
 S = MachineState
 C = Command
@@ -81,7 +81,7 @@ def test_judging_an_entered_calibration_names_the_witness_and_the_figure() -> No
 @pytest.mark.hazard("H21")
 def test_the_issue_calibration_is_stopped_by_home_and_never_ridden() -> None:
     """Issue 53, point 1 on the fake clock: 1197 / 52 for the measured 1197 / 40."""
-    rig = Rig(calibration=known_calibration())
+    rig = Rig(config=UNCOMMISSIONED, calibration=known_calibration())  # witnesses alone
     enter(rig, 1197.0, 52.0)
     assert rig.state_machine.calibration.tilt is not None
     assert rig.state_machine.calibration.tilt.verified is False
@@ -110,7 +110,7 @@ def test_a_right_entry_is_verified_by_home_and_shown_verified() -> None:
 
 
 def test_calibrate_rotate_verifies_an_entered_tilt_on_its_way() -> None:
-    rig = Rig(calibration=known_calibration())
+    rig = Rig(config=UNCOMMISSIONED, calibration=known_calibration())  # witnesses alone
     enter(rig, ZERO + 200.0, GAIN)  # 5° off
     assert finish(rig, C.CALIBRATE_ROTATE) is S.FAULT_HW
     fault = rig.state_machine.fault

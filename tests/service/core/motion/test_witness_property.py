@@ -28,7 +28,7 @@ from ride_machine.schema.status import FaultCode, MachineState
 from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.core.motion.devices import Calibration
 from ride_machine.sim.settings import PhysicsParams
-from tests.rig import Rig, known_calibration
+from tests.rig import WIDE_SCALE, Rig, known_calibration
 
 S = MachineState
 C = Command
@@ -46,8 +46,9 @@ RIGHT_DEG = 0.15
 """A calibration within this of the truth all over the range is right: the witnesses must let
 most of those ride (they may refuse one the stalls spoiled, or a latch's error tipped over)."""
 CONFIG = MachineConfig().with_overrides(
-    bus={"ai_deadband_counts": 10_000, "axis_every_cycles": 10_000}
+    bus={"ai_deadband_counts": 10_000, "axis_every_cycles": 10_000}, tilt=WIDE_SCALE
 )
+"""The witnesses alone: a scale as wide as the config allows lets every typed value in."""
 MOTIONS = (S.CALIBRATING, S.HOMING, S.RUNNING)
 
 

@@ -1,0 +1,50 @@
+"""The tilt sensor's commissioned scale: the one check of a tilt calibration that no drive speed
+can fool. A stroke's gain is its counts per second over the drive's nominal speed, so a drive
+10 % fast calibrates 10 % high and every speed witness agrees with it afterwards; the band from
+the sensor's datasheet (`tilt.gain_min/max_counts_per_deg`) and the raw value commissioned at
+the home switch (`tilt.zero_min/max_counts`) do not move with it (docs/homing.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ride_machine.service.config.model import TiltSection
+
+
+@dataclass(frozen=True)
+class ScaleProblem:
+    """Which value lies outside the commissioned scale, and why it matters, in words."""
+
+    path: str
+    """`/tilt/gain_counts_per_deg` or `/tilt/offset_counts` (a calibration's fields)."""
+    message: str
+
+
+def gain_problem(gain: float, cfg: TiltSection) -> ScaleProblem | None:
+    lo, hi = cfg.gain_min_counts_per_deg, cfg.gain_max_counts_per_deg
+    if lo <= gain <= hi:
+        return None
+    return ScaleProblem(
+        "/tilt/gain_counts_per_deg",
+        f"tilt gain {gain:.2f} counts/° is outside the sensor's commissioned {lo:g}..{hi:g}"
+        " (tilt.gain_min/max_counts_per_deg): a drive off its nominal speed"
+        f" ({cfg.nominal_speed_dps:g}°/s), a slipping or stalling drive, an analog input not"
+        " wired or frozen, or a value typed wrong",
+    )
+
+
+def zero_problem(offset: float, cfg: TiltSection) -> ScaleProblem | None:
+    lo, hi = cfg.zero_min_counts, cfg.zero_max_counts
+    if lo <= offset <= hi:
+        return None
+    return ScaleProblem(
+        "/tilt/offset_counts",
+        f"tilt zero {offset:.1f} counts is outside the commissioned {lo:g}..{hi:g} at the home"
+        " switch (tilt.zero_min/max_counts): the switch moved, the sensor slipped on its shaft,"
+        " or a value typed wrong",
+    )
+
+
+def scale_problem(offset: float, gain: float, cfg: TiltSection) -> ScaleProblem | None:
+    """The first of a tilt calibration's values outside the commissioned scale, or None."""
+    return gain_problem(gain, cfg) or zero_problem(offset, cfg)
