@@ -189,6 +189,7 @@ class EventWriter:
         self.failure = None
         self.dropped_recorded += dropped
         self.counts.written += len(items)
+        self.unwritten.committed(len(held) + len(batch))  # the previous run's file, once written
         if self.listeners:
             self.publish(stored(last, machine_id, items))
 

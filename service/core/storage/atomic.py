@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import threading
 import time
@@ -12,18 +13,77 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+log = logging.getLogger(__name__)
+
 
 def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
     """Write temp file, fsync, rename over `path`, fsync the directory: never a torn file.
 
     The file is created with `mode` (less what the umask removes): 0o600 keeps a secret
-    unreadable to others from the first byte on."""
+    unreadable to others from the first byte on. Raises OSError with `path` as it was before
+    (`NotDurable` where even that could not be had)."""
     if not path.parent.is_dir():
         path.parent.mkdir(parents=True, exist_ok=True)
         fsync_dir(path.parent.parent)  # the new directory's own entry must survive too
+    before = _before(path)
+    _replace(path, data, mode)
+    try:
+        fsync_dir(path.parent)
+    except OSError as exc:
+        # The new file is in place but may not survive a power cut: a caller told "failed"
+        # (a parameter: "nothing was changed") must find the older one there, not the new
+        # one applying itself at the next start.
+        _put_back(path, before, exc)
+        raise
+
+
+class NotDurable(OSError):
+    """The new file is in place, its directory could not be synced and the older file could
+    not be put back: what a power cut leaves is unknown, what is read now is the new file."""
+
+
+@dataclass(frozen=True)
+class _Before:
+    """A file as it was before a write: its bytes and mode (None: there was none)."""
+
+    data: bytes | None
+    mode: int = 0o644
+
+
+def _before(path: Path) -> _Before:
+    """`path` as it is, to be put back; one that cannot be read counts as none (a load reads
+    it as defaults too, and the rename replaces it anyway)."""
+    try:
+        with path.open("rb") as f:
+            return _Before(f.read(), os.fstat(f.fileno()).st_mode & 0o7777)
+    except OSError:
+        return _Before(None)
+
+
+def _put_back(path: Path, before: _Before, exc: OSError) -> None:
+    """After a failed directory sync: `path` as it was before (NotDurable if that fails)."""
+    try:
+        if before.data is None:
+            path.unlink(missing_ok=True)
+        else:
+            _replace(path, before.data, before.mode)
+    except OSError as undo:
+        raise NotDurable(
+            exc.errno,
+            f"{exc.strerror or exc}; the new {path.name} could not be taken back"
+            f" ({undo.strerror or undo})",
+        ) from exc
+    with contextlib.suppress(OSError):
+        fsync_dir(path.parent)  # the same sync that just failed: what it can, it does
+
+
+def _replace(path: Path, data: bytes, mode: int) -> None:
+    """`data` into a temp file beside `path`, synced, renamed over `path`."""
     tmp = _temp_name(path, os.getpid(), threading.get_ident())
+    created = False
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)  # less under a umask
+        created = True
         try:
             write_all(fd, data)
             os.fsync(fd)
@@ -31,10 +91,12 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
             os.close(fd)
         os.replace(tmp, path)
     except BaseException:
-        # A full disk or an interrupt must not leave the half-written temp file behind.
-        tmp.unlink(missing_ok=True)
+        # A full disk or an interrupt must not leave the half-written temp file behind; a
+        # failed removal (a read-only mount) must not hide why the write failed.
+        if created:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
         raise
-    fsync_dir(path.parent)
 
 
 def write_all(fd: int, data: bytes) -> None:
@@ -65,7 +127,11 @@ def remove_stale_temps(path: Path) -> list[Path]:
         pid_text = tmp.name[len(path.name) + 2 :].split(".", 1)[0]
         if not pid_text.isdigit() or _alive(int(pid_text)):
             continue
-        tmp.unlink(missing_ok=True)
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError as exc:  # a read-only mount: the file itself is whole, loading goes on
+            log.warning("event=stale_temp_kept path=%s error=%r", tmp, exc.strerror or str(exc))
+            continue
         removed.append(tmp)
     return removed
 
@@ -109,10 +175,8 @@ def load_json(path: Path) -> Loaded:
         if not isinstance(data, dict):
             raise ValueError(f"expected a JSON object, found {type(data).__name__}")
     except (ValueError, RecursionError) as exc:
-        kept = keep_aside(path)
-        return Loaded(
-            None, f"{path}: corrupt ({str(exc)[:120]}); kept as {kept.name}; using defaults", kept
-        )
+        kept, where = set_aside(path)
+        return Loaded(None, f"{path}: corrupt ({str(exc)[:120]}); {where}; using defaults", kept)
     return Loaded(data)
 
 
@@ -127,6 +191,16 @@ def keep_aside(path: Path, tag: str = "corrupt") -> Path:
         n += 1
     os.replace(path, kept)
     return kept
+
+
+def set_aside(path: Path) -> tuple[Path | None, str]:
+    """`keep_aside` for a file found bad at a load, which must go on: where it went (None:
+    it stays, a read-only mount) and that, said for a warning."""
+    try:
+        kept = keep_aside(path)
+    except OSError as exc:
+        return None, f"could not be kept aside ({exc.strerror or exc}), left in place"
+    return kept, f"kept as {kept.name}"
 
 
 def retire(path: Path) -> Path | None:

@@ -26,6 +26,7 @@ from ride_machine.service.errors import (
     UnknownParam,
 )
 
+from .atomic import NotDurable
 from .persist import ParamScalar, ParamStore, StorageHealth, StoredParam
 from .safety import check_write, is_safety, weaker
 
@@ -362,6 +363,17 @@ class ParamRegistry:
     def _save(self, stored: dict[str, StoredParam], name: str) -> None:
         try:
             self._store.save(stored)
+        except NotDurable as exc:
+            # The new file is what is read now (and, likely, after a restart): the value is
+            # taken, as the file has it, and the doubt about a power cut is said.
+            message = (
+                f"{name}: written to {self._store.path}, but its directory could not be synced"
+                f" ({exc.strerror or exc}): a power cut may lose it"
+            )
+            log.error("event=persist_not_durable what=params detail=%r", message)
+            if self._health is not None:
+                self._health.failed(StorageHealth.PARAMS, message)
+            return
         except OSError as exc:
             message = (
                 f"{name}: could not write {self._store.path} ({exc.strerror or exc});"
@@ -372,7 +384,7 @@ class ParamRegistry:
                 self._health.failed(StorageHealth.PARAMS, message)
             raise StorageFailed(message, "/persist") from exc
         if self._health is not None:
-            self._health.recovered()
+            self._health.recovered(StorageHealth.PARAMS)
 
     def _load(self) -> builtins.list[str]:
         """Apply the persisted overrides one by one; each one that no longer fits is a warning."""

@@ -23,7 +23,7 @@ from ride_machine.schema.errors import ErrorCode
 from ride_machine.service.core.motion.devices import Calibration, RotateCalibration, TiltCalibration
 from ride_machine.service.threads import NamedThread
 
-from .atomic import atomic_write, keep_aside, load_json, probe_writable, retire
+from .atomic import atomic_write, load_json, probe_writable, retire, set_aside
 from .unsaved import RETRY_S, Unsaved
 
 log = logging.getLogger(__name__)
@@ -96,10 +96,10 @@ def load_calibration(data_dir: Path) -> tuple[Calibration, str | None]:
         if rotate is not None and not 0 < rotate.home_arc_deg < 360:
             raise ValueError("home arc must be between 0 and 360 degrees")
     except (ValidationError, TypeError, ValueError) as exc:
-        kept = keep_aside(path)
+        _, where = set_aside(path)
         return Calibration(), (
-            f"{path}: invalid calibration ({str(exc).splitlines()[0][:120]}); kept as"
-            f" {kept.name}; using defaults"
+            f"{path}: invalid calibration ({str(exc).splitlines()[0][:120]}); {where};"
+            " using defaults"
         )
     return Calibration(tilt=tilt, rotate=rotate), None
 
@@ -146,7 +146,8 @@ class StorageHealth:
     """What could not be written to the data directory, as status warnings (thread-safe).
 
     Writers report here: the start-up probe, the calibration store, the parameter registry.
-    A later successful write proves the directory works again and clears every warning.
+    A later successful write proves the directory works again: it clears its own writer's
+    warning and the data dir's, never another writer's (that value is still not on disk).
     """
 
     DATA_DIR = "data_dir"
@@ -164,10 +165,12 @@ class StorageHealth:
             self._problems[what] = f"{STORAGE_FAILED}: {message}"
             self.version += 1
 
-    def recovered(self) -> None:
+    def recovered(self, what: str) -> None:
+        """Writer `what` has written: its warning and the data dir's go (another writer's
+        stays: a calibration still unsaved is not saved by a parameter write)."""
         with self._lock:
-            if self._problems:
-                self._problems.clear()
+            gone = [k for k in (what, self.DATA_DIR) if self._problems.pop(k, None) is not None]
+            if gone:
                 self.version += 1
 
     def warnings(self) -> list[str]:
@@ -203,10 +206,10 @@ class CalibrationStore:
     """The calibration file in the data directory; writes go through a background writer.
 
     A save that fails never leaves an older file to be loaded as current: the older file is
-    moved aside (`calibration.json.stale-<time>`). Where even that fails (a read-only mount),
-    the new calibration is saved as soon as the directory takes it (service/core/storage/unsaved.py:
-    while the machine runs, and as it stops), and a start that finds the directory still not
-    writable does not trust the file. What cannot hold: a machine killed (or a power cut)
+    moved aside (`calibration.json.stale-<time>`), and the new calibration is saved as soon as
+    the directory takes it (service/core/storage/unsaved.py: while the machine runs, and as it
+    stops). Where even the move fails (a read-only mount), a start that finds the directory
+    still not writable does not trust the file. What cannot hold: a machine killed (or a power cut)
     before any retry succeeds, then started with the directory writable again, loads the
     older file; the refusal says so, with its values.
     """
@@ -225,9 +228,9 @@ class CalibrationStore:
         self.unsaved = Unsaved(
             lambda data: atomic_write(self.path, data),
             writer.submit if writer is not None else None,
-            self.health.recovered,
+            lambda: self.health.recovered(StorageHealth.CALIBRATION),
         )
-        """A calibration not saved over an older file still in place, tried again."""
+        """A calibration that could not be saved, tried again."""
 
     @property
     def path(self) -> Path:
@@ -262,7 +265,7 @@ class CalibrationStore:
             except OSError as exc:
                 ticket.finish(self._failed(exc, data))
                 return
-            self.health.recovered()
+            self.health.recovered(StorageHealth.CALIBRATION)
             ticket.finish(None)
 
         if self.writer is None:
@@ -287,9 +290,13 @@ class CalibrationStore:
                 " the older file as current: calibrate again then"
             )
         else:
+            # A full disk frees up (a log rotated, a file removed): nothing else would save it.
+            self.unsaved.keep(data)
             older = f"the older file was moved aside to {stale.name}" if stale else "no older file"
             message = (
-                f"calibration not saved to {self.path} ({why}); it is lost at a restart; {older}"
+                f"calibration not saved to {self.path} ({why}); {older}. The new calibration is"
+                f" in use; it is saved as soon as the data dir takes it (tried every {RETRY_S:g} s"
+                " and as the machine stops), and lost at a restart before then"
             )
         self.health.failed(StorageHealth.CALIBRATION, message)
         log.error("event=persist_failed what=calibration error=%r detail=%r", why, message)
@@ -305,12 +312,13 @@ class CalibrationStore:
         else:
             self.unsaved.retry()
         if self.unsaved.pending:
-            log.error(
-                "event=calibration_unsaved_at_stop path=%s detail=%r",
-                self.path,
+            detail = (
                 f"the older file ({_holds(self.path)}) is loaded as current by a start that"
-                " finds the data dir writable",
+                " finds the data dir writable"
+                if self.path.exists()
+                else "the next start needs calibration"
             )
+            log.error("event=calibration_unsaved_at_stop path=%s detail=%r", self.path, detail)
 
 
 def _holds(path: Path) -> str:
@@ -379,10 +387,10 @@ class ParamStore:
             if doc.version != PARAMS_VERSION:
                 raise ValueError(f"version {doc.version} is not {PARAMS_VERSION}")
         except (ValidationError, ValueError) as exc:
-            kept = keep_aside(self.path)
+            _, where = set_aside(self.path)
             return {}, [
                 f"{self.path}: invalid parameter file ({str(exc).splitlines()[0][:120]});"
-                f" kept as {kept.name}; using defaults"
+                f" {where}; using defaults"
             ]
         out: dict[str, StoredParam] = {}
         warnings = []

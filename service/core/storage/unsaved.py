@@ -1,10 +1,12 @@
-"""A calibration that could not be saved while an older file stays in place: tried again.
+"""A calibration that could not be saved: tried again.
 
 With the data dir read-only during `calibration set` (gain 40 -> 50), the save failed and so did
 moving the older file aside; the dir writable again and the machine restarted, gain 40 was loaded as
-current, with no warning. The store (service/core/storage/persist.py) now hands such a calibration
-here: it is written as soon as the directory takes it, every `RETRY_S` while the machine runs and
-once more as it stops (`CalibrationStore.close`). What this cannot cover, the refusal says.
+current, with no warning. On a full disk the older file went aside, but nothing saved the new one
+once there was room again. The store (service/core/storage/persist.py) now hands every calibration
+it could not save here: it is written as soon as the directory takes it, every `RETRY_S` while the
+machine runs and once more as it stops (`CalibrationStore.close`). What this cannot cover, the
+refusal says.
 """
 
 from __future__ import annotations

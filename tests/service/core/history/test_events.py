@@ -197,7 +197,7 @@ def test_a_failed_write_to_data_dir_is_recorded_once_per_problem() -> None:
     rig.step(3)
     [problem] = details(sink, mark)
     assert isinstance(problem, StorageEvent) and "No space left" in problem.error
-    storage.recovered()
+    storage.recovered(StorageHealth.CALIBRATION)
     rig.step()
     storage.failed(StorageHealth.PARAMS, "params.json: Read-only file system")
     rig.step()

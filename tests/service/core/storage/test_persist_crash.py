@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import random
 import subprocess
@@ -28,6 +29,7 @@ from ride_machine.service.core.storage.persist import (
     PARAMS_FILE,
     CalibrationStore,
     ParamStore,
+    load_calibration,
 )
 from tests.rig import Rig
 from tests.service.core.storage import persist_crash_writer as writer
@@ -177,6 +179,54 @@ def test_keep_aside_never_overwrites_an_earlier_kept_file(tmp_path: Path) -> Non
     assert [k.read_bytes() for k in kept] == [b"one", b"two", b"three"]
 
 
+def read_only_fs(*args: object, **kwargs: object) -> None:
+    """What `os.replace` and `os.unlink` do on a read-only mount."""
+    raise OSError(errno.EROFS, "Read-only file system")
+
+
+def _dead_pid() -> int:
+    """The pid of a process that has ended: a writer that died mid-write."""
+    done = subprocess.run(["sh", "-c", "echo $$"], capture_output=True, check=True, timeout=60)
+    return int(done.stdout)
+
+
+@pytest.mark.parametrize(
+    "doc", [b'{"version": 1, "par', b'{"version": 7, "params": {}}'], ids=["torn", "wrong-version"]
+)
+@pytest.mark.hazard("H39")
+def test_a_bad_params_file_on_a_read_only_dir_is_a_warning_not_a_failed_start(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, doc: bytes
+) -> None:
+    """Moving the file aside (and a dead writer's temp file away) raised EROFS out of the
+    load, and the daemon did not start."""
+    (tmp_path / PARAMS_FILE).write_bytes(doc)
+    stale = tmp_path / f".{PARAMS_FILE}.{_dead_pid()}.1.tmp"
+    stale.write_bytes(b"{")
+    monkeypatch.setattr(os, "replace", read_only_fs)
+    monkeypatch.setattr(os, "unlink", read_only_fs)
+    registry = ParamRegistry(MachineConfig(), ParamStore(tmp_path))
+    monkeypatch.undo()
+    [warning] = registry.warnings
+    assert "could not be kept aside (Read-only file system), left in place" in warning
+    assert warning.endswith("using defaults")
+    assert (tmp_path / PARAMS_FILE).read_bytes() == doc and stale.exists()
+    assert all(not p.persisted for p in registry.list())
+
+
+@pytest.mark.hazard("H39")
+def test_an_invalid_calibration_on_a_read_only_dir_is_a_warning_and_defaults(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    doc = b'{"version": 1, "tilt": {"offset_counts": 1.0, "gain_counts_per_deg": 0.0}}'
+    (tmp_path / CALIBRATION_FILE).write_bytes(doc)
+    monkeypatch.setattr(os, "replace", read_only_fs)
+    cal, warning = load_calibration(tmp_path)
+    monkeypatch.undo()
+    assert cal == Calibration()
+    assert warning is not None and "could not be kept aside" in warning
+    assert (tmp_path / CALIBRATION_FILE).read_bytes() == doc
+
+
 def test_unreadable_file_is_reported_not_moved(tmp_path: Path) -> None:
     (tmp_path / PARAMS_FILE).mkdir()  # a directory where the file should be: unreadable
     loaded = load_json(tmp_path / PARAMS_FILE)
@@ -211,6 +261,21 @@ def test_failed_write_leaves_no_temp_file_and_the_old_file_intact(tmp_path: Path
     with pytest.raises(OSError):
         atomic_write(target, b"{}")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["params.json"]
+
+
+def test_a_failed_write_says_its_own_error_not_the_cleanup_s(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The temp file was never made: removing it (EROFS on a read-only mount) must not hide
+    why the write failed."""
+
+    def refused(*args: object, **kwargs: object) -> int:
+        raise OSError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(os, "open", refused)
+    monkeypatch.setattr(os, "unlink", read_only_fs)
+    with pytest.raises(PermissionError):
+        atomic_write(tmp_path / PARAMS_FILE, b"{}")
 
 
 def test_atomic_write_creates_the_data_directory(tmp_path: Path) -> None:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import errno
 import json
+import os
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -18,9 +20,11 @@ from ride_machine.schema.status import MachineState
 from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.core.history.events import ListEventSink
 from ride_machine.service.core.motion.devices import Calibration, RotateCalibration, TiltCalibration
+from ride_machine.service.core.storage.atomic import NotDurable, atomic_write
 from ride_machine.service.core.storage.params import ParamRegistry
 from ride_machine.service.core.storage.persist import (
     CALIBRATION_FILE,
+    PARAMS_FILE,
     CalibrationStore,
     ParamStore,
     SaveTicket,
@@ -32,7 +36,7 @@ from tests.rig import Rig
 
 S = MachineState
 OLD = Calibration(
-    tilt=TiltCalibration(offset_counts=1000.0, gain_counts_per_deg=33.0),
+    tilt=TiltCalibration(offset_counts=1190.0, gain_counts_per_deg=39.0),  # within the scale
     rotate=RotateCalibration(revolution_s=4.0, home_arc_deg=9.9),
 )
 
@@ -155,6 +159,25 @@ def test_a_data_dir_that_cannot_be_written_is_a_warning_from_start(tmp_path: Pat
     assert "not writable (Not a directory)" in warnings[-1]
 
 
+def refused_after_a_good_write(
+    registry: ParamRegistry,
+    monkeypatch: pytest.MonkeyPatch,
+    where: str,
+    failure: Callable[..., None],
+    match: str,
+) -> str:
+    """A parameter persisted as 2.0, then its write of 3.0 refused by `failure` (patched in at
+    `where`, taken out again); the parameter's name."""
+    name = "bus.heartbeat_s"
+    registry.set(name, ParamSet(transaction_id="p1", value=2.0, persist=True), moving=False, now=1)
+    monkeypatch.setattr(where, failure)
+    with pytest.raises(StorageFailed, match=match):
+        req = ParamSet(transaction_id="p2", value=3.0, persist=True)
+        registry.set(name, req, moving=False, now=2)
+    monkeypatch.undo()
+    return name
+
+
 @pytest.mark.hazard("H38")
 def test_a_failed_parameter_write_changes_nothing_and_is_a_warning(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -162,12 +185,8 @@ def test_a_failed_parameter_write_changes_nothing_and_is_a_warning(
     health = StorageHealth()
     store = ParamStore(tmp_path)
     registry = ParamRegistry(MachineConfig(), store, health)
-    name = "bus.heartbeat_s"
-    registry.set(name, ParamSet(transaction_id="p1", value=2.0, persist=True), moving=False, now=1)
-    monkeypatch.setattr("ride_machine.service.core.storage.persist.atomic_write", disk_full)
-    with pytest.raises(StorageFailed, match="No space left"):
-        req = ParamSet(transaction_id="p2", value=3.0, persist=True)
-        registry.set(name, req, moving=False, now=2)
+    where = "ride_machine.service.core.storage.persist.atomic_write"
+    name = refused_after_a_good_write(registry, monkeypatch, where, disk_full, "No space left")
     assert registry.get(name).value == 2.0
     (warning,) = health.warnings()
     assert warning.startswith(f"STORAGE_FAILED: {name}: could not write")
@@ -191,7 +210,7 @@ def test_a_calibration_whose_older_file_cannot_be_moved_aside_is_saved_once_it_c
     ticket = store.save(new)
     assert ticket.done and ticket.problem is not None
     assert "could not be moved aside" in ticket.problem
-    assert "tilt gain 33 counts/°" in ticket.problem  # what the older file holds
+    assert "tilt gain 39 counts/°" in ticket.problem  # what the older file holds
     assert "loads the older file as current" in ticket.problem  # what a kill would do
     assert store.unsaved.pending
     monkeypatch.undo()  # writable again
@@ -216,3 +235,111 @@ def test_a_newer_save_replaces_a_calibration_still_waiting(
     store.close()
     cal, _ = CalibrationStore(tmp_path).load()
     assert cal.tilt is not None and cal.tilt.gain_counts_per_deg == 44.0
+
+
+def sync_failed(path: Path) -> None:
+    raise OSError(errno.EIO, "Input/output error")
+
+
+@pytest.mark.hazard("H38")
+def test_a_parameter_refused_after_its_rename_leaves_the_file_as_the_reply_says(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The directory's fsync failed after the rename: refused "nothing was changed", and the
+    new value was in the file all the same, to apply itself at the next start."""
+    store = ParamStore(tmp_path)
+    registry = ParamRegistry(MachineConfig(), store, StorageHealth())
+    where = "ride_machine.service.core.storage.atomic.fsync_dir"
+    name = refused_after_a_good_write(registry, monkeypatch, where, sync_failed, "Input/output")
+    assert registry.get(name).value == 2.0
+    assert json.loads(store.path.read_text())["params"][name]["value"] == 2.0
+    assert ParamRegistry(MachineConfig(), ParamStore(tmp_path)).get(name).value == 2.0
+    assert [p.name for p in tmp_path.iterdir()] == [PARAMS_FILE]  # no temp file left
+
+
+def test_a_first_file_whose_directory_sync_fails_is_taken_back(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("ride_machine.service.core.storage.atomic.fsync_dir", sync_failed)
+    with pytest.raises(OSError, match="Input/output error"):
+        atomic_write(tmp_path / PARAMS_FILE, b"{}")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_new_file_that_cannot_be_taken_back_is_said_not_durable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The sync failed and putting the older file back failed too: the caller learns that the
+    new file is the one in place."""
+    path = tmp_path / PARAMS_FILE
+    path.write_bytes(b"old")
+    renames: list[object] = []
+    real_replace = os.replace
+
+    def first_rename_only(src: str, dst: str) -> None:
+        renames.append(src)
+        if len(renames) > 1:
+            raise OSError(errno.EIO, "Input/output error")
+        real_replace(src, dst)
+
+    monkeypatch.setattr("ride_machine.service.core.storage.atomic.fsync_dir", sync_failed)
+    monkeypatch.setattr(os, "replace", first_rename_only)
+    with pytest.raises(NotDurable, match="could not be taken back"):
+        atomic_write(path, b"new")
+    monkeypatch.undo()
+    assert path.read_bytes() == b"new"
+
+
+@pytest.mark.hazard("H38")
+def test_a_parameter_whose_file_cannot_be_taken_back_is_taken_and_its_doubt_said(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`NotDurable`: the new file is the one read now, so the registry takes the value the file
+    has and says a power cut may lose it, instead of refusing what is already on disk."""
+    health = StorageHealth()
+    store = ParamStore(tmp_path)
+    registry = ParamRegistry(MachineConfig(), store, health)
+
+    def not_durable(path: Path, data: bytes) -> None:
+        path.write_bytes(data)
+        raise NotDurable(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr("ride_machine.service.core.storage.persist.atomic_write", not_durable)
+    req = ParamSet(transaction_id="p1", value=2.0, persist=True)
+    registry.set("bus.heartbeat_s", req, moving=False, now=1)
+    monkeypatch.undo()
+    assert registry.get("bus.heartbeat_s").value == 2.0
+    assert json.loads(store.path.read_text())["params"]["bus.heartbeat_s"]["value"] == 2.0
+    (warning,) = health.warnings()
+    assert "could not be synced" in warning and "a power cut may lose it" in warning
+
+
+@pytest.mark.parametrize("branch", ["full", "read-only"])
+@pytest.mark.hazard("H38")
+def test_a_calibration_refused_by_the_disk_keeps_its_warning_until_it_is_saved(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, branch: str
+) -> None:
+    """On a full disk nothing tried the calibration again, and a parameter written once there
+    was room cleared its warning: the status said all was saved when it was not."""
+    (tmp_path / CALIBRATION_FILE).write_bytes(calibration_to_json(OLD, 1.0))
+    health = StorageHealth()
+    store = CalibrationStore(tmp_path, health=health)  # no writer: tried again by hand below
+    registry = ParamRegistry(MachineConfig(), ParamStore(tmp_path), health)
+    monkeypatch.setattr("ride_machine.service.core.storage.persist.atomic_write", disk_full)
+    if branch == "read-only":
+        monkeypatch.setattr("ride_machine.service.core.storage.persist.retire", read_only)
+    new = Calibration(tilt=TiltCalibration(offset_counts=1194.0, gain_counts_per_deg=50.0))
+    ticket = store.save(new)
+    assert ticket.problem is not None and "saved as soon as the data dir takes it" in ticket.problem
+    assert store.unsaved.pending
+    monkeypatch.undo()  # room again
+
+    req = ParamSet(transaction_id="p1", value=2.0, persist=True)
+    registry.set("bus.heartbeat_s", req, moving=False, now=1)
+    (warning,) = health.warnings()
+    assert warning.startswith("STORAGE_FAILED: calibration not saved")
+
+    store.unsaved.retry()  # what the retry thread runs every RETRY_S on the store's writer
+    assert not store.unsaved.pending and health.warnings() == []
+    cal, problem = CalibrationStore(tmp_path).load()
+    assert problem is None and cal.tilt is not None and cal.tilt.gain_counts_per_deg == 50.0
