@@ -1,28 +1,17 @@
-"""The event history written by a process of its own (`[events] process = true`, the default).
-
-Why: on a host with few cores, any thread of the daemon that runs for a millisecond, holding
-the GIL or a CPU, delays whoever wakes beside it. Made and written on a thread of the daemon,
-the history (20-27 µs of CPU per command, in bursts of a batch) was what made the 1 % slowest
-commands take 1.2-1.5 ms (BENCHMARKS.md, section 1, tenth pass). A process has a GIL of its
-own, and it gives way between short slices of work (`sched_yield`), so the scheduler runs a
-woken command thread at once instead of after the writer's time slice.
+"""The event history written by a process of its own (`[events] process = true`, the default):
+why, and how it behaves, is docs/events.md, "Written by a process of its own".
 
 `HistoryProcess` is an `EventLog` whose writer thread only sends: what the scan loop and the
-commands queue (`emit`, `defer`) goes down a pipe, a batch at a time, as msgpack, to
-`python -m ride_machine.service.adapters.history_writer` (the messages:
-service/adapters/history_pipe.py; what a queued event, command or line is sent as:
-service/adapters/history_items.py). That process makes the events (a command's event and its
-log line from its `CommandFacts`) and writes them with an `EventWriter` of its own: the same
-batches, retention, failure handling and `storage_failed` records. It loads no pydantic (half
-its memory): a command's event is made from its facts as plain JSON, and its settings come as
-plain values. It sends back what it wrote (the bus publishes it), its counters and its log
-lines (written to the daemon's stderr by the daemon's log writer, so lines never interleave).
-Reads stay in the daemon, on a connection of their own: WAL lets them read while the other
-process writes.
-
-If the process ends unexpectedly, the events it had not confirmed are counted lost, a new one
-is started (at most once a second), and its first write records a `storage_failed` event. It
-ends by itself when the daemon does: the pipe closes, it writes what it received and exits.
+commands queue (`emit`, `defer`) goes down a pipe, a batch at a time, as msgpack, to `python -m
+ride_machine.service.adapters.history_writer` (the messages and the pipe's ends:
+history_pipe.py; what a queued event, command or line is sent as: history_items.py). That
+process makes the events and writes them with an `EventWriter` of its own, and sends back what
+it wrote (the bus publishes it), its counters and its log lines. Reads stay in the daemon, on a
+connection of their own (WAL). A process that ends, or stalls and is killed, costs the routine
+events it had not confirmed; what it had not confirmed of the safety record goes to the next
+one (what the daemon keeps of each process: history_ledger.py; when a new one starts:
+history_spawn.py). `close` kills it at its deadline and puts what it held in the file the next
+start writes first, as `EventLog.close` does.
 """
 
 from __future__ import annotations
@@ -32,9 +21,9 @@ import itertools
 import logging
 import os
 import subprocess
-import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +34,9 @@ from ride_machine.service.logfmt import put_text
 from ride_machine.service.threads import NamedThread
 
 from .eventdb import Row, claim_writer
-from .eventlog import EventLog
-from .history_items import batch_items, rows_in
+from .eventlog import EventLog, without_lines
+from .history_items import batch_items
+from .history_ledger import Ledger, events_in, safety, stalled_words
 from .history_pipe import (
     BATCH,
     FAILED,
@@ -55,20 +45,18 @@ from .history_pipe import (
     LOG,
     WROTE,
     Item,
-    encode,
+    Outlet,
+    Sent,
     messages,
-    write_all,
 )
+from .history_spawn import Pause, start_writer
+from .history_writer import make_rows
 
 log = logging.getLogger(__name__)
 
-RESPAWN_S = 1.0
-"""A history process that ended is started again after this long; one that keeps ending
-within `STEADY_S` of its start waits twice as long each time, up to `RESPAWN_MAX_S`."""
-RESPAWN_MAX_S = 30.0
-STEADY_S = 10.0
-PYTHON = sys.executable
-"""The interpreter the history process runs on: the daemon's own."""
+KILL_MARGIN_S = 0.5
+"""Of `close`'s time, what is kept to kill a process whose pipe stayed full and spill what it
+had not confirmed: a send gives up this long before the deadline."""
 
 
 class HistoryProcess(EventLog):
@@ -78,20 +66,18 @@ class HistoryProcess(EventLog):
     def __init__(self, path: Path, machine_id: str, settings: EventsSection, **kw: Any) -> None:
         super().__init__(path, machine_id, settings, **kw)
         self._proc: subprocess.Popen[bytes] | None = None
-        self._send_lock = threading.Lock()
+        self._outlet: Outlet | None = None
+        """The current process's stdin (set before `_proc`)."""
         self._state = threading.Lock()
         """Guards the counters below and the ones `EventLog` keeps, set from two threads."""
         self._receiver: threading.Thread | None = None
-        self._spawned_at = -RESPAWN_S
-        self._respawn_s = RESPAWN_S
+        self._pause = Pause()
         self._last_try = False
         self._cut_short = False
         """`close` killed the process at its deadline."""
         self._sending = False
-        self._sent = 0
-        """Events sent to the current process."""
-        self._settled = 0
-        """Of those, written, dropped or counted lost by it (its latest word)."""
+        self._ledger = Ledger(0.0)
+        """The current process's account: what it was sent and has settled (`_state`)."""
         self._base = (0, 0, 0)
         """written, lost, failures of the processes before the current one, and of this side."""
         self._child_dropped = 0
@@ -103,6 +89,17 @@ class HistoryProcess(EventLog):
         self._retry: list[Item] = []
         """A batch whose send found the process gone (no reader: none of it was taken), for
         the next process; only the writer thread changes it."""
+        self._again = 0
+        """Of `_retry`, the first ones sent before to a process that ended (`BATCH`'s `again`)."""
+        self._resend: list[Item] = []
+        """The safety events a process that ended had not confirmed, for the next one (or
+        `close`'s spill)."""
+        self._killed: subprocess.Popen[bytes] | None = None
+        """The process killed as stalled."""
+        self._send_until = float("inf")
+        """Set by `close`: a send waiting for room gives up then."""
+        self._ended_clean = False
+        """The last process ended on `close` with everything written: it spilled what it held."""
 
     # ------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -125,34 +122,18 @@ class HistoryProcess(EventLog):
         self._start_threads()
 
     def _spawn(self) -> bool:
-        self._spawned_at = time.monotonic()
-        root = str(Path(__file__).resolve().parents[2])
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-        level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
+        self._pause.started(time.monotonic())
         try:
-            proc = subprocess.Popen(
-                [
-                    PYTHON,
-                    "-m",
-                    "ride_machine.service.adapters.history_writer",
-                    str(self.path),
-                    self.machine_id,
-                    self.settings.model_dump_json(),
-                    level,
-                ],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                bufsize=0,
-                env=env,
-            )
-        except OSError as exc:  # e.g. out of memory or of processes: tried again, less often
-            self._respawn_s = min(RESPAWN_MAX_S, self._respawn_s * 2)
+            proc = start_writer(self.path, self.machine_id, self.settings.model_dump_json())
+        except OSError as exc:
+            self._pause.failed()
             self._lose(0, f"cannot start the event writer process: {exc}")
             return False
+        assert proc.stdin is not None
+        outlet = self._outlet = Outlet(proc.stdin)
         with self._state:
             self._proc = proc
-            self._sent = self._settled = 0
+            self._ledger = Ledger(time.monotonic())
             self._child_dropped = 0
         self._receiver = NamedThread(
             target=self._receive, args=(proc,), name="eventlog-recv", daemon=True
@@ -161,47 +142,77 @@ class HistoryProcess(EventLog):
         if self._pending_failure is not None:
             error, lost = self._pending_failure
             self._pending_failure = None
-            self._send(proc, [FAILED, error, lost])
+            outlet.send([FAILED, error, lost], self._giving_up(proc))
         return True
 
     def close(self, timeout: float = 2.0) -> None:
         """Send what is queued, let the process write it and end; never longer than
-        `timeout` (then the process is killed, and what it had not written is counted lost)."""
+        `timeout` (then the process is killed: what it had not confirmed is counted lost, and
+        its safety events, with what was not sent, go to the file the next start writes)."""
         deadline = time.monotonic() + timeout
+        self._send_until = deadline - min(KILL_MARGIN_S, timeout / 2)
         self._stop()
-        if self._thread is not None:
-            self._thread.join(max(0.0, deadline - time.monotonic()))
-        proc = self._proc
-        if proc is not None:
-            with contextlib.suppress(OSError):
-                if proc.stdin is not None:
-                    proc.stdin.close()
-            try:
-                proc.wait(max(0.05, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                self._cut_short = True
-                self._last_try = True  # no new process for what a blocked send still holds
-                proc.kill()
-                proc.wait()
+        ended = self._join(deadline)
+        proc, outlet = self._proc, self._outlet
+        if proc is not None and outlet is not None:
+            self._end(proc, outlet, deadline)
         if self._receiver is not None:  # it counts what a killed process had not written
             self._receiver.join(max(0.5, deadline - time.monotonic()))
         self._reader.join(max(0.0, deadline - time.monotonic()))
+        if ended and not self._ended_clean:  # one that ended cleanly spilled what it held
+            self._spill(self._leftovers())
+
+    def _end(self, proc: subprocess.Popen[bytes], outlet: Outlet, deadline: float) -> None:
+        """Close its pipe (it writes what it has and exits); killed at `deadline`."""
+        outlet.close(deadline - time.monotonic())
+        try:
+            proc.wait(max(0.05, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            self._cut(proc)
+            with contextlib.suppress(subprocess.TimeoutExpired):  # a disk that never answers
+                proc.wait(KILL_MARGIN_S)
+
+    def _cut(self, proc: subprocess.Popen[bytes]) -> None:
+        """End it at the stop's deadline; no new process for what it held (that is spilled)."""
+        self._cut_short = True
+        self._last_try = True
+        proc.kill()
+
+    def _leftovers(self) -> list[Row | Held]:
+        """What no process took: the safety events sent to one that did not confirm them,
+        then what was not sent (as rows; log lines written now)."""
+        with self._state:
+            _, unconfirmed = self._ledger.unconfirmed()  # its routine ones: counted at its end
+            items, self._resend = self._resend + unconfirmed, []
+        items, self._retry = items + self._retry, []
+        return [*make_rows(items), *without_lines(self._take_all())]
+
+    def _spill(self, queued: list[Row | Held]) -> None:
+        """As `EventLog`'s, with the loss no process recorded, only the drops none was told of
+        (the processes record theirs), and what the file still holds: the previous run's
+        events a process resumed and never wrote, or a killed process's own spill."""
+        self.writer.failure, self._pending_failure = self._pending_failure, None
+        self.writer.dropped_recorded = self._forward_dropped
+        kept = self.writer.resume_unwritten()
+        super()._spill([*kept, *queued])
 
     # ---------------------------------------------------------------------------- sending
     def _run(self) -> None:
         while True:
             self._gather(1.0)  # a batch per wake-up, as `EventLog` gathers
             proc = self._proc
-            if proc is None and not self._respawn():
-                with self._lock:
-                    if not self._stopping:
-                        continue
-                    rest = sum(rows_in(entry) for entry in self._items) + len(self._retry)
-                    self._items.clear()
-                    self._retry = []
-                if rest:
-                    self._lose(rest, "the event writer process is not running")
-                return
+            if proc is None:
+                self._take_resend()
+                if not self._respawn():
+                    if self._stopping:
+                        return  # what is left goes to `close`'s spill
+                    continue
+            elif self._stall_due(proc, sending=False):
+                self._kill_stalled(proc, 0)
+                if self._stopping:
+                    return
+                self._await_end()
+                continue
             with self._lock:
                 batch = list(self._items)
                 self._items.clear()
@@ -211,17 +222,28 @@ class HistoryProcess(EventLog):
                 dropped = self.dropped - self._forward_dropped
                 self._forward_dropped = self.dropped
                 stopping = self._stopping
+            sent = Sent.TAKEN
             try:
                 if batch or dropped or self._retry:
-                    self._send_batch(batch, dropped)
+                    sent = self._send_batch(batch, dropped)
             except Exception as exc:  # noqa: BLE001 - one bad batch must not end the history
                 self._lose(len(batch), f"event writer failed: {exc!r}", exc)
             finally:
                 self._sending = False
+            if sent is Sent.LATE and self._stopping:
+                return  # the process is ended at once: what it held goes to `close`'s spill
             if stopping:
                 with self._lock:
                     if not self._items and not self._retry:
                         return
+
+    def _take_resend(self) -> None:
+        """The safety events an ended process had not confirmed, first for the next one."""
+        with self._state:
+            resend, self._resend = self._resend, []
+        if resend:
+            self._retry = resend + self._retry
+            self._again += len(resend)
 
     def _respawn(self) -> bool:
         """A new process once the pause since the last start has passed (events wait in the
@@ -234,72 +256,116 @@ class HistoryProcess(EventLog):
                 return False
             self._last_try = True
             return self._spawn()
-        wait = self._spawned_at + self._respawn_s - time.monotonic()
+        wait = self._pause.left(time.monotonic())
         if wait > 0:
             time.sleep(min(wait, 0.1))
             self._wake.set()  # come back for the queue
             return False
         return self._spawn()
 
-    def _send_batch(self, batch: list[Row | Held | str], dropped: int) -> None:
+    def _send_batch(self, batch: list[Row | Held | str], dropped: int) -> Sent:
         items, self._retry = self._retry, []
+        again, self._again = self._again, 0
         for entry in batch:
             try:
                 items.extend(batch_items(entry))
             except Exception as exc:  # noqa: BLE001 - one bad record must not stop the batch
                 self._lose(1, f"event making failed: {exc!r}", exc)
-        proc = self._proc
-        if proc is None or not self._send(proc, [BATCH, dropped, items]):
-            # It ended before the receiver saw it go: these wait for the next process, as
-            # events emitted after it went do (its unconfirmed ones are counted lost there).
-            self._retry = items
-            with self._lock:  # the next process is told of these drops instead
-                self._forward_dropped -= dropped
-            receiver = self._receiver  # that process's: only this thread starts another
-            if proc is not None and receiver is not None:
-                receiver.join(1.0)  # it reaps the process and counts what it lost, then ends
-            return
-        with self._state:
-            current = proc is self._proc
-            if current:
-                self._sent += len(items)
-        if not current:  # it ended while this batch went: whatever it received is unconfirmed
-            self._lose(len(items), "the event writer process ended")
+        events = events_in(items)
+        proc, outlet = self._proc, self._outlet
+        sent = Sent.GONE
+        if proc is not None and outlet is not None:
+            with self._state:
+                self._ledger.giving(time.monotonic())
+            sent = outlet.send([BATCH, dropped, items, again], self._giving_up(proc))
+        if sent is Sent.TAKEN:
+            self._track(proc, items, events)
+            return sent
+        # None of it reached a reader whole: these wait for the next process, as events
+        # emitted after this one went do (its unconfirmed ones are counted lost there).
+        self._retry, self._again = items, again
+        with self._lock:  # the next process is told of these drops instead
+            self._forward_dropped -= dropped
+        if proc is None:
+            return sent
+        if sent is Sent.LATE:
+            if self._stall_due(proc, sending=True):
+                self._kill_stalled(proc, events)
+            else:
+                self._cut(proc)  # `close`'s deadline
+            if self._stopping:
+                return sent
+        self._await_end()
+        return sent
 
-    def _send(self, proc: subprocess.Popen[bytes], message: list[Any]) -> bool:
-        data = encode(message)
-        with self._send_lock:
-            pipe = proc.stdin
-            if pipe is None:
-                return False
-            try:
-                write_all(pipe, data)
-            except (OSError, ValueError):  # ended, or closed by `close`
-                return False
-        return True
+    def _track(self, proc: subprocess.Popen[bytes] | None, items: list[Item], events: int) -> None:
+        """`items`, taken by `proc`, wait for its word; the safety events among them are kept
+        until then, for the next process should this one end first."""
+        with self._state:
+            if proc is self._proc:
+                self._ledger.took(items)
+                return
+            # It ended while this batch went: whatever it received is unconfirmed.
+            resend = safety(items)
+            self._resend += resend
+        self._lose(events - len(resend), "the event writer process ended")
+
+    def _await_end(self) -> None:
+        """Let the receiver reap an ended (or killed) process and count what it lost; only
+        this thread starts another."""
+        receiver = self._receiver
+        if receiver is not None:
+            receiver.join(1.0)
+
+    def _giving_up(self, proc: subprocess.Popen[bytes]) -> Callable[[], bool]:
+        """When the writer thread's send stops waiting: `proc` stalled, or `close`'s deadline."""
+        return lambda: self._stall_due(proc, sending=True) or time.monotonic() >= self._send_until
+
+    def _stall_due(self, proc: subprocess.Popen[bytes], *, sending: bool) -> bool:
+        """`proc` has confirmed nothing for `STALL_S` while events sent to it (or being sent)
+        wait."""
+        with self._state:
+            return proc is self._proc and self._ledger.stalled(time.monotonic(), sending=sending)
+
+    def _kill_stalled(self, proc: subprocess.Popen[bytes], sending: int) -> None:
+        """Kill a stalled process (once): its end is any process's end (`_ended`)."""
+        with self._state:
+            if self._killed is proc:
+                return
+            self._killed = proc
+            pending = self._ledger.sent - self._ledger.settled + sending
+            self.last_error = f"the event writer process stalled: {stalled_words()}"
+        if self._stopping:
+            self._last_try = True  # what it held is spilled, not sent to a new one
+        log.error("event=events_process_stalled pid=%d pending=%d", proc.pid, pending)
+        proc.kill()
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until everything queued so far is written (tests, reads and shutdown)."""
         deadline = time.monotonic() + timeout
         self._wake.set()
-        if not self._drained(
-            deadline, lambda: not self._items and not self._sending and not self._retry
-        ):
+        if not self._drained(deadline, lambda: not self._unsettled_here()):
             return False
-        proc = self._proc
-        if proc is None:
+        proc, outlet = self._proc, self._outlet
+        if proc is None or outlet is None:
             return False
         token = next(self._tokens)
         done = self._flushes[token] = threading.Event()
-        try:
-            if not self._send(proc, [FLUSH, token, max(0.0, deadline - time.monotonic())]):
+        until = min(deadline, self._send_until)
+        message = [FLUSH, token, max(0.0, deadline - time.monotonic())]
+        try:  # short: written whole or not at all (`write_within`), so giving up is safe
+            if outlet.send(message, lambda: time.monotonic() >= until) is not Sent.TAKEN:
                 return False
             return done.wait(max(0.0, deadline - time.monotonic())) and proc is self._proc
         finally:
             self._flushes.pop(token, None)
 
+    def _unsettled_here(self) -> bool:
+        """Events not sent yet (queued, being sent, or waiting for the next process)."""
+        return bool(self._items or self._retry or self._resend) or self._sending
+
     def _unsettled(self) -> bool:
-        return bool(self._items or self._retry) or self._sending or self._sent != self._settled
+        return self._unsettled_here() or self._ledger.sent != self._ledger.settled
 
     # -------------------------------------------------------------------------- receiving
     def _receive(self, proc: subprocess.Popen[bytes]) -> None:
@@ -334,6 +400,7 @@ class HistoryProcess(EventLog):
         with self._state:
             if proc is not self._proc:
                 return
+            self._ledger.said(settled, time.monotonic())
             base_written, base_lost, base_failures = self._base
             self.written = base_written + written
             self.lost = base_lost + lost
@@ -341,7 +408,6 @@ class HistoryProcess(EventLog):
             if last_error is not None:
                 self.last_error = last_error
             self._child_dropped = dropped
-            self._settled = settled
 
     def _ended(self, proc: subprocess.Popen[bytes], code: int) -> None:
         """The process is gone: what it had not confirmed is lost (unless it ended cleanly
@@ -349,23 +415,23 @@ class HistoryProcess(EventLog):
         with self._state:
             if proc is not self._proc:
                 return
-            unconfirmed = self._sent - self._settled
+            unconfirmed, resend = self._ledger.unconfirmed()
+            self._resend += resend  # the next process writes them
             self._proc = None
             self._base = (self.written, self.lost, self.failures)
-            self._sent = self._settled = 0
         for done in list(self._flushes.values()):
             done.set()  # a flush waiting on it learns at once (and reads `_unsettled`)
-        if self._stopping and code == 0 and not unconfirmed:
+        if self._stopping and code == 0 and not unconfirmed and not resend:
+            self._ended_clean = True
             return
-        lived = time.monotonic() - self._spawned_at
-        self._respawn_s = (
-            RESPAWN_S if lived >= STEADY_S else min(RESPAWN_MAX_S, self._respawn_s * 2)
-        )
+        self._pause.ended(time.monotonic())
         error = f"the event writer process ended with exit code {code}"
-        if self._cut_short:  # what held it up (a locked or stalled disk) says more
-            error = (
-                f"the event writer process was stopped at the shutdown deadline: {self.last_error}"
-            )
+        if self._killed is proc:
+            error = f"the event writer process stalled and was killed: {stalled_words()}"
+        elif self._cut_short:  # what held it up (a locked or stalled disk) says more
+            error = "the event writer process was stopped at the shutdown deadline"
+            if self.last_error is not None:
+                error = f"{error}: {self.last_error}"
         self._lose(unconfirmed, error)
         self._pending_failure = (error, unconfirmed)
         self._wake.set()

@@ -12,12 +12,6 @@ from .eventdb import Row
 from .history_pipe import COMMAND, LINE, MADE, Item
 
 
-def rows_in(entry: Row | Held | str) -> int:
-    if isinstance(entry, str):
-        return 0  # a log line, no event
-    return len(entry.rows) if isinstance(entry, Held) else 1
-
-
 def batch_items(entry: Row | Held | str) -> list[Item]:
     """What the history process needs of a queued event, a command's held record or a log
     line: plain values. A held record's own events are made here only when they are not a

@@ -14,10 +14,11 @@ import contextlib
 import json
 import os
 import signal
+import sqlite3
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -111,7 +112,7 @@ class _Writer(WriterThread[WriterSettings]):
         self.pipe = pipe
         self.settings = settings
         self.wall = wall
-        # Between a batch's chunks of inserts it gives way, as `_make` does between events.
+        # Between a batch's chunks of inserts it gives way, as `make_rows` does between events.
         self.writer = EventWriter(self, path, machine_id, settings, os.sched_yield)
         self.received = 0
         self.forwarded = 0
@@ -120,6 +121,11 @@ class _Writer(WriterThread[WriterSettings]):
         self.writer.listeners.append(self._wrote.extend)
         self._in_flight = 0
         """Rows of the batch being written."""
+        self._own = 0
+        """Events of its own queued at the start (the previous run's unwritten), which the
+        daemon never sent: not in `received`, but in the queue until written."""
+        self._again: set[Row] = set()
+        """Events sent again (`receive`), not written yet: a process that ended may have."""
 
     def start(self) -> None:
         """Claim and open the log (the daemon has set aside a file that is none), queue what
@@ -127,6 +133,7 @@ class _Writer(WriterThread[WriterSettings]):
         self.writer.claim(WRITER_WAIT_S)
         self.writer.open_or_replace(self.wall())
         self._queue(self.writer.resume_unwritten())
+        self._own = len(self._items)  # queued before any of the daemon's
         self._start_writing()
 
     def close(self, timeout: float = 2.0) -> None:
@@ -135,11 +142,14 @@ class _Writer(WriterThread[WriterSettings]):
         if self._join(time.monotonic() + timeout):
             self._spill(self._take_all())
 
-    def receive(self, rows: list[Row], dropped: int) -> None:
+    def receive(self, rows: list[Row], dropped: int, again: int = 0) -> None:
+        """A batch of the daemon's; its first `again` rows were sent to a process that ended
+        before it confirmed them."""
         with self._lock:
             self.received += len(rows)
             self.dropped += dropped
             self.forwarded += dropped
+            self._again.update(rows[:again])
         self._queue(rows)
 
     def _queue(self, rows: list[Row]) -> None:
@@ -159,7 +169,7 @@ class _Writer(WriterThread[WriterSettings]):
         """Its counters, and how many of the daemon's events are settled: written, dropped or
         counted lost (those neither queued nor in the batch being written)."""
         with self._lock:
-            settled = self.received - len(self._items) - self._in_flight
+            settled = self.received + self._own - len(self._items) - self._in_flight
             own_dropped = self.dropped - self.forwarded
         return [self.written, self.lost, self.failures, self.last_error, own_dropped, settled]
 
@@ -168,6 +178,8 @@ class _Writer(WriterThread[WriterSettings]):
         self._in_flight = len(batch)
 
     def _write(self, batch: list[Row]) -> None:
+        if self._again:
+            batch = self._not_stored(batch)
         super()._write(batch)
         self._in_flight = 0
         rows, self._wrote[:] = list(self._wrote), []
@@ -176,9 +188,35 @@ class _Writer(WriterThread[WriterSettings]):
         with contextlib.suppress(BrokenPipeError):
             self.pipe.send([WROTE, rows, self.status()])
 
+    def _not_stored(self, batch: list[Row]) -> list[Row]:
+        """`batch` less the events sent again that are stored already: a process killed after
+        its write and before its word back wrote them (a duplicate E-stop would read as two)."""
+        with self._lock:
+            again = [row for row in batch if row in self._again]
+            self._again.difference_update(again)
+        conn = self.writer.conn
+        stored = {row for row in again if conn is not None and _stored(conn, row)}
+        return [row for row in batch if row not in stored] if stored else batch
 
-def _make(items: tuple[Item, ...]) -> list[Row]:
-    """A batch's events as rows; a command's event and its log line made here."""
+
+def _stored(conn: sqlite3.Connection, row: Row) -> bool:
+    """Whether the log holds `row` (same kind, details, time and cycle); False when it cannot
+    tell (then the write that follows fails as well, and holds it)."""
+    kind, details, wall, cycle = row
+    try:
+        found = conn.execute(
+            "SELECT 1 FROM events WHERE time = ? AND kind = ? AND details = ? AND cycle IS ?"
+            " LIMIT 1",
+            (wall, kind, details, cycle),
+        ).fetchall()
+    except sqlite3.Error:
+        return False
+    return bool(found)
+
+
+def make_rows(items: Sequence[Item]) -> list[Row]:
+    """A batch's events as rows; a command's event and its log line made here (and, for what
+    no process took, in the daemon at its stop)."""
     rows: list[Row] = []
     start = time.perf_counter()
     for item in items:
@@ -212,11 +250,14 @@ def main(argv: list[str]) -> int:
     setup_logging(level, stream=_LogStream(pipe))
     writer = _Writer(pipe, Path(path), machine_id, WriterSettings.from_json(settings))
     writer.start()
+    # Its first word: the daemon, which waits for it longer than for one that has started (a
+    # loaded host starts an interpreter slowly), from now on calls a silence a stall.
+    pipe.send([WROTE, [], writer.status()])
     try:
         for message in messages(0):
             tag = message[0]
             if tag == BATCH:
-                writer.receive(_make(message[2]), message[1])
+                writer.receive(make_rows(message[2]), message[1], message[3])
             elif tag == FLUSH:
                 # No longer than the daemon waits: a locked disk must not keep this thread
                 # from the pipe's end, which starts the stop (and its spill of the unwritten).

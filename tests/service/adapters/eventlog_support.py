@@ -1,16 +1,22 @@
-"""What the event log's tests share: a routine event, a started log, one page read back."""
+"""What the event log's tests share: a routine event, a started log, one page read back, and, for
+the history process, its processes and a stop with one of them frozen."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import subprocess
 import time
 from pathlib import Path
 
+from bench.common import children
 from ride_machine.schema.commands import Command, CommandRequest, Reply, ReplyCode
 from ride_machine.schema.events import EventPage, EventQuery, SessionEndedEvent
 from ride_machine.schema.status import MachineState
 from ride_machine.service.adapters.eventdb import connect
 from ride_machine.service.adapters.eventlog import EventLog
 from ride_machine.service.adapters.eventread import read_page
+from ride_machine.service.adapters.history import HistoryProcess
 from ride_machine.service.config.model import EventsSection
 from ride_machine.service.core.history.facts import CommandFacts
 
@@ -66,3 +72,29 @@ def command_tids(text: str) -> list[str]:
     return [
         line.split(" tx=", 1)[1].split()[0] for line in text.splitlines() if "event=command" in line
     ]
+
+
+def stored_kinds(path: Path) -> list[str]:
+    """The kinds of the events in the log at `path`, in their order."""
+    with connect(path) as conn:
+        return [kind for (kind,) in conn.execute("SELECT kind FROM events ORDER BY seq")]
+
+
+def history_processes() -> list[int]:
+    """This process's children that run a history process."""
+    found = []
+    for pid in children(os.getpid()):
+        with contextlib.suppress(OSError), open(f"/proc/{pid}/cmdline", "rb") as cmd:
+            if b"service.adapters.history" in cmd.read():
+                found.append(pid)
+    return found
+
+
+def closes_in_time(log: HistoryProcess, frozen: subprocess.Popen[bytes], others: set[int]) -> None:
+    """`close` ends within its deadline (and a little: a spill), killing the frozen process and
+    starting none in its place."""
+    started = time.monotonic()
+    log.close(timeout=1.0)
+    assert time.monotonic() - started < 1.5
+    assert frozen.poll() is not None  # killed
+    assert set(history_processes()) - others == set()

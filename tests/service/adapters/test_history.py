@@ -1,12 +1,12 @@
 """The event history in a process of its own: what only `HistoryProcess` does.
 
 What it shares with the in-thread `EventLog` (order, seq, listeners, drops, retention, set-aside
-files, a full disk) is tested on both in tests/service/adapters/test_eventlog.py.
+files, a full disk) is tested on both in tests/service/adapters/test_eventlog.py; a process that
+freezes, in tests/service/adapters/test_history_stall.py.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import signal
@@ -19,7 +19,6 @@ from pathlib import Path
 
 import pytest
 
-from bench.common import children
 from ride_machine.schema.events import (
     CommandEvent,
     DaemonStartEvent,
@@ -30,7 +29,7 @@ from ride_machine.schema.events import (
     WatchdogEvent,
 )
 from ride_machine.schema.status import MachineState
-from ride_machine.service.adapters import eventlog, history
+from ride_machine.service.adapters import eventlog, history_spawn
 from ride_machine.service.adapters.eventdb import WRITER_WAIT_S, StoredRow, connect
 from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
 from ride_machine.service.adapters.eventread import read_page
@@ -39,7 +38,15 @@ from ride_machine.service.adapters.history_writer import WriterSettings, _Pipe, 
 from ride_machine.service.config.model import EventsSection
 from ride_machine.service.core.history.facts import CommandFacts
 from ride_machine.service.core.history.held import Held, LogLine
-from tests.service.adapters.eventlog_support import FLUSH_S, command_tids, facts, open_log
+from tests.service.adapters.eventlog_support import (
+    FLUSH_S,
+    closes_in_time,
+    command_tids,
+    facts,
+    history_processes,
+    open_log,
+    stored_kinds,
+)
 
 T0 = time.time()
 
@@ -50,16 +57,6 @@ def log(tmp_path: Path) -> Iterator[HistoryProcess]:
     events.start()
     yield events
     events.close()
-
-
-def history_processes() -> list[int]:
-    """This process's children that run a history process."""
-    found = []
-    for pid in children(os.getpid()):
-        with contextlib.suppress(OSError), open(f"/proc/{pid}/cmdline", "rb") as cmd:
-            if b"service.adapters.history" in cmd.read():
-                found.append(pid)
-    return found
 
 
 def stored(log: HistoryProcess) -> list[object]:
@@ -172,7 +169,7 @@ def test_a_killed_process_costs_only_what_it_had_not_written_and_a_new_one_takes
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Counted lost, recorded as `storage_failed` by the next process, which writes on."""
-    monkeypatch.setattr(history, "RESPAWN_S", 0.05)
+    monkeypatch.setattr(history_spawn, "RESPAWN_S", 0.05)
     log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
     log.start()
     try:
@@ -211,7 +208,7 @@ def test_an_event_sent_as_the_process_dies_waits_for_the_next_one(
 ) -> None:
     """The writer thread can send to a process that has died before the receiver saw it go:
     that batch reached no reader, so it goes to the next process instead of being lost."""
-    monkeypatch.setattr(history, "RESPAWN_S", 0.05)
+    monkeypatch.setattr(history_spawn, "RESPAWN_S", 0.05)
     noticed = threading.Event()
     ended = HistoryProcess._ended
 
@@ -253,11 +250,7 @@ def test_a_frozen_process_never_blocks_emit_and_close_ends_it_in_time(tmp_path: 
         assert time.monotonic() - started < 10.0  # ~0.2 s; a blocked emit would never return
         assert log.dropped > 0
         assert not log.flush(timeout=0.2)
-        started = time.monotonic()
-        log.close(timeout=1.0)
-        assert time.monotonic() - started < 3.0
-        assert proc.poll() is not None  # killed
-        assert set(history_processes()) - others == set()  # and none started in its place
+        closes_in_time(log, proc, others)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -270,8 +263,8 @@ def test_a_process_that_cannot_start_is_retried_with_a_growing_pause(
     broken = tmp_path / "python"
     broken.write_text("#!/bin/sh\nexit 3\n")
     broken.chmod(0o755)
-    monkeypatch.setattr(history, "PYTHON", str(broken))
-    monkeypatch.setattr(history, "RESPAWN_S", 0.05)
+    monkeypatch.setattr(history_spawn, "PYTHON", str(broken))
+    monkeypatch.setattr(history_spawn, "RESPAWN_S", 0.05)
     log = HistoryProcess(tmp_path / EVENTS_FILE, "m1", EventsSection())
     log.start()
     try:
@@ -283,7 +276,7 @@ def test_a_process_that_cannot_start_is_retried_with_a_growing_pause(
         assert "event writer process" in (log.last_error or "")
         ended = [r for r in caplog.records if "exit code 3" in r.getMessage()]
         assert ended and all(r.levelname == "ERROR" for r in ended)
-        assert log._respawn_s > history.RESPAWN_S
+        assert log._pause.seconds > history_spawn.RESPAWN_S
     finally:
         log.close()
 
@@ -321,6 +314,25 @@ def test_rows_written_after_the_daemon_died_are_kept_not_counted_lost(tmp_path: 
         assert stored(again) == [WatchdogEvent(stalled_s=0.1), WatchdogEvent(stalled_s=0.2)]
     finally:
         again.close()
+
+
+def test_an_event_sent_again_is_written_once(tmp_path: Path) -> None:
+    """The safety events a process that ended had not confirmed are sent to the next one, which
+    writes them unless they are stored already (killed after its write, before its word)."""
+    settings = WriterSettings.from_json(EventsSection().model_dump_json())
+    writer = _Writer(_GonePipe(), tmp_path / EVENTS_FILE, "m1", settings)
+    writer.start()
+    written = ("estop_pressed", '{"kind":"estop_pressed","state":"RUNNING"}', T0, 1)
+    unwritten = ("watchdog_trip", '{"kind":"watchdog_trip","stalled_s":0.1}', T0 + 1, 2)
+    try:
+        writer.receive([written], 0)
+        assert writer.flush()
+        writer.receive([written, unwritten], 0, again=2)
+        assert writer.flush()
+    finally:
+        writer.close()
+    assert stored_kinds(tmp_path / EVENTS_FILE) == ["estop_pressed", "watchdog_trip"]
+    assert writer.lost == 0
 
 
 def test_a_stop_on_a_locked_database_leaves_the_e_stop_for_the_next_start(tmp_path: Path) -> None:

@@ -65,7 +65,7 @@ with tempfile.TemporaryDirectory() as tmp:
     writer.start()
     writer.record_failure("the disk", 3)
     items = ((COMMAND, time.time(), 1, facts, True), (MADE, "state", "{}", time.time(), 2))
-    writer.receive(w._make(items + ((LINE, "event=command tx=tx-0"),)), 2)
+    writer.receive(w.make_rows(items + ((LINE, "event=command tx=tx-0"),)), 2)
     assert writer.flush(10.0) and writer.written == 4, writer.status()
     writer.writer.prune(time.time(), lambda: None)
     writer.close()
