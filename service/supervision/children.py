@@ -38,6 +38,10 @@ from .restarts import (
 
 log = logging.getLogger("machine.supervisor")
 
+TURN_SLACK_S = 2.0
+"""Beyond the waits a turn of `keep` is made of: a look for an exit (0.1 s), the world's step,
+the thread's own scheduling on a busy host."""
+
 
 class ChildKeeper:
     """Keeps one daemon child running: starts it from the files in `files`, and when it goes,
@@ -68,12 +72,23 @@ class ChildKeeper:
         self.child: Child | None = None
         self.generation = 0
         self.backoff = Backoff(options.backoff_s, options.backoff_max_s)
+        self.turned = time.monotonic()
+        """When `keep`'s loop last came round (time.monotonic)."""
+        self.turn_limit_s = (
+            heartbeat_s + options.exit_grace_s + options.stop_timeout_s + TURN_SLACK_S
+        )
+        """The longest a turn of `keep` takes while the supervisor is well: the wait for a
+        happening, then the longest handling of one (a frozen child's grace and kill)."""
+
+    def turning(self, now: float) -> bool:
+        """`keep`'s loop came round within `turn_limit_s` of `now` (from any thread)."""
+        return now - self.turned <= self.turn_limit_s
 
     def keep(self) -> int:
         """Until a `STOP` happening (0) or a child that ends with a config error (2)."""
         restart_at: float | None = time.monotonic()
         while True:
-            now = time.monotonic()
+            self.turned = now = time.monotonic()
             if self.child is None and restart_at is not None and now >= restart_at:
                 self._spawn()
                 restart_at = None
@@ -114,19 +129,27 @@ class ChildKeeper:
                 return EXIT_CONFIG
             restart_at = self._schedule(child)
 
-    def stop(self) -> None:
-        """SIGTERM (the daemon leaves its outputs safe and closes cleanly), bounded."""
+    def stop(self, *, frozen: bool = False) -> None:
+        """SIGTERM (the daemon leaves its outputs safe and closes cleanly), bounded; SIGKILL
+        at once, outputs forced safe first, for a daemon whose scan has stalled (`frozen`):
+        a frozen daemon answers no SIGTERM, and waiting for it outlasts a container's stop."""
         child = self.child
         if child is None or child.proc.poll() is not None:
             return
         child.down = True
+        if frozen:
+            self.force_safe()
+            log.error("event=child_stop_frozen pid=%d action=kill", child.proc.pid)
+            child.proc.kill()
+            self._await_kill(child, "stop")
+            return
         child.proc.send_signal(signal.SIGTERM)
         try:
             child.proc.wait(timeout=self.options.stop_timeout_s)
         except subprocess.TimeoutExpired:
             log.error("event=child_stop_timeout pid=%d", child.proc.pid)
             child.proc.kill()
-            child.proc.wait(timeout=self.options.stop_timeout_s)
+            self._await_kill(child, "stop")
 
     def _presence(self, present: bool) -> float | None:
         child = self.child
@@ -164,10 +187,7 @@ class ChildKeeper:
             f"the daemon's scan loop stopped cycling {stall.stalled_s:.2f} s ago (outputs"
             f" {stall.outputs()}); killed",
         )
-        try:
-            child.proc.wait(timeout=self.options.stop_timeout_s)
-        except subprocess.TimeoutExpired:  # stuck in the kernel: it dies when that returns
-            log.error("event=child_kill_pending pid=%d", child.proc.pid)
+        self._await_kill(child, "hung")
         return self._schedule(child)
 
     def _freeze(self, child: Child, reason: str) -> None:
@@ -190,9 +210,25 @@ class ChildKeeper:
                     describe(first),
                     describe(last, first),
                 )
-                child.proc.wait(timeout=self.options.stop_timeout_s)
+                self._await_kill(child, "gone_from_bus")
             return
         self._went_down(child, describe_exit(code))
+
+    def _await_kill(self, child: Child, when: str) -> None:
+        """Wait for a killed child, bounded: one stuck in the kernel (D state: a hung disk or
+        piControl) dies only when that call returns, and supervision goes on meanwhile (its
+        reaper reports the exit; a new child may start before it)."""
+        limit = self.options.stop_timeout_s
+        try:
+            child.proc.wait(timeout=limit)
+        except subprocess.TimeoutExpired:
+            log.error(
+                "event=child_kill_pending pid=%d when=%s waited_s=%g detail=%r",
+                child.proc.pid,
+                when,
+                limit,
+                "still running after SIGKILL: stuck in the kernel, it ends when that call returns",
+            )
 
     def _went_down(self, child: Child, reason: str) -> None:
         t0 = time.monotonic()

@@ -81,6 +81,11 @@ class Stall:
         return "off"
 
 
+def armed(beat: Beat) -> bool:
+    """A daemon's scan to guard: stamped (its first cycle done), not finished, with a limit."""
+    return beat.beat_ns != 0 and not beat.finished and beat.limit_ns != 0
+
+
 class OutputGuard(TimedThread):
     """Watches the shared record on a thread of its own; `on_trip` hears of a danger it made
     safe, `on_hang` of a scan stopped past `hang_s` (both on this thread: never block)."""
@@ -94,6 +99,7 @@ class OutputGuard(TimedThread):
         on_hang: Callable[[Stall], None],
         hang_s: float,
         after_safe: Callable[[], None] | None = None,
+        after_look: Callable[[int], None] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         super().__init__("output-guard")
@@ -103,6 +109,9 @@ class OutputGuard(TimedThread):
         self.on_hang = on_hang
         self.after_safe = after_safe
         """Called right after the safe image is written (the simulated world steps on it)."""
+        self.after_look = after_look
+        """Called after each look, with its time: this thread ran and read the record (the
+        supervisor tells systemd it is alive, sdnotify.py)."""
         self.hang_ns = round(hang_s * 1e9)
         self.clock_ns = clock_ns
         self.trips = 0
@@ -117,12 +126,20 @@ class OutputGuard(TimedThread):
         while self.sleep(wait):
             now = self.clock_ns()
             wait = self.look(self.reader.read(), now, max(0, now - due))
+            if self.after_look is not None:
+                self.after_look(now)
             due = now + round(wait * 1e9)
+
+    def stalled(self) -> bool:
+        """The record shows a scan that has stopped now: armed, not finished, its stamp older
+        than its limit (from any thread: one read of the shared record)."""
+        beat = self.reader.read()
+        return armed(beat) and self.clock_ns() - beat.beat_ns > beat.limit_ns
 
     def look(self, beat: Beat, now_ns: int, late_ns: int = 0) -> float:
         """One look at the record, `late_ns` after it was due; the seconds until the next
         (public for tests)."""
-        if beat.beat_ns == 0 or beat.finished or beat.limit_ns == 0:
+        if not armed(beat):
             self._stall = None
             return IDLE_LOOK_S
         age = now_ns - beat.beat_ns

@@ -47,6 +47,7 @@ from .malloc import bound_malloc_arenas
 from .outcome import EXIT_CONFIG, EXIT_FAILED, EXIT_OK, StartRefused
 from .outputguard import OutputGuard, Stall
 from .restarts import Happening, Kind, SupervisorOptions
+from .sdnotify import Notifier
 from .simport import sim_port
 from .toml_out import to_toml, write_private
 
@@ -81,6 +82,9 @@ class Supervisor:
         self.beat = BeatReader(self.beat_fd)
         """The record the daemon child stamps every cycle (`service.core.scan.beat`)."""
         self.guard: OutputGuard | None = None
+        self.notifier = Notifier.from_env()
+        """systemd's notify socket (sdnotify.py): READY=1 once a daemon serves, WATCHDOG=1
+        while the guard's thread and `keep`'s loop both come round; nothing outside systemd."""
         self._sockdir = Path(tempfile.mkdtemp(prefix="machine-sup-"))
         self.private = f"unixsock-stream/{self._sockdir / 'zenoh.sock'}"
 
@@ -110,7 +114,7 @@ class Supervisor:
                 self.guard = self._start_guard()
                 stack.callback(self.guard.stop)
                 self.children = children = self._keeper()
-                stack.callback(children.stop)
+                stack.callback(self._stop_child)
                 zenoh_json = child_config(self.zenoh.zenoh_config, self.private, self.hang_s)
                 self._write_child_files(child_cfg, zenoh_json)
                 self.bus.start()
@@ -202,6 +206,7 @@ class Supervisor:
             on_hang=lambda stall: self.happenings.put(Happening(Kind.HUNG, stall=stall)),
             hang_s=self.hang_s,
             after_safe=self.world.step_now if self.world is not None else None,
+            after_look=self._vouch,
         )
         guard.start()
         return guard
@@ -219,7 +224,24 @@ class Supervisor:
             self.config.bus.heartbeat_s,
         )
 
+    def _vouch(self, now_ns: int) -> None:
+        """After each look of the guard, on its thread: systemd's watchdog is fed while this
+        thread runs and `keep`'s loop comes round. Not the daemon's beat: the supervisor acts
+        on that itself (`--hang`), and a daemon down between restarts is its job, not a
+        reason for systemd to kill the router every Rider is connected to."""
+        children = self.children
+        if children is not None and children.turning(now_ns / 1e9):
+            self.notifier.watchdog(now_ns / 1e9)
+
+    def _stop_child(self) -> None:
+        """The child stopped as the supervisor stops: killed at once if its scan has stalled
+        (it would answer no SIGTERM; the guard made its outputs safe), else with SIGTERM."""
+        assert self.children is not None
+        frozen = self.guard is not None and self.guard.stalled()
+        self.children.stop(frozen=frozen)
+
     def _cleanup(self) -> None:
+        self.notifier.close()
         if self.world is not None:
             self.world.stop()
         if self.safe is not None:
@@ -255,6 +277,8 @@ class Supervisor:
         self.happenings.put(Happening(Kind.STOP))
 
     def _on_presence(self, present: bool) -> None:
+        if present:  # a daemon serves: start-up is complete for systemd (said once)
+            self.notifier.ready()
         self.happenings.put(Happening(Kind.PRESENCE, present=present))
 
 
