@@ -1,10 +1,10 @@
 """Opening a Zenoh session the way this project does, for the daemon and the Rider alike.
 
 The config: the shared zenoh.json5 (or Zenoh's defaults, made private), the caller's endpoints,
-and the side's secrets from files its environment names (`common.credentials`). Opening it:
-Zenoh's runtime laid out first where the caller asks (`common.runtime`), and a layout Zenoh
-cannot read said as an error that names it, not a crash. What differs between the two sides
-is their `Side`.
+the side's secrets from files its environment names (`common.credentials`), and a bound on the
+messages it reassembles (`MAX_MESSAGE_BYTES`). Opening it: Zenoh's runtime laid out first where
+the caller asks (`common.runtime`), and a layout Zenoh cannot read said as an error that names
+it, not a crash. What differs between the two sides is their `Side`.
 """
 
 from __future__ import annotations
@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
+
+from ride_machine.schema.codec import MAX_REPLY_BYTES
 
 from .credentials import MACHINE, RIDER, zenoh_settings
 from .runtime import first_session_on, unreadable_layout
@@ -60,13 +62,25 @@ RIDER_SIDE = Side(
 it never takes the daemon's port when both run on one host."""
 
 
+MAX_MESSAGE_SETTING = "transport/link/rx/max_message_size"
+MAX_MESSAGE_BYTES = 2 * MAX_REPLY_BYTES
+"""The largest message a session reassembles from fragments; a larger one is dropped (Zenoh
+1.x's default, 1 GiB, let one peer make us buffer that much per channel). Twice the largest
+reply a Rider reads: every request (64 KiB at most) and reply fits with room, and a payload of
+up to 1 MiB still reaches the daemon to be refused by name (`PAYLOAD_TOO_LARGE`)."""
+
+
 class UnreadableRuntime(ValueError):
     """`ZENOH_RUNTIME` in the environment is a layout Zenoh cannot read (it panics)."""
 
 
 def file_config(path: Path | None) -> zenoh.Config:
-    """The zenoh.json5 at `path` as it is, or Zenoh's defaults without one."""
-    return zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+    """The zenoh.json5 at `path` as it is, or Zenoh's defaults without one; where it leaves
+    Zenoh's reassembly unbounded (its default), bounded to `MAX_MESSAGE_BYTES`."""
+    conf = zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
+    if conf.get_json(MAX_MESSAGE_SETTING) == zenoh.Config().get_json(MAX_MESSAGE_SETTING):
+        conf.insert_json5(MAX_MESSAGE_SETTING, str(MAX_MESSAGE_BYTES))
+    return conf
 
 
 def zenoh_config(

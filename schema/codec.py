@@ -98,12 +98,7 @@ def pack(obj: Any) -> bytes:
 def decode_raw(data: bytes, fmt: Format, limit: int = MAX_PAYLOAD_BYTES) -> Any:
     """Bytes to plain data, or `DecodeError` saying why; `limit` bounds the size read."""
     if len(data) > limit:
-        raise DecodeError(
-            Error(
-                code=ErrorCode.PAYLOAD_TOO_LARGE,
-                message=f"payload is {len(data)} bytes, the limit is {limit}",
-            )
-        )
+        raise DecodeError(too_large(len(data), limit))
     try:
         if fmt is Format.JSON:
             return json.loads(data)
@@ -116,6 +111,13 @@ def decode_raw(data: bytes, fmt: Format, limit: int = MAX_PAYLOAD_BYTES) -> Any:
                 message=f"payload is not valid {fmt.name.lower()}: {_short(exc)}",
             )
         ) from exc
+
+
+def too_large(size: int, limit: int = MAX_PAYLOAD_BYTES) -> Error:
+    """The refusal of a payload of `size` bytes, past `limit` (told from its length alone)."""
+    return Error(
+        code=ErrorCode.PAYLOAD_TOO_LARGE, message=f"payload is {size} bytes, the limit is {limit}"
+    )
 
 
 def validate(model: type[M], raw: Any) -> M:

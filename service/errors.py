@@ -21,6 +21,12 @@ class MachineError(Exception):
         return Error(code=self.code, message=self.message, path=self.path)
 
 
+class Internal(MachineError):
+    """An exception no handler expected (a bug): refused as such, its traceback logged."""
+
+    code = ErrorCode.INTERNAL
+
+
 class Rejected(MachineError):
     """A refusal that arrives as a wire `Error` already: from the codec (a payload it cannot
     read: `BAD_PAYLOAD`, `PAYLOAD_TOO_LARGE`, `UNSUPPORTED_ENCODING`) or the scan loop's inbox."""

@@ -6,7 +6,9 @@ turns that into the one refusal shape. A command runs on Zenoh's own thread, bet
 cycles, under the loop's lock (one writer at a time; the next cycle still reads inputs and
 handles E-stop before any output changes) and is answered from the same thread: no hand-off.
 It never waits there: while the scan holds the lock, the command waits on a thread of its own
-(`commands.Deferred`), in arrival order.
+(`deferred.Deferred`), in arrival order. Work done on the scan thread is answered from a
+thread of its own (`outbox.Outbox`): a reply takes the asker's QoS and may wait on its link,
+so a caller that stops reading never stalls the scan.
 The bus sees the loop only through its port (`service.core.scan.port.LoopPort`): a command between
 cycles, any other work as a task for the scan thread (`service.core.scan.tasks`), the published
 records as one immutable value; the loop publishes through the bus's `Publications`, its sink.
@@ -16,8 +18,9 @@ touching state. Publishers drop rather than block under congestion.
 Modules by role: `request` (one query, one reply function), `routes` (the table and the
 wildcard rule), `commands`, `reads`, `writes`, `injection` (`sim/**` through `SimPort`),
 `publications`, `presence` (duplicates, Riders), `callbacks` (Zenoh's threads keep their
-Python state), `session` (config, open, close), `zenoh_bus` (the daemon's bus),
-`supervisor` (the supervisor's), `exposure`.
+Python state), `deferred` and `outbox` (work and replies off the caller's thread), `session`
+(config, open, close), `zenoh_bus` (the daemon's bus), `supervisor` (the supervisor's),
+`exposure`.
 """
 
 from ride_machine.common.runtime import use_runtime

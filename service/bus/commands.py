@@ -4,7 +4,8 @@ The hot path of the bus: one dictionary lookup on the key, one decode, the comma
 loop's lock, one reply (`Request.reply`, prebuilt key expression and encoding). The callback
 runs on Zenoh's thread (no hand-off to a Python thread first), so it never waits there: when
 the scan thread holds the loop's lock (mid-cycle), or a command is already waiting, the
-command goes to `Deferred`, a thread of its own that waits for the lock in order.
+command goes to `Deferred`, a thread of its own that waits for the lock in order. Before the
+first scan a command is queued for the scan thread, which hands its reply to the `Outbox`.
 
 A command that names a Rider (its `rider` field or its attachment) waits there too, while that
 Rider is asked whether it sent it (service/bus/confirm.py): a motion command it does not
@@ -17,9 +18,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import threading
-from collections import deque
-from collections.abc import Callable
 
 import zenoh
 
@@ -42,9 +40,10 @@ from ride_machine.service.errors import (
     UnknownCommand,
     WildcardCommand,
 )
-from ride_machine.service.threads import NamedThread
 
 from .confirm import Confirmer, Verdict
+from .deferred import Deferred
+from .outbox import Outbox
 from .request import Request, sender_of
 from .routes import Handler, Route, Wildcard
 
@@ -61,44 +60,6 @@ UNASKED = HALTS | {command for command in Command if HANDLING[command].read_only
 """Commands whose Rider is not asked about them (a halt, a check): recorded as claimed."""
 DEFERRED_MAX = 64
 """Commands waiting for the loop's lock at most; beyond this a command is refused BUSY."""
-
-
-class Deferred:
-    """Commands that found the loop's lock taken: run in arrival order on a thread of their own,
-    started when the first one arrives and ended when none is left (no thread while idle)."""
-
-    def __init__(self, capacity: int = DEFERRED_MAX) -> None:
-        self.capacity = capacity
-        self.pending = 0
-        """Queued or running; the thread runs exactly while any is: while it does, a later
-        command queues behind them (its order)."""
-        self._jobs: deque[Callable[[], None]] = deque()
-        self._lock = threading.Lock()
-
-    def put(self, job: Callable[[], None]) -> bool:
-        """Queue `job`; False (and nothing queued) when `capacity` are pending."""
-        with self._lock:
-            if self.pending >= self.capacity:
-                return False
-            self._jobs.append(job)
-            self.pending += 1
-            if self.pending > 1:
-                return True  # the thread running the others takes it
-        NamedThread(target=self._run, name="cmd-deferred", daemon=True).start()
-        return True
-
-    def _run(self) -> None:
-        while True:
-            with self._lock:
-                job = self._jobs.popleft()
-            try:
-                job()
-            except Exception as exc:  # the next command must still run
-                log.error("event=command_failed error=%r", str(exc), exc_info=exc)
-            with self._lock:
-                self.pending -= 1
-                if not self.pending:
-                    return
 
 
 def command_route(handler: Handler, keys: tuple[str, ...] = (), *, direct: bool = False) -> Route:
@@ -128,20 +89,22 @@ class Commands:
         port: LoopPort,
         confirmer: Confirmer | None = None,
         events: EventLog | None = None,
+        outbox: Outbox | None = None,
     ) -> None:
         """`confirmer`: asks a named Rider about its request (None: nobody is asked, every
         claim is recorded as claimed); `events`: where a refusal that never reached the loop
-        is recorded."""
+        is recorded; `outbox`: sends the replies of commands the scan thread runs."""
         self.base = base
         self.port = port
         self.confirmer = confirmer
         self.events = events
+        self.outbox = outbox or Outbox()
         self._commands = {
             f"{base}/cmd/{c.key}": (c, zenoh.KeyExpr(f"{base}/cmd/{c.key}")) for c in Command
         }
         """Exact command key → (command, its prebuilt key expression: no parsing per reply)."""
-        self.deferred = Deferred()
-        self.urgent = Deferred()
+        self.deferred = Deferred(DEFERRED_MAX)
+        self.urgent = Deferred(DEFERRED_MAX)
         """Pauses and Stops that found the loop's lock taken: they never wait behind `deferred`."""
         self.stops = 0
         """Pauses and Stops so far: a motion command that waited while this grew is refused."""
@@ -199,8 +162,9 @@ class Commands:
         scan stalls past the timeout), or queue it for the scan thread before the first scan
         and after shutdown; refused as `dispatch` would (away from it)."""
 
-        def respond(reply: Reply) -> None:
-            request.reply(reply, key_expr, self.port.wire(reply))
+        def hand_over(reply: Reply) -> None:  # on the scan thread, which never sends (outbox.py)
+            send = functools.partial(request.reply, reply, key_expr, self.port.wire(reply))
+            self.outbox.later(send, request.key)
 
         try:
             identity = self._confirmed(request, command, body, claim)
@@ -219,8 +183,8 @@ class Commands:
                 command, body, sender=sender, identity=identity, timeout=LOCK_TIMEOUT_S
             )
             if reply is not None:
-                respond(reply)
-            elif not port.submit(PendingCommand(command, body, respond, sender, identity)):
+                request.reply(reply, key_expr, port.wire(reply))
+            elif not port.submit(PendingCommand(command, body, hand_over, sender, identity)):
                 raise Busy("command queue full; retry later")
         except MachineError as exc:
             self._refused(request, command, body, sender, exc)

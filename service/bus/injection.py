@@ -38,8 +38,10 @@ class SimPort(Protocol):
         ...
 
 
-Runner = Callable[[Request, Callable[[], None]], None]
-"""Runs work on the simulator's thread (the daemon's scan thread), or at once."""
+Runner = Callable[[Request, Callable[[], BaseModel]], None]
+"""Runs `make` where the simulator's world is (the daemon's scan thread, the supervisor's
+plant thread) and answers the request with what it makes, from a thread that may wait on the
+asker's link (never the scan thread: service/bus/outbox.py)."""
 
 
 @dataclass
@@ -74,12 +76,12 @@ class Injection:
                 f"sim/{what}: this machine runs the {self.backend} HAL, not the simulator"
             )
         if what == WORLD:  # read where faults are applied: never beside a change
-            self.run(request, lambda: request.reply(port.world(self.wall())))
+            self.run(request, lambda: port.world(self.wall()))
             return
         fault = port.decode(what, request.payload, request.encoding)
 
-        def apply() -> None:
+        def apply() -> BaseModel:
             port.apply(fault)
-            request.reply(port.world(self.wall()))
+            return port.world(self.wall())
 
         self.run(request, apply)

@@ -4,6 +4,7 @@ the scan thread); the scan loop judges it."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass, field
 from typing import Any
@@ -55,10 +56,23 @@ class Presence:
     others: set[str] = field(default_factory=set)
     """Other sessions that hold this machine's id (its `holder/<zid>` token): duplicates."""
     riders_alive: set[str] = field(default_factory=set)
+    dropped: int = 0
+    """Presence changes the scan loop's inbox had no room for (lost: logged, and counted)."""
 
     def __post_init__(self) -> None:
         self.base = self.config.key_base
         self.zid = str(self.session.zid())
+        self._drops = itertools.count(1)  # its `next` is one step: callbacks on two threads
+
+    def _hand_over(self, task: Duplicates | RiderPresence, what: str, *args: object) -> None:
+        """Queue `task` for the scan thread. A full inbox drops it: counted, and said (`what`
+        and its `args`, key=value) at the first drop and then at every power of two, so a
+        storm of changes is not a storm of lines."""
+        if self.port.submit(task):
+            return
+        n = self.dropped = next(self._drops)
+        if n & (n - 1) == 0:
+            log.warning(f"event=presence_dropped cause=inbox_full {what} dropped=%d", *args, n)
 
     def declare(self) -> list[Any]:
         """The subscribers; the caller undeclares them."""
@@ -87,10 +101,11 @@ class Presence:
         else:
             self.others.discard(zid)
             log.warning("event=duplicate_gone id=%s other_session=%s", self.config.machine.id, zid)
-        self.port.submit(Duplicates(tuple(sorted(self.others)), self.zid))
+        others = tuple(sorted(self.others))
+        self._hand_over(Duplicates(others, self.zid), "task=duplicates others=%s", ",".join(others))
 
     def _on_heartbeat(self, sample: zenoh.Sample) -> None:
-        """Only the arrival time is kept (one dict write): the scan loop judges it."""
+        """Only the arrival time is kept (`Heartbeats.beat`): the scan loop judges it."""
         rider = rider_keys.rider_of(str(sample.key_expr))
         if rider is not None:
             self.port.heartbeat(rider)
@@ -106,4 +121,4 @@ class Presence:
         else:
             self.riders_alive.discard(rider)
             self.port.rider_gone(rider)
-        self.port.submit(RiderPresence(rider, alive))
+        self._hand_over(RiderPresence(rider, alive), "task=rider rider=%s alive=%s", rider, alive)

@@ -138,17 +138,17 @@ class Reads:
             )
 
     def validate(self, request: Request) -> None:
-        data = request.payload
         request.key = f"{self.base}/config/validate"
+        if request.size > MAX_PAYLOAD_BYTES:
+            # Parsing runs on Zenoh's thread and holds the GIL: a few MiB stall the scan loop.
+            raise PayloadTooLarge(
+                f"candidate config is {request.size} bytes, the limit is {MAX_PAYLOAD_BYTES}"
+            )
+        data = request.payload
         if data.lstrip()[:1] == b"{" and request.query.parameters.get("format") is None:
             request.fmt = Format.JSON  # a JSON candidate is answered in JSON (TOML keeps msgpack)
         if self.check_config is None:
             raise NotAvailable("no config checker")
-        if len(data) > MAX_PAYLOAD_BYTES:
-            # Parsing runs on Zenoh's thread and holds the GIL: a few MiB stall the scan loop.
-            raise PayloadTooLarge(
-                f"candidate config is {len(data)} bytes, the limit is {MAX_PAYLOAD_BYTES}"
-            )
         request.reply(self.check_config(data or None))
 
     def history(self, request: Request) -> None:

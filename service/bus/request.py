@@ -10,11 +10,13 @@ import zenoh
 from pydantic import BaseModel
 
 from ride_machine.schema.codec import (
+    MAX_PAYLOAD_BYTES,
     DecodeError,
     Format,
     decode_raw,
     encode,
     sniff_format,
+    too_large,
     validate,
 )
 from ride_machine.schema.commands import Reply, transaction_id_of
@@ -82,7 +84,9 @@ class Request:
 
     query: zenoh.Query
     key: str
-    payload: bytes
+    body: bytes
+    """The payload as sent; empty when it is larger than any request may be (`size`): such a
+    payload is never copied out of Zenoh, and `payload` refuses it."""
     encoding: str | None
     """The query's encoding, as text (`encoding_of`)."""
     fmt: Format
@@ -93,7 +97,17 @@ class Request:
     """The id a refusal echoes; without one, whatever id the payload carries."""
     sent: Format | None = None
     """The payload's own format (`sniff_format`), once it has been told; None: not yet."""
+    size: int = 0
+    """The payload's length in bytes, as sent."""
     _raw: Any = _UNREAD
+
+    @property
+    def payload(self) -> bytes:
+        """The payload; `Rejected` (PAYLOAD_TOO_LARGE) past `MAX_PAYLOAD_BYTES`: a handler that
+        reads it refuses such a request, one that never does (a read) answers as usual."""
+        if self.size > MAX_PAYLOAD_BYTES:
+            raise Rejected(too_large(self.size))
+        return self.body
 
     @property
     def wild(self) -> bool:
@@ -163,14 +177,19 @@ class Request:
         self.reply(model)
 
 
+ATTACHMENT_MAX_BYTES = 128
+"""`rider=` and the longest Rider id (a 64-character login, `/`, a 32-digit session id) fit."""
+
+
 def sender_of(query: zenoh.Query) -> str | None:
     """The Rider id from the query's attachment (`rider=<login>/<zid>`; a schema-1 Rider's
     `rider=<zid>`), if it sent one. Said by the sender: the login part is its own claim,
     which the ACL profiles do not check on a query (docs/security.md)."""
     attachment = query.attachment  # one read: each crosses into Zenoh
-    if attachment is None:
+    # Its length first (no copy): no Rider id makes an attachment longer than this.
+    if attachment is None or len(attachment) > ATTACHMENT_MAX_BYTES:
         return None
-    text = attachment.to_bytes()[:128].decode(errors="replace")
+    text = attachment.to_bytes().decode(errors="replace")
     name, _, value = text.partition("=")
     if name != "rider":
         return None

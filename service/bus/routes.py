@@ -2,11 +2,13 @@
 
 Every queryable of the daemon and of the supervisor is declared here, through `dispatch`: it
 makes the `Request`, applies the one wildcard rule, runs the handler, and turns any
-`MachineError` the handler raises into the one refusal shape (`Request.refuse`).
+`MachineError` the handler raises into the one refusal shape (`Request.refuse`), and any other
+exception into one `INTERNAL` refusal and one logged traceback: no query goes unanswered.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import Enum
@@ -14,11 +16,13 @@ from typing import Any
 
 import zenoh
 
-from ride_machine.schema.codec import sniff_format
-from ride_machine.service.errors import BadKey, MachineError
+from ride_machine.schema.codec import MAX_PAYLOAD_BYTES, sniff_format
+from ride_machine.service.errors import BadKey, Internal, MachineError
 
 from .callbacks import direct
 from .request import Host, Request, encoding_of, reply_format
+
+log = logging.getLogger(__name__)
 
 Handler = Callable[[Request], None]
 
@@ -76,23 +80,41 @@ def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
     # One read of the selector for the key and its parameters: each read crosses into Zenoh.
     key, _, parameters = str(query.selector).partition("?")
     body = query.payload
-    payload = body.to_bytes() if body is not None else b""
+    # Its length first: a payload larger than any request may be is never copied (a handler
+    # that reads it refuses it, `Request.payload`; a read that ignores it answers).
+    size = len(body) if body is not None else 0
+    payload = body.to_bytes() if body is not None and 0 < size <= MAX_PAYLOAD_BYTES else b""
     encoding = encoding_of(query)
     # The payload's format is told once, for the reply's and for reading it (`Request.raw`).
     sent = sniff_format(payload, encoding) if route.sniff and payload else None
     fmt = reply_format(parameters, encoding, sent)
-    request = Request(query, key, payload, encoding, fmt, host, sent=sent)
+    request = Request(query, key, payload, encoding, fmt, host, sent=sent, size=size)
     try:
         rule = route.wildcard
         if rule is not Wildcard.READ and request.wild:
             if rule is Wildcard.REFUSE_NAMED and not key.endswith("/" + route.key):
                 query.drop()
                 return
-            if rule is not Wildcard.REFUSE_WRITES or payload:
+            if rule is not Wildcard.REFUSE_WRITES or size:
                 raise route.refuse_wildcard(base, key)
         route.handler(request)
     except MachineError as exc:
         request.refuse(exc)
+    except Exception as exc:  # a handler's bug: its query still gets its one reply
+        error = type(exc).__name__
+        try:
+            request.refuse(
+                Internal(
+                    f"internal error ({error}) answering {key}; the machine's log has its"
+                    " traceback (event=handler_failed)"
+                )
+            )
+            refused = True
+        except zenoh.ZError:  # it had answered, and so ended, the query before it failed
+            refused = False
+        log.error(
+            "event=handler_failed key=%s error=%s refused=%s", key, error, refused, exc_info=exc
+        )
 
 
 def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Route]) -> list[Any]:

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+from pydantic import BaseModel
 
 from ride_machine.common.zenoh_session import file_config
 from ride_machine.hal.base import HalError
@@ -304,23 +305,24 @@ class PlantRequests:
     """Requests waiting at most: a flood of `sim/world` is refused BUSY, not queued without end."""
 
     def __init__(self) -> None:
-        self._queue: queue.Queue[tuple[Request, Callable[[], None]] | None] = queue.Queue(
+        self._queue: queue.Queue[tuple[Request, Callable[[], BaseModel]] | None] = queue.Queue(
             self.PENDING_MAX
         )
         self._thread = NamedThread(target=self._serve, name="sim-requests", daemon=True)
         self._thread.start()
 
-    def run(self, request: Request, fn: Callable[[], None]) -> None:
+    def run(self, request: Request, make: Callable[[], BaseModel]) -> None:
+        """`Runner`: `make` and the reply to `request` on this thread, after what waits."""
         try:
-            self._queue.put_nowait((request, fn))
+            self._queue.put_nowait((request, make))
         except queue.Full:
             raise Busy(f"{self.PENDING_MAX} simulator requests are waiting; retry later") from None
 
     def _serve(self) -> None:
         while (item := self._queue.get()) is not None:
-            request, fn = item
+            request, make = item
             try:
-                fn()
+                request.reply(make())
             except MachineError as exc:
                 request.refuse(exc)
             except HalError as exc:  # the plant is gone or did not answer in time

@@ -6,8 +6,10 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
+
+from pydantic import BaseModel
 
 from ride_machine.schema.calibration import CalibrationRecord, CalibrationSet
 from ride_machine.schema.diag import CycleDiag
@@ -25,6 +27,7 @@ from ride_machine.service.errors import BadRequest, Busy, MachineError, Rejected
 from ride_machine.service.threads import NamedThread
 
 from .confirm import Confirmer
+from .outbox import Outbox
 from .reads import matching
 from .request import Request, sender_of
 from .routes import Route, Wildcard
@@ -45,14 +48,25 @@ class ParamService(Protocol):
     def set(self, name: str, req: ParamSet, *, moving: bool, now: float) -> ParamValue: ...
 
 
-def on_scan_thread(port: LoopPort, request: Request, fn: Callable[[], None]) -> None:
-    """Run `fn` on the scan thread, between or within cycles; it answers `request` there (or
-    `request` is refused if it never runs)."""
+def on_scan_thread(
+    port: LoopPort, outbox: Outbox, request: Request, make: Callable[[], BaseModel]
+) -> None:
+    """Run `make` on the scan thread, between or within cycles; `outbox` answers `request`
+    with what it made, or refuses it with the `MachineError` it raised (or because it never
+    ran): the scan thread sends no reply itself (service/bus/outbox.py)."""
+
+    def run() -> None:
+        try:
+            model = make()
+        except MachineError as exc:
+            outbox.later(functools.partial(request.refuse, exc), request.key)
+            return
+        outbox.later(functools.partial(request.reply, model), request.key)
 
     def rejected(error: Error) -> None:
-        request.refuse(Rejected(error))
+        outbox.later(functools.partial(request.refuse, Rejected(error)), request.key)
 
-    if not port.submit(OnScanThread(fn, rejected)):
+    if not port.submit(OnScanThread(run, rejected)):
         raise Busy("command queue full; retry later")
 
 
@@ -72,6 +86,8 @@ class Writes:
     params: ParamService | None = None
     events: EventLog | None = None
     confirmer: Confirmer | None = None
+    outbox: Outbox = field(default_factory=Outbox)
+    """Sends the replies of work done on the scan thread."""
 
     def routes(self) -> list[Route]:
         named = Wildcard.REFUSE_NAMED
@@ -105,12 +121,12 @@ class Writes:
         """Reply with the counters as they were, reset on the scan thread before the reply
         leaves (a read sent on the reply's heels sees the reset, not the counters before it)."""
 
-        def reset() -> None:
+        def reset() -> CycleDiag:
             before = self.diag()
             self.stats.reset(self.wall())
-            request.reply(before)
+            return before
 
-        on_scan_thread(self.port, request, reset)
+        on_scan_thread(self.port, self.outbox, request, reset)
 
     def param(self, request: Request) -> None:
         params = self.params
@@ -159,7 +175,7 @@ class Writes:
                 kind=kind,
                 name=old.name,
                 old=old.value,
-                new=new if isinstance(new, bool | int | float | str) else repr(new),
+                new=_recordable(new),
                 persisted=persisted,
                 reset=req.reset,
                 transaction_id=req.transaction_id,
@@ -207,7 +223,10 @@ class Writes:
                 daemon=True,
             ).start()
 
-        if not self.port.submit(EnterCalibration(req, entered, request.refuse)):
+        def refused(error: MachineError) -> None:  # on the scan thread: it never sends
+            self.outbox.later(functools.partial(request.refuse, error), request.key)
+
+        if not self.port.submit(EnterCalibration(req, entered, refused)):
             raise Busy("command queue full; retry later")
 
 
@@ -221,3 +240,15 @@ def _answer_saved(request: Request, record: CalibrationRecord, ticket: SaveTicke
         )
         return
     request.reply(record)
+
+
+_INT64 = range(-(2**63), 2**64)
+"""The integers msgpack carries (int64 and uint64)."""
+
+
+def _recordable(value: object) -> bool | int | float | str:
+    """A written value as the history keeps it: an integer msgpack cannot carry (a refused
+    write of 310 digits) in words, since every read and sample of the history is msgpack."""
+    if isinstance(value, int) and not isinstance(value, bool) and value not in _INT64:
+        return f"an integer of {value.bit_length()} bits"
+    return value if isinstance(value, bool | int | float | str) else repr(value)

@@ -10,12 +10,15 @@ import logging
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from pydantic import BaseModel
+
 from ride_machine.schema.status import MachineState
 from ride_machine.service.core.scan.port import LoopPort
 
 from .commands import Commands
 from .confirm import Confirmer
 from .injection import Injection, SimPort
+from .outbox import Outbox
 from .presence import Presence
 from .publications import Publications
 from .reads import ConfigChecker, Reads
@@ -24,6 +27,10 @@ from .routes import Route, declare
 from .writes import ParamService, Writes, on_scan_thread
 
 log = logging.getLogger("service.bus")
+
+OUTBOX_DRAIN_S = 1.0
+"""How long a closing bus waits for the replies handed over to go (each is dropped, not waited
+for, toward a full link: only a query's end can wait)."""
 
 
 class ZenohBus:
@@ -53,8 +60,10 @@ class ZenohBus:
         self.io_keys = tuple(io_keys)
         self.presence = Presence(session, port, config)
         confirmer = Confirmer(session, config.bus.confirm_timeout_s)
+        self.outbox = outbox = Outbox()
+        """Sends the replies of work done on the scan thread, which never sends one."""
         routes: list[Route] = [
-            *Commands(b, port, confirmer, events).routes(),
+            *Commands(b, port, confirmer, events, outbox).routes(),
             *Reads(b, port, pubs.diag, check_config=check_config, events=events).routes(),
             *Writes(
                 b,
@@ -65,6 +74,7 @@ class ZenohBus:
                 params=params,
                 events=events,
                 confirmer=confirmer,
+                outbox=outbox,
             ).routes(),
         ]
         # Declared without a simulator too: `sim/*` on real hardware answers NOT_AVAILABLE
@@ -79,8 +89,8 @@ class ZenohBus:
         status = self.port.published().status
         return status.state if status is not None else None
 
-    def _on_scan_thread(self, request: Request, fn: Callable[[], None]) -> None:
-        on_scan_thread(self.port, request, fn)
+    def _on_scan_thread(self, request: Request, make: Callable[[], BaseModel]) -> None:
+        on_scan_thread(self.port, self.outbox, request, make)
 
     @property
     def others(self) -> set[str]:
@@ -102,7 +112,10 @@ class ZenohBus:
         log.info("event=bus_started base=%s zid=%s", self.base, s.zid())
 
     def close(self) -> None:
-        """Undeclare everything (the session itself is closed by its owner)."""
+        """Send the replies still handed over (the last answers of a stop), then undeclare
+        everything (the session itself is closed by its owner)."""
+        if not self.outbox.drain(OUTBOX_DRAIN_S):
+            log.warning("event=replies_unsent timeout_s=%g", OUTBOX_DRAIN_S)
         self.publications.undeclare()
         for entity in reversed(self._declared):
             entity.undeclare()

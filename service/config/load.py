@@ -17,6 +17,7 @@ from typing import Any
 from ride_machine.schema.findings import Finding, Findings
 
 from .model import MachineConfig
+from .report import at_most
 from .validate import (
     Category,
     findings_of,
@@ -28,6 +29,10 @@ from .validate import (
 
 Overrides = Mapping[str, Any]
 """Config field (JSON pointer, e.g. `/loop/period_s`) → value that replaces the file's."""
+
+MAX_FINDINGS = 100
+"""Findings a candidate's check replies with at most (a 64 KiB candidate made 6611 of them, a
+reply of 1.1 MB: past what a Rider reads); one more says how many were left out."""
 
 
 def load(
@@ -48,17 +53,24 @@ def load_data(
     data: dict[str, Any], overrides: Overrides | None = None
 ) -> tuple[MachineConfig | None, Findings]:
     """As `load`, for config data already parsed (a candidate sent on the bus)."""
-    merged = copy.deepcopy(data)
-    for pointer, value in (overrides or {}).items():
-        parts = pointer.strip("/").split("/")
-        node = merged
-        for part in parts[:-1]:
-            child = node.get(part)
-            if not isinstance(child, dict):
-                child = node[part] = {}
-            node = child
-        node[parts[-1]] = value
-    return validate_data(merged)
+    try:
+        merged = copy.deepcopy(data)
+        for pointer, value in (overrides or {}).items():
+            parts = pointer.strip("/").split("/")
+            node = merged
+            for part in parts[:-1]:
+                child = node.get(part)
+                if not isinstance(child, dict):
+                    child = node[part] = {}
+                node = child
+            node[parts[-1]] = value
+        return validate_data(merged)
+    except RecursionError:
+        # Tables or arrays nested some hundreds deep (a kilobyte of JSON) parse, but neither
+        # the copy nor the check can recurse that far: a finding, not an unanswered query.
+        return None, one_error(
+            Category.SYNTAX, "config is nested too deeply to be checked (a few levels at most)"
+        )
 
 
 def override_source(f: Finding, options: Mapping[str, str], default: str) -> str:
@@ -79,4 +91,4 @@ def check_candidate(running: MachineConfig, candidate: bytes | None) -> Findings
         )
     if not isinstance(data, dict):
         return validate_data(data)[1]  # one finding: "expected a table/object, got …"
-    return load_data(data)[1]
+    return at_most(load_data(data)[1], MAX_FINDINGS)

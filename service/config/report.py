@@ -30,6 +30,8 @@ class Category(StrEnum):
     EVENTS = "events"
     HAL = "hal"
     REALTIME = "realtime"
+    MORE = "more"
+    """Not a problem of its own: how many findings a capped report left out (`at_most`)."""
 
 
 def _finding(
@@ -72,6 +74,25 @@ def show(value: Any) -> str:
 def findings_of(items: list[Finding]) -> Findings:
     """The report: `ok` is false when any finding is an error."""
     return Findings(ok=not any(f.severity is Severity.ERROR for f in items), findings=items)
+
+
+def at_most(report: Findings, limit: int) -> Findings:
+    """`report` with no more than `limit` findings, errors first, and one more finding that says
+    how many were left out (an error if any of them is); `ok` is the whole report's."""
+    found = report.findings
+    if len(found) <= limit:
+        return report
+    kept = sorted(found, key=lambda f: f.severity is not Severity.ERROR)
+    left = kept[limit:]
+    said = error if any(f.severity is Severity.ERROR for f in left) else warning
+    note = said(
+        Category.MORE,
+        "",
+        f"{len(left)} more findings not listed here (the first {limit} are); `machine validate`"
+        " on the file lists every one",
+        more=len(left),
+    )
+    return Findings(ok=report.ok, findings=[*kept[:limit], note])
 
 
 def one_error(category: Category, message: str, path: str = "") -> Findings:

@@ -4,6 +4,7 @@ zenoh.json5 (or none), their endpoints and their secrets."""
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +12,20 @@ import pytest
 import zenoh
 
 from ride_machine.common.credentials import MACHINE, RIDER, CredentialError, env_name
-from ride_machine.common.zenoh_session import LOCAL_ENDPOINT, MACHINE_SIDE, RIDER_SIDE, zenoh_config
+from ride_machine.common.zenoh_session import (
+    LOCAL_ENDPOINT,
+    MACHINE_SIDE,
+    MAX_MESSAGE_BYTES,
+    MAX_MESSAGE_SETTING,
+    RIDER_SIDE,
+    file_config,
+    zenoh_config,
+)
+from ride_machine.schema.codec import MAX_REPLY_BYTES
+from tests.procs import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+SHIPPED = ["zenoh.json5", "zenoh/acl.json5", "zenoh/tls.json5", "docker/rider-client.json5"]
 
 FILE = """{
   mode: "peer",
@@ -87,3 +101,59 @@ def test_each_side_presents_its_own_secrets(
     monkeypatch.setenv(env_name(MACHINE, "USER"), "machine")
     with pytest.raises(CredentialError, match=env_name(MACHINE, "PASSWORD_FILE")):
         zenoh_config(MACHINE_SIDE, None)
+
+
+def test_every_config_bounds_the_messages_it_reassembles(shared: Path, tmp_path: Path) -> None:
+    """Zenoh reassembles fragments into messages of up to 1 GiB by default, for any peer."""
+    assert MAX_MESSAGE_BYTES > MAX_REPLY_BYTES  # the largest reply a Rider reads fits
+    for side in (MACHINE_SIDE, RIDER_SIDE):
+        assert get(zenoh_config(side, None, listen=[]), MAX_MESSAGE_SETTING) == MAX_MESSAGE_BYTES
+        assert get(zenoh_config(side, shared, listen=[]), MAX_MESSAGE_SETTING) == MAX_MESSAGE_BYTES
+    for name in SHIPPED:  # written in each, for zenohd and other tools that read them too
+        shipped = zenoh.Config.from_file(str(REPO / name))
+        assert get(shipped, MAX_MESSAGE_SETTING) == MAX_MESSAGE_BYTES, name
+    own = tmp_path / "own.json5"
+    own.write_text("{transport: {link: {rx: {max_message_size: 4194304}}}}")
+    assert get(file_config(own), MAX_MESSAGE_SETTING) == 4194304  # a file's own choice holds
+
+
+def _size_of_payload(query: zenoh.Query) -> None:
+    with query:
+        query.reply(query.key_expr, str(len(query.payload or b"")))
+
+
+@pytest.mark.hazard("H30")
+def test_a_message_past_the_bound_is_dropped_and_the_link_stays() -> None:
+    """As the bound does between a daemon and a Rider on two hosts: 1 MiB (the largest reply a
+    Rider reads; a request refused by its size) passes, 3 MiB is dropped unreassembled. Shared
+    memory is off, as between two hosts: on one host Zenoh hands large messages over in the
+    sender's own shared memory instead (its pool, 16 MiB, bounds them)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    confs = [
+        zenoh_config(MACHINE_SIDE, None, listen=[endpoint]),
+        zenoh_config(RIDER_SIDE, None, listen=[], connect=[endpoint]),
+    ]
+    for conf in confs:
+        conf.insert_json5("transport/shared_memory/enabled", "false")
+    server, client = (zenoh.open(conf) for conf in confs)
+    try:
+        queryable = server.declare_queryable("bound/size", _size_of_payload)
+        querier = client.declare_querier("bound/size")
+        matched = threading.Event()
+        listener = querier.declare_matching_listener(
+            lambda status: matched.set() if status.matching else None
+        )
+        assert querier.matching_status or matched.wait(10.0)  # it has heard of the queryable
+
+        def size(payload: bytes, timeout: float) -> list[str]:
+            replies = client.get("bound/size", payload=payload, timeout=timeout)
+            return [r.ok.payload.to_bytes().decode() for r in replies if r.ok is not None]
+
+        assert size(b"x" * MAX_REPLY_BYTES, 5.0) == [str(MAX_REPLY_BYTES)]
+        assert size(b"x" * (MAX_MESSAGE_BYTES + (1 << 20)), 1.0) == []
+        assert size(b"x", 5.0) == ["1"]  # the same link, still up
+        for entity in (listener, querier, queryable):
+            entity.undeclare()
+    finally:
+        client.close()
+        server.close()

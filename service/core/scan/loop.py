@@ -311,6 +311,7 @@ class ScanLoop:
         rider = machine.controller_rider
         if self.beats is None or rider is None:
             return
+        self.beats.controller = rider  # its heartbeats are never dropped to make room
         before = machine.state
         verdict = machine.rider_heartbeat(self.beats.last_heartbeat(rider), now)
         if verdict is Verdict.LOST:

@@ -30,7 +30,8 @@ log = logging.getLogger("machine")
 
 @dataclass
 class PendingCommand:
-    """A decoded command waiting for the scan thread; `respond` sends its one reply."""
+    """A decoded command waiting for the scan thread; `respond` takes its one reply (and
+    must not wait: the bus hands it to a thread of its own to send)."""
 
     command: Command
     request: CommandRequest

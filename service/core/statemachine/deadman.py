@@ -6,6 +6,8 @@ row (pause → PAUSED, stop → DONE).
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from enum import Enum
 
@@ -83,38 +85,78 @@ class RiderWatch:
 MAX_RIDERS = 1024
 """Riders whose heartbeat is kept track of at once."""
 
+SILENT_S = 120.0
+"""A Rider silent this long is dropped from the table: longer than any `rider_loss.timeout_s`
+plus `grace_s` (60 s each at most), after which its last heartbeat decides nothing."""
+
 
 class Heartbeats:
-    """The Riders' heartbeats as data: written from the bus's callback (one dict write per
-    heartbeat, `LoopPort.heartbeat`), read by the scan loop's deadman."""
+    """The Riders' heartbeats as data: written from the bus's callbacks (`LoopPort.heartbeat`),
+    read by the scan loop's deadman. Bounded: a newcomer first drops the Riders silent past
+    `silent_s`, and a full table the one silent longest, never the one that controls the
+    machine: made-up ids (a station's login lets it put any `<zid>` under it) cannot keep a
+    real Rider's heartbeat out."""
 
-    def __init__(self, limit: int = MAX_RIDERS) -> None:
+    def __init__(self, limit: int = MAX_RIDERS, silent_s: float = SILENT_S) -> None:
         self.limit = limit
-        self._at: dict[str, float] = {}
+        self.silent_s = silent_s
+        self.controller: str | None = None
+        """The Rider that controls the machine (set by the deadman each cycle): never dropped."""
+        self._at: OrderedDict[str, float] = OrderedDict()
+        """Last heartbeat by Rider, the one silent longest first (a read never misses a Rider
+        being moved to the end, as it could between a dict's pop and its insert)."""
         self._gone: dict[str, None] = {}
         """Riders whose token went (oldest first): a heartbeat of theirs that arrives after
         it is one the token's going overtook, not a sign of life."""
+        self._lock = threading.Lock()
+        """Held by the writers (Zenoh's callbacks, on one thread or more); the deadman reads
+        without it."""
 
     def beat(self, rider: str, at: float) -> None:
-        """`rider`'s heartbeat arrived at `at`; a flood of made-up ids cannot grow this
-        without end. One from a Rider whose token has gone is ignored: a heartbeat sent just
-        before it closed can arrive after its token's going (another priority, another
-        queue) and made the deadman take it back, then lose it a second time (run 21)."""
-        if rider in self._gone:
-            return
-        if rider in self._at or len(self._at) < self.limit:
-            self._at[rider] = at
+        """`rider`'s heartbeat arrived at `at`. One from a Rider whose token has gone is
+        ignored: a heartbeat sent just before it closed can arrive after its token's going
+        (another priority, another queue) and made the deadman take it back, then lose it a
+        second time (run 21)."""
+        with self._lock:
+            if rider in self._gone:
+                return
+            at_ = self._at
+            if rider in at_:
+                at_[rider] = at
+                at_.move_to_end(rider)
+                return
+            self._make_room(at)
+            at_[rider] = at
+
+    def _make_room(self, now: float) -> None:
+        """Before a newcomer: drop the Riders silent past `silent_s`, and if the table is still
+        full the one silent longest; never the controller. `_lock` held. Only the table's head
+        is looked at (it runs from the one silent longest), not every Rider in it."""
+        at_, keep = self._at, self.controller
+        drop: list[str] = []
+        for rider, t in at_.items():
+            if rider == keep:
+                continue
+            if now - t <= self.silent_s:
+                if len(at_) - len(drop) >= self.limit:
+                    drop.append(rider)
+                break
+            drop.append(rider)
+        for rider in drop:
+            del at_[rider]
 
     def forget(self, rider: str) -> None:
         """Its token went: its heartbeats are history until the token is back."""
-        self._at.pop(rider, None)
-        self._gone[rider] = None
-        if len(self._gone) > self.limit:
-            del self._gone[next(iter(self._gone))]
+        with self._lock:
+            self._at.pop(rider, None)
+            self._gone[rider] = None
+            if len(self._gone) > self.limit:
+                del self._gone[next(iter(self._gone))]
 
     def returned(self, rider: str) -> None:
         """Its token is back (a link that came back): its heartbeats count again."""
-        self._gone.pop(rider, None)
+        with self._lock:
+            self._gone.pop(rider, None)
 
     def last_heartbeat(self, rider: str) -> float | None:
         return self._at.get(rider)

@@ -100,7 +100,14 @@ class ParamSpec:
             raise self._wrong(value, "an integer" if self.kind is int else "a number")
         if self.kind is int and not isinstance(value, int):
             raise self._wrong(value, "an integer")
-        number: float | int = float(value) if self.kind is float else value
+        try:
+            number: float | int = float(value) if self.kind is float else value
+        except OverflowError:  # an integer of 309 digits or more (JSON allows it): no float
+            bounded = self.minimum is not None or self.maximum is not None
+            wanted = self.range_text() if bounded else "a finite number"
+            raise ParamOutOfRange(
+                f"{self.name} must be {wanted}; got {_num(value)}", "/value"
+            ) from None
         if isinstance(number, float) and not math.isfinite(number):
             raise ParamOutOfRange(f"{self.name} must be a finite number; got {number:g}", "/value")
         if not self._in_range(number):

@@ -7,21 +7,24 @@ these tests pin what a caller receives, without a daemon.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+import logging
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import pytest
 import zenoh
 from pydantic import BaseModel
 
-from ride_machine.schema.codec import Format, decode
+from ride_machine.schema.codec import MAX_PAYLOAD_BYTES, Format, decode
 from ride_machine.schema.commands import Reply
 from ride_machine.schema.errors import ErrorCode
 from ride_machine.schema.sim import SimEstop, SimWorldState
 from ride_machine.schema.status import MachineState
 from ride_machine.service.bus.commands import command_route
 from ride_machine.service.bus.injection import Injection
-from ride_machine.service.bus.request import Request
+from ride_machine.service.bus.request import Request, sender_of
 from ride_machine.service.bus.routes import Route, Wildcard, declare
 from ride_machine.service.bus.supervisor import SupervisorBus
 from ride_machine.service.config.model import MachineConfig
@@ -197,6 +200,124 @@ def test_an_unreadable_payload_names_its_problem(session: zenoh.Session) -> None
     assert reply.error.path == "/pressed"
 
 
+@pytest.mark.hazard("H30")
+def test_a_payload_past_the_limit_is_told_by_its_length_and_never_copied(
+    session: zenoh.Session,
+) -> None:
+    """A write refuses it; a read, which takes no payload, answers all the same."""
+    seen: list[tuple[int, bytes]] = []
+
+    def writes(request: Request) -> None:
+        seen.append((request.size, request.body))
+        request.decode(SimEstop)
+        raise UnknownCommand("not reached")
+
+    def reads(request: Request) -> None:
+        seen.append((request.size, request.body))
+        request.reply(Echo(key=request.key))
+
+    size = MAX_PAYLOAD_BYTES + 1
+    table = [Route("write", writes, sniff=True), Route("read", reads)]
+    entities = declare(session, BASE, Host(), table)
+    try:
+        (refused,) = ask(session, f"{BASE}/write", b"{" + b" " * (size - 2) + b"}")
+        (read,) = ask(session, f"{BASE}/read", b"x" * size)
+    finally:
+        for entity in entities:
+            entity.undeclare()
+    error = refused.reply().error
+    assert error is not None and error.code is ErrorCode.PAYLOAD_TOO_LARGE
+    assert error.message == f"payload is {size} bytes, the limit is {MAX_PAYLOAD_BYTES}"
+    assert read.ok and json.loads(read.data) == {"key": f"{BASE}/read"}
+    assert seen == [(size, b""), (size, b"")]  # its length only: nothing copied out of Zenoh
+
+
+class Attachment:
+    """An attachment that counts its copies (`to_bytes`), as Zenoh's `ZBytes` would make them."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+        self.copies = 0
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def to_bytes(self) -> bytes:
+        self.copies += 1
+        return self.data
+
+
+def test_an_attachment_no_rider_id_fits_in_is_not_copied() -> None:
+    rider = b"rider=" + b"l" * 64 + b"/" + b"a" * 32  # the longest a Rider sends
+    fits, huge = Attachment(rider), Attachment(b"rider=bay1/" + b"a" * (1 << 20))
+    assert sender_of(SimpleNamespace(attachment=fits)) == rider[6:].decode()  # type: ignore[arg-type]
+    assert sender_of(SimpleNamespace(attachment=huge)) is None  # type: ignore[arg-type]
+    assert (fits.copies, huge.copies) == (1, 0)
+
+
+class Failures(logging.Handler):
+    """The bus's `event=handler_failed` lines, logged on Zenoh's thread after the reply left."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+        self.arrived = threading.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "event=handler_failed" in record.getMessage():
+            self.records.append(record)
+            self.arrived.set()
+
+
+@pytest.fixture
+def failures() -> Iterator[Failures]:
+    handler, logger = Failures(), logging.getLogger("ride_machine.service.bus.routes")
+    logger.addHandler(handler)
+    yield handler
+    logger.removeHandler(handler)
+
+
+@pytest.mark.hazard("H30")
+def test_a_handler_that_fails_unexpectedly_still_gets_exactly_one_reply(
+    session: zenoh.Session, failures: Failures
+) -> None:
+    def broken(request: Request) -> None:
+        raise ValueError("a bug")
+
+    (entity,) = declare(session, BASE, Host(), [Route("broken", broken)])
+    try:
+        answers = ask(session, f"{BASE}/broken", b'{"transaction_id": "t-9"}')
+    finally:
+        entity.undeclare()
+    (answer,) = answers
+    reply = answer.reply()
+    assert answer.ok and not reply.success and reply.error is not None
+    assert reply.error.code is ErrorCode.INTERNAL and "ValueError" in reply.error.message
+    assert (reply.transaction_id, reply.state) == ("t-9", MachineState.IDLE)
+    assert failures.arrived.wait(5.0)
+    [logged] = failures.records
+    assert f"key={BASE}/broken error=ValueError refused=True" in logged.getMessage()
+    assert logged.exc_info is not None  # the traceback, once
+
+
+def test_a_handler_that_fails_after_its_reply_leaves_that_reply_the_only_one(
+    session: zenoh.Session, failures: Failures
+) -> None:
+    def replies_then_fails(request: Request) -> None:
+        request.reply(Echo(key=request.key))
+        raise ValueError("a bug after the reply")
+
+    (entity,) = declare(session, BASE, Host(), [Route("late", replies_then_fails)])
+    try:
+        (answer,) = ask(session, f"{BASE}/late")
+    finally:
+        entity.undeclare()
+    assert answer.ok and json.loads(answer.data) == {"key": f"{BASE}/late"}
+    assert failures.arrived.wait(5.0)
+    [logged] = failures.records
+    assert "error=ValueError refused=False" in logged.getMessage()
+
+
 @dataclass
 class FakeWorld:
     """A `SimPort` that records what it was asked to inject."""
@@ -230,9 +351,9 @@ def test_the_sim_route_injects_reads_and_refuses_without_a_simulator(
     world = FakeWorld()
     ran: list[str] = []
 
-    def run(request: Request, fn: object) -> None:
+    def run(request: Request, make: Callable[[], BaseModel]) -> None:  # `Runner`: make, reply
         ran.append(request.key)
-        fn()  # type: ignore[operator]
+        request.reply(make())
 
     with_sim = Injection(BASE, world, "sim", run, lambda: WALL)
     without = Injection("machine/t2", None, "revpi", run, lambda: WALL)

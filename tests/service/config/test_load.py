@@ -66,3 +66,19 @@ def test_a_candidate_on_the_bus_is_loaded_like_a_file() -> None:
     assert toml == json == load_data({"loop": {"period_s": 0.1}})[1]
     garbage = check_candidate(running, b"[loop")
     assert not garbage.ok and garbage.findings[0].category == "syntax"
+
+
+def _nested(depth: int) -> list[object]:
+    inner: list[object] = []
+    for _ in range(depth):
+        inner = [inner]
+    return inner
+
+
+@pytest.mark.parametrize("depth", [600, 990])
+def test_config_nested_hundreds_deep_is_one_syntax_finding(depth: int) -> None:
+    """A candidate of about a kilobyte: its copy ran out of stack (`RecursionError`)."""
+    config, report = load_data({"loop": _nested(depth)})
+    assert config is None and not report.ok
+    [finding] = report.findings
+    assert finding.category == "syntax" and "nested too deeply" in finding.message

@@ -234,3 +234,63 @@ def test_the_riders_gone_are_remembered_within_a_bound() -> None:
     beats.beat("a", 1.0)  # the oldest forgotten first: a counts again
     beats.beat("c", 1.0)
     assert (beats.last_heartbeat("a"), beats.last_heartbeat("c")) == (1.0, None)
+
+
+def _forged(n: int, tag: str = "f") -> list[str]:
+    """Made-up Rider ids under one station's login: `rider/bay2/*/heartbeat` lets it put any."""
+    return [f"bay2/{tag}{i:x}" for i in range(n)]
+
+
+@pytest.mark.hazard("H33")
+def test_made_up_heartbeats_cannot_crowd_out_a_real_riders_ride() -> None:
+    """A station put heartbeats for 1024 made-up ids, and keeps them beating: a full table once
+    kept every later Rider's heartbeat out, and its supervised ride was judged LOST."""
+    cfg = MachineConfig().with_overrides(rider_loss={"timeout_s": 0.5})
+    rig = Rig(cfg).ready()
+    beats = Heartbeats()
+    rig.loop.beats = beats
+    forged = _forged(beats.limit)
+    for rider in forged:
+        beats.beat(rider, rig.clock())
+    assert rig.send(Command.START, rider="r1").success
+    end = rig.clock() + 3.0
+    while rig.clock() < end:
+        for rider in forged:  # all as fresh as the real one, or fresher
+            beats.beat(rider, rig.clock())
+        beats.beat("r1", rig.clock())
+        assert beats.last_heartbeat("r1") == rig.clock()
+        rig.step(round(0.1 / rig.period))
+    assert rig.state is S.RUNNING and rig.relays_on()
+    assert rig.state_machine.watch.connected and rig.state_machine.watch.warning is None
+
+
+@pytest.mark.hazard("H33")
+def test_a_full_table_drops_the_rider_silent_longest_but_never_the_controller() -> None:
+    beats = Heartbeats(limit=3)
+    beats.controller = "ctl"
+    beats.beat("ctl", 1.0)  # silent longest, but it controls the machine
+    beats.beat("a", 2.0)
+    beats.beat("b", 3.0)
+    beats.beat("a", 4.0)  # a beat moves it to the back: b is now silent longest
+    beats.beat("new", 5.0)
+    assert [beats.last_heartbeat(r) for r in ("ctl", "a", "b", "new")] == [1.0, 4.0, None, 5.0]
+    for i, rider in enumerate(_forged(100)):  # a flood of newcomers, each one fresher
+        beats.beat(rider, 6.0 + i)
+    assert beats.last_heartbeat("ctl") == 1.0
+    assert beats.last_heartbeat("a") is None and beats.last_heartbeat("new") is None
+
+
+def test_riders_silent_past_the_bound_are_dropped_when_a_newcomer_arrives() -> None:
+    beats = Heartbeats(silent_s=10.0)
+    beats.controller = "ctl"
+    for rider in ("ctl", "old1", "old2"):
+        beats.beat(rider, 0.0)
+    beats.beat("recent", 5.0)
+    beats.beat("new", 10.5)  # not full: only the riders silent past 10 s go
+    assert [beats.last_heartbeat(r) for r in ("ctl", "old1", "old2", "recent", "new")] == [
+        0.0,
+        None,
+        None,
+        5.0,
+        10.5,
+    ]

@@ -259,6 +259,9 @@ def test_reset_with_a_value_is_refused(tmp_path: Path) -> None:
         ("fastdata.int.0", 10**400, "got an integer of"),
         ("fastdata.double.0", math.inf, "must be a finite number; got inf"),
         ("fastdata.double.3", math.nan, "must be a finite number; got nan"),
+        # A JSON integer of 310 digits no float can hold (it left the query unanswered).
+        ("rider_loss.timeout_s", 10**310, "must be > 0 and ≤ 60 s; got an integer of"),
+        ("fastdata.double.0", -(10**310), "must be a finite number; got an integer of"),
         # Cross-field: a valid number that breaks what the config check guarantees.
         ("rotate.nominal_speed_dps", 30.0, "/rotate/revolution_timeout_s"),
         ("tilt.max_deg", 10.0, "/tilt/calibration_stroke_s"),
