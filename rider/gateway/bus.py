@@ -155,7 +155,9 @@ class GatewayBus:
                     MAX_PAYLOAD_BYTES,
                 )
             except DecodeError as exc:
-                log.warning("event=bad_event key=%s error=%r", sample.key_expr, exc.error.message)
+                log.warning(
+                    "event=bad_event key=%r error=%r", str(sample.key_expr), exc.error.message
+                )
                 return
             deliver(machine_id, event)
 

@@ -106,7 +106,8 @@ class Calls:
         if status is not None or method is None:
             status = status or _S.BadMethodInvalid
             log.info(
-                "event=opcua_call_refused object=%s method=%s status=%s arguments=%d",
+                # %r: the ids are the client's, a newline in one would forge a log line.
+                "event=opcua_call_refused object=%r method=%r status=%s arguments=%d",
                 request.ObjectId.to_string(),
                 request.MethodId.to_string(),
                 ua.StatusCode(status).name,
@@ -118,7 +119,7 @@ class Calls:
             result = await handler(call)
         except Exception as exc:  # noqa: BLE001 - a handler's bug: said, without the arguments
             log.error(
-                "event=opcua_call_failed object=%s method=%s error=%s",
+                "event=opcua_call_failed object=%r method=%r error=%s",
                 request.ObjectId.to_string(),
                 method.to_string(),
                 type(exc).__name__,

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import time
 import uuid
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
+from typing import Any
 
 from asyncua import ua
 from pydantic import ValidationError
@@ -149,8 +151,9 @@ def _session_arg(args: list[ua.Variant]) -> Session | None:
         raise CallRefused(
             _S.BadOutOfRange, "BAD_PAYLOAD", f"Session is longer than {MAX_ARGUMENT_BYTES} bytes"
         )
+    too_long: list[_TooLong] = []
     try:
-        return Session.model_validate(json.loads(text))
+        data = json.loads(text, parse_int=lambda digits: _int(digits, too_long))
     except json.JSONDecodeError as exc:
         raise CallRefused(
             _S.BadInvalidArgument, "BAD_PAYLOAD", f"Session is not JSON: {exc.msg} at {exc.pos}"
@@ -159,12 +162,50 @@ def _session_arg(args: list[ua.Variant]) -> Session | None:
         raise CallRefused(
             _S.BadInvalidArgument, "BAD_PAYLOAD", "Session nests deeper than any session does"
         ) from exc
+    if too_long:
+        path = json_pointer(_path_of(data, too_long[0])) or "/"
+        raise CallRefused(
+            _S.BadInvalidArgument,
+            "BAD_PAYLOAD",
+            f"Session {path}: an integer of {len(too_long[0].lstrip('-'))} digits"
+            f" (at most {sys.get_int_max_str_digits()})",
+        )
+    try:
+        return Session.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
         path = json_pointer(first["loc"]) or "/"
         raise CallRefused(
             _S.BadInvalidArgument, "BAD_PAYLOAD", f"Session {path}: {first['msg']}"
         ) from exc
+
+
+class _TooLong(str):
+    """An integer's text past Python's digit limit (`int` raises ValueError, no JSON error)."""
+
+
+def _int(digits: str, too_long: list[_TooLong]) -> int | _TooLong:
+    """`json`'s integer, or the text kept (and noted) when it is too long to convert."""
+    try:
+        return int(digits)
+    except ValueError:
+        too_long.append(_TooLong(digits))
+        return too_long[-1]
+
+
+def _path_of(data: Any, target: object) -> tuple[str | int, ...]:
+    """Where `target` (by identity) sits in parsed JSON, as keys and indexes (iterative: the
+    JSON may nest as deep as the parser let it)."""
+    stack: list[tuple[Any, tuple[str | int, ...]]] = [(data, ())]
+    while stack:
+        node, path = stack.pop()
+        if node is target:
+            return path
+        if isinstance(node, dict):
+            stack.extend((v, (*path, k)) for k, v in node.items())
+        elif isinstance(node, list):
+            stack.extend((v, (*path, i)) for i, v in enumerate(node))
+    return ()
 
 
 def _result(status: int, code: str, message: str, tid: str, state: str) -> ua.CallMethodResult:

@@ -96,6 +96,8 @@ class Gateway:
         self._pending = 0
         self._inbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
         self._tasks: set[asyncio.Task[None]] = set()
+        self._attaching: dict[str, bool] = {}
+        """Machines being attached; True: its token came back meanwhile (read it again)."""
         self.iserver = GatewayInternalServer(
             Users(options.users, options.operator_certs), Limits(sessions=options.max_sessions)
         )
@@ -299,12 +301,29 @@ class Gateway:
         attached = self.attached.get(machine_id)
         if attached is not None:
             self._background(self._refresh(attached))  # back from a drop-out
+        elif machine_id in self._attaching:
+            self._attaching[machine_id] = True  # back while attaching: read it again after
         elif self.bus is not None:
-            deliver = self._deliver()
-            self.attached[machine_id] = await asyncio.to_thread(
-                self.bus.attach, machine_id, deliver
-            )
+            self._attaching[machine_id] = False
+            self._background(self._attach(self.bus, machine_id))
         log.info("event=machine_seen machine=%s", machine_id)
+
+    async def _attach(self, bus: GatewayBus, machine_id: str) -> None:
+        """Follow a machine first seen, on a worker thread: its first reads wait up to the
+        timeout each on a frozen machine, and the loop serves the others' updates meanwhile."""
+        try:
+            attached = await asyncio.to_thread(bus.attach, machine_id, self._deliver())
+        except Exception:  # logged; its token's next arrival tries again
+            log.exception("event=attach_failed machine=%s", machine_id)
+            return
+        finally:
+            again = self._attaching.pop(machine_id, False)
+        if self.bus is not bus or machine_id not in self.space.machines:
+            await asyncio.to_thread(attached.close)  # forgotten, or the gateway stopping
+            return
+        self.attached[machine_id] = attached
+        if again:
+            await self._refresh(attached)
 
     async def _refresh(self, attached: Attached) -> None:
         """A machine back from a drop-out: its current values read again (on a worker thread,

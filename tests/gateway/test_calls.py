@@ -12,6 +12,7 @@ from asyncua import Client, ua
 
 from ride_machine.rider.client import Rider
 from ride_machine.schema.event_models import CommandEvent
+from ride_machine.schema.events import Event
 from tests.gateway.support import Credentials, GatewayProc, joined
 from tests.gateway.ua import call, call_on, connected, eventually, ns, read, run
 from tests.site.stand import Site
@@ -34,7 +35,7 @@ def _stops(plant: Site, machine_id: str) -> int:
         return sum(e.details.command == "Stop" for e in _commands(r))  # type: ignore[union-attr]
 
 
-def _commands(rider: Rider) -> list[object]:
+def _commands(rider: Rider) -> list[Event]:
     return list(rider.events(kinds=("command",), last=500))
 
 
@@ -119,6 +120,50 @@ def test_an_oversized_argument_is_refused_and_never_logged(
     logged = "\n".join(gateway.lines.seen)
     assert "status=BadOutOfRange" in logged
     assert marker not in logged and "[[[[" not in logged
+
+
+def test_an_anonymous_clients_node_id_cannot_forge_a_log_line(gateway: GatewayProc) -> None:
+    """A refused call logs the ids the client chose: a newline in one must not start a line of
+    its own (a fake E-stop in the log an operator or an alert reads)."""
+    forged = "ts=2026-01-01T00:00:00.000Z level=error logger=service event=estop_pressed"
+
+    async def body() -> None:
+        async with connected(gateway.url) as anon:
+            idx = await ns(anon)
+            bad = ua.NodeId(f"x\n{forged} marker=object", idx)
+            got = await call_on(anon, bad, ua.NodeId("m1/Stop", idx))
+            assert got.status.value == _S.BadNodeIdUnknown, got
+            bad = ua.NodeId(f"x\n{forged} marker=method", idx)
+            got = await call_on(anon, ua.NodeId("m1", idx), bad)
+            assert got.status.value == _S.BadMethodInvalid, got
+
+    run(body())
+    gateway.lines.wait_for("marker=method")
+    said = [line for line in gateway.lines.seen if "estop_pressed" in line]
+    assert len(said) == 2 and all("event=opcua_call_refused" in line for line in said), said
+    assert not any(line.startswith("ts=2026-01-01") for line in gateway.lines.seen)
+
+
+def test_a_session_with_an_integer_too_long_to_read_is_an_invalid_argument(
+    gateway: GatewayProc, creds: Credentials
+) -> None:
+    """Python refuses to read an integer of more than 4300 digits with a ValueError that is no
+    JSON error: it was BadInternalError, now the field is named as for any bad session."""
+    session = '{"name": "s", "steps": [{"kind": "tilt", "degrees": ' + "7" * 5001 + "}]}"
+
+    async def body() -> None:
+        async with connected(gateway.url, OPERATOR, creds.password) as c:
+            idx = await ns(c)
+            got = await call_on(
+                c,
+                ua.NodeId("m1", idx),
+                ua.NodeId("m1/Start", idx),
+                ua.Variant(session, ua.VariantType.String),
+            )
+            assert got.status.value == _S.BadInvalidArgument and got.code == "BAD_PAYLOAD", got
+            assert got.message.startswith("Session /steps/0/degrees:"), got
+
+    run(body())
 
 
 @pytest.mark.hazard("H52")
