@@ -126,6 +126,13 @@ def unusable(exc: BaseException) -> bool:
     return isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, sqlite3.OperationalError)
 
 
+def damaged(exc: BaseException) -> bool:
+    """Whether a write's `exc` says the file itself went bad while it was open (SQLite's
+    CORRUPT, NOTADB): `unusable`, less what a bad row raises (a constraint, a wrong value)."""
+    code = (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF  # an extended code's primary
+    return unusable(exc) and code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
+
+
 def set_aside(path: Path, stamp: float) -> Path:
     """Rename an unusable log (with its WAL and shared-memory files) out of the way, kept for
     whoever wants to look at it: `events.db.bad-<UTC time>`."""
@@ -154,15 +161,17 @@ class Opened(NamedTuple):
     aside: Path | None = None
 
 
-def open_log(path: Path, now: float) -> Opened:
+def open_log(path: Path, now: float, bad: BaseException | None = None) -> Opened:
     """The log at `path` opened for writing; a file that is no event log (`unusable`) is set
-    aside and a new log made in its place."""
-    try:
-        return _open(path)
-    except (sqlite3.Error, OSError) as exc:
-        if not unusable(exc):
-            return Opened(None, error=f"cannot open {path}: {exc}")
-        bad = exc
+    aside and a new log made in its place. `bad`: what a write found wrong with the file
+    (`damaged`), which sets it aside without a try."""
+    if bad is None:
+        try:
+            return _open(path)
+        except (sqlite3.Error, OSError) as exc:
+            if not unusable(exc):
+                return Opened(None, error=f"cannot open {path}: {exc}")
+            bad = exc
     try:
         aside = set_aside(path, now)
         opened = _open(path)

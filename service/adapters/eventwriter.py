@@ -24,6 +24,7 @@ from .eventdb import (
     StoredRow,
     claim_writer,
     connect,
+    damaged,
     dropped_row,
     insert,
     open_log,
@@ -112,11 +113,12 @@ class EventWriter:
             log.error("event=events_writer_busy path=%s error=%r", self.path, busy)
             self.counts.last_error = busy
 
-    def open_or_replace(self, now: float) -> bool | None:
+    def open_or_replace(self, now: float, bad: sqlite3.Error | None = None) -> bool | None:
         """Open the log (`open_log`): a file that is no event log is kept aside for a new one,
         which records that first; one that cannot open is said, its events counted as lost.
-        Whether the last run in it ended with a `daemon_stop` (None: an empty log)."""
-        opened = open_log(self.path, now)
+        Whether the last run in it ended with a `daemon_stop` (None: an empty log). `bad`: a
+        write found the open log damaged, which is kept aside at once."""
+        opened = open_log(self.path, now, bad)
         self.conn = opened.conn
         clean = None if opened.last_kind is None else opened.last_kind == EventKind.DAEMON_STOP
         if opened.aside is None:
@@ -134,7 +136,7 @@ class EventWriter:
         )
         self.counts.failures += 1
         self.counts.last_error = error
-        self.failure = (error, 0)
+        self.failure = (error, self.failure[1] if self.failure is not None else 0)
         return clean
 
     def resume_unwritten(self) -> list[Row]:
@@ -185,6 +187,9 @@ class EventWriter:
         except sqlite3.Error as exc:
             # The safety record waits in memory for the next write; the rest is lost.
             self.fail(str(exc), self.unwritten.hold(held + batch))
+            if damaged(exc):  # it stays so: kept aside for a new log, as a start does
+                conn.close()
+                self.open_or_replace(now, exc)
             return
         self.failure = None
         self.dropped_recorded += dropped

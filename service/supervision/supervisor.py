@@ -90,7 +90,8 @@ class Supervisor:
 
     # ------------------------------------------------------------------------- lifecycle
     def run(self) -> int:
-        """Until SIGTERM/SIGINT (0), a config problem (2) or a bus that cannot open (1).
+        """Until SIGTERM/SIGINT (0), a config problem (2), or a bus that cannot open or the
+        child's files that cannot be written (1).
 
         Each step registers its undo on one `ExitStack`, so they run in reverse: the child
         stopped, the outputs forced safe, the bus and session closed, the files cleaned up."""
@@ -103,9 +104,11 @@ class Supervisor:
                 try:
                     child_cfg = self._open_hal()
                     session = self._open_session()
+                    stack.callback(self._close_session, session)
+                    zenoh_json = child_config(self.zenoh.zenoh_config, self.private, self.hang_s)
+                    self._write_child_files(child_cfg, zenoh_json)
                 except StartRefused as exc:
                     return exc.code
-                stack.callback(self._close_session, session)
                 self.bus = SupervisorBus(
                     session, self.config, world=sim_port(self.world), on_presence=self._on_presence
                 )
@@ -115,8 +118,6 @@ class Supervisor:
                 stack.callback(self.guard.stop)
                 self.children = children = self._keeper()
                 stack.callback(self._stop_child)
-                zenoh_json = child_config(self.zenoh.zenoh_config, self.private, self.hang_s)
-                self._write_child_files(child_cfg, zenoh_json)
                 self.bus.start()
                 log.info(
                     "event=supervisor_started id=%s hal=%s private=%s",
@@ -187,9 +188,17 @@ class Supervisor:
         return field.child
 
     def _write_child_files(self, config: MachineConfig, zenoh_json: str) -> None:
+        """The child's config files, in the private dir beside its socket: only the child reads
+        them, and a read-only data dir is the child's STORAGE_FAILED warning (H39), not a
+        failed start. Refused (1) where even that dir cannot take them."""
         data = config.model_dump(mode="json", by_alias=True, exclude_none=True)
-        write_private(self.dir / "machine.toml", to_toml(data))
-        write_private(self.dir / "zenoh-child.json5", zenoh_json)
+        try:
+            write_private(self._sockdir / "machine.toml", to_toml(data))
+            write_private(self._sockdir / "zenoh-child.json5", zenoh_json)
+        except OSError as exc:
+            log.error("event=supervisor_files_failed dir=%s error=%r", self._sockdir, str(exc))
+            reason = f"the child's files could not be written: {exc}"
+            raise StartRefused(EXIT_FAILED, reason) from exc
 
     @property
     def hang_s(self) -> float:
@@ -215,7 +224,7 @@ class Supervisor:
         """The daemon child's keeper, with the safe-output path and the bus it tells."""
         return ChildKeeper(
             self.options,
-            self.dir,
+            self._sockdir,
             (self.beat, self.beat_fd),
             self.happenings,
             self.bus,

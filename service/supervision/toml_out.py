@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+from ride_machine.service.core.storage.atomic import atomic_write
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -45,7 +46,6 @@ def _value(value: Any) -> str:
 
 
 def write_private(path: Path, text: str) -> None:
-    """Owner-only: the child's zenoh config may carry what the user's file carries."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
+    """Owner-only (the child's zenoh config may carry what the user's file carries) and
+    atomic: a child started meanwhile reads the old file or the new one, never half of it."""
+    atomic_write(path, text.encode(), 0o600)

@@ -4,15 +4,22 @@ daemon that is frozen. No child, no session: the keeper's child is a stand-in
 
 from __future__ import annotations
 
+import errno
+import logging
+import os
 import socket
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
+from typing import cast
 
 import pytest
 
+from ride_machine.service.bus.supervisor import SupervisorBus
 from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.core.scan.beat import BeatWriter
 from ride_machine.service.supervision.assembly import DaemonOptions
+from ride_machine.service.supervision.outcome import EXIT_FAILED
 from ride_machine.service.supervision.outputguard import OutputGuard
 from ride_machine.service.supervision.restarts import SupervisorOptions
 from ride_machine.service.supervision.sdnotify import NOTIFY_SOCKET, WATCHDOG_USEC
@@ -93,3 +100,57 @@ def test_a_daemon_whose_scan_stalled_is_killed_at_once_when_the_supervisor_stops
     finally:
         writer.close()
     assert did[: len(signals)] == signals
+
+
+def _read_only_under(monkeypatch: pytest.MonkeyPatch, root: Path) -> None:
+    """Every file opened for writing under `root` fails as on a read-only mount (the tests
+    run as root, whom a 0o555 mode does not stop)."""
+    real_open = os.open
+
+    def opener(
+        path: str | os.PathLike[str], flags: int, mode: int = 0o777, *, dir_fd: int | None = None
+    ) -> int:
+        writes = flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT)
+        if writes and dir_fd is None and Path(path).resolve().is_relative_to(root):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        return real_open(path, flags, mode, dir_fd=dir_fd)
+
+    monkeypatch.setattr(os, "open", opener)
+
+
+def test_a_read_only_data_dir_does_not_keep_the_child_from_its_files(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    data = tmp_path / "data"
+    data.mkdir()
+    config = MachineConfig.model_validate({"data_dir": str(data)})
+    sup = Supervisor(config, DaemonOptions(), SupervisorOptions())
+    try:
+        _read_only_under(monkeypatch, data.resolve())
+        sup._write_child_files(config, '{mode: "client"}')
+        sup.bus = cast(SupervisorBus, None)  # the keeper only keeps it
+        files = sup._keeper().files  # where the child's `run --config` reads them
+        assert (files / "zenoh-child.json5").read_text() == '{mode: "client"}'
+        assert tomllib.loads((files / "machine.toml").read_text())["data_dir"] == str(data)
+        assert (files / "machine.toml").stat().st_mode & 0o777 == 0o600
+        assert not files.is_relative_to(data)  # the child itself says the data dir is read-only
+    finally:
+        sup._cleanup()
+
+
+def test_child_files_that_cannot_be_written_refuse_the_start_with_a_reason(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    sup = Supervisor(MachineConfig(), DaemonOptions(), SupervisorOptions())
+    session = object()
+    closed: list[object] = []
+    monkeypatch.setattr(sup, "_open_hal", MachineConfig)
+    monkeypatch.setattr(sup, "_open_session", lambda: session)
+    monkeypatch.setattr(sup, "_close_session", closed.append)
+    _read_only_under(monkeypatch, sup._sockdir.resolve())
+    with caplog.at_level(logging.ERROR, "machine.supervisor"):
+        assert sup.run() == EXIT_FAILED  # a refusal, not a traceback
+    assert "event=supervisor_files_failed" in caplog.text
+    assert "Read-only file system" in caplog.text
+    assert closed == [session]  # what was set up is undone
+    assert sup.children is None  # no child started
