@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
+from pydantic import BaseModel
+
 from ride_machine.hal.iomap import IoMap
 from ride_machine.schema.commands import DEFAULT_SESSION, TiltStep
 from ride_machine.schema.findings import Finding
@@ -48,35 +50,25 @@ def _ranges(config: MachineConfig) -> Iterator[Finding]:
             value=config.loop.slice_s,
             ge=MIN_SLICE_S,
         )
-    tilt = config.tilt
-    if tilt.min_deg >= tilt.max_deg:
+    for low, high in (
+        ("min_deg", "max_deg"),
+        ("gain_min_counts_per_deg", "gain_max_counts_per_deg"),
+        ("zero_min_counts", "zero_max_counts"),
+    ):
+        yield from _below(config.tilt, "tilt", low, high)
+
+
+def _below(section: BaseModel, name: str, low: str, high: str) -> Iterator[Finding]:
+    """`low` must be below `high` (a range of `section`, `[name]`), or an error at `low`."""
+    lo, hi = getattr(section, low), getattr(section, high)
+    if lo >= hi:
         yield error(
             Category.OUT_OF_RANGE,
-            "/tilt/min_deg",
-            f"tilt.min_deg {tilt.min_deg:g} must be below tilt.max_deg {tilt.max_deg:g}",
-            value=tilt.min_deg,
-            lt="/tilt/max_deg",
-            other=tilt.max_deg,
-        )
-    if tilt.gain_min_counts_per_deg >= tilt.gain_max_counts_per_deg:
-        yield error(
-            Category.OUT_OF_RANGE,
-            "/tilt/gain_min_counts_per_deg",
-            f"tilt.gain_min_counts_per_deg {tilt.gain_min_counts_per_deg:g} must be below"
-            f" tilt.gain_max_counts_per_deg {tilt.gain_max_counts_per_deg:g}",
-            value=tilt.gain_min_counts_per_deg,
-            lt="/tilt/gain_max_counts_per_deg",
-            other=tilt.gain_max_counts_per_deg,
-        )
-    if tilt.zero_min_counts >= tilt.zero_max_counts:
-        yield error(
-            Category.OUT_OF_RANGE,
-            "/tilt/zero_min_counts",
-            f"tilt.zero_min_counts {tilt.zero_min_counts:g} must be below"
-            f" tilt.zero_max_counts {tilt.zero_max_counts:g}",
-            value=tilt.zero_min_counts,
-            lt="/tilt/zero_max_counts",
-            other=tilt.zero_max_counts,
+            f"/{name}/{low}",
+            f"{name}.{low} {lo:g} must be below {name}.{high} {hi:g}",
+            value=lo,
+            lt=f"/{name}/{high}",
+            other=hi,
         )
 
 

@@ -22,9 +22,10 @@ class ScaleProblem:
 
 def gain_problem(gain: float, cfg: TiltSection) -> ScaleProblem | None:
     lo, hi = cfg.gain_min_counts_per_deg, cfg.gain_max_counts_per_deg
-    if lo <= gain <= hi:
-        return None
-    return ScaleProblem(
+    return _outside(
+        gain,
+        lo,
+        hi,
         "/tilt/gain_counts_per_deg",
         f"tilt gain {gain:.2f} counts/° is outside the sensor's commissioned {lo:g}..{hi:g}"
         " (tilt.gain_min/max_counts_per_deg): a drive off its nominal speed"
@@ -35,14 +36,19 @@ def gain_problem(gain: float, cfg: TiltSection) -> ScaleProblem | None:
 
 def zero_problem(offset: float, cfg: TiltSection) -> ScaleProblem | None:
     lo, hi = cfg.zero_min_counts, cfg.zero_max_counts
-    if lo <= offset <= hi:
-        return None
-    return ScaleProblem(
+    return _outside(
+        offset,
+        lo,
+        hi,
         "/tilt/offset_counts",
         f"tilt zero {offset:.1f} counts is outside the commissioned {lo:g}..{hi:g} at the home"
         " switch (tilt.zero_min/max_counts): the switch moved, the sensor slipped on its shaft,"
         " or a value typed wrong",
     )
+
+
+def _outside(value: float, lo: float, hi: float, path: str, message: str) -> ScaleProblem | None:
+    return None if lo <= value <= hi else ScaleProblem(path, message)
 
 
 def scale_problem(offset: float, gain: float, cfg: TiltSection) -> ScaleProblem | None:
