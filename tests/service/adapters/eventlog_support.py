@@ -7,6 +7,7 @@ import contextlib
 import os
 import subprocess
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from bench.common import children
@@ -22,6 +23,8 @@ from ride_machine.service.core.history.facts import CommandFacts
 
 T0 = time.time()
 """Event times near now: retention prunes anything older than `max_age_days`."""
+T0 = 1_800_000_000.0
+"""A wall time for events written by hand (2027)."""
 FLUSH_S = 30.0
 """A bound on a flush that must succeed: a history process that a loaded host starts slowly
 (its Python and imports) writes its first batch seconds late; a quiet host, at once."""
@@ -98,3 +101,13 @@ def closes_in_time(log: HistoryProcess, frozen: subprocess.Popen[bytes], others:
     assert time.monotonic() - started < 1.5
     assert frozen.poll() is not None  # killed
     assert set(history_processes()) - others == set()
+
+
+@dataclass
+class Counts:
+    """The counters an `EventWriter` keeps up (`EventLog`'s), for a writer without its log."""
+
+    written: int = 0
+    lost: int = 0
+    failures: int = 0
+    last_error: str | None = None

@@ -4,7 +4,6 @@ goes bad while it runs is kept aside and a new one begun, as a start does."""
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from contextlib import closing
 from pathlib import Path
 
@@ -13,19 +12,8 @@ import pytest
 from ride_machine.service.adapters.eventdb import connect
 from ride_machine.service.adapters.eventlog import EVENTS_FILE, as_row
 from ride_machine.service.adapters.eventwriter import EventWriter
-from ride_machine.service.config.model import EventsSection
-from tests.service.adapters.eventlog_support import note
-from tests.service.adapters.test_unwritten import ESTOP, T0, Counts
-
-
-@pytest.fixture
-def writer(tmp_path: Path) -> Iterator[EventWriter]:
-    """A log's writer without its thread, its log open: each write is the test's own."""
-    events = EventWriter(Counts(), tmp_path / EVENTS_FILE, "m1", EventsSection(), None)
-    events.claim(0.1)
-    events.open_or_replace(T0)
-    yield events
-    events.release()
+from tests.service.adapters.eventlog_support import T0, note
+from tests.service.adapters.test_unwritten import ESTOP
 
 
 def _spoil_under(writer: EventWriter) -> bytes:
@@ -40,6 +28,7 @@ def _spoil_under(writer: EventWriter) -> bytes:
     return garbage
 
 
+@pytest.mark.hazard("H40")
 def test_a_log_damaged_while_running_is_kept_aside_and_the_next_batch_written(
     writer: EventWriter, tmp_path: Path
 ) -> None:

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import sqlite3
-from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -18,9 +16,8 @@ from ride_machine.service.adapters.eventdb import Row, connect
 from ride_machine.service.adapters.eventlog import EVENTS_FILE, as_row
 from ride_machine.service.adapters.eventwriter import EventWriter
 from ride_machine.service.adapters.unwritten import RESERVE_BYTES, Unwritten
-from ride_machine.service.config.model import EventsSection
+from tests.service.adapters.eventlog_support import T0
 
-T0 = 1_800_000_000.0
 ESTOP = as_row(EstopEvent(kind="estop_pressed", state=MachineState.RUNNING), T0, 1)
 FAULT = as_row(FaultEvent(kind="fault_raised", code="TILT_TIMEOUT", message="stuck"), T0 + 1, 2)
 
@@ -65,24 +62,6 @@ def test_a_first_start_reserves_the_file_for_its_stop(tmp_path: Path) -> None:
     assert Unwritten(db).resume() == ([], 0, None)
     path = db.with_name(db.name + ".unwritten")
     assert path.stat().st_size == RESERVE_BYTES and path.read_bytes().strip() == b""
-
-
-@dataclass
-class Counts:
-    written: int = 0
-    lost: int = 0
-    failures: int = 0
-    last_error: str | None = None
-
-
-@pytest.fixture
-def writer(tmp_path: Path) -> Iterator[EventWriter]:
-    """A log's writer without its thread: each write is the test's own."""
-    events = EventWriter(Counts(), tmp_path / EVENTS_FILE, "m1", EventsSection(), None)
-    events.claim(0.1)
-    events.open_or_replace(T0)
-    yield events
-    events.release()
 
 
 @pytest.mark.hazard("H41")
