@@ -118,6 +118,7 @@ def _read_only_under(monkeypatch: pytest.MonkeyPatch, root: Path) -> None:
     monkeypatch.setattr(os, "open", opener)
 
 
+@pytest.mark.hazard("H39")
 def test_a_read_only_data_dir_does_not_keep_the_child_from_its_files(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
