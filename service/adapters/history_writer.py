@@ -77,8 +77,10 @@ class _Pipe:
         self._lock = threading.Lock()
 
     def send(self, message: list[Any]) -> None:
+        """One message; to a daemon that is gone (killed), none: what it sent before it went is
+        still read and written, and the pipe's end ends this process."""
         data = encode(message)
-        with self._lock:
+        with self._lock, contextlib.suppress(BrokenPipeError):
             write_all(self._out, data)
 
 
@@ -185,8 +187,7 @@ class _Writer(WriterThread[WriterSettings]):
         rows, self._wrote[:] = list(self._wrote), []
         # A daemon killed before this write: the rows are stored all the same (not lost), and
         # the end of its pipe ends this process.
-        with contextlib.suppress(BrokenPipeError):
-            self.pipe.send([WROTE, rows, self.status()])
+        self.pipe.send([WROTE, rows, self.status()])
 
     def _not_stored(self, batch: list[Row]) -> list[Row]:
         """`batch` less the events sent again that are stored already: a process killed after

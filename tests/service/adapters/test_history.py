@@ -34,6 +34,7 @@ from ride_machine.service.adapters.eventdb import WRITER_WAIT_S, StoredRow, conn
 from ride_machine.service.adapters.eventlog import EVENTS_FILE, EventLog
 from ride_machine.service.adapters.eventread import read_page
 from ride_machine.service.adapters.history import HistoryProcess
+from ride_machine.service.adapters.history_pipe import BATCH, MADE, encode
 from ride_machine.service.adapters.history_writer import WriterSettings, _Pipe, _Writer
 from ride_machine.service.config.model import EventsSection
 from ride_machine.service.core.history.facts import CommandFacts
@@ -282,12 +283,14 @@ def test_a_process_that_cannot_start_is_retried_with_a_growing_pause(
 
 
 class _GonePipe(_Pipe):
-    """The pipe to a daemon that was killed: every message breaks."""
+    """The pipe to a daemon that was killed: every write breaks (the real `send` around it)."""
 
     def __init__(self) -> None:
         self.tries = 0
+        self._lock = threading.Lock()
+        self._out = self  # type: ignore[assignment]
 
-    def send(self, message: list[object]) -> None:
+    def write(self, data: memoryview) -> int:
         self.tries += 1
         raise BrokenPipeError(32, "Broken pipe")
 
@@ -314,6 +317,25 @@ def test_rows_written_after_the_daemon_died_are_kept_not_counted_lost(tmp_path: 
         assert stored(again) == [WatchdogEvent(stalled_s=0.1), WatchdogEvent(stalled_s=0.2)]
     finally:
         again.close()
+
+
+@pytest.mark.hazard("H41")
+def test_a_process_whose_daemon_was_killed_before_it_started_writes_what_it_was_sent(
+    tmp_path: Path,
+) -> None:
+    """A daemon SIGKILLed right after its start (a restart, then a kill, under load): its
+    history process starts after it is gone, so its first word back finds no reader. It must
+    still write the `daemon_start` it was sent, not die of the broken pipe."""
+    proc = history_spawn.start_writer(
+        tmp_path / EVENTS_FILE, "m1", EventsSection().model_dump_json()
+    )
+    assert proc.stdin is not None and proc.stdout is not None
+    proc.stdout.close()  # the daemon's end: gone before the process says a word
+    start = '{"kind":"daemon_start","previous_stop_clean":true}'
+    proc.stdin.write(encode([BATCH, 0, [(MADE, "daemon_start", start, T0, 0)], 0]))
+    proc.stdin.close()
+    assert proc.wait(timeout=FLUSH_S) == 0
+    assert stored_kinds(tmp_path / EVENTS_FILE) == ["daemon_start"]
 
 
 def test_an_event_sent_again_is_written_once(tmp_path: Path) -> None:
