@@ -81,7 +81,7 @@ test: $(STAMP) browser prometheus js $(TYPECHECK)
 ## The whole suite beside one CPU-bound process per core, as a busy CI host runs it;
 ## ORDER=reverse or ORDER=random (random:SEED to repeat one) changes the order of the tests.
 ORDER ?= normal
-test-under-load: $(STAMP) browser js
+test-under-load: $(STAMP) browser js $(TYPECHECK)
 	$(BIN)/python -m tests.under_load $(PARALLEL) --order $(ORDER)
 
 lint: $(STAMP) $(TYPECHECK)

@@ -53,9 +53,13 @@ repeat_tolerance_deg = 3.0
 home_tolerance_deg = 3.0
 runup_s = 0.12
 speed_window_s = 0.1
-# The home switch's raw value ± 3° (a latch here may be 1.5° off): 1200 ± 120 counts.
+# The home switch's raw value ± 3° (a latch here may be 1.5° off): 1200 ± 120 counts. A
+# 0.4 s stroke at 90°/s on a loaded host measures the gain within ~10 % (43.7 seen beside two
+# CPU-bound processes), not the 5 % of a 2 s stroke at 15°/s: a band of ± 15 % here.
 zero_min_counts = 1080.0
 zero_max_counts = 1320.0
+gain_min_counts_per_deg = 34.0
+gain_max_counts_per_deg = 46.0
 
 [loop]
 # A shared 2-core host stalls the scan thread for tens of ms now and then; 3 periods (the
