@@ -60,6 +60,9 @@ zero_min_counts = 1080.0
 zero_max_counts = 1320.0
 gain_min_counts_per_deg = 34.0
 gain_max_counts_per_deg = 46.0
+# The drive's speed witness judges strokes of a few tenths of a second here: 0.3° at 60° (0.5 %)
+# is finer than they measure beside a loaded suite (-2.6 % seen, a compose stack in CI).
+gain_tolerance_deg = 2.0
 
 [loop]
 # A shared 2-core host stalls the scan thread for tens of ms now and then; 3 periods (the
