@@ -24,14 +24,24 @@ STARTUP_S = 30.0
 a loaded host; the log's previous writer, waited for `WRITER_WAIT_S`)."""
 
 
+def is_event(item: Item) -> bool:
+    """An event (a log line is none)."""
+    return bool(item[0] != LINE)
+
+
+def is_safety(item: Item) -> bool:
+    """An event of the safety record (a command's event is routine)."""
+    return bool(item[0] == MADE and item[1] in SAFETY_KINDS)
+
+
 def safety(items: list[Item]) -> list[Item]:
-    """The safety record's events among `items` (a command's event is routine)."""
-    return [item for item in items if item[0] == MADE and item[1] in SAFETY_KINDS]
+    """The safety record's events among `items`."""
+    return [item for item in items if is_safety(item)]
 
 
 def events_in(items: list[Item]) -> int:
-    """The events among `items` (a log line is none)."""
-    return sum(item[0] != LINE for item in items)
+    """The events among `items`."""
+    return sum(is_event(item) for item in items)
 
 
 def stalled_words() -> str:
@@ -61,9 +71,9 @@ class Ledger:
         """The process took `items` whole."""
         counted = self.sent
         for item in items:
-            if item[0] != LINE:
+            if is_event(item):
                 counted += 1
-                if item[0] == MADE and item[1] in SAFETY_KINDS:
+                if is_safety(item):
                     self._unconfirmed.append((counted, item))
         self.sent = counted
 

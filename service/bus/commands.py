@@ -163,8 +163,7 @@ class Commands:
         and after shutdown; refused as `dispatch` would (away from it)."""
 
         def hand_over(reply: Reply) -> None:  # on the scan thread, which never sends (outbox.py)
-            send = functools.partial(request.reply, reply, key_expr, self.port.wire(reply))
-            self.outbox.later(send, request.key)
+            self.outbox.reply(request, reply, key_expr, self.port.wire(reply))
 
         try:
             identity = self._confirmed(request, command, body, claim)

@@ -13,10 +13,17 @@ nothing asks again.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 
+import zenoh
+from pydantic import BaseModel
+
+from ride_machine.service.errors import MachineError
+
 from .deferred import Deferred
+from .request import Request
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +43,20 @@ class Outbox:
         waiting already (their links are full), it is dropped, and said so."""
         if not self._jobs.put(send):
             log.warning("event=reply_dropped key=%s reason=outbox_full", key)
+
+    def reply(
+        self,
+        request: Request,
+        model: BaseModel,
+        key: str | zenoh.KeyExpr | None = None,
+        packed: bytes | None = None,
+    ) -> None:
+        """`request.reply(model, key, packed)`, sent from the outbox's thread."""
+        self.later(functools.partial(request.reply, model, key, packed), request.key)
+
+    def refuse(self, request: Request, error: MachineError) -> None:
+        """`request.refuse(error)`, sent from the outbox's thread."""
+        self.later(functools.partial(request.refuse, error), request.key)
 
     def drain(self, timeout: float) -> bool:
         """Wait until every reply handed over so far has gone (before the session closes)."""

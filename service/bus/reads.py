@@ -11,7 +11,7 @@ from typing import Protocol
 import zenoh
 from pydantic import BaseModel
 
-from ride_machine.schema.codec import MAX_PAYLOAD_BYTES, Format
+from ride_machine.schema.codec import Format
 from ride_machine.schema.completion import Completion
 from ride_machine.schema.diag import CycleDiag
 from ride_machine.schema.events import EventPage, EventQuery, QueryError, selector_params
@@ -24,7 +24,6 @@ from ride_machine.service.errors import (
     Busy,
     InProgress,
     NotAvailable,
-    PayloadTooLarge,
     StorageFailed,
     UnknownTransaction,
 )
@@ -139,11 +138,8 @@ class Reads:
 
     def validate(self, request: Request) -> None:
         request.key = f"{self.base}/config/validate"
-        if request.size > MAX_PAYLOAD_BYTES:
-            # Parsing runs on Zenoh's thread and holds the GIL: a few MiB stall the scan loop.
-            raise PayloadTooLarge(
-                f"candidate config is {request.size} bytes, the limit is {MAX_PAYLOAD_BYTES}"
-            )
+        # Past MAX_PAYLOAD_BYTES `payload` refuses it: parsing runs on Zenoh's thread and holds
+        # the GIL, and a few MiB would stall the scan loop.
         data = request.payload
         if data.lstrip()[:1] == b"{" and request.query.parameters.get("format") is None:
             request.fmt = Format.JSON  # a JSON candidate is answered in JSON (TOML keeps msgpack)

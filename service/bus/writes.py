@@ -59,12 +59,12 @@ def on_scan_thread(
         try:
             model = make()
         except MachineError as exc:
-            outbox.later(functools.partial(request.refuse, exc), request.key)
+            outbox.refuse(request, exc)
             return
-        outbox.later(functools.partial(request.reply, model), request.key)
+        outbox.reply(request, model)
 
     def rejected(error: Error) -> None:
-        outbox.later(functools.partial(request.refuse, Rejected(error)), request.key)
+        outbox.refuse(request, Rejected(error))
 
     if not port.submit(OnScanThread(run, rejected)):
         raise Busy("command queue full; retry later")
@@ -223,9 +223,7 @@ class Writes:
                 daemon=True,
             ).start()
 
-        def refused(error: MachineError) -> None:  # on the scan thread: it never sends
-            self.outbox.later(functools.partial(request.refuse, error), request.key)
-
+        refused = functools.partial(self.outbox.refuse, request)  # the scan thread never sends
         if not self.port.submit(EnterCalibration(req, entered, refused)):
             raise Busy("command queue full; retry later")
 

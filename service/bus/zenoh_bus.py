@@ -29,8 +29,8 @@ from .writes import ParamService, Writes, on_scan_thread
 log = logging.getLogger("service.bus")
 
 OUTBOX_DRAIN_S = 1.0
-"""How long a closing bus waits for the replies handed over to go (each is dropped, not waited
-for, toward a full link: only a query's end can wait)."""
+"""How long a closing bus waits for the replies handed over to go (toward an asker whose link is
+full a reply may wait; the stop does not wait for it longer than this)."""
 
 
 class ZenohBus:
