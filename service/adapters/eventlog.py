@@ -35,7 +35,8 @@ from ride_machine.service.core.history.held import Held, LogLine
 from .eventdb import BUSY_TIMEOUT_S, WRITER_WAIT_S, Row, file_bytes
 from .eventread import Reader
 from .eventwriter import EventWriter, Listener
-from .writer_thread import WriterThread
+from .retention import SAFETY_KINDS
+from .writer_thread import SAFETY_RESERVE, WriterThread
 
 log = logging.getLogger(__name__)
 
@@ -145,12 +146,16 @@ class EventLog(WriterThread[EventsSection]):
     # ---------------------------------------------------------------------------- emit
     def emit(self, details: KnownDetails, time: float, cycle: int | None) -> None:
         """Queue one event; when the queue is full it is dropped and counted, never waited on.
+        An event of the safety record (an E-stop, a fault, a watchdog trip) may go
+        `SAFETY_RESERVE` past a queue that routine events filled: a flood of commands during
+        a stalled disk or history process does not take the record of the E-stop with it.
 
         Queued as plain text and numbers, which the garbage collector never scans: a queue
         filled by a stalled disk must not make the scan thread's collections longer."""
         row = as_row(details, time, cycle)
+        limit = self.capacity + SAFETY_RESERVE if row[0] in SAFETY_KINDS else self.capacity
         with self._lock:
-            if len(self._items) >= self.capacity or self._stopping:
+            if len(self._items) >= limit or self._stopping:
                 self.dropped += 1
                 return
             self._items.append(row)
@@ -158,12 +163,8 @@ class EventLog(WriterThread[EventsSection]):
 
     def put_rows(self, rows: Sequence[Row | str]) -> None:
         """Queue events already made, and log lines in their place, in order; events beyond
-        the queue's capacity are dropped and counted, as `emit` does (lines, written now)."""
-        with self._lock:
-            room = 0 if self._stopping else max(0, self.capacity - len(self._items))
-            self._items.extend(rows[:room])
-            self.dropped += len(without_lines(rows[room:]))
-        self._wake_writer()
+        the queue's capacity are dropped and counted, as `emit` does."""
+        self._admit(rows, self.capacity)
 
     def defer(self, held: Held) -> bool:
         """Queue a command's held record, made (events, log line) on the writer thread in its

@@ -155,12 +155,9 @@ class _Writer(WriterThread[WriterSettings]):
         self._queue(rows)
 
     def _queue(self, rows: list[Row]) -> None:
-        """Rows beyond the queue's capacity are dropped and counted, as `EventLog` does."""
-        with self._lock:
-            room = 0 if self._stopping else max(0, self.settings.queue_capacity - len(self._items))
-            self._items.extend(rows[:room])
-            self.dropped += len(rows[room:])
-        self._wake_writer()
+        """Rows beyond the queue's capacity are dropped and counted, as `EventLog` does (the
+        safety record's with a reserve: the daemon's queue kept them)."""
+        self._admit(rows, self.settings.queue_capacity)
 
     def record_failure(self, error: str, lost: int) -> None:
         """A failure the daemon saw (an earlier process ended): written with the next batch."""

@@ -13,13 +13,20 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, Generic, Protocol, TypeVar
 
 from ride_machine.service.threads import NamedThread
 
 from .eventdb import Row
 from .eventwriter import COALESCE_S, EventWriter
+from .retention import SAFETY_KINDS
+
+SAFETY_RESERVE = 256
+"""Room past a queue's capacity for the safety record's events only (an E-stop, a fault, a
+watchdog trip): a queue that routine events filled (a flood of commands while the disk or the
+history process stalls) still takes them. Each comes from a change of the machine, not from a
+stream, so this is more than a stall of the history (10 s, history_ledger.STALL_S) sees."""
 
 
 class QueueSettings(Protocol):
@@ -91,6 +98,21 @@ class WriterThread(Generic[S]):
         return queued
 
     # --------------------------------------------------------------------------- queue
+    def _admit(self, items: Sequence[Any], capacity: int) -> None:
+        """Queue `items` in order (rows, and whatever else the queue holds), each while there
+        is room: `capacity`, or `SAFETY_RESERVE` past it for an event of the safety record;
+        events left out are dropped and counted, anything else (a log line) just left out."""
+        with self._lock:
+            queue = self._items
+            for item in items:
+                row = isinstance(item, tuple)
+                limit = capacity + SAFETY_RESERVE if row and item[0] in SAFETY_KINDS else capacity
+                if len(queue) < limit and not self._stopping:
+                    queue.append(item)
+                elif row:
+                    self.dropped += 1
+        self._wake_writer()
+
     def _wake_writer(self) -> None:
         if not self._wake.is_set():  # set() takes a Condition's lock: once per batch is enough
             self._wake.set()
