@@ -11,8 +11,10 @@ the scan thread (`ScanLoop.service_inbox`).
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 import threading
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, cast
@@ -93,28 +95,47 @@ def scan(rig: Rig) -> str:
     return threading.current_thread().name
 
 
-def test_zenoh_gives_a_reply_the_querys_qos_so_no_replier_can_make_it_drop(
-    session: zenoh.Session,
-) -> None:
+QOS_PROBE = """
+import json, warnings, zenoh
+conf = zenoh.Config()
+conf.insert_json5("mode", '"peer"')
+conf.insert_json5("listen/endpoints", "[]")
+conf.insert_json5("scouting/multicast/enabled", "false")
+caught = []
+def answer(query):
+    with query:
+        query.reply(query.key_expr, b"x", congestion_control=zenoh.CongestionControl.DROP)
+warnings.showwarning = lambda message, category, *rest: caught.append(
+    [category.__name__, str(message)]
+)
+warnings.simplefilter("always")
+with zenoh.open(conf) as session:
+    queryable = session.declare_queryable("machine/o1/qos", answer)
+    replies = [r.ok is not None for r in session.get("machine/o1/qos", timeout=%r)]
+    queryable.undeclare()
+print(json.dumps({"replies": replies, "warnings": caught}))
+"""
+
+
+def test_zenoh_gives_a_reply_the_querys_qos_so_no_replier_can_make_it_drop() -> None:
     """Why the scan thread hands its replies over: since Zenoh 1.8 a reply takes the query's
     congestion control (a `get` blocks by default), and the replier's is ignored. Should this
-    fail, a reply could be told to drop instead: see service/bus/outbox.py."""
-    caught: list[warnings.WarningMessage] = []
+    fail, a reply could be told to drop instead: see service/bus/outbox.py.
 
-    def answer(query: zenoh.Query) -> None:
-        with warnings.catch_warnings(record=True) as seen, query:
-            warnings.simplefilter("always")
-            query.reply(query.key_expr, b"x", congestion_control=zenoh.CongestionControl.DROP)
-        caught.extend(seen)
-
-    queryable = session.declare_queryable(f"{BASE}/qos", answer)
-    try:
-        replies = list(session.get(f"{BASE}/qos", timeout=WAIT_S))
-    finally:
-        queryable.undeclare()
-    assert len(replies) == 1 and replies[0].ok is not None
-    [warned] = [w for w in caught if issubclass(w.category, DeprecationWarning)]
-    assert "congestion_control" in str(warned.message) and "ignored" in str(warned.message)
+    In a process of its own: recording a warning raised on Zenoh's thread swaps the process's
+    warning state, which no other thread of a test process may touch meanwhile."""
+    done = subprocess.run(
+        [sys.executable, "-c", QOS_PROBE % WAIT_S],
+        capture_output=True,
+        text=True,
+        timeout=4 * WAIT_S,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout.splitlines()[-1])
+    assert seen["replies"] == [True]
+    [warned] = [text for name, text in seen["warnings"] if name == "DeprecationWarning"]
+    assert "congestion_control" in warned and "ignored" in warned
 
 
 def test_the_bus_asks_no_qos_of_a_reply_zenoh_would_ignore_and_warn_about() -> None:
