@@ -9,6 +9,8 @@ exception into one `INTERNAL` refusal and one logged traceback: no query goes un
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import Enum
@@ -67,6 +69,11 @@ class Route:
     from published records; `cmd/**`, which runs a command only when the loop's lock is free
     and otherwise hands it to a thread of its own)."""
 
+    @property
+    def acts(self) -> bool:
+        """A key that acts (a command, a write): a put on it is a mistake worth telling."""
+        return self.wildcard is not Wildcard.READ
+
     def refuse_wildcard(self, base: str, key: str) -> MachineError:
         """The one wildcard refusal."""
         return self.refusal(
@@ -119,7 +126,8 @@ def dispatch(route: Route, base: str, host: Host, query: zenoh.Query) -> None:
 
 def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Route]) -> list[Any]:
     """One queryable per route on `<base>/<route.key>` (and its exact `keys` declared as key
-    expressions); the caller undeclares them."""
+    expressions), and beside a route that acts a subscriber that tells a put on it in the log
+    (`PutWarner`); the caller undeclares them."""
 
     def callback(route: Route) -> Callable[[zenoh.Query], None] | zenoh.handlers.Callback[Any]:
         def fn(query: zenoh.Query) -> None:
@@ -128,10 +136,55 @@ def declare(session: zenoh.Session, base: str, host: Host, routes: Iterable[Rout
         return direct(fn) if route.direct else fn
 
     declared: list[Any] = []
+    warner = PutWarner()
     for r in routes:
         declared += [DeclaredKey(session, f"{base}/{k}") for k in r.keys]
         declared.append(session.declare_queryable(f"{base}/{r.key}", callback(r)))
+        if r.acts:
+            declared.append(session.declare_subscriber(f"{base}/{r.key}", warner.sample))
     return declared
+
+
+PUT_LOG_S = 10.0
+"""A key's put is logged at most once in this long; the puts in between are counted in the
+next line (a peer putting in a loop must not flood the log)."""
+PUT_KEYS_MAX = 256
+"""Keys whose last log line is remembered; a peer putting to ever new keys empties it."""
+
+
+class PutWarner:
+    """A put (or delete) on a key that acts does nothing: commands and writes are queries,
+    the reply is the answer. Nobody can be answered on a put, so it is logged, naming the key
+    and the query to send instead (a `zenoh put` or `z_put.py` where `zenoh get` was meant)."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self._last: dict[str, tuple[float, int]] = {}
+        """Key → when its last line was logged, and the puts on it since."""
+        self._lock = threading.Lock()
+        self.seen = 0
+
+    def sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        kind = "delete" if sample.kind == zenoh.SampleKind.DELETE else "put"
+        now = self.clock()
+        with self._lock:
+            self.seen += 1
+            at, since = self._last.get(key, (-PUT_LOG_S, 0))
+            if now - at < PUT_LOG_S:
+                self._last[key] = (at, since + 1)
+                return
+            if len(self._last) >= PUT_KEYS_MAX:
+                self._last.clear()
+            self._last[key] = (now, 0)
+        log.warning(
+            "event=put_ignored key=%r kind=%s unlogged=%d hint=%r",
+            key,
+            kind,
+            since,
+            f"{key} answers queries, not puts: send a query (zenoh get -s '{key}' -v"
+            " '<JSON>', z_get.py, the rider CLI); nothing was done",
+        )
 
 
 class DeclaredKey:

@@ -353,6 +353,23 @@ def test_wildcard_command_keys_get_bad_key_and_nothing_acts(machine: Daemon, rid
     assert len(fresh) == 1 and fresh[0].model(Reply).success
 
 
+@pytest.mark.hazard("H30")
+def test_a_put_on_a_key_that_acts_does_nothing_and_the_log_says_to_query_it(
+    machine: Daemon, rider: Rider
+) -> None:
+    """`zenoh put` where `zenoh get` was meant: nothing acts, and the log names the key."""
+    with untouched(machine, rider):
+        for key in (f"{BASE}/cmd/home", f"{BASE}/params/loop.scan_period", f"{BASE}/sim/estop"):
+            rider.session.put(key, b'{"transaction_id": "put-1", "pressed": true}')
+            assert machine.has_logged(f"event=put_ignored key='{key}' kind=put"), machine.log()
+        rider.session.delete(f"{BASE}/calibration/set")
+        assert machine.has_logged(f"event=put_ignored key='{BASE}/calibration/set' kind=delete")
+    assert "answers queries, not puts" in machine.log()
+    # The put used no transaction id: the same one as a query is taken.
+    fresh = ask(rider.session, f"{BASE}/cmd/check/calibration", b'{"transaction_id": "put-1"}')
+    assert len(fresh) == 1 and fresh[0].model(Reply).success
+
+
 def test_diag_reset_is_its_own_key_and_refuses_wildcards(machine: Daemon, rider: Rider) -> None:
     since = rider.diag().since
     no_payload = Bad("no payload", b"", code=ErrorCode.BAD_KEY)

@@ -12,6 +12,7 @@ import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from types import SimpleNamespace
+from typing import cast
 
 import pytest
 import zenoh
@@ -25,7 +26,14 @@ from ride_machine.schema.status import MachineState
 from ride_machine.service.bus.commands import command_route
 from ride_machine.service.bus.injection import Injection
 from ride_machine.service.bus.request import Request, sender_of
-from ride_machine.service.bus.routes import Route, Wildcard, declare
+from ride_machine.service.bus.routes import (
+    PUT_KEYS_MAX,
+    PUT_LOG_S,
+    PutWarner,
+    Route,
+    Wildcard,
+    declare,
+)
 from ride_machine.service.bus.supervisor import SupervisorBus
 from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.errors import Busy, MachineError, UnknownCommand
@@ -162,7 +170,7 @@ def test_a_named_wildcard_is_refused_and_a_broad_read_gets_nothing(
     calls = Calls()
     base = "machine/t3"
     route = Route("diag/reset", calls.ok, Wildcard.REFUSE_NAMED, what="a reset", example="x")
-    (entity,) = declare(session, base, Host(), [route])
+    entities = declare(session, base, Host(), [route])  # its queryable, its put warner
     try:
         (refused,) = ask(session, "machine/*/diag/reset")
         error = refused.reply().error
@@ -171,7 +179,8 @@ def test_a_named_wildcard_is_refused_and_a_broad_read_gets_nothing(
         assert calls.seen == []
         assert [a.key for a in ask(session, f"{base}/diag/reset")] == [f"{base}/diag/reset"]
     finally:
-        entity.undeclare()
+        for entity in entities:
+            entity.undeclare()
 
 
 def test_a_wildcard_read_is_answered_and_a_wildcard_write_refused(
@@ -402,3 +411,35 @@ def test_every_refusal_is_a_machine_error_with_a_wire_code() -> None:
         if isinstance(c, type) and issubclass(c, MachineError) and c is not MachineError
     ]
     assert classes and all(isinstance(c.code, ErrorCode) for c in classes)
+
+
+class _Put:
+    """What `PutWarner` reads of a `zenoh.Sample`."""
+
+    def __init__(self, key_expr: str, kind: zenoh.SampleKind = zenoh.SampleKind.PUT) -> None:
+        self.key_expr, self.kind = key_expr, kind
+
+
+def test_a_peer_putting_in_a_loop_gets_a_line_per_key_every_ten_seconds(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    now = [0.0]
+    warner = PutWarner(clock=lambda: now[0])
+    put = cast(Callable[[_Put], None], warner.sample)
+    with caplog.at_level(logging.WARNING, logger="ride_machine.service.bus.routes"):
+        for _ in range(1000):
+            put(_Put(f"{BASE}/cmd/home"))
+            now[0] += 0.001
+        put(_Put(f"{BASE}/cmd/stop", zenoh.SampleKind.DELETE))
+        now[0] = PUT_LOG_S + 0.5
+        put(_Put(f"{BASE}/cmd/home"))
+        for i in range(PUT_KEYS_MAX + 1):  # ever new keys: the table is bounded
+            put(_Put(f"{BASE}/sim/k{i}"))
+    lines = [r.getMessage() for r in caplog.records]
+    assert f"key='{BASE}/cmd/home' kind=put unlogged=0" in lines[0]
+    assert "answers queries, not puts" in lines[0] and "zenoh get -s" in lines[0]
+    assert f"key='{BASE}/cmd/stop' kind=delete unlogged=0" in lines[1]
+    assert f"key='{BASE}/cmd/home' kind=put unlogged=999" in lines[2]
+    assert len(lines) == 3 + PUT_KEYS_MAX + 1
+    assert warner.seen == 1000 + 1 + 1 + PUT_KEYS_MAX + 1
+    assert len(warner._last) <= PUT_KEYS_MAX
