@@ -1,8 +1,9 @@
 """Opening a Zenoh session the way this project does, for the daemon and the Rider alike.
 
 The config: the shared zenoh.json5 (or Zenoh's defaults, made private), the caller's endpoints,
-the side's secrets from files its environment names (`common.credentials`), and a bound on the
-messages it reassembles (`MAX_MESSAGE_BYTES`). Opening it: Zenoh's runtime laid out first where
+the side's secrets from files its environment names (`common.credentials`), a bound on the
+messages it reassembles (`MAX_MESSAGE_BYTES`) and on how long a send waits for a peer that does
+not read (`BLOCK_WAIT_US`). Opening it: Zenoh's runtime laid out first where
 the caller asks (`common.runtime`), and a layout Zenoh cannot read said as an error that names
 it, not a crash. What differs between the two sides is their `Side`.
 """
@@ -70,16 +71,34 @@ reply a Rider reads: every request (64 KiB at most) and reply fits with room, an
 up to 1 MiB still reaches the daemon to be refused by name (`PAYLOAD_TOO_LARGE`)."""
 
 
+BLOCK_WAIT_SETTING = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+BLOCK_WAIT_US = 250_000
+"""How long a message that must not be dropped waits for room toward a peer whose queue stays
+full before Zenoh closes that link (Zenoh's default: 5 s). Since Zenoh 1.8 a reply takes the
+asker's QoS, and a `get` blocks by default: a peer that asks and stops reading (its handler
+full, its application stuck) held the daemon's Zenoh thread that long, and with it every other
+station's commands and heartbeats (a Stop 4.5 s late; the deadman, 0.5 s by default, lost the
+controlling Rider). A quarter of a second is half the deadman's default timeout; a peer that
+reads nothing for that long is cut, and a live one reconnects and asks again."""
+
+
+def _bounded(conf: zenoh.Config, setting: str, value: int) -> None:
+    """`setting` set to `value` where the config leaves it at Zenoh's default."""
+    if conf.get_json(setting) == zenoh.Config().get_json(setting):
+        conf.insert_json5(setting, str(value))
+
+
 class UnreadableRuntime(ValueError):
     """`ZENOH_RUNTIME` in the environment is a layout Zenoh cannot read (it panics)."""
 
 
 def file_config(path: Path | None) -> zenoh.Config:
     """The zenoh.json5 at `path` as it is, or Zenoh's defaults without one; where it leaves
-    Zenoh's reassembly unbounded (its default), bounded to `MAX_MESSAGE_BYTES`."""
+    Zenoh's reassembly unbounded (its default), bounded to `MAX_MESSAGE_BYTES`, and where it
+    leaves a blocked send waiting Zenoh's 5 s, `BLOCK_WAIT_US`."""
     conf = zenoh.Config.from_file(str(path)) if path is not None else zenoh.Config()
-    if conf.get_json(MAX_MESSAGE_SETTING) == zenoh.Config().get_json(MAX_MESSAGE_SETTING):
-        conf.insert_json5(MAX_MESSAGE_SETTING, str(MAX_MESSAGE_BYTES))
+    _bounded(conf, MAX_MESSAGE_SETTING, MAX_MESSAGE_BYTES)
+    _bounded(conf, BLOCK_WAIT_SETTING, BLOCK_WAIT_US)
     return conf
 
 

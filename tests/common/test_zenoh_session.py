@@ -13,6 +13,8 @@ import zenoh
 
 from ride_machine.common.credentials import MACHINE, RIDER, CredentialError, env_name
 from ride_machine.common.zenoh_session import (
+    BLOCK_WAIT_SETTING,
+    BLOCK_WAIT_US,
     LOCAL_ENDPOINT,
     MACHINE_SIDE,
     MAX_MESSAGE_BYTES,
@@ -115,6 +117,26 @@ def test_every_config_bounds_the_messages_it_reassembles(shared: Path, tmp_path:
     own = tmp_path / "own.json5"
     own.write_text("{transport: {link: {rx: {max_message_size: 4194304}}}}")
     assert get(file_config(own), MAX_MESSAGE_SETTING) == 4194304  # a file's own choice holds
+
+
+def test_every_config_cuts_a_peer_that_stops_reading_within_a_quarter_second(
+    shared: Path, tmp_path: Path
+) -> None:
+    """Zenoh waits 5 s for room toward such a peer, holding the sender's thread meanwhile
+    (tests/integration/test_hostile_reader.py)."""
+    assert get(zenoh.Config(), BLOCK_WAIT_SETTING) == 5_000_000  # Zenoh's own, in µs
+    for side in (MACHINE_SIDE, RIDER_SIDE):
+        assert get(zenoh_config(side, None, listen=[]), BLOCK_WAIT_SETTING) == BLOCK_WAIT_US
+        assert get(zenoh_config(side, shared, listen=[]), BLOCK_WAIT_SETTING) == BLOCK_WAIT_US
+    for name in SHIPPED:
+        shipped = zenoh.Config.from_file(str(REPO / name))
+        assert get(shipped, BLOCK_WAIT_SETTING) == BLOCK_WAIT_US, name
+    own = tmp_path / "own.json5"
+    own.write_text(
+        "{transport: {link: {tx: {queue: {congestion_control: {block:"
+        " {wait_before_close: 1000000}}}}}}}"
+    )
+    assert get(file_config(own), BLOCK_WAIT_SETTING) == 1_000_000  # a file's own choice holds
 
 
 def _size_of_payload(query: zenoh.Query) -> None:
