@@ -4,7 +4,8 @@ The scan thread never sends a reply itself, because a reply can wait. Since Zeno
 (eclipse-zenoh/zenoh#2382) a reply, an error reply and the query's end (`ResponseFinal`, sent as
 the query is dropped) all take the query's own QoS, and a `get` blocks by default: toward an
 asker whose link is full (it stopped reading) they wait, up to `transport/link/tx/queue/
-congestion_control/block/wait_before_close` (5 s). The replier cannot choose otherwise
+congestion_control/block/wait_before_close` (Zenoh's 5 s; 0.25 s in this project's configs,
+common/zenoh_session.py, BLOCK_WAIT_US). The replier cannot choose otherwise
 (`Query.reply`'s `congestion_control` is deprecated and ignored). On the scan thread that wait
 would stop the scan, and the watchdog would take FAULT_HW. A reply dropped because too many
 wait already is safe: a command runs at most once per `transaction_id`, and a Rider that hears
