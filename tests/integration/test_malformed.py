@@ -357,13 +357,13 @@ def test_wildcard_command_keys_get_bad_key_and_nothing_acts(machine: Daemon, rid
 def test_a_put_on_a_key_that_acts_does_nothing_and_the_log_says_to_query_it(
     machine: Daemon, rider: Rider
 ) -> None:
-    """`zenoh put` where `zenoh get` was meant: nothing acts, and the log names the key."""
+    """`zenoh put` where `zenoh get` was meant: nothing acts, and the log names the key (a line
+    a second at most, the puts in between counted: tests/service/bus/test_bus_routes.py)."""
     with untouched(machine, rider):
         for key in (f"{BASE}/cmd/home", f"{BASE}/params/loop.scan_period", f"{BASE}/sim/estop"):
             rider.session.put(key, b'{"transaction_id": "put-1", "pressed": true}')
-            assert machine.has_logged(f"event=put_ignored key='{key}' kind=put"), machine.log()
         rider.session.delete(f"{BASE}/calibration/set")
-        assert machine.has_logged(f"event=put_ignored key='{BASE}/calibration/set' kind=delete")
+        assert machine.has_logged(f"event=put_ignored key='{BASE}/cmd/home' kind=put")
     assert "answers queries, not puts" in machine.log()
     # The put used no transaction id: the same one as a query is taken.
     fresh = ask(rider.session, f"{BASE}/cmd/check/calibration", b'{"transaction_id": "put-1"}')
