@@ -119,6 +119,7 @@ def test_every_config_bounds_the_messages_it_reassembles(shared: Path, tmp_path:
     assert get(file_config(own), MAX_MESSAGE_SETTING) == 4194304  # a file's own choice holds
 
 
+@pytest.mark.hazard("H30")
 def test_every_config_cuts_a_peer_that_stops_reading_within_a_quarter_second(
     shared: Path, tmp_path: Path
 ) -> None:
