@@ -266,9 +266,9 @@ def credentials_init(
             raise CredentialsExist(f"{', '.join(existing)}: exists already (--force replaces)")
         names = tuple(n.strip() for arg in stations for n in arg.split(",") if n.strip())
         users = identities(names, shared=shared)
-        written = init_credentials(directory, users, force=force)
-        if opcua is not None:
-            written += opcua.init_opcua(directory)  # the plant gateway's (docs/plant.md)
+        # The plant gateway's too (docs/plant.md), in the same set: all new, or none.
+        gateway = opcua.opcua_new_files(directory) if opcua is not None else []
+        written = init_credentials(directory, users, force=force, also=gateway)
     except (CredentialsExist, OSError, ValueError) as exc:
         print(f"machine: credentials: {exc}", file=sys.stderr)
         return EXIT_FAILED

@@ -12,10 +12,11 @@ stations once shared, `rider`, only with `--shared-rider` (the daemon warns whil
 from __future__ import annotations
 
 import secrets
+from collections.abc import Sequence
 from pathlib import Path
 
 from ride_machine.schema.rider import login_ok
-from ride_machine.service.core.storage.atomic import atomic_write
+from ride_machine.service.core.storage.atomic import NewFile, write_together
 
 IDENTITIES = ("machine", "rider", "monitor")
 """One login per ACL subject of zenoh/acl.json5 and zenoh/tls.json5 (the shared `rider`)."""
@@ -29,6 +30,7 @@ the plant gateway (docker/compose.gateway.yaml)."""
 DICTIONARY = "zenoh-users"
 PASSWORD_BYTES = 24
 """192 random bits per password (URL-safe base64, no ':' and no spaces)."""
+SECRET = 0o600
 
 
 def identities(stations: tuple[str, ...] = (), *, shared: bool = False) -> tuple[str, ...]:
@@ -55,9 +57,15 @@ def password_file(directory: Path, user: str) -> Path:
 
 
 def init_credentials(
-    directory: Path, users: tuple[str, ...] = IDENTITIES, *, force: bool = False
+    directory: Path,
+    users: tuple[str, ...] = IDENTITIES,
+    *,
+    force: bool = False,
+    also: Sequence[NewFile] = (),
 ) -> list[Path]:
-    """Write fresh random credentials (files 0600, directory 0700); the paths written."""
+    """Write fresh random credentials (files 0600, directory 0700), and the files of `also`,
+    all together or none (`write_together`: a full disk leaves the older set whole); the
+    paths written."""
     targets = [password_file(directory, u) for u in users] + [directory / DICTIONARY]
     existing = [p for p in targets if p.exists()]
     if existing and not force:
@@ -67,11 +75,11 @@ def init_credentials(
         )
     directory.mkdir(mode=0o700, parents=True, exist_ok=True)
     passwords = {u: secrets.token_urlsafe(PASSWORD_BYTES) for u in users}
-    for user, password in passwords.items():
-        _write_secret(password_file(directory, user), password + "\n")
-    _write_secret(directory / DICTIONARY, "".join(f"{u}:{p}\n" for u, p in passwords.items()))
-    return targets
-
-
-def _write_secret(path: Path, text: str) -> None:
-    atomic_write(path, text.encode(), mode=0o600)
+    files = [
+        NewFile(password_file(directory, user), f"{password}\n".encode(), SECRET)
+        for user, password in passwords.items()
+    ]
+    dictionary = "".join(f"{u}:{p}\n" for u, p in passwords.items())
+    files.append(NewFile(directory / DICTIONARY, dictionary.encode(), SECRET))
+    write_together([*files, *also])
+    return [*targets, *(f.path for f in also)]

@@ -21,7 +21,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from ride_machine.service.core.storage.atomic import atomic_write
+from ride_machine.service.core.storage.atomic import NewFile, write_together
 
 APPLICATION_URI = "urn:ride-machine:gateway"
 """The gateway's OPC UA application URI (rider/gateway/server.py); its certificate names it."""
@@ -38,23 +38,32 @@ def opcua_files(directory: Path) -> list[Path]:
 
 
 def init_opcua(directory: Path, hosts: tuple[str, ...] = ()) -> list[Path]:
-    """Write the certificate, its key (0600) and the operators file; the paths written. The
-    caller checked that they may be (re)written."""
+    """Write the certificate, its key (0600) and the operators file, together or none; the
+    paths written. The caller checked that they may be (re)written."""
+    files = opcua_new_files(directory, hosts)
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    write_together(files)
+    return [f.path for f in files]
+
+
+def opcua_new_files(directory: Path, hosts: tuple[str, ...] = ()) -> list[NewFile]:
+    """A fresh certificate, its key and an operator password, as files to write (with the
+    machine's credentials, `init_credentials(also=…)`: all of them or none)."""
     names = ("localhost", socket.gethostname(), *hosts)
     key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
     cert = _certificate(key, names)
-    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
     cert_path, key_path, users_path = opcua_files(directory)
-    atomic_write(cert_path, cert.public_bytes(serialization.Encoding.DER), mode=0o644)
     pem = key.private_bytes(
         serialization.Encoding.PEM,
         serialization.PrivateFormat.PKCS8,
         serialization.NoEncryption(),
     )
-    atomic_write(key_path, pem, mode=0o600)
     password = secrets.token_urlsafe(PASSWORD_BYTES)
-    atomic_write(users_path, f"{OPERATOR}:{password}\n".encode(), mode=0o600)
-    return [cert_path, key_path, users_path]
+    return [
+        NewFile(cert_path, cert.public_bytes(serialization.Encoding.DER), 0o644),
+        NewFile(key_path, pem, 0o600),
+        NewFile(users_path, f"{OPERATOR}:{password}\n".encode(), 0o600),
+    ]
 
 
 def _certificate(key: rsa.RSAPrivateKey, names: tuple[str, ...]) -> x509.Certificate:

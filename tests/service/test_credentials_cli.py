@@ -3,11 +3,16 @@ which has no gateway libraries, and in a container, whose paths are not the user
 
 from __future__ import annotations
 
+import errno
 import sys
 from pathlib import Path
 
+import pytest
+
 from ride_machine.service.adapters.credentials import DICTIONARY, identities, password_file
 from ride_machine.service.adapters.opcua_credentials import opcua_files
+from ride_machine.service.cli import EXIT_FAILED, main
+from ride_machine.service.core.storage import atomic
 from tests.procs import REPO, run_bounded
 
 WITHOUT_CRYPTOGRAPHY = (
@@ -46,3 +51,31 @@ def test_without_the_gateway_libraries_the_logins_are_made_and_the_rest_said(
     assert (secrets / DICTIONARY).is_file()
     assert not any(p.exists() for p in opcua_files(secrets))
     assert "its OPC UA files not made" in done.stdout
+
+
+@pytest.mark.hazard("H38")
+def test_a_full_disk_during_force_leaves_every_older_login_and_key_as_it_was(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`credentials init --force` writes a dozen files; a full disk after some of them left a
+    mixed set: the dictionary old, some stations' passwords new, those stations locked out."""
+    secrets = tmp_path / "secrets"
+    assert main(["credentials", "init", str(secrets)]) == 0
+    before = {p.name: p.read_bytes() for p in secrets.iterdir()}
+    writes, real = [0], atomic.write_all
+
+    def fills_up(fd: int, data: bytes) -> None:
+        writes[0] += 1
+        if writes[0] > 4:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(fd, data)
+
+    monkeypatch.setattr(atomic, "write_all", fills_up)
+    assert main(["credentials", "init", "--force", str(secrets)]) == EXIT_FAILED
+    assert "No space left on device" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in secrets.iterdir()} == before  # no temp file either
+    monkeypatch.setattr(atomic, "write_all", real)
+    assert main(["credentials", "init", "--force", str(secrets)]) == 0
+    after = {p.name: p.read_bytes() for p in secrets.iterdir()}
+    assert after.keys() == before.keys()
+    assert all(after[name] != before[name] for name in before)  # every file new, together

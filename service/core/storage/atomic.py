@@ -9,9 +9,10 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +80,19 @@ def _put_back(path: Path, before: _Before, exc: OSError) -> None:
 
 def _replace(path: Path, data: bytes, mode: int) -> None:
     """`data` into a temp file beside `path`, synced, renamed over `path`."""
+    tmp = _staged(path, data, mode)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
+
+
+def _staged(path: Path, data: bytes, mode: int) -> Path:
+    """`data` in a synced temp file beside `path` (its name returned), or the error and no
+    temp file: a full disk or an interrupt must not leave a half-written one behind, and a
+    failed removal (a read-only mount) must not hide why the write failed."""
     tmp = _temp_name(path, os.getpid(), threading.get_ident())
     created = False
     try:
@@ -89,14 +103,40 @@ def _replace(path: Path, data: bytes, mode: int) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
-        os.replace(tmp, path)
     except BaseException:
-        # A full disk or an interrupt must not leave the half-written temp file behind; a
-        # failed removal (a read-only mount) must not hide why the write failed.
         if created:
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
         raise
+    return tmp
+
+
+class NewFile(NamedTuple):
+    """One file of a set written together (`write_together`)."""
+
+    path: Path
+    data: bytes
+    mode: int = 0o644
+
+
+def write_together(files: Sequence[NewFile]) -> None:
+    """Every file of `files`, or none changed: each is written and synced beside its path
+    first, and only once all are they are renamed over their paths (a rename takes no room),
+    then their directories synced. A full disk part of the way through leaves every file as it
+    was (a set of logins half new would lock out the stations whose files are)."""
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for f in files:
+            staged.append((_staged(f.path, f.data, f.mode), f.path))
+    except BaseException:
+        for tmp, _ in staged:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+        raise
+    for tmp, path in staged:
+        os.replace(tmp, path)
+    for directory in dict.fromkeys(path.parent for _, path in staged):
+        fsync_dir(directory)
 
 
 def write_all(fd: int, data: bytes) -> None:
