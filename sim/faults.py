@@ -102,6 +102,7 @@ def world_state(sim: SimHal, stamp: float) -> SimWorldState:
             "tilt_home": f.tilt_home,
             "tilt_ai_frozen": f.tilt_ai_frozen,
             "tilt_ai_noise_counts": f.tilt_ai_noise_counts,
+            "tilt_ai_broken": f.tilt_ai_broken,
             "rotate_stalled": f.rotate_stalled,
             "tilt_stalled": f.tilt_stalled,
             "scan_stall_probability": sim.stall_probability,

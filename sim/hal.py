@@ -137,6 +137,11 @@ class SimHal:
     def freeze_tilt_ai(self, frozen: bool = True) -> None:
         self.world.faults.tilt_ai_frozen = frozen
 
+    def break_tilt_wire(self, reads: int | None) -> None:
+        """The tilt sensor's wiring broken: the input reads `reads` (0 an open circuit, 32767
+        a short to the supply) whatever the seat does; None repairs it."""
+        self.world.faults.tilt_ai_broken = reads
+
     def set_tilt_noise(self, counts: float) -> None:
         if counts < 0:
             raise ValueError("noise amplitude must be >= 0 counts")
@@ -151,6 +156,7 @@ class SimHal:
         f = self.world.faults
         f.rotate_home = f.tilt_home = None
         f.tilt_ai_frozen = False
+        f.tilt_ai_broken = None
         f.tilt_ai_noise_counts = self.world.params.tilt_noise_counts
         f.rotate_stalled = f.tilt_stalled = False
 

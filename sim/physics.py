@@ -29,6 +29,9 @@ class Faults:
     tilt_home: SwitchFault | None = None
     tilt_ai_frozen: bool = False
     tilt_ai_noise_counts: float = 0.0
+    tilt_ai_broken: int | None = None
+    """The raw value a broken wire reads instead of the sensor (0: an open circuit,
+    `INT16_MAX`: a short to the supply); None: the wiring is sound."""
     rotate_stalled: bool = False
     tilt_stalled: bool = False
 
@@ -253,6 +256,7 @@ class World:
             f.rotate_home,
             f.tilt_home,
             f.tilt_ai_frozen,
+            f.tilt_ai_broken,
             self.params,
         )
 
@@ -275,6 +279,8 @@ class World:
 
     def _tilt_raw(self) -> int:
         p, f = self.params, self.faults
+        if f.tilt_ai_broken is not None:
+            return f.tilt_ai_broken
         if f.tilt_ai_frozen and self._frozen_raw is not None:
             return self._frozen_raw
         raw = p.ai_offset_counts + p.ai_gain_counts_per_deg * self.tilt_deg

@@ -15,7 +15,7 @@ from enum import Enum, auto
 from typing import Generic, TypeVar
 
 from ride_machine.schema.status import Fault, FaultCode
-from ride_machine.service.config.model import RotateSection, TiltSection
+from ride_machine.service.config.axes import RotateSection, TiltSection
 
 from .devices import RotateAxis, TiltAxis
 

@@ -17,7 +17,7 @@ from itertools import pairwise
 
 from ride_machine.schema.commands import Direction
 from ride_machine.schema.status import FaultCode
-from ride_machine.service.config.model import RotateSection, TiltSection
+from ride_machine.service.config.axes import RotateSection, TiltSection
 
 from .base import REVERSE_DWELL_S, Measurement, Step
 from .devices import (

@@ -10,7 +10,8 @@ from collections.abc import Callable
 
 from ride_machine.schema.commands import Direction, RotateStep, Session, TiltStep
 from ride_machine.schema.status import FaultCode, SessionProgress
-from ride_machine.service.config.model import MachineConfig, RotateSection, TiltSection
+from ride_machine.service.config.axes import RotateSection, TiltSection
+from ride_machine.service.config.model import MachineConfig
 
 from .base import REVERSE_DWELL_S, AxisController, Chain, Controller, Step
 from .devices import Devices, RotateAxis, RotateCalibration, TiltAxis, TiltDirection

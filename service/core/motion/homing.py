@@ -22,7 +22,7 @@ from enum import Enum, auto
 
 from ride_machine.schema.commands import Direction
 from ride_machine.schema.status import Fault, FaultCode
-from ride_machine.service.config.model import RotateSection, TiltSection
+from ride_machine.service.config.axes import RotateSection, TiltSection
 
 from .base import (
     REVERSE_DWELL_S,

@@ -14,7 +14,7 @@ from collections import deque
 
 from ride_machine.schema.commands import Direction
 from ride_machine.schema.status import Fault, FaultCode
-from ride_machine.service.config.model import RotateSection, TiltSection
+from ride_machine.service.config.axes import RotateSection, TiltSection
 
 from .base import Timeout
 from .devices import RotateCalibration, TiltAxis, TiltDirection

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ride_machine.service.config.model import TiltSection
+from ride_machine.schema.status import Fault, FaultCode
+from ride_machine.service.config.axes import TiltSection
 
 
 @dataclass(frozen=True)
@@ -54,3 +55,29 @@ def _outside(value: float, lo: float, hi: float, path: str, message: str) -> Sca
 def scale_problem(offset: float, gain: float, cfg: TiltSection) -> ScaleProblem | None:
     """The first of a tilt calibration's values outside the commissioned scale, or None."""
     return gain_problem(gain, cfg) or zero_problem(offset, cfg)
+
+
+def raw_envelope(cfg: TiltSection) -> tuple[float, float]:
+    """The raw values the commissioned scale (any zero and gain within their bands) can give
+    an angle from `min_deg` to `max_deg`, each end widened by `signal_margin_deg`."""
+    ends = (cfg.min_deg - cfg.signal_margin_deg, cfg.max_deg + cfg.signal_margin_deg)
+    zeros = (cfg.zero_min_counts, cfg.zero_max_counts)
+    gains = (cfg.gain_min_counts_per_deg, cfg.gain_max_counts_per_deg)
+    values = [zero + gain * deg for zero in zeros for gain in gains for deg in ends]
+    return min(values), max(values)
+
+
+def signal_fault(raw: int, cfg: TiltSection) -> Fault | None:
+    """`TILT_SIGNAL_RANGE` for a raw value no tilt the ride can take reads (an open circuit
+    reads 0, a short full scale), at rest as in motion; None for one it can."""
+    lo, hi = raw_envelope(cfg)
+    if lo <= raw <= hi:
+        return None
+    return Fault(
+        code=FaultCode.TILT_SIGNAL_RANGE,
+        message=f"tilt sensor reads {raw} counts, outside the {lo:.0f}..{hi:.0f} that any tilt"
+        f" from {cfg.min_deg - cfg.signal_margin_deg:g}° to"
+        f" {cfg.max_deg + cfg.signal_margin_deg:g}° gives on the commissioned scale: a broken"
+        " wire (an open circuit reads 0), a short, or a sensor off its shaft",
+        axis="tilt",
+    )

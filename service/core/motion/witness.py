@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ride_machine.schema.status import Fault, FaultCode
-from ride_machine.service.config.model import TiltSection
+from ride_machine.service.config.axes import TiltSection
 
 from .devices import TiltCalibration, TiltDirection
 

@@ -29,6 +29,7 @@ from ride_machine.service.core.motion.devices import Devices
 from ride_machine.service.core.motion.io import IoPoints, ProcessImage
 from ride_machine.service.core.statemachine import Snapshot, StateMachine
 from ride_machine.service.core.statemachine.deadman import Heartbeats, Verdict
+from ride_machine.service.core.statemachine.signals import judge_signals
 from ride_machine.service.errors import NotAvailable
 
 from .inbox import Inbox
@@ -161,6 +162,7 @@ class ScanLoop:
             return
         self.service_inbox(now)  # 3. queued commands, one reply each
         self._supervise(now)  # the controlling Rider's deadman
+        judge_signals(self.state_machine, now)  # a broken sensor wire, at rest too
         self.state_machine.update(now)  # 4. the state machine steps its controllers
         self._write_and_publish(now)  # 5. the outputs, then what changed, published
 

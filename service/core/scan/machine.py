@@ -7,7 +7,8 @@ import logging
 from collections.abc import Callable
 
 from ride_machine.hal.base import Hal
-from ride_machine.service.config.model import LiveConfig, MachineConfig, TiltSection
+from ride_machine.service.config.axes import TiltSection
+from ride_machine.service.config.model import LiveConfig, MachineConfig
 from ride_machine.service.core.history.events import EventRecorder, EventSink, NullEventSink
 from ride_machine.service.core.motion.devices import Calibration, Devices
 from ride_machine.service.core.motion.io import IoPoints, ProcessImage

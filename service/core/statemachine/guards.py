@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 from ride_machine.schema.commands import RotateStep, Session, TiltStep
 from ride_machine.schema.status import MOTION_STATES, MachineState
-from ride_machine.service.config.model import TiltSection
+from ride_machine.service.config.axes import TiltSection
 from ride_machine.service.errors import DuplicateId, EstopActive, MachineError, WrongState
 
 from .table import Accepts, Pick, Rule

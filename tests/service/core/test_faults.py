@@ -260,9 +260,11 @@ def test_rotate_speed_far_from_nominal_fails_calibration() -> None:
 @pytest.mark.hazard("H13", "H24")
 def test_inverted_tilt_wiring_fails_calibration() -> None:
     """An analog input that falls as the seat rises: the counts must rise going up (the
-    commissioned gain is positive), so the first seek down stops within a follow window."""
+    commissioned gain is positive), so the first seek down stops within a follow window. Its
+    values lie where a sound sensor's can (3000 down to 600 counts from 0 to 60°): one that
+    reads where none can is TILT_SIGNAL_RANGE at rest (test_signal_range.py)."""
     config = CONFIG.with_overrides(
-        hal={"sim": {"ai_gain_counts_per_deg": -40.0, "ai_offset_counts": 8000.0}}
+        hal={"sim": {"ai_gain_counts_per_deg": -40.0, "ai_offset_counts": 3000.0}}
     )
     rig = Rig(config=config)
     assert rig.send(C.CALIBRATE_TILT).success
