@@ -14,13 +14,19 @@ from ride_machine.service.config.model import EventsSection
 from tests.service.adapters.eventlog_support import FLUSH_S, T0, note, page
 
 
+def stalled(tmp_path: Path, kind: type[EventLog], routine: int) -> EventLog:
+    """A log of 16 places, not started (nothing drains it, as when the disk or the history
+    process stalls), offered `routine` events."""
+    log = kind(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
+    for i in range(routine):
+        log.emit(note(float(i)), T0 + i, i)
+    return log
+
+
 def test_a_full_queue_drops_without_waiting_and_records_the_count_later(
     tmp_path: Path, kind: type[EventLog]
 ) -> None:
-    log = kind(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
-    # Not started: nothing drains the queue, as when the disk is slow.
-    for i in range(20):
-        log.emit(note(float(i)), T0 + i, i)
+    log = stalled(tmp_path, kind, 20)
     assert (log.queued, log.dropped) == (16, 4)
     log.start()
     try:
@@ -38,10 +44,7 @@ def test_a_full_queue_drops_without_waiting_and_records_the_count_later(
 def test_a_queue_full_of_routine_events_still_takes_the_safety_record(
     tmp_path: Path, kind: type[EventLog]
 ) -> None:
-    log = kind(tmp_path / EVENTS_FILE, "m1", EventsSection(queue_capacity=16, batch_max=4))
-    # Not started: a stalled history, and a station's commands filling its queue.
-    for i in range(40):
-        log.emit(note(float(i)), T0 + i, i)
+    log = stalled(tmp_path, kind, 40)  # a station's commands filling it
     estop = EstopEvent(kind="estop_pressed", reason="test")
     trip = WatchdogEvent(stalled_s=0.2)
     log.emit(estop, T0 + 50, 50)
