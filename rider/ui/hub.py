@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 
 from .view import Push
+
+log = logging.getLogger("rider.ui")
 
 QUEUE_CAPACITY = 512
 
@@ -40,6 +43,12 @@ class Hub:
             if q.qsize() >= self.capacity:
                 self._end(q)
                 self.dropped += 1
+                log.warning(
+                    "event=ui_stream_cut reason=behind queued=%d cut=%d: the page reconnects"
+                    " from a snapshot",
+                    self.capacity,
+                    self.dropped,
+                )
             else:
                 q.put_nowait(event)
 

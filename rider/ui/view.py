@@ -20,6 +20,9 @@ from ride_machine.schema.status import Status
 
 DEFAULT_HEARTBEAT_S = 1.0
 """The machine's status heartbeat (`bus.heartbeat_s`) until it has told its own."""
+NOTICES_KEPT = 20
+"""The latest completion notices, in every snapshot: a page cut off for falling behind (a busy
+browser) reconnects with the notice its command waits for, not a reply that never ends."""
 
 
 def lost_after(heartbeat_s: float) -> float:
@@ -112,6 +115,7 @@ class LiveView:
         self._note: str | None = None
         self._pending_ai: dict[str, IoValue] = {}
         self._next_sample = 0.0
+        self.notices: deque[dict[str, Any]] = deque(maxlen=NOTICES_KEPT)
 
     @property
     def lost_after_s(self) -> float:
@@ -143,7 +147,9 @@ class LiveView:
             events.append(Push("calibration", update.model_dump(mode="json")))
         elif isinstance(update, Completion):
             # The page that sent the command waits for its own transaction's notice.
-            events.append(Push("done", update.model_dump(mode="json")))
+            notice = update.model_dump(mode="json")
+            self.notices.append(notice)
+            events.append(Push("done", notice))
         elif isinstance(update, Presence):
             self._alive = update.alive
         elif isinstance(update, Note):
@@ -193,6 +199,7 @@ class LiveView:
             "calibration": self.calibration.model_dump(mode="json") if self.calibration else None,
             "sample": self.sample(wall) if self.status else None,
             "history": list(self.history),
+            "done": list(self.notices),
         }
 
     # ---------------------------------------------------------------------------- helpers

@@ -6,6 +6,7 @@ import pytest
 
 from ride_machine.rider.ui.view import (
     LOST_AFTER_S,
+    NOTICES_KEPT,
     LiveView,
     MachineFound,
     Note,
@@ -14,6 +15,7 @@ from ride_machine.rider.ui.view import (
     lost_after,
 )
 from ride_machine.schema.axes import AxisRecord, PnStatus
+from ride_machine.schema.completion import Completion, Outcome
 from ride_machine.schema.diag import CycleDiag, TimingStats
 from ride_machine.schema.io import IoKind, IoValue
 from ride_machine.schema.status import MachineState, Status
@@ -221,3 +223,23 @@ def test_a_completion_notice_is_forwarded_to_the_page() -> None:
     )
     events = [e for e in LiveView().apply(notice, 1.0) if e.kind == "done"]
     assert [e.data["transaction_id"] for e in events] == ["ui-7"]
+
+
+def test_a_snapshot_carries_the_latest_completion_notices_for_a_page_that_was_away() -> None:
+    """A page cut off for falling behind reconnects from a snapshot: the notice its command
+    waits for may have come meanwhile (a full run under load once left a Start 'accepted')."""
+    view = LiveView()
+    for i in range(NOTICES_KEPT + 5):
+        notice = Completion(
+            machine_id="m1",
+            transaction_id=f"t{i}",
+            command="Start",
+            outcome=Outcome.DONE,
+            state=MachineState.DONE,
+            started_at=float(i),
+            time=float(i) + 1.0,
+        )
+        [done] = [p for p in view.apply(notice, float(i)) if p.kind == "done"]
+        assert done.data["transaction_id"] == f"t{i}"
+    kept = view.snapshot(100.0)["done"]
+    assert [n["transaction_id"] for n in kept] == [f"t{i}" for i in range(5, NOTICES_KEPT + 5)]

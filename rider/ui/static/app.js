@@ -71,6 +71,9 @@
       ui.history = d.history || [];
       ui.sample = d.sample;
       clock(d.now);
+      // Notices that came while this page was away (cut off for falling behind): a command
+      // still waiting for its own ends now.
+      for (const n of d.done || []) finished(n);
       if (ui.server.dropped) {
         // The server may have restarted with other options (e.g. --monitor): re-read them.
         ui.server.dropped = false;
