@@ -12,6 +12,7 @@ import logging
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 from ride_machine.rider.client import (
@@ -26,6 +27,7 @@ from ride_machine.rider.client import (
 from ride_machine.schema.axes import AxisRecord
 from ride_machine.schema.calibration import CalibrationRecord
 from ride_machine.schema.commands import Command, Reply, Session
+from ride_machine.schema.completion import Completion
 from ride_machine.schema.diag import CycleDiag
 from ride_machine.schema.events import Event, EventQuery
 from ride_machine.schema.io import IoValue
@@ -44,6 +46,9 @@ log = logging.getLogger("rider.ui")
 
 WATCHED = ("status", "io/**", "axis/**", "diag/cycle", "done/**", "calibration")
 POLL_S = 0.25
+NOTICE_WAIT_S = 1.0
+"""A motion the status shows ended, and no notice of it came within this: the bridge asks for
+it (`done/<id>`). A notice is published once, dropped like any update on a congested link."""
 
 
 class NotReady(RiderError):
@@ -150,11 +155,14 @@ class Bridge:
         fresh = self._refresh()
         last_status = time.monotonic() if fresh else None
         heartbeat_s = _heartbeat(fresh)
+        notices = Notices(self.rider, self._emit)
         while not self._stop.is_set():
+            notices.ask_overdue(time.monotonic())
             try:
                 update = self._updates.get(timeout=POLL_S)
             except queue.Empty:
                 continue
+            notices.saw(update, time.monotonic())
             if isinstance(update, Presence):
                 if not update.alive:
                     last_status = None  # a machine that comes back gets a full refresh
@@ -230,3 +238,38 @@ class Bridge:
 def _heartbeat(status: Status | None) -> float:
     """The machine's status heartbeat as its status tells it (older machines: the default)."""
     return (status.heartbeat_s if status is not None else None) or DEFAULT_HEARTBEAT_S
+
+
+class Notices:
+    """The completion notice of every motion the bridge saw end: the one published, or, when
+    none came within `NOTICE_WAIT_S` of the status that showed the motion over, asked for."""
+
+    def __init__(self, rider: Rider, emit: Callable[[Update], None]) -> None:
+        self.rider, self.emit = rider, emit
+        self._moving: str | None = None
+        self._seen: deque[str] = deque(maxlen=64)
+        self._due: dict[str, float] = {}
+
+    def saw(self, update: Update, now: float) -> None:
+        if isinstance(update, Completion):
+            self._seen.append(update.transaction_id)
+            self._due.pop(update.transaction_id, None)
+        elif isinstance(update, Status):
+            tid = update.motion.transaction_id if update.motion is not None else None
+            if self._moving is not None and tid != self._moving and self._moving not in self._seen:
+                self._due[self._moving] = now + NOTICE_WAIT_S
+            self._moving = tid
+
+    def ask_overdue(self, now: float) -> None:
+        for tid, due in list(self._due.items()):
+            if now < due:
+                continue
+            del self._due[tid]
+            try:
+                notice = self.rider.done(tid, timeout=NOTICE_WAIT_S)
+            except RiderError as exc:  # unknown to the machine, or no answer: nothing to show
+                log.info("event=ui_notice_unavailable tx=%s error=%r", tid, str(exc))
+                continue
+            if notice is not None:
+                self._seen.append(tid)
+                self.emit(notice)
