@@ -9,21 +9,12 @@ from typing import cast
 from ride_machine.rider.client import Rider, UnknownTransaction
 from ride_machine.rider.ui.bridge import NOTICE_WAIT_S, Notices
 from ride_machine.rider.ui.view import Update
-from ride_machine.schema.completion import Completion, Outcome
+from ride_machine.schema.completion import Completion
 from ride_machine.schema.status import MachineState, MotionRef, Status
+from tests.schema.completion_samples import done_notice
 from tests.ui.test_view import status
 
-
-def notice(tid: str) -> Completion:
-    return Completion(
-        machine_id="m1",
-        transaction_id=tid,
-        command="Start",
-        outcome=Outcome.DONE,
-        state=MachineState.DONE,
-        started_at=0.0,
-        time=1.0,
-    )
+notice = done_notice
 
 
 class Machine:

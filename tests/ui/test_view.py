@@ -15,10 +15,10 @@ from ride_machine.rider.ui.view import (
     lost_after,
 )
 from ride_machine.schema.axes import AxisRecord, PnStatus
-from ride_machine.schema.completion import Completion, Outcome
 from ride_machine.schema.diag import CycleDiag, TimingStats
 from ride_machine.schema.io import IoKind, IoValue
 from ride_machine.schema.status import MachineState, Status
+from tests.schema.completion_samples import done_notice
 
 WALL = 1_700_000_000.0
 
@@ -230,15 +230,7 @@ def test_a_snapshot_carries_the_latest_completion_notices_for_a_page_that_was_aw
     waits for may have come meanwhile (a full run under load once left a Start 'accepted')."""
     view = LiveView()
     for i in range(NOTICES_KEPT + 5):
-        notice = Completion(
-            machine_id="m1",
-            transaction_id=f"t{i}",
-            command="Start",
-            outcome=Outcome.DONE,
-            state=MachineState.DONE,
-            started_at=float(i),
-            time=float(i) + 1.0,
-        )
+        notice = done_notice(f"t{i}", started_at=float(i))
         [done] = [p for p in view.apply(notice, float(i)) if p.kind == "done"]
         assert done.data["transaction_id"] == f"t{i}"
     kept = view.snapshot(100.0)["done"]

@@ -13,6 +13,7 @@ from ride_machine.service.config.model import MachineConfig
 from ride_machine.service.core.commands.completions import CompletionLog
 from ride_machine.sim.physics import SwitchFault
 from tests.rig import BAD_SESSION, Rig, known_calibration
+from tests.schema.completion_samples import done_notice
 from tests.service.core.storage.test_persist_failure import SlowStore
 
 S = MachineState
@@ -276,19 +277,8 @@ def test_the_log_knows_notices_the_motion_under_way_and_forgets_the_oldest() -> 
     log.set_active(ref)
     assert log.lookup("a") == ref and log.lookup("zz") is None
 
-    def notice(tid: str) -> Completion:
-        return Completion(
-            machine_id="m1",
-            transaction_id=tid,
-            command="Home",
-            outcome=Outcome.DONE,
-            state=S.IDLE,
-            started_at=1.0,
-            time=2.0,
-        )
-
     for tid in ("a", "b", "c"):
-        log.record(notice(tid))
+        log.record(done_notice(tid, "Home", S.IDLE))
     assert log.lookup("a") is None  # forgotten (and no longer under way)
     assert [n.transaction_id for n in log.recent()] == ["b", "c"]
 
@@ -300,17 +290,7 @@ def test_a_full_window_of_notices_is_kept_small_and_read_back_as_it_was() -> Non
     rider = "bay1/" + "ab" * 16
 
     def notice(i: int) -> Completion:
-        tid = f"rider-{i:012x}-{i}"
-        return Completion(
-            machine_id="m1",
-            transaction_id=tid,
-            command="Start",
-            outcome=Outcome.DONE,
-            state=S.DONE,
-            rider=rider,
-            started_at=1.5e9 + i,
-            time=1.5e9 + i + 0.25,
-        )
+        return done_notice(f"rider-{i:012x}-{i}", rider=rider, started_at=1.5e9 + i, took_s=0.25)
 
     first = notice(0)
     tracemalloc.start()
