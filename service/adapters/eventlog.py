@@ -35,8 +35,7 @@ from ride_machine.service.core.history.held import Held, LogLine
 from .eventdb import BUSY_TIMEOUT_S, WRITER_WAIT_S, Row, file_bytes
 from .eventread import Reader
 from .eventwriter import EventWriter, Listener
-from .retention import SAFETY_KINDS
-from .writer_thread import SAFETY_RESERVE, WriterThread
+from .writer_thread import WriterThread
 
 log = logging.getLogger(__name__)
 
@@ -152,14 +151,7 @@ class EventLog(WriterThread[EventsSection]):
 
         Queued as plain text and numbers, which the garbage collector never scans: a queue
         filled by a stalled disk must not make the scan thread's collections longer."""
-        row = as_row(details, time, cycle)
-        limit = self.capacity + SAFETY_RESERVE if row[0] in SAFETY_KINDS else self.capacity
-        with self._lock:
-            if len(self._items) >= limit or self._stopping:
-                self.dropped += 1
-                return
-            self._items.append(row)
-        self._wake_writer()
+        self._admit((as_row(details, time, cycle),), self.capacity)
 
     def put_rows(self, rows: Sequence[Row | str]) -> None:
         """Queue events already made, and log lines in their place, in order; events beyond
