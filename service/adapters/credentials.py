@@ -81,5 +81,6 @@ def init_credentials(
     ]
     dictionary = "".join(f"{u}:{p}\n" for u, p in passwords.items())
     files.append(NewFile(directory / DICTIONARY, dictionary.encode(), SECRET))
-    write_together([*files, *also])
-    return [*targets, *(f.path for f in also)]
+    written = [*files, *also]
+    write_together(written)
+    return [f.path for f in written]
