@@ -57,14 +57,25 @@ def scale_problem(offset: float, gain: float, cfg: TiltSection) -> ScaleProblem 
     return gain_problem(gain, cfg) or zero_problem(offset, cfg)
 
 
+_envelope: tuple[TiltSection, tuple[float, float]] | None = None
+"""The last `[tilt]` section asked about and its envelope, replaced as one value: every full
+scan cycle asks (`signal_fault`), and the section is a new object only when a parameter
+changes."""
+
+
 def raw_envelope(cfg: TiltSection) -> tuple[float, float]:
     """The raw values the commissioned scale (any zero and gain within their bands) can give
     an angle from `min_deg` to `max_deg`, each end widened by `signal_margin_deg`."""
+    global _envelope  # noqa: PLW0603 - a one-entry cache of a pure function of a frozen model
+    last = _envelope
+    if last is not None and last[0] is cfg:
+        return last[1]
     ends = (cfg.min_deg - cfg.signal_margin_deg, cfg.max_deg + cfg.signal_margin_deg)
     zeros = (cfg.zero_min_counts, cfg.zero_max_counts)
     gains = (cfg.gain_min_counts_per_deg, cfg.gain_max_counts_per_deg)
     values = [zero + gain * deg for zero in zeros for gain in gains for deg in ends]
-    return min(values), max(values)
+    _envelope = (cfg, (min(values), max(values)))
+    return _envelope[1]
 
 
 def signal_fault(raw: int, cfg: TiltSection) -> Fault | None:

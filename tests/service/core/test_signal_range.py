@@ -25,6 +25,9 @@ OPEN, SHORT = 0, INT16_MAX
 def test_the_envelope_is_the_commissioned_scale_over_the_range_and_its_margin() -> None:
     tilt = MachineConfig().tilt  # 0..60°, zero 1160..1240, gain 38..42, margin 20°
     assert raw_envelope(tilt) == (1160 - 42 * 20, 1240 + 42 * 80)
+    narrower = tilt.model_copy(update={"signal_margin_deg": 10.0})  # a parameter written
+    assert raw_envelope(narrower) == (1160 - 42 * 10, 1240 + 42 * 70)
+    assert raw_envelope(tilt) == (1160 - 42 * 20, 1240 + 42 * 80)
     lo, hi = raw_envelope(tilt)
     assert signal_fault(int(lo), tilt) is None and signal_fault(int(hi), tilt) is None
     assert signal_fault(int(lo) - 1, tilt) is not None
